@@ -21,15 +21,20 @@ Each face is extended by ``k`` texels on every side; the result has shape ``(6, 
   texels that meet at the cube corner, which makes bilinear interpolation continuous at the corner
   (all three faces then interpolate the same four values there).
 
+Both padding modes and every lookup are fixed positive linear combinations of input texels: linear
+(so Σ lookups of partial maps = lookup of the sum) and never outside the input range.
+
 Padding is a gather with precomputed, cached index/weight tables: O(N·k) work per call.
 
 Bilinear lookup (:class:`CubeSampler`, :func:`sample_bilinear`)
 ---------------------------------------------------------------
-A direction is mapped to (face, x, y) with texel centres on integers (:mod:`ibl_ref.envmap`), and the
-four surrounding texel centres of the 1-padded face are blended.  At a face edge the blend is between
-the face's last texel and the neighbour's first texel, and the value on the edge is the same seen from
-both faces, so the lookup is continuous everywhere on the sphere.  Error for a smooth function is
-O(h²) with h = 2/N (bilinear interpolation of texel-centre samples).
+A direction is mapped to (face, x, y) with texel centres on integers (:mod:`ibl_ref.envmap`) and
+interpolated bilinearly on the face's *geometrically* padded grid (padded texels hold the neighbour's
+interpolation at their true direction, so the grid samples the sphere where bilinear interpolation
+assumes).  In the half-texel band along an edge the two faces' interpolations are blended so that both
+sides compute the same value on the edge (and the three faces the same value at a corner): the lookup is
+continuous everywhere on the sphere and O(h²) accurate for smooth functions, h = 2/N, also at edges and
+corners (see :class:`CubeSampler`).
 """
 
 from __future__ import annotations
@@ -156,7 +161,7 @@ def pad_faces(cube: np.ndarray, k: int, convention: str = "openexr", mode: str =
         src, w = padding_tables(n, int(k), convention)
         flat = cube.reshape((6 * n * n,) + cube.shape[3:])
     elif mode == "geometric":
-        src, w, corner = _geometric_tables(n, int(k), convention)
+        src, w = _geometric_tables(n, int(k), convention)
         flat = pad_faces(cube, 1, convention, "unfold")
         flat = flat.reshape((6 * (n + 2) * (n + 2),) + cube.shape[3:])
     else:
@@ -165,9 +170,6 @@ def pad_faces(cube: np.ndarray, k: int, convention: str = "openexr", mode: str =
         out = (flat[src] * w).sum(axis=-1)
     else:
         out = np.einsum("...kc,...k->...c", flat[src], w)
-    if mode == "geometric" and corner.any() and cube.size:
-        lo, hi = cube.min(axis=(0, 1, 2)), cube.max(axis=(0, 1, 2))
-        out[corner] = np.clip(out[corner], lo, hi)
     return out.astype(cube.dtype, copy=False)
 
 
@@ -198,18 +200,22 @@ def _extended_coords(d, face, n: int, convention: str):
 
 @functools.lru_cache(maxsize=64)
 def _geometric_tables(n: int, k: int, convention: str = "openexr"):
-    """Tables of ``pad_faces(mode="geometric")``: taps into the 1-unfold-padded cube.
+    """Tables of ``pad_faces(mode="geometric")``: up to 4 taps into the 1-unfold-padded cube.
 
-    Edge-strip texels: 4 bilinear taps of the neighbour face at the padded texel's true direction.
-    Corner-block texels (beyond two edges) have no face to read from with O(h²) accuracy, so they are
-    the planar extrapolation ``P[i, j] = P[i, j_e] + P[i_e, j] − P[i_e, j_e]`` from the adjacent edge
-    strips (``i_e``, ``j_e`` the nearest in-face row/column), 12 taps; :func:`pad_faces` clamps those
-    values to the data range of the input so that extrapolation never creates negative radiance.
-    Returns ``src`` (6, m, m, 12), ``w`` (6, m, m, 12) and a boolean ``corner`` mask (6, m, m).
+    Edge-strip texels: the 4 bilinear taps of the neighbour face at the padded texel's true direction.
+    Corner blocks: the texel adjacent to the cube corner (depths (1, 1)) sees a direction on the seam
+    between the two neighbours, between the pair of the neighbours' corner texels (mirror images across
+    the seam) and the next pair along the seam; it takes the linear interpolation along the seam between
+    the two pairs' midpoints (positive weights, exact for functions linear in position up to the
+    sphere's curvature, hence O(h²)).  Deeper corner-block texels — read
+    by lookups only with O(h) weight — take the nearest texel of their direction.  Every value is a
+    fixed positive linear combination of input texels, so padding (and :class:`CubeSampler`) is linear
+    and never leaves the input's range.
     """
     if k < 0 or k > n:
         raise ValueError(f"padding width must be in 0..N (N={n}), got {k}")
-    m = n + 2 * k
+    frames = envmap._frames(convention)
+    m, mp = n + 2 * k, n + 2
     idx = np.arange(-k, n + k)
     f, i, j = np.meshgrid(np.arange(6), idx, idx, indexing="ij")
     u, v = envmap.texel_coords_to_uv(j, i, n)
@@ -218,26 +224,46 @@ def _geometric_tables(n: int, k: int, convention: str = "openexr"):
     out_v = (i < 0) | (i >= n)
     corner = out_u & out_v
     face_d, _, _ = envmap.direction_to_face_uv(d, convention)
-    face_d = np.where(out_u | out_v, face_d, f)
-    # corner entries are rebuilt below; give them a harmless in-face target meanwhile
-    face_d = np.where(corner, f, face_d)
+    face_d = np.where(corner, f, np.where(out_u | out_v, face_d, f))
     x, y = _extended_coords(d, face_d, n, convention)
     x = np.where(corner, np.clip(x, 0, n - 1), x)
     y = np.where(corner, np.clip(y, 0, n - 1), y)
-    src4, w4 = _bilinear_taps(face_d, x, y, n, 1)  # (6, m, m, 4)
-    src = np.zeros((6, m, m, 12), dtype=np.intp)
-    w = np.zeros((6, m, m, 12))
-    src[..., :4] = src4
-    w[..., :4] = w4
-    if corner.any():
-        fc, ic, jc = np.nonzero(corner)  # indices into the padded grid
-        ie = np.clip(ic, k, k + n - 1)
-        je = np.clip(jc, k, k + n - 1)
-        src[fc, ic, jc] = np.concatenate([src4[fc, ic, je], src4[fc, ie, jc], src4[fc, ie, je]], axis=-1)
-        w[fc, ic, jc] = np.concatenate([w4[fc, ic, je], w4[fc, ie, jc], -w4[fc, ie, je]], axis=-1)
-    for a in (src, w, corner):
-        a.setflags(write=False)
-    return src, w, corner
+    src, w = _bilinear_taps(face_d, x, y, n, 1)  # (6, m, m, 4) into the 1-padded cube
+    src, w = src.copy(), w.copy()
+
+    def padded_index(face, row, col):
+        return face * mp * mp + (row + 1) * mp + (col + 1)
+
+    centres = envmap.texel_directions(n, convention)
+    for fc, ic, jc in zip(*np.nonzero(corner)):
+        du = -idx[jc] if idx[jc] < 0 else idx[jc] - n + 1
+        dv = -idx[ic] if idx[ic] < 0 else idx[ic] - n + 1
+        su = -1.0 if idx[jc] < 0 else 1.0
+        sv = -1.0 if idx[ic] < 0 else 1.0
+        p = d[fc, ic, jc]
+        if du == 1 and dv == 1:
+            # p lies on the seam between the neighbours B (across u) and C (across v), just beyond the
+            # pair of corner texels (B_c, C_c) — mirror images across the seam — and before the next
+            # pair (B_c2, C_c2) along the seam: interpolate linearly along the seam between the pairs.
+            kc = frames[fc, 0] + su * frames[fc, 1] + sv * frames[fc, 2]  # the cube corner
+            away = kc - (3.0 / n) * frames[fc, 0]  # 1.5 texels along the seam, away from the corner
+            ax_b, ax_c = su * frames[fc, 1], sv * frames[fc, 2]
+            taps = [envmap.direction_to_texel(q + 1e-9 * ax, n, convention)
+                    for q in (kc, away) for ax in (ax_b, ax_c)]
+            c4 = np.array([centres[t] for t in taps])
+            m1, m2 = c4[:2].mean(axis=0), c4[2:].mean(axis=0)
+            pn = p / np.linalg.norm(p)
+            t_seam = float(np.clip((pn - m1) @ (m2 - m1) / ((m2 - m1) @ (m2 - m1)), 0.0, 1.0))
+            src[fc, ic, jc] = [padded_index(*t) for t in taps]
+            w[fc, ic, jc] = [(1 - t_seam) / 2, (1 - t_seam) / 2, t_seam / 2, t_seam / 2]
+        else:
+            # nearest texel of the direction; exact diagonal ties go to the u-side neighbour
+            t = envmap.direction_to_texel(p + 1e-9 * su * frames[fc, 1], n, convention)
+            src[fc, ic, jc] = padded_index(*t)
+            w[fc, ic, jc] = [1.0, 0.0, 0.0, 0.0]
+    for arr in (src, w):
+        arr.setflags(write=False)
+    return src, w
 
 
 class CubeSampler:

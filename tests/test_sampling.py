@@ -163,3 +163,21 @@ def test_padding_dtypes_and_errors():
         S.pad_faces(cube, 1, mode="mirror")
     with pytest.raises(LayoutError):
         S.sample_bilinear(np.ones((6, 4, 5)), np.array([0, 0, 1.0]))
+
+
+def test_lookups_and_padding_are_linear_and_positive():
+    """Σ_i lookup(PEM_i) = lookup(Σ_i PEM_i) (Knuth et al. Sec. 3.1 rely on it): the sampler must be a
+    fixed linear operator; rounding-level tolerance."""
+    rng = np.random.default_rng(9)
+    n = 8
+    x, y = rng.random((6, n, n, 3)), rng.random((6, n, n, 3)) * 1e3
+    d = np.concatenate([_unit(rng.normal(size=(3000, 3))), _near(CORNERS, n, 200, rng)])
+    lhs = S.sample_bilinear(2.0 * x + 0.5 * y, d)
+    rhs = 2.0 * S.sample_bilinear(x, d) + 0.5 * S.sample_bilinear(y, d)
+    np.testing.assert_allclose(lhs, rhs, rtol=1e-12, atol=1e-9)
+    for mode in ("unfold", "geometric"):
+        np.testing.assert_allclose(S.pad_faces(x + y, 2, mode=mode), S.pad_faces(x, 2, mode=mode) + S.pad_faces(y, 2, mode=mode),
+                                   rtol=1e-12)
+    # positivity: every padded value is a convex combination → within [min, max] of the data
+    g = S.pad_faces(x, 2, mode="geometric")
+    assert g.min() >= x.min() - 1e-15 and g.max() <= x.max() + 1e-15
