@@ -49,6 +49,10 @@ def atomic_path(path, suffix: str | None = None):
     parent = _check_dir(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix if suffix is not None else path.suffix, dir=parent)
     os.close(fd)
+    # mkstemp creates 0600 files; give the result the mode a plain open() would (0666 & ~umask)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
     try:
         yield Path(tmp)
         os.replace(tmp, path)

@@ -91,3 +91,10 @@ def test_cli_unknown_experiment_is_a_clean_error(capsys):
 def test_python_dash_m_entry_point():
     out = subprocess.run([sys.executable, "-m", "ibl_ref", "--help"], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and "ibl-ref" in out.stdout
+
+
+def test_atomic_files_get_normal_permissions(tmp_path):
+    p = atomic.write_json(tmp_path / "m.json", {})
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE(p.stat().st_mode) == 0o666 & ~umask
