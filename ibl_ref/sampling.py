@@ -329,12 +329,16 @@ class CubeSampler:
             w_a = (1 - fxb) * (1 - fyb) + corner
             w_b = fxb * (1 - fyb) + corner
             w_c = (1 - fxb) * fyb + corner
-            v_a = out[band]
-            v_b = self._interp(face_b, *_extended_coords(db, face_b, n, self.convention))
-            v_c = self._interp(face_c, *_extended_coords(db, face_c, n, self.convention))
-            if self.cube.ndim == 4:
-                w_a, w_b, w_c = w_a[:, None], w_b[:, None], w_c[:, None]
-            out[band] = w_a * v_a + w_b * v_b + w_c * v_c
+            nc = (1,) * (self.cube.ndim - 3)  # a trailing channel axis, if any
+            res = w_a.reshape(w_a.shape + nc) * out[band]
+            # each neighbour is evaluated only where its weight is non-zero (elsewhere the direction may
+            # be parallel to that neighbour's plane)
+            for w_n, face_n in ((w_b, face_b), (w_c, face_c)):
+                sel = w_n > 0
+                if np.any(sel):
+                    val = self._interp(face_n[sel], *_extended_coords(db[sel], face_n[sel], n, self.convention))
+                    res[sel] += w_n[sel].reshape((-1,) + nc) * val
+            out[band] = res
         return out.astype(np.result_type(self.cube.dtype, np.float32), copy=False)
 
 

@@ -181,3 +181,25 @@ def test_lookups_and_padding_are_linear_and_positive():
     # positivity: every padded value is a convex combination → within [min, max] of the data
     g = S.pad_faces(x, 2, mode="geometric")
     assert g.min() >= x.min() - 1e-15 and g.max() <= x.max() + 1e-15
+
+
+def test_directions_exactly_on_edges_and_corners_give_finite_values_without_warnings():
+    import warnings
+
+    cube = np.random.default_rng(1).random((6, 4, 4, 3))
+    pts = np.array([e for e in EDGES] + list(CORNERS), float)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = S.sample_bilinear(cube, pts)
+        out1 = S.sample_bilinear(cube[..., 0], pts)
+    assert np.all(np.isfinite(out)) and np.all(np.isfinite(out1))
+    np.testing.assert_allclose(out[:, 0], out1, rtol=1e-14)
+
+
+def test_leading_shapes_of_directions():
+    rng = np.random.default_rng(4)
+    cube = rng.random((6, 4, 4, 2))
+    d = _unit(rng.normal(size=(5, 1, 7, 3)))
+    out = S.sample_bilinear(cube, d)
+    assert out.shape == (5, 1, 7, 2)
+    np.testing.assert_allclose(out.reshape(-1, 2), S.sample_bilinear(cube, d.reshape(-1, 3)), rtol=1e-14)

@@ -1,0 +1,549 @@
+"""OpenEXR environment-map files: CUBE strips, LATLONG maps and multi-part MIP pyramids.
+
+File layouts (OpenEXR ``ImfEnvmap.h``; see ``FIELD_NOTES.md`` §2 and :mod:`ibl_ref.envmap`)
+------------------------------------------------------------------------------------------
+* **CUBE** (header attribute ``envmap = ENVMAP_CUBE``): one image ``N`` wide and ``6N`` high, the six
+  faces stacked top to bottom in the order ``+X, -X, +Y, -Y, +Z, -Z``.  Face ``f`` occupies scanlines
+  ``f·N … f·N+N−1``; pixel ``(x, y)`` of the strip is texel ``cube[y // N, y % N, x]`` of the in-memory
+  ``(6, N, N, C)`` array, whose face orientation *is* OpenEXR's (``envmap.py``).  So reading or writing a
+  CUBE file is a reshape, never a flip.
+* **LATLONG** (``envmap = ENVMAP_LATLONG``): an ``H × 2H`` image, top row latitude +π/2, left column
+  longitude +π (``envmap.latlong_directions``).  In memory ``(H, W, C)``.
+* **Channels**: ``R, G, B`` (C = 3), ``R, G, B, A`` (C = 4) or a single luminance channel ``Y`` (C = 1).
+  Arrays in memory always carry the channel axis.  The pixel type is ``float`` (32 bit) or ``half``
+  (16 bit, max finite value 65504).  Files are written with lossless ZIP compression.  Channel arrays
+  are handed to the binding C-contiguous: the OpenEXR 3.5 Python binding ignores strides and writes a
+  non-contiguous view as its raw buffer (scrambled pixels, no error).
+* **OpenGL-oriented cube files**: ``write_envmap(..., convention="opengl")`` writes the faces re-oriented
+  to the OpenGL/D3D convention (:func:`ibl_ref.envmap.convert_convention`).  Such a strip is *not* an
+  OpenEXR CUBE map, so it is written **without** the ``envmap`` attribute and with the string attribute
+  ``iblref_convention = "opengl"``; :func:`read_envmap` honours that attribute and always returns
+  OpenEXR-oriented arrays.  Every cube file ibl_ref writes carries ``iblref_convention``.
+* **MIP pyramids** (:func:`write_pyramid`): a multi-part EXR (the Python binding's tiled/mip-mapped
+  writing is unreliable, FIELD_NOTES §2), one scanline part per level, named ``level0``, ``level1``, …,
+  each a CUBE strip of its own size (``envmap = ENVMAP_CUBE``, int attribute ``iblref_level``).  All
+  parts share level 0's display window (OpenEXR requires shared attributes to agree); each part's
+  data window is its own strip size.
+
+Validation
+----------
+Writers check the data first (:func:`ibl_ref.errors.check_radiance`: NaN, ±Inf, negative radiance →
+:class:`~ibl_ref.errors.RadianceError`) and never let a value overflow silently: in ``half`` a value
+above 65504 raises :class:`~ibl_ref.errors.IBLError` naming the file, the count and the maximum, unless
+``clamp_half=True``, which clamps to 65504, warns and reports the clamping in the returned
+:class:`WriteReport`.  Every write is atomic (:func:`ibl_ref.atomic.atomic_path`, the temporary file keeps
+the ``.exr`` suffix): on any error the previous file is untouched and no temporary file remains.
+
+Readers raise :class:`~ibl_ref.errors.EnvMapFileError`, :class:`~ibl_ref.errors.LayoutError` or
+:class:`~ibl_ref.errors.RadianceError` with a message that names the file and the problem (missing,
+not an EXR / truncated, non-finite or negative radiance, wrong aspect ratio, missing R/G/B channels).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import envmap
+from .atomic import atomic_path
+from .errors import EnvMapFileError, IBLError, LayoutError, RadianceError, check_radiance
+
+__all__ = [
+    "HALF_MAX",
+    "FLOAT_MAX",
+    "EnvMap",
+    "WriteReport",
+    "write_envmap",
+    "read_envmap",
+    "read_image",
+    "load_cube",
+    "write_pyramid",
+    "read_pyramid",
+    "infer_layout",
+]
+
+HALF_MAX = 65504.0  #: largest finite IEEE binary16 value
+FLOAT_MAX = float(np.finfo(np.float32).max)
+_LAYOUTS = ("cube", "latlong")
+_PIXEL_TYPES = ("float", "half")
+
+
+def _openexr():
+    try:
+        import OpenEXR
+    except ImportError as exc:  # pragma: no cover - dependency declared in pyproject
+        raise EnvMapFileError("the OpenEXR Python package (>= 3.2) is required for .exr files") from exc
+    return OpenEXR
+
+
+@dataclass
+class EnvMap:
+    """An environment map read from a file.
+
+    Attributes
+    ----------
+    data : ndarray, float64
+        ``(6, N, N, C)`` for ``layout == "cube"`` (OpenEXR face order and orientation), ``(H, 2H, C)``
+        for ``"latlong"``.
+    layout : {"cube", "latlong"}
+    path : Path
+    channels : tuple of str
+        ``("R", "G", "B")``, ``("R", "G", "B", "A")`` or ``("Y",)``, matching the last axis of ``data``.
+    header : dict
+        File header attributes converted to simple Python values (str, int, float, lists).
+    pixel_type : str
+        ``"half"``, ``"float"``, ``"uint"`` or ``"mixed"`` as stored in the file.
+    """
+
+    data: np.ndarray
+    layout: str
+    path: Path
+    channels: tuple
+    header: dict = field(default_factory=dict)
+    pixel_type: str = "float"
+
+    @property
+    def size(self) -> int:
+        """Face size N (cube) or height H (lat-long)."""
+        return int(self.data.shape[1] if self.layout == "cube" else self.data.shape[0])
+
+
+@dataclass
+class WriteReport:
+    """What :func:`write_envmap` / :func:`write_pyramid` wrote.
+
+    ``clamped_count`` values above :data:`HALF_MAX` were clamped to it (only with ``clamp_half=True``);
+    ``clamped_max`` is the largest original value among them (0 if none).
+    """
+
+    path: Path
+    layout: str
+    pixel_type: str
+    shape: tuple
+    clamped_count: int = 0
+    clamped_max: float = 0.0
+
+
+# ----------------------------------------------------------------------------------------------
+# helpers
+# ----------------------------------------------------------------------------------------------
+def _channel_names(c: int, where: str) -> tuple:
+    if c == 1:
+        return ("Y",)
+    if c == 3:
+        return ("R", "G", "B")
+    if c == 4:
+        return ("R", "G", "B", "A")
+    raise LayoutError(f"{where}: expected 1 (Y), 3 (RGB) or 4 (RGBA) channels, got {c}")
+
+
+def _simple(v):
+    """Header value → plain Python value (for EnvMap.header)."""
+    if isinstance(v, (str, int, float, bool)) or v is None:
+        return v
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, (tuple, list)):
+        return [_simple(x) for x in v]
+    name = getattr(v, "name", None)
+    if isinstance(name, str):
+        return name
+    return str(v)
+
+
+def _prepare(data, layout: str, where: str):
+    """Validate a cube/latlong array; return (strip (H, W, C) float64, C)."""
+    if layout not in _LAYOUTS:
+        raise LayoutError(f"{where}: unknown layout {layout!r}; choose one of {_LAYOUTS}")
+    a = np.asarray(data)
+    if layout == "cube":
+        envmap.check_cube_shape(a, f"{where}: cube map")
+        if a.ndim == 3:
+            a = a[..., None]
+        n = a.shape[1]
+        strip = a.reshape(6 * n, n, a.shape[3])
+    else:
+        if a.ndim == 2:
+            a = a[..., None]
+        if a.ndim != 3 or a.shape[1] != 2 * a.shape[0] or a.shape[0] < 1:
+            raise LayoutError(f"{where}: lat-long maps must have shape (H, 2H[, C]), got {np.shape(data)}")
+        strip = a
+    _channel_names(strip.shape[2], where)
+    check_radiance(strip, f"{where}: radiance")
+    return strip.astype(np.float64, copy=False)
+
+
+def _to_pixel_type(strip: np.ndarray, pixel_type: str, clamp_half: bool, where: str):
+    """Cast to float32/float16 without silent overflow; returns (array, clamped_count, clamped_max)."""
+    if pixel_type not in _PIXEL_TYPES:
+        raise IBLError(f"{where}: unknown pixel type {pixel_type!r}; choose one of {_PIXEL_TYPES}")
+    limit = HALF_MAX if pixel_type == "half" else FLOAT_MAX
+    over = strip > limit
+    count, vmax = int(over.sum()), float(strip.max()) if strip.size else 0.0
+    if count:
+        if pixel_type == "float" or not clamp_half:
+            hint = " (pass clamp_half=True / --clamp-half to clamp, or write pixel_type='float')" if pixel_type == "half" else ""
+            raise IBLError(
+                f"{where}: {count} value(s) exceed the largest finite {pixel_type} ({limit:g}); "
+                f"max value {vmax:g}; writing them would produce Inf{hint}"
+            )
+        warnings.warn(
+            f"{where}: clamped {count} value(s) above {HALF_MAX:g} to {HALF_MAX:g} for half output "
+            f"(max original value {vmax:g})",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+        strip = np.minimum(strip, HALF_MAX)
+    out = strip.astype(np.float16 if pixel_type == "half" else np.float32)
+    if not np.all(np.isfinite(out)):  # defensive: must be impossible after the checks above
+        raise IBLError(f"{where}: conversion to {pixel_type} produced non-finite values")
+    return out, count, (vmax if count else 0.0)
+
+
+def _channels_dict(arr: np.ndarray) -> dict:
+    names = _channel_names(arr.shape[2], "")
+    return {nm: np.ascontiguousarray(arr[..., i]) for i, nm in enumerate(names)}
+
+
+# ----------------------------------------------------------------------------------------------
+# writing
+# ----------------------------------------------------------------------------------------------
+def write_envmap(
+    path,
+    data,
+    layout: str = "cube",
+    pixel_type: str = "float",
+    clamp_half: bool = False,
+    convention: str = "openexr",
+) -> WriteReport:
+    """Write a cube map or lat-long map as an OpenEXR environment map (atomically).
+
+    Parameters
+    ----------
+    path : str or Path
+        Destination file (any name; ``.exr`` recommended).
+    data : array
+        ``(6, N, N[, C])`` for ``layout="cube"`` in OpenEXR face orientation, ``(H, 2H[, C])`` for
+        ``"latlong"``; C ∈ {1, 3, 4} → channels Y / RGB / RGBA.
+    layout : {"cube", "latlong"}
+    pixel_type : {"float", "half"}
+    clamp_half : bool
+        With ``pixel_type="half"``: clamp values above 65504 (warns and reports them) instead of raising.
+    convention : {"openexr", "opengl"}
+        Face orientation *in the file* (cube only).  ``"opengl"`` files carry no ``envmap`` attribute
+        (they are not OpenEXR CUBE maps) but ``iblref_convention = "opengl"``.
+
+    Returns
+    -------
+    WriteReport
+
+    Raises
+    ------
+    RadianceError
+        NaN, Inf or negative values (checked before any file is touched).
+    LayoutError
+        Wrong shape or channel count.
+    IBLError
+        Values that do not fit the pixel type.
+    """
+    ox = _openexr()
+    path = Path(path)
+    where = str(path)
+    if convention not in envmap.CONVENTIONS:
+        raise IBLError(f"{where}: unknown convention {convention!r}; choose one of {envmap.CONVENTIONS}")
+    strip = _prepare(data, layout, where)
+    if layout == "cube" and convention != "openexr":
+        n = strip.shape[1]
+        strip = envmap.convert_convention(strip.reshape(6, n, n, -1), "openexr", convention).reshape(strip.shape)
+    elif layout == "latlong" and convention != "openexr":
+        raise IBLError(f"{where}: convention={convention!r} applies to cube maps only")
+    pix, count, cmax = _to_pixel_type(strip, pixel_type, clamp_half, where)
+    header = {"compression": ox.ZIP_COMPRESSION, "type": ox.scanlineimage}
+    if layout == "latlong":
+        header["envmap"] = ox.ENVMAP_LATLONG
+    else:
+        if convention == "openexr":
+            header["envmap"] = ox.ENVMAP_CUBE
+        header["iblref_convention"] = convention
+    try:
+        with atomic_path(path, suffix=".exr") as tmp:
+            ox.File(header, _channels_dict(pix)).write(str(tmp))
+    except IBLError:
+        raise
+    except (OSError, RuntimeError, ValueError, TypeError) as exc:
+        raise EnvMapFileError(f"{where}: cannot write OpenEXR file: {exc}") from exc
+    return WriteReport(path, layout, pixel_type, tuple(np.shape(data)), count, cmax)
+
+
+def write_pyramid(path, levels, pixel_type: str = "float", clamp_half: bool = False) -> WriteReport:
+    """Write a list of cube maps (a MIP pyramid, level 0 first) as a multi-part EXR.
+
+    One part per level, named ``level{i}``, each an OpenEXR CUBE strip (see module docstring).
+    All levels must have the same channel count.  Returns a :class:`WriteReport` (``shape`` is the
+    list of level shapes; clamping counts are summed over levels).
+    """
+    ox = _openexr()
+    path = Path(path)
+    where = str(path)
+    levels = list(levels)
+    if not levels:
+        raise LayoutError(f"{where}: a pyramid needs at least one level")
+    strips, total, cmax = [], 0, 0.0
+    for i, lv in enumerate(levels):
+        s = _prepare(lv, "cube", f"{where} level {i}")
+        if strips and s.shape[2] != strips[0].shape[2]:
+            raise LayoutError(f"{where}: level {i} has {s.shape[2]} channels, level 0 has {strips[0].shape[2]}")
+        p, c, m = _to_pixel_type(s, pixel_type, clamp_half, f"{where} level {i}")
+        strips.append(p)
+        total += c
+        cmax = max(cmax, m)
+    n0 = strips[0].shape[1]
+    display = (np.array([0, 0], dtype=np.int32), np.array([n0 - 1, 6 * n0 - 1], dtype=np.int32))
+    parts = []
+    for i, p in enumerate(strips):
+        hdr = {
+            "compression": ox.ZIP_COMPRESSION,
+            "type": ox.scanlineimage,
+            "envmap": ox.ENVMAP_CUBE,
+            "displayWindow": display,
+            "iblref_convention": "openexr",
+            "iblref_level": i,
+        }
+        parts.append(ox.Part(hdr, _channels_dict(p), name=f"level{i}"))
+    try:
+        with atomic_path(path, suffix=".exr") as tmp:
+            ox.File(parts).write(str(tmp))
+    except IBLError:
+        raise
+    except (OSError, RuntimeError, ValueError, TypeError) as exc:
+        raise EnvMapFileError(f"{where}: cannot write OpenEXR file: {exc}") from exc
+    return WriteReport(path, "cube", pixel_type, tuple(np.shape(x) for x in levels), total, cmax)
+
+
+# ----------------------------------------------------------------------------------------------
+# reading
+# ----------------------------------------------------------------------------------------------
+def _open(path: Path):
+    ox = _openexr()
+    if not path.exists():
+        raise EnvMapFileError(f"{path}: file not found")
+    if path.is_dir():
+        raise EnvMapFileError(f"{path}: is a folder, expected an OpenEXR file")
+    with open(path, "rb") as fh:
+        magic = fh.read(4)
+    if magic != b"\x76\x2f\x31\x01":
+        raise EnvMapFileError(f"{path}: not an OpenEXR file (bad magic number {magic!r})")
+    try:
+        f = ox.File(str(path), separate_channels=True)
+        parts = list(f.parts)
+        if not parts:
+            raise EnvMapFileError(f"{path}: corrupt or truncated OpenEXR file (no readable parts)")
+        for p in parts:  # force pixel access now so that truncation errors surface here
+            for ch in p.channels.values():
+                _ = ch.pixels.shape
+    except IBLError:
+        raise
+    except Exception as exc:  # the binding raises RuntimeError/ValueError for corrupt files
+        raise EnvMapFileError(f"{path}: corrupt or truncated OpenEXR file ({exc})") from exc
+    return f, parts
+
+
+def _part_image(path: Path, part, label: str = ""):
+    """(H, W, C) float64 image, channel names, pixel type and simple header of one part."""
+    where = f"{path}{label}"
+    chans = part.channels
+    names = set(chans)
+    if {"R", "G", "B"} <= names:
+        order = ["R", "G", "B"] + (["A"] if "A" in names else [])
+    elif names == {"Y"} or names == {"Y", "A"}:
+        order = ["Y"]
+    else:
+        raise LayoutError(f"{where}: missing R/G/B channels (file has channels {sorted(names)})")
+    arrs, types = [], set()
+    for nm in order:
+        px = chans[nm].pixels
+        if px is None or px.ndim != 2:
+            raise EnvMapFileError(f"{where}: channel {nm} has no readable 2D pixel data")
+        arrs.append(px)
+        types.add(_simple(chans[nm].type()))
+    shapes = {a.shape for a in arrs}
+    if len(shapes) != 1:
+        raise LayoutError(f"{where}: channels have different sizes {sorted(shapes)} (subsampled channels unsupported)")
+    img = np.stack(arrs, axis=-1).astype(np.float64)
+    colour = img[..., :3] if len(order) >= 3 else img
+    if not np.all(np.isfinite(img)):
+        bad = int((~np.isfinite(img)).sum())
+        raise RadianceError(f"{where}: {bad} NaN/Inf pixel value(s) in the file")
+    if np.any(colour < 0):
+        neg = int((colour < 0).sum())
+        raise RadianceError(f"{where}: {neg} negative radiance value(s) in the file (min {colour.min():g})")
+    ptype = {"HALF": "half", "FLOAT": "float", "UINT": "uint"}
+    pixel_type = ptype.get(types.pop(), "mixed") if len(types) == 1 else "mixed"
+    header = {k: _simple(v) for k, v in part.header.items()}
+    return img, tuple(order), pixel_type, header
+
+
+def infer_layout(h: int, w: int, declared=None, where: str = "image") -> str:
+    """Layout of an ``h × w`` image: the declared one (checked) or inferred from the aspect ratio.
+
+    ``6N × N`` (height × width) → ``"cube"`` strip, ``H × 2H`` → ``"latlong"``, ``3N × 4N`` → ``"hcross"``,
+    ``4N × 3N`` → ``"vcross"``; anything else raises :class:`LayoutError`.
+    """
+    need = {"cube": h == 6 * w, "latlong": w == 2 * h, "hcross": 4 * h == 3 * w and w % 4 == 0,
+            "vcross": 3 * h == 4 * w and w % 3 == 0}
+    if declared is not None:
+        if declared not in need:
+            raise LayoutError(f"{where}: unknown layout {declared!r}; choose one of {tuple(need)}")
+        if not need[declared]:
+            expect = {"cube": "N wide x 6N high", "latlong": "2H wide x H high", "hcross": "4N wide x 3N high",
+                      "vcross": "3N wide x 4N high"}[declared]
+            raise LayoutError(f"{where}: layout {declared} needs an image {expect}, got {w} wide x {h} high")
+        return declared
+    for name, ok in need.items():
+        if ok:
+            return name
+    raise LayoutError(
+        f"{where}: cannot infer the environment-map layout of a {w} wide x {h} high image without an "
+        f"'envmap' attribute (expected N x 6N cube strip, 2H x H lat-long, 4N x 3N or 3N x 4N cross); "
+        f"pass layout= explicitly"
+    )
+
+
+def _declared(header: dict, where: str):
+    env = header.get("envmap")
+    if env is None:
+        return None
+    if env in ("ENVMAP_CUBE", "CUBE"):
+        return "cube"
+    if env in ("ENVMAP_LATLONG", "LATLONG"):
+        return "latlong"
+    raise LayoutError(f"{where}: unsupported envmap attribute {env!r}")
+
+
+def read_image(path, part: int = 0):
+    """Read one part of an EXR file as ``(image (H, W, C) float64, channels, pixel_type, header)``.
+
+    Radiance and channels are validated (see module docstring); the layout is not interpreted.
+    """
+    path = Path(path)
+    _, parts = _open(path)
+    if not 0 <= part < len(parts):
+        raise EnvMapFileError(f"{path}: has {len(parts)} part(s), part {part} requested")
+    return _part_image(path, parts[part], f" (part {part})" if len(parts) > 1 else "")
+
+
+def read_envmap(path, layout: str | None = None, convention: str | None = None, part: int = 0) -> EnvMap:
+    """Read an OpenEXR environment map.
+
+    Parameters
+    ----------
+    path : str or Path
+    layout : {"cube", "latlong"}, optional
+        Override the file's ``envmap`` attribute.  Without attribute or override, a ``N × 6N`` strip is a
+        cube and a ``2H × H`` image a lat-long map; anything else is a :class:`LayoutError`.
+    convention : {"openexr", "opengl"}, optional
+        Face orientation of a cube strip in the file (default: the ``iblref_convention`` attribute, else
+        ``"openexr"``).  The returned array is always in OpenEXR orientation.
+    part : int
+        Part index of a multi-part file (0 = first; use :func:`read_pyramid` for pyramids).
+
+    Returns
+    -------
+    EnvMap
+    """
+    path = Path(path)
+    img, chans, ptype, header = read_image(path, part)
+    h, w = img.shape[:2]
+    if layout is None:
+        layout = _declared(header, str(path))
+    if layout is not None and layout not in _LAYOUTS:
+        raise LayoutError(f"{path}: unknown layout {layout!r}; choose one of {_LAYOUTS}")
+    layout = infer_layout(h, w, layout, str(path))
+    if layout not in _LAYOUTS:
+        raise LayoutError(f"{path}: {w} x {h} looks like a {layout} image; use load_cube() for cross layouts")
+    data = img
+    if layout == "cube":
+        data = img.reshape(6, w, w, img.shape[2])
+        conv = convention or header.get("iblref_convention") or "openexr"
+        if conv not in envmap.CONVENTIONS:
+            raise LayoutError(f"{path}: unknown cube convention {conv!r}")
+        if conv != "openexr":
+            data = envmap.convert_convention(data, conv, "openexr")
+    return EnvMap(data=data, layout=layout, path=path, channels=chans, header=header, pixel_type=ptype)
+
+
+def read_pyramid(path) -> list:
+    """Read a multi-part pyramid written by :func:`write_pyramid` → list of ``(6, n, n, C)`` float64."""
+    path = Path(path)
+    _, parts = _open(path)
+    levels = []
+    for i, p in enumerate(parts):
+        img, _, _, header = _part_image(path, p, f" (part {i})")
+        h, w = img.shape[:2]
+        infer_layout(h, w, "cube", f"{path} (part {i})")
+        levels.append(img.reshape(6, w, w, img.shape[2]))
+    return levels
+
+
+# ----------------------------------------------------------------------------------------------
+# anything → cube
+# ----------------------------------------------------------------------------------------------
+def _rgb(data: np.ndarray) -> np.ndarray:
+    c = data.shape[-1]
+    if c == 1:
+        return np.repeat(data, 3, axis=-1)
+    return data[..., :3]
+
+
+def load_cube(path, size: int | None = None, layout: str | None = None, convention: str | None = None) -> np.ndarray:
+    """Load any supported environment-map file as a ``(6, N, N, 3)`` float64 cube map.
+
+    Supported: OpenEXR CUBE strips and LATLONG maps (attribute or aspect ratio), Radiance ``.hdr`` /
+    ``.pic`` (lat-long), horizontal (4N × 3N) and vertical (3N × 4N) crosses in either file format
+    (layout in :mod:`ibl_ref.resample`).  Y files are replicated to RGB, alpha is dropped.
+
+    Parameters
+    ----------
+    size : int, optional
+        Face size of the result.  Default: the file's face size (cube, cross) or ``H // 2`` for an
+        ``H × 2H`` lat-long map (same texel count around the equator).  Resampling conserves ∫L dω
+        (:mod:`ibl_ref.resample`).
+    layout : {"cube", "latlong", "hcross", "vcross"}, optional
+        Override the layout (otherwise from the ``envmap`` attribute or the aspect ratio).
+    convention : {"openexr", "opengl"}, optional
+        Face orientation of a cube strip in the file (see :func:`read_envmap`).
+    """
+    from . import resample
+
+    path = Path(path)
+    if path.suffix.lower() in (".hdr", ".pic", ".rgbe"):
+        from .hdr_io import read_hdr
+
+        img = read_hdr(path)
+        header = {}
+    else:
+        img, _, _, header = read_image(path)
+    h, w = img.shape[:2]
+    where = str(path)
+    lay = layout or _declared(header, where)
+    lay = infer_layout(h, w, lay, where)
+    if lay == "cube":
+        cube = img.reshape(6, w, w, img.shape[2])
+        conv = convention or header.get("iblref_convention") or "openexr"
+        cube = envmap.convert_convention(cube, conv, "openexr") if conv != "openexr" else cube
+    elif lay in ("hcross", "vcross"):
+        cube = resample.cross_to_cube(img, lay)
+    else:
+        cube = None
+    if cube is not None:
+        cube = _rgb(cube)
+        if size is not None and int(size) != cube.shape[1]:
+            cube = resample.cube_to_cube(cube, int(size))
+        return np.ascontiguousarray(cube, dtype=np.float64)
+    n = int(size) if size is not None else max(1, h // 2)
+    return resample.latlong_to_cube(_rgb(img), n)
