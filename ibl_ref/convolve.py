@@ -1,0 +1,358 @@
+"""One entry point for Phong-lobe convolution (Knuth et al. 2014, Sec. 3.2, Eq. 4) with error bounds.
+
+:func:`convolve` computes, for several Phong exponents ``s = s_Phong`` (Eq. 3: ``s = 1/(1−g)``), the
+lobe average ``Σ_j L_j max(r·ω_j,0)^s Ω_j / Σ_j max(r·ω_j,0)^s Ω_j`` (``normalized=True``) or the
+literal Eq. 4 sum (``normalized=False``) at every output texel ``r``, by one of
+
+``"exact"``
+    :func:`ibl_ref.phong_convolution.convolve_exact_many` — every source texel for every output texel
+    (the reference; bound = 0 up to rounding).
+``"sh"``
+    :func:`ibl_ref.sh_convolution.convolve_sh_many` — spherical harmonics (Funk–Hecke) for the clipped
+    remainder plus an exact gather from the few texels above a sun threshold, with a rigorous per-texel
+    bound (see that module).
+``"sparse"``
+    :func:`ibl_ref.phong_convolution.convolve_sparse_many` — truncated-support gather with a rigorous
+    per-texel bound (absolute per channel, converted here to relative).
+``"auto"``
+    per exponent, the cheapest of the above whose bound meets ``rtol``: the SH/hybrid route when its
+    a-priori band limit is affordable (broad lobes), the sparse gather otherwise (narrow lobes), and the
+    exact gather when neither bound meets ``rtol`` (checked a posteriori, per exponent) or for the
+    mirror ``s = inf``.  Exponents routed to SH share one SH pass.
+
+The returned ``error_bound[s]`` is a per-texel bound on ``|approx − exact| / exact`` (max over channels,
+``inf`` where the bound is useless, e.g. a black output texel); ``bound_kind[s]`` says whether it is
+``"rigorous"`` (SH, sparse), ``"estimate"`` (SH for very broad lobes, s ≈ 1, whose rigorous bound
+cannot reach rtol at an affordable band limit: ``|y_L − y_{L/2}|/y_L``, see
+:func:`ibl_ref.sh_convolution.convolve_sh_many`) or ``"rounding"`` (exact).  ``auto`` accepts an
+estimate only when it meets rtol, and only for exponents where the exact gather would cost more.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import envmap
+from .errors import IBLError, LayoutError, check_radiance
+
+__all__ = ["ConvolutionResult", "convolve", "METHODS"]
+
+METHODS = ("auto", "exact", "sh", "sparse")
+
+#: ``auto`` runs the exact gather for every exponent when (output texels × source texels × exponents)
+#: is below this (≈ 0.6 s of exact work measured on the shared 2-core machine): the fast methods'
+#: fixed costs (planning, bound tables, KD-tree) do not pay off on tiny maps.
+AUTO_EXACT_PAIRS = 1.5e7
+
+
+@dataclass
+class ConvolutionResult:
+    """Result of :func:`convolve`.
+
+    Attributes
+    ----------
+    maps : dict float → ndarray (6, n, n, C)
+        Convolved cube map per exponent.
+    error_bound : dict float → ndarray (6, n, n)
+        Per-texel bound on the relative error ``|approx − exact|/exact`` (max over channels).
+    bound_kind : dict float → str
+        ``"rigorous"``, ``"estimate"`` (SH, broad lobes) or ``"rounding"`` (exact method).
+    method_used : dict float → str
+        ``"exact"``, ``"sh"``, ``"sparse"`` (after any fallback).
+    timings_s : dict
+        Wall-clock seconds per stage (keys ``"sh"``, ``"sparse"``, ``"exact"``, ``"total"``) and the
+        process CPU time of the whole call (``"total_cpu"``; equals the unloaded wall time when
+        BLAS runs single-threaded, the recommended setting).
+    info : dict
+        Diagnostics (SH band limit, sun threshold, fallbacks).
+    """
+
+    maps: dict = field(default_factory=dict)
+    error_bound: dict = field(default_factory=dict)
+    bound_kind: dict = field(default_factory=dict)
+    method_used: dict = field(default_factory=dict)
+    timings_s: dict = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        """JSON-friendly per-exponent summary (method, bound max/mean, timings)."""
+        out = {"timings_s": dict(self.timings_s), "info": _jsonable(self.info), "exponents": []}
+        for s in self.maps:
+            b = self.error_bound[s]
+            fin = b[np.isfinite(b)]
+            out["exponents"].append(
+                {
+                    "s": _s_json(s),
+                    "method": self.method_used[s],
+                    "bound_kind": self.bound_kind[s],
+                    "rel_bound_max": float(b.max()) if np.all(np.isfinite(b)) else None,
+                    "rel_bound_mean": float(fin.mean()) if fin.size else None,
+                    "rel_bound_p99": float(np.quantile(fin, 0.99)) if fin.size else None,
+                    "n_texels_unbounded": int(np.count_nonzero(~np.isfinite(b))),
+                }
+            )
+        return out
+
+
+def _s_json(s):
+    return "inf" if not np.isfinite(s) else float(s)
+
+
+def _jsonable(d):
+    if isinstance(d, dict):
+        return {str(k): _jsonable(v) for k, v in d.items()}
+    if isinstance(d, (list, tuple)):
+        return [_jsonable(v) for v in d]
+    if isinstance(d, (np.floating, float)):
+        return float(d) if np.isfinite(d) else str(d)
+    if isinstance(d, np.integer):
+        return int(d)
+    return d
+
+
+def _check_exponents(exponents):
+    ex = np.atleast_1d(np.asarray(exponents, dtype=object)).ravel()
+    if ex.size == 0:
+        raise IBLError("no Phong exponents given")
+    out = []
+    for s in ex:
+        try:
+            v = float(s)
+        except (TypeError, ValueError):
+            raise IBLError(f"Phong exponent must be a number >= 1 or inf, got {s!r}") from None
+        if math.isnan(v) or v < 1.0:
+            raise IBLError(f"Phong exponent s must be >= 1 (s_Phong = 1/(1-g), g in [0,1]) or inf, got {s!r}")
+        if v not in out:
+            out.append(v)
+    return out
+
+
+def _rel_from_abs(maps, abs_bound):
+    """Relative bound per texel (max over channels) from an absolute per-channel bound."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.where(maps > abs_bound, abs_bound / np.maximum(maps - abs_bound, 1e-300), np.inf)
+    r = np.where(abs_bound == 0, 0.0, r)
+    return r.max(axis=-1)
+
+
+#: cost units (see :data:`ibl_ref.sh_convolution.SECONDS_PER_UNIT`) per (output texel × source texel ×
+#: exponent) of the exact gather: 17 (≈ 1.35e-8 s CPU, s = 16 at 64²), 6 for s = 1 (no power needed;
+#: 46.7 s CPU at 128²)
+EXACT_UNITS_PER_PAIR = 17.0
+EXACT_UNITS_PER_PAIR_S1 = 6.0
+#: same for the candidate texels of the sparse gather, plus a cost per output texel (tiles, KD-tree
+#: queries); fitted to ≈ 4.7 s CPU per exponent at 128², 0.5 s at 64², 0.09 s at 32² (s = 64…4096)
+SPARSE_UNITS_PER_PAIR = 25.0
+SPARSE_UNITS_PER_OUTPUT = 2.5e4
+
+
+def _sparse_cost(s, rtol, n_src, n_out):
+    """Cost model of the sparse gather (units of :func:`ibl_ref.sh_convolution.sh_cost`)."""
+    eps = max(rtol * 1e-2, 1e-300)
+    cos_c = math.exp(math.log(eps) / (s + 1.0))
+    frac = min(1.0, (1.0 - cos_c) / 2.0 + 2.0 / math.sqrt(max(n_src / 6.0, 1.0)))
+    if (1.0 - cos_c) / 2.0 > 0.4:  # the sparse gather itself falls back to the dense gather there
+        return math.inf
+    return n_out * n_src * frac * SPARSE_UNITS_PER_PAIR + n_out * SPARSE_UNITS_PER_OUTPUT
+
+
+def convolve(
+    cube,
+    exponents,
+    *,
+    method: str = "auto",
+    rtol: float = 1e-3,
+    out_size: int | None = None,
+    normalized: bool = True,
+) -> ConvolutionResult:
+    """Convolve a cube map with Phong lobes ``max(r·ω,0)^s`` for several exponents, with error bounds.
+
+    Parameters
+    ----------
+    cube : array (6, N, N[, C])
+        Non-negative finite radiance (OpenEXR face order, see :mod:`ibl_ref.envmap`).
+    exponents : float or sequence of float
+        Phong exponents ≥ 1 (``np.inf`` = mirror; exact method only).
+    method : {"auto", "exact", "sh", "sparse"}
+    rtol : float
+        Target per-texel relative error for ``auto`` (and the planning of ``sh``/``sparse``).
+    out_size : int, optional
+        Output face size (default N).
+    normalized : bool
+        Lobe average (default) or literal Eq. 4 (``sparse`` supports only the average; ``auto`` then
+        uses SH or exact).
+
+    Returns
+    -------
+    ConvolutionResult
+        ``maps[s]`` has the input's channel layout ((6,n,n) for a 3-d input).
+
+    Raises
+    ------
+    IBLError
+        Bad method, exponent (< 1, NaN), rtol or out_size; ``LayoutError`` / ``RadianceError`` for a
+        wrong shape or NaN/Inf/negative radiance.
+    """
+    t_start = time.perf_counter()
+    c_start = time.process_time()
+    if method not in METHODS:
+        raise IBLError(f"unknown convolution method {method!r}; choose one of {', '.join(METHODS)}")
+    try:
+        rtol = float(rtol)
+    except (TypeError, ValueError):
+        raise IBLError(f"rtol must be a number in (0, 1), got {rtol!r}") from None
+    if not (0.0 < rtol < 1.0):
+        raise IBLError(f"rtol must be in (0, 1), got {rtol!r}")
+    n = envmap.check_cube_shape(cube, "environment cube map")
+    a = np.asarray(cube, dtype=np.float64)
+    check_radiance(a, "environment cube map")
+    squeeze = a.ndim == 3
+    a4 = a[..., None] if squeeze else a
+    if a4.shape[-1] < 1:
+        raise LayoutError(f"environment cube map: zero channels in shape {a.shape}")
+    if out_size is None:
+        out_size = n
+    if isinstance(out_size, bool) or not isinstance(out_size, (int, np.integer)) or out_size < 1:
+        raise IBLError(f"out_size must be a positive integer, got {out_size!r}")
+    out_size = int(out_size)
+    s_list = _check_exponents(exponents)
+    if not normalized and any(not np.isfinite(s) for s in s_list):
+        raise IBLError("the unnormalised Eq. 4 integral vanishes for s = inf; use normalized=True")
+    if method == "sh" and any(not np.isfinite(s) for s in s_list):
+        raise IBLError("method 'sh' cannot represent the mirror (s = inf); use 'exact' or 'auto'")
+    if method == "sparse" and not normalized:
+        raise IBLError("method 'sparse' computes the normalised lobe average only; use 'sh' or 'exact'")
+
+    from . import phong_convolution as pc
+    from . import sh_convolution as shc
+
+    res = ConvolutionResult()
+    timings = {"sh": 0.0, "sparse": 0.0, "exact": 0.0}
+    n_src = 6 * n * n
+    n_out = 6 * out_size * out_size
+
+    # ---- route every exponent ----------------------------------------------------------------
+    route = {}
+    if method == "auto":
+        finite = [s for s in s_list if np.isfinite(s)]
+        for s in s_list:
+            if not np.isfinite(s):
+                route[s] = "exact"
+        if finite and n_out * n_src * len(finite) <= AUTO_EXACT_PAIRS:
+            res.info["auto_tiny_map_exact"] = True
+            for s in finite:
+                route[s] = "exact"
+            finite = []
+        if finite:
+            plan = shc.plan_sh(a4, finite, rtol=rtol, out_size=out_size)
+            res.info["sh_plan_L_per_s"] = {_s_json(s): L for s, L in zip(finite, plan["L_per_s"])}
+            res.info["sh_plan_L_estimate"] = {_s_json(s): L for s, L in plan["L_est"].items()}
+            Q = a4.shape[-1] + 1
+            L_of = {}
+            other = {}
+            for s, L_s in zip(finite, plan["L_per_s"]):
+                # rigorous band limit (estimate-mode band limit only if estimates were planned)
+                L_s = L_s if L_s is not None else plan["L_est"].get(s)
+                if L_s is not None:
+                    L_of[s] = L_s
+                c_sp = _sparse_cost(s, rtol, n_src, n_out) if normalized else np.inf
+                c_ex = n_out * n_src * (EXACT_UNITS_PER_PAIR_S1 if s == 1.0 else EXACT_UNITS_PER_PAIR)
+                other[s] = ("sparse", c_sp) if c_sp < c_ex else ("exact", c_ex)
+            # The SH exponents share one pass whose cost is set by the largest band limit: try every
+            # prefix of the SH-capable exponents sorted by band limit, the rest by sparse/exact.
+            cand = sorted(L_of, key=lambda s: L_of[s])
+            best = None
+            for j in range(len(cand) + 1):
+                grp = cand[:j]
+                cost = sum(other[s][1] for s in finite if s not in grp)
+                if grp:
+                    cost += shc.sh_cost(L_of[grp[-1]], n_src, n_out, len(grp), Q) + shc.SH_OVERHEAD_UNITS
+                if best is None or cost < best[0]:
+                    best = (cost, grp)
+            res.info["auto_model_cost_s"] = float(best[0] * shc.SECONDS_PER_UNIT)
+            for s in finite:
+                route[s] = "sh" if s in best[1] else other[s][0]
+    else:
+        route = {s: method for s in s_list}
+
+    results = {}
+    # ---- SH (shared pass) --------------------------------------------------------------------
+    sh_set = [s for s in s_list if route[s] == "sh"]
+    fallback = []
+    if sh_set:
+        t0 = time.perf_counter()
+        sub_plan = None
+        if method == "auto":  # re-plan only if the SH subset differs from the planned set
+            sub_plan = plan if len(sh_set) == len(finite) else None
+        maps, rel, info = shc.convolve_sh_many(
+            a4, sh_set, rtol=rtol, out_size=out_size, normalized=normalized, plan=sub_plan
+        )
+        timings["sh"] += time.perf_counter() - t0
+        res.info["sh"] = {k: v for k, v in info.items()}
+        for k, s in enumerate(sh_set):
+            if method == "auto" and not float(rel[k].max()) <= rtol:
+                fallback.append(s)
+                continue
+            results[s] = (maps[k], rel[k], "sh", info["bound_kind"][k])
+    if fallback:
+        res.info["fallback_from_sh"] = [_s_json(s) for s in fallback]
+        for s in fallback:
+            route[s] = "sparse" if normalized else "exact"
+
+    # ---- sparse --------------------------------------------------------------------------------
+    sp_set = [s for s in s_list if route[s] == "sparse"]
+    if sp_set:
+        t0 = time.perf_counter()
+        # The sparse gather targets rtol at texels of typical radiance; its bound at the darkest texels
+        # is ≈ rtol·(mean/min) larger, so the requested tolerance is pre-scaled (then corrected once).
+        lum = a4.max(axis=-1).ravel()
+        w = np.broadcast_to(envmap.cube_solid_angles(n), a4.shape[:3]).ravel()
+        body = lum <= np.quantile(lum, 0.999)
+        l_mean = float(np.sum(lum[body] * w[body]) / np.sum(w[body]))
+        scale = min(1.0, max(float(a4.min()) / max(l_mean, 1e-300), 1e-6)) if method == "auto" else 1.0
+        todo = list(sp_set)
+        for attempt in range(2):
+            maps, abs_b = pc.convolve_sparse_many(a4, todo, rtol=min(rtol * scale, 0.5), out_size=out_size)
+            worst = 0.0
+            fb = []
+            for k, s in enumerate(todo):
+                rel = _rel_from_abs(maps[k], abs_b[k])
+                if method == "auto" and not float(rel.max()) <= rtol:
+                    fb.append(s)
+                    worst = max(worst, float(rel.max()))
+                    continue
+                results[s] = (maps[k], rel, "sparse", "rigorous")
+            if not fb or not np.isfinite(worst):
+                break
+            todo = fb
+            scale *= 0.8 * rtol / worst
+        timings["sparse"] += time.perf_counter() - t0
+        if fb:
+            res.info["fallback_from_sparse"] = [_s_json(s) for s in fb]
+            for s in fb:
+                route[s] = "exact"
+
+    # ---- exact ---------------------------------------------------------------------------------
+    ex_set = [s for s in s_list if route[s] == "exact" and s not in results]
+    if ex_set:
+        t0 = time.perf_counter()
+        maps = pc.convolve_exact_many(a4, ex_set, normalized=normalized, out_size=out_size)
+        timings["exact"] += time.perf_counter() - t0
+        for k, s in enumerate(ex_set):
+            # float64 sums over ≤ 6N² terms: relative rounding ≲ 1e-12 (reported, not zero)
+            results[s] = (maps[k], np.full((6, out_size, out_size), 1e-12), "exact", "rounding")
+
+    for s in s_list:
+        m, b, meth, kind = results[s]
+        res.maps[s] = m[..., 0] if squeeze else m
+        res.error_bound[s] = b
+        res.method_used[s] = meth
+        res.bound_kind[s] = kind
+    timings["total"] = time.perf_counter() - t_start
+    timings["total_cpu"] = time.process_time() - c_start  # process CPU time: robust on a loaded machine
+    res.timings_s = timings
+    return res
