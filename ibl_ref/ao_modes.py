@@ -1,0 +1,301 @@
+"""Comparison modes of Knuth et al. (2014), Fig. 6: no occlusion, AO (shadow only), AO with color, our method.
+
+Fig. 6 compares the paper's method with ambient occlusion on a **pure glossy** material ("no additional diffuse
+term").  The paper gives no formulas for (a)–(c); the readings implemented here (all from the same median-cut
+lights, the same G-buffer and the same PEM lookups, so only the occlusion model differs):
+
+* ``"no-occlusion"`` (a): c = kd·Σ_i PEM_i(n, 0) + ks·Σ_i PEM_i(r, g) — the full filtered map (by linearity of
+  the pyramid, Σ_i PEM_i = the full map's lookup, Sec. 3.1).
+* ``"ao"`` (b) AO, shadow only: a scalar ambient-occlusion factor times the unoccluded lighting,
+  AO = Σ_i VIS_i w_i / Σ_i w_i with w_i = max(n·ω_i, 0)·Ω_i — the cosine-weighted visible fraction of the
+  hemisphere, estimated from the same lights' visibilities (VSM by default, ``ao_visibility="raycast"`` for exact
+  binary visibility of the light directions; the lights tile the sphere, so Σ_i w_i ≈ π).
+* ``"ao-color"`` (c) AO with color: each light's shadow carries the light's colour but not the glossy lobe.
+  Per channel, E_i = rgb_i·max(n·ω_i, 0)/π (rgb_i = ∫_region L dω; irradiance-like, normalised as the s = 1 lobe
+  average), and
+  ``ao_color_variant="modulate"`` (default): c = unoccluded ⊙ Σ_i VIS_i E_i / Σ_i E_i (a coloured AO factor
+  applied to the glossy lighting: the material stays glossy, the shadow colour comes from the lights);
+  ``"irradiance"``: c = (kd + ks)·Σ_i VIS_i E_i (the literal Σ VIS_i·E_i: a diffuse, coloured, shadowed image).
+  Which one the paper shows is not stated; "modulate" keeps the glossy appearance that all four images share.
+* ``"ours"`` (d): Eq. 5 with a kd/ks material, c = Σ_i VIS_i (kd·PEM_i(n, 0) + ks·PEM_i(r, g)), VIS_i from
+  variance shadow maps (:mod:`ibl_ref.vsm`).  With kd = 0 this is exactly :func:`ibl_ref.render.render_pem`.
+* ``"reference"``: :func:`ibl_ref.reference_render.render_reference` (exact visibility, exact lobes).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import IBLError
+
+__all__ = ["MODES", "ModesResult", "render_modes", "render_mode", "light_visibilities", "default_camera",
+           "shade_eq5"]
+
+MODES = ("ours", "no-occlusion", "ao", "ao-color", "reference")
+AO_COLOR_VARIANTS = ("modulate", "irradiance")
+
+
+@dataclass
+class ModesResult:
+    """Images (H, W, C) per mode, coverage mask, G-buffer and timings (seconds per stage).
+
+    ``extras`` holds auxiliary images: ``"reference-unoccluded"`` (the reference with V ≡ 1) when the reference
+    was rendered.
+    """
+
+    images: dict
+    mask: np.ndarray
+    gbuffer: object
+    timings: dict = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+    extras: dict = field(default_factory=dict)
+
+
+def default_camera(meshes, size: int = 64, view_dir=(0.3, 0.5, 1.0), fov_y_deg: float = 40.0, distance: float = 2.6):
+    """Perspective camera looking at the scene's bounding-sphere centre from ``distance`` radii along ``view_dir``."""
+    from .camera import PerspectiveCamera
+    from .raster import prepare_scene
+
+    c, R = prepare_scene(meshes, warn=False).bounds()
+    d = np.asarray(view_dir, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    return PerspectiveCamera(eye=c + distance * R * d, target=c, up=[0, 1, 0], fov_y_deg=fov_y_deg, width=size,
+                             height=size, near=1e-3 * R, far=100 * R)
+
+
+def light_visibilities(scene, points, face_normals, lights, *, method: str = "vsm", vsm_resolution: int = 256,
+                       vsm_dtype: str = "float32", timings: dict | None = None, progress: bool = False,
+                       **vsm_kw) -> np.ndarray:
+    """VIS_i (L, P) of every light for surface points: ``"vsm"`` (Sec. 3.3), ``"raycast"`` (exact) or ``"none"``.
+
+    With ``timings`` (a dict), the VSM stages are timed separately: ``shadow_maps`` (depth rendering),
+    ``blur`` (moments + Gaussian blur) and ``visibility`` (look-ups).
+    """
+    from . import vsm as _vsm
+
+    dirs = np.asarray(lights.directions, dtype=np.float64).reshape(-1, 3)
+    omega = np.asarray(lights.solid_angle, dtype=np.float64).reshape(-1)
+    P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    L = len(dirs)
+    if method == "none" or len(P) == 0:
+        return np.ones((L, len(P)))
+    if method == "raycast":
+        from .reference_render import parallel_visibility
+
+        t0 = time.perf_counter()
+        V = parallel_visibility(scene, P, face_normals, dirs).T
+        if timings is not None:
+            timings["visibility"] = timings.get("visibility", 0.0) + time.perf_counter() - t0
+        return V
+    if method != "vsm":
+        raise IBLError(f"visibility method must be 'vsm', 'raycast' or 'none', got {method!r}")
+    from scipy.ndimage import gaussian_filter
+
+    from .camera import light_camera
+    from .raster import prepare_scene, render_depth
+
+    sc = prepare_scene(scene, warn=False)
+    centre, radius = sc.bounds()
+    V = np.ones((L, len(P)))
+    it = range(L)
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, desc="shadow maps", unit="light")
+    if timings is None:
+        for i in it:
+            sm = _vsm.build_vsm(sc, dirs[i], omega[i], resolution=vsm_resolution, dtype=vsm_dtype, **vsm_kw)
+            V[i] = _vsm.visibility(P, sm)
+        return V
+    # instrumented copy of ibl_ref.vsm.build_vsm (same steps, same parameters) to time the stages separately
+    margin = vsm_kw.pop("margin", 0.05)
+    occ = vsm_kw.pop("occluder_distance", None)
+    depth_bias = vsm_kw.pop("depth_bias", 1e-3)
+    min_variance = vsm_kw.pop("min_variance", 1e-6)
+    bleed = vsm_kw.pop("bleed_reduction", 0.0)
+    if vsm_kw:
+        raise IBLError(f"unknown VSM parameters {sorted(vsm_kw)}")
+    store = _vsm._DTYPES[vsm_dtype]
+    work = np.float64 if vsm_dtype == "float64" else np.float32
+    for i in it:
+        t0 = time.perf_counter()
+        cam = light_camera(dirs[i], centre, radius, resolution=vsm_resolution, margin=margin)
+        depth, cov = render_depth(sc, cam)
+        t1 = time.perf_counter()
+        d = np.clip(depth / cam.far, 0.0, 1.0)
+        sig = _vsm.blur_sigma_texels(omega[i], cam.texel_size, 0.25 * radius if occ is None else float(occ))
+        m = np.stack([d, d * d], axis=-1).astype(store)
+        if sig > 0:
+            m = m.astype(work)
+            for c in range(2):
+                m[..., c] = gaussian_filter(m[..., c], sigma=sig, mode="nearest", truncate=4.0)
+            m = m.astype(store)
+        t2 = time.perf_counter()
+        sm = _vsm.VarianceShadowMap(camera=cam, moments=m, direction=-cam.forward, solid_angle=float(omega[i]),
+                                    sigma_texels=float(sig), dtype=vsm_dtype, depth_bias=float(depth_bias),
+                                    min_variance=float(min_variance), bleed_reduction=float(bleed), coverage=cov)
+        V[i] = _vsm.visibility(P, sm)
+        t3 = time.perf_counter()
+        timings["shadow_maps"] = timings.get("shadow_maps", 0.0) + (t1 - t0)
+        timings["blur"] = timings.get("blur", 0.0) + (t2 - t1)
+        timings["visibility"] = timings.get("visibility", 0.0) + (t3 - t2)
+    return V
+
+
+def shade_eq5(vis, pem_n, pem_r, kd: float, ks: float) -> np.ndarray:
+    """Eq. 5 with a kd/ks material: c = Σ_i VIS_i · (kd·PEM_i(n, 0) + ks·PEM_i(r, g)); vis (L, P), pem_* (L, P, C)."""
+    c = 0.0
+    if kd > 0:
+        c = c + kd * np.einsum("lp,lpc->pc", vis, pem_n)
+    if ks > 0:
+        c = c + ks * np.einsum("lp,lpc->pc", vis, pem_r)
+    return c
+
+
+def _check_material(kd, ks, g):
+    kd, ks, g = float(kd), float(ks), float(g)
+    if not (np.isfinite(kd) and np.isfinite(ks) and kd >= 0 and ks >= 0):
+        raise IBLError(f"kd, ks must be finite and >= 0, got {kd}, {ks}")
+    if not (0.0 <= g <= 1.0):
+        raise IBLError(f"g must be in [0, 1], got {g}")
+    return kd, ks, g
+
+
+def render_modes(meshes, camera, env, modes=MODES, *, pems=None, n_lights: int = 96, kd: float = 0.0,
+                 ks: float = 1.0, g: float = 0.9, vsm_resolution: int = 256, vsm_dtype: str = "float32",
+                 ao_visibility: str = "vsm", ao_color_variant: str = "modulate", reference_kw: dict | None = None,
+                 smooth_normals: bool = True, progress: bool = False, **vsm_kw) -> ModesResult:
+    """Render several Fig. 6 modes sharing the G-buffer, PEMs and visibilities.
+
+    Parameters
+    ----------
+    meshes, camera : scene and view (see :func:`ibl_ref.raster.prepare_scene`)
+    env : (6, N, N, C) radiance cube (N a power of two)
+    modes : subset of :data:`MODES`
+    pems : a prebuilt :class:`ibl_ref.pem.PEMSet` of ``env`` (else built with ``n_lights`` per-face median cut)
+    kd, ks, g : material (diffuse weight, glossy weight, glossiness of the glossy lobe)
+    vsm_resolution, vsm_dtype, **vsm_kw : shadow maps (:func:`ibl_ref.vsm.build_vsm`)
+    ao_visibility : "vsm" or "raycast" visibility for the AO modes
+    ao_color_variant : "modulate" or "irradiance" (module docstring)
+    reference_kw : extra arguments of :func:`ibl_ref.reference_render.render_reference`
+
+    Returns
+    -------
+    ModesResult (``timings`` in seconds: pem_build, raster, shadow_maps, blur, visibility, lookup, shading, reference)
+    """
+    from .raster import prepare_scene, rasterize
+
+    kd, ks, g = _check_material(kd, ks, g)
+    modes = tuple(modes)
+    bad = [m for m in modes if m not in MODES]
+    if bad or not modes:
+        raise IBLError(f"modes must be a non-empty subset of {MODES}, got {modes!r}")
+    if ao_color_variant not in AO_COLOR_VARIANTS:
+        raise IBLError(f"ao_color_variant must be one of {AO_COLOR_VARIANTS}, got {ao_color_variant!r}")
+    if ao_visibility not in ("vsm", "raycast"):
+        raise IBLError(f"ao_visibility must be 'vsm' or 'raycast', got {ao_visibility!r}")
+    from .reference_render import _check_env
+
+    env = _check_env(env)
+    T: dict = {}
+    sc = prepare_scene(meshes, warn=False)
+    t0 = time.perf_counter()
+    gb = rasterize(sc, camera, smooth_normals=smooth_normals)
+    T["raster"] = time.perf_counter() - t0
+    m = gb.mask
+    H, W = m.shape
+    C = env.shape[-1]
+    images = {}
+    info = dict(kd=kd, ks=ks, g=g, n_pixels=int(m.sum()), ao_color_variant=ao_color_variant,
+                ao_visibility=ao_visibility, vsm_resolution=vsm_resolution)
+    need_pem = any(x in modes for x in ("ours", "no-occlusion", "ao", "ao-color"))
+    if need_pem:
+        if pems is None:
+            from .pem import build_pems
+
+            t0 = time.perf_counter()
+            pems = build_pems(env, n_lights=int(n_lights), progress=progress)
+            T["pem_build"] = time.perf_counter() - t0
+        info["n_lights"] = len(pems.lights)
+        P, n, fn, r = gb.position[m], gb.normal[m], gb.face_normal[m], gb.reflect[m]
+        t0 = time.perf_counter()
+        zero = np.zeros((len(pems.lights), len(P), C))
+        pem_n = np.asarray(pems.lookup_all(n, 0.0), dtype=np.float64) if kd > 0 else zero
+        pem_r = np.asarray(pems.lookup_all(r, g), dtype=np.float64) if ks > 0 else zero
+        T["lookup"] = time.perf_counter() - t0
+        unocc = kd * pem_n.sum(axis=0) + ks * pem_r.sum(axis=0)
+        vis_cache = {}
+
+        def vis(method):
+            if method not in vis_cache:
+                vis_cache[method] = light_visibilities(sc, P, fn, pems.lights, method=method,
+                                                       vsm_resolution=vsm_resolution, vsm_dtype=vsm_dtype,
+                                                       timings=T, progress=progress, **dict(vsm_kw))
+            return vis_cache[method]
+
+        out = {}
+        t_shade = 0.0
+        if "no-occlusion" in modes:
+            out["no-occlusion"] = unocc
+        if "ours" in modes:
+            V = vis("vsm")
+            t0 = time.perf_counter()
+            out["ours"] = shade_eq5(V, pem_n, pem_r, kd, ks)  # Eq. 5
+            t_shade += time.perf_counter() - t0
+        if "ao" in modes or "ao-color" in modes:
+            V = vis(ao_visibility)
+            t0 = time.perf_counter()
+            dirs = np.asarray(pems.lights.directions, dtype=np.float64)
+            cosw = np.clip(n @ dirs.T, 0.0, None).T  # (L, P): max(n·ω_i, 0)
+            if "ao" in modes:
+                w = cosw * np.asarray(pems.lights.solid_angle, dtype=np.float64)[:, None]
+                ws = w.sum(axis=0)
+                ao = np.where(ws > 0, (V * w).sum(axis=0) / np.where(ws > 0, ws, 1.0), 1.0)
+                out["ao"] = unocc * ao[:, None]
+                info["ao_mean"] = float(ao.mean()) if len(ao) else float("nan")
+            if "ao-color" in modes:
+                rgb = np.asarray(pems.lights.rgb, dtype=np.float64).reshape(len(dirs), -1)
+                E = cosw[:, :, None] * rgb[:, None, :] / np.pi  # (L, P, C)
+                visE = np.einsum("lp,lpc->pc", V, E)
+                if ao_color_variant == "irradiance":
+                    out["ao-color"] = (kd + ks) * visE
+                else:
+                    Es = E.sum(axis=0)
+                    f = np.where(Es > 0, visE / np.where(Es > 0, Es, 1.0), 1.0)
+                    out["ao-color"] = unocc * f
+            t_shade += time.perf_counter() - t0
+        T["shading"] = t_shade
+        for k, v in out.items():
+            img = np.zeros((H, W, C))
+            img[m] = v
+            images[k] = img
+    if "reference" in modes:
+        from .reference_render import render_reference
+
+        t0 = time.perf_counter()
+        ref = render_reference(sc, camera, env, kd=kd, ks=ks, g=g, gbuffer=gb, progress=progress,
+                               **(reference_kw or {}))
+        T["reference"] = time.perf_counter() - t0
+        images["reference"] = ref.image
+        info["reference"] = ref.info
+    extras = {}
+    if "reference" in modes:
+        extras["reference-unoccluded"] = ref.unoccluded
+    for k, v in images.items():
+        if not np.all(np.isfinite(v)):
+            raise IBLError(f"mode {k!r} produced non-finite values")
+    return ModesResult(images={k: images[k] for k in modes}, mask=m, gbuffer=gb, timings=T, info=info, extras=extras)
+
+
+def render_mode(scene, env, mode: str, *, camera=None, **kw) -> np.ndarray:
+    """One Fig. 6 image (H, W, C) for ``mode`` ∈ :data:`MODES` (keywords as :func:`render_modes`).
+
+    ``scene`` are the meshes; ``camera`` defaults to :func:`default_camera` (64² px).
+    """
+    if mode not in MODES:
+        raise IBLError(f"mode must be one of {MODES}, got {mode!r}")
+    cam = default_camera(scene) if camera is None else camera
+    return render_modes(scene, cam, env, (mode,), **kw).images[mode]

@@ -1,0 +1,96 @@
+"""Knuth et al. (2014) Fig. 1: gallery of materials from diffuse to mirror under two environments, our method.
+
+Scene ``sphere_on_plane`` (sphere and ground share the material), environments ``sky_sun`` and ``studio``,
+materials g ∈ {0, 0.5, 0.9, 0.99, 1}: g = 0 is the diffuse material (kd = 1, ks = 0: lobe s = 1 around the
+normal), the others are pure glossy (kd = 0, ks = 1, lobe s = 1/(1−g) around r; g = 1 mirror).  Eq. 5 with VSM
+visibilities; the visibilities are computed once per environment (they do not depend on the material).
+
+Files: ``fig1_images.json`` (linear radiance per env × g, + mask), ``fig1_meta.json``.  Plot: ``fig1.png``.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import write_json
+
+NAME = "fig1"
+DESCRIPTION = "Knuth 2014 Fig. 1: diffuse-to-mirror gallery (g = 0 … 1) under sky_sun and studio, our method"
+IN_QUICK_REPRODUCE = True
+
+GLOSS = (0.0, 0.5, 0.9, 0.99, 1.0)
+ENVS = ("sky_sun", "studio")
+
+
+def settings(quick: bool) -> dict:
+    if quick:
+        return dict(size=48, n_lights=24, vsm_resolution=128, env_size=64)
+    return dict(size=128, n_lights=96, vsm_resolution=512, env_size=128)
+
+
+def run(out_dir: Path, quick: bool) -> dict:
+    from ..ao_modes import default_camera, light_visibilities, shade_eq5
+    from ..pem import build_pems
+    from ..raster import prepare_scene, rasterize
+    from ..synthetic_envs import make_env
+    from ..synthetic_meshes import make_mesh
+    from .fig6 import images_to_json
+
+    out_dir = Path(out_dir)
+    st = settings(quick)
+    t0 = time.perf_counter()
+    meshes = [(make_mesh("sphere_on_plane"), 0)]
+    sc = prepare_scene(meshes, warn=False)
+    cam = default_camera(meshes, size=st["size"], view_dir=(0.0, 0.45, 1.0), distance=1.6)
+    gb = rasterize(sc, cam)
+    m = gb.mask
+    images = {}
+    for env_name in ENVS:
+        env = make_env(env_name, n=st["env_size"])
+        pems = build_pems(env, n_lights=st["n_lights"])
+        V = light_visibilities(sc, gb.position[m], gb.face_normal[m], pems.lights,
+                               vsm_resolution=st["vsm_resolution"])
+        for g in GLOSS:
+            if g == 0.0:
+                c = shade_eq5(V, np.asarray(pems.lookup_all(gb.normal[m], 0.0), float), None, 1.0, 0.0)
+            else:
+                c = shade_eq5(V, None, np.asarray(pems.lookup_all(gb.reflect[m], g), float), 0.0, 1.0)
+            img = np.zeros(m.shape + (c.shape[-1],))
+            img[m] = c
+            images[f"{env_name}|{g}"] = img
+    write_json(out_dir / "fig1_images.json", images_to_json(images, m))
+    meta = dict(settings=st, scene="sphere_on_plane", gloss=list(GLOSS), envs=list(ENVS),
+                total_time_s=time.perf_counter() - t0)
+    write_json(out_dir / "fig1_meta.json", meta)
+    return dict(time_s=meta["total_time_s"], n_images=len(images))
+
+
+def plot(out_dir: Path) -> list:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..atomic import atomic_path
+    from ..tonemap import auto_exposure, exposure_srgb
+    from .fig6 import images_from_json
+
+    out_dir = Path(out_dir)
+    imgs, mask = images_from_json(out_dir / "fig1_images.json")
+    fig, ax = plt.subplots(len(ENVS), len(GLOSS), figsize=(2.6 * len(GLOSS), 2.8 * len(ENVS)))
+    for i, e in enumerate(ENVS):
+        stops = auto_exposure(imgs[f"{e}|0.0"], mask)
+        for j, g in enumerate(GLOSS):
+            ax[i, j].imshow(exposure_srgb(imgs[f"{e}|{g}"], stops))
+            ax[i, j].set_title(f"{e}, g = {g}" + (" (diffuse)" if g == 0 else ""), fontsize=8)
+            ax[i, j].set_xticks([])
+            ax[i, j].set_yticks([])
+    fig.tight_layout()
+    p = out_dir / "fig1.png"
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    plt.close(fig)
+    return [p]

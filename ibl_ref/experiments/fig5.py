@@ -1,0 +1,125 @@
+"""Knuth et al. (2014) Fig. 5: relative lobe error vs s_Phong for the five 5×5 filters.
+
+For every filter (none = MIP only, gauss, cos, box, sqrtcos), face size, white-texel position and volume
+definition, :func:`ibl_ref.lobe_analysis.analyse` fits the continuous level whose lobe volume equals the
+cosˢ target's and reports the remaining error in percent of the target volume, for s from 1 up to
+:func:`ibl_ref.lobe_analysis.s_texel_limit` (lobe narrower than a level-0 texel).
+
+Sizes: quick = N 64 (centre, edge, corner) + N 128 (centre), 24 exponents; full = N 64, 128, 256 (three
+positions) + N 512 (centre), 32 exponents.  Pyramid order shrink_then_filter, seam neighbour.
+
+Files: ``fig5_errors.csv`` (one row per configuration and s; both error definitions and both
+centrings), ``fig5_meta.json``; plots ``fig5_<N>.png`` (rows: volume definition, columns: position;
+error = symmetric-difference volume, target centred on the white texel) and ``fig5_<N>_centroid.png``.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import read_csv, write_csv, write_json
+
+NAME = "fig5"
+DESCRIPTION = "Knuth 2014 Fig. 5: relative lobe error vs s_Phong for none/gauss/cos/box/sqrtcos filters"
+IN_QUICK_REPRODUCE = True
+
+KERNELS = ("none", "gauss", "cos", "box", "sqrtcos")
+# the paper's colours/styles (Fig. 5 caption)
+STYLE = {"none": dict(color="darkviolet", ls=":"), "gauss": dict(color="black", ls="-"),
+         "box": dict(color="red", ls="-"), "cos": dict(color="green", ls="-"),
+         "sqrtcos": dict(color="blue", ls="-")}
+
+
+def configs(quick: bool):
+    """(face_size, position, s-count) combinations of the quick and the full run."""
+    if quick:
+        return [(64, p, 24) for p in ("centre", "edge", "corner")] + [(128, "centre", 24)]
+    return [(n, p, 32) for n in (64, 128, 256) for p in ("centre", "edge", "corner")] + [(512, "centre", 32)]
+
+
+def compute_rows(n, position, count, kernels=KERNELS, order="shrink_then_filter", seam="neighbour"):
+    from ..lobe_analysis import CENTRINGS, LobeResponse, analyse, s_grid
+
+    rows = []
+    s_values = s_grid(n, count)
+    for k in kernels:
+        resp = LobeResponse(n, k, order=order, seam=seam, position=position)
+        rows += analyse(n, k, s_values, response=resp, centrings=CENTRINGS)
+        del resp
+    return rows
+
+
+def run(out_dir: Path, quick: bool) -> dict:
+    from tqdm import tqdm
+
+    out_dir = Path(out_dir)
+    t0 = time.perf_counter()
+    rows, timing = [], []
+    for n, pos, count in tqdm(configs(quick), desc="fig5 configs", leave=False):
+        t = time.perf_counter()
+        rows += compute_rows(n, pos, count)
+        timing.append({"face_size": n, "position": pos, "time_s": round(time.perf_counter() - t, 3)})
+    cols = ["face_size", "kernel", "order", "seam", "position", "volume", "centring", "s_phong", "level",
+            "fit_clipped", "err_symdiff_pct", "err_voldiff_pct", "target_quad_rel_err_pct"]
+    write_csv(out_dir / "fig5_errors.csv", rows, cols,
+              comment="Knuth 2014 Fig. 5 reproduction; errors in percent of the analytic target lobe volume")
+    at_s1 = {f"{r['kernel']}/{r['volume']}/N{r['face_size']}/{r['position']}": round(r["err_symdiff_pct"], 2)
+             for r in rows if r["s_phong"] == 1.0 and r["centring"] == "texel"}
+    meta = {"quick": quick, "total_time_s": round(time.perf_counter() - t0, 2), "timing": timing,
+            "err_symdiff_pct_at_s1_texel_centring": at_s1,
+            "order": "shrink_then_filter", "seam": "neighbour"}
+    write_json(out_dir / "fig5_meta.json", meta)
+    return {"total_time_s": meta["total_time_s"], "err_at_s1": at_s1}
+
+
+def plot(out_dir: Path) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..atomic import atomic_path
+
+    out_dir = Path(out_dir)
+    rows = read_csv(out_dir / "fig5_errors.csv")
+    groups: dict = {}
+    for r in rows:
+        key = (int(r["face_size"]), r["centring"], r["volume"], r["position"], r["kernel"])
+        groups.setdefault(key, ([], []))
+        groups[key][0].append(float(r["s_phong"]))
+        groups[key][1].append(float(r["err_symdiff_pct"]))
+    figs = []
+    for centring in ("texel", "centroid"):
+        for n in sorted({k[0] for k in groups}):
+            positions = [p for p in ("centre", "edge", "corner") if any(k[0] == n and k[3] == p for k in groups)]
+            vols = ("integral", "radial")
+            fig, axes = plt.subplots(len(vols), len(positions), figsize=(4.2 * len(positions), 3.4 * len(vols)),
+                                     squeeze=False, sharex=True)
+            for i, vol in enumerate(vols):
+                for j, pos in enumerate(positions):
+                    ax = axes[i, j]
+                    for k in KERNELS:
+                        g = groups.get((n, centring, vol, pos, k))
+                        if g:
+                            ax.plot(np.array(g[0]), np.array(g[1]), label=k, **STYLE[k])
+                    ax.set_xscale("log")
+                    ax.set_ylim(0, 160)
+                    ax.axhline(10, color="0.7", lw=0.6)
+                    ax.set_title(f"N={n}, {pos}, volume={vol}", fontsize=9)
+                    if i == len(vols) - 1:
+                        ax.set_xlabel("s_Phong")
+                    if j == 0:
+                        ax.set_ylabel("error, % of target volume")
+            axes[0, 0].legend(fontsize=8)
+            fig.suptitle(f"Fig. 5 reproduction (symmetric-difference error, target axis: {centring})", fontsize=10)
+            fig.tight_layout()
+            suffix = "" if centring == "texel" else "_centroid"
+            p = out_dir / f"fig5_{n}{suffix}.png"
+            with atomic_path(p) as tmp:
+                fig.savefig(tmp, format="png", dpi=110)
+            plt.close(fig)
+            figs.append(p)
+    return figs

@@ -1,0 +1,120 @@
+"""Knuth et al. (2014) Fig. 7: frame render time vs number of lights (teapot and cloth), and where the time goes.
+
+Per frame (one image, ``kd = 0, ks = 1, g = 0.5``): rasterisation of the G-buffer, per light a shadow (depth) map,
+the moment blur, the VSM look-ups (``visibility``), the PEM look-ups (``lookup``) and the Eq. 5 sum
+(``shading``) — timed stage by stage (:func:`ibl_ref.ao_modes.light_visibilities` with ``timings``).  Building the
+PEMs (median cut + one filter pyramid per region) is a pre-process in the paper and reported separately
+(``pem_build_s``).  A least-squares line ``frame_s = intercept + slope·lights`` is fitted per scene.
+CPU NumPy timings (2 shared cores, under load) — only the trend is comparable to the paper's GPU numbers.
+
+Files: ``fig7_timings.csv`` (one row per scene and light count), ``fig7_fit.json``.  Plot: ``fig7.png``.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import read_csv, write_csv, write_json
+
+NAME = "fig7"
+DESCRIPTION = "Knuth 2014 Fig. 7: render time vs number of lights (teapot, cloth) with a per-stage breakdown"
+IN_QUICK_REPRODUCE = True
+
+STAGES = ("raster", "shadow_maps", "blur", "visibility", "lookup", "shading")
+SCENES = ("teapot", "cloth")
+
+
+def settings(quick: bool) -> dict:
+    if quick:
+        return dict(lights=[6, 12, 24], size=64, vsm_resolution=128, env_size=32)
+    return dict(lights=[6, 12, 24, 48, 96, 192], size=128, vsm_resolution=256, env_size=64)
+
+
+def fit_line(x, y) -> dict:
+    """Least-squares y = intercept + slope·x; returns slope, intercept and R²."""
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    A = np.stack([np.ones_like(x), x], axis=1)
+    (b, a), *_ = np.linalg.lstsq(A, y, rcond=None)
+    ss = ((y - y.mean()) ** 2).sum()
+    r2 = 1.0 - ((y - (b + a * x)) ** 2).sum() / ss if ss > 0 else 1.0
+    return dict(slope_s_per_light=float(a), intercept_s=float(b), r2=float(r2))
+
+
+def run(out_dir: Path, quick: bool) -> dict:
+    from ..ao_modes import default_camera, render_modes
+    from ..pem import build_pems
+    from ..synthetic_envs import make_env
+    from ..synthetic_meshes import make_mesh
+
+    out_dir = Path(out_dir)
+    st = settings(quick)
+    env = make_env("sky_sun", n=st["env_size"])
+    rows = []
+    for scene in SCENES:
+        meshes = [(make_mesh(scene), 0)]
+        cam = default_camera(meshes, size=st["size"])
+        # warm-up (caches: calibration tables, samplers) so the first timed frame is not penalised
+        render_modes(meshes, cam, env, ("no-occlusion",), pems=build_pems(env, n_lights=6), kd=0.0, ks=1.0, g=0.5)
+        for L in st["lights"]:
+            t0 = time.perf_counter()
+            pems = build_pems(env, n_lights=L)
+            t_pem = time.perf_counter() - t0
+            res = render_modes(meshes, cam, env, ("ours",), pems=pems, kd=0.0, ks=1.0, g=0.5,
+                               vsm_resolution=st["vsm_resolution"])
+            T = {k: float(res.timings.get(k, 0.0)) for k in STAGES}
+            rows.append(dict(scene=scene, lights=len(pems.lights), frame_s=sum(T.values()), pem_build_s=t_pem,
+                             n_pixels=int(res.mask.sum()), **{f"{k}_s": v for k, v in T.items()}))
+    cols = ["scene", "lights", "frame_s", "pem_build_s", "n_pixels"] + [f"{k}_s" for k in STAGES]
+    write_csv(out_dir / "fig7_timings.csv", rows, cols,
+              comment=f"CPU seconds per frame (under load), {st['size']}^2 px, VSM {st['vsm_resolution']}^2, env {st['env_size']}^2")
+    fits = {}
+    for scene in SCENES:
+        r = [x for x in rows if x["scene"] == scene]
+        fits[scene] = fit_line([x["lights"] for x in r], [x["frame_s"] for x in r])
+        fits[scene]["shadow_share"] = float(sum(x["shadow_maps_s"] + x["blur_s"] for x in r) / sum(x["frame_s"] for x in r))
+    write_json(out_dir / "fig7_fit.json", dict(settings=st, fits=fits))
+    return fits
+
+
+def plot(out_dir: Path) -> list:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..atomic import atomic_path
+
+    out_dir = Path(out_dir)
+    rows = read_csv(out_dir / "fig7_timings.csv")
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    colors = {"teapot": "red", "cloth": "blue"}
+    for scene in SCENES:
+        r = [x for x in rows if x["scene"] == scene]
+        x = np.array([float(q["lights"]) for q in r])
+        y = np.array([float(q["frame_s"]) for q in r])
+        ax[0].plot(x, y, "o-", color=colors[scene], label=scene)
+    ax[0].set_xlabel("number of lights")
+    ax[0].set_ylabel("frame time [s] (CPU, under load)")
+    ax[0].legend()
+    ax[0].set_title("render time vs lights")
+    labels = [f"{q['scene'][:3]} {q['lights']}" for q in rows]
+    bottom = np.zeros(len(rows))
+    for k in STAGES:
+        v = np.array([float(q[f"{k}_s"]) for q in rows])
+        ax[1].bar(range(len(rows)), v, bottom=bottom, label=k)
+        bottom += v
+    ax[1].set_xticks(range(len(rows)))
+    ax[1].set_xticklabels(labels, rotation=60, fontsize=7)
+    ax[1].set_ylabel("seconds")
+    ax[1].legend(fontsize=7)
+    ax[1].set_title("where the time goes")
+    fig.tight_layout()
+    p = out_dir / "fig7.png"
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    plt.close(fig)
+    return [p]

@@ -1,0 +1,220 @@
+"""Lights alone vs PEMs vs exact, for glossy lobes (Knuth et al. 2014 Sec. 3: "Existing methods substitute the
+environment map with a set of light sources which is problematic when dealing with high gloss surfaces").
+
+Scene: unoccluded sphere, orthographic camera on +Z looking down −Z (image row 0 = +y), view v = +Z;
+per pixel the reflection direction r = 2(n·v)n − v.
+
+Shading model (stated): the *normalised* Phong lobe of exponent s around r (the lobe average that the
+filter pyramid approximates, FIELD_NOTES §2),
+
+    I(r) = ∫ L(ω) max(r·ω, 0)^s dω / W_s(r),   W_s(r) = ∫ max(r·ω, 0)^s dω  (≈ 2π/(s+1)),
+
+without the n·ω factor or the hemisphere clip (Eq. 4 integrates over Ω⁺; for a lobe around r the clip
+only matters for s ≈ 1 at grazing angles and is the same for all three estimates).
+
+* ``exact``: quadrature over the environment's texels, each split into k×k sub-texels with exact solid
+  angles (:func:`ibl_ref.envmap.texel_solid_angles` of the N·k grid), radiance piecewise constant; the
+  weights are evaluated as exp(s·(log c − log c_max)) (no underflow at s = 1000).  Cross-checked against
+  helper C1's :func:`ibl_ref.phong_convolution.convolve_exact` at texel centres (``exact_check_max_rel``).
+* ``lights``: the median-cut lights as point lights, I = Σ_i rgb_i max(r·ω_i, 0)^s / W_s(r), rgb_i = ∫_region L dω
+  (same W_s quadrature as ``exact``, so only the light discretisation differs).
+* ``pem``: Σ_i lookup(PEM_i, r, g) with g = 1 − 1/s (Eq. 3): the paper's method without shadows.
+* ``pyramid``: lookup of the full map's pyramid (= ``pem`` by linearity; ``rel_l1_pem_vs_pyramid`` shows
+  the float32 rounding of the stored PEMs).
+
+Error: relative L1 over the sphere's pixels and the three channels, Σ|I − I_exact| / Σ|I_exact|.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+NAME = "lights-vs-error"
+DESCRIPTION = "sphere lit by median-cut point lights vs PEM lookups vs exact Phong convolution, s = 1..1000"
+IN_QUICK_REPRODUCE = True
+
+S_VALUES = (1.0, 10.0, 100.0, 1000.0)
+ENVS = ("sky_sun", "studio")
+
+
+def _env(name, n):
+    from .fig8 import _env as env
+
+    return env(name, n)
+
+
+def sphere_reflections(res: int):
+    """Pixel mask (res, res) and reflection directions (P, 3) of an orthographic unit sphere seen from +Z."""
+    c = (np.arange(res) + 0.5) / res * 2 - 1
+    x, y = np.meshgrid(c, -c)  # row 0 = top = +y
+    rr = x * x + y * y
+    mask = rr < 1.0
+    n = np.stack([x[mask], y[mask], np.sqrt(1.0 - rr[mask])], axis=-1)
+    v = np.array([0.0, 0.0, 1.0])
+    r = 2.0 * (n @ v)[:, None] * n - v
+    return mask, r / np.linalg.norm(r, axis=-1, keepdims=True)
+
+
+def exact_lobe_average(cube, r, s, supersample: int = 1, chunk: int = 512):
+    """Brute-force normalised Phong lobe average at directions r (P, 3); also returns W_s(r)."""
+    from ..envmap import texel_directions, texel_solid_angles
+
+    n = cube.shape[1]
+    m = n * supersample
+    dirs = texel_directions(m).reshape(-1, 3)
+    omega = np.broadcast_to(texel_solid_angles(m), (6, m, m)).reshape(-1)
+    rad = np.repeat(np.repeat(cube, supersample, axis=1), supersample, axis=2).reshape(-1, cube.shape[3])
+    log_om = np.log(omega)
+    out = np.empty((r.shape[0], cube.shape[3]))
+    wsum = np.empty(r.shape[0])
+    for a in range(0, r.shape[0], chunk):
+        c = r[a:a + chunk] @ dirs.T
+        pos = c > 0
+        logc = np.full(c.shape, -np.inf)
+        np.log(c, out=logc, where=pos)
+        cmax = logc.max(axis=1, keepdims=True)
+        w = np.exp(s * (logc - cmax) + log_om)
+        den = w.sum(axis=1)
+        out[a:a + chunk] = (w @ rad) / den[:, None]
+        wsum[a:a + chunk] = den * np.exp(s * cmax[:, 0])
+    return out, wsum
+
+
+def point_lights(lights, r, s, wsum):
+    """Σ_i rgb_i max(r·ω_i,0)^s / W_s(r)."""
+    c = np.clip(r @ lights.directions.T, 0.0, None)
+    return (c**s) @ lights.rgb / wsum[:, None]
+
+
+def rel_l1(a, ref):
+    return float(np.abs(a - ref).sum() / np.abs(ref).sum())
+
+
+def run(out_dir: Path, quick: bool) -> dict:
+    from ..atomic import write_csv, write_json
+    from ..median_cut import median_cut
+    from ..pem import build_pems
+    from ..pyramid import build_pyramid
+    from ..gloss_lookup import lookup
+
+    out_dir = Path(out_dir)
+    n, res, ss = (32, 48, 2) if quick else (64, 128, 2)
+    counts = (6, 24, 96) if quick else (6, 24, 96, 384)
+    img_lights = 24
+    mask, r = sphere_reflections(res)
+    rows, images, checks = [], {}, {}
+    t0 = time.perf_counter()
+    for env in ENVS:
+        cube = _env(env, n)
+        full = build_pyramid(cube)
+        exact = {}
+        for s in S_VALUES:
+            exact[s] = exact_lobe_average(cube, r, s, ss)
+        # cross-check the brute force against helper C1's exact convolution at texel centres of an 8² output
+        try:
+            from ..phong_convolution import convolve_exact
+            from ..envmap import texel_directions
+
+            worst = 0.0
+            for s in (1.0, 100.0):
+                ref = convolve_exact(cube, s, supersample=ss, out_size=8).reshape(-1, 3)
+                mine, _ = exact_lobe_average(cube, texel_directions(8).reshape(-1, 3), s, ss)
+                worst = max(worst, float(np.max(np.abs(mine - ref) / np.abs(ref))))
+            checks[env] = worst
+        except ImportError:  # pragma: no cover
+            checks[env] = None
+        for L in counts:
+            ls = median_cut(cube, L, "per-face")
+            pems = build_pems(cube, ls)
+            for s in S_VALUES:
+                g = 1.0 - 1.0 / s  # Eq. 3
+                ex, wsum = exact[s]
+                il = point_lights(ls, r, s, wsum)
+                ip = pems.full_lookup(r, g).astype(np.float64)
+                iy = lookup(full, r, g, calibration=pems.calibration).astype(np.float64)
+                rows.append({"env": env, "face_size": n, "lights": L, "s_phong": s, "g": g,
+                             "rel_l1_lights": rel_l1(il, ex), "rel_l1_pem": rel_l1(ip, ex),
+                             "rel_l1_pyramid": rel_l1(iy, ex), "rel_l1_pem_vs_pyramid": rel_l1(ip, iy)})
+                if L == img_lights and s in (10.0, 1000.0):
+                    for name, val in (("exact", ex), ("lights", il), ("pem", ip)):
+                        img = np.zeros((res, res, 3))
+                        img[mask] = val
+                        images[f"{env}|{int(s)}|{name}"] = np.round(img, 6).tolist()
+    write_csv(out_dir / "lights_vs_error.csv", rows, comment=(
+        "Relative L1 (sum over sphere pixels and RGB) vs the exact normalised Phong lobe average. lights = median-cut "
+        "point lights (per-face); pem = sum of PEM lookups at g = 1 - 1/s; pyramid = full-map pyramid lookup."))
+    write_json(out_dir / "lights_vs_error_images.json", {"res": res, "lights": img_lights, "images": images})
+    write_json(out_dir / "lights_vs_error_meta.json", {
+        "face_size": n, "sphere_res": res, "exact_supersample": ss, "light_counts": list(counts),
+        "exact_check_max_rel_vs_convolve_exact": checks, "time_s": round(time.perf_counter() - t0, 2)})
+    best = {}
+    for s in S_VALUES:
+        sel = [x for x in rows if x["s_phong"] == s]
+        best[str(int(s))] = {"lights_min": min(x["rel_l1_lights"] for x in sel),
+                             "pem_max": max(x["rel_l1_pem"] for x in sel)}
+    return {"by_s": best, "exact_check": checks}
+
+
+def plot(out_dir: Path) -> list:
+    import json
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..atomic import atomic_path, read_csv
+
+    out_dir = Path(out_dir)
+    rows = read_csv(out_dir / "lights_vs_error.csv")
+    paths = []
+    fig, axes = plt.subplots(1, len(ENVS), figsize=(11, 4), sharey=True)
+    for ax, env in zip(axes, ENVS):
+        sel = [x for x in rows if x["env"] == env]
+        counts = sorted({int(x["lights"]) for x in sel})
+        for L in counts:
+            q = [x for x in sel if int(x["lights"]) == L]
+            ax.plot([float(x["s_phong"]) for x in q], [float(x["rel_l1_lights"]) for x in q], "o-",
+                    label=f"{L} point lights")
+        for L, mk in ((counts[0], "s"), (counts[-1], "^")):
+            q = [x for x in sel if int(x["lights"]) == L]
+            ax.plot([float(x["s_phong"]) for x in q], [float(x["rel_l1_pem"]) for x in q], "k--", marker=mk,
+                    mfc="none", label=f"PEMs ({L})")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("Phong exponent s")
+        ax.set_title(env)
+        ax.grid(True, which="both", lw=0.3)
+    axes[0].set_ylabel("relative L1 error vs exact (sphere)")
+    axes[0].legend(fontsize=7)
+    fig.suptitle("Unoccluded glossy sphere: median-cut point lights vs PEM lookups (normalised Phong lobe)", fontsize=9)
+    p = out_dir / "lights_vs_error.png"
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, format="png", dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    paths.append(p)
+
+    data = json.loads((out_dir / "lights_vs_error_images.json").read_text())
+    keys = list(data["images"])
+    groups = sorted({k.rsplit("|", 1)[0] for k in keys})
+    fig, axes = plt.subplots(len(groups), 3, figsize=(7, 2.4 * len(groups)))
+    axes = np.atleast_2d(axes)
+    for i, grp in enumerate(groups):
+        ref = np.array(data["images"][f"{grp}|exact"])
+        scale = np.percentile(ref[ref > 0], 99) if np.any(ref > 0) else 1.0
+        for j, name in enumerate(("exact", "lights", "pem")):
+            img = np.array(data["images"][f"{grp}|{name}"]) / scale
+            axes[i, j].imshow(np.clip(img, 0, 1) ** (1 / 2.2), interpolation="nearest")
+            env, s = grp.split("|")
+            axes[i, j].set_title(f"{env} s={s}: {name}" + (f" ({data['lights']})" if name != "exact" else ""), fontsize=7)
+            axes[i, j].axis("off")
+    fig.tight_layout()
+    p = out_dir / "lights_vs_error_spheres.png"
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, format="png", dpi=120)
+    plt.close(fig)
+    paths.append(p)
+    return paths

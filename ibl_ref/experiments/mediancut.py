@@ -1,0 +1,159 @@
+"""Median-cut regions and lights on the unfolded cube (Knuth et al. 2014 Sec. 3.1/4; Debevec 2008).
+
+For the sky+sun and studio maps and 6, 12, 24, 48, 96 lights, each variant (``per-face`` = the paper,
+``global``, ``variance``) is run; the region rectangles and lights are written to ``mediancut_lights.csv``,
+the energy spread (max/min, coefficient of variation of region energies: the paper's "equally
+important" requirement) and partition residuals (Eq. 1) to ``mediancut_summary.csv``, and the maps'
+log-luminance on the horizontal cross to ``mediancut_maps.json`` (plot input).
+
+Horizontal cross (OpenEXR orientation, faces seen from inside, no rotation needed):
+top row +Y above −Z; middle row −X, −Z, +X, +Z; bottom row −Y below −Z.  Every shared edge of this
+layout is a true cube edge (checked numerically when this layout was written: neighbouring cross pixels
+are at most one texel apart in angle).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+NAME = "mediancut"
+DESCRIPTION = "median-cut regions and lights (per-face/global/variance) on the unfolded cube, energy spread"
+IN_QUICK_REPRODUCE = True
+
+#: face index → (row, col) of the horizontal cross in face units
+CROSS = {2: (0, 1), 1: (1, 0), 5: (1, 1), 0: (1, 2), 4: (1, 3), 3: (2, 1)}
+LIGHT_COUNTS = (6, 12, 24, 48, 96)
+ENVS = ("sky_sun", "studio")
+
+
+def _env(name, n):
+    from .fig8 import _env as env
+
+    return env(name, n)
+
+
+def to_cross(face_data: np.ndarray, fill=np.nan) -> np.ndarray:
+    """(6, n, n, ...) → (3n, 4n, ...) horizontal cross (see module docstring)."""
+    n = face_data.shape[1]
+    out = np.full((3 * n, 4 * n) + face_data.shape[3:], fill, dtype=np.float64)
+    for f, (r, c) in CROSS.items():
+        out[r * n:(r + 1) * n, c * n:(c + 1) * n] = face_data[f]
+    return out
+
+
+def run(out_dir: Path, quick: bool) -> dict:
+    from ..atomic import write_csv, write_json
+    from ..envmap import direction_to_texel_coords
+    from ..median_cut import VARIANTS, check_partition, energy_spread, luminance, median_cut
+
+    out_dir = Path(out_dir)
+    n = 64 if quick else 128
+    light_rows, summary, maps = [], [], {}
+    for env in ENVS:
+        cube = _env(env, n)
+        y = luminance(cube)
+        maps[env] = {"face_size": n, "log10_luminance_cross": np.round(
+            np.nan_to_num(to_cross(np.log10(np.maximum(y, 1e-6))), nan=-99.0), 4).tolist()}
+        for variant in VARIANTS:
+            for L in LIGHT_COUNTS:
+                ls = median_cut(cube, L, variant)
+                chk = check_partition(ls, cube)
+                sp = energy_spread(ls)
+                summary.append({"env": env, "face_size": n, "variant": variant, "lights": L,
+                                "energy_max_over_min": sp["max_over_min"], "energy_cv": sp["cv"],
+                                "zero_energy_regions": sp["n_zero_energy"],
+                                "solid_angle_max_over_min": float(ls.solid_angle.max() / ls.solid_angle.min()),
+                                "uncovered_texels": chk["uncovered"], "overlapping_texels": chk["overlapping"],
+                                "rgb_sum_rel_err": chk["rgb_sum_rel_err"]})
+                face, x, yy = direction_to_texel_coords(ls.directions, n)
+                power = ls.energy / ls.energy.sum()
+                for i in range(L):
+                    f, r0, r1, c0, c1 = (int(v) for v in ls.regions[i])
+                    light_rows.append({"env": env, "variant": variant, "lights": L, "index": i, "face": f,
+                                       "row0": r0, "row1": r1, "col0": c0, "col1": c1,
+                                       "dir_x": ls.directions[i, 0], "dir_y": ls.directions[i, 1],
+                                       "dir_z": ls.directions[i, 2], "tex_x": float(x[i]), "tex_y": float(yy[i]),
+                                       "r": ls.rgb[i, 0], "g": ls.rgb[i, 1], "b": ls.rgb[i, 2],
+                                       "energy_fraction": float(power[i]), "solid_angle_sr": ls.solid_angle[i]})
+    write_csv(out_dir / "mediancut_lights.csv", light_rows, comment=(
+        "Median-cut lights: region (face,row0:row1,col0:col1, exclusive ends), unit direction, rgb = integral of L "
+        "over the region (radiance*sr), energy_fraction = luminance*sr share, tex_x/tex_y = continuous texel coords."))
+    write_csv(out_dir / "mediancut_summary.csv", summary, comment=(
+        "Energy spread of the regions (Rec.709 luminance * exact solid angle) and Eq. 1 partition residuals."))
+    write_json(out_dir / "mediancut_maps.json", maps)
+    per_face = [r for r in summary if r["variant"] == "per-face"]
+    return {"max_rgb_sum_rel_err": max(r["rgb_sum_rel_err"] for r in summary),
+            "partition_ok": all(r["uncovered_texels"] == 0 and r["overlapping_texels"] == 0 for r in summary),
+            "per_face_cv_at_96": {r["env"]: r["energy_cv"] for r in per_face if r["lights"] == 96}}
+
+
+def plot(out_dir: Path) -> list:
+    import json
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import PatchCollection
+    from matplotlib.patches import Rectangle
+
+    from ..atomic import atomic_path, read_csv
+
+    out_dir = Path(out_dir)
+    maps = json.loads((out_dir / "mediancut_maps.json").read_text())
+    lights = read_csv(out_dir / "mediancut_lights.csv")
+    summary = read_csv(out_dir / "mediancut_summary.csv")
+    paths = []
+    for variant in ("per-face", "global", "variance"):
+        fig, axes = plt.subplots(len(LIGHT_COUNTS), len(ENVS), figsize=(11, 2.9 * len(LIGHT_COUNTS)))
+        for j, env in enumerate(ENVS):
+            n = maps[env]["face_size"]
+            img = np.array(maps[env]["log10_luminance_cross"])
+            img = np.ma.masked_less(img, -98)
+            for i, L in enumerate(LIGHT_COUNTS):
+                ax = axes[i, j]
+                ax.imshow(img, cmap="gray", interpolation="nearest", vmin=np.percentile(img.compressed(), 1),
+                          vmax=np.percentile(img.compressed(), 99.5))
+                sel = [r for r in lights if r["env"] == env and r["variant"] == variant and int(r["lights"]) == L]
+                rects, xs, ys, sz = [], [], [], []
+                for r in sel:
+                    fr, fc = CROSS[int(r["face"])]
+                    r0, r1, c0, c1 = (int(r[k]) for k in ("row0", "row1", "col0", "col1"))
+                    rects.append(Rectangle((fc * n + c0 - 0.5, fr * n + r0 - 0.5), c1 - c0, r1 - r0))
+                    xs.append(fc * n + float(r["tex_x"]))
+                    ys.append(fr * n + float(r["tex_y"]))
+                    sz.append(4 + 300 * float(r["energy_fraction"]))
+                ax.add_collection(PatchCollection(rects, facecolor="none", edgecolor="tab:orange", linewidth=0.6))
+                ax.scatter(xs, ys, s=sz, c="red", edgecolors="white", linewidths=0.3)
+                srow = [s for s in summary if s["env"] == env and s["variant"] == variant and int(s["lights"]) == L][0]
+                ax.set_title(f"{env}, {L} lights ({variant}); energy CV {float(srow['energy_cv']):.2f}", fontsize=8)
+                ax.set_xticks([])
+                ax.set_yticks([])
+        fig.suptitle("Median cut on the cube (horizontal cross: +Y over -Z; -X -Z +X +Z; -Y); dot area ∝ light power",
+                     fontsize=9)
+        fig.tight_layout()
+        p = out_dir / f"mediancut_{variant}.png"
+        with atomic_path(p) as tmp:
+            fig.savefig(tmp, format="png", dpi=110)
+        plt.close(fig)
+        paths.append(p)
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for env, mk in (("sky_sun", "o"), ("studio", "s")):
+        for variant, ls in (("per-face", "-"), ("global", "--"), ("variance", ":")):
+            sel = [s for s in summary if s["env"] == env and s["variant"] == variant]
+            ax.plot([int(s["lights"]) for s in sel], [float(s["energy_cv"]) for s in sel], ls, marker=mk,
+                    label=f"{env} {variant}")
+    ax.set_xscale("log", base=2)
+    ax.set_yscale("log")
+    ax.set_xlabel("lights")
+    ax.set_ylabel("CV of region energies (0 = equally important)")
+    ax.legend(fontsize=7)
+    p = out_dir / "mediancut_energy_spread.png"
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, format="png", dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    paths.append(p)
+    return paths

@@ -1,0 +1,554 @@
+"""Ray-traced ground truth for Knuth et al. (2014), Eq. 5 with kd/ks Phong materials (Sec. 3.4, Fig. 6).
+
+The paper's renderer approximates, per pixel,
+
+    c = Σ_i VIS_i · (kd·PEM_i(n, g=0) + ks·PEM_i(r, g))                                     (Eq. 5, kd/ks form)
+
+with shadow-mapped visibilities of one directional light per median-cut region and filtered partial environment
+maps.  The exact quantity it approximates is the visibility-weighted Phong lobe average (Eq. 4 normalised as a
+lobe average, FIELD_NOTES §2)::
+
+    c = kd · A_1(n) + ks · A_s(r),   A_s(d) = Σ_j L_j V_j max(d·ω_j, 0)^s Ω_j / Σ_j max(d·ω_j, 0)^s Ω_j     (*)
+
+with ``s = 1/(1−g)`` (Eq. 3), ``r = 2(n·v)n − v``, V_j the exact binary visibility of direction ω_j from the
+surface point, and the sums over **all** texels j of an environment level (the normalisation includes occluded
+and below-horizon texels, so V ≡ 1 reproduces :func:`ibl_ref.phong_convolution.convolve_exact`).
+
+Quadrature (choices that change numbers, all explicit parameters):
+
+* ``n_env`` — face size of the COARSE level used for (*): L_j is the exact solid-angle-weighted area average of
+  the fine texels inside coarse texel j, so ∫L dω is kept exactly; Ω_j is the exact coarse solid angle.
+* ``directions`` — ω_j is the coarse texel **centre** (``"centre"``; reproduces the exact convolution of the
+  coarse map) or the luminance-weighted **energy centroid** of its fine texels (``"centroid"``, default;
+  a sun inside a coarse texel then casts its shadow from its true direction).
+* The coarse level can only resolve lobes wider than a few coarse texels: :func:`env_size_for_exponent` picks
+  the smallest level whose texel angle is ≤ the lobe's half-width at half maximum / ``texels_per_halfwidth``
+  (θ½ = arccos 2^(−1/s) ≈ 1.18/√s).  The reference is NOT valid for narrower lobes at a given level.
+  ``g = 1`` (mirror) is handled exactly: one ray along r, radiance = the fine map's nearest texel at r.
+* Lobe truncation for glossy lobes: texels with max(d·ω,0)^s < ``weight_cutoff`` × (lobe peak) are skipped for the
+  visibility (they still count in the normalisation); the neglected weight fraction is reported.
+
+Visibility: an exact parallel-ray caster (:func:`parallel_visibility`): for each direction ω the triangles and the
+ray origins are projected onto the plane ⟂ ω, binned on a 2D grid, and every candidate (origin, triangle) pair is
+tested with exact 2D barycentrics and the depth along ω — ray casting of the rays o + tω, t > 0, with a
+per-direction set-up.  It is cross-checked against trimesh's ``intersects_any`` in the tests;
+``backend="trimesh"`` uses :func:`ibl_ref.raycast.visibility_to_directions` instead (slow without Embree:
+~100 rays/s on the 16k-triangle teapot, FIELD_NOTES §4).  Ray origins are offset by ``eps`` along the face
+normal and along the ray, as in :mod:`ibl_ref.raycast`.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import IBLError, LayoutError, check_radiance
+
+__all__ = [
+    "ReferenceResult",
+    "coarse_env",
+    "coarse_directions",
+    "lobe_half_angle",
+    "env_size_for_exponent",
+    "lobe_average",
+    "parallel_visibility",
+    "reference_shading",
+    "render_reference",
+    "coarse_level_error",
+    "estimate_reference_rays",
+    "exact_pem_lookup",
+]
+
+DIRECTION_MODES = ("centroid", "centre")
+BACKENDS = ("project", "trimesh")
+
+
+# ------------------------------------------------------------------------------------------------
+# environment quadrature
+# ------------------------------------------------------------------------------------------------
+def _check_env(cube) -> np.ndarray:
+    from .envmap import check_cube_shape
+
+    check_cube_shape(cube, "environment")
+    a = np.asarray(check_radiance(cube, "environment"), dtype=np.float64)
+    if a.ndim == 3:
+        a = a[..., None]
+    return a
+
+
+def coarse_env(cube, n_env: int) -> np.ndarray:
+    """Exact area average of a cube map onto face size ``n_env`` (must divide N).
+
+    L_coarse = Σ_f L_f Ω_f / Σ_f Ω_f over the k×k fine texels f of each coarse texel (k = N / n_env); since the
+    coarse texel is exactly the union of its fine texels, L_coarse·Ω_coarse = Σ L_f Ω_f and ∫L dω is kept.
+    """
+    from .envmap import cube_solid_angles
+
+    a = _check_env(cube)
+    N = a.shape[1]
+    n_env = int(n_env)
+    if n_env < 1 or N % n_env:
+        raise LayoutError(f"n_env={n_env} must divide the face size {N}")
+    k = N // n_env
+    om = cube_solid_angles(N)[..., None]
+    num = (a * om).reshape(6, n_env, k, n_env, k, -1).sum(axis=(2, 4))
+    den = om.reshape(6, n_env, k, n_env, k, 1).sum(axis=(2, 4))
+    return num / den
+
+
+def coarse_directions(cube, n_env: int, mode: str = "centroid") -> np.ndarray:
+    """Quadrature directions ω_j (6, n, n, 3) of the coarse level: texel centres or energy centroids.
+
+    ``"centroid"``: normalize(Σ_f Y_f Ω_f ω_f) over the fine texels f (Y = mean over channels); texels with no
+    energy use the solid-angle centroid Σ_f Ω_f ω_f.
+    """
+    from .envmap import cube_solid_angles, texel_directions
+
+    if mode not in DIRECTION_MODES:
+        raise IBLError(f"directions must be one of {DIRECTION_MODES}, got {mode!r}")
+    if mode == "centre":
+        return np.array(texel_directions(int(n_env)))
+    a = _check_env(cube)
+    N = a.shape[1]
+    k = N // int(n_env)
+    if N % int(n_env):
+        raise LayoutError(f"n_env={n_env} must divide the face size {N}")
+    om = cube_solid_angles(N)
+    w_dir = texel_directions(N)
+    y = a.mean(axis=-1) * om
+    shp = (6, int(n_env), k, int(n_env), k, 3)
+    e = (y[..., None] * w_dir).reshape(shp).sum(axis=(2, 4))
+    g = (om[..., None] * w_dir).reshape(shp).sum(axis=(2, 4))
+    esum = y.reshape(shp[:-1]).sum(axis=(2, 4))[..., None]
+    d = np.where(esum > 0, e, g)
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def lobe_half_angle(s) -> np.ndarray:
+    """Half-width at half maximum of max(cos θ, 0)^s: θ½ = arccos(2^(−1/s)) (≈ 1.18/√s for large s)."""
+    s = np.asarray(s, dtype=np.float64)
+    return np.arccos(np.power(2.0, -1.0 / s))
+
+
+def env_size_for_exponent(s: float, n_fine: int, texels_per_halfwidth: float = 1.0, n_min: int = 8) -> int:
+    """Smallest face size n (power of two, n_min ≤ n ≤ n_fine) with centre-texel angle (π/2)/n ≤ θ½/texels.
+
+    Returns ``n_fine`` if even the fine map cannot resolve the lobe (then the reference is limited by the map's
+    resolution, as the paper notes for Fig. 5) — check with :func:`lobe_half_angle`.
+    """
+    if not np.isfinite(s):
+        return int(n_fine)
+    need = texels_per_halfwidth * (np.pi / 2) / float(lobe_half_angle(s))
+    n = int(n_min)
+    while n < need and n < n_fine:
+        n *= 2
+    return int(min(n, n_fine))
+
+
+def _lobe_weights(d, omega_dirs, omega_sa, s):
+    """max(d·ω,0)^s Ω (P, J) and their row sums (P,)."""
+    c = np.clip(d @ omega_dirs.T, 0.0, None)
+    with np.errstate(divide="ignore", under="ignore"):
+        w = np.power(c, s) * omega_sa[None, :]
+    return w, w.sum(axis=1)
+
+
+def lobe_average(cube, dirs, s, *, n_env: int | None = None, directions: str = "centre", chunk: int = 2048):
+    """Unoccluded lobe average A_s(d) of (*) at arbitrary directions (..., 3) → (..., C).
+
+    With ``n_env = N`` and ``directions="centre"`` this is exactly the formula of
+    :func:`ibl_ref.phong_convolution.convolve_exact` evaluated at ``dirs`` instead of at texel centres.
+    """
+    from .envmap import cube_solid_angles
+
+    a = _check_env(cube)
+    N = a.shape[1]
+    n_env = N if n_env is None else int(n_env)
+    Lc = coarse_env(a, n_env).reshape(-1, a.shape[-1])
+    om_d = coarse_directions(a, n_env, directions).reshape(-1, 3)
+    om = np.array(cube_solid_angles(n_env)).reshape(-1)
+    d = np.asarray(dirs, dtype=np.float64)
+    shape = d.shape[:-1]
+    d = d.reshape(-1, 3)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    out = np.empty((len(d), Lc.shape[1]))
+    for i in range(0, len(d), chunk):
+        w, ws = _lobe_weights(d[i:i + chunk], om_d, om, float(s))
+        out[i:i + chunk] = (w @ Lc) / ws[:, None]
+    return out.reshape(shape + (Lc.shape[1],))
+
+
+# ------------------------------------------------------------------------------------------------
+# exact parallel-ray visibility
+# ------------------------------------------------------------------------------------------------
+def _basis(d):
+    a = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(d, a)
+    u /= np.linalg.norm(u)
+    return u, np.cross(d, u)
+
+
+def _expand(starts, counts):
+    """Concatenated aranges [starts[i], starts[i]+counts[i]) and the owner index of each element."""
+    counts = np.asarray(counts, dtype=np.int64)
+    owner = np.repeat(np.arange(len(counts)), counts)
+    offs = np.cumsum(counts) - counts
+    idx = np.arange(counts.sum(), dtype=np.int64) - np.repeat(offs, counts) + np.repeat(starts, counts)
+    return idx, owner
+
+
+def _cast_one_direction(tri, origins, d, grid_max=128):
+    """hit (P,) bool: does o + tω (t > 0) hit any of the triangles?  Exact up to float rounding.
+
+    ``tri`` is (F, 3, 3) vertex positions or a pair ``(vertices (V, 3), faces (F, 3))`` (faster: only the
+    vertices are projected).
+    """
+    if isinstance(tri, tuple):
+        verts, faces = tri
+    else:
+        verts, faces = tri.reshape(-1, 3), np.arange(tri.shape[0] * 3).reshape(-1, 3)
+    P = len(origins)
+    hit = np.zeros(P, dtype=bool)
+    if P == 0:
+        return hit
+    u, v = _basis(d)
+    vx, vy, vz = verts[:, 0], verts[:, 1], verts[:, 2]
+    pr = [vx * b[0] + vy * b[1] + vz * b[2] for b in (u, v, d)]  # coordinates ⟂ ω and along ω
+    pu, pv, pw = (origins[:, 0] * b[0] + origins[:, 1] * b[1] + origins[:, 2] * b[2] for b in (u, v, d))
+    umin, umax, vmin, vmax = pu.min(), pu.max(), pv.min(), pv.max()
+    f0, f1, f2 = faces[:, 0], faces[:, 1], faces[:, 2]
+    tu = np.stack([pr[0][f0], pr[0][f1], pr[0][f2]], axis=1)
+    tv = np.stack([pr[1][f0], pr[1][f1], pr[1][f2]], axis=1)
+    tw = np.stack([pr[2][f0], pr[2][f1], pr[2][f2]], axis=1)
+
+    def _mn(x):
+        return np.minimum(np.minimum(x[:, 0], x[:, 1]), x[:, 2])
+
+    def _mx(x):
+        return np.maximum(np.maximum(x[:, 0], x[:, 1]), x[:, 2])
+
+    tumin, tumax, tvmin, tvmax = _mn(tu), _mx(tu), _mn(tv), _mx(tv)
+    keep = (_mx(tw) > pw.min()) & (tumax >= umin) & (tumin <= umax) & (tvmax >= vmin) & (tvmin <= vmax)
+    if not keep.any():
+        return hit
+    tu, tv, tw = tu[keep], tv[keep], tw[keep]
+    tumin, tumax, tvmin, tvmax = tumin[keep], tumax[keep], tvmin[keep], tvmax[keep]
+    # 2D signed area; edge-on triangles (area ≈ 0) are grazed by parallel rays: measure zero, skipped
+    area = (tu[:, 1] - tu[:, 0]) * (tv[:, 2] - tv[:, 0]) - (tu[:, 2] - tu[:, 0]) * (tv[:, 1] - tv[:, 0])
+    ext = max(umax - umin, vmax - vmin, 1e-12)
+    ok = np.abs(area) > 1e-14 * ext * ext
+    tu, tv, tw, area = tu[ok], tv[ok], tw[ok], area[ok]
+    tumin, tumax, tvmin, tvmax = tumin[ok], tumax[ok], tvmin[ok], tvmax[ok]
+    if len(area) == 0:
+        return hit
+    G = int(min(grid_max, max(1, np.ceil(np.sqrt(P)))))
+    cu = (umax - umin) / G or 1.0
+    cv = (vmax - vmin) / G or 1.0
+    i0 = np.clip(np.floor((tumin - umin) / cu), 0, G - 1).astype(np.int64)
+    i1 = np.clip(np.floor((tumax - umin) / cu), 0, G - 1).astype(np.int64)
+    j0 = np.clip(np.floor((tvmin - vmin) / cv), 0, G - 1).astype(np.int64)
+    j1 = np.clip(np.floor((tvmax - vmin) / cv), 0, G - 1).astype(np.int64)
+    nj = j1 - j0 + 1
+    cnt = (i1 - i0 + 1) * nj
+    k, t_own = _expand(np.zeros(len(cnt), np.int64), cnt)
+    cell = (i0[t_own] + k // nj[t_own]) * G + (j0[t_own] + k % nj[t_own])
+    order = np.argsort(cell, kind="stable")
+    cell_tri = t_own[order]
+    cell_start = np.searchsorted(cell[order], np.arange(G * G))
+    cell_cnt = np.bincount(cell, minlength=G * G)
+    pi = np.clip(np.floor((pu - umin) / cu), 0, G - 1).astype(np.int64)
+    pj = np.clip(np.floor((pv - vmin) / cv), 0, G - 1).astype(np.int64)
+    pc = pi * G + pj
+    idx, p_own = _expand(cell_start[pc], cell_cnt[pc])
+    t = cell_tri[idx]
+    x, y = pu[p_own], pv[p_own]
+    # barycentrics in 2D (inclusive edges: a ray through a shared edge counts as a hit)
+    a0 = ((tu[t, 1] - x) * (tv[t, 2] - y) - (tu[t, 2] - x) * (tv[t, 1] - y)) / area[t]
+    a1 = ((tu[t, 2] - x) * (tv[t, 0] - y) - (tu[t, 0] - x) * (tv[t, 2] - y)) / area[t]
+    a2 = 1.0 - a0 - a1
+    tol = -1e-12
+    inside = (a0 >= tol) & (a1 >= tol) & (a2 >= tol)
+    w_hit = a0 * tw[t, 0] + a1 * tw[t, 1] + a2 * tw[t, 2]
+    h = inside & (w_hit > pw[p_own])
+    hit[np.unique(p_own[h])] = True
+    return hit
+
+
+def parallel_visibility(meshes, points, normals, dirs, *, eps: float | None = None, mask=None, progress: bool = False):
+    """Exact binary visibility V (P, D) of directions ``dirs`` (D, 3) from surface points (P, 3).
+
+    Same contract as :func:`ibl_ref.raycast.visibility_to_directions` (origin p + eps·n + eps·ω; 1 = unoccluded),
+    computed with the per-direction projection caster described in the module docstring.  ``mask`` (P, D) bool
+    selects the pairs to cast (others are returned as 1).  With ``normals``, directions below the receiving
+    triangle's plane (ω·n < 0) are occluded without casting (the ray enters the surface; trimesh agrees since
+    such a ray hits the receiving triangle itself).
+    """
+    from .raster import prepare_scene
+
+    scene = prepare_scene(meshes, warn=False)
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
+    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(d))):
+        raise IBLError("points/dirs contain NaN or Inf")
+    nd = np.linalg.norm(d, axis=1, keepdims=True)
+    if np.any(nd == 0):
+        raise IBLError("dirs: zero-length direction")
+    d = d / nd
+    if eps is None:
+        eps = 1e-4 * scene.bounds()[1]
+    base = p.copy()
+    below = None
+    if normals is not None:
+        n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        if len(n) != len(p):
+            raise IBLError(f"normals ({len(n)}) and points ({len(p)}) differ in length")
+        base = base + eps * n
+        below = (n @ d.T) < 0  # direction below the receiving triangle's plane: the ray enters the surface
+    if mask is not None:
+        mask = np.asarray(mask, dtype=bool)
+        if mask.shape != (len(p), len(d)):
+            raise IBLError(f"mask shape {mask.shape} != ({len(p)}, {len(d)})")
+    tri = (scene.vertices, scene.faces)
+    V = np.ones((len(p), len(d)))
+    it = range(len(d))
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, desc="reference rays", unit="dir")
+    for j in it:
+        want = np.ones(len(p), dtype=bool) if mask is None else mask[:, j].copy()
+        if below is not None:
+            V[below[:, j], j] = 0.0
+            want &= ~below[:, j]
+        sel = np.flatnonzero(want)
+        if len(sel) == 0:
+            continue
+        o = base[sel] + eps * d[j]
+        V[sel, j] = np.where(_cast_one_direction(tri, o, d[j]), 0.0, 1.0)
+    return V
+
+
+# ------------------------------------------------------------------------------------------------
+# reference image
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class ReferenceResult:
+    """Output of :func:`render_reference`.
+
+    Attributes
+    ----------
+    image : (H, W, C) — c = kd·A_1(n) + ks·A_s(r) with exact visibility (0 on background).
+    unoccluded : (H, W, C) — same with V ≡ 1.
+    mask : (H, W) bool — covered pixels.
+    gbuffer : :class:`ibl_ref.raster.GBuffer`
+    info : dict — n_env_diffuse, n_env_glossy, n_rays, time_s, rays_per_s, neglected_weight_max, backend, …
+    """
+
+    image: np.ndarray
+    unoccluded: np.ndarray
+    mask: np.ndarray
+    gbuffer: object
+    info: dict = field(default_factory=dict)
+
+
+def estimate_reference_rays(n_pixels: int, n_env: int, s: float = 1.0) -> int:
+    """Upper bound of rays for one lobe: covered pixels × 6·n_env² directions (glossy lobes cast fewer)."""
+    return int(n_pixels) * 6 * int(n_env) ** 2
+
+
+def reference_shading(meshes, points, face_normals, d_lobe, cube, s, *, n_env: int, directions: str = "centroid",
+                      weight_cutoff: float = 1e-6, backend: str = "project", eps: float | None = None,
+                      progress: bool = False):
+    """Exact visibility-weighted lobe averages A_s(d) of (*) at surface points → (occluded (P, C), unoccluded (P, C), info).
+
+    ``s = np.inf`` is the mirror: one ray along d, radiance of the fine map's nearest texel.
+    """
+    from .envmap import cube_solid_angles
+
+    if backend not in BACKENDS:
+        raise IBLError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    a = _check_env(cube)
+    P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(d_lobe, dtype=np.float64).reshape(-1, 3)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    s = float(s)
+    if not (s >= 1.0):
+        raise IBLError(f"Phong exponent s must be >= 1 (or inf), got {s}")
+    t0 = time.perf_counter()
+    if np.isinf(s):
+        from .sampling import sample_nearest
+
+        Lr = sample_nearest(a, d)
+        vis = _visibility(meshes, P, face_normals, d, backend, eps, pairwise=True)
+        info = dict(n_env=a.shape[1], n_rays=len(P), neglected_weight_max=0.0)
+        info["time_s"] = time.perf_counter() - t0
+        return Lr * vis[:, None], Lr, info
+    Lc = coarse_env(a, n_env).reshape(-1, a.shape[-1])
+    om_d = coarse_directions(a, n_env, directions).reshape(-1, 3)
+    om = np.array(cube_solid_angles(n_env)).reshape(-1)
+    w, ws = _lobe_weights(d, om_d, om, s)
+    if np.any(ws <= 0):
+        raise IBLError("a lobe has zero total weight at this env level (lobe narrower than a texel): use a finer n_env")
+    peak = w.max(axis=1, keepdims=True)
+    cast = w > weight_cutoff * peak
+    neglected = float(((w * ~cast).sum(axis=1) / ws).max())
+    if backend == "project":
+        V = parallel_visibility(meshes, P, face_normals, om_d, eps=eps, mask=cast, progress=progress)
+    else:
+        V = np.ones_like(w)
+        Vt = _visibility(meshes, P, face_normals, om_d, backend, eps, pairwise=False)
+        V[cast] = Vt[cast]
+    V[~cast] = 0.0  # neglected lobe tail: treated as occluded (bounded by neglected_weight_max)
+    occl = ((w * V) @ Lc) / ws[:, None]
+    unocc = (w @ Lc) / ws[:, None]
+    info = dict(n_env=int(n_env), n_rays=int(cast.sum()), neglected_weight_max=neglected,
+                time_s=time.perf_counter() - t0)
+    return occl, unocc, info
+
+
+def _visibility(meshes, P, normals, dirs, backend, eps, pairwise):
+    if pairwise:  # one direction per point
+        if backend == "project":
+            # group-free: cast each point's own direction (mirror case, one ray per pixel)
+            from .raycast import any_hit
+            from .raster import prepare_scene
+
+            scene = prepare_scene(meshes, warn=False)
+            e = 1e-4 * scene.bounds()[1] if eps is None else eps
+            o = P + e * np.asarray(normals).reshape(-1, 3) + e * dirs
+            return (~any_hit((scene, scene.to_trimesh()), o, dirs)).astype(float)
+        from .raycast import visibility_to_directions
+
+        return np.array([visibility_to_directions(meshes, P[i:i + 1], normals[i:i + 1], dirs[i])[0, 0]
+                         for i in range(len(P))])
+    from .raycast import visibility_to_directions
+
+    return visibility_to_directions(meshes, P, normals, dirs, eps=eps)
+
+
+def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, g: float = 0.9,
+                     n_env_diffuse: int | None = 8, n_env_glossy: int | None = None, directions: str = "centroid",
+                     texels_per_halfwidth: float = 1.0, weight_cutoff: float = 1e-6, backend: str = "project",
+                     smooth_normals: bool = True, gbuffer=None, progress: bool = False) -> ReferenceResult:
+    """Ground-truth image c = kd·A_1(n) + ks·A_s(r) of (*) with exact ray-cast visibility.
+
+    Parameters
+    ----------
+    meshes, camera : scene and view (same as :func:`ibl_ref.render.render_pem`; same G-buffer)
+    cube : (6, N, N, C) fine environment map (radiance)
+    kd, ks : diffuse and glossy weights (≥ 0)
+    g : glossiness of the ks term (s = 1/(1−g), Eq. 3; g = 1 → exact mirror)
+    n_env_diffuse : coarse face size for the s = 1 term (default 8)
+    n_env_glossy : coarse face size for the glossy term (default :func:`env_size_for_exponent`)
+    directions, texels_per_halfwidth, weight_cutoff, backend : see module docstring
+    gbuffer : a precomputed :class:`ibl_ref.raster.GBuffer` of the same camera (optional)
+
+    Returns
+    -------
+    ReferenceResult
+    """
+    from .gloss_lookup import phong_exponent
+    from .raster import prepare_scene, rasterize
+
+    kd, ks, g = float(kd), float(ks), float(g)
+    if not (kd >= 0 and ks >= 0 and np.isfinite(kd) and np.isfinite(ks)):
+        raise IBLError(f"kd, ks must be finite and >= 0, got {kd}, {ks}")
+    if not (0.0 <= g <= 1.0):
+        raise IBLError(f"g must be in [0, 1], got {g}")
+    a = _check_env(cube)
+    N = a.shape[1]
+    scene = prepare_scene(meshes, warn=False)
+    gb = rasterize(scene, camera, smooth_normals=smooth_normals) if gbuffer is None else gbuffer
+    m = gb.mask
+    P, n, fn, r = gb.position[m], gb.normal[m], gb.face_normal[m], gb.reflect[m]
+    C = a.shape[-1]
+    occ = np.zeros((len(P), C))
+    unocc = np.zeros((len(P), C))
+    info = dict(n_pixels=int(m.sum()), backend=backend, directions=directions, kd=kd, ks=ks, g=g, n_rays=0,
+                time_s=0.0, neglected_weight_max=0.0)
+    s_g = float(phong_exponent(g))
+    terms = []
+    if kd > 0:
+        terms.append(("diffuse", kd, n, 1.0, min(N, n_env_diffuse or 8)))
+    if ks > 0:
+        ng = n_env_glossy or env_size_for_exponent(s_g, N, texels_per_halfwidth)
+        terms.append(("glossy", ks, r, s_g, min(N, ng)))
+    for name, k, dl, s, ne in terms:
+        if np.isfinite(s) and ne >= N and lobe_half_angle(s) < texels_per_halfwidth * (np.pi / 2) / N:
+            warnings.warn(f"{name} lobe s={s:g} is narrower than {texels_per_halfwidth} texels of the {N}² map: "
+                          "the reference is limited by the map's resolution", UserWarning, stacklevel=2)
+        n_est = estimate_reference_rays(len(P), ne)
+        if backend == "trimesh":
+            from .raycast import _check_rays_budget
+
+            _check_rays_budget(n_est, len(scene.faces))
+        o, u, inf = reference_shading(scene, P, fn, dl, a, s, n_env=ne, directions=directions,
+                                      weight_cutoff=weight_cutoff, backend=backend, progress=progress)
+        occ += k * o
+        unocc += k * u
+        info[f"n_env_{name}"] = inf["n_env"]
+        info[f"s_{name}"] = s
+        info[f"time_{name}_s"] = inf["time_s"]
+        info["n_rays"] += inf["n_rays"]
+        info["time_s"] += inf["time_s"]
+        info["neglected_weight_max"] = max(info["neglected_weight_max"], inf["neglected_weight_max"])
+    info["rays_per_s"] = info["n_rays"] / info["time_s"] if info["time_s"] > 0 else float("nan")
+    H, W = m.shape
+    img = np.zeros((H, W, C))
+    img[m] = occ
+    un = np.zeros((H, W, C))
+    un[m] = unocc
+    if not (np.all(np.isfinite(img)) and np.all(np.isfinite(un))):
+        raise IBLError("reference produced non-finite values")
+    return ReferenceResult(image=img, unoccluded=un, mask=m, gbuffer=gb, info=info)
+
+
+def coarse_level_error(cube, dirs, s: float, n_env: int, directions: str = "centroid") -> dict:
+    """Error of the coarse-level quadrature with V ≡ 1 at lobe directions ``dirs`` (P, 3).
+
+    Compares :func:`lobe_average` at level ``n_env`` against the exact lobe average of the full-resolution map
+    (the formula of :func:`ibl_ref.phong_convolution.convolve_exact`, evaluated at ``dirs``).  Returns
+    ``rel_l1`` (Σ|a−b|/Σ|b| over all pixels and channels) and ``rel_max`` (max |a−b|/b over pixel luminance).
+    """
+    a = _check_env(cube)
+    coarse = lobe_average(a, dirs, s, n_env=n_env, directions=directions)
+    exact = lobe_average(a, dirs, s, n_env=a.shape[1], directions="centre")
+    err = np.abs(coarse - exact)
+    yb = exact.mean(axis=-1)
+    return dict(rel_l1=float(err.sum() / max(np.abs(exact).sum(), 1e-300)),
+                rel_max=float((err.mean(axis=-1) / np.maximum(yb, 1e-300)).max()),
+                n_env=int(n_env), n_fine=int(a.shape[1]), s=float(s), directions=directions)
+
+
+def exact_pem_lookup(cube, labels, dirs, s: float, n_regions: int | None = None, chunk: int = 256) -> np.ndarray:
+    """Exact per-region lobe averages (L, P, C): the PEMs of Eq. 5 without the filter pyramid.
+
+    PEM_i(d) = Σ_{j ∈ region i} L_j max(d·ω_j,0)^s Ω_j / Σ_{all j} max(d·ω_j,0)^s Ω_j over the full-resolution
+    texels j (``labels`` (6, N, N) from :func:`ibl_ref.median_cut.median_cut`), so Σ_i PEM_i = the exact lobe
+    average.  Used to separate the filter-pyramid error from the visibility error of Eq. 5.
+    """
+    from .envmap import cube_solid_angles, texel_directions
+
+    a = _check_env(cube)
+    N = a.shape[1]
+    lab = np.asarray(labels).reshape(-1)
+    if lab.shape[0] != 6 * N * N:
+        raise LayoutError(f"labels must have shape (6, {N}, {N})")
+    L = int(lab.max()) + 1 if n_regions is None else int(n_regions)
+    order = np.argsort(lab, kind="stable")
+    starts = np.searchsorted(lab[order], np.arange(L))
+    Lc = a.reshape(-1, a.shape[-1])[order]
+    om_d = np.asarray(texel_directions(N)).reshape(-1, 3)[order]
+    om = np.asarray(cube_solid_angles(N)).reshape(-1)[order]
+    d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    out = np.zeros((L, len(d), a.shape[-1]))
+    nonempty = np.bincount(lab, minlength=L) > 0
+    for i in range(0, len(d), chunk):
+        w, ws = _lobe_weights(d[i:i + chunk], om_d, om, float(s))
+        part = np.add.reduceat(w[:, :, None] * Lc[None], starts[nonempty], axis=1) / ws[:, None, None]
+        out[nonempty, i:i + chunk] = np.moveaxis(part, 1, 0)
+    return out

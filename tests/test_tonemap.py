@@ -1,0 +1,47 @@
+"""Tests of ibl_ref.tonemap (display only)."""
+
+import numpy as np
+import pytest
+
+from ibl_ref import tonemap as tm
+from ibl_ref.errors import IBLError
+
+
+def test_srgb_known_values():
+    # IEC 61966-2-1 transfer: endpoints and the linear segment, value at 0.5 computed from the formula by hand
+    np.testing.assert_allclose(tm.srgb_encode([0.0, 1.0, 0.001]), [0.0, 1.0, 0.01292])
+    assert tm.srgb_encode(0.5) == pytest.approx(1.055 * 0.5 ** (1 / 2.4) - 0.055)
+
+
+def test_monotone_and_finite_up_to_1e6():
+    x = np.concatenate([[0.0], np.logspace(-6, 6, 2000)])
+    for op in ("reinhard", "clip"):
+        y = tm.exposure_srgb(x, stops=0.0, operator=op)
+        assert np.all(np.isfinite(y)) and y.min() >= 0 and y.max() <= 1
+        assert np.all(np.diff(y) >= 0)
+    y = tm.exposure_srgb(x[x <= 1e3], operator="reinhard")
+    assert np.all(np.diff(y) > 0)  # strictly increasing while 1/(1+x) is resolvable in float64
+    assert tm.exposure_srgb(np.array([1e6]))[0] < 1.0  # Reinhard never reaches 1
+
+
+def test_auto_exposure_maps_percentile_to_key():
+    img = np.full((4, 4, 3), 5.0)
+    stops = tm.auto_exposure(img, percentile=90, key=0.8)
+    assert 5.0 * 2 ** stops == pytest.approx(0.8)
+    assert tm.auto_exposure(np.zeros((2, 2, 3))) == 0.0
+
+
+def test_save_png_roundtrip(tmp_path):
+    import matplotlib.pyplot as plt
+
+    img = np.random.default_rng(0).uniform(0, 1e5, (6, 5, 3))
+    p = tm.save_png(tmp_path / "x.png", img)
+    back = plt.imread(p)
+    assert back.shape[:2] == (6, 5)
+
+
+def test_bad_inputs():
+    with pytest.raises(IBLError):
+        tm.exposure_srgb(np.array([np.nan]))
+    with pytest.raises(IBLError):
+        tm.exposure_srgb(np.array([1.0]), operator="filmic")
