@@ -27,6 +27,9 @@ def test_notebook_executes(path, tmp_path, monkeypatch):
     nb = nbformat.read(path, as_version=4)
     monkeypatch.setenv("IBL_REF_QUICK", "1")
     monkeypatch.setenv("MPLBACKEND", "Agg")
+    # the kernel imports the checkout under test (the same code as the installed package in CI)
+    root = str(NB_DIR.parent)
+    monkeypatch.setenv("PYTHONPATH", root + os.pathsep + os.environ.get("PYTHONPATH", ""))
     client = nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
                                      resources={"metadata": {"path": str(tmp_path)}})
     t0 = time.perf_counter()
