@@ -291,8 +291,10 @@ class CubeSampler:
         self.n = check_cube_shape(cube)
         self.cube = np.asarray(cube)
         self.convention = convention
-        self.padded = pad_faces(self.cube, self._PAD, convention, mode="geometric")
-        m = self.n + 2 * self._PAD
+        # 2 texels of padding cover the extended-plane reads of the seam blend; a 1x1 face has only 1
+        self._pad = min(self._PAD, self.n)
+        self.padded = pad_faces(self.cube, self._pad, convention, mode="geometric")
+        m = self.n + 2 * self._pad
         self._flat = self.padded.reshape((6 * m * m,) + self.cube.shape[3:])
 
     def nearest(self, dirs) -> np.ndarray:
@@ -301,7 +303,7 @@ class CubeSampler:
         return self.cube[face, row, col]
 
     def _interp(self, face, x, y):
-        idx, w = _bilinear_taps(face, x, y, self.n, self._PAD)
+        idx, w = _bilinear_taps(face, x, y, self.n, self._pad)
         vals = self._flat[idx]
         if self.cube.ndim == 4:
             return np.einsum("...kc,...k->...c", vals, w)
@@ -312,6 +314,8 @@ class CubeSampler:
         n = self.n
         frames = envmap._frames(self.convention)
         d = envmap._as_directions(dirs)
+        lead = d.shape[:-1]
+        d = d.reshape(-1, 3)
         face, x, y = envmap.direction_to_texel_coords(d, n, self.convention)
         out = self._interp(face, x, y)
         fx = np.maximum(np.maximum(x - (n - 1), -x), 0.0)  # distance beyond the last texel centre
@@ -339,6 +343,7 @@ class CubeSampler:
                     val = self._interp(face_n[sel], *_extended_coords(db[sel], face_n[sel], n, self.convention))
                     res[sel] += w_n[sel].reshape((-1,) + nc) * val
             out[band] = res
+        out = out.reshape(lead + self.cube.shape[3:])
         return out.astype(np.result_type(self.cube.dtype, np.float32), copy=False)
 
 

@@ -203,3 +203,20 @@ def test_leading_shapes_of_directions():
     out = S.sample_bilinear(cube, d)
     assert out.shape == (5, 1, 7, 2)
     np.testing.assert_allclose(out.reshape(-1, 2), S.sample_bilinear(cube, d.reshape(-1, 3)), rtol=1e-14)
+
+
+@pytest.mark.parametrize("n", [1, 2])
+def test_tiny_faces(n):
+    """Face sizes 1 and 2 (the top of every MIP pyramid): constants exact, values within the data range,
+    continuous across edges and corners, linear."""
+    rng = np.random.default_rng(n)
+    d = _unit(rng.normal(size=(3000, 3)))
+    np.testing.assert_allclose(S.sample_bilinear(np.full((6, n, n, 2), 0.7), d), 0.7, rtol=1e-14)
+    cube = rng.random((6, n, n))
+    out = S.sample_bilinear(cube, d)
+    assert out.min() >= cube.min() - 1e-15 and out.max() <= cube.max() + 1e-15
+    np.testing.assert_allclose(S.sample_bilinear(cube, E.texel_directions(n)), cube, atol=1e-14)
+    samp = S.CubeSampler(cube)
+    for c in CORNERS:
+        vals = [samp.bilinear(c * (1 + 1e-11 * np.eye(3)[k])) for k in range(3)]
+        assert np.ptp(vals) < 1e-7

@@ -94,7 +94,8 @@ def register(sub) -> None:
     p.add_argument("output", metavar="OUT", help="output name; _s{S} is inserted before the extension")
     p.add_argument("--exponent", "-s", action="append", required=True, metavar="S",
                    help="Phong exponent s >= 1 (repeatable; 'inf' = mirror)")
-    p.add_argument("--method", choices=("auto", "exact", "sh", "sparse"), default="auto")
+    p.add_argument("--method", choices=("auto", "exact", "sh", "sparse", "moment"), default="auto",
+                   help="auto (default): cheapest method whose bound meets --rtol; moment: exact for s = 1, 2 only")
     p.add_argument("--rtol", type=float, default=1e-3, help="target per-texel relative error (default 1e-3)")
     p.add_argument("--unnormalized", action="store_true",
                    help="literal Eq. 4 sum (value 2π/(s+1) for L=1) instead of the lobe average")

@@ -33,6 +33,23 @@ def cmd_experiment(args) -> int:
     return 0
 
 
+def _copy_gallery(results, folder: Path) -> list:
+    """Copy every experiment's PNG figures to ``folder/NAME__FIGURE.png`` (stable names, atomic)."""
+    from ..atomic import atomic_write
+
+    out = []
+    for res in results:
+        for fig in res["figures"]:
+            src = Path(fig)
+            if src.suffix.lower() != ".png":
+                continue
+            dst = folder / f"{res['experiment']}__{src.name}"
+            with atomic_write(dst, "wb") as fh:
+                fh.write(src.read_bytes())
+            out.append(dst)
+    return out
+
+
 def cmd_reproduce(args) -> int:
     from ..atomic import write_json
 
@@ -48,6 +65,9 @@ def cmd_reproduce(args) -> int:
         results.append(res)
     skipped = sorted(set(exps) - {m.NAME for m in chosen})
     write_json(out / "reproduce_summary.json", {"quick": args.quick, "runs": results, "skipped_in_quick": skipped})
+    if args.gallery:
+        gallery = _copy_gallery(results, Path(args.gallery))
+        print(f"gallery: {len(gallery)} figure(s) in {args.gallery}")
     if skipped:
         print(f"not run at quick size (run 'ibl-ref experiment NAME'): {', '.join(skipped)}")
     print(f"summary: {out / 'reproduce_summary.json'}")
@@ -77,4 +97,6 @@ def register(sub) -> None:
     )
     r.add_argument("--out", default="results", help="output folder (default: results)")
     r.add_argument("--quick", action="store_true", help="quick sizes (the README's first command)")
+    r.add_argument("--gallery", metavar="DIR",
+                   help="also copy every PNG figure to DIR as EXPERIMENT__FIGURE.png (the README gallery: docs/gallery)")
     r.set_defaults(func=cmd_reproduce)

@@ -183,7 +183,7 @@ def plot(out_dir: Path) -> list:
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "speed_accuracy.csv")
     sizes = sorted({int(r["face_size_texels"]) for r in rows})
-    colors = {"exact": "k", "sh": "tab:blue", "sparse": "tab:orange", "auto": "tab:green"}
+    colors = {"exact": "k", "sh": "tab:blue", "sparse": "tab:orange", "auto": "tab:green", "moment": "tab:purple"}
     paths = []
     for n in sizes:
         rs = [r for r in rows if int(r["face_size_texels"]) == n]
