@@ -43,6 +43,7 @@ import numpy as np
 
 from . import envmap
 from .errors import IBLError, LayoutError, check_radiance
+from .phong_convolution import _check_exponent
 
 __all__ = ["ConvolutionResult", "convolve", "METHODS"]
 
@@ -131,12 +132,7 @@ def _check_exponents(exponents):
         raise IBLError("no Phong exponents given")
     out = []
     for s in ex:
-        try:
-            v = float(s)
-        except (TypeError, ValueError):
-            raise IBLError(f"Phong exponent must be a number >= 1 or inf, got {s!r}") from None
-        if math.isnan(v) or v < 1.0:
-            raise IBLError(f"Phong exponent s must be >= 1 (s_Phong = 1/(1-g), g in [0,1]) or inf, got {s!r}")
+        v = _check_exponent(s)
         if v not in out:
             out.append(v)
     return out

@@ -189,6 +189,22 @@ class PEMSet:
         self._all_pyr = None
 
 
+def prepare_pem_input(cube, lights, n_lights, variant, caller: str):
+    """Validate the map as float64 (6, N, N, C) and return ``(N, cube, lights)``, median-cutting it
+    into ``n_lights`` regions when no ``lights`` are given (shared by the dense and sparse builders)."""
+    n = check_cube_shape(cube, "PEM input")
+    cube = np.asarray(check_radiance(cube, "PEM input"), dtype=np.float64)
+    if cube.ndim == 3:
+        cube = cube[..., None]
+    if lights is None:
+        if n_lights is None:
+            raise IBLError(f"{caller}: give either lights (a LightSet) or n_lights")
+        lights = median_cut(cube, n_lights, variant)
+    if lights.labels.shape != (6, n, n):
+        raise LayoutError(f"lights were made for face size {lights.face_size}, map has {n}")
+    return n, cube, lights
+
+
 def build_pems(cube, lights: LightSet | None = None, *, n_lights: int | None = None, variant: str = "per-face",
                kernel="sqrtcos", order: str = "shrink_then_filter", seam: str = "neighbour", dtype=np.float32,
                calibration=None, pyramid_builder: Callable | None = None, lookup_fn: Callable | None = None,
@@ -212,16 +228,7 @@ def build_pems(cube, lights: LightSet | None = None, *, n_lights: int | None = N
     chunk : regions per pyramid call (default: ≤ 48 stacked channels).
     progress : show a tqdm bar.
     """
-    n = check_cube_shape(cube, "PEM input")
-    cube = np.asarray(check_radiance(cube, "PEM input"), dtype=np.float64)
-    if cube.ndim == 3:
-        cube = cube[..., None]
-    if lights is None:
-        if n_lights is None:
-            raise IBLError("build_pems: give either lights (a LightSet) or n_lights")
-        lights = median_cut(cube, n_lights, variant)
-    if lights.labels.shape != (6, n, n):
-        raise LayoutError(f"lights were made for face size {lights.face_size}, map has {n}")
+    n, cube, lights = prepare_pem_input(cube, lights, n_lights, variant, "build_pems")
     dt = np.dtype(dtype)
     if not np.issubdtype(dt, np.floating):
         raise IBLError(f"PEM dtype must be a float type, got {dt}")

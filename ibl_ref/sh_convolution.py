@@ -90,6 +90,7 @@ from scipy.special import gammaln, gammasgn
 
 from . import envmap
 from .errors import IBLError, LayoutError, check_radiance
+from .phong_convolution import _check_exponent
 
 __all__ = [
     "zonal_coefficients",
@@ -115,16 +116,8 @@ _FOUR_PI = 4.0 * np.pi
 
 
 # ----------------------------------------------------------------------------------------------
-# input checks (kept private; same messages as ibl_ref.phong_convolution)
+# input checks (the exponent check is shared with ibl_ref.phong_convolution)
 # ----------------------------------------------------------------------------------------------
-def _check_exponent(s) -> float:
-    try:
-        s = float(s)
-    except (TypeError, ValueError):
-        raise IBLError(f"Phong exponent must be a number >= 1, got {s!r}") from None
-    if math.isnan(s) or s < 1.0:
-        raise IBLError(f"Phong exponent s must be >= 1 (s_Phong = 1/(1-g), g in [0,1]), got {s!r}")
-    return s
 
 
 def _check_cube(cube, name="environment cube map"):

@@ -46,9 +46,8 @@ from typing import Callable
 
 import numpy as np
 
-from .envmap import check_cube_shape
-from .errors import IBLError, LayoutError, check_radiance
-from .median_cut import LightSet, median_cut
+from .errors import IBLError
+from .median_cut import LightSet
 
 __all__ = ["Tile", "SparsePEMSet", "sparsify", "build_sparse_pems", "levels_touched", "TILE_META_BYTES"]
 
@@ -295,19 +294,10 @@ def build_sparse_pems(cube, lights: LightSet | None = None, *, n_lights: int | N
     FULL (criterion (*)) is the pyramid of the full map, built once in float64 (equal to Σ_i PEM_i by
     linearity of the pyramid).
     """
-    from .pem import iter_pem_chunks
+    from .pem import iter_pem_chunks, prepare_pem_input
 
     rtol = _check_rtol(rtol)
-    n = check_cube_shape(cube, "PEM input")
-    cube = np.asarray(check_radiance(cube, "PEM input"), dtype=np.float64)
-    if cube.ndim == 3:
-        cube = cube[..., None]
-    if lights is None:
-        if n_lights is None:
-            raise IBLError("build_sparse_pems: give either lights (a LightSet) or n_lights")
-        lights = median_cut(cube, n_lights, variant)
-    if lights.labels.shape != (6, n, n):
-        raise LayoutError(f"lights were made for face size {lights.face_size}, map has {n}")
+    n, cube, lights = prepare_pem_input(cube, lights, n_lights, variant, "build_sparse_pems")
     if pyramid_builder is None:
         from .pyramid import build_pyramid as pyramid_builder
     full = pyramid_builder(cube, kernel=kernel, order=order, seam=seam)
