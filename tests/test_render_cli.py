@@ -40,13 +40,14 @@ def test_default_scene_writes_exr_and_png(tmp_path):
     assert info["mode"] == "ours" and info["lights"] == 6 and info["size"] == [32, 32]
 
 
-def test_no_occlusion_constant_env_is_kd_plus_ks(tmp_path):
+@pytest.mark.parametrize("prefilter", ["pyramid", "exact-lobe"])
+def test_no_occlusion_constant_env_is_kd_plus_ks(tmp_path, prefilter):
     # constant map of value 1, VIS ≡ 1: every covered pixel is kd + ks (normalised lobes; float32 PEMs → 1e-6)
-    # and W × H is honoured (non-square)
+    # and W × H is honoured (non-square); both PEM prefilters keep a constant map constant
     out = tmp_path / "c.npz"
     rc = main(["render", "--synthetic", "constant", "--env-size", "16", "--mesh", "torus", "--lights", "6",
                "--size", "20", "12", "--mode", "no-occlusion", "--material", "0.25,0.5,0.9",
-               "--ground-material", "0.1,0.3,0.2", "--out", str(out)])
+               "--ground-material", "0.1,0.3,0.2", "--prefilter", prefilter, "--out", str(out)])
     assert rc == 0
     d = np.load(out)
     assert d["image"].shape == (12, 20, 3)

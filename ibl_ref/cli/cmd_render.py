@@ -211,8 +211,13 @@ def cmd_render(args) -> int:
         from ..pem import build_pems
 
         pems = build_pems(cube, n_lights=args.lights, variant=args.median_cut, progress=progress)
+        if args.prefilter == "exact-lobe":
+            from ..lobe_chain import build_lobe_chain_pems
+
+            pems = build_lobe_chain_pems(cube, pems.lights, progress=progress)
         info["lights"] = len(pems.lights.directions)
         info["median_cut"] = args.median_cut
+        info["prefilter"] = args.prefilter
     t1 = time.perf_counter()
     extra = {}
     if render_mode is None:
@@ -346,6 +351,10 @@ def register(sub) -> None:
     g.add_argument("--median-cut", choices=("per-face", "global", "variance"), default="per-face",
                    help="region split: per cube face (paper, default), global over the whole map, or "
                    "variance-minimising (Viriyothai & Debevec 2009); the last two allow any --lights")
+    g.add_argument("--prefilter", choices=("pyramid", "exact-lobe"), default="pyramid",
+                   help="how each PEM is prefiltered: 'pyramid' = the paper's 2x2-shrink + 5x5-filter MIP pyramid "
+                        "(default); 'exact-lobe' = the same lookup on levels holding exact Phong lobe averages "
+                        "(ibl_ref.lobe_chain; slower to build, no filter-shape error)")
     g.add_argument("--visibility", choices=("vsm", "raycast", "none"), default=None,
                    help="VIS_i for --mode ours: variance shadow maps (default), exact ray casting, none")
     g.add_argument("--exact-backend", choices=("binned", "trimesh"), default="binned",
