@@ -1,0 +1,135 @@
+"""Filter pyramid vs exact-lobe chain: lookup error, build time and memory (the prefilter's speed/accuracy trade).
+
+Knuth et al. (2014, Sec. 3.2) approximate the Phong lobe average of Eq. 4 by one trilinear lookup in a 5×5-filtered
+MIP pyramid.  :mod:`ibl_ref.lobe_chain` keeps that lookup but fills the levels with exact lobe averages.  This
+experiment measures, per environment and Phong exponent s (g = 1 − 1/s, Eq. 3), the error of one lookup against the
+exact lobe average (:func:`ibl_ref.reference_render.lobe_average`: dense sum over every texel with exact solid
+angles) at random directions, for
+
+* ``pyramid-sqrtcos`` / ``pyramid-box``: the paper's pyramid (2×2 mean + filter, default calibration);
+* ``pyramid-sqrtcos-solid-angle``: the same with the energy-exact solid-angle 2×2 shrink;
+* ``chain-f4`` / ``chain-f2`` / ``chain-f1.41``: the exact-lobe chain with exponent ratio 4, 2, √2 per level.
+
+Metrics: relative L1 Σ|a − b| / Σ|b| over directions and channels (``rel_l1``), the largest per-direction relative
+error of the luminance-like channel mean (``rel_max``), the energy ratio Σa/Σb; build time (s, wall, this machine)
+and memory (MiB, the levels stored as float32 RGB — the paper stores RGBA16F).
+
+Files: ``lobe_chain.csv`` (one row per environment × prefilter × s), ``lobe_chain_meta.json``.
+Plot: ``lobe_chain.png`` (error vs s per environment; legend with build time and memory).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import read_csv, write_csv, write_json
+
+NAME = "lobe-chain"
+DESCRIPTION = "filter pyramid vs exact-lobe chain: lookup error vs s, build time and memory"
+IN_QUICK_REPRODUCE = True
+
+PREFILTERS = ("pyramid-sqrtcos", "pyramid-box", "pyramid-sqrtcos-solid-angle", "chain-f4", "chain-f2", "chain-f1.41")
+
+
+def settings(quick: bool) -> dict:
+    if quick:
+        return dict(env_size=32, envs=["sky_sun"], n_dirs=1500, s_values=[1, 2, 4, 10, 30, 100, 300])
+    return dict(env_size=64, envs=["sky_sun", "studio"], n_dirs=4000,
+                s_values=[1, 1.5, 2, 3, 5, 7, 10, 15, 20, 30, 50, 70, 100, 200, 300, 500, 1000])
+
+
+def build(name: str, env):
+    """(pyramid, calibration or None) of one prefilter."""
+    from ..lobe_chain import build_lobe_chain
+    from ..pyramid import build_pyramid
+
+    if name.startswith("pyramid-"):
+        kernel = name.split("-")[1]
+        shrink = "solid_angle" if name.endswith("solid-angle") else "mean"
+        return build_pyramid(env, kernel=kernel, shrink=shrink), None
+    factor = {"chain-f4": 4.0, "chain-f2": 2.0, "chain-f1.41": float(np.sqrt(2.0))}[name]
+    return build_lobe_chain(env, factor=factor)
+
+
+def run(out_dir: Path, quick: bool) -> dict:
+    from ..gloss_lookup import get_calibration, lookup
+    from ..reference_render import lobe_average
+    from ..synthetic_envs import make_env
+
+    out_dir = Path(out_dir)
+    st = settings(quick)
+    rng = np.random.default_rng(20141)
+    d = rng.normal(size=(st["n_dirs"], 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    rows, meta_builds = [], {}
+    t_start = time.perf_counter()
+    for env_name in st["envs"]:
+        env = make_env(env_name, n=st["env_size"])
+        exact = {s: lobe_average(env, d, float(s)) for s in st["s_values"]}
+        for pf in PREFILTERS:
+            t0 = time.perf_counter()
+            pyr, cal = build(pf, env)
+            if cal is None:
+                cal = get_calibration(pyr)  # shipped table or lobe analysis (not timed as part of the build)
+            t_build = time.perf_counter() - t0
+            mib = sum(int(np.prod(lev.shape[:3])) * 3 * 4 for lev in pyr.levels) / 2**20
+            meta_builds[f"{env_name}/{pf}"] = dict(build_time_s=t_build, memory_MiB=mib,
+                                                   face_sizes=[int(lev.shape[1]) for lev in pyr.levels])
+            for s in st["s_values"]:
+                a = lookup(pyr, d, 1.0 - 1.0 / float(s), calibration=cal)
+                b = exact[s]
+                per = np.abs(a - b).mean(axis=1) / np.maximum(b.mean(axis=1), 1e-300)
+                rows.append(dict(env=env_name, prefilter=pf, s_phong=float(s), g=1.0 - 1.0 / float(s),
+                                 rel_l1=float(np.abs(a - b).sum() / np.abs(b).sum()), rel_max=float(per.max()),
+                                 energy_ratio=float(a.sum() / b.sum()), build_time_s=t_build, memory_MiB=mib))
+    cols = ["env", "prefilter", "s_phong", "g", "rel_l1", "rel_max", "energy_ratio", "build_time_s", "memory_MiB"]
+    write_csv(out_dir / "lobe_chain.csv", rows, cols,
+              comment=f"lookup vs exact lobe average at {st['n_dirs']} random directions, env {st['env_size']}^2; "
+                      "rel_l1 = sum|a-b|/sum|b|; build time wall clock on this machine; memory float32 RGB")
+    summary = {}
+    for env_name in st["envs"]:
+        for pf in PREFILTERS:
+            r = [x for x in rows if x["env"] == env_name and x["prefilter"] == pf]
+            summary[f"{env_name}/{pf}"] = dict(rel_l1_max_over_s=max(x["rel_l1"] for x in r),
+                                               rel_l1_at_s1=r[0]["rel_l1"])
+    write_json(out_dir / "lobe_chain_meta.json", dict(settings=st, builds=meta_builds, summary=summary,
+                                                      total_time_s=time.perf_counter() - t_start))
+    return summary
+
+
+def plot(out_dir: Path) -> list:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..atomic import atomic_path
+
+    out_dir = Path(out_dir)
+    rows = read_csv(out_dir / "lobe_chain.csv")
+    envs = list(dict.fromkeys(q["env"] for q in rows))
+    fig, axes = plt.subplots(1, len(envs), figsize=(6.5 * len(envs), 4.5), squeeze=False)
+    for ax, env_name in zip(axes[0], envs):
+        for pf in dict.fromkeys(q["prefilter"] for q in rows):
+            r = [q for q in rows if q["env"] == env_name and q["prefilter"] == pf]
+            x = [float(q["s_phong"]) for q in r]
+            y = [float(q["rel_l1"]) for q in r]
+            ls = "--" if pf.startswith("pyramid") else "-"
+            ax.plot(x, y, ls, marker="o", ms=3,
+                    label=f"{pf} ({float(r[0]['build_time_s']):.2f} s, {float(r[0]['memory_MiB']):.2f} MiB)")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("Phong exponent s (g = 1 − 1/s)")
+        ax.set_ylabel("relative L1 of one lookup vs exact lobe average")
+        ax.set_title(f"{env_name}: filter pyramid vs exact-lobe chain")
+        ax.axhline(0.05, color="gray", lw=0.8, ls=":")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    p = out_dir / "lobe_chain.png"
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    plt.close(fig)
+    return [p]
