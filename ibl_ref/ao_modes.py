@@ -92,56 +92,22 @@ def light_visibilities(scene, points, face_normals, lights, *, method: str = "vs
         return V
     if method != "vsm":
         raise IBLError(f"visibility method must be 'vsm', 'raycast' or 'none', got {method!r}")
-    from scipy.ndimage import gaussian_filter
-
-    from .camera import light_camera
-    from .raster import prepare_scene, render_depth
+    from .raster import prepare_scene
 
     sc = prepare_scene(scene, warn=False)
-    centre, radius = sc.bounds()
     V = np.ones((L, len(P)))
     it = range(L)
     if progress:
         from tqdm import tqdm
 
         it = tqdm(it, desc="shadow maps", unit="light")
-    if timings is None:
-        for i in it:
-            sm = _vsm.build_vsm(sc, dirs[i], omega[i], resolution=vsm_resolution, dtype=vsm_dtype, **vsm_kw)
-            V[i] = _vsm.visibility(P, sm)
-        return V
-    # instrumented copy of ibl_ref.vsm.build_vsm (same steps, same parameters) to time the stages separately
-    margin = vsm_kw.pop("margin", 0.05)
-    occ = vsm_kw.pop("occluder_distance", None)
-    depth_bias = vsm_kw.pop("depth_bias", 1e-3)
-    min_variance = vsm_kw.pop("min_variance", 1e-6)
-    bleed = vsm_kw.pop("bleed_reduction", 0.0)
-    if vsm_kw:
-        raise IBLError(f"unknown VSM parameters {sorted(vsm_kw)}")
-    store = _vsm._DTYPES[vsm_dtype]
-    work = np.float64 if vsm_dtype == "float64" else np.float32
     for i in it:
+        sm = _vsm.build_vsm(sc, dirs[i], omega[i], resolution=vsm_resolution, dtype=vsm_dtype, timings=timings,
+                            **vsm_kw)
         t0 = time.perf_counter()
-        cam = light_camera(dirs[i], centre, radius, resolution=vsm_resolution, margin=margin)
-        depth, cov = render_depth(sc, cam)
-        t1 = time.perf_counter()
-        d = np.clip(depth / cam.far, 0.0, 1.0)
-        sig = _vsm.blur_sigma_texels(omega[i], cam.texel_size, 0.25 * radius if occ is None else float(occ))
-        m = np.stack([d, d * d], axis=-1).astype(store)
-        if sig > 0:
-            m = m.astype(work)
-            for c in range(2):
-                m[..., c] = gaussian_filter(m[..., c], sigma=sig, mode="nearest", truncate=4.0)
-            m = m.astype(store)
-        t2 = time.perf_counter()
-        sm = _vsm.VarianceShadowMap(camera=cam, moments=m, direction=-cam.forward, solid_angle=float(omega[i]),
-                                    sigma_texels=float(sig), dtype=vsm_dtype, depth_bias=float(depth_bias),
-                                    min_variance=float(min_variance), bleed_reduction=float(bleed), coverage=cov)
         V[i] = _vsm.visibility(P, sm)
-        t3 = time.perf_counter()
-        timings["shadow_maps"] = timings.get("shadow_maps", 0.0) + (t1 - t0)
-        timings["blur"] = timings.get("blur", 0.0) + (t2 - t1)
-        timings["visibility"] = timings.get("visibility", 0.0) + (t3 - t2)
+        if timings is not None:
+            timings["visibility"] = timings.get("visibility", 0.0) + time.perf_counter() - t0
     return V
 
 
