@@ -17,9 +17,12 @@ tile's horizon) are handled per output texel:
 ``leaf = 1`` (default)
     exact gather of those texels (``max(r·ω_j,0)^s`` at the texel centres; the split stops at blocks
     of ``gather`` texels, whose texels are all gathered): the result equals the exact lobe average up
-    to float64 rounding.  Measured (shared 2-core machine, single thread): s = 1 at 128² faces ≈ 3–4 s
-    CPU (s = 1 and 2 together ≈ 4.3 s) vs ≈ 47 s for the dense gather; max relative difference to
-    :func:`ibl_ref.phong_convolution.convolve_exact_many` 2e-14 (sky + 1e5 sun near a cube corner);
+    to float64 rounding.  Measured (shared 2-core machine, single thread): s = 1 and 2 together at
+    128² faces ≈ 3.5 s CPU (≈ 1.2 s tile/block classification, ≈ 2 s band gather) vs ≈ 47 s per
+    exponent for the dense gather; max relative difference to
+    :func:`ibl_ref.phong_convolution.convolve_exact_many` 2e-14 (sky + 1e5 sun near a cube corner).
+    ``leaf > 1`` was measured much slower at 128² (leaf 2: ≈ 44 s; leaf 8: ≈ 6 s with bound 2e-2), so
+    ``auto`` keeps ``leaf = 1``;
 ``leaf > 1``
     an interval per (r, block, channel) from convexity of ``f(x) = max(x,0)^s`` on the block's range
     ``x = r·ω ∈ [x_lo, x_hi]`` (from the cone): Jensen's inequality below, the chord above
@@ -46,6 +49,7 @@ import scipy.sparse as sp
 
 from . import envmap
 from .errors import IBLError, LayoutError, check_radiance
+from .phong_convolution import _check_faces
 
 __all__ = ["convolve_moment_many", "convolve_moment", "SUPPORTED_EXPONENTS", "ROUNDING_REL"]
 
@@ -106,7 +110,8 @@ def convolve_moment_many(
     tile: int | None = None,
     gather: int | None = None,
     bright_factor: float = 50.0,
-    chunk_elems: int = 1 << 17,
+    chunk_elems: int = 1 << 16,
+    faces=None,
 ):
     """Lobe average (or Eq. 4 sum) for ``s ∈ {1, 2}`` by hierarchical moments, with a rigorous bound.
 
@@ -132,12 +137,19 @@ def convolve_moment_many(
     bright_factor : float
         With ``leaf > 1``: texels with luminance > bright_factor × mean are gathered exactly.
     chunk_elems : int
-        Working-set size (elements) of the band gather (≈ 1 MB: the gather is memory-bound).
+        Working-set size (elements) of the band gather (512 KB: the gather is memory-bound; at 128²
+        faces 1 << 16 measured ≈ 20% faster than 1 << 17 and slightly faster than 1 << 15).
+    faces : sequence of int, optional
+        Compute only these output faces (indices 0…5, OpenEXR order; default all six, in order).
+        The output tiles of one face never share work with another face's, so a face subset is the
+        same computation restricted to those tiles (used by :func:`ibl_ref.convolve.convolve` to
+        split the work between workers; results agree with the full call up to float64 rounding of
+        the band sums, whose batching depends on the tile set).
 
     Returns
     -------
-    maps : ndarray (K, 6, n, n, C) (``(K, 6, n, n)`` for a 3-d input)
-    rel_bound : ndarray (K, 6, n, n)
+    maps : ndarray (K, F, n, n, C) (``(K, F, n, n)`` for a 3-d input), F = number of faces (6)
+    rel_bound : ndarray (K, F, n, n)
         Rigorous bound on ``|approx − exact|/exact`` (max over channels; inf where exact may be 0).
     """
     a = np.asarray(cube, dtype=np.float64)
@@ -164,6 +176,8 @@ def convolve_moment_many(
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1 or (v & (v - 1)):
             raise IBLError(f"{name} must be a positive power of two, got {v!r}")
     leaf, tile, gather = int(leaf), int(tile), int(gather)
+    faces = _check_faces(faces)
+    nF = len(faces)
     need2 = 2.0 in s_list
     C = a4.shape[-1]
     Q = C + 1  # channel Q-1: L ≡ 1 (denominator)
@@ -190,9 +204,9 @@ def convolve_moment_many(
     # ---- output tiles ----------------------------------------------------------------------------
     t = tile
     nt = -(-out_size // t)
-    od = envmap.texel_directions(out_size)
+    od = envmap.texel_directions(out_size)[list(faces)]
     od = np.pad(od, ((0, 0), (0, nt * t - out_size), (0, nt * t - out_size), (0, 0)), mode="edge")
-    R = od.reshape(6, nt, t, nt, t, 3).transpose(0, 1, 3, 2, 4, 5).reshape(6 * nt * nt, t * t, 3)
+    R = od.reshape(nF, nt, t, nt, t, 3).transpose(0, 1, 3, 2, 4, 5).reshape(nF * nt * nt, t * t, 3)
     T = R.shape[0]
     cT = R.sum(axis=1)
     cT /= np.linalg.norm(cT, axis=-1, keepdims=True)
@@ -243,22 +257,31 @@ def convolve_moment_many(
         band_w = wP.reshape(-1, Q)
         if stop > 1:  # straddling blocks of size `stop` → all their texels (exact gather)
             mg = P // stop
-            f, rem = np.divmod(blk, mg * mg)
-            i, j = np.divmod(rem, mg)
             off = (np.arange(stop)[:, None] * P + np.arange(stop)[None, :]).ravel()
-            blk = ((f * P * P + stop * i * P + stop * j)[:, None] + off[None, :]).ravel()
-            tiles = np.repeat(tiles, stop * stop)
+            allb = np.arange(6 * mg * mg)
+            f, rem = np.divmod(allb, mg * mg)
+            i, j = np.divmod(rem, mg)
+            texel_of = (f * P * P + stop * i * P + stop * j)[:, None] + off[None, :]  # (blocks, stop²)
             # per-texel test against the tile cone: texels positive for the whole tile
-            # (c_T·ω ≥ sin β_T) join the tile's exact moment sums, negative ones are dropped
-            cdot = np.einsum("pk,pk->p", cT[tiles], band_d[blk])
-            sb = sinB[tiles] + 1e-15
-            ok = real.ravel()[blk]
-            pos = ok & (cdot >= sb)
+            # (c_T·ω ≥ sin β_T) join the tile's exact moment sums, negative ones are dropped.
+            # Block-major layout: one contiguous row of stop² texels per (tile, block) pair.
+            cTt = cT[tiles]
+            cdot = band_d[texel_of, 0][blk] * cTt[:, 0:1]
+            cdot += band_d[texel_of, 1][blk] * cTt[:, 1:2]
+            cdot += band_d[texel_of, 2][blk] * cTt[:, 2:3]
+            sb = (sinB[tiles] + 1e-15)[:, None]
+            pos = cdot >= sb
+            keep = ~pos & (cdot > -sb)
+            if P != n:  # padding texels (face size not a power of two) carry no weight
+                ok = real.ravel()[texel_of][blk]
+                pos &= ok
+                keep &= ok
+            tex = texel_of[blk]
+            til = np.broadcast_to(tiles[:, None], tex.shape)
             if pos.any():
-                A = sp.csr_matrix((np.ones(int(pos.sum())), (tiles[pos], blk[pos])), shape=(T, 6 * P * P))
+                A = sp.csr_matrix((np.ones(int(pos.sum())), (til[pos], tex[pos])), shape=(T, 6 * P * P))
                 S += A @ F.reshape(6 * P * P, -1)
-            keep = ok & ~pos & (cdot > -sb)
-            tiles, blk = tiles[keep], blk[keep]
+            tiles, blk = til[keep], tex[keep]
     else:
         M0 = _block_sums(wP, leaf)
         M1 = _block_sums(F[..., : 3 * Q], leaf).reshape(-1, 3, Q)
@@ -361,11 +384,11 @@ def convolve_moment_many(
             num[s] += np.matmul(X if s == 1.0 else X * X, bw)
 
     # ---- assemble, ratio bound ---------------------------------------------------------------------
-    maps = np.empty((K, 6, out_size, out_size, C))
-    rel = np.empty((K, 6, out_size, out_size))
+    maps = np.empty((K, nF, out_size, out_size, C))
+    rel = np.empty((K, nF, out_size, out_size))
 
     def untile(x):
-        x = x.reshape(6, nt, nt, t, t, -1).transpose(0, 1, 3, 2, 4, 5).reshape(6, nt * t, nt * t, -1)
+        x = x.reshape(nF, nt, nt, t, t, -1).transpose(0, 1, 3, 2, 4, 5).reshape(nF, nt * t, nt * t, -1)
         return x[:, :out_size, :out_size]
 
     for k, s in enumerate(s_in):

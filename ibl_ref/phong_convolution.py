@@ -482,6 +482,50 @@ def _tile_size(out_size: int, theta_c: float, m_src: int, n_bright: int) -> int:
     return best
 
 
+def _check_faces(faces):
+    """Validated tuple of output face indices (default: all six)."""
+    if faces is None:
+        return tuple(range(6))
+    try:
+        out = tuple(int(f) for f in faces)
+    except (TypeError, ValueError):
+        raise IBLError(f"faces must be a sequence of face indices 0..5, got {faces!r}") from None
+    if not out or any(f < 0 or f > 5 for f in out) or len(set(out)) != len(out):
+        raise IBLError(f"faces must be distinct face indices 0..5, got {faces!r}")
+    return out
+
+
+def _tile_geometry(dst, faces, out_size, T):
+    """Tiles of T×T output texels (row-major per face, faces in the given order), vectorised per shape.
+
+    Returns lists (one entry per tile): flat output indices (B,) into the (F·n·n) output of the face
+    subset, directions (B, 3), unit centre (3,) (normalised sum) and angles (B,) to the centre
+    (``atan2(|d × c|, d·c)``, accurate near 0).
+    """
+    starts = list(range(0, out_size, T))
+    order, groups = [], {}
+    for fi, f in enumerate(faces):
+        for r0 in starts:
+            for c0 in starts:
+                shape = (min(T, out_size - r0), min(T, out_size - c0))
+                groups.setdefault(shape, []).append(len(order))
+                order.append((fi, f, r0, c0))
+    idx_t, td_t, cen_t, ang_t = [None] * len(order), [None] * len(order), [None] * len(order), [None] * len(order)
+    for (h, w), members in groups.items():
+        fi, f, r0, c0 = (np.array([order[m][j] for m in members]) for j in range(4))
+        rr = r0[:, None, None] + np.arange(h)[None, :, None]
+        cc = c0[:, None, None] + np.arange(w)[None, None, :]
+        td = dst[f[:, None, None], rr, cc].reshape(len(members), h * w, 3)
+        idx = ((fi[:, None, None] * out_size + rr) * out_size + cc).reshape(len(members), h * w)
+        cen = td.sum(axis=1)
+        cen /= np.linalg.norm(cen, axis=1, keepdims=True)
+        cr = np.cross(td, cen[:, None, :])
+        ang = np.arctan2(np.linalg.norm(cr, axis=2), np.einsum("gbk,gk->gb", td, cen))
+        for j, m in enumerate(members):
+            idx_t[m], td_t[m], cen_t[m], ang_t[m] = idx[j], np.ascontiguousarray(td[j]), cen[j], ang[j]
+    return idx_t, td_t, cen_t, ang_t
+
+
 def _bright_set(rad: np.ndarray, omega: np.ndarray, n_bright, bright_factor: float, max_bright: int) -> np.ndarray:
     key = rad.max(axis=1)
     M = key.shape[0]
@@ -510,11 +554,15 @@ def convolve_sparse_many(
     max_bright: int = 2048,
     theta_c: float | None = None,
     return_info: bool = False,
+    faces=None,
 ):
     """Truncated-support gather of the normalised Eq. 4 lobe average, several exponents.
 
-    Returns ``(maps (K,6,n,n,C), bounds (K,6,n,n,C))`` (plus a list of :class:`SparseInfo` with
-    ``return_info=True``); see :func:`convolve_sparse`.
+    Returns ``(maps (K,F,n,n,C), bounds (K,F,n,n,C))`` (plus a list of :class:`SparseInfo` with
+    ``return_info=True``); see :func:`convolve_sparse`.  ``faces`` (sequence of output face indices
+    0…5, default all six, F = their number) restricts the output to those faces: every tile is
+    computed independently, so the result on a face is bit-for-bit the same as in the full call
+    (used by :func:`ibl_ref.convolve.convolve` to split the work between workers).
     """
     from scipy.spatial import cKDTree
 
@@ -532,7 +580,9 @@ def convolve_sparse_many(
         raise IBLError(f"rtol must be in (0, 1), got {rtol!r}")
     C = a.shape[-1]
     K = len(s_list)
-    P = 6 * out_size * out_size
+    faces = _check_faces(faces)
+    nF = len(faces)
+    P = nF * out_size * out_size
     maps = np.empty((K, P, C))
     bounds = np.zeros((K, P, C))
     infos = []
@@ -558,12 +608,13 @@ def convolve_sparse_many(
 
     dst = envmap.texel_directions(out_size)  # (6, n, n, 3)
     tree = None
+    geometry = {}  # tile size → per-tile output indices, directions, centre, angles
     rad_w = np.concatenate([rad, np.ones((M, 1))], axis=1) * omega[:, None]
     src_dirs_t = np.ascontiguousarray(src_dirs.T)
 
     for k, s in enumerate(s_list):
         if not np.isfinite(s):
-            maps[k] = _mirror(a, out_size).reshape(-1, C)
+            maps[k] = _mirror(a, out_size)[list(faces)].reshape(-1, C)
             infos.append(SparseInfo(s, 0.0, rho, 0.0, -np.inf, 0, 1.0 / M))
             continue
         if theta_c is None:
@@ -573,17 +624,21 @@ def convolve_sparse_many(
         log_wb = neglected_weight_bound(s, th, rho)
         if (1.0 - math.cos(min(th, np.pi))) / 2.0 > 0.4:
             # the cap covers most of the lobe's hemisphere: the dense exact gather is cheaper
-            ex = convolve_exact_many(a, [s], supersample=supersample, out_size=out_size)[0].reshape(-1, C)
+            ex = convolve_exact_many(a, [s], supersample=supersample, out_size=out_size)[0][list(faces)].reshape(-1, C)
             maps[k] = ex
             bounds[k] = 1e-12 * ex
             infos.append(SparseInfo(s, np.pi / 2, rho, eps, -np.inf, int(bright.size), 1.0))
             continue
         # tiles of T×T output texels sharing one candidate list
         T = _tile_size(out_size, th, M, int(bright.size))
-        tiles = [(f, r0, c0) for f in range(6) for r0 in range(0, out_size, T) for c0 in range(0, out_size, T)]
         gathered = 0
         if tree is None:
             tree = cKDTree(src_dirs)
+            # each output texel's nearest source texel (always gathered: non-empty, finite max weight)
+            nearest = tree.query(dst[list(faces)].reshape(-1, 3), k=1)[1]
+        if T not in geometry:
+            geometry[T] = _tile_geometry(dst, faces, out_size, T)
+        idx_t, td_t, cen_t, ang_t = geometry[T]
         # Per-texel bound: a tile gathers every source texel within q = θc + t_rad of its centre, so for
         # an output texel at angle a from the centre every neglected texel is farther than
         # θ_eff = q − a ≥ θc.  W_b is tabulated on a grid of angles; a texel uses the largest grid
@@ -592,23 +647,20 @@ def convolve_sparse_many(
         grid = np.unique(np.concatenate([th + np.linspace(0.0, t_rad_max, 33), [np.pi / 2]]))
         grid = grid[grid <= np.pi / 2]
         log_wb_grid = np.array([neglected_weight_bound(s, g, rho) for g in grid])
-        for f, r0, c0 in tiles:
-            td = dst[f, r0 : r0 + T, c0 : c0 + T].reshape(-1, 3)
-            cen = td.sum(axis=0)
-            cen /= np.linalg.norm(cen)
-            ang = np.arctan2(np.linalg.norm(np.cross(td, cen), axis=1), td @ cen)  # accurate near 0
-            t_rad = float(ang.max())
-            q = th + t_rad + _ANGLE_MARGIN
+        q_t = np.array([th + float(a.max()) + _ANGLE_MARGIN for a in ang_t])
+        near = q_t < np.pi
+        balls = np.empty(len(q_t), dtype=object)
+        if near.any():  # one vectorised KD-tree query for all tiles
+            balls[near] = tree.query_ball_point(np.array(cen_t)[near], 2.0 * np.sin(q_t[near] / 2.0))
+        for t_i, idx in enumerate(idx_t):
+            td, ang, q = td_t[t_i], ang_t[t_i], float(q_t[t_i])
             if q >= np.pi:
                 cand = np.arange(M)
                 log_wb_t = np.full(td.shape[0], -np.inf)
             else:
-                sel = np.zeros(M, dtype=bool)
-                sel[tree.query_ball_point(cen, 2.0 * math.sin(q / 2.0))] = True
-                # always include each output texel's nearest source texel (non-empty, finite max weight)
-                sel[tree.query(td, k=1)[1]] = True
-                sel[bright] = True
-                cand = np.flatnonzero(sel)
+                # sorted, duplicate-free union: the cap around the tile centre, each texel's nearest
+                # source texel and the bright set
+                cand = np.unique(np.concatenate([np.asarray(balls[t_i], dtype=np.intp), nearest[idx], bright]))
                 # neglected j: ∠(j, cen) > q ⇒ ∠(j, r) > q − ∠(r, cen); half the margin absorbs round-off
                 theta_eff = q - 0.5 * _ANGLE_MARGIN - ang  # ≥ θc + margin/2
                 gi = np.searchsorted(grid, theta_eff, side="right") - 1
@@ -631,14 +683,11 @@ def convolve_sparse_many(
                 )  # W_b/(W_in+W_b)
             dev = np.maximum(np.maximum(l_max_out[None, :] - p_avg, p_avg - l_min_out[None, :]), 0.0)
             b = f_out[:, None] * dev + 1e-12 * p_avg  # + floating-point allowance
-            rows = np.arange(r0, min(r0 + T, out_size))
-            cols = np.arange(c0, min(c0 + T, out_size))
-            idx = (f * out_size + rows[:, None]) * out_size + cols[None, :]
-            maps[k, idx.reshape(-1)] = p_avg
-            bounds[k, idx.reshape(-1)] = b
+            maps[k, idx] = p_avg
+            bounds[k, idx] = b
             gathered += len(cand) * td.shape[0]
         infos.append(SparseInfo(s, th, rho, eps, log_wb, int(bright.size), gathered / (P * M)))
-    shape = (K, 6, out_size, out_size) + (() if squeeze else (C,))
+    shape = (K, nF, out_size, out_size) + (() if squeeze else (C,))
     out = (maps.reshape(shape), bounds.reshape(shape))
     return out + (infos,) if return_info else out
 

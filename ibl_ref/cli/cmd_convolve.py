@@ -38,7 +38,8 @@ def cmd_convolve(args) -> int:
     cube = load_cube(args.input, size=args.input_size)
     exps = [_exponent(e) for e in args.exponent]
     res = convolve(
-        cube, exps, method=args.method, rtol=args.rtol, out_size=args.size, normalized=not args.unnormalized
+        cube, exps, method=args.method, rtol=args.rtol, out_size=args.size, normalized=not args.unnormalized,
+        workers=args.workers, backend=args.parallel,
     )
     written = []
     for s, m in res.maps.items():
@@ -48,6 +49,8 @@ def cmd_convolve(args) -> int:
     summary = res.summary()
     summary.update(
         {
+            "workers": res.info.get("workers"),
+            "parallel_backend": res.info.get("backend"),
             "input": str(args.input),
             "outputs": written,
             "normalized": not args.unnormalized,
@@ -101,6 +104,11 @@ def register(sub) -> None:
                    help="literal Eq. 4 sum (value 2π/(s+1) for L=1) instead of the lobe average")
     p.add_argument("--size", type=int, default=None, help="output face size (default: input face size)")
     p.add_argument("--input-size", type=int, default=None, help="resample the input to this face size first")
+    p.add_argument("--workers", type=int, default=None, metavar="W",
+                   help="parallel workers (1 = serial; default $IBL_REF_WORKERS or min(2, CPUs)); results "
+                        "are bit-for-bit identical for every W")
+    p.add_argument("--parallel", choices=("auto", "process", "thread"), default="auto",
+                   help="how W > 1 workers run: forked processes or threads (auto: processes when possible)")
     p.set_defaults(func=cmd_convolve)
 
     q = sub.add_parser(
