@@ -1,8 +1,8 @@
 """Benchmark of the geometry pass (ibl_ref.raster / vsm / raycast), Knuth et al. 2014 Sec. 3.3–3.4.
 
 Prints:
-* rasterization time of the teapot (helper B's tessellation, ~16k triangles) at 256² (G-buffer and depth only),
-  with the cost of projecting the vertices as the in-run baseline (ratio raster / projection);
+* rasterization time of the teapot (tessellation of ibl_ref.synthetic_meshes, ~16k triangles) at 256² (G-buffer
+  and depth only), with the cost of projecting the vertices as the in-run baseline (ratio raster / projection);
 * exact directional visibility with the binned parallel-ray test (points/s), for comparison;
 * rays/s of trimesh's ray backend (embree or the pure-NumPy fallback) on the same mesh, and the ratio of
   ray-cast primary visibility time to raster time;

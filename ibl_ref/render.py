@@ -2,7 +2,7 @@
 
 Per pixel the G-buffer (:mod:`ibl_ref.raster`) gives the world position, the normal and the reflection vector
 r = 2(n·v)n − v; "we can use the same sample vector for each PEM" (Sec. 3.4), so every partial environment map
-``PEM_i`` is looked up at (r, g) with the material's glossiness g (``PEMSet.lookup_all``, helper E's
+``PEM_i`` is looked up at (r, g) with the material's glossiness g (``PEMSet.lookup_all`` of
 :mod:`ibl_ref.pem`), and weighted by the visibility ``VIS_i`` of light i (the region's centroid direction):
 
 * ``visibility="vsm"`` — the paper's method: one variance shadow map per light, blurred according to the

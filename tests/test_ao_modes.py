@@ -71,7 +71,7 @@ def test_ours_equals_render_pem_and_ao_bounds():
     pems = build_pems(env, n_lights=12)
     res = am.render_modes(mesh, CAM, env, ("ours", "no-occlusion", "ao", "ao-color"), pems=pems, kd=0.0, ks=1.0,
                           g=0.8, vsm_resolution=64)
-    f = render_pem(mesh, CAM, pems, 0.8, vsm_resolution=64)  # helper F's Eq. 5 (glossy only)
+    f = render_pem(mesh, CAM, pems, 0.8, vsm_resolution=64)  # ibl_ref.render's Eq. 5 (glossy only)
     np.testing.assert_allclose(res.images["ours"], f.image, rtol=1e-12, atol=0)
     m = res.mask
     un = res.images["no-occlusion"][m]

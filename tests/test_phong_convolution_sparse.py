@@ -21,7 +21,7 @@ from ibl_ref.phong_convolution import (
 
 
 def _sky_sun(n, sun=1e5, seed=7):
-    """Smooth sky + noise + a 1e5 sun texel near a cube corner (own generator, independent of helper B)."""
+    """Smooth sky + noise + a 1e5 sun texel near a cube corner (own generator, independent of ibl_ref.synthetic_envs)."""
     rng = np.random.default_rng(seed)
     d = envmap.texel_directions(n)
     cube = 0.5 + 0.4 * np.clip(d[..., 1:2], 0, None) * np.array([0.6, 0.8, 1.0]) + 0.1 * rng.random((6, n, n, 3))

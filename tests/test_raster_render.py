@@ -76,10 +76,10 @@ def test_vsm_visibility_close_to_exact_away_from_edges():
 
 
 def test_constant_environment_unshadowed_is_constant():
-    # with helper E's PEMSet of a constant map, Σ_i PEM_i is the lobe average of a constant = the constant
+    # with ibl_ref.pem's PEMSet of a constant map, Σ_i PEM_i is the lobe average of a constant = the constant
     # (normalised filters), for every glossiness; float32 PEM storage → tolerance 1e-6
-    pem_mod = pytest.importorskip("ibl_ref.pem")
-    envs = pytest.importorskip("ibl_ref.synthetic_envs")
+    from ibl_ref import pem as pem_mod
+    from ibl_ref import synthetic_envs as envs
     pems = pem_mod.build_pems(envs.make_env("constant", n=16) * 0.7, n_lights=6)
     res = render_pem(_sphere_on_plane(), CAM, pems, {0: 0.9, 1: 0.2}, visibility="none")
     np.testing.assert_allclose(res.image[res.mask], 0.7, rtol=1e-6)
@@ -99,7 +99,6 @@ def test_render_bad_inputs():
 
 
 def test_cli_render_smoke(tmp_path):
-    pytest.importorskip("ibl_ref.pem")
     from ibl_ref.cli import main
 
     out = tmp_path / "r.npz"

@@ -20,7 +20,7 @@ CAM = PerspectiveCamera(eye=[0.0, 2.0, 0.3], target=[0, 0, 0], up=[0, 1, 0], fov
 
 
 def test_lobe_average_equals_convolve_exact_at_texel_centres():
-    # independent route: helper C1's exact convolution evaluates the same formula at texel centres
+    # independent route: the exact convolution of ibl_ref.phong_convolution evaluates the same formula at texel centres
     from ibl_ref.phong_convolution import convolve_exact
 
     rng = np.random.default_rng(1)

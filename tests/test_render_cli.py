@@ -1,16 +1,12 @@
 """Tests of ``ibl-ref render`` (ibl_ref/cli/cmd_render.py) and ibl_ref.image_io."""
 
 import json
-import sys
-import types
 
 import numpy as np
 import pytest
 
 from ibl_ref.cli import main
 from ibl_ref.errors import IBLError
-
-pytest.importorskip("ibl_ref.pem")
 
 
 def _read_exr(path):
@@ -92,17 +88,6 @@ def test_unwritable_output_folder(tmp_path, capsys):
             assert "not writable" in capsys.readouterr().err
         finally:
             ro.chmod(0o700)
-
-
-def test_missing_ao_modes_is_a_clear_error(tmp_path, capsys, monkeypatch):
-    # helper H's module absent → exit 1 naming it, no traceback
-    monkeypatch.setitem(sys.modules, "ibl_ref.ao_modes", None)
-    assert main(["render", "--out", str(tmp_path / "a.exr"), "--mode", "ao"]) == 1
-    assert "ibl_ref.ao_modes" in capsys.readouterr().err
-    # present but without render_mode
-    monkeypatch.setitem(sys.modules, "ibl_ref.ao_modes", types.ModuleType("ibl_ref.ao_modes"))
-    assert main(["render", "--out", str(tmp_path / "a.exr"), "--mode", "reference"]) == 1
-    assert "render_mode" in capsys.readouterr().err
 
 
 def test_gmap_and_size_errors(tmp_path, capsys):

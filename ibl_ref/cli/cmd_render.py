@@ -1,6 +1,6 @@
 """``ibl-ref render``: render a mesh lit by partial environment maps with shadows (Knuth et al. 2014, Eq. 5).
 
-Thin layer over :func:`ibl_ref.render.render_pem` (modes ``ours`` and ``no-occlusion``) and helper H's
+Thin layer over :func:`ibl_ref.render.render_pem` (modes ``ours`` and ``no-occlusion``) and
 :func:`ibl_ref.ao_modes.render_mode` (modes ``ao``, ``ao-color``, ``reference``, imported lazily).
 """
 
@@ -13,7 +13,7 @@ from pathlib import Path
 from ..errors import IBLError
 
 MODES = ("ours", "no-occlusion", "ao", "ao-color", "reference")
-_H_MODES = ("ao", "ao-color", "reference")
+_AO_MODES = ("ao", "ao-color", "reference")
 OUT_EXTS = (".exr", ".npz")
 
 
@@ -108,47 +108,11 @@ def _camera(args, mesh_scene):
                              near=1e-4 * scale, far=100 * scale)
 
 
-def _h_render_mode():
-    """helper H's ``ibl_ref.ao_modes.render_mode`` or a clear IBLError naming the missing piece."""
-    import importlib
+def _ao_render_mode():
+    """:func:`ibl_ref.ao_modes.render_mode` (imported only for the modes that need it)."""
+    from ..ao_modes import render_mode
 
-    try:
-        ao_modes = importlib.import_module("ibl_ref.ao_modes")
-    except ImportError as exc:
-        raise IBLError(f"modes {', '.join(_H_MODES)} need the module ibl_ref.ao_modes, which is not available "
-                       f"({exc}); use --mode ours or --mode no-occlusion") from exc
-    fn = getattr(ao_modes, "render_mode", None)
-    if fn is None:
-        raise IBLError("modes ao, ao-color and reference need ibl_ref.ao_modes.render_mode(), which this version "
-                       "of ibl_ref.ao_modes does not define; use --mode ours or --mode no-occlusion")
-    return fn
-
-
-def _save_png(path, img, mask):
-    try:
-        from ..tonemap import save_png
-    except ImportError:
-        save_png = None
-    if save_png is not None:
-        save_png(path, img, mask=mask)
-        return
-    # fallback: exposure at the 90th percentile, Reinhard x/(1+x), sRGB transfer function (display only)
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    from ..atomic import atomic_path
-
-    y = img.mean(axis=-1)[mask] if mask.any() else img.mean(axis=-1).ravel()
-    y = y[y > 0]
-    scale = 0.8 / np.percentile(y, 90) if y.size else 1.0
-    x = img * scale
-    x = x / (1 + x)
-    x = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.clip(x, 0, 1), 1 / 2.4) - 0.055)
-    with atomic_path(Path(path), suffix=".png") as tmp:
-        plt.imsave(tmp, np.clip(x, 0, 1), format="png")
+    return render_mode
 
 
 def cmd_render(args) -> int:
@@ -179,8 +143,8 @@ def cmd_render(args) -> int:
     if mode == "no-occlusion" and args.visibility not in (None, "none"):
         raise IBLError("--visibility only applies to --mode ours (no-occlusion means VIS_i = 1)")
     render_mode = None
-    if mode in _H_MODES:
-        render_mode = _h_render_mode()
+    if mode in _AO_MODES:
+        render_mode = _ao_render_mode()
         if np.ndim(mat.kd) or np.ndim(mat.ks) or mat.g_map is not None:
             raise IBLError(f"--mode {mode}: ibl_ref.ao_modes takes scalar kd, ks and one g; RGB weights and "
                            "--gmap are only supported by --mode ours / no-occlusion")
@@ -261,7 +225,9 @@ def cmd_render(args) -> int:
                 np.savez_compressed(fh, **arrays)
     info.update({"pem_time_s": round(t1 - t0, 3), "render_time_s": round(t2 - t1, 3)})
     if png is not None:
-        _save_png(png, image, mask)
+        from ..tonemap import save_png
+
+        save_png(png, image, mask=mask)
         info["png"] = str(png)
     write_json(out.with_suffix(".json"), info)
     print(f"wrote {out} ({w}x{h}, mode {mode}; {info['render_time_s']} s render, {info['pem_time_s']} s PEMs)"

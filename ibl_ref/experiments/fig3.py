@@ -4,9 +4,8 @@
 mirror-like to completely diffuse."  A unit sphere is viewed orthographically along −z (view vector
 v = (0, 0, 1) towards the camera); per pixel the normal n gives the reflection r = 2(n·v)n − v, and the
 colour is the glossiness lookup :func:`ibl_ref.gloss_lookup.lookup` of the sqrtcos pyramid at (r, g)
-(the PEM lookup of Eq. 5 without occlusion; no renderer needed).  Environment: helper B's synthetic
-``studio`` map (:func:`ibl_ref.synthetic_envs.make_env`), or a private sky fallback if that module is
-missing.
+(the PEM lookup of Eq. 5 without occlusion; no renderer needed).  Environment: the synthetic
+``studio`` map of :func:`ibl_ref.synthetic_envs.make_env`.
 
 Files: ``fig3_spheres.json`` (linear RGB per sphere, float32-rounded), plot ``fig3.png`` (tone-mapped
 x/(1+x) after scaling by the mirror sphere's 90th percentile).
@@ -29,17 +28,9 @@ GLOSS = (1.0, 0.995, 0.98, 0.95, 0.9, 0.75, 0.5, 0.0)
 
 
 def _environment(n: int):
-    try:
-        from ..synthetic_envs import make_env
+    from ..synthetic_envs import make_env
 
-        return make_env("studio", n=n), "synthetic_envs.studio"
-    except ImportError:  # private fallback: sky gradient + bright blob
-        from ..envmap import texel_directions
-
-        d = texel_directions(n)
-        sky = 0.2 + 0.8 * np.clip(d[..., 1:2], 0, 1) * np.array([0.4, 0.6, 1.0])
-        sun = 50.0 * np.clip(d @ np.array([0.5, 0.6, 0.62]) / 1.0, 0, 1)[..., None] ** 400
-        return sky + sun, "private_fallback_sky"
+    return make_env("studio", n=n), "synthetic_envs.studio"
 
 
 def render_sphere(pyr, g: float, px: int) -> np.ndarray:

@@ -29,17 +29,9 @@ SCENE_G = (0.0, 0.5, 0.9)
 
 
 def _env(name, n):
-    try:
-        from ..synthetic_envs import make_env
+    from ..synthetic_envs import make_env
 
-        return make_env("sky_sun" if name == "sky_sun" else "studio", n)
-    except ImportError:  # pragma: no cover - fallback if helper B's module is missing
-        from ..envmap import texel_directions
-
-        d = texel_directions(n)
-        sky = 0.2 + 0.8 * np.clip(d[..., 1:2], 0, 1) * np.ones(3)
-        sky[np.einsum("fijk,k->fij", d, np.array([0.5, 0.7, 0.5]) / np.linalg.norm([0.5, 0.7, 0.5])) > 0.9995] = 1e4
-        return sky
+    return make_env("sky_sun" if name == "sky_sun" else "studio", n)
 
 
 def run(out_dir: Path, quick: bool) -> dict:
