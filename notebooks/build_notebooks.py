@@ -213,6 +213,14 @@ FIGURES = {
                                    "lookup, levels holding exact lobe averages), with build time and memory. "
                                    "In a render (`ibl-ref experiment render-error`, `ibl-ref render --prefilter "
                                    "exact-lobe`) this is the difference between 30 % and 0.75 % at s = 1."),
+    "km00_fitted_lobes": ("km00", ["km00", "km00-render"],
+                          "Kautz & McCool 2000: fitted lobes (Fig. 7) and the Ward teapot",
+                          "The greedy lobe fits of the Ward BRDF (kd = 0, ks = 0.8, α = 0.04): RMS error of the BRDF "
+                          "approximation vs number of lobes (their Fig. 7), then the teapot rendered by per-pixel "
+                          "exact filtering, 3 lobes in 3D maps, a single lobe, a single 2D lobe, and the lobes' "
+                          "Phong fits looked up in the sqrt-cos pyramid (Knuth et al. 2014's suggested extension), "
+                          "with error maps. No visibility (KM2000 has none). `ibl-ref km00-render --method ...` "
+                          "renders one method at any size."),
 }
 
 

@@ -1,0 +1,81 @@
+"""``ibl-ref km00-render``: the glossy teapot by Kautz & McCool (2000) fitted lobes, or by the exact reference.
+
+Thin layer over :func:`ibl_ref.experiments.km00_render.render_single_method` (library:
+:mod:`ibl_ref.prefiltered_lobes`).  No visibility (KM2000 has none).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..errors import IBLError
+
+METHOD_HELP = ("reference: per-pixel exact filtering over the environment texels; lobes: greedy multi-lobe fit in "
+               "3D maps (KM2000 Sec. 5.3); single: one lobe per elevation (Sec. 5.1); 2d: one shared 2D lobe x k(theta_o) "
+               "(Sec. 5.2); pyramid: the lobes' Phong fits looked up in the sqrt-cos pyramid (Knuth 2014)")
+
+
+def _env(text: str, size: int):
+    from ..synthetic_envs import ENV_NAMES, make_env
+
+    if text in ENV_NAMES:
+        return make_env(text, n=size)
+    p = Path(text)
+    if not p.exists():
+        raise IBLError(f"--env {text!r}: neither a synthetic environment ({', '.join(ENV_NAMES)}) nor an existing file")
+    from ..exr_io import load_cube
+
+    return load_cube(p, size=size)
+
+
+def run(args) -> int:
+    from ..experiments.km00_render import render_single_method
+    from ..image_io import write_image_exr
+
+    from .cmd_render import _check_output, _size
+
+    out = _check_output(Path(args.out), (".exr",))
+    w, h = _size(args.size)
+    if args.env_size < 2 or args.env_size & (args.env_size - 1):
+        raise IBLError(f"--env-size must be a power of two >= 2, got {args.env_size}")
+    params = dict(ks=args.ks, kd=args.kd)
+    if args.brdf in ("ward", "cook_torrance"):
+        params["alpha"] = args.alpha
+    elif args.brdf in ("phong", "blinn_phong"):
+        params["s"] = args.s
+    if args.brdf == "cook_torrance":
+        params.pop("ks")
+    env = _env(args.env, args.env_size)
+    img, mask, info = render_single_method(args.method, env, width=w, height=h, brdf=args.brdf, brdf_params=params,
+                                           n_lobes=args.lobes, n_theta=args.n_theta, progress=not args.quiet)
+    write_image_exr(out, img)
+    if args.png:
+        from ..tonemap import save_png
+
+        save_png(out.with_suffix(".png"), img, mask=mask)
+    if not args.quiet:
+        print(f"wrote {out} ({w}x{h}, method {args.method}, {info['time_s']} s)")
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("km00-render", help="render the teapot with Kautz & McCool 2000 fitted lobes (or the reference)",
+                       description=__doc__)
+    p.add_argument("--brdf", default="ward", choices=("ward", "cook_torrance", "phong", "blinn_phong"),
+                   help="analytic BRDF (default ward)")
+    p.add_argument("--alpha", type=float, default=0.04, help="roughness of ward / cook_torrance (default 0.04)")
+    p.add_argument("--s", type=float, default=100.0, help="exponent of phong / blinn_phong (default 100)")
+    p.add_argument("--ks", type=float, default=0.8, help="specular weight (default 0.8)")
+    p.add_argument("--kd", type=float, default=0.0, help="diffuse weight (default 0)")
+    p.add_argument("--lobes", type=int, default=3, help="number of greedy lobes for --method lobes/pyramid (default 3)")
+    p.add_argument("--n-theta", type=int, default=16, help="sampled view elevations in [0, 80] deg (default 16)")
+    p.add_argument("--method", default="lobes", choices=("reference", "lobes", "single", "2d", "pyramid"),
+                   help=METHOD_HELP)
+    p.add_argument("--size", type=int, nargs="+", default=[256, 256], metavar="N",
+                   help="image size W H (or N for N x N; default 256 256)")
+    p.add_argument("--env", default="sky_sun", help="synthetic environment name or an environment-map file")
+    p.add_argument("--env-size", type=int, default=64, help="cube face size of the environment (default 64)")
+    p.add_argument("--out", required=True, help="output OpenEXR image (linear radiance)")
+    p.add_argument("--png", action="store_true", help="also write a tone-mapped PNG next to it")
+    p.add_argument("--quiet", action="store_true", help="no progress bars / messages")
+    p.set_defaults(func=run)
