@@ -118,8 +118,22 @@ class LightSet:
     def n_lights(self) -> int:
         return len(self)
 
+    def equivalent_lobes(self):
+        """Meunier et al. (2009) equivalent cosine lobe of each region (Eq. 32–34).
+
+        The region is taken as the spherical cap of the same solid angle, ``Ω = 2π(1 − cos α)``, and the
+        cap is replaced by its L2-closest unit-peak lobe ``max(a·v, 0)^e``
+        (:func:`ibl_ref.meunier2009.region_equivalent_lobe`); ``scale_energy`` makes the lobe carry Ω.
+        For small regions α ≈ √(Ω/π), the disc half-angle that sizes the VSM blur (FIELD_NOTES §4).
+        """
+        from .meunier2009 import region_equivalent_lobe
+
+        return region_equivalent_lobe(self.solid_angle)
+
     def to_records(self) -> list[dict]:
-        """One JSON-friendly dict per light (direction, rgb, solid_angle_sr, face, region bounds)."""
+        """One JSON-friendly dict per light (direction, rgb, solid_angle_sr, face, region bounds, and the
+        region's equivalent cosine lobe: cap half-angle, exponent, energy scale; :meth:`equivalent_lobes`)."""
+        lobes = self.equivalent_lobes()
         out = []
         for i in range(len(self)):
             f, r0, r1, c0, c1 = (int(x) for x in self.regions[i])
@@ -136,6 +150,9 @@ class LightSet:
                     "row1": r1,
                     "col0": c0,
                     "col1": c1,
+                    "cap_half_angle_rad": float(lobes.alpha[i]),
+                    "equivalent_lobe_exponent": float(lobes.exponent[i]),
+                    "equivalent_lobe_scale": float(lobes.scale_energy[i]),
                 }
             )
         return out

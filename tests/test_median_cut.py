@@ -237,3 +237,28 @@ def test_partition_property(n, seed, density, variant, k):
     if variant != "per-face":  # energy-driven variants never make a dark light on a lit face
         lit_faces = cube.reshape(6, -1).any(1)
         assert np.all(ls.energy[lit_faces[ls.regions[:, 0]]] > 0)
+
+
+@pytest.mark.parametrize("n_lights", [6, 96])
+def test_equivalent_lobes_of_regions(n_lights):
+    # Independent routes: the cap's solid-angle closed form Ω = 2π(1 − cos α); the lobe integral closed form
+    # 2π/(e+1) (Meunier Eq. 20), so scale · 2π/(e+1) = Ω and the lobes together carry 4π; the small-cap limit
+    # e·α² → 2y*, (1+y*)e^{−y*} = 3/4 (Gaussian limit of Eq. 32–34, solved here by bisection).
+    ls = median_cut(_random_map(5), n_lights, "per-face")
+    lobes = ls.equivalent_lobes()
+    om = ls.solid_angle
+    np.testing.assert_allclose(2 * np.pi * (1 - np.cos(lobes.alpha)), om, rtol=1e-12)  # float64 round-off
+    np.testing.assert_allclose(lobes.scale_energy * 2 * np.pi / (lobes.exponent + 1), om, rtol=1e-12)
+    assert abs(np.sum(lobes.scale_energy * 2 * np.pi / (lobes.exponent + 1)) - 4 * np.pi) < 1e-11
+    order = np.argsort(om)
+    assert np.all(np.diff(lobes.exponent[order]) <= 1e-9 * lobes.exponent[order][1:])  # wider cap, broader lobe
+    lo, hi = 0.5, 1.5
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if (1 + mid) * np.exp(-mid) > 0.75 else (lo, mid)
+    small = lobes.alpha < 0.05  # O(α²) from the limit: < 0.3% at 0.05 rad
+    if small.any():
+        np.testing.assert_allclose(lobes.exponent[small] * lobes.alpha[small] ** 2, 2 * lo, rtol=3e-3)
+    rec = ls.to_records()
+    assert [r["equivalent_lobe_exponent"] for r in rec] == [float(e) for e in lobes.exponent]
+    assert all(np.isfinite(r["cap_half_angle_rad"]) and r["equivalent_lobe_scale"] > 0 for r in rec)

@@ -4,7 +4,9 @@ For the sky+sun and studio maps and 6, 12, 24, 48, 96 lights, each variant (``pe
 ``global``, ``variance``) is run; the region rectangles and lights are written to ``mediancut_lights.csv``,
 the energy spread (max/min, coefficient of variation of region energies: the paper's "equally
 important" requirement) and partition residuals (Eq. 1) to ``mediancut_summary.csv``, and the maps'
-log-luminance on the horizontal cross to ``mediancut_maps.json`` (plot input).
+log-luminance on the horizontal cross to ``mediancut_maps.json`` (plot input).  Each light also gets
+its region's equivalent cosine lobe (Meunier et al. 2009 Eq. 32–34, :meth:`ibl_ref.median_cut.LightSet.equivalent_lobes`):
+cap half-angle of the region's solid angle, lobe exponent and energy scale; the summary gives their range.
 
 Horizontal cross (OpenEXR orientation, faces seen from inside, no rotation needed):
 top row +Y above −Z; middle row −X, −Z, +X, +Z; bottom row −Y below −Z.  Every shared edge of this
@@ -69,6 +71,10 @@ def run(out_dir: Path, quick: bool) -> dict:
                                 "rgb_sum_rel_err": chk["rgb_sum_rel_err"]})
                 face, x, yy = direction_to_texel_coords(ls.directions, n)
                 power = ls.energy / ls.energy.sum()
+                lobe = ls.equivalent_lobes()
+                summary[-1].update({"lobe_exponent_min": float(lobe.exponent.min()),
+                                    "lobe_exponent_median": float(np.median(lobe.exponent)),
+                                    "lobe_exponent_max": float(lobe.exponent.max())})
                 for i in range(L):
                     f, r0, r1, c0, c1 = (int(v) for v in ls.regions[i])
                     light_rows.append({"env": env, "variant": variant, "lights": L, "index": i, "face": f,
@@ -76,12 +82,18 @@ def run(out_dir: Path, quick: bool) -> dict:
                                        "dir_x": ls.directions[i, 0], "dir_y": ls.directions[i, 1],
                                        "dir_z": ls.directions[i, 2], "tex_x": float(x[i]), "tex_y": float(yy[i]),
                                        "r": ls.rgb[i, 0], "g": ls.rgb[i, 1], "b": ls.rgb[i, 2],
-                                       "energy_fraction": float(power[i]), "solid_angle_sr": ls.solid_angle[i]})
+                                       "energy_fraction": float(power[i]), "solid_angle_sr": ls.solid_angle[i],
+                                       "cap_half_angle_deg": float(np.degrees(lobe.alpha[i])),
+                                       "equivalent_lobe_exponent": float(lobe.exponent[i]),
+                                       "equivalent_lobe_scale": float(lobe.scale_energy[i])})
     write_csv(out_dir / "mediancut_lights.csv", light_rows, comment=(
         "Median-cut lights: region (face,row0:row1,col0:col1, exclusive ends), unit direction, rgb = integral of L "
-        "over the region (radiance*sr), energy_fraction = luminance*sr share, tex_x/tex_y = continuous texel coords."))
+        "over the region (radiance*sr), energy_fraction = luminance*sr share, tex_x/tex_y = continuous texel coords; "
+        "equivalent lobe (Meunier 2009 Eq. 32-34): the cap of the region's solid angle, Omega = 2*pi*(1 - cos alpha), "
+        "fitted in L2 by max(a.v,0)^e; scale = Omega*(e+1)/(2*pi) makes the lobe carry Omega (dimensionless)."))
     write_csv(out_dir / "mediancut_summary.csv", summary, comment=(
-        "Energy spread of the regions (Rec.709 luminance * exact solid angle) and Eq. 1 partition residuals."))
+        "Energy spread of the regions (Rec.709 luminance * exact solid angle) and Eq. 1 partition residuals; "
+        "lobe_exponent_*: range of the regions' equivalent cosine-lobe exponents (Meunier 2009 Eq. 32-34)."))
     write_json(out_dir / "mediancut_maps.json", maps)
     per_face = [r for r in summary if r["variant"] == "per-face"]
     return {"max_rgb_sum_rel_err": max(r["rgb_sum_rel_err"] for r in summary),
