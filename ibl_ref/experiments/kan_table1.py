@@ -98,8 +98,8 @@ def plot(out_dir: Path) -> list:
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "kan_table1.csv")
     fig, ax = plt.subplots(figsize=(5.5, 4))
-    for key, label, style in (("cpu_time_auto_s", "ibl_ref auto (rtol 1e-3), 1 CPU core", "o-"),
-                              ("cpu_time_exact_s", "ibl_ref exact, 1 CPU core", "s--"),
+    for key, label, style in (("cpu_time_auto_s", "ibl_ref auto (rtol 1e-3), CPU s summed over cores", "o-"),
+                              ("cpu_time_exact_s", "ibl_ref exact, CPU s summed over cores", "s--"),
                               ("kan2015_time_s", "Kán et al. 2015 Table 1, mobile GPU", "^:")):
         pts = [(int(r["face_size_texels"]), float(r[key])) for r in rows if r[key] not in ("", "nan")]
         if pts:
