@@ -28,8 +28,8 @@ literal Eq. 4 sum (``normalized=False``) at every output texel ``r``, by one of
 Concurrency (``workers``)
     The work is cut into independent jobs — the moment and sparse routes per fixed group of output
     faces (:data:`FACE_PARTS`), the shared SH pass, the exact gather — that run on a pool of
-    ``workers`` forked processes (``backend="process"``, the default where ``fork`` exists and the
-    caller is single-threaded) or threads (``backend="thread"``; NumPy releases the GIL in its array
+    ``workers`` forked processes (``backend="process"``, the default on Linux when the caller is
+    single-threaded and not a daemonic process) or threads (``backend="thread"``; NumPy releases the GIL in its array
     kernels, but the many small array calls of the gathers still contend for it).  Default
     ``workers``: ``$IBL_REF_WORKERS`` or min(2, usable CPUs).  BLAS is held at 1 thread (threadpoolctl) for the
     whole call, serial included: a multi-threaded BLAS splits the SH matrix products differently and
@@ -53,6 +53,7 @@ import functools
 import math
 import multiprocessing
 import os
+import sys
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
@@ -149,11 +150,15 @@ def _resolve_backend(backend, workers):
         return "serial"
     if backend == "auto":
         # fork only a single-threaded process (a fork copies no other thread; locks they hold would
-        # stay locked in the child); otherwise threads
-        fork_ok = "fork" in multiprocessing.get_all_start_methods() and threading.active_count() == 1
+        # stay locked in the child), only on Linux (macOS system libraries are not fork-safe), and not
+        # from a daemonic process (multiprocessing forbids it children); otherwise threads
+        fork_ok = (sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
+                   and threading.active_count() == 1 and not multiprocessing.current_process().daemon)
         return "process" if fork_ok else "thread"
     if backend == "process" and "fork" not in multiprocessing.get_all_start_methods():
         raise IBLError("backend 'process' needs the 'fork' start method (POSIX); use 'thread'")
+    if backend == "process" and multiprocessing.current_process().daemon:
+        raise IBLError("backend 'process' cannot start workers from a daemonic process; use 'thread'")
     return backend
 
 
@@ -339,8 +344,8 @@ def convolve(
     backend : {"auto", "process", "thread"}
         How ``workers > 1`` jobs run: ``"process"`` — a pool of forked worker processes (POSIX; no
         GIL: ≈ 1.8× on 2 cores vs ≈ 1.4× for threads, measured on the moment route at 128²);
-        ``"thread"`` — a thread pool; ``"auto"`` (default) — processes when ``fork`` is available and
-        the calling process has a single thread (forking a multi-threaded process is unsafe), else
+        ``"thread"`` — a thread pool; ``"auto"`` (default) — processes on Linux when the calling process
+        has a single thread (forking a multi-threaded process is unsafe) and is not daemonic, else
         threads.
 
     Returns

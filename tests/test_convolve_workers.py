@@ -182,3 +182,25 @@ def test_auto_backend_avoids_fork_in_multithreaded_process(routed_like_large):
     assert res.info["backend"] == "thread"
     for s in (1.0, 1000.0):
         assert np.array_equal(res.maps[s], serial.maps[s])
+
+
+def test_auto_backend_uses_threads_inside_a_daemonic_process():
+    # a multiprocessing worker (daemonic) may not start children: auto must pick threads there, and
+    # an explicit process backend must say why it cannot run
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("fork")
+    with ctx.Pool(1) as pool:
+        backend, err = pool.apply(_daemon_probe)
+    assert backend == "thread"
+    assert "daemonic" in err
+
+
+def _daemon_probe():
+    res = convolve(_sun_env(4), [1.0, 1000.0], workers=2)
+    try:
+        convolve(_sun_env(4), [1.0, 1000.0], workers=2, backend="process")
+        err = ""
+    except IBLError as exc:
+        err = str(exc)
+    return res.info["backend"], err
