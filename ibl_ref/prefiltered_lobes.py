@@ -65,6 +65,7 @@ outside the sampled range), :class:`ibl_ref.errors.LayoutError` (wrong cube layo
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -488,6 +489,23 @@ class LobeSet:
     def glossiness(self) -> np.ndarray:
         s = self.phong_s
         return np.where(s > 1.0, 1.0 - 1.0 / np.where(s > 1.0, s, 1.0), 0.0)
+
+    def scaled(self, factors) -> "LobeSet":
+        """The same lobes with the profiles of elevation k multiplied by ``factors[k]`` (e.g. an energy
+        rescale, :func:`ibl_ref.kautz_mccool2000.fit_multi_lobe` ``rescale=True``).
+
+        Convolution is linear, so the prefiltered maps are scaled too instead of recomputed; the Phong fit
+        keeps its exponent and scales its ``P``; cut angles, tail fractions and supersampling are relative
+        and stay.  ``factors``: (K,) finite, non-negative.
+        """
+        f = np.asarray(factors, dtype=np.float64)
+        if f.shape != self.theta_o.shape or not np.all(np.isfinite(f)) or np.any(f < 0):
+            raise IBLError(f"factors must be {self.theta_o.size} finite non-negative numbers, got {factors!r}")
+        return dataclasses.replace(
+            self, profiles=self.profiles * f[:, None, None], phong_P=self.phong_P * f[:, None],
+            integral=self.integral * f[:, None],
+            maps=None if self.maps is None else self.maps * f.reshape((-1,) + (1,) * (self.maps.ndim - 1)),
+            _samplers={})
 
     def _sampler(self, k: int, j: int):
         key = (k, j)

@@ -56,6 +56,12 @@ def test_cli_writes_image_and_rejects_bad_input(tmp_path, capsys):
     assert rc == 0
     img = read_image_exr(out)
     assert img.shape == (12, 16, 3) and np.all(np.isfinite(img)) and img.max() > 0
+    # --rescale-lobes: the greedy lobes carry the BRDF's albedo, so the image gets brighter, not darker
+    plain, resc = tmp_path / "l.exr", tmp_path / "lr.exr"
+    for path, extra in ((plain, []), (resc, ["--rescale-lobes"])):
+        assert main(["km00-render", "--method", "lobes", "--size", "12", "--env-size", "8", "--n-theta", "3",
+                     "--out", str(path), "--quiet"] + extra) == 0
+    assert read_image_exr(resc).sum() > read_image_exr(plain).sum()
     assert main(["km00-render", "--out", str(tmp_path / "x.png"), "--quiet"]) == 1
     assert main(["km00-render", "--env", "no_such_env", "--out", str(out), "--quiet"]) == 1
     assert "neither a synthetic environment" in capsys.readouterr().err

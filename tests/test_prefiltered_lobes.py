@@ -187,6 +187,24 @@ def test_3d_lookup_at_sampled_theta_equals_map(ward_lobes):
     np.testing.assert_allclose(v, 0.5 * (ls.maps[0, 0] + ls.maps[1, 0]).reshape(v.shape), rtol=1e-12)
 
 
+def test_scaled_lobe_set_equals_reconvolution(ward_lobes):
+    # independent route: convolve the environment again with the scaled profiles
+    ls, env = ward_lobes
+    f = np.array([1.3, 0.0, 2.5])
+    sc = ls.scaled(f)
+    K, J, G = ls.profiles.shape
+    again = pl.convolve_profiles(env, ls.gamma, (ls.profiles * f[:, None, None]).reshape(K * J, G), tail_rtol=1e-6)
+    np.testing.assert_allclose(sc.maps, np.asarray(again).reshape(sc.maps.shape), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(sc.integral, pl.profile_integral(ls.gamma, sc.profiles), rtol=1e-12, atol=1e-300)
+    np.testing.assert_array_equal(sc.phong_s, ls.phong_s)
+    d = envmap.texel_directions(8).reshape(-1, 3)
+    np.testing.assert_allclose(sc.lookup(0, d, ls.theta_o[2]), 2.5 * ls.lookup(0, d, ls.theta_o[2]), rtol=1e-12)
+    with pytest.raises(IBLError):
+        ls.scaled([1.0, np.nan, 1.0])
+    with pytest.raises(IBLError):
+        ls.scaled([1.0, 1.0])
+
+
 def test_missing_track_has_zero_profile(ward_lobes):
     ls, _ = ward_lobes
     # at θo = 0 the Ward slice is fitted by one lobe (the greedy fit stops), so tracks ≥ 1 are absent there

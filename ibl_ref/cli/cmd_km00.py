@@ -47,7 +47,8 @@ def run(args) -> int:
         params.pop("ks")
     env = _env(args.env, args.env_size)
     img, mask, info = render_single_method(args.method, env, width=w, height=h, brdf=args.brdf, brdf_params=params,
-                                           n_lobes=args.lobes, n_theta=args.n_theta, progress=not args.quiet)
+                                           n_lobes=args.lobes, n_theta=args.n_theta, rescale_lobes=args.rescale_lobes,
+                                           progress=not args.quiet)
     write_image_exr(out, img)
     if args.png:
         from ..tonemap import save_png
@@ -68,6 +69,9 @@ def register(sub) -> None:
     p.add_argument("--ks", type=float, default=0.8, help="specular weight (default 0.8)")
     p.add_argument("--kd", type=float, default=0.0, help="diffuse weight (default 0)")
     p.add_argument("--lobes", type=int, default=3, help="number of greedy lobes for --method lobes/pyramid (default 3)")
+    p.add_argument("--rescale-lobes", action="store_true",
+                   help="--method lobes/pyramid: scale the greedy lobes so that their albedo equals the BRDF's, one "
+                        "factor per elevation (not in the paper; its minimum-profile lobes lose the residual's energy)")
     p.add_argument("--n-theta", type=int, default=16, help="sampled view elevations in [0, 80] deg (default 16)")
     p.add_argument("--method", default="lobes", choices=("reference", "lobes", "single", "2d", "pyramid"),
                    help=METHOD_HELP)

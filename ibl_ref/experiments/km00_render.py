@@ -15,7 +15,10 @@ Methods (:mod:`ibl_ref.prefiltered_lobes`):
   (``meta.info.reference.neglected_bound_max``).  Successive multipliers show the quadrature convergence.
   The 3D maps use the same rule per lobe profile (``map_supersample="auto"``, 1.5 sub-texels per profile HWHM).
 * ``lobes3`` — the greedy multi-lobe fit (≤ 3 lobes, tracked across elevations), one 3D map per track (Sec. 5.3),
-  cosine factor n·r (Eq. 2); ``lobes3_peakcos`` the same maps with the factor n·peak_j.
+  cosine factor n·r (Eq. 2); ``lobes3_peakcos`` the same maps with the factor n·peak_j; ``lobes3_rescaled`` the
+  same lobes with one energy factor per elevation so that their albedo is the BRDF's (not in KM2000, whose greedy
+  minimum-profile lobes leave the residual's energy out; :func:`ibl_ref.kautz_mccool2000.fit_multi_lobe`
+  ``rescale=True``, maps scaled by :meth:`~ibl_ref.prefiltered_lobes.LobeSet.scaled`).
 * ``single`` — one mean-profile lobe per elevation (Sec. 3.1 / 5.1); ``single2d`` — one shared 2-D lobe × k(θo)
   (Sec. 3.2 / 5.2).
 * ``pyramid3`` — Knuth et al. 2014 extension: each of the 3 lobes replaced by its Phong fit ``P cos^s``, looked up in
@@ -48,9 +51,11 @@ DESCRIPTION = ("Kautz & McCool 2000 renders: Ward teapot by per-pixel exact filt
                "single 2D lobe / pyramid lookup of the lobes' Phong fits")
 IN_QUICK_REPRODUCE = True
 
-METHODS = ("reference", "lobes3", "lobes3_peakcos", "single", "single2d", "pyramid3", "pyramid3_profile",
+METHODS = ("reference", "lobes3", "lobes3_peakcos", "lobes3_rescaled", "single", "single2d", "pyramid3",
+           "pyramid3_profile",
            "pyramid1")
 LABELS = {"reference": "per-pixel exact", "lobes3": "3 lobes (3D maps)", "lobes3_peakcos": "3 lobes, n·peak",
+          "lobes3_rescaled": "3 lobes, energy rescaled",
           "single": "single lobe", "single2d": "single 2D lobe", "pyramid3": "3 lobes via pyramid",
           "pyramid3_profile": "pyramid, ∫p weight", "pyramid1": "single lobe via pyramid"}
 BRDF = ("ward", dict(kd=0.0, ks=0.8, alpha=0.04))
@@ -89,10 +94,12 @@ def render_single_method(method: str, env: np.ndarray, *, width: int = 256, heig
                          n_gamma: int = 256, n_phi: int = 64, map_supersample="auto", map_out_size=None,
                          tail_rtol: float = 1e-6, cos_mode: str = "mirror", energy: str = "phong",
                          ref_samples_per_hwhm: float = 3.0, ref_max_supersample: int = 16,
-                         progress: bool = False):
+                         rescale_lobes: bool = False, progress: bool = False):
     """Render the teapot (camera of :mod:`ibl_ref.experiments.fig6`) by one method; returns (image (H, W, C),
     mask (H, W), info dict).  ``method`` ∈ :data:`SINGLE_METHODS` (``lobes``: ``n_lobes`` greedy lobes in 3D maps,
-    ``pyramid``: the same lobes via their Phong fits in the sqrt-cos pyramid).  θo sampled in [0°, 80°]."""
+    ``pyramid``: the same lobes via their Phong fits in the sqrt-cos pyramid; ``rescale_lobes``: the greedy lobes with
+    one energy factor per elevation, :func:`ibl_ref.kautz_mccool2000.fit_multi_lobe` ``rescale=True``).  θo sampled
+    in [0°, 80°]."""
     from .. import brdfs as B
     from .. import kautz_mccool2000 as km
     from .. import prefiltered_lobes as pl
@@ -128,7 +135,7 @@ def render_single_method(method: str, env: np.ndarray, *, width: int = 256, heig
         vals = pl.render_reference(env, n, wo, f, supersample=kpix, cut_angle=cut, progress=progress)
         info.update(cut_angle_deg=None if cut is None else float(np.degrees(cut)), max_supersample=int(kpix.max()))
     elif method in ("lobes", "pyramid"):
-        multi = [km.fit_multi_lobe(f, t, int(n_lobes), **fk) for t in thetas]
+        multi = [km.fit_multi_lobe(f, t, int(n_lobes), rescale=bool(rescale_lobes), **fk) for t in thetas]
         ls = pl.build_lobe_set(multi, km.track_lobes(multi), cube=env if method == "lobes" else None,
                                **(ck if method == "lobes" else {}))
         if method == "lobes":
@@ -173,6 +180,9 @@ def render_all(st: dict, env: np.ndarray, progress: bool = False) -> dict:
     t0 = time.perf_counter()
     multi = [km.fit_multi_lobe(f, t, int(st["n_lobes"]), **fk) for t in thetas]
     tracks = km.track_lobes(multi)
+    # the same greedy lobes with one energy factor per elevation (fit_multi_lobe rescale=True; not in KM2000)
+    k_rescale = [s.lobes[0].scale if s.lobes else 1.0
+                 for s in (km.fit_multi_lobe(f, t, int(st["n_lobes"]), rescale=True, **fk) for t in thetas)]
     single = [km.fit_single_lobe(f, t, **fk) for t in thetas]
     s2d, p_bar, kw = km.fit_single_2d_lobe(f, thetas, **fk)
     T["fit"] = time.perf_counter() - t0
@@ -197,6 +207,10 @@ def render_all(st: dict, env: np.ndarray, progress: bool = False) -> dict:
     t0 = time.perf_counter()
     vals["lobes3_peakcos"] = pl.shade_lobes(L3, n, wo, cos_mode="peak")
     T["shade_lobes3_peakcos"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    L3r = L3.scaled(k_rescale)  # convolution is linear: the 3D maps scale with the profiles
+    vals["lobes3_rescaled"] = pl.shade_lobes(L3r, n, wo)
+    T["shade_lobes3_rescaled"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     vals["single"] = pl.shade_lobes(L1, n, wo)
     T["shade_single"] = time.perf_counter() - t0
@@ -243,7 +257,7 @@ def render_all(st: dict, env: np.ndarray, progress: bool = False) -> dict:
     # albedo a(θo) (brdfs.albedo, Gauss–Legendre), each method gives cos-factor × its lobe weights — isolates the
     # BRDF-approximation (energy) error from the environment-discretisation error
     t0 = time.perf_counter()
-    energy = _constant_env_images(L3, L1, L2, f, n, wo)
+    energy = _constant_env_images(L3, L3r, L1, L2, f, n, wo)
     T["constant_env_pass"] = time.perf_counter() - t0
 
     H, W = m.shape
@@ -268,6 +282,7 @@ def render_all(st: dict, env: np.ndarray, progress: bool = False) -> dict:
                        pixels_per_supersample=k_counts, unresolved_note=(
                            f"pixels whose k hit ref_max_supersample={st['ref_max_supersample']} have fewer "
                            "sub-texels per half width than asked (grazing)")),
+        lobes3_rescaled=dict(energy_factor=np.round(k_rescale, 6).tolist()),
         lobes3=dict(n_tracks=L3.n_tracks, theta_off_deg=np.degrees(L3.theta_off).round(4).tolist(),
                     phi_off_deg=np.degrees(L3.phi_off).round(3).tolist(), phong_s=L3.phong_s.round(2).tolist(),
                     phong_P=L3.phong_P.round(4).tolist(), integral_sr=L3.integral.round(6).tolist(),
@@ -285,7 +300,7 @@ def render_all(st: dict, env: np.ndarray, progress: bool = False) -> dict:
                 ref_sweep=ref_conv, constant_env={k: img(np.repeat(v, C, axis=1)) for k, v in energy.items()})
 
 
-def _constant_env_images(L3, L1, L2, f, n, wo) -> dict:
+def _constant_env_images(L3, L3r, L1, L2, f, n, wo) -> dict:
     """Per-sample radiance of every method for L ≡ 1 (see :func:`render_all`); (P, 1) arrays."""
     import dataclasses
 
@@ -306,6 +321,7 @@ def _constant_env_images(L3, L1, L2, f, n, wo) -> dict:
     c3 = const_maps(L3)
     out["lobes3"] = pl.shade_lobes(c3, n, wo)
     out["lobes3_peakcos"] = pl.shade_lobes(c3, n, wo, cos_mode="peak")
+    out["lobes3_rescaled"] = pl.shade_lobes(const_maps(L3r), n, wo)
     out["single"] = pl.shade_lobes(const_maps(L1), n, wo)
     c2 = dataclasses.replace(L2, map=np.full((6, 2, 2, 1), float(pl.profile_integral(L2.gamma, L2.p_bar))),
                              _sampler=None)
@@ -339,6 +355,7 @@ def run_with(out_dir: Path, st: dict, quick: bool = False, progress: bool = Fals
                "pyramid1": T["pyramid_build"] + T["shade_pyramid1"],
                "lobes3": T["maps_lobes3"] + T["shade_lobes3"],
                "lobes3_peakcos": T["maps_lobes3"] + T["shade_lobes3_peakcos"],
+               "lobes3_rescaled": T["maps_lobes3"] + T["shade_lobes3_rescaled"],
                "single": T["maps_single"] + T["shade_single"],
                "single2d": T["maps_single2d"] + T["shade_single2d"],
                "pyramid3": T["pyramid_build"] + T["shade_pyramid3"],
