@@ -197,6 +197,20 @@ def _find_peak(resid_fn, wi_grid, theta_o):
     return direction_from_angles(th, ph), float(max(-res.fun, vals[k]))
 
 
+#: a peak this close to the horizon (rad) means the slice is unbounded there (Ward's 1/√cos θi at large α)
+_HORIZON_MARGIN = 1e-3
+
+
+def _horizon_error(theta_o, peak) -> IBLError | None:
+    th, _ = _angles(peak)
+    if th < np.pi / 2 - _HORIZON_MARGIN:
+        return None
+    return IBLError(f"the BRDF slice at theta_o = {np.degrees(theta_o):.2f} deg peaks at the horizon (polar angle "
+                    f"{np.degrees(th):.3f} deg): it is unbounded there (e.g. Ward's 1/sqrt(cos theta_i) at large "
+                    "alpha), so no radially symmetric lobe fits it; use a smaller roughness, a smaller theta_o or "
+                    "a BRDF with a masking term")
+
+
 def _profiles(resid_fn, peak, gamma, n_phi):
     u, v = _frame(peak)
     phi = (np.arange(n_phi) + 0.5) * 2 * np.pi / n_phi
@@ -245,6 +259,9 @@ def fit_single_lobe(brdf, theta_o, *, n_gamma: int = 256, n_phi: int = 64, width
         return np.where(wi[..., 2] > 0, brdf(wi, wo), 0.0)
 
     peak, _ = _find_peak(f_fn, wi_grid, t)
+    err = _horizon_error(t, peak)
+    if err is not None:
+        raise err
     vals, above = _profiles(f_fn, peak, gamma, n_phi)
     prof = _masked_mean(vals, above)
     alb = float(np.sum(f_grid * wi_grid[:, 2] * w))
@@ -261,7 +278,8 @@ def fit_multi_lobe(brdf, theta_o, n_lobes: int = 4, *, n_gamma: int = 256, n_phi
     """Greedy multi-lobe fit at elevation θo (Sec. 3.3): peak of the residual, minimum profile, subtract.
 
     Stops early when the residual's maximum falls below ``stop_rel`` × the slice's maximum (a residual made of
-    profile-interpolation noise is not fitted).  ``err2_after[k]`` is the squared error after ``k+1`` lobes.
+    profile-interpolation noise is not fitted), or lies at the horizon (an unbounded BRDF such as Ward at large α;
+    raises :class:`~ibl_ref.errors.IBLError` if that happens for the first lobe, as :func:`fit_single_lobe` does).  ``err2_after[k]`` is the squared error after ``k+1`` lobes.
 
     ``rescale`` (not in the paper, default off): Sec. 3.3 keeps the minimum-profile lobes as they are, so the
     energy of the residual they leave is lost (for Ward α = 0.04 about 11 % of the albedo over the teapot,
@@ -290,6 +308,11 @@ def fit_multi_lobe(brdf, theta_o, n_lobes: int = 4, *, n_gamma: int = 256, n_phi
         if not np.any(r_grid > stop_rel * max(float(f_grid.max()), 1e-300)):
             break
         peak, _ = _find_peak(resid_fn, wi_grid, t)
+        err = _horizon_error(t, peak)
+        if err is not None:
+            if not lobes:
+                raise err
+            break  # the residual's maximum is the horizon singularity: keep the lobes fitted so far
         vals, above = _profiles(resid_fn, peak, gamma, n_phi)
         prof = np.maximum(_masked_min(vals, above), 0.0)
         if prof[0] <= 0:

@@ -54,7 +54,7 @@ sphere (a map cannot know the surface's horizon), exactly as in the paper; the r
     ``supersample`` may be per sample (array): the experiment picks k from the BRDF slice's narrowest half width
     at the pixel's θo (:func:`brdf_min_hwhm`; a grazing Ward lobe is narrow out of the incidence plane).
 
-Ward truncation bound.  ``h = normalize(wo + ω)``; the map ω ↦ h has singular values ``1/(2 h·ω)`` ≥ ½
+Ward truncation bound.  ``h = normalize(wo + ω)``; the map ω ↦ h has singular values ``½`` and ``1/(2 h·ω)``, both ≥ ½
 (dω_h/dω = 1/(4 h·ω)), so geodesic distances shrink at most by ½: ``θh = angle(h, n) ≥ angle(ω, r)/2`` (h(r) = n).
 Outside the cone, therefore, ``f cos θi ≤ ks e^{−tan²(γc/2)/α²} √cos θi / (4π α² √cos θo)`` and the neglected
 radiance is at most ``L_max · ks · e^{−tan²(γc/2)/α²} / (α² √cos θo)`` (texel solid angles summed over ≤ 4π).
@@ -259,7 +259,7 @@ def _convolve_group(a, g, p, gc, out_size, k, tile, progress, out):
         cand = np.asarray(tree.query_ball_point(cen, chord), dtype=np.intp)
         if cand.size == 0:
             continue
-        cc = src_dirs[cand] @ cen
+        cc = np.clip(src_dirs[cand] @ cen, -1.0, 1.0)  # a rounded −1 − 2e-16 must not fall outside cos(π)
         o = np.argsort(-cc, kind="stable")
         cand, cc = cand[o], cc[o]  # nearest to the tile centre first
         # profile q needs only the candidates within gc[q] + tile radius: a prefix of the sorted list
@@ -544,6 +544,27 @@ class LobeSet:
         return out.reshape(lead + (C,))
 
 
+#: a peak within this angle (rad) of the normal has no meaningful azimuth (the peak search stops ≈ 1e-8 rad away)
+_AZIMUTH_UNDEFINED = 1e-6
+
+
+def _defined_azimuth(lb) -> float:
+    """φ_off of a fitted lobe, or NaN where its peak is (numerically) on the normal and φ is noise."""
+    return float("nan") if abs(math.sin(lb.theta_o + lb.theta_off)) < _AZIMUTH_UNDEFINED else float(lb.phi_off)
+
+
+def _fill_azimuths(theta_o, phi):
+    """Undefined (NaN) azimuths of one track take the value at the nearest elevation where it is defined (0 if
+    nowhere): the peak then moves in one plane towards the normal, and interpolating φ_off between elevations
+    cannot swing it out of that plane (a noise azimuth of −179° at θo = 0 would)."""
+    phi = np.array(phi, dtype=np.float64)
+    ok = np.flatnonzero(np.isfinite(phi))
+    bad = np.flatnonzero(~np.isfinite(phi))
+    if bad.size:
+        phi[bad] = phi[ok[np.argmin(np.abs(theta_o[ok][None, :] - theta_o[bad][:, None]), axis=1)]] if ok.size else 0.0
+    return phi
+
+
 def build_lobe_set(slices, track_ids=None, cube=None, **conv_kw) -> LobeSet:
     """Collect per-elevation lobe fits into tracks (and prefilter ``cube`` with every (k, j) profile).
 
@@ -582,8 +603,7 @@ def build_lobe_set(slices, track_ids=None, cube=None, **conv_kw) -> LobeSet:
         for lb, j in zip(s.lobes, tid):
             prof[k, j] = lb.profile
             toff[k, j] = lb.theta_off
-            # φ_off is meaningless for a peak on the normal (θo + θ_off = 0); use 0 there
-            poff[k, j] = 0.0 if abs(lb.theta_o + lb.theta_off) < 1e-9 else lb.phi_off
+            poff[k, j] = _defined_azimuth(lb)
             ps[k, j] = lb.phong_exponent
             pP[k, j] = lb.phong_scale
     for j in range(J):  # absent: copy offsets from the nearest elevation where the track exists
@@ -591,6 +611,7 @@ def build_lobe_set(slices, track_ids=None, cube=None, **conv_kw) -> LobeSet:
         for k in np.flatnonzero(~np.isfinite(toff[:, j])):
             src = have[np.argmin(np.abs(th[have] - th[k]))]
             toff[k, j], poff[k, j] = toff[src, j], poff[src, j]
+        poff[:, j] = _fill_azimuths(th, poff[:, j])
     check_profile(gamma, prof)
     ls = LobeSet(th, toff, poff, gamma, prof, ps, pP, profile_integral(gamma, prof))
     if cube is not None:
@@ -650,7 +671,7 @@ def build_2d_lobe(slices_2d, p_bar, k_weights, cube=None, **conv_kw) -> Lobe2D:
     lbs = [s.lobes[0] for s in slices_2d]
     gamma, pb = check_profile(lbs[0].gamma, p_bar)
     toff = np.array([lb.theta_off for lb in lbs])
-    poff = np.array([0.0 if abs(lb.theta_o + lb.theta_off) < 1e-9 else lb.phi_off for lb in lbs])
+    poff = _fill_azimuths(th, np.array([_defined_azimuth(lb) for lb in lbs]))
     out = Lobe2D(th, toff, poff, np.asarray(k_weights, dtype=np.float64), gamma, pb)
     if cube is not None:
         m, info = convolve_profiles(cube, gamma, pb[None], return_info=True, **conv_kw)
@@ -776,7 +797,10 @@ def ward_cut_angle(alpha: float, eps: float = 1e-12) -> float:
 
 
 def ward_neglected_bound(alpha: float, ks: float, gamma_c: float, cos_theta_o, L_max: float):
-    """Bound on the radiance neglected by the cone cut γc for Ward (module docstring): per sample."""
+    """Bound on the radiance neglected by the cone cut γc for Ward's specular term (module docstring): per sample.
+
+    The diffuse term ``kd/π`` is not covered (it is not concentrated around r): with ``kd > 0`` gather without a
+    cut (:func:`ibl_ref.experiments.km00_render.render_single_method` does)."""
     e = math.exp(-math.tan(min(gamma_c, np.pi - 1e-9) / 2.0) ** 2 / alpha**2) if gamma_c < np.pi else 0.0
     co = np.maximum(np.asarray(cos_theta_o, dtype=np.float64), 1e-300)
     return L_max * ks * e / (alpha**2 * np.sqrt(co))

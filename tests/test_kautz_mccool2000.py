@@ -123,3 +123,20 @@ def test_bad_inputs():
         km.fit_multi_lobe(f, 0.3, n_lobes=0)
     with pytest.raises(IBLError):
         km.gamma_nodes(2)
+
+
+def test_unbounded_slice_at_the_horizon_is_a_clear_error():
+    # Ward's 1/sqrt(cos θi) makes the slice unbounded at the horizon; at α = 0.2, θo = 60° its maximum is there
+    # (f → ∞), so no radially symmetric lobe fits: a clear error, not a lobe with a peak of 1e8
+    f = b.get_brdf("ward", ks=0.8, alpha=0.2)
+    wo = b.view_direction(np.radians(60.0))
+    ang = np.radians([89.9, 89.99, 89.9999])
+    vals = f(np.stack([np.sin(ang), 0 * ang, np.cos(ang)], axis=1), wo)
+    assert np.all(np.diff(vals) > 0) and vals[-1] > 50 * f((wo * [-1, 1, 1])[None], wo)[0]  # above the mirror
+    with pytest.raises(IBLError, match="horizon"):
+        km.fit_single_lobe(f, np.radians(60.0))
+    with pytest.raises(IBLError, match="horizon"):
+        km.fit_multi_lobe(f, np.radians(60.0), 3)
+    # the paper's α = 0.04 is bounded in practice up to θo = 80° (peak near r): fits as before
+    fit = km.fit_multi_lobe(b.get_brdf("ward", **WARD), np.radians(80.0), 3)
+    assert fit.lobes and all(np.isfinite(lb.profile).all() for lb in fit.lobes)

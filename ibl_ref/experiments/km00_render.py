@@ -123,8 +123,8 @@ def render_single_method(method: str, env: np.ndarray, *, width: int = 256, heig
               out_size=int(map_out_size or env.shape[1]))
     info: dict = dict(method=method, brdf=brdf, brdf_params=dict(brdf_params or {}))
     if method == "reference":
-        cut = pl.ward_cut_angle(f.params.get("alpha", 0.04 if brdf == "ward" else 1.0), 1e-12) \
-            if brdf == "ward" else None
+        # the cone cut and its bound cover Ward's specular term only: with a diffuse term gather everything
+        cut = pl.ward_cut_angle(f.params.get("alpha", 0.04), 1e-12) if brdf == "ward" and not f.params.get("kd", 0.0) else None
         cos_o = np.sum(n * wo, axis=1)
         th_tab = np.radians(np.arange(0.0, 90.0, 0.5))
         hw_tab = pl.brdf_min_hwhm(f, th_tab)
