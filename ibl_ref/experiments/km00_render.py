@@ -89,6 +89,22 @@ def _gbuffer(width: int, height: int | None = None):
 SINGLE_METHODS = ("reference", "lobes", "single", "2d", "pyramid")
 
 
+def reference_supersample(f, env_size: int, n, wo, samples_per_hwhm: float, max_supersample: int) -> np.ndarray:
+    """Per-sample source supersampling k of the per-pixel reference: the BRDF slice's narrowest half width at the
+    sample's θo (:func:`~ibl_ref.prefiltered_lobes.brdf_min_hwhm`, tabulated every 0.5°, the smaller of the two
+    bracketing entries) spans ``samples_per_hwhm`` sub-texels (:func:`~ibl_ref.prefiltered_lobes.auto_supersample`),
+    capped at ``max_supersample``.  Returns (P,) integers."""
+    from .. import prefiltered_lobes as pl
+
+    th = np.arccos(np.clip(np.sum(n * wo, axis=1), 0.0, 1.0))
+    th_tab = np.radians(np.arange(0.0, 90.0, 0.5))
+    hw_tab = pl.brdf_min_hwhm(f, th_tab)
+    i = np.clip((th / np.radians(0.5)).astype(int), 0, th_tab.size - 2)
+    hw = np.minimum(hw_tab[i], hw_tab[i + 1])
+    return np.array([pl.auto_supersample(int(env_size), h, float(samples_per_hwhm), int(max_supersample))
+                     for h in hw], dtype=np.intp)
+
+
 def render_single_method(method: str, env: np.ndarray, *, width: int = 256, height: int | None = None,
                          brdf: str = "ward", brdf_params: dict | None = None, n_lobes: int = 3, n_theta: int = 16,
                          n_gamma: int = 256, n_phi: int = 64, map_supersample="auto", map_out_size=None,
@@ -125,13 +141,7 @@ def render_single_method(method: str, env: np.ndarray, *, width: int = 256, heig
     if method == "reference":
         # the cone cut and its bound cover Ward's specular term only: with a diffuse term gather everything
         cut = pl.ward_cut_angle(f.params.get("alpha", 0.04), 1e-12) if brdf == "ward" and not f.params.get("kd", 0.0) else None
-        cos_o = np.sum(n * wo, axis=1)
-        th_tab = np.radians(np.arange(0.0, 90.0, 0.5))
-        hw_tab = pl.brdf_min_hwhm(f, th_tab)
-        i = np.clip((np.arccos(np.clip(cos_o, 0, 1)) / np.radians(0.5)).astype(int), 0, th_tab.size - 2)
-        hw = np.minimum(hw_tab[i], hw_tab[i + 1])
-        kpix = np.array([pl.auto_supersample(env.shape[1], h, float(ref_samples_per_hwhm), int(ref_max_supersample))
-                         for h in hw], dtype=np.intp)
+        kpix = reference_supersample(f, env.shape[1], n, wo, ref_samples_per_hwhm, ref_max_supersample)
         vals = pl.render_reference(env, n, wo, f, supersample=kpix, cut_angle=cut, progress=progress)
         info.update(cut_angle_deg=None if cut is None else float(np.degrees(cut)), max_supersample=int(kpix.max()))
     elif method in ("lobes", "pyramid"):
@@ -232,17 +242,10 @@ def render_all(st: dict, env: np.ndarray, progress: bool = False) -> dict:
     alpha, ks = BRDF[1]["alpha"], BRDF[1]["ks"]
     gc = pl.ward_cut_angle(alpha, float(st["ref_eps"]))
     cos_o = np.sum(n * wo, axis=1)
-    th_pix = np.arccos(np.clip(cos_o, 0.0, 1.0))
     t0 = time.perf_counter()
-    th_tab = np.radians(np.arange(0.0, 90.0, 0.5))
-    hw_tab = pl.brdf_min_hwhm(f, th_tab)
-    i = np.clip((th_pix / np.radians(0.5)).astype(int), 0, th_tab.size - 2)
-    hw_pix = np.minimum(hw_tab[i], hw_tab[i + 1])
+    k_base = reference_supersample(f, env.shape[1], n, wo, st["ref_samples_per_hwhm"], st["ref_max_supersample"])
     T["reference_hwhm_table"] = time.perf_counter() - t0
     refs, k_counts = [], []
-    N = env.shape[1]
-    k_base = np.array([pl.auto_supersample(N, h, float(st["ref_samples_per_hwhm"]), int(st["ref_max_supersample"]))
-                       for h in hw_pix], dtype=np.intp)
     for mult in st["ref_k_multipliers"]:
         kpix = np.minimum(k_base * int(mult), int(st["ref_max_supersample"]))
         t0 = time.perf_counter()
