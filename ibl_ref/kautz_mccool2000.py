@@ -197,18 +197,27 @@ def _find_peak(resid_fn, wi_grid, theta_o):
     return direction_from_angles(th, ph), float(max(-res.fun, vals[k]))
 
 
-#: a peak this close to the horizon (rad) means the slice is unbounded there (Ward's 1/√cos θi at large α)
+#: a peak this close to the horizon (rad) is checked for a singularity there (Ward's 1/√cos θi at large α)
 _HORIZON_MARGIN = 1e-3
 
 
-def _horizon_error(theta_o, peak) -> IBLError | None:
-    th, _ = _angles(peak)
+def _horizon_error(resid_fn, theta_o, peak) -> IBLError | None:
+    """An error if the peak sits at the horizon because the slice is unbounded there, else None.
+
+    A bounded grazing peak (e.g. GGX Cook–Torrance at θo = 75°, whose maximum is on the horizon but finite) is
+    fitted as usual.  Unbounded: the value grows by more than 3× from 1e-3 to 1e-6 rad above the horizon along the
+    peak's azimuth (a 1/√cos θi singularity grows √1000 ≈ 32×; a bounded smooth slice changes by ≈ 1e-3).
+    """
+    th, ph = _angles(peak)
     if th < np.pi / 2 - _HORIZON_MARGIN:
         return None
-    return IBLError(f"the BRDF slice at theta_o = {np.degrees(theta_o):.2f} deg peaks at the horizon (polar angle "
-                    f"{np.degrees(th):.3f} deg): it is unbounded there (e.g. Ward's 1/sqrt(cos theta_i) at large "
-                    "alpha), so no radially symmetric lobe fits it; use a smaller roughness, a smaller theta_o or "
-                    "a BRDF with a masking term")
+    v = resid_fn(np.stack([direction_from_angles(np.pi / 2 - e, ph) for e in (1e-3, 1e-6)]))
+    if not (v[1] > 3.0 * v[0]):
+        return None
+    return IBLError(f"the BRDF slice at theta_o = {np.degrees(theta_o):.2f} deg peaks at the horizon, where it is "
+                    f"unbounded ({v[0]:.3g} at 1e-3 rad above it, {v[1]:.3g} at 1e-6 rad; e.g. Ward's "
+                    "1/sqrt(cos theta_i) at large alpha), so no radially symmetric lobe fits it; use a smaller "
+                    "roughness, a smaller theta_o or a BRDF with a masking term")
 
 
 def _profiles(resid_fn, peak, gamma, n_phi):
@@ -259,7 +268,7 @@ def fit_single_lobe(brdf, theta_o, *, n_gamma: int = 256, n_phi: int = 64, width
         return np.where(wi[..., 2] > 0, brdf(wi, wo), 0.0)
 
     peak, _ = _find_peak(f_fn, wi_grid, t)
-    err = _horizon_error(t, peak)
+    err = _horizon_error(f_fn, t, peak)
     if err is not None:
         raise err
     vals, above = _profiles(f_fn, peak, gamma, n_phi)
@@ -308,7 +317,7 @@ def fit_multi_lobe(brdf, theta_o, n_lobes: int = 4, *, n_gamma: int = 256, n_phi
         if not np.any(r_grid > stop_rel * max(float(f_grid.max()), 1e-300)):
             break
         peak, _ = _find_peak(resid_fn, wi_grid, t)
-        err = _horizon_error(t, peak)
+        err = _horizon_error(resid_fn, t, peak)
         if err is not None:
             if not lobes:
                 raise err

@@ -137,6 +137,10 @@ def test_unbounded_slice_at_the_horizon_is_a_clear_error():
         km.fit_single_lobe(f, np.radians(60.0))
     with pytest.raises(IBLError, match="horizon"):
         km.fit_multi_lobe(f, np.radians(60.0), 3)
-    # the paper's α = 0.04 is bounded in practice up to θo = 80° (peak near r): fits as before
+    # a bounded grazing peak is fitted as usual: GGX Cook–Torrance (Smith masking) at θo = 75° has its maximum on
+    # the horizon but finite (≈ 53 vs 42 at the mirror direction)
+    ct = km.fit_single_lobe(b.get_brdf("cook_torrance", alpha=0.15, f0=0.9, distribution="ggx"), np.radians(75.0))
+    assert np.isfinite(ct.lobes[0].profile).all() and ct.lobes[0].profile[0] < 1e3
+    # the paper's α = 0.04 peaks near r up to θo = 80° (its horizon singularity is far below the peak): fits
     fit = km.fit_multi_lobe(b.get_brdf("ward", **WARD), np.radians(80.0), 3)
     assert fit.lobes and all(np.isfinite(lb.profile).all() for lb in fit.lobes)
