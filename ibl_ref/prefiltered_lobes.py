@@ -25,8 +25,8 @@ sphere (a map cannot know the surface's horizon), exactly as in the paper; the r
     maps come out several times too bright; ``test_auto_supersample_fixes_narrow_lobes``).  Output texels are
     processed in small tiles whose candidate source texels come from a KD-tree ball query (cap = cut-off + tile
     radius), sorted by distance so that each profile uses only its own prefix.  Cost ∝ (out texels) × (source
-    texels in the cap) × profiles; measured (km00-render full, under load): 48 Ward α = 0.04 profiles (16 θo × 3
-    tracks) from a 64² environment to 64² maps, auto k ≤ 5, tail_rtol = 1e-6: 89 s; the 16 single-lobe ones 42 s.
+    texels in the cap) × profiles; measured (``ibl-ref experiment km00-render``, 2-core machine): 48 Ward α = 0.04 profiles (16 θo ×
+    3 tracks) from a 64² environment to 64² maps, auto k ≤ 5, tail_rtol = 1e-6: 21 s; the 16 single-lobe ones 17 s.
 (b) :class:`LobeSet` / :func:`build_lobe_set` — the "3D maps": for the sampled elevations θo_k and every tracked lobe
     j (:func:`ibl_ref.kautz_mccool2000.track_lobes`), the environment prefiltered with lobe j's profile at θo_k,
     array ``(K, J, 6, n, n, C)``.  :meth:`LobeSet.lookup`: seam-aware bilinear in direction

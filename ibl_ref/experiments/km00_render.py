@@ -34,7 +34,7 @@ same restricted to θo ≤ θmax; time_s), ``km00_render_reference_convergence.c
 reference supersampling factors), ``km00_render_meta.json`` (settings, definitions/units, timings, fit summary, cut
 angles, bounds), ``km00_render_<method>.exr`` (linear radiance), ``km00_render_mask.exr`` (coverage 1/0) and
 ``km00_render_theta.exr`` (θo in degrees).  Plot: ``km00_render.png`` (tone-mapped images, one exposure, and relative
-error maps).  Timings are wall-clock on a shared 2-core machine (under load).
+error maps).  Timings are wall-clock on the 2-core machine that runs it (they vary with load).
 """
 
 from __future__ import annotations
@@ -385,7 +385,7 @@ def run_with(out_dir: Path, st: dict, quick: bool = False, progress: bool = Fals
                        "pixels that dominate rel_l1 and rmse); *_constant_env: the same pixels under L = 1 "
                        "(reference = Ward albedo; isolates the BRDF-approximation energy error; bias = sum a / "
                        "sum ref - 1); time_s: prefilter/pyramid build + "
-                       "shading (reference: its render), wall clock under load"))
+                       "shading (reference: its render), wall clock (varies with load)"))
     conv = []
     sweep = res["ref_sweep"]
     for (k0, a), (k1, b) in zip(sweep[:-1], sweep[1:]):
@@ -414,7 +414,7 @@ def run_with(out_dir: Path, st: dict, quick: bool = False, progress: bool = Fals
                     pyramid_weight="pyramid3: P*2pi/(s+1) of the lobe's Phong fit; pyramid3_profile: integral of p",
                     constant_env="rel_l1_constant_env / rel_bias_constant_env: L = 1, reference = albedo a(theta_o) "
                                  "(brdfs.albedo), methods = cosine factor x lobe weights (no map resolution error)"),
-                timing_note="wall clock on a shared 2-core machine under load, 1 BLAS thread")
+                timing_note="wall clock on the machine that ran it (varies with load)")
     write_json(out_dir / "km00_render_meta.json", meta)
     return dict(metrics={r["method"]: r["rel_l1"] for r in rows}, time_s=meta["total_time_s"])
 
