@@ -2,6 +2,8 @@
 
 import json
 
+import numpy as np
+
 from ibl_ref.atomic import read_csv
 from ibl_ref.experiments import lobe_chain
 
@@ -18,7 +20,24 @@ def test_quick_run_and_plot(tmp_path):
     assert err[("chain-f2", 1.0)] < 0.02 < 0.10 < err[("pyramid-sqrtcos", 1.0)]
     # a finer exponent ladder never loses at an exponent between its levels (s = 10 lies between 8 and 16)
     assert err[("chain-f1.41", 10.0)] <= err[("chain-f2", 10.0)] <= err[("chain-f4", 10.0)]
+    # the best constant level is never worse than the calibrated one (it is among the candidates), and for the
+    # paper's pyramid at s = 1 even the best level stays far off: no glossiness calibration can fix the filter shape
+    for q in rows:
+        assert float(q["rel_l1_best_level"]) <= float(q["rel_l1"]) + 1e-15
+    best = {(q["prefilter"], float(q["s_phong"])): float(q["rel_l1_best_level"]) for q in rows}
+    assert best[("pyramid-sqrtcos", 1.0)] > 0.10 > 0.02 > best[("chain-f2", 1.0)]
     meta = json.loads((tmp_path / "lobe_chain_meta.json").read_text())
     assert meta["builds"]["sky_sun/chain-f2"]["face_sizes"][0] == st["env_size"]
     figs = lobe_chain.plot(tmp_path)
     assert figs and figs[0].read_bytes()[:4] == b"\x89PNG"
+
+
+def test_best_constant_level_finds_a_planted_level():
+    # independent construction: the "exact" values are level 1 blended 30 % towards level 2 (on the 0.05 grid)
+    rng = np.random.default_rng(4)
+    levels = [rng.random((50, 3)) + k for k in range(4)]
+    exact = 0.7 * levels[1] + 0.3 * levels[2]
+    err, lev = lobe_chain.best_constant_level(levels, exact)
+    assert err < 1e-12 and abs(lev - 1.3) < 1e-9
+    err0, lev0 = lobe_chain.best_constant_level(levels, levels[3])  # the coarsest level itself (no blend past it)
+    assert err0 == 0.0 and lev0 == 3.0

@@ -11,7 +11,9 @@ angles) at random directions, for
 * ``chain-f4`` / ``chain-f2`` / ``chain-f1.41``: the exact-lobe chain with exponent ratio 4, 2, √2 per level.
 
 Metrics: relative L1 Σ|a − b| / Σ|b| over directions and channels (``rel_l1``), the largest per-direction relative
-error of the luminance-like channel mean (``rel_max``), the energy ratio Σa/Σb; build time (s, wall, this machine)
+error of the luminance-like channel mean (``rel_max``), the energy ratio Σa/Σb, the relative L1 at the best constant
+level (``rel_l1_best_level``, :func:`best_constant_level`: the floor of the prefilter under any glossiness
+calibration); build time (s, wall, this machine)
 and memory (MiB, the levels stored as float32 RGB — the paper stores RGBA16F).
 
 Files: ``lobe_chain.csv`` (one row per environment × prefilter × s), ``lobe_chain_meta.json``.
@@ -54,8 +56,30 @@ def build(name: str, env):
     return build_lobe_chain(env, factor=factor)
 
 
+#: step of the level grid searched by :func:`best_constant_level`
+LEVEL_STEP = 0.05
+
+
+def best_constant_level(per_level, exact):
+    """Smallest relative L1 of one trilinear lookup at any constant level ℓ (grid step :data:`LEVEL_STEP`), and ℓ.
+
+    ``per_level[k]``: the bilinear lookups of level k at the test directions; ``exact``: the exact lobe averages
+    there.  The lookup's level depends on s only (not on the direction), so this is the error floor of the
+    prefilter under *any* glossiness calibration — what no choice of ℓ(s) can beat.
+    """
+    b_sum = np.abs(exact).sum()
+    best = (np.inf, 0.0)
+    for k in range(len(per_level)):
+        nxt = per_level[min(k + 1, len(per_level) - 1)]
+        for t in np.arange(0.0, 1.0 if k + 1 < len(per_level) else LEVEL_STEP / 2, LEVEL_STEP):
+            e = float(np.abs(per_level[k] + (nxt - per_level[k]) * t - exact).sum() / b_sum)
+            if e < best[0]:
+                best = (e, k + float(t))
+    return best
+
+
 def run(out_dir: Path, quick: bool) -> dict:
-    from ..gloss_lookup import get_calibration, lookup
+    from ..gloss_lookup import get_calibration, level_for_gloss, lookup
     from ..reference_render import lobe_average
     from ..synthetic_envs import make_env
 
@@ -78,23 +102,33 @@ def run(out_dir: Path, quick: bool) -> dict:
             mib = sum(int(np.prod(lev.shape[:3])) * 3 * 4 for lev in pyr.levels) / 2**20
             meta_builds[f"{env_name}/{pf}"] = dict(build_time_s=t_build, memory_MiB=mib,
                                                    face_sizes=[int(lev.shape[1]) for lev in pyr.levels])
+            per_level = [pyr.sampler(k).bilinear(d) for k in range(pyr.max_level + 1)]
             for s in st["s_values"]:
                 a = lookup(pyr, d, 1.0 - 1.0 / float(s), calibration=cal)
                 b = exact[s]
                 per = np.abs(a - b).mean(axis=1) / np.maximum(b.mean(axis=1), 1e-300)
+                rel_l1 = float(np.abs(a - b).sum() / np.abs(b).sum())
+                best, best_level = best_constant_level(per_level, b)
+                if rel_l1 < best:  # the calibrated level itself is a candidate too
+                    best, best_level = rel_l1, float(np.mean(level_for_gloss(pyr, 1.0 - 1.0 / float(s), cal)))
                 rows.append(dict(env=env_name, prefilter=pf, s_phong=float(s), g=1.0 - 1.0 / float(s),
-                                 rel_l1=float(np.abs(a - b).sum() / np.abs(b).sum()), rel_max=float(per.max()),
-                                 energy_ratio=float(a.sum() / b.sum()), build_time_s=t_build, memory_MiB=mib))
-    cols = ["env", "prefilter", "s_phong", "g", "rel_l1", "rel_max", "energy_ratio", "build_time_s", "memory_MiB"]
+                                 rel_l1=rel_l1, rel_max=float(per.max()),
+                                 energy_ratio=float(a.sum() / b.sum()), rel_l1_best_level=best,
+                                 best_level=best_level, build_time_s=t_build, memory_MiB=mib))
+    cols = ["env", "prefilter", "s_phong", "g", "rel_l1", "rel_max", "energy_ratio", "rel_l1_best_level",
+            "best_level", "build_time_s", "memory_MiB"]
     write_csv(out_dir / "lobe_chain.csv", rows, cols,
               comment=f"lookup vs exact lobe average at {st['n_dirs']} random directions, env {st['env_size']}^2; "
-                      "rel_l1 = sum|a-b|/sum|b|; build time wall clock on this machine; memory float32 RGB")
+                      "rel_l1 = sum|a-b|/sum|b|; rel_l1_best_level = the same for the best constant level "
+                      f"(grid {LEVEL_STEP}, incl. the calibrated one; the floor under any calibration), best_level "
+                      "its level (0 = finest); build time wall clock on this machine; memory float32 RGB")
     summary = {}
     for env_name in st["envs"]:
         for pf in PREFILTERS:
             r = [x for x in rows if x["env"] == env_name and x["prefilter"] == pf]
             summary[f"{env_name}/{pf}"] = dict(rel_l1_max_over_s=max(x["rel_l1"] for x in r),
-                                               rel_l1_at_s1=r[0]["rel_l1"])
+                                               rel_l1_at_s1=r[0]["rel_l1"],
+                                               rel_l1_best_level_at_s1=r[0]["rel_l1_best_level"])
     write_json(out_dir / "lobe_chain_meta.json", dict(settings=st, builds=meta_builds, summary=summary,
                                                       total_time_s=time.perf_counter() - t_start))
     return summary
