@@ -36,8 +36,8 @@ Concurrency (``workers``)
     changes their rounding (≈ 5e-16 relative, measured at 128²).  The jobs do not depend on the worker
     count or back-end, so results are bit-for-bit identical for every ``workers``/``backend``.
     Measured (``python experiments/bench_convolution.py --repeat 3``, 128² faces, the 8 exponents
-    {1, 2, 5, 10, 20, 50, 100, 1000}, 2-core VM, load ≈ 1.2): 3.3 s serial; 1.9–2.2 s wall with 2
-    processes, 2.4–2.5 s with 2 threads.
+    {1, 2, 5, 10, 20, 50, 100, 1000}, 2-core VM, load ≈ 1.2, three runs each): 3.0–3.6 s serial;
+    2.0–2.3 s wall with 2 processes, 2.4–3.0 s with 2 threads.
 
 The returned ``error_bound[s]`` is a per-texel bound on ``|approx − exact| / exact`` (max over channels,
 ``inf`` where the bound is useless, e.g. a black output texel); ``bound_kind[s]`` says whether it is
@@ -91,11 +91,12 @@ MOMENT_MIN_PAIRS = 1e8
 WORKERS_ENV = "IBL_REF_WORKERS"
 #: parallel back-ends of :func:`convolve` (``auto``: forked processes where possible, else threads)
 BACKENDS = ("auto", "process", "thread")
-#: cost units per (output × source texel) pair of the moment route (both s = 1 and 2: ≈ 3.5 s CPU at
-#: 128² faces); only used to order the jobs (longest first)
+#: cost units per (output × source texel) pair of the moment route (both s = 1 and 2 in one call: 3.4 s CPU
+#: at 128² faces, 1 BLAS thread); only used to order the jobs (longest first)
 MOMENT_UNITS_PER_PAIR = 0.45
-#: the sparse cost model over-estimates the current gather ≈ 2.5× (s = 1000 at 128²: model ≈ 6 s, measured
-#: ≈ 2.2 s CPU); this factor corrects it for the ordering of the jobs only (routing keeps the model)
+#: the sparse cost model over-estimates the current gather (s = 1000 at 128²: model 6.1 s, measured 1.1 s
+#: summed over its three jobs in ``experiments/bench_convolution.py``); this factor lowers it for the
+#: ordering of the jobs only (routing keeps the model)
 SPARSE_JOB_ORDER_FACTOR = 0.4
 #: output faces of each job of the moment and sparse routes.  Fixed (not derived from the worker count),
 #: so that every worker count computes exactly the same pieces: bit-for-bit identical results.
@@ -167,7 +168,8 @@ def _run_jobs(jobs, workers, backend="thread"):
 
     Returns ``({key: fn()}, {key: seconds}, child CPU seconds)``.  ``"process"``: a pool of forked
     worker processes that inherit the jobs (inputs are not copied; results come back pickled) —
-    no GIL, measured 2 moment jobs at 128²: 2.9 s serial → 1.7 s (threads: 2.05 s).  ``"thread"``:
+    no GIL (``convolve`` of s = 1, 2 at 128², the three moment jobs: 1.69 s serial, 1.49 s with 2
+    processes, 1.51 s with 2 threads; the 8-exponent benchmark gains more, see the module docstring).  ``"thread"``:
     NumPy releases the GIL inside large array operations, so the jobs overlap partly.
     """
     global _FORK_JOBS
@@ -343,7 +345,7 @@ def convolve(
         BLAS thread pools are limited to 1 thread for the duration of the call (threadpoolctl; restored after).
     backend : {"auto", "process", "thread"}
         How ``workers > 1`` jobs run: ``"process"`` — a pool of forked worker processes (POSIX; no
-        GIL: ≈ 1.8× on 2 cores vs ≈ 1.4× for threads, measured on the moment route at 128²);
+        GIL: 8 exponents at 128² in 2.0 s vs 2.4 s with threads and 3.0 s serial, best of 3 runs);
         ``"thread"`` — a thread pool; ``"auto"`` (default) — processes on Linux when the calling process
         has a single thread (forking a multi-threaded process is unsafe) and is not daemonic, else
         threads.

@@ -17,12 +17,12 @@ tile's horizon) are handled per output texel:
 ``leaf = 1`` (default)
     exact gather of those texels (``max(r·ω_j,0)^s`` at the texel centres; the split stops at blocks
     of ``gather`` texels, whose texels are all gathered): the result equals the exact lobe average up
-    to float64 rounding.  Measured (shared 2-core machine, single thread): s = 1 and 2 together at
-    128² faces ≈ 3.5 s CPU (≈ 1.2 s tile/block classification, ≈ 2 s band gather) vs ≈ 47 s per
-    exponent for the dense gather; max relative difference to
-    :func:`ibl_ref.phong_convolution.convolve_exact_many` 2e-14 (sky + 1e5 sun near a cube corner).
-    ``leaf > 1`` was measured much slower at 128² (leaf 2: ≈ 44 s; leaf 8: ≈ 6 s with bound 2e-2), so
-    ``auto`` keeps ``leaf = 1``;
+    to float64 rounding.  Measured (2-core machine, 1 BLAS thread): s = 1 and 2 together at 128² faces
+    3.4 s CPU in one call vs ≈ 54 s per exponent for the dense gather (extrapolated in
+    ``ibl-ref experiment speed-accuracy``); max relative difference to
+    :func:`ibl_ref.phong_convolution.convolve_exact_many` 1.9e-14 at 64² (sky + 1e5 sun near a cube
+    corner, ``experiments/bench_convolution.py``).  ``leaf > 1`` is no faster at 128² and far less
+    accurate (leaf 2: 29 s, bound 4.7e-4; leaf 8: 3.5 s, bound 2.4e-2), so ``auto`` keeps ``leaf = 1``;
 ``leaf > 1``
     an interval per (r, block, channel) from convexity of ``f(x) = max(x,0)^s`` on the block's range
     ``x = r·ω ∈ [x_lo, x_hi]`` (from the cone): Jensen's inequality below, the chord above
@@ -138,7 +138,7 @@ def convolve_moment_many(
         With ``leaf > 1``: texels with luminance > bright_factor × mean are gathered exactly.
     chunk_elems : int
         Working-set size (elements) of the band gather (512 KB: the gather is memory-bound; at 128²
-        faces 1 << 16 measured ≈ 20% faster than 1 << 17 and slightly faster than 1 << 15).
+        faces 1 << 16 and 1 << 17 measured equal within run-to-run noise, 1.6–2.1 s for s = 1, 2).
     faces : sequence of int, optional
         Compute only these output faces (indices 0…5, OpenEXR order; default all six, in order).
         The output tiles of one face never share work with another face's, so a face subset is the

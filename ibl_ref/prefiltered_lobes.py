@@ -407,10 +407,7 @@ def peak_direction(n, wo, theta_off, phi_off):
     """World direction of a lobe peak: polar angle ``θo + θ_off`` from n, azimuth ``φ_off`` from the mirror
     direction's azimuth (the :class:`ibl_ref.kautz_mccool2000.Lobe` convention; :func:`local_frame`)."""
     x, y, z, th = local_frame(n, wo)
-    tp = th + np.asarray(theta_off, dtype=np.float64)
-    ph = np.asarray(phi_off, dtype=np.float64)
-    st = np.sin(tp)
-    return (st * np.cos(ph))[..., None] * x + (st * np.sin(ph))[..., None] * y + np.cos(tp)[..., None] * z
+    return _peak((x, y, z), th, np.asarray(theta_off, dtype=np.float64), np.asarray(phi_off, dtype=np.float64))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -477,9 +474,10 @@ class LobeSet:
             return th[k], ph[k]
         return (1 - t) * th[k] + t * th[k + 1], (1 - t) * ph[k] + t * ph[k + 1]
 
-    def interp(self, name: str, j: int, theta_o):
-        """A per-(k, j) quantity (``phong_s``, ``phong_P``, ``integral``, ``glossiness``) linear in θo."""
-        v = self.glossiness if name == "glossiness" else getattr(self, name)
+    def interp(self, name, j: int, theta_o):
+        """A per-(k, j) quantity (``phong_s``, ``phong_P``, ``integral``, ``glossiness``, or a (K, J) array)
+        linear in θo."""
+        v = name if isinstance(name, np.ndarray) else self.glossiness if name == "glossiness" else getattr(self, name)
         k, t = _bracket(self.theta_o, theta_o)
         if self.theta_o.size == 1:
             return v[k, j]
@@ -763,17 +761,10 @@ def shade_pyramid(lobes: LobeSet, pyramid, n, wo, *, energy: str = "phong", cos_
         W_all = np.where(lobes.phong_P > 0, lobes.phong_P * 2 * np.pi / (lobes.phong_s + 1.0), 0.0)
     else:
         W_all = lobes.integral
-    k, t = _bracket(lobes.theta_o, th_l)
-    single = lobes.theta_o.size == 1
     C = pyramid.levels[0].shape[-1]
     out = np.zeros(th.shape + (C,))
-    gl = lobes.glossiness
     for j in (range(lobes.n_tracks) if tracks is None else tracks):
-        if single:
-            W, g = W_all[k, j], gl[k, j]
-        else:
-            W = (1 - t) * W_all[k, j] + t * W_all[k + 1, j]
-            g = (1 - t) * gl[k, j] + t * gl[k + 1, j]
+        W, g = lobes.interp(W_all, j, th_l), lobes.interp("glossiness", j, th_l)
         to, po = lobes.offsets(j, th_l)
         d = _peak(frame, th, to, po)
         c = _cos_factor(cos_mode, frame[2], th, d)

@@ -762,8 +762,9 @@ def sh_cost(L, n_src, n_out, K, Q):
     """Cost model of :func:`sh_lobe_convolve` (units of :data:`SECONDS_PER_UNIT`).
 
     Refitted after the octant-symmetric SH matrix (one eighth of the directions, built once for
-    projection and evaluation): 128² faces, Q = 4, 1 BLAS thread, CPU time on the shared machine
-    L = 40: 0.50 s (K = 1), 0.53 s (K = 8); L = 80: 2.43 s (K = 1), 2.53 s (K = 8).
+    projection and evaluation).  Measured wall time of :func:`sh_lobe_convolve`, 128² faces, Q = 4, 1 BLAS
+    thread, K = 1 … 8 kernels: 0.12–0.19 s at L = 40, 0.58–0.90 s at L = 80 (nearly independent of K, as the
+    small K·Q term says; the model is conservative and used for routing and job order only).
     """
     return (L + 1) ** 2 * (n_src + n_out) * 0.5 * (4.0 + 0.03 * K * Q)
 
