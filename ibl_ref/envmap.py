@@ -51,7 +51,7 @@ in steradians; ∫L dω therefore has the units of radiance × sr.
 
 Solid angles are exact (closed form): the face-plane rectangle ``[x0, x1] × [y0, y1]`` at distance 1
 subtends ``A(x1,y1) − A(x0,y1) − A(x1,y0) + A(x0,y0)`` with ``A(x, y) = atan2(x·y, √(x² + y² + 1))``
-(see ``FIELD_NOTES.md`` §2).
+(see ``docs/background.md`` §2).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """OpenEXR environment-map files: CUBE strips, LATLONG maps and multi-part MIP pyramids.
 
-File layouts (OpenEXR ``ImfEnvmap.h``; see ``FIELD_NOTES.md`` §2 and :mod:`ibl_ref.envmap`)
+File layouts (OpenEXR ``ImfEnvmap.h``; see ``docs/background.md`` §2 and :mod:`ibl_ref.envmap`)
 ------------------------------------------------------------------------------------------
 * **CUBE** (header attribute ``envmap = ENVMAP_CUBE``): one image ``N`` wide and ``6N`` high, the six
   faces stacked top to bottom in the order ``+X, -X, +Y, -Y, +Z, -Z``.  Face ``f`` occupies scanlines
@@ -20,7 +20,7 @@ File layouts (OpenEXR ``ImfEnvmap.h``; see ``FIELD_NOTES.md`` §2 and :mod:`ibl_
   ``iblref_convention = "opengl"``; :func:`read_envmap` honours that attribute and always returns
   OpenEXR-oriented arrays.  Every cube file ibl_ref writes carries ``iblref_convention``.
 * **MIP pyramids** (:func:`write_pyramid`): a multi-part EXR (the Python binding's tiled/mip-mapped
-  writing is unreliable, FIELD_NOTES §2), one scanline part per level, named ``level0``, ``level1``, …,
+  writing is unreliable, docs/background.md §2), one scanline part per level, named ``level0``, ``level1``, …,
   each a CUBE strip of its own size (``envmap = ENVMAP_CUBE``, int attribute ``iblref_level``).  All
   parts share level 0's display window (OpenEXR requires shared attributes to agree); each part's
   data window is its own strip size.

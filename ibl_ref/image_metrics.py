@@ -4,7 +4,7 @@ All metrics compare a test image ``a`` with a reference ``b`` (both (H, W[, C]) 
 pixels ``mask`` (default: all pixels):
 
 * ``rmse`` = sqrt(mean over covered pixels and channels of (a − b)²);
-* ``rel_l1`` = Σ|a − b| / Σ|b| (covered pixels, all channels) — the issue's "relative L1";
+* ``rel_l1`` = Σ|a − b| / Σ|b| (covered pixels, all channels) — the usual "relative L1";
 * ``rel_max`` = max over covered pixels of |Y_a − Y_b| / Y_b with Y = channel mean (pixels with Y_b ≤
   ``floor`` × mean(Y_b) are excluded so that black reference pixels do not produce Inf);
 * ``flip`` = mean HDR-FLIP (NVIDIA's ``flip_evaluator`` package) when importable, else None with a message.

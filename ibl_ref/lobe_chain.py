@@ -9,7 +9,7 @@ levels neither have the lobe's shape nor conserve ∫L dω (measured in :mod:`ib
 This module keeps the paper's *data structure and lookup* — a chain of cube levels, one trilinear lookup at a
 continuous level ℓ(s) (:func:`ibl_ref.gloss_lookup.lookup` with a :class:`~ibl_ref.gloss_lookup.Calibration`)
 — but fills every level with the **exact** normalised Eq. 4 lobe average (Kán et al. 2015's per-texel
-convolution, FIELD_NOTES §2) at a chosen exponent:
+convolution, docs/background.md §2) at a chosen exponent:
 
 * level 0 = the input (mirror, s = ∞);
 * level k = 1..K: exponent ``s_k = s_min · factor^(K−k)`` (``s_K = s_min = 1``: the diffuse end), the largest

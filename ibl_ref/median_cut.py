@@ -124,7 +124,7 @@ class LightSet:
         The region is taken as the spherical cap of the same solid angle, ``Ω = 2π(1 − cos α)``, and the
         cap is replaced by its L2-closest unit-peak lobe ``max(a·v, 0)^e``
         (:func:`ibl_ref.meunier2009.region_equivalent_lobe`); ``scale_energy`` makes the lobe carry Ω.
-        For small regions α ≈ √(Ω/π), the disc half-angle that sizes the VSM blur (FIELD_NOTES §4).
+        For small regions α ≈ √(Ω/π), the disc half-angle that sizes the VSM blur (docs/background.md §4).
         """
         from .meunier2009 import region_equivalent_lobe
 

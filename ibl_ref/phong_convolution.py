@@ -6,7 +6,7 @@ evaluated as a quadrature over **every** source texel with its **exact** solid a
 (:func:`ibl_ref.envmap.cube_solid_angles`), plus a truncated-support ("sparse") gather that returns a
 rigorous per-texel error bound.
 
-Two normalisations (FIELD_NOTES §2 "Normalisation")
+Two normalisations (docs/background.md §2 "Normalisation")
 ---------------------------------------------------
 * ``normalized=False`` — the literal Eq. 4 as printed::
 
@@ -23,7 +23,7 @@ Two normalisations (FIELD_NOTES §2 "Normalisation")
   ``convolve_exact_many(..., return_weights=True)`` returns W_s).  A constant environment comes out
   exactly constant (to rounding) in the normalised form because the same weights appear in both sums.
 
-``s`` may be any float ≥ 1 (s < 1 is rejected, the issue asks for exponents 1 … 1e6) or ``np.inf``: the
+``s`` may be any float ≥ 1 (s < 1 is rejected; exponents up to 1e6 and beyond are supported) or ``np.inf``: the
 mirror limit, implemented as a nearest-texel lookup of the source (the identity when the output size
 equals the input size).  Weights are evaluated as ``exp(s·(log c − max_j log c))`` per output texel, so
 nothing overflows or underflows to 0/0 even at s = 1e6.
@@ -113,7 +113,7 @@ _EXP_UNDERFLOW = -746.0
 # closed forms
 # ----------------------------------------------------------------------------------------------
 def phong_lobe_integral(s):
-    """∫_{S²} max(cos θ, 0)^s dω = 2π/(s+1) (Meunier 2009; FIELD_NOTES §2).  0 for s = ∞."""
+    """∫_{S²} max(cos θ, 0)^s dω = 2π/(s+1) (Meunier 2009; docs/background.md §2).  0 for s = ∞."""
     s = np.asarray(s, dtype=np.float64)
     out = 2.0 * np.pi / (s + 1.0)
     return float(out) if out.ndim == 0 else out

@@ -6,7 +6,7 @@ pairs) by casting rays with ``trimesh``; it also renders primary rays through th
 rasterizer (:mod:`ibl_ref.raster`) can be checked against an independent algorithm.
 
 Backend: ``trimesh`` uses Embree (package ``embreex``) automatically when it is installed, otherwise its pure
-NumPy/rtree intersector, which is ~3 orders of magnitude slower (FIELD_NOTES §4: ~0.5–1 M rays/s with Embree,
+NumPy/rtree intersector, which is ~3 orders of magnitude slower (docs/background.md §4: ~0.5–1 M rays/s with Embree,
 < 1 k rays/s without; measured here: ~100 rays/s on the 16k-triangle teapot, see
 ``experiments/bench_raster.py`` and :data:`FALLBACK_TESTS_PER_S`).  :func:`backend` reports which one is
 used; casting more than :data:`WARN_RAYS` rays without Embree emits a warning with an estimated run time.
@@ -70,7 +70,7 @@ def backend() -> str:
 def estimate_time_s(n_rays: int, n_faces: int = 1, rays_per_s: float | None = None) -> float:
     """Estimated seconds to cast ``n_rays`` at a mesh of ``n_faces`` triangles with the current backend.
 
-    Embree: ~5e5 rays/s (FIELD_NOTES §4); fallback: ``min(FALLBACK_RAYS_PER_S, FALLBACK_TESTS_PER_S / n_faces)``.
+    Embree: ~5e5 rays/s (docs/background.md §4); fallback: ``min(FALLBACK_RAYS_PER_S, FALLBACK_TESTS_PER_S / n_faces)``.
     """
     if rays_per_s is None:
         if backend() == "embree":

@@ -6,7 +6,7 @@ The paper's renderer approximates, per pixel,
 
 with shadow-mapped visibilities of one directional light per median-cut region and filtered partial environment
 maps.  The exact quantity it approximates is the visibility-weighted Phong lobe average (Eq. 4 normalised as a
-lobe average, FIELD_NOTES §2)::
+lobe average, docs/background.md §2)::
 
     c = kd · A_1(n) + ks · A_s(r),   A_s(d) = Σ_j L_j V_j max(d·ω_j, 0)^s Ω_j / Σ_j max(d·ω_j, 0)^s Ω_j     (*)
 
@@ -33,7 +33,7 @@ ray origins are projected onto the plane ⟂ ω, binned on a 2D grid, and every 
 tested with exact 2D barycentrics and the depth along ω — ray casting of the rays o + tω, t > 0, with a
 per-direction set-up.  It is cross-checked against trimesh's ``intersects_any`` in the tests;
 ``backend="trimesh"`` uses :func:`ibl_ref.raycast.visibility_to_directions` instead (slow without Embree:
-~100 rays/s on the 16k-triangle teapot, FIELD_NOTES §4).  Ray origins are offset by ``eps`` along the face
+~100 rays/s on the 16k-triangle teapot, docs/background.md §4).  Ray origins are offset by ``eps`` along the face
 normal and along the ray, as in :mod:`ibl_ref.raycast`.
 """
 

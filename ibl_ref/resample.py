@@ -51,7 +51,7 @@ cube-corner texels (the hat of the corner is shared by three faces).
 Crosses (:func:`cross_to_cube`, :func:`cube_to_cross`)
 -------------------------------------------------------
 The common unfolding used by cmft, CubeMapGen and most skybox images.  The faces are stored as images
-in the **OpenGL** orientation (FIELD_NOTES §2: +X:(−z,−y), −X:(+z,−y), +Y:(+x,+z), −Y:(+x,−z),
+in the **OpenGL** orientation (docs/background.md §2: +X:(−z,−y), −X:(+z,−y), +Y:(+x,+z), −Y:(+x,−z),
 +Z:(+x,−y), −Z:(−x,−y) for (u→, v↓)), placed as follows (each cell N × N)::
 
     horizontal cross, 4N wide x 3N high      vertical cross, 3N wide x 4N high

@@ -24,7 +24,7 @@ Generators (``make_env(name, n, **params)``):
 
 Coverage supersampling: a texel is split into ``k × k`` sub-cells of its face-plane square; each
 sub-cell's solid angle is exact (the ``A(x, y) = atan2(xy, √(x²+y²+1))`` primitive of
-``envmap``/FIELD_NOTES §2, re-implemented privately here as :func:`_subcell_solid_angles` for local
+``envmap``/docs/background.md §2, re-implemented privately here as :func:`_subcell_solid_angles` for local
 sub-grids) and the indicator is evaluated at the sub-cell centre; the coverage fraction is
 Σ Ω_sub·1[inside] / Ω_texel.
 """
@@ -160,7 +160,7 @@ def _fill(n: int, rgb: np.ndarray) -> np.ndarray:
 # exact geometry helpers
 # ----------------------------------------------------------------------------------------------
 def _area_primitive(x, y):
-    """A(x, y) = atan2(x·y, √(x²+y²+1)), solid angle of [0,x]×[0,y] at distance 1 (FIELD_NOTES §2).
+    """A(x, y) = atan2(x·y, √(x²+y²+1)), solid angle of [0,x]×[0,y] at distance 1 (docs/background.md §2).
 
     Private copy of the primitive behind :func:`ibl_ref.envmap.texel_solid_angles`, needed for
     sub-cell grids that envmap does not expose; a test checks both agree.
@@ -346,7 +346,7 @@ def gradient_lobe_average(r, s, a=1.0, b=(0.0, 0.5, 0.0)) -> np.ndarray:
     """Closed-form normalised Phong lobe average of the linear environment L(ω) = a + b·ω.
 
     ``∫ L(ω) max(r·ω, 0)^s dω / ∫ max(r·ω, 0)^s dω = a + (b·r)·(s+1)/(s+2)``  (Knuth 2014 Eq. 4,
-    normalised as in FIELD_NOTES §2).
+    normalised as in docs/background.md §2).
 
     Derivation: write ω = (r·ω) r + ω⊥.  Over the hemisphere around r the lobe weight cosˢθ depends only
     on θ = ∠(r, ω), so the ω⊥ part integrates to zero by rotational symmetry and

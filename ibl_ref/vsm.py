@@ -24,7 +24,7 @@ Pipeline implemented here (every choice is an explicit parameter):
    ``clamp((p_max − k)/(1 − k), 0, 1)`` (Lauritzen, GPU Gems 3 ch. 8; ``k = 0`` disables it).
 
 **Blur width from the region's solid angle.**  A region of solid angle Ω is treated as a disc light of angular
-radius θ with the same solid angle, Ω = 2π(1 − cos θ) (for small Ω, θ ≈ √(Ω/π), FIELD_NOTES §4).  A blocker at
+radius θ with the same solid angle, Ω = 2π(1 − cos θ) (for small Ω, θ ≈ √(Ω/π), docs/background.md §4).  A blocker at
 distance Δd above a receiver casts a penumbra of total width ≈ 2·Δd·tanθ: the light's disc projected to the
 receiver has radius ρ = Δd·tanθ.  Across a straight shadow edge the visibility is the cumulative 1D marginal
 of that uniform disc, whose standard deviation is ρ/2; the Gaussian blur is given the same standard deviation::

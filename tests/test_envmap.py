@@ -119,7 +119,7 @@ def test_convert_convention_preserves_directions():
 # ---- solid angles -------------------------------------------------------------------------------
 @pytest.mark.parametrize("n", list(range(1, 65)) + [100, 127, 128, 255, 256, 511, 512, 1000, 1024, 2047, 2048])
 def test_solid_angles_sum_to_4pi(n):
-    # telescoping sum of exact rectangle solid angles; 1e-12 is the bound (rounding ~1e-14)
+    # telescoping sum of exact rectangle solid angles; 1e-12 is the stated bound (rounding ~1e-14)
     assert abs(E.cube_solid_angles(n).sum() - 4 * np.pi) <= 1e-12
 
 
@@ -141,7 +141,7 @@ def test_solid_angles_symmetry_and_common_approximation_is_worse():
     np.testing.assert_allclose(om, om.T, rtol=1e-14)
     u, v = E.face_plane_grid(4)
     approx = (1 + u * u + v * v) ** -1.5 * (2 / 4) ** 2
-    # the common centre-point approximation is off by percents at 4² faces (FIELD_NOTES §2)
+    # the common centre-point approximation is off by percents at 4² faces (docs/background.md §2)
     assert np.max(np.abs(approx / om - 1)) > 0.01
 
 

@@ -164,7 +164,7 @@ def test_roundtrip_error_converges(method):
 
 
 # ---------------------------------------------------------------------------------------------
-# crosses and face lists, checked against the OpenGL face table of FIELD_NOTES §2
+# crosses and face lists, checked against the OpenGL face table of docs/background.md §2
 # ---------------------------------------------------------------------------------------------
 def gl_direction(face, u, v):
     """OpenGL/D3D face orientation, (u→, v↓): +X:(−z,−y) −X:(+z,−y) +Y:(+x,+z) −Y:(+x,−z) +Z:(+x,−y) −Z:(−x,−y)."""

@@ -35,7 +35,7 @@ def _fib_cap(n, axis, theta):
 def test_cap_half_angle():
     assert vsm.cap_half_angle(2 * np.pi) == pytest.approx(np.pi / 2, abs=1e-15)
     assert vsm.cap_half_angle(4 * np.pi) == pytest.approx(np.pi, abs=1e-15)
-    # small-angle limit θ ≈ √(Ω/π) (FIELD_NOTES §4); series Ω = πθ²(1 − θ²/12 + …) → rel. diff θ²/24 ≈ 1.3e-5
+    # small-angle limit θ ≈ √(Ω/π) (docs/background.md §4); series Ω = πθ²(1 − θ²/12 + …) → rel. diff θ²/24 ≈ 1.3e-5
     om = 1e-3
     assert vsm.cap_half_angle(om) == pytest.approx(np.sqrt(om / np.pi), rel=1e-4)
 

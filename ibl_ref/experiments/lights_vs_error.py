@@ -5,7 +5,7 @@ Scene: unoccluded sphere, orthographic camera on +Z looking down −Z (image row
 per pixel the reflection direction r = 2(n·v)n − v.
 
 Shading model (stated): the *normalised* Phong lobe of exponent s around r (the lobe average that the
-filter pyramid approximates, FIELD_NOTES §2),
+filter pyramid approximates, docs/background.md §2),
 
     I(r) = ∫ L(ω) max(r·ω, 0)^s dω / W_s(r),   W_s(r) = ∫ max(r·ω, 0)^s dω  (≈ 2π/(s+1)),
 
