@@ -78,6 +78,9 @@ __all__ = [
     "cube_solid_angles",
     "face_plane_grid",
     "convert_convention",
+    "face_frames",
+    "check_face_size",
+    "as_directions",
     "MipLevel",
     "mip_levels",
     "latlong_directions",
@@ -117,16 +120,20 @@ _FRAMES = {
 }
 
 
-def _frames(convention: str) -> np.ndarray:
+def face_frames(convention: str) -> np.ndarray:
+    """(6, 3, 3) face frames of ``convention``: per face (rows in :data:`FACE_NAMES` order) the major axis, the
+    u axis and the v axis, so that the face-plane point (u, v) has the unnormalised direction
+    ``F[0] + u·F[1] + v·F[2]``."""
     try:
         return _FRAMES[convention]
     except KeyError:
-        raise ValueError(
-            f"unknown cube-map convention {convention!r}; choose one of {CONVENTIONS}"
+        raise LayoutError(
+            f"unknown cube-map convention {convention!r}; choose one of {', '.join(CONVENTIONS)}"
         ) from None
 
 
-def _check_face_size(n) -> int:
+def check_face_size(n) -> int:
+    """``n`` as an int if it is a positive integer (not a bool or a float), else ValueError."""
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or int(n) < 1:
         raise ValueError(f"face size must be a positive integer, got {n!r}")
     return int(n)
@@ -153,7 +160,7 @@ def face_uv_to_direction(face, u, v, convention: str = "openexr", normalize: boo
     -------
     ndarray, shape ``broadcast(face, u, v).shape + (3,)``, float64.
     """
-    frames = _frames(convention)
+    frames = face_frames(convention)
     face = np.asarray(face)
     if face.size and (np.any(face < 0) or np.any(face > 5) or not np.issubdtype(face.dtype, np.integer)):
         raise ValueError("face indices must be integers in 0..5")
@@ -167,7 +174,8 @@ def face_uv_to_direction(face, u, v, convention: str = "openexr", normalize: boo
     return d
 
 
-def _as_directions(d) -> np.ndarray:
+def as_directions(d) -> np.ndarray:
+    """``d`` as a float64 array of finite 3-vectors (trailing axis 3), else ValueError."""
     d = np.asarray(d, dtype=np.float64)
     if d.shape[-1:] != (3,):
         raise ValueError(f"directions must have a trailing axis of length 3, got shape {d.shape}")
@@ -195,8 +203,8 @@ def direction_to_face_uv(d, convention: str = "openexr"):
     face : int array (...)
     u, v : float64 arrays (...), in [-1, 1]
     """
-    frames = _frames(convention)
-    d = _as_directions(d)
+    frames = face_frames(convention)
+    d = as_directions(d)
     a = np.abs(d)
     ax = np.where((a[..., 0] >= a[..., 1]) & (a[..., 0] >= a[..., 2]), 0, np.where(a[..., 1] >= a[..., 2], 1, 2))
     comp = np.take_along_axis(d, ax[..., None], axis=-1)[..., 0]
@@ -213,19 +221,19 @@ def direction_to_face_uv(d, convention: str = "openexr"):
 # ----------------------------------------------------------------------------------------------
 def uv_to_texel_coords(u, v, n: int):
     """Continuous texel coordinates (x = column, y = row) with texel centres on integers."""
-    n = _check_face_size(n)
+    n = check_face_size(n)
     return (np.asarray(u) + 1.0) * 0.5 * n - 0.5, (np.asarray(v) + 1.0) * 0.5 * n - 0.5
 
 
 def texel_coords_to_uv(x, y, n: int):
     """Inverse of :func:`uv_to_texel_coords`."""
-    n = _check_face_size(n)
+    n = check_face_size(n)
     return (np.asarray(x, dtype=np.float64) + 0.5) / n * 2.0 - 1.0, (np.asarray(y, dtype=np.float64) + 0.5) / n * 2.0 - 1.0
 
 
 def texel_center_uv(n: int) -> np.ndarray:
     """Face-plane coordinate of the texel centres 0..n-1: ``(i + ½)/n·2 − 1``."""
-    n = _check_face_size(n)
+    n = check_face_size(n)
     return (np.arange(n, dtype=np.float64) + 0.5) / n * 2.0 - 1.0
 
 
@@ -247,7 +255,7 @@ def _texel_directions_cached(n: int, convention: str, normalize: bool) -> np.nda
 
 def texel_directions(n: int, convention: str = "openexr", normalize: bool = True) -> np.ndarray:
     """Directions of all texel centres, shape (6, n, n, 3), float64 (read-only, cached)."""
-    return _texel_directions_cached(_check_face_size(n), convention, bool(normalize))
+    return _texel_directions_cached(check_face_size(n), convention, bool(normalize))
 
 
 def direction_to_texel_coords(d, n: int, convention: str = "openexr"):
@@ -292,7 +300,7 @@ def texel_solid_angles(n: int) -> np.ndarray:
     The same for all six faces and both conventions.  Σ over 6 faces = 4π to rounding (the sum
     telescopes to 6 · 4 · atan2(1, √3) = 4π).
     """
-    return _texel_solid_angles_cached(_check_face_size(n))
+    return _texel_solid_angles_cached(check_face_size(n))
 
 
 def cube_solid_angles(n: int) -> np.ndarray:
@@ -306,7 +314,7 @@ def convert_convention(cube: np.ndarray, src: str, dst: str) -> np.ndarray:
     The result holds, at every texel of the ``dst`` layout, the radiance of the same direction.
     """
     check_cube_shape(cube)
-    _frames(src), _frames(dst)
+    face_frames(src), face_frames(dst)
     if src == dst:
         return np.array(cube, copy=True)
     out = np.array(cube, copy=True)
@@ -359,7 +367,7 @@ class MipLevel:
 
 def mip_levels(n: int) -> list[MipLevel]:
     """Levels N, N/2, …, 1 of a cube-map pyramid; N must be a power of two."""
-    n = _check_face_size(n)
+    n = check_face_size(n)
     if n & (n - 1):
         raise ValueError(f"MIP pyramids need a power-of-two face size, got {n}")
     out = []
@@ -377,8 +385,8 @@ def mip_levels(n: int) -> list[MipLevel]:
 # latitude-longitude maps (OpenEXR LatLongMap)
 # ----------------------------------------------------------------------------------------------
 def _check_latlong_size(h, w):
-    h = _check_face_size(h)
-    w = _check_face_size(w)
+    h = check_face_size(h)
+    w = check_face_size(w)
     if w != 2 * h:
         raise LayoutError(f"lat-long maps must be 2H x H (width = 2 x height), got {w} x {h}")
     return h, w
@@ -418,7 +426,7 @@ def direction_to_latlong(d, h: int, w: int):
     x ∈ [−½, W−½) wraps around in longitude; y ∈ [−½, H−½].
     """
     h, w = _check_latlong_size(h, w)
-    d = _as_directions(d)
+    d = as_directions(d)
     d = d / np.linalg.norm(d, axis=-1, keepdims=True)
     lat = np.arcsin(np.clip(d[..., 1], -1.0, 1.0))
     lon = np.arctan2(d[..., 0], d[..., 2])

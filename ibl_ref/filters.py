@@ -60,6 +60,7 @@ __all__ = [
     "GAUSS_SIGMA_TAPS",
     "COS_TAP_ANGLES_DEG",
     "kernel_taps",
+    "check_seam",
     "pad_cube",
     "filter_cube",
 ]
@@ -126,7 +127,8 @@ def kernel_taps(kernel) -> np.ndarray:
     return _normalised(w)
 
 
-def _check_seam(seam: str) -> str:
+def check_seam(seam: str) -> str:
+    """``seam`` if it is one of :data:`SEAM_MODES`, else IBLError."""
     if seam not in SEAM_MODES:
         raise IBLError(f"unknown seam mode {seam!r}; choose one of {', '.join(SEAM_MODES)}")
     return seam
@@ -161,7 +163,7 @@ def pad_cube(cube: np.ndarray, k: int, seam: str = "neighbour") -> np.ndarray:
     seam : {"neighbour", "neighbour_repad", "clamp"}
     """
     n = check_cube_shape(cube)
-    _check_seam(seam)
+    check_seam(seam)
     cube = np.asarray(cube)
     extra = cube.shape[3:]
     if seam == "clamp":
@@ -226,7 +228,7 @@ def filter_cube(cube: np.ndarray, kernel="sqrtcos", seam: str = "neighbour") -> 
     """
     n = check_cube_shape(cube)
     w = kernel_taps(kernel)
-    _check_seam(seam)
+    check_seam(seam)
     cube = np.asarray(cube)
     if not np.issubdtype(cube.dtype, np.floating):
         cube = cube.astype(np.float64)

@@ -34,7 +34,7 @@ import numpy as np
 
 from .envmap import check_cube_shape, texel_solid_angles
 from .errors import IBLError, LayoutError, check_radiance
-from .filters import _check_seam, filter_cube, kernel_taps
+from .filters import check_seam, filter_cube, kernel_taps
 
 __all__ = ["ORDERS", "SHRINKS", "Pyramid", "shrink_2x2", "shrink_2x2_solid_angle", "build_pyramid", "build_mip_chain", "pyramid_energy"]
 
@@ -121,7 +121,7 @@ class FaceCentreSampler:
         shape = d.shape[:-1]
         d = d.reshape(-1, 3)
         face, x, y = envmap.direction_to_texel_coords(d, 1)
-        frames = envmap._frames("openexr")
+        frames = envmap.face_frames("openexr")
         fx, fy = np.abs(x), np.abs(y)
         side_u = np.where(x < 0, -1.0, 1.0)[:, None] * frames[face, 1, :]
         side_v = np.where(y < 0, -1.0, 1.0)[:, None] * frames[face, 2, :]
@@ -217,7 +217,7 @@ def build_pyramid(cube, kernel="sqrtcos", order: str = "shrink_then_filter", sea
     taps = kernel_taps(kernel)
     if order not in ORDERS:
         raise IBLError(f"unknown pyramid order {order!r}; choose one of {', '.join(ORDERS)}")
-    _check_seam(seam)
+    check_seam(seam)
     if shrink not in SHRINKS:
         raise IBLError(f"unknown shrink {shrink!r}; choose one of {', '.join(SHRINKS)}")
     n, a, _ = _check_input(cube, dtype)

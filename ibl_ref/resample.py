@@ -425,7 +425,7 @@ def latlong_to_cube(img, n: int, *, method: str = "conservative", k: int | None 
         raise LayoutError(f"lat-long map must have shape (H, 2H[, C]), got {np.shape(img)}")
     _check_interp(interpolation)
     _check_method(method)
-    n = envmap._check_face_size(n)
+    n = envmap.check_face_size(n)
     if method == "conservative":
         out = _finite(conservative_kernel(h, n, k, iters).to_cube(a))
     else:
@@ -445,7 +445,7 @@ def cube_to_latlong(cube, h: int, *, method: str = "conservative", k: int | None
     a, squeeze = _prep(cube, "cube map", 4)
     _check_interp(interpolation)
     _check_method(method)
-    h = envmap._check_face_size(h)
+    h = envmap.check_face_size(h)
     if method == "conservative":
         out = _finite(conservative_kernel(h, n, k, iters).to_latlong(a))
     else:
@@ -463,7 +463,7 @@ def cube_to_cube(cube, n: int, *, k: int | None = None, interpolation: str = "bi
     big = envmap.check_cube_shape(cube)
     a, squeeze = _prep(cube, "cube map", 4)
     _check_interp(interpolation)
-    n = envmap._check_face_size(n)
+    n = envmap.check_face_size(n)
     if n == big:
         out = a.copy()
     elif big % n == 0:
@@ -483,7 +483,7 @@ def latlong_to_latlong(img, h: int, *, k: int | None = None, interpolation: str 
     a, squeeze = _prep(img, "lat-long map", 3)
     _check_interp(interpolation)
     k = k or supersample_factor(_pitch_latlong(h), _pitch_latlong(a.shape[0]))
-    out = _to_latlong(_LatLongSampler(a, interpolation), envmap._check_face_size(h), k, a.shape[2])
+    out = _to_latlong(_LatLongSampler(a, interpolation), envmap.check_face_size(h), k, a.shape[2])
     return out[..., 0] if squeeze else out
 
 

@@ -62,7 +62,7 @@ def padding_tables(n: int, k: int, convention: str = "openexr"):
     """
     if k < 0 or k > n:
         raise ValueError(f"padding width must be in 0..N (N={n}), got {k}")
-    frames = envmap._frames(convention)
+    frames = envmap.face_frames(convention)
     m = n + 2 * k
     idx = np.arange(-k, n + k)
     f, i, j = np.meshgrid(np.arange(6), idx, idx, indexing="ij")  # (6, m, m)
@@ -190,7 +190,7 @@ def _bilinear_taps(face, x, y, n: int, pad: int):
 
 def _extended_coords(d, face, n: int, convention: str):
     """Texel coordinates of directions ``d`` on the (extended) plane of ``face``."""
-    frames = envmap._frames(convention)
+    frames = envmap.face_frames(convention)
     fr = frames[face]
     along = np.einsum("...i,...i->...", d, fr[..., 0, :])
     u = np.einsum("...i,...i->...", d, fr[..., 1, :]) / along
@@ -214,7 +214,7 @@ def _geometric_tables(n: int, k: int, convention: str = "openexr"):
     """
     if k < 0 or k > n:
         raise ValueError(f"padding width must be in 0..N (N={n}), got {k}")
-    frames = envmap._frames(convention)
+    frames = envmap.face_frames(convention)
     m, mp = n + 2 * k, n + 2
     idx = np.arange(-k, n + k)
     f, i, j = np.meshgrid(np.arange(6), idx, idx, indexing="ij")
@@ -312,8 +312,8 @@ class CubeSampler:
     def bilinear(self, dirs) -> np.ndarray:
         """Seam-aware, continuous bilinear interpolation of texel-centre values at each direction."""
         n = self.n
-        frames = envmap._frames(self.convention)
-        d = envmap._as_directions(dirs)
+        frames = envmap.face_frames(self.convention)
+        d = envmap.as_directions(dirs)
         lead = d.shape[:-1]
         d = d.reshape(-1, 3)
         face, x, y = envmap.direction_to_texel_coords(d, n, self.convention)
