@@ -61,7 +61,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import LayoutError
+from .errors import IBLError, LayoutError
 
 __all__ = [
     "FACE_NAMES",
@@ -81,6 +81,7 @@ __all__ = [
     "face_frames",
     "check_face_size",
     "as_directions",
+    "unit_directions",
     "MipLevel",
     "mip_levels",
     "latlong_directions",
@@ -172,6 +173,20 @@ def face_uv_to_direction(face, u, v, convention: str = "openexr", normalize: boo
     if normalize:
         d = d / np.linalg.norm(d, axis=-1, keepdims=True)
     return d
+
+
+def unit_directions(v, name: str = "directions") -> np.ndarray:
+    """``v`` (..., 3) normalised to unit length; IBLError (naming ``name``) for a wrong shape, NaN/Inf or a zero
+    vector."""
+    v = np.asarray(v, dtype=np.float64)
+    if v.shape[-1:] != (3,):
+        raise IBLError(f"{name} must be (..., 3) directions, got shape {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise IBLError(f"{name} contains NaN/Inf")
+    ln = np.linalg.norm(v, axis=-1, keepdims=True)
+    if np.any(ln == 0):
+        raise IBLError(f"{name} contains zero vectors")
+    return v / ln
 
 
 def as_directions(d) -> np.ndarray:

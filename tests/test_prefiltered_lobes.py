@@ -13,6 +13,7 @@ import pytest
 from ibl_ref import brdfs as B
 from ibl_ref import envmap
 from ibl_ref import kautz_mccool2000 as km
+from ibl_ref import km00_reference as kref
 from ibl_ref import phong_convolution as pc
 from ibl_ref import prefiltered_lobes as pl
 from ibl_ref import synthetic_envs as se
@@ -256,7 +257,7 @@ def test_phong_brdf_chain_agrees():
     tmp -= np.sum(tmp * n, 1, keepdims=True) * n
     tmp /= np.linalg.norm(tmp, axis=1, keepdims=True)
     wo = np.cos(tho)[:, None] * n + np.sin(tho)[:, None] * tmp
-    ref = pl.render_reference(env, n, wo, f, supersample=2, cut_angle=np.arccos(1e-12 ** (1 / s)))
+    ref = kref.render_reference(env, n, wo, f, supersample=2, cut_angle=np.arccos(1e-12 ** (1 / s)))
     lobes = pl.shade_lobes(ls, n, wo)
     pyr = pl.shade_pyramid(ls, build_pyramid(env), n, wo)
     # Phong: the fitted lobe is the BRDF; what remains is the KM2000 cosine approximation n·l ≈ n·r, whose
@@ -278,7 +279,7 @@ def test_reference_constant_env_is_albedo():
     t = np.radians([0.0, 35.0, 70.0])
     n = np.tile([0.0, 0.0, 1.0], (3, 1))
     wo = np.stack([B.view_direction(x) for x in t])
-    ref = pl.render_reference(np.ones((6, 16, 16, 1)), n, wo, f, supersample=4)[:, 0]
+    ref = kref.render_reference(np.ones((6, 16, 16, 1)), n, wo, f, supersample=4)[:, 0]
     # texel quadrature at 64² sub-texels of a lobe of HWHM ≈ 21° plus the horizon discontinuity: < 0.5 %
     np.testing.assert_allclose(ref, B.albedo(f, t), rtol=5e-3)
 
@@ -291,10 +292,10 @@ def test_ward_cut_bound_holds():
     t = rng.uniform(0, 1.3, 40)
     ph = rng.uniform(0, 2 * np.pi, 40)
     wo = np.stack([np.sin(t) * np.cos(ph), np.sin(t) * np.sin(ph), np.cos(t)], 1)
-    full = pl.render_reference(env, n, wo, f)
-    gc = pl.ward_cut_angle(0.3, 1e-3)
-    cut = pl.render_reference(env, n, wo, f, cut_angle=gc)
-    bound = pl.ward_neglected_bound(0.3, 0.8, gc, np.cos(t), float(env.max()))
+    full = kref.render_reference(env, n, wo, f)
+    gc = kref.ward_cut_angle(0.3, 1e-3)
+    cut = kref.render_reference(env, n, wo, f, cut_angle=gc)
+    bound = kref.ward_neglected_bound(0.3, 0.8, gc, np.cos(t), float(env.max()))
     assert np.all(np.abs(full - cut).max(axis=1) <= bound)
     assert np.abs(full - cut).max() > 0  # the cut did neglect something
 
@@ -341,7 +342,7 @@ def test_hwhm_helpers_match_closed_forms():
     g = km.gamma_nodes(2048)
     assert abs(pl.profile_hwhm(g, _cos_profile(g, s)) - exact) < np.radians(0.1)
     f = B.get_brdf("phong", ks=1.0, s=s)
-    h = pl.brdf_min_hwhm(f, 0.3)  # θo = 0.3 rad: the lobe (≈ 9° HWHM) is clear of the horizon
+    h = kref.brdf_min_hwhm(f, 0.3)  # θo = 0.3 rad: the lobe (≈ 9° HWHM) is clear of the horizon
     assert exact - 1e-12 <= h <= exact + np.radians(0.5)
     # auto_supersample: the face-centre sub-texel 2/(n k) must not exceed hwhm / samples_per_hwhm
     for n_, hw, q in ((8, 0.01, 1.5), (64, 0.02, 3.0), (16, 1.0, 1.5)):
@@ -355,9 +356,9 @@ def test_reference_per_sample_supersample_equals_separate_calls():
     n = np.tile([0.0, 0.0, 1.0], (4, 1))
     wo = np.stack([B.view_direction(t) for t in (0.1, 0.5, 0.9, 1.2)])
     ks = np.array([1, 3, 1, 2])
-    mixed = pl.render_reference(env, n, wo, f, supersample=ks, cut_angle=1.5)
+    mixed = kref.render_reference(env, n, wo, f, supersample=ks, cut_angle=1.5)
     for i, k in enumerate(ks):
-        one = pl.render_reference(env, n[i:i + 1], wo[i:i + 1], f, supersample=int(k), cut_angle=1.5)
+        one = kref.render_reference(env, n[i:i + 1], wo[i:i + 1], f, supersample=int(k), cut_angle=1.5)
         np.testing.assert_allclose(mixed[i], one[0], rtol=1e-12)
     with pytest.raises(IBLError):
-        pl.render_reference(env, n, wo, f, supersample=np.array([1, 0, 1, 1]))
+        kref.render_reference(env, n, wo, f, supersample=np.array([1, 0, 1, 1]))
