@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .conventions import lobe_half_angle, phong_exponent  # noqa: F401  (re-exported, old names)
 from .errors import IBLError, LayoutError, check_radiance
 
 __all__ = [
@@ -129,12 +130,6 @@ def coarse_directions(cube, n_env: int, mode: str = "centroid") -> np.ndarray:
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
-def lobe_half_angle(s) -> np.ndarray:
-    """Half-width at half maximum of max(cos θ, 0)^s: θ½ = arccos(2^(−1/s)) (≈ 1.18/√s for large s)."""
-    s = np.asarray(s, dtype=np.float64)
-    return np.arccos(np.power(2.0, -1.0 / s))
-
-
 def env_size_for_exponent(s: float, n_fine: int, texels_per_halfwidth: float = 1.0, n_min: int = 8) -> int:
     """Smallest face size n (power of two, n_min ≤ n ≤ n_fine) with centre-texel angle (π/2)/n ≤ θ½/texels.
 
@@ -159,28 +154,19 @@ def _lobe_weights(d, omega_dirs, omega_sa, s):
 
 
 def lobe_average(cube, dirs, s, *, n_env: int | None = None, directions: str = "centre", chunk: int = 2048):
-    """Unoccluded lobe average A_s(d) of (*) at arbitrary directions (..., 3) → (..., C).
+    """Unoccluded lobe average A_s(d) of (*) at arbitrary directions (..., 3) → (..., C), on the level ``n_env``.
 
-    With ``n_env = N`` and ``directions="centre"`` this is exactly the formula of
-    :func:`ibl_ref.phong_convolution.convolve_exact` evaluated at ``dirs`` instead of at texel centres.
+    :func:`ibl_ref.phong_convolution.lobe_average` (the package's exact Eq. 4 lobe average) of
+    :func:`coarse_env` with the quadrature directions of :func:`coarse_directions`; with ``n_env = N`` and
+    ``directions="centre"`` it is exactly the formula of :func:`ibl_ref.phong_convolution.convolve_exact`
+    evaluated at ``dirs`` instead of at texel centres.
     """
-    from .envmap import cube_solid_angles
+    from .phong_convolution import lobe_average as _lobe_average
 
     a = _check_env(cube)
-    N = a.shape[1]
-    n_env = N if n_env is None else int(n_env)
-    Lc = coarse_env(a, n_env).reshape(-1, a.shape[-1])
-    om_d = coarse_directions(a, n_env, directions).reshape(-1, 3)
-    om = np.array(cube_solid_angles(n_env)).reshape(-1)
-    d = np.asarray(dirs, dtype=np.float64)
-    shape = d.shape[:-1]
-    d = d.reshape(-1, 3)
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    out = np.empty((len(d), Lc.shape[1]))
-    for i in range(0, len(d), chunk):
-        w, ws = _lobe_weights(d[i:i + chunk], om_d, om, float(s))
-        out[i:i + chunk] = (w @ Lc) / ws[:, None]
-    return out.reshape(shape + (Lc.shape[1],))
+    n_env = a.shape[1] if n_env is None else int(n_env)
+    return _lobe_average(coarse_env(a, n_env), dirs, s, texel_dirs=coarse_directions(a, n_env, directions),
+                         chunk=chunk)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -320,7 +306,6 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
     -------
     ReferenceResult
     """
-    from .gloss_lookup import phong_exponent
     from .raster import prepare_scene, rasterize
 
     kd, ks, g = float(kd), float(ks), float(g)
@@ -400,7 +385,7 @@ def exact_pem_lookup(cube, labels, dirs, s: float, n_regions: int | None = None,
     texels j (``labels`` (6, N, N) from :func:`ibl_ref.median_cut.median_cut`), so Σ_i PEM_i = the exact lobe
     average.  Used to separate the filter-pyramid error from the visibility error of Eq. 5.
     """
-    from .envmap import cube_solid_angles, texel_directions
+    from .phong_convolution import lobe_average as _lobe_average
 
     a = _check_env(cube)
     N = a.shape[1]
@@ -408,17 +393,5 @@ def exact_pem_lookup(cube, labels, dirs, s: float, n_regions: int | None = None,
     if lab.shape[0] != 6 * N * N:
         raise LayoutError(f"labels must have shape (6, {N}, {N})")
     L = int(lab.max()) + 1 if n_regions is None else int(n_regions)
-    order = np.argsort(lab, kind="stable")
-    starts = np.searchsorted(lab[order], np.arange(L))
-    Lc = a.reshape(-1, a.shape[-1])[order]
-    om_d = np.asarray(texel_directions(N)).reshape(-1, 3)[order]
-    om = np.asarray(cube_solid_angles(N)).reshape(-1)[order]
-    d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    out = np.zeros((L, len(d), a.shape[-1]))
-    nonempty = np.bincount(lab, minlength=L) > 0
-    for i in range(0, len(d), chunk):
-        w, ws = _lobe_weights(d[i:i + chunk], om_d, om, float(s))
-        part = np.add.reduceat(w[:, :, None] * Lc[None], starts[nonempty], axis=1) / ws[:, None, None]
-        out[nonempty, i:i + chunk] = np.moveaxis(part, 1, 0)
-    return out
+    out = _lobe_average(a, dirs, s, labels=lab.reshape(6, N, N), n_regions=L, chunk=chunk)  # (P, L, C)
+    return np.moveaxis(out.reshape(-1, L, a.shape[-1]), 1, 0)
