@@ -1,6 +1,6 @@
 """``ibl-ref km00-render``: the glossy teapot by Kautz & McCool (2000) fitted lobes, or by the exact reference.
 
-Thin layer over :func:`ibl_ref.experiments.km00_render.render_single_method` (library:
+Thin layer over :func:`ibl_ref.lobe_render.render_single_method` (library:
 :mod:`ibl_ref.prefiltered_lobes`).  No visibility (KM2000 has none).
 """
 
@@ -29,7 +29,7 @@ def _env(text: str, size: int):
 
 
 def run(args) -> int:
-    from ..experiments.km00_render import render_single_method
+    from ..lobe_render import render_single_method
     from ..image_io import write_image_exr
 
     from .cmd_render import _check_output, _size
