@@ -46,7 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .envmap import check_cube_shape, cube_solid_angles, texel_directions
+from .envmap import check_cube_shape, texel_directions
 from .errors import IBLError, LayoutError, check_radiance
 from .conventions import lobe_half_angle
 
