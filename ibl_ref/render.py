@@ -13,6 +13,11 @@ r = 2(n·v)n − v; "we can use the same sample vector for each PEM" (Sec. 3.4),
   shadow-map error alone;
 * ``visibility="none"`` — VIS_i = 1, the unshadowed image Σ_i PEM_i (= the full map's lookup, by linearity).
 
+**One Eq. 5 path.**  The pieces are public and every renderer of the package uses them: :func:`eq5_lookups`
+(PEM_i(n, 0) and PEM_i(r, g)), :func:`light_visibilities` (VIS_i by any method), :func:`eq5_terms` /
+:func:`shade_eq5` (the sum) and :func:`unshadowed_eq5`; :func:`render_pem` composes them, and so do the
+comparison modes of Fig. 6 (:func:`ibl_ref.ao_modes.render_modes`), which differ only in the occlusion model.
+
 **Horizon.**  A light below the tangent plane of the receiving triangle is physically blocked by the surface
 itself.  A shadow map does not see this for open surfaces (a ground quad is its own first occluder, so t ≈ μ
 and the light counts as visible), and Eq. 5 as printed has no such term.  ``horizon=False`` (default) keeps the
