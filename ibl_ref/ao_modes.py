@@ -103,9 +103,9 @@ def render_modes(meshes, camera, env, modes=MODES, *, pems=None, n_lights: int =
     kd, ks, g = _check_material(kd, ks, g)
     mats = None
     if materials is not None:
-        from .render import _resolve_materials
+        from .render import resolve_materials
 
-        mats = _resolve_materials(materials)
+        mats = resolve_materials(materials)
     if background not in BACKGROUNDS:
         raise IBLError(f"background must be one of {BACKGROUNDS}, got {background!r}")
     modes = tuple(modes)

@@ -64,8 +64,9 @@ import numpy as np
 from .errors import IBLError
 
 __all__ = ["RenderResult", "Material", "glossiness_image", "material_images", "surface_uv", "sample_g_map",
-           "render_pem", "light_visibilities", "eq5_lookups", "eq5_terms", "shade_eq5", "unshadowed_eq5",
-           "background_image", "apply_background", "VISIBILITY_METHODS", "UV_FALLBACKS", "BACKGROUNDS"]
+           "render_pem", "resolve_materials", "light_visibilities", "eq5_lookups", "eq5_terms", "shade_eq5",
+           "unshadowed_eq5", "background_image", "apply_background", "VISIBILITY_METHODS", "UV_FALLBACKS",
+           "BACKGROUNDS"]
 
 VISIBILITY_METHODS = ("vsm", "raycast", "none")
 
@@ -221,8 +222,8 @@ def _as_material(m, key) -> Material:
     raise IBLError(f"materials[{key!r}]: expected a Material, a (kd, ks, g) tuple or a dict, got {m!r}")
 
 
-def _resolve_materials(materials) -> dict:
-    """{material_id: Material} from a Material (all ids: key None) or a mapping."""
+def resolve_materials(materials) -> dict:
+    """{material_id: Material} from a Material, a (kd, ks, g) tuple (all ids: key None) or a mapping."""
     if isinstance(materials, (Material, tuple, list)) or (isinstance(materials, dict) and "g" in materials):
         return {None: _as_material(materials, "*")}
     if not isinstance(materials, dict):
@@ -334,7 +335,7 @@ def surface_uv(meshes, scene, gbuffer, pixels, fallback: str = "planar_xz") -> n
 def material_images(meshes, scene, gbuffer, materials: dict):
     """Per-pixel kd (n, K), ks (n, K) and g (n,) of the covered pixels (K = 1 or 3), in ``gbuffer.mask`` order.
 
-    ``materials`` as returned by :func:`_resolve_materials` (key None = every material id).
+    ``materials`` as returned by :func:`resolve_materials` (key None = every material id).
     """
     m = gbuffer.mask
     mid = gbuffer.material_id[m]
@@ -599,7 +600,7 @@ def render_pem(
     scene = prepare_scene(meshes)
     if materials is not None and glossiness is not None:
         raise IBLError("give either glossiness= (pure glossy, kd = 0, ks = 1) or materials=, not both")
-    mats = _resolve_materials(materials) if materials is not None else None
+    mats = resolve_materials(materials) if materials is not None else None
     if glossiness is None:
         glossiness = 0.5
     g = rasterize(scene, camera, smooth_normals=smooth_normals)
