@@ -791,7 +791,7 @@ def ward_neglected_bound(alpha: float, ks: float, gamma_c: float, cos_theta_o, L
     """Bound on the radiance neglected by the cone cut γc for Ward's specular term (module docstring): per sample.
 
     The diffuse term ``kd/π`` is not covered (it is not concentrated around r): with ``kd > 0`` gather without a
-    cut (:func:`ibl_ref.lobe_render.render_single_method` does)."""
+    cut (:func:`ibl_ref.experiments.km00_render.render_single_method` does)."""
     e = math.exp(-math.tan(min(gamma_c, np.pi - 1e-9) / 2.0) ** 2 / alpha**2) if gamma_c < np.pi else 0.0
     co = np.maximum(np.asarray(cos_theta_o, dtype=np.float64), 1e-300)
     return L_max * ks * e / (alpha**2 * np.sqrt(co))
