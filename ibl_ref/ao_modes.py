@@ -19,6 +19,8 @@ lights, the same G-buffer and the same PEM lookups, so only the occlusion model 
   Which one the paper shows is not stated; "modulate" keeps the glossy appearance that all four images share.
 * ``"ours"`` (d): Eq. 5 with a kd/ks material, c = Σ_i VIS_i (kd·PEM_i(n, 0) + ks·PEM_i(r, g)), VIS_i from
   variance shadow maps (:mod:`ibl_ref.vsm`).  With kd = 0 this is exactly :func:`ibl_ref.render.render_pem`.
+  Look-ups, visibilities and the Eq. 5 sum are :mod:`ibl_ref.render`'s (``eq5_lookups``, ``light_visibilities``,
+  ``shade_eq5``): one Eq. 5 path, the modes differ only in the occlusion model applied to it.
 * ``"reference"``: :func:`ibl_ref.reference_render.render_reference` (exact visibility, exact lobes).
 """
 
@@ -30,6 +32,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import IBLError
+from .render import light_visibilities, shade_eq5  # noqa: F401  (the one Eq. 5 path; re-exported, old names)
+from .scenes import default_camera  # noqa: F401  (re-exported, old name)
 
 __all__ = ["MODES", "ModesResult", "render_modes", "render_mode", "light_visibilities", "default_camera",
            "shade_eq5"]
@@ -54,73 +58,6 @@ class ModesResult:
     extras: dict = field(default_factory=dict)
 
 
-def default_camera(meshes, size: int = 64, view_dir=(0.3, 0.5, 1.0), fov_y_deg: float = 40.0, distance: float = 2.6):
-    """Perspective camera looking at the scene's bounding-sphere centre from ``distance`` radii along ``view_dir``."""
-    from .camera import PerspectiveCamera
-    from .raster import prepare_scene
-
-    c, R = prepare_scene(meshes, warn=False).bounds()
-    d = np.asarray(view_dir, dtype=np.float64)
-    d = d / np.linalg.norm(d)
-    return PerspectiveCamera(eye=c + distance * R * d, target=c, up=[0, 1, 0], fov_y_deg=fov_y_deg, width=size,
-                             height=size, near=1e-3 * R, far=100 * R)
-
-
-def light_visibilities(scene, points, face_normals, lights, *, method: str = "vsm", vsm_resolution: int = 256,
-                       vsm_dtype: str = "float32", timings: dict | None = None, progress: bool = False,
-                       **vsm_kw) -> np.ndarray:
-    """VIS_i (L, P) of every light for surface points: ``"vsm"`` (Sec. 3.3), ``"raycast"`` (exact) or ``"none"``.
-
-    With ``timings`` (a dict), the VSM stages are timed separately: ``shadow_maps`` (depth rendering),
-    ``blur`` (moments + Gaussian blur) and ``visibility`` (look-ups).
-    """
-    from . import vsm as _vsm
-
-    dirs = np.asarray(lights.directions, dtype=np.float64).reshape(-1, 3)
-    omega = np.asarray(lights.solid_angle, dtype=np.float64).reshape(-1)
-    P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    L = len(dirs)
-    if method == "none" or len(P) == 0:
-        return np.ones((L, len(P)))
-    if method == "raycast":
-        from .reference_render import parallel_visibility
-
-        t0 = time.perf_counter()
-        V = parallel_visibility(scene, P, face_normals, dirs).T
-        if timings is not None:
-            timings["visibility"] = timings.get("visibility", 0.0) + time.perf_counter() - t0
-        return V
-    if method != "vsm":
-        raise IBLError(f"visibility method must be 'vsm', 'raycast' or 'none', got {method!r}")
-    from .raster import prepare_scene
-
-    sc = prepare_scene(scene, warn=False)
-    V = np.ones((L, len(P)))
-    it = range(L)
-    if progress:
-        from tqdm import tqdm
-
-        it = tqdm(it, desc="shadow maps", unit="light")
-    for i in it:
-        sm = _vsm.build_vsm(sc, dirs[i], omega[i], resolution=vsm_resolution, dtype=vsm_dtype, timings=timings,
-                            **vsm_kw)
-        t0 = time.perf_counter()
-        V[i] = _vsm.visibility(P, sm)
-        if timings is not None:
-            timings["visibility"] = timings.get("visibility", 0.0) + time.perf_counter() - t0
-    return V
-
-
-def shade_eq5(vis, pem_n, pem_r, kd: float, ks: float) -> np.ndarray:
-    """Eq. 5 with a kd/ks material: c = Σ_i VIS_i · (kd·PEM_i(n, 0) + ks·PEM_i(r, g)); vis (L, P), pem_* (L, P, C)."""
-    c = 0.0
-    if kd > 0:
-        c = c + kd * np.einsum("lp,lpc->pc", vis, pem_n)
-    if ks > 0:
-        c = c + ks * np.einsum("lp,lpc->pc", vis, pem_r)
-    return c
-
-
 def _check_material(kd, ks, g):
     kd, ks, g = float(kd), float(ks), float(g)
     if not (np.isfinite(kd) and np.isfinite(ks) and kd >= 0 and ks >= 0):
@@ -133,7 +70,8 @@ def _check_material(kd, ks, g):
 def render_modes(meshes, camera, env, modes=MODES, *, pems=None, n_lights: int = 96, kd: float = 0.0,
                  ks: float = 1.0, g: float = 0.9, vsm_resolution: int = 256, vsm_dtype: str = "float32",
                  ao_visibility: str = "vsm", ao_color_variant: str = "modulate", reference_kw: dict | None = None,
-                 smooth_normals: bool = True, progress: bool = False, **vsm_kw) -> ModesResult:
+                 smooth_normals: bool = True, background: str = "black", materials=None, progress: bool = False,
+                 **vsm_kw) -> ModesResult:
     """Render several Fig. 6 modes sharing the G-buffer, PEMs and visibilities.
 
     Parameters
@@ -143,18 +81,33 @@ def render_modes(meshes, camera, env, modes=MODES, *, pems=None, n_lights: int =
     modes : subset of :data:`MODES`
     pems : a prebuilt :class:`ibl_ref.pem.PEMSet` of ``env`` (else built with ``n_lights`` per-face median cut)
     kd, ks, g : material (diffuse weight, glossy weight, glossiness of the glossy lobe)
+    materials : optional per-mesh materials instead of kd, ks, g: a :class:`ibl_ref.render.Material`, a
+        (kd, ks, g) tuple, or ``{material_id: ...}`` (as :func:`ibl_ref.render.render_pem`); every mode honours
+        them (the reference is rendered once per material on that material's pixels; it needs scalar kd, ks and
+        no g map)
     vsm_resolution, vsm_dtype, **vsm_kw : shadow maps (:func:`ibl_ref.vsm.build_vsm`)
     ao_visibility : "vsm" or "raycast" visibility for the AO modes
     ao_color_variant : "modulate" or "irradiance" (module docstring)
     reference_kw : extra arguments of :func:`ibl_ref.reference_render.render_reference`
+    background : ``"black"`` (default) or ``"env"``: every mode's image (the reference too) shows the environment
+        along the camera rays outside the geometry (:func:`ibl_ref.render.background_image` of ``env``, the
+        bilinear mirror look-up; the same backdrop in every mode)
 
     Returns
     -------
     ModesResult (``timings`` in seconds: pem_build, raster, shadow_maps, blur, visibility, lookup, shading, reference)
     """
     from .raster import prepare_scene, rasterize
+    from .render import BACKGROUNDS, apply_background, eq5_lookups, unshadowed_eq5
 
     kd, ks, g = _check_material(kd, ks, g)
+    mats = None
+    if materials is not None:
+        from .render import resolve_materials
+
+        mats = resolve_materials(materials)
+    if background not in BACKGROUNDS:
+        raise IBLError(f"background must be one of {BACKGROUNDS}, got {background!r}")
     modes = tuple(modes)
     bad = [m for m in modes if m not in MODES]
     if bad or not modes:
@@ -177,6 +130,15 @@ def render_modes(meshes, camera, env, modes=MODES, *, pems=None, n_lights: int =
     images = {}
     info = dict(kd=kd, ks=ks, g=g, n_pixels=int(m.sum()), ao_color_variant=ao_color_variant,
                 ao_visibility=ao_visibility, vsm_resolution=vsm_resolution)
+    if mats is not None:  # per-pixel kd (P, K), ks (P, K), g (P,) from the material ids
+        from .render import material_images
+
+        kd_l, ks_l, g_l = material_images(meshes, sc, gb, mats)
+        info.update(kd=None, ks=None, g=None, materials={str(k): dict(kd=np.asarray(v.kd).tolist(),
+                                                                       ks=np.asarray(v.ks).tolist(), g=v.g)
+                                                          for k, v in mats.items()})
+    else:
+        kd_l, ks_l, g_l = kd, ks, g
     need_pem = any(x in modes for x in ("ours", "no-occlusion", "ao", "ao-color"))
     if need_pem:
         if pems is None:
@@ -188,11 +150,9 @@ def render_modes(meshes, camera, env, modes=MODES, *, pems=None, n_lights: int =
         info["n_lights"] = len(pems.lights)
         P, n, fn, r = gb.position[m], gb.normal[m], gb.face_normal[m], gb.reflect[m]
         t0 = time.perf_counter()
-        zero = np.zeros((len(pems.lights), len(P), C))
-        pem_n = np.asarray(pems.lookup_all(n, 0.0), dtype=np.float64) if kd > 0 else zero
-        pem_r = np.asarray(pems.lookup_all(r, g), dtype=np.float64) if ks > 0 else zero
+        pem_n, pem_r = eq5_lookups(pems, n, r, g_l, kd_l, ks_l)  # the Eq. 5 look-ups (ibl_ref.render)
         T["lookup"] = time.perf_counter() - t0
-        unocc = kd * pem_n.sum(axis=0) + ks * pem_r.sum(axis=0)
+        unocc = unshadowed_eq5(pem_n, pem_r, kd_l, ks_l)
         vis_cache = {}
 
         def vis(method):
@@ -209,7 +169,7 @@ def render_modes(meshes, camera, env, modes=MODES, *, pems=None, n_lights: int =
         if "ours" in modes:
             V = vis("vsm")
             t0 = time.perf_counter()
-            out["ours"] = shade_eq5(V, pem_n, pem_r, kd, ks)  # Eq. 5
+            out["ours"] = shade_eq5(V, pem_n, pem_r, kd_l, ks_l)  # Eq. 5
             t_shade += time.perf_counter() - t0
         if "ao" in modes or "ao-color" in modes:
             V = vis(ao_visibility)
@@ -227,7 +187,7 @@ def render_modes(meshes, camera, env, modes=MODES, *, pems=None, n_lights: int =
                 E = cosw[:, :, None] * rgb[:, None, :] / np.pi  # (L, P, C)
                 visE = np.einsum("lp,lpc->pc", V, E)
                 if ao_color_variant == "irradiance":
-                    out["ao-color"] = (kd + ks) * visE
+                    out["ao-color"] = (kd_l + ks_l) * visE
                 else:
                     Es = E.sum(axis=0)
                     f = np.where(Es > 0, visE / np.where(Es > 0, Es, 1.0), 1.0)
@@ -242,18 +202,47 @@ def render_modes(meshes, camera, env, modes=MODES, *, pems=None, n_lights: int =
         from .reference_render import render_reference
 
         t0 = time.perf_counter()
-        ref = render_reference(sc, camera, env, kd=kd, ks=ks, g=g, gbuffer=gb, progress=progress,
-                               **(reference_kw or {}))
+        if mats is None:
+            ref = render_reference(sc, camera, env, kd=kd, ks=ks, g=g, gbuffer=gb, progress=progress,
+                                   **(reference_kw or {}))
+            ref_img, ref_un, info["reference"] = ref.image, ref.unoccluded, ref.info
+        else:
+            ref_img, ref_un, info["reference"] = _reference_per_material(sc, camera, env, gb, mats, progress,
+                                                                         reference_kw or {})
         T["reference"] = time.perf_counter() - t0
-        images["reference"] = ref.image
-        info["reference"] = ref.info
+        images["reference"] = ref_img
     extras = {}
     if "reference" in modes:
-        extras["reference-unoccluded"] = ref.unoccluded
+        extras["reference-unoccluded"] = ref_un
     for k, v in images.items():
         if not np.all(np.isfinite(v)):
             raise IBLError(f"mode {k!r} produced non-finite values")
+        apply_background(v, m, camera, env, background)
     return ModesResult(images={k: images[k] for k in modes}, mask=m, gbuffer=gb, timings=T, info=info, extras=extras)
+
+
+def _reference_per_material(scene, camera, env, gb, mats, progress, reference_kw):
+    """The reference on each material's pixels (a G-buffer masked to its material id), summed into one image."""
+    import dataclasses
+
+    from .reference_render import render_reference
+
+    H, W = gb.mask.shape
+    img = np.zeros((H, W, env.shape[-1]))
+    un = np.zeros_like(img)
+    infos = {}
+    for key, mat in mats.items():
+        if np.ndim(mat.kd) or np.ndim(mat.ks) or mat.g_map is not None:
+            raise IBLError("mode 'reference' needs scalar kd, ks and no g map per material")
+        sub = gb.mask if key is None else gb.mask & (gb.material_id == key)
+        if not sub.any():
+            continue
+        r = render_reference(scene, camera, env, kd=mat.kd, ks=mat.ks, g=mat.g, progress=progress,
+                             gbuffer=dataclasses.replace(gb, mask=sub), **reference_kw)
+        img[sub] = r.image[sub]
+        un[sub] = r.unoccluded[sub]
+        infos[str(key)] = r.info
+    return img, un, infos
 
 
 def render_mode(scene, env, mode: str, *, camera=None, **kw) -> np.ndarray:

@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .conventions import phong_exponent  # noqa: F401  (Eq. 3; re-exported, old name)
 from .errors import IBLError
 
 __all__ = ["phong_exponent", "Calibration", "calibrate", "analytic_calibration", "get_calibration",
@@ -44,30 +45,6 @@ __all__ = ["phong_exponent", "Calibration", "calibrate", "analytic_calibration",
 
 DATA_DIR = Path(__file__).resolve().parent / "data"
 _MEMORY: dict = {}
-
-
-def phong_exponent(g):
-    """s_Phong = 1/(1 − g) (Eq. 3); g = 1 → ``np.inf`` (mirror) without a division warning.
-
-    Parameters
-    ----------
-    g : float or array in [0, 1]
-
-    Raises
-    ------
-    IBLError
-        If any g is NaN or outside [0, 1].
-    """
-    g_arr = np.asarray(g, dtype=np.float64)
-    if np.any(np.isnan(g_arr)):
-        raise IBLError("glossiness g is NaN; g must be in [0, 1] (0 = diffuse, 1 = mirror)")
-    if np.any((g_arr < 0) | (g_arr > 1)):
-        bad = g_arr[(g_arr < 0) | (g_arr > 1)].ravel()[0]
-        raise IBLError(f"glossiness g must be in [0, 1] (0 = diffuse, 1 = mirror), got {bad!r}")
-    one_minus = 1.0 - g_arr
-    s = np.full(g_arr.shape, np.inf)
-    np.divide(1.0, one_minus, out=s, where=one_minus > 0)  # Eq. 3
-    return float(s) if s.ndim == 0 else s
 
 
 @dataclass

@@ -46,9 +46,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .envmap import check_cube_shape, cube_solid_angles, texel_directions
+from .envmap import check_cube_shape, texel_directions
 from .errors import IBLError, LayoutError, check_radiance
-from .reference_render import lobe_half_angle
+from .conventions import lobe_half_angle
 
 __all__ = ["ChainSpec", "chain_spec", "lobe_half_angle", "build_lobe_chain", "build_lobe_chain_pems",
            "chain_calibration", "lobe_average_regions"]
@@ -148,54 +148,25 @@ def lobe_average_regions(cube, labels, n_regions: int, s: float, out_size: int, 
     L_j w_j / Σ_j w_j, w_j = max(d·ω_j,0)^s Ω_j over the included texels (module docstring), and the bound δ on
     the neglected weight fraction (|error| ≤ δ·max L).
     """
-    from scipy.spatial import cKDTree
+    from .phong_convolution import lobe_average
 
     a = _prepare(cube)
-    N, C = a.shape[1], a.shape[3]
+    C = a.shape[3]
     s = float(s)
     if not (np.isfinite(s) and s >= 1.0):
         raise IBLError(f"Phong exponent must be finite and >= 1, got {s!r}")
     if not (0.0 < weight_eps < 1.0):
         raise IBLError(f"weight_eps must be in (0, 1), got {weight_eps!r}")
-    lab = np.asarray(labels).reshape(-1)
-    if lab.shape[0] != 6 * N * N:
-        raise LayoutError(f"labels must have shape (6, {N}, {N}), got {np.asarray(labels).shape}")
-    R = int(n_regions)
-    if R < 1 or lab.min() < 0 or lab.max() >= R:
-        raise IBLError(f"labels must lie in [0, {R})")
-    order = np.argsort(lab, kind="stable")  # texels sorted by region: candidate index order = label order
-    lab_s = lab[order]
-    src = np.asarray(texel_directions(N)).reshape(-1, 3)[order]
-    om = np.asarray(cube_solid_angles(N)).reshape(-1)[order]
-    rad = a.reshape(-1, C)[order]
-    tree = cKDTree(src)
-    theta_c = float(np.arccos(weight_eps ** (1.0 / s))) if s > 0 else np.pi
     n = int(out_size)
-    out = np.zeros((6 * n * n, R, C))
+    t = max(1, min(tile, n))
+    tiles = [ids for ids, _, _ in _tile_angles(n, t)]  # output texels in tiles of t × t (one candidate cap each)
+    ids = np.concatenate(tiles)
+    dst = np.asarray(texel_directions(n)).reshape(-1, 3)[ids]
+    out = np.zeros((6 * n * n, n_regions, C))
     bound = np.zeros(6 * n * n)
-    dst = np.asarray(texel_directions(n)).reshape(-1, 3)
-    for ids, c, r_tile in _tile_angles(n, tile):
-        ang = theta_c + r_tile
-        if ang >= np.pi:
-            cand = np.arange(src.shape[0])
-        else:
-            chord = 2.0 * np.sin(ang / 2.0)
-            cand = np.asarray(tree.query_ball_point(c, chord + 1e-12), dtype=np.intp)
-            cand.sort()
-        d = dst[ids]
-        cosv = np.clip(d @ src[cand].T, 0.0, None)
-        with np.errstate(under="ignore"):
-            w = np.power(cosv, s) * om[cand][None, :]  # Eq. 4 weights
-        wsum = w.sum(axis=1)
-        if np.any(wsum <= 0):
-            raise IBLError("lobe weights vanished (weight_eps too large for this map resolution)")
-        lc = lab_s[cand]
-        starts = np.flatnonzero(np.r_[True, lc[1:] != lc[:-1]])
-        part = np.add.reduceat(w[:, :, None] * rad[cand][None], starts, axis=1)  # (P, regions present, C)
-        out[ids[:, None], lc[starts][None, :], :] = part / wsum[:, None, None]
-        missing = src.shape[0] - cand.size
-        bound[ids] = 0.0 if missing == 0 else 4.0 * np.pi * weight_eps / wsum
-    return out.reshape(6, n, n, R, C), bound.reshape(6, n, n)
+    out[ids], bound[ids] = lobe_average(a, dst, s, labels=labels, n_regions=n_regions, weight_eps=weight_eps,
+                                        group=t * t, return_bound=True)  # the exact Eq. 4 lobe average
+    return out.reshape(6, n, n, n_regions, C), bound.reshape(6, n, n)
 
 
 def _chain_levels(a, labels, R, spec, weight_eps, tile, progress):

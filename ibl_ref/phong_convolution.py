@@ -94,6 +94,7 @@ __all__ = [
     "neglected_weight_bound",
     "cutoff_angle",
     "SparseInfo",
+    "lobe_average",
 ]
 
 #: target size of one chunk's weight matrix, in float64 elements (2 MB: the passes stay in cache)
@@ -758,3 +759,126 @@ def convolve_sparse(
     if return_info:
         return res[0][0], res[1][0], res[2][0]
     return res[0][0], res[1][0]
+
+
+# ----------------------------------------------------------------------------------------------
+# exact Eq. 4 lobe average at arbitrary directions (optionally per region, optionally truncated)
+# ----------------------------------------------------------------------------------------------
+def lobe_average(cube, dirs, s, *, texel_dirs=None, labels=None, n_regions: int | None = None,
+                 weight_eps: float = 0.0, group: int = 64, chunk: int = 2048, return_bound: bool = False):
+    """Normalised Eq. 4 lobe average Ē_s(d) at arbitrary unit directions ``dirs`` (..., 3) → (..., C).
+
+    The one exact lobe average of the package (the formula of :func:`convolve_exact`, at any directions)::
+
+        Ē_s(d) = Σ_j L_j max(d·ω_j, 0)^s Ω_j / Σ_j max(d·ω_j, 0)^s Ω_j
+
+    over the texels j of ``cube`` (6, N, N, C) with exact solid angles Ω_j.  The reference renderer, the
+    exact-lobe chain prefilter and the exact PEM look-ups all call it.
+
+    Parameters
+    ----------
+    cube : (6, N, N[, C]) radiance
+    dirs : (..., 3) directions (normalised here)
+    s : finite Phong exponent ≥ 1
+    texel_dirs : (6, N, N, 3), optional — quadrature directions ω_j instead of the texel centres (e.g. the energy
+        centroids of a coarse level, :func:`ibl_ref.reference_render.coarse_directions`)
+    labels : (6, N, N) int, optional — region of every texel; the result is then per region,
+        (..., R, C) with R = ``n_regions`` (default labels.max() + 1): the numerator summed over the texels of
+        region i, the denominator over all texels, so the regions sum to Ē_s (partial environment maps, Sec. 3.1)
+    weight_eps : 0 (default: every texel, dense) or in (0, 1): only texels within θc of d, cos^s θc =
+        ``weight_eps``, are summed (a KD-tree cap around each ``group`` of consecutive directions, so every texel
+        closer than θc to a direction of the group is included); numerator and denominator use the same texels,
+        so a constant map stays constant
+    group : directions sharing one candidate cap in the truncated mode (pass them in spatially coherent order)
+    chunk : directions per dense step (memory ≈ chunk × 6N² floats)
+    return_bound : also return δ (...,): the neglected weight fraction bound 4π·weight_eps / Σ_included w
+        (|error| ≤ δ·max L; 0 where every texel was summed)
+
+    Raises
+    ------
+    IBLError
+        s not finite or < 1, weight_eps outside [0, 1), a lobe with zero total weight, bad labels.
+    """
+    a, _ = _check_cube(cube)
+    a = np.asarray(a, dtype=np.float64)
+    N, C = a.shape[1], a.shape[-1]
+    try:
+        s = float(s)
+    except (TypeError, ValueError):
+        raise IBLError(f"Phong exponent must be a finite number >= 1, got {s!r}") from None
+    if not (np.isfinite(s) and s >= 1.0):
+        raise IBLError(f"Phong exponent must be finite and >= 1, got {s!r}")
+    weight_eps = float(weight_eps)
+    if not (0.0 <= weight_eps < 1.0):
+        raise IBLError(f"weight_eps must be in [0, 1), got {weight_eps!r}")
+    src = np.asarray(envmap.texel_directions(N) if texel_dirs is None else texel_dirs, dtype=np.float64)
+    if src.shape != (6, N, N, 3):
+        raise LayoutError(f"texel_dirs must have shape (6, {N}, {N}, 3), got {src.shape}")
+    src = src.reshape(-1, 3)
+    om = np.asarray(envmap.cube_solid_angles(N)).reshape(-1)
+    rad = a.reshape(-1, C)
+    R = None
+    if labels is not None:
+        lab = np.asarray(labels).reshape(-1)
+        if lab.shape[0] != 6 * N * N:
+            raise LayoutError(f"labels must have shape (6, {N}, {N}), got {np.asarray(labels).shape}")
+        R = int(lab.max()) + 1 if n_regions is None else int(n_regions)
+        if R < 1 or lab.min() < 0 or lab.max() >= R:
+            raise IBLError(f"labels must lie in [0, {R})")
+        order = np.argsort(lab, kind="stable")  # texels sorted by region: candidates in label order
+        lab, src, om, rad = lab[order], src[order], om[order], rad[order]
+    d = np.asarray(dirs, dtype=np.float64)
+    if d.shape[-1:] != (3,) or not np.all(np.isfinite(d)):
+        raise IBLError(f"dirs must be finite directions (..., 3), got shape {d.shape}")
+    shape = d.shape[:-1]
+    d = d.reshape(-1, 3)
+    nd = np.linalg.norm(d, axis=1, keepdims=True)
+    if np.any(nd == 0):
+        raise IBLError("dirs: zero-length direction")
+    d = d / nd
+    out = np.zeros((len(d), C) if R is None else (len(d), R, C))
+    bound = np.zeros(len(d))
+
+    def _gather(ids, cand):
+        c = np.clip(d[ids] @ (src if cand is None else src[cand]).T, 0.0, None)
+        with np.errstate(divide="ignore", under="ignore"):
+            w = np.power(c, s) * (om if cand is None else om[cand])[None, :]  # Eq. 4 weights
+        ws = w.sum(axis=1)
+        if np.any(ws <= 0):
+            raise IBLError("a lobe has zero total weight on this map (lobe narrower than a texel, or weight_eps "
+                           "too large): use a finer map")
+        L = rad if cand is None else rad[cand]
+        if R is None:
+            out[ids] = (w @ L) / ws[:, None]
+        else:
+            lc = lab if cand is None else lab[cand]
+            starts = np.flatnonzero(np.r_[True, lc[1:] != lc[:-1]])
+            part = np.add.reduceat(w[:, :, None] * L[None], starts, axis=1)  # (P, regions present, C)
+            out[ids[:, None], lc[starts][None, :], :] = part / ws[:, None, None]
+        return ws
+
+    if weight_eps == 0.0:
+        for i in range(0, len(d), max(1, int(chunk))):
+            _gather(np.arange(i, min(i + max(1, int(chunk)), len(d))), None)
+    else:
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(src)
+        theta_c = float(np.arccos(weight_eps ** (1.0 / s)))
+        gsz = max(1, int(group))
+        for i in range(0, len(d), gsz):
+            ids = np.arange(i, min(i + gsz, len(d)))
+            cvec = d[ids].sum(axis=0)
+            cn = np.linalg.norm(cvec)
+            cvec = cvec / cn if cn > 0 else d[ids[0]]
+            ang = theta_c + float(np.arccos(np.clip(d[ids] @ cvec, -1.0, 1.0)).max())
+            if ang >= np.pi:
+                cand = np.arange(len(src))
+            else:
+                cand = np.asarray(tree.query_ball_point(cvec, 2.0 * np.sin(ang / 2.0) + 1e-12), dtype=np.intp)
+                cand.sort()
+            ws = _gather(ids, cand)
+            missing = len(src) - cand.size
+            bound[ids] = 0.0 if missing == 0 else 4.0 * np.pi * weight_eps / ws
+    out = out.reshape(shape + out.shape[1:])
+    return (out, bound.reshape(shape)) if return_bound else out

@@ -28,13 +28,15 @@ Quadrature (choices that change numbers, all explicit parameters):
 * Lobe truncation for glossy lobes: texels with max(d·ω,0)^s < ``weight_cutoff`` × (lobe peak) are skipped for the
   visibility (they still count in the normalisation); the neglected weight fraction is reported.
 
-Visibility: an exact parallel-ray caster (:func:`parallel_visibility`): for each direction ω the triangles and the
-ray origins are projected onto the plane ⟂ ω, binned on a 2D grid, and every candidate (origin, triangle) pair is
-tested with exact 2D barycentrics and the depth along ω — ray casting of the rays o + tω, t > 0, with a
-per-direction set-up.  It is cross-checked against trimesh's ``intersects_any`` in the tests;
-``backend="trimesh"`` uses :func:`ibl_ref.raycast.visibility_to_directions` instead (slow without Embree:
-~100 rays/s on the 16k-triangle teapot, docs/background.md §4).  Ray origins are offset by ``eps`` along the face
-normal and along the ray, as in :mod:`ibl_ref.raycast`.
+Visibility: the package's exact parallel-ray caster :func:`ibl_ref.raycast.parallel_visibility` (re-exported here
+as :func:`parallel_visibility` with the reference's argument order): for each direction ω the triangles and the
+surface points are projected onto the plane ⟂ ω, binned on a 2D grid, and every candidate (point, triangle) pair
+is tested with exact 2D edge functions and the height along ω; a triangle blocks when it is more than
+``eps`` = 1e-6 × scene radius nearer the light (rounding only; no origin offset, so contact shadows of thin
+occluders are kept — :mod:`ibl_ref.raycast` explains the choice).  It is cross-checked against trimesh's
+``intersects_any`` in the tests; ``backend="trimesh"`` uses :func:`ibl_ref.raycast.visibility_to_directions`
+instead (slow without Embree: ~100 rays/s on the 16k-triangle teapot, docs/background.md §4), whose ray origins
+are offset by ``eps`` (default 1e-4 × scene radius) along the face normal and along the ray.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .conventions import lobe_half_angle, phong_exponent  # noqa: F401  (re-exported, old names)
 from .errors import IBLError, LayoutError, check_radiance
 
 __all__ = [
@@ -127,12 +130,6 @@ def coarse_directions(cube, n_env: int, mode: str = "centroid") -> np.ndarray:
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
-def lobe_half_angle(s) -> np.ndarray:
-    """Half-width at half maximum of max(cos θ, 0)^s: θ½ = arccos(2^(−1/s)) (≈ 1.18/√s for large s)."""
-    s = np.asarray(s, dtype=np.float64)
-    return np.arccos(np.power(2.0, -1.0 / s))
-
-
 def env_size_for_exponent(s: float, n_fine: int, texels_per_halfwidth: float = 1.0, n_min: int = 8) -> int:
     """Smallest face size n (power of two, n_min ≤ n ≤ n_fine) with centre-texel angle (π/2)/n ≤ θ½/texels.
 
@@ -157,178 +154,37 @@ def _lobe_weights(d, omega_dirs, omega_sa, s):
 
 
 def lobe_average(cube, dirs, s, *, n_env: int | None = None, directions: str = "centre", chunk: int = 2048):
-    """Unoccluded lobe average A_s(d) of (*) at arbitrary directions (..., 3) → (..., C).
+    """Unoccluded lobe average A_s(d) of (*) at arbitrary directions (..., 3) → (..., C), on the level ``n_env``.
 
-    With ``n_env = N`` and ``directions="centre"`` this is exactly the formula of
-    :func:`ibl_ref.phong_convolution.convolve_exact` evaluated at ``dirs`` instead of at texel centres.
+    :func:`ibl_ref.phong_convolution.lobe_average` (the package's exact Eq. 4 lobe average) of
+    :func:`coarse_env` with the quadrature directions of :func:`coarse_directions`; with ``n_env = N`` and
+    ``directions="centre"`` it is exactly the formula of :func:`ibl_ref.phong_convolution.convolve_exact`
+    evaluated at ``dirs`` instead of at texel centres.
     """
-    from .envmap import cube_solid_angles
+    from .phong_convolution import lobe_average as _lobe_average
 
     a = _check_env(cube)
-    N = a.shape[1]
-    n_env = N if n_env is None else int(n_env)
-    Lc = coarse_env(a, n_env).reshape(-1, a.shape[-1])
-    om_d = coarse_directions(a, n_env, directions).reshape(-1, 3)
-    om = np.array(cube_solid_angles(n_env)).reshape(-1)
-    d = np.asarray(dirs, dtype=np.float64)
-    shape = d.shape[:-1]
-    d = d.reshape(-1, 3)
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    out = np.empty((len(d), Lc.shape[1]))
-    for i in range(0, len(d), chunk):
-        w, ws = _lobe_weights(d[i:i + chunk], om_d, om, float(s))
-        out[i:i + chunk] = (w @ Lc) / ws[:, None]
-    return out.reshape(shape + (Lc.shape[1],))
+    n_env = a.shape[1] if n_env is None else int(n_env)
+    return _lobe_average(coarse_env(a, n_env), dirs, s, texel_dirs=coarse_directions(a, n_env, directions),
+                         chunk=chunk)
 
 
 # ------------------------------------------------------------------------------------------------
 # exact parallel-ray visibility
 # ------------------------------------------------------------------------------------------------
-def _basis(d):
-    a = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = np.cross(d, a)
-    u /= np.linalg.norm(u)
-    return u, np.cross(d, u)
-
-
-def _expand(starts, counts):
-    """Concatenated aranges [starts[i], starts[i]+counts[i]) and the owner index of each element."""
-    counts = np.asarray(counts, dtype=np.int64)
-    owner = np.repeat(np.arange(len(counts)), counts)
-    offs = np.cumsum(counts) - counts
-    idx = np.arange(counts.sum(), dtype=np.int64) - np.repeat(offs, counts) + np.repeat(starts, counts)
-    return idx, owner
-
-
-def _cast_one_direction(tri, origins, d, grid_max=128):
-    """hit (P,) bool: does o + tω (t > 0) hit any of the triangles?  Exact up to float rounding.
-
-    ``tri`` is (F, 3, 3) vertex positions or a pair ``(vertices (V, 3), faces (F, 3))`` (faster: only the
-    vertices are projected).
-    """
-    if isinstance(tri, tuple):
-        verts, faces = tri
-    else:
-        verts, faces = tri.reshape(-1, 3), np.arange(tri.shape[0] * 3).reshape(-1, 3)
-    P = len(origins)
-    hit = np.zeros(P, dtype=bool)
-    if P == 0:
-        return hit
-    u, v = _basis(d)
-    vx, vy, vz = verts[:, 0], verts[:, 1], verts[:, 2]
-    pr = [vx * b[0] + vy * b[1] + vz * b[2] for b in (u, v, d)]  # coordinates ⟂ ω and along ω
-    pu, pv, pw = (origins[:, 0] * b[0] + origins[:, 1] * b[1] + origins[:, 2] * b[2] for b in (u, v, d))
-    umin, umax, vmin, vmax = pu.min(), pu.max(), pv.min(), pv.max()
-    f0, f1, f2 = faces[:, 0], faces[:, 1], faces[:, 2]
-    tu = np.stack([pr[0][f0], pr[0][f1], pr[0][f2]], axis=1)
-    tv = np.stack([pr[1][f0], pr[1][f1], pr[1][f2]], axis=1)
-    tw = np.stack([pr[2][f0], pr[2][f1], pr[2][f2]], axis=1)
-
-    def _mn(x):
-        return np.minimum(np.minimum(x[:, 0], x[:, 1]), x[:, 2])
-
-    def _mx(x):
-        return np.maximum(np.maximum(x[:, 0], x[:, 1]), x[:, 2])
-
-    tumin, tumax, tvmin, tvmax = _mn(tu), _mx(tu), _mn(tv), _mx(tv)
-    keep = (_mx(tw) > pw.min()) & (tumax >= umin) & (tumin <= umax) & (tvmax >= vmin) & (tvmin <= vmax)
-    if not keep.any():
-        return hit
-    tu, tv, tw = tu[keep], tv[keep], tw[keep]
-    tumin, tumax, tvmin, tvmax = tumin[keep], tumax[keep], tvmin[keep], tvmax[keep]
-    # 2D signed area; edge-on triangles (area ≈ 0) are grazed by parallel rays: measure zero, skipped
-    area = (tu[:, 1] - tu[:, 0]) * (tv[:, 2] - tv[:, 0]) - (tu[:, 2] - tu[:, 0]) * (tv[:, 1] - tv[:, 0])
-    ext = max(umax - umin, vmax - vmin, 1e-12)
-    ok = np.abs(area) > 1e-14 * ext * ext
-    tu, tv, tw, area = tu[ok], tv[ok], tw[ok], area[ok]
-    tumin, tumax, tvmin, tvmax = tumin[ok], tumax[ok], tvmin[ok], tvmax[ok]
-    if len(area) == 0:
-        return hit
-    G = int(min(grid_max, max(1, np.ceil(np.sqrt(P)))))
-    cu = (umax - umin) / G or 1.0
-    cv = (vmax - vmin) / G or 1.0
-    i0 = np.clip(np.floor((tumin - umin) / cu), 0, G - 1).astype(np.int64)
-    i1 = np.clip(np.floor((tumax - umin) / cu), 0, G - 1).astype(np.int64)
-    j0 = np.clip(np.floor((tvmin - vmin) / cv), 0, G - 1).astype(np.int64)
-    j1 = np.clip(np.floor((tvmax - vmin) / cv), 0, G - 1).astype(np.int64)
-    nj = j1 - j0 + 1
-    cnt = (i1 - i0 + 1) * nj
-    k, t_own = _expand(np.zeros(len(cnt), np.int64), cnt)
-    cell = (i0[t_own] + k // nj[t_own]) * G + (j0[t_own] + k % nj[t_own])
-    order = np.argsort(cell, kind="stable")
-    cell_tri = t_own[order]
-    cell_start = np.searchsorted(cell[order], np.arange(G * G))
-    cell_cnt = np.bincount(cell, minlength=G * G)
-    pi = np.clip(np.floor((pu - umin) / cu), 0, G - 1).astype(np.int64)
-    pj = np.clip(np.floor((pv - vmin) / cv), 0, G - 1).astype(np.int64)
-    pc = pi * G + pj
-    idx, p_own = _expand(cell_start[pc], cell_cnt[pc])
-    t = cell_tri[idx]
-    x, y = pu[p_own], pv[p_own]
-    # barycentrics in 2D (inclusive edges: a ray through a shared edge counts as a hit)
-    a0 = ((tu[t, 1] - x) * (tv[t, 2] - y) - (tu[t, 2] - x) * (tv[t, 1] - y)) / area[t]
-    a1 = ((tu[t, 2] - x) * (tv[t, 0] - y) - (tu[t, 0] - x) * (tv[t, 2] - y)) / area[t]
-    a2 = 1.0 - a0 - a1
-    tol = -1e-12
-    inside = (a0 >= tol) & (a1 >= tol) & (a2 >= tol)
-    w_hit = a0 * tw[t, 0] + a1 * tw[t, 1] + a2 * tw[t, 2]
-    h = inside & (w_hit > pw[p_own])
-    hit[np.unique(p_own[h])] = True
-    return hit
-
-
 def parallel_visibility(meshes, points, normals, dirs, *, eps: float | None = None, mask=None, progress: bool = False):
-    """Exact binary visibility V (P, D) of directions ``dirs`` (D, 3) from surface points (P, 3).
+    """Exact binary visibility V (P, D) of directions ``dirs`` (D, 3) from surface points (P, 3); 1 = unoccluded.
 
-    Same contract as :func:`ibl_ref.raycast.visibility_to_directions` (origin p + eps·n + eps·ω; 1 = unoccluded),
-    computed with the per-direction projection caster described in the module docstring.  ``mask`` (P, D) bool
-    selects the pairs to cast (others are returned as 1).  With ``normals``, directions below the receiving
-    triangle's plane (ω·n < 0) are occluded without casting (the ray enters the surface; trimesh agrees since
-    such a ray hits the receiving triangle itself).
+    The reference's argument order for :func:`ibl_ref.raycast.parallel_visibility` (the package's one exact
+    parallel-ray caster; ``eps`` is its blocking threshold, default 1e-6 × scene radius).  ``mask`` (P, D) bool
+    selects the pairs to cast (others are returned as 1).  With ``normals``, directions at or below the receiving
+    triangle's plane (ω·n ≤ 0) are occluded without casting (the ray enters the surface).
     """
-    from .raster import prepare_scene
+    from .raycast import parallel_visibility as _cast
 
-    scene = prepare_scene(meshes, warn=False)
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
-    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(d))):
-        raise IBLError("points/dirs contain NaN or Inf")
-    nd = np.linalg.norm(d, axis=1, keepdims=True)
-    if np.any(nd == 0):
-        raise IBLError("dirs: zero-length direction")
-    d = d / nd
-    if eps is None:
-        eps = 1e-4 * scene.bounds()[1]
-    base = p.copy()
-    below = None
-    if normals is not None:
-        n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-        if len(n) != len(p):
-            raise IBLError(f"normals ({len(n)}) and points ({len(p)}) differ in length")
-        base = base + eps * n
-        below = (n @ d.T) < 0  # direction below the receiving triangle's plane: the ray enters the surface
-    if mask is not None:
-        mask = np.asarray(mask, dtype=bool)
-        if mask.shape != (len(p), len(d)):
-            raise IBLError(f"mask shape {mask.shape} != ({len(p)}, {len(d)})")
-    tri = (scene.vertices, scene.faces)
-    V = np.ones((len(p), len(d)))
-    it = range(len(d))
-    if progress:
-        from tqdm import tqdm
-
-        it = tqdm(it, desc="reference rays", unit="dir")
-    for j in it:
-        want = np.ones(len(p), dtype=bool) if mask is None else mask[:, j].copy()
-        if below is not None:
-            V[below[:, j], j] = 0.0
-            want &= ~below[:, j]
-        sel = np.flatnonzero(want)
-        if len(sel) == 0:
-            continue
-        o = base[sel] + eps * d[j]
-        V[sel, j] = np.where(_cast_one_direction(tri, o, d[j]), 0.0, 1.0)
-    return V
+    return _cast(meshes, np.asarray(points, dtype=np.float64).reshape(-1, 3), d, normals=normals, eps=eps,
+                 mask=mask, progress=progress)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -450,7 +306,6 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
     -------
     ReferenceResult
     """
-    from .gloss_lookup import phong_exponent
     from .raster import prepare_scene, rasterize
 
     kd, ks, g = float(kd), float(ks), float(g)
@@ -530,7 +385,7 @@ def exact_pem_lookup(cube, labels, dirs, s: float, n_regions: int | None = None,
     texels j (``labels`` (6, N, N) from :func:`ibl_ref.median_cut.median_cut`), so Σ_i PEM_i = the exact lobe
     average.  Used to separate the filter-pyramid error from the visibility error of Eq. 5.
     """
-    from .envmap import cube_solid_angles, texel_directions
+    from .phong_convolution import lobe_average as _lobe_average
 
     a = _check_env(cube)
     N = a.shape[1]
@@ -538,17 +393,5 @@ def exact_pem_lookup(cube, labels, dirs, s: float, n_regions: int | None = None,
     if lab.shape[0] != 6 * N * N:
         raise LayoutError(f"labels must have shape (6, {N}, {N})")
     L = int(lab.max()) + 1 if n_regions is None else int(n_regions)
-    order = np.argsort(lab, kind="stable")
-    starts = np.searchsorted(lab[order], np.arange(L))
-    Lc = a.reshape(-1, a.shape[-1])[order]
-    om_d = np.asarray(texel_directions(N)).reshape(-1, 3)[order]
-    om = np.asarray(cube_solid_angles(N)).reshape(-1)[order]
-    d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    out = np.zeros((L, len(d), a.shape[-1]))
-    nonempty = np.bincount(lab, minlength=L) > 0
-    for i in range(0, len(d), chunk):
-        w, ws = _lobe_weights(d[i:i + chunk], om_d, om, float(s))
-        part = np.add.reduceat(w[:, :, None] * Lc[None], starts[nonempty], axis=1) / ws[:, None, None]
-        out[nonempty, i:i + chunk] = np.moveaxis(part, 1, 0)
-    return out
+    out = _lobe_average(a, dirs, s, labels=lab.reshape(6, N, N), n_regions=L, chunk=chunk)  # (P, L, C)
+    return np.moveaxis(out.reshape(-1, L, a.shape[-1]), 1, 0)

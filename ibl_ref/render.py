@@ -13,6 +13,11 @@ r = 2(n·v)n − v; "we can use the same sample vector for each PEM" (Sec. 3.4),
   shadow-map error alone;
 * ``visibility="none"`` — VIS_i = 1, the unshadowed image Σ_i PEM_i (= the full map's lookup, by linearity).
 
+**One Eq. 5 path.**  The pieces are public and every renderer of the package uses them: :func:`eq5_lookups`
+(PEM_i(n, 0) and PEM_i(r, g)), :func:`light_visibilities` (VIS_i by any method), :func:`eq5_terms` /
+:func:`shade_eq5` (the sum) and :func:`unshadowed_eq5`; :func:`render_pem` composes them, and so do the
+comparison modes of Fig. 6 (:func:`ibl_ref.ao_modes.render_modes`), which differ only in the occlusion model.
+
 **Horizon.**  A light below the tangent plane of the receiving triangle is physically blocked by the surface
 itself.  A shadow map does not see this for open surfaces (a ground quad is its own first occluder, so t ≈ μ
 and the light counts as visible), and Eq. 5 as printed has no such term.  ``horizon=False`` (default) keeps the
@@ -44,7 +49,9 @@ the world position), ``"spherical"`` (u = ½ + atan2(x', z')/2π, v = ½ + asin(
 centre, computed per pixel so there is no interpolation seam) or ``"error"`` (raise :class:`IBLError`).
 A prepared :class:`ibl_ref.raster.Scene` carries no UVs, so it always uses the fallback.
 
-Background pixels (no geometry) are 0 and flagged in ``RenderResult.mask``.  Normals are used as given by the
+Background pixels (no geometry) are flagged in ``RenderResult.mask``; in ``image`` they are 0
+(``background="black"``, default) or the environment seen along the camera ray (``background="env"``: the same
+look-up a mirror reflection of that direction gets, :func:`background_image`).  Normals are used as given by the
 mesh (not flipped toward the viewer).
 """
 
@@ -57,7 +64,9 @@ import numpy as np
 from .errors import IBLError
 
 __all__ = ["RenderResult", "Material", "glossiness_image", "material_images", "surface_uv", "sample_g_map",
-           "render_pem", "VISIBILITY_METHODS", "UV_FALLBACKS"]
+           "render_pem", "resolve_materials", "light_visibilities", "eq5_lookups", "eq5_terms", "shade_eq5",
+           "unshadowed_eq5", "background_image", "apply_background", "VISIBILITY_METHODS", "UV_FALLBACKS",
+           "BACKGROUNDS"]
 
 VISIBILITY_METHODS = ("vsm", "raycast", "none")
 
@@ -213,8 +222,8 @@ def _as_material(m, key) -> Material:
     raise IBLError(f"materials[{key!r}]: expected a Material, a (kd, ks, g) tuple or a dict, got {m!r}")
 
 
-def _resolve_materials(materials) -> dict:
-    """{material_id: Material} from a Material (all ids: key None) or a mapping."""
+def resolve_materials(materials) -> dict:
+    """{material_id: Material} from a Material, a (kd, ks, g) tuple (all ids: key None) or a mapping."""
     if isinstance(materials, (Material, tuple, list)) or (isinstance(materials, dict) and "g" in materials):
         return {None: _as_material(materials, "*")}
     if not isinstance(materials, dict):
@@ -326,7 +335,7 @@ def surface_uv(meshes, scene, gbuffer, pixels, fallback: str = "planar_xz") -> n
 def material_images(meshes, scene, gbuffer, materials: dict):
     """Per-pixel kd (n, K), ks (n, K) and g (n,) of the covered pixels (K = 1 or 3), in ``gbuffer.mask`` order.
 
-    ``materials`` as returned by :func:`_resolve_materials` (key None = every material id).
+    ``materials`` as returned by :func:`resolve_materials` (key None = every material id).
     """
     m = gbuffer.mask
     mid = gbuffer.material_id[m]
@@ -357,6 +366,178 @@ def material_images(meshes, scene, gbuffer, materials: dict):
     return kd, ks, g
 
 
+BACKGROUNDS = ("black", "env")
+
+
+def light_visibilities(scene, points, face_normals, lights, *, method: str = "vsm", vsm_resolution: int = 256,
+                       vsm_dtype: str = "float32", horizon: bool | None = None, exact_backend: str = "binned",
+                       timings: dict | None = None, progress: bool = False, **vsm_kw) -> np.ndarray:
+    """VIS_i (L, P) of Eq. 5 for every light at surface points: ``"vsm"`` (Sec. 3.3), ``"raycast"`` or ``"none"``.
+
+    Parameters
+    ----------
+    scene : meshes or a prepared :class:`ibl_ref.raster.Scene`
+    points, face_normals : (P, 3) surface points and the geometric normals of their triangles
+    lights : anything with ``.directions`` (L, 3) and ``.solid_angle`` (L,) (a median-cut ``LightSet``)
+    method : ``"vsm"`` — one variance shadow map per light, blurred from its solid angle
+        (:func:`ibl_ref.vsm.build_vsm`, ``vsm_resolution``, ``vsm_dtype`` and ``**vsm_kw``: ``occluder_distance``,
+        ``depth_bias``, ``min_variance``, ``bleed_reduction``); ``"raycast"`` — exact binary visibility of the same
+        directional lights (``exact_backend="binned"``: :func:`ibl_ref.raycast.parallel_visibility`;
+        ``"trimesh"``: :func:`ibl_ref.raycast.visibility_to_directions`); ``"none"`` — VIS_i = 1.
+    horizon : the receiver's own surface (a light at or below the receiving triangle's plane, n_face·ω_i ≤ 0).
+        ``None`` (default): each method's own behaviour — the exact casters include it (a ray from the surface
+        finds the surface), a shadow map and ``"none"`` do not; ``True``: multiply every VIS_i by
+        [n_face·ω_i > 0] for every method; ``False``: the binned caster counts only *other* geometry, like a
+        shadow map (the trimesh route always includes the receiver: its rays start on it).
+    timings : dict, optional — adds seconds per stage: ``shadow_maps`` (depth rendering), ``blur`` (moments and
+        Gaussian blur), ``visibility`` (look-ups or ray casts)
+    progress : tqdm bar over lights
+    """
+    import time
+
+    if method not in VISIBILITY_METHODS:
+        raise IBLError(f"visibility method must be one of {VISIBILITY_METHODS}, got {method!r}")
+    if exact_backend not in ("binned", "trimesh"):
+        raise IBLError(f"exact_backend must be 'binned' or 'trimesh', got {exact_backend!r}")
+    dirs = np.asarray(lights.directions, dtype=np.float64).reshape(-1, 3)
+    omega = np.asarray(lights.solid_angle, dtype=np.float64).reshape(-1)
+    P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    fn = None if face_normals is None else np.asarray(face_normals, dtype=np.float64).reshape(-1, 3)
+    L = len(dirs)
+    V = np.ones((L, len(P)))
+    if len(P) == 0:
+        return V
+
+    def _tick(key, t0):
+        if timings is not None:
+            timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
+
+    if method == "raycast":
+        t0 = time.perf_counter()
+        if exact_backend == "trimesh":
+            from .raycast import visibility_to_directions
+
+            V = visibility_to_directions(scene, P, fn, dirs, progress=progress).T
+        else:
+            from .raycast import parallel_visibility
+
+            V = parallel_visibility(scene, P, dirs, normals=None if horizon is False else fn, progress=progress).T
+        _tick("visibility", t0)
+    elif method == "vsm":
+        from . import vsm as _vsm
+        from .raster import prepare_scene
+
+        sc = prepare_scene(scene, warn=False)
+        it = range(L)
+        if progress:
+            from tqdm import tqdm
+
+            it = tqdm(it, desc="shadow maps", unit="light")
+        for i in it:
+            sm = _vsm.build_vsm(sc, dirs[i], omega[i], resolution=vsm_resolution, dtype=vsm_dtype, timings=timings,
+                                **vsm_kw)
+            t0 = time.perf_counter()
+            V[i] = _vsm.visibility(P, sm)
+            _tick("visibility", t0)
+    if horizon:
+        V = V * (fn @ dirs.T > 0).T
+    return V
+
+
+def eq5_lookups(pems, normals, reflect, g, kd, ks):
+    """The PEM look-ups of Eq. 5: ``(PEM_i(n, g=0), PEM_i(r, g))``, each (L, P, C) float64 or None.
+
+    "We can use the same sample vector for each PEM" (Sec. 3.4): the diffuse lobe through the normal n at
+    g = 0 (s_Phong = 1, Eq. 3), the glossy lobe through the reflection vector r at the material's g (scalar or
+    (P,) per pixel).  A term is looked up only where its weight (kd, ks: scalars or (P, K) arrays) is non-zero
+    somewhere; with kd = ks = 0 the glossy one is looked up anyway (black image, but the channel count is kept).
+    """
+    L = len(np.asarray(pems.lights.directions).reshape(-1, 3))
+    n_px = len(np.asarray(reflect).reshape(-1, 3))
+
+    def _lookup(dirs, gg):
+        vals = np.asarray(pems.lookup_all(dirs, gg), dtype=np.float64)  # (L, P, C)
+        if vals.ndim != 3 or vals.shape[:2] != (L, n_px):
+            raise IBLError(f"pems.lookup_all returned shape {vals.shape}, expected ({L}, {n_px}, C)")
+        return vals
+
+    pem_n = _lookup(normals, 0.0) if np.any(np.asarray(kd) > 0) else None
+    pem_r = _lookup(reflect, g) if (np.any(np.asarray(ks) > 0) or pem_n is None) else None
+    return pem_n, pem_r
+
+
+def eq5_terms(vis, pem_n, pem_r, kd, ks):
+    """The two terms of Eq. 5, Σ_i VIS_i·kd·PEM_i(n, 0) and Σ_i VIS_i·ks·PEM_i(r, g), each (P, C) or None.
+
+    vis (L, P); pem_* (L, P, C) or None (term absent); kd, ks scalars or per-pixel (P, K) weights (K = 1 or C).
+    The weights do not depend on the light, so kd·Σ_i VIS_i PEM_i = Σ_i VIS_i kd PEM_i.
+    """
+    diffuse = None if pem_n is None else kd * np.einsum("lp,lpc->pc", vis, pem_n)
+    specular = None if pem_r is None else ks * np.einsum("lp,lpc->pc", vis, pem_r)
+    return diffuse, specular
+
+
+def shade_eq5(vis, pem_n, pem_r, kd, ks) -> np.ndarray:
+    """Eq. 5 with a kd/ks material: c = Σ_i VIS_i · (kd·PEM_i(n, 0) + ks·PEM_i(r, g)) → (P, C).
+
+    vis (L, P), pem_* (L, P, C) (a term whose weight is 0 may be None); kd, ks scalars or (P, K) arrays.
+    The one implementation of Eq. 5: :func:`render_pem` and every mode of :mod:`ibl_ref.ao_modes` call it.
+    """
+    kd_on = pem_n is not None and np.any(np.asarray(kd) > 0)
+    ks_on = pem_r is not None and np.any(np.asarray(ks) > 0)
+    diffuse, specular = eq5_terms(vis, pem_n if kd_on else None, pem_r if ks_on else None, kd, ks)
+    if diffuse is None and specular is None:
+        ref = pem_r if pem_r is not None else pem_n
+        return np.zeros(ref.shape[1:])
+    return specular if diffuse is None else (diffuse if specular is None else diffuse + specular)
+
+
+def unshadowed_eq5(pem_n, pem_r, kd, ks) -> np.ndarray:
+    """Eq. 5 with VIS ≡ 1: kd·Σ_i PEM_i(n, 0) + ks·Σ_i PEM_i(r, g) (= the full map's look-ups, Sec. 3.1) → (P, C)."""
+    parts = [w * p.sum(axis=0) for w, p in ((kd, pem_n), (ks, pem_r)) if p is not None and np.any(np.asarray(w) > 0)]
+    if not parts:
+        ref = pem_r if pem_r is not None else pem_n
+        return np.zeros(ref.shape[1:])
+    return parts[0] if len(parts) == 1 else parts[0] + parts[1]
+
+
+def background_image(camera, source, shape=None) -> np.ndarray:
+    """The environment seen behind the scene: radiance (H, W, C) along every camera ray.
+
+    ``source`` is a radiance cube (6, N, N, C) (seam-aware bilinear look-up, :func:`ibl_ref.sampling.sample_bilinear`)
+    or a PEM set (Σ_i PEM_i(d, g = 1): the pyramid's mirror look-up, level 0 bilinear, which by linearity is the
+    same look-up of the full map).  Either way it is the look-up a mirror (g = 1) reflection of that direction
+    gets, so a mirror ball reflects exactly the backdrop.
+    """
+    _, d = camera.pixel_rays()
+    H, W = d.shape[:2]
+    d = d.reshape(-1, 3)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    if hasattr(source, "lookup_all"):
+        vals = np.asarray(source.lookup_all(d, 1.0), dtype=np.float64).sum(axis=0)
+    else:
+        from .sampling import sample_bilinear
+
+        cube = np.asarray(source, dtype=np.float64)
+        if cube.ndim == 3:
+            cube = cube[..., None]
+        vals = sample_bilinear(cube, d)
+    return vals.reshape(H, W, -1)
+
+
+def apply_background(image, mask, camera, source, background: str = "black") -> np.ndarray:
+    """Fill the pixels outside ``mask`` with the backdrop ``background`` (``"black"``: 0, ``"env"``:
+    :func:`background_image` of ``source``); returns ``image`` (changed in place)."""
+    if background not in BACKGROUNDS:
+        raise IBLError(f"background must be one of {BACKGROUNDS}, got {background!r}")
+    if background == "env" and not np.all(mask):
+        bg = background_image(camera, source)
+        if bg.shape[-1] not in (1, image.shape[-1]):
+            raise IBLError(f"background has {bg.shape[-1]} channels, the image {image.shape[-1]}")
+        image[~mask] = np.broadcast_to(bg, image.shape)[~mask]
+    return image
+
+
 def render_pem(
     meshes,
     camera,
@@ -374,6 +555,7 @@ def render_pem(
     smooth_normals: bool = True,
     exact_backend: str = "binned",
     horizon: bool = False,
+    background: str = "black",
     progress: bool = False,
 ) -> RenderResult:
     """Render Eq. 5 for a scene lit by a set of partial environment maps.
@@ -395,6 +577,8 @@ def render_pem(
     smooth_normals : interpolated vertex normals (True) or face normals
     exact_backend : ``"binned"`` or ``"trimesh"`` (for ``visibility="raycast"``)
     horizon : multiply VIS_i by [n_face·ω_i > 0] (see module docstring); default False (paper)
+    background : ``"black"`` (default: 0 outside the geometry) or ``"env"`` — the environment seen along each
+        camera ray (:func:`background_image`: the PEMs' mirror look-up), only in ``image``
     progress : tqdm bar over lights
 
     Returns
@@ -407,101 +591,55 @@ def render_pem(
         raise IBLError(f"visibility must be one of {VISIBILITY_METHODS}, got {visibility!r}")
     if exact_backend not in ("binned", "trimesh"):
         raise IBLError(f"exact_backend must be 'binned' or 'trimesh', got {exact_backend!r}")
+    if background not in BACKGROUNDS:
+        raise IBLError(f"background must be one of {BACKGROUNDS}, got {background!r}")
     lights = getattr(pems, "lights", None)
     if lights is None or not hasattr(pems, "lookup_all"):
         raise IBLError("pems: expected an ibl_ref.pem.PEMSet (with .lights and .lookup_all)")
-    dirs_l = np.asarray(lights.directions, dtype=np.float64).reshape(-1, 3)
-    omega_l = np.asarray(lights.solid_angle, dtype=np.float64).reshape(-1)
-    L = len(dirs_l)
+    L = len(np.asarray(lights.directions, dtype=np.float64).reshape(-1, 3))
     scene = prepare_scene(meshes)
     if materials is not None and glossiness is not None:
         raise IBLError("give either glossiness= (pure glossy, kd = 0, ks = 1) or materials=, not both")
-    mats = _resolve_materials(materials) if materials is not None else None
+    mats = resolve_materials(materials) if materials is not None else None
     if glossiness is None:
         glossiness = 0.5
     g = rasterize(scene, camera, smooth_normals=smooth_normals)
     H, W = g.mask.shape
     m = g.mask
     P = g.position[m]
-    r = g.reflect[m]
-
-    def _lookup(dirs, gg):
-        vals = np.asarray(pems.lookup_all(dirs, gg), dtype=np.float64)  # (L, n, C)
-        if vals.ndim != 3 or vals.shape[:2] != (L, len(P)):
-            raise IBLError(f"pems.lookup_all returned shape {vals.shape}, expected ({L}, {len(P)}, C)")
-        return vals
-
-    pem_n = pem_r = None
-    if mats is None:
+    if mats is None:  # pure glossy: kd = 0, ks = 1
         gl = glossiness_image(g.material_id, glossiness)
-        # Eq. 5 lookups: the same sample vector r for every PEM (Sec. 3.4)
-        pem_vals = _lookup(r, gl[m])
+        kd_px, ks_px, g_px = 0.0, 1.0, gl[m]
     else:
         kd_px, ks_px, g_px = material_images(meshes, scene, g, mats)
         gl = np.zeros((H, W))
         gl[m] = g_px
-        if np.any(ks_px > 0):
-            pem_r = _lookup(r, g_px)  # glossy lobe: reflection vector r, material g
-        if np.any(kd_px > 0):
-            pem_n = _lookup(g.normal[m], 0.0)  # diffuse lobe: normal n, g = 0 (s_Phong = 1, Eq. 3)
-        if pem_r is None and pem_n is None:
-            pem_r = _lookup(r, g_px)  # kd = ks = 0 everywhere: black, but keep the channel count
-            ks_px = np.zeros_like(ks_px)
-        C = (pem_r if pem_r is not None else pem_n).shape[2]
-        if kd_px.shape[1] not in (1, C):
-            raise IBLError(f"RGB material weights need 3-channel PEMs, the PEMs have {C} channel(s)")
-        if pem_r is not None:
-            pem_r = ks_px[None] * pem_r
-        if pem_n is not None:
-            pem_n = kd_px[None] * pem_n
-        pem_vals = pem_r if pem_n is None else (pem_n if pem_r is None else pem_n + pem_r)
-    C = pem_vals.shape[2]
-    vis = np.ones((L, len(P)))
-    if visibility == "vsm" and len(P):
-        from . import vsm as _vsm
-
-        it = range(L)
-        if progress:
-            from tqdm import tqdm
-
-            it = tqdm(it, desc="shadow maps", unit="light")
-        for i in it:
-            sm = _vsm.build_vsm(
-                scene, dirs_l[i], omega_l[i], resolution=vsm_resolution, occluder_distance=occluder_distance,
-                dtype=vsm_dtype, depth_bias=depth_bias, min_variance=min_variance, bleed_reduction=bleed_reduction,
-            )
-            vis[i] = _vsm.visibility(P, sm)
-    elif visibility == "raycast" and len(P) and exact_backend == "trimesh":
-        from .raycast import visibility_to_directions
-
-        vis = visibility_to_directions(scene, P, g.face_normal[m], dirs_l, progress=progress).T
-    elif visibility == "raycast" and len(P):
-        from .raycast import parallel_visibility
-
-        it = range(L)
-        if progress:
-            from tqdm import tqdm
-
-            it = tqdm(it, desc="exact visibility", unit="light")
-        for i in it:
-            vis[i] = parallel_visibility(scene, P, dirs_l[i], normals=g.face_normal[m] if horizon else None)
-    if horizon and len(P):
-        vis = vis * (g.face_normal[m] @ dirs_l.T > 0).T
-    c = np.einsum("ln,lnc->nc", vis, pem_vals)  # Eq. 5: c = Σ_i VIS_i · PEM_i
+    pem_n, pem_r = eq5_lookups(pems, g.normal[m], g.reflect[m], g_px, kd_px, ks_px)
+    C = (pem_r if pem_r is not None else pem_n).shape[2]
+    if np.ndim(kd_px) == 2 and kd_px.shape[1] not in (1, C):
+        raise IBLError(f"RGB material weights need 3-channel PEMs, the PEMs have {C} channel(s)")
+    vsm_kw = dict(occluder_distance=occluder_distance, depth_bias=depth_bias, min_variance=min_variance,
+                  bleed_reduction=bleed_reduction)
+    vis = light_visibilities(scene, P, g.face_normal[m], lights, method=visibility, vsm_resolution=vsm_resolution,
+                             vsm_dtype=vsm_dtype, horizon=bool(horizon), exact_backend=exact_backend,
+                             progress=progress, **vsm_kw)
+    diffuse, specular = eq5_terms(vis, pem_n, pem_r, kd_px, ks_px)  # Eq. 5, term by term
+    c = specular if diffuse is None else (diffuse if specular is None else diffuse + specular)
     image = np.zeros((H, W, C))
     image[m] = c
     unshadowed = np.zeros((H, W, C))
-    unshadowed[m] = pem_vals.sum(axis=0)
+    unshadowed[m] = unshadowed_eq5(pem_n, pem_r, kd_px, ks_px) if mats is not None else pem_r.sum(axis=0)
     vis_img = np.ones((L, H, W))
     vis_img[:, m] = vis
     if not np.all(np.isfinite(image)):
         raise IBLError("render produced non-finite values (check the PEMs for Inf/NaN)")
     parts = {}
     if mats is not None:
-        for name, vals in (("diffuse", pem_n), ("specular", pem_r)):
+        for name, vals in (("diffuse", diffuse), ("specular", specular)):
             img = np.zeros((H, W, C))
             if vals is not None:
-                img[m] = np.einsum("ln,lnc->nc", vis, vals)  # one term of Eq. 5
+                img[m] = vals
             parts[name] = img
+    apply_background(image, m, camera, pems, background)
     return RenderResult(image=image, unshadowed=unshadowed, visibility=vis_img, mask=m, gbuffer=g,
                         glossiness=gl, method=visibility, materials=mats, **parts)

@@ -225,13 +225,14 @@ def bezier_patch_grid(control_points: np.ndarray, m: int) -> np.ndarray:
     return np.einsum("ui,vj,...ijk->...uvk", b, b, control_points)
 
 
-def mesh_teapot(subdiv: int = 16, y_up: bool = True) -> trimesh.Trimesh:
+def mesh_teapot(subdiv: int = 16, y_up: bool = True, close_lid_gap: bool = True) -> trimesh.Trimesh:
     """Newell's teapot tessellated from its 32 bicubic Bézier patches.
 
     Each patch is sampled on a uniform (subdiv+1)² parameter grid and split into 2·subdiv² triangles;
     duplicate vertices along patch seams are merged; the triangles that collapse at the two poles
     (lid knob top, bottom centre: 8 patches with a degenerate first row) are removed, so the mesh has
-    ``32·2·subdiv² − 8·subdiv`` triangles (16 256 for the default subdiv = 16).
+    ``32·2·subdiv² − 8·subdiv`` triangles (16 256 for the default subdiv = 16), plus ``8·subdiv`` for the lid
+    ledge (``close_lid_gap``, 16 384 in all by default).
 
     Parameters
     ----------
@@ -240,13 +241,22 @@ def mesh_teapot(subdiv: int = 16, y_up: bool = True) -> trimesh.Trimesh:
     y_up : bool
         Rotate the original z-up data to +Y up ((x, y, z) → (x, z, −y)); the handle stays at −x, the
         spout at +x, and the teapot stands on y = 0 (height 3.15 in the data's units).
+    close_lid_gap : bool
+        In the published data the lid ends at radius 1.3 and the body's rim starts at 1.4, both at height 2.4:
+        an open annulus through which the pot's *inside* (the back faces of the body sheet) is seen.  At
+        render sizes where the annulus is about a pixel wide it shows up as isolated dark pixels along the lid
+        rim (their reflection vectors point into the pot).  ``True`` (default) adds the flat ledge the lid rests
+        on: 2·4·subdiv triangles (128 at subdiv = 16) joining the lid's outer edge to the rim's inner edge
+        (the two edge loops have the same 4·subdiv angles, since both patches sample the same circle), with
+        their own vertices and the exact normal of the plane (+y); ``False`` keeps the original open data.
 
     Notes
     -----
     The patches' winding in the data is consistent; with triangles (a, b, c) = ((i,j), (i,j+1),
     (i+1,j+1)) the face normal is −S_u × S_v, which points outward for every patch (tested).  The mesh
     is **not watertight**: handle and spout ends are open inside the body and the lid (radius 1.3) does
-    not touch the rim (radius 1.4); trimesh reports four connected components.
+    not touch the rim (radius 1.4; closed by a flat ledge with ``close_lid_gap``, which shares positions but
+    not vertices with the lid and the rim).
     """
     import trimesh
 
@@ -291,15 +301,54 @@ def mesh_teapot(subdiv: int = 16, y_up: bool = True) -> trimesh.Trimesh:
     ln = np.linalg.norm(nsum, axis=1, keepdims=True)
     fallback = np.asarray(mesh.vertex_normals)
     vn = np.where(ln > 1e-9, nsum / np.where(ln > 1e-9, ln, 1.0), fallback)
+    if close_lid_gap:
+        verts, faces, vn, face_part = _lid_ledge(verts, faces, vn, face_part, y_up)
+        mesh = trimesh.Trimesh(verts, faces, process=False)
     # part ranges: faces are already grouped by patch and patches by part
     ranges = {}
-    for p in range(32):
+    for p in np.unique(face_part):
         sel = np.nonzero(face_part == p)[0]
-        lo, hi = ranges.get(names[p], [sel[0], sel[-1] + 1])
-        ranges[names[p]] = [int(min(lo, sel[0])), int(max(hi, sel[-1] + 1))]
+        name = names[p] if p < 32 else "lid_ledge"
+        lo, hi = ranges.get(name, [sel[0], sel[-1] + 1])
+        ranges[name] = [int(min(lo, sel[0])), int(max(hi, sel[-1] + 1))]
     mesh.metadata["part_faces"] = ranges
     mesh.vertex_normals = vn
     return validate_mesh(mesh, "teapot")
+
+
+def _lid_ledge(verts, faces, vn, face_part, y_up):
+    """Append the flat annulus between the lid's outer edge loop (r ≈ 1.3) and the rim's inner loop (r ≈ 1.4)
+    at height 2.4 (module data units), as quads between vertices of equal angle; normal = the up axis."""
+    e = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    u, c = np.unique(e, axis=0, return_counts=True)
+    bv = np.unique(u[c == 1])  # vertices on boundary edges
+    up = 1 if y_up else 2
+    h = verts[bv, up]
+    rad = np.hypot(verts[bv, 0], verts[bv, 2 if y_up else 1])
+    ang = np.arctan2(verts[bv, 2 if y_up else 1], verts[bv, 0])
+    loops = []
+    for lo, hi in ((1.25, 1.35), (1.35, 1.45)):
+        sel = (np.abs(h - 2.4) < 1e-9) & (rad > lo) & (rad < hi)
+        loops.append(bv[sel][np.argsort(ang[sel])])
+    inner, outer = loops
+    if len(inner) != len(outer) or len(inner) < 3 or not np.allclose(
+            np.sort(ang[np.isin(bv, inner)]), np.sort(ang[np.isin(bv, outer)]), atol=1e-9):
+        raise MeshError("teapot: lid and rim edge loops do not match; cannot close the lid gap")
+    k = len(inner)
+    base = len(verts)
+    new_v = np.concatenate([verts[inner], verts[outer]])  # own vertices: a crease with the plane's normal
+    i = np.arange(k)
+    j = (i + 1) % k
+    a, b, c2, d = base + i, base + j, base + k + j, base + k + i  # inner_i, inner_j, outer_j, outer_i
+    tri = np.concatenate([np.stack([a, c2, b], 1), np.stack([a, d, c2], 1)])
+    n_up = np.zeros(3)
+    n_up[up] = 1.0
+    fn = np.cross(new_v[tri[:, 1] - base] - new_v[tri[:, 0] - base], new_v[tri[:, 2] - base] - new_v[tri[:, 0] - base])
+    if np.mean(fn @ n_up) < 0:  # wind so that the face normals point up
+        tri = tri[:, [0, 2, 1]]
+    nv = np.tile(n_up, (2 * k, 1))
+    return (np.concatenate([verts, new_v]), np.concatenate([faces, tri]), np.concatenate([vn, nv]),
+            np.concatenate([face_part, np.full(len(tri), 32)]))
 
 
 # ----------------------------------------------------------------------------------------------

@@ -191,3 +191,42 @@ def test_bad_input_raises_clear_errors():
         convolve_exact(good, 4.0, out_size=0)
     with pytest.raises(IBLError, match="inf"):
         convolve_exact(good, np.inf, normalized=False)
+
+
+def test_lobe_average_at_texel_centres_is_convolve_exact_and_regions_sum():
+    # independent route: convolve_exact evaluates the weights as exp(s·(log c − max log c)) over the texels; at the
+    # texel centres both are the same quadrature → rounding only (1e-12)
+    from ibl_ref.envmap import texel_directions
+    from ibl_ref.phong_convolution import convolve_exact, lobe_average
+    from ibl_ref.synthetic_envs import make_env
+
+    env = make_env("sky_sun", n=8)
+    for s in (1.0, 7.5, 64.0):
+        got = lobe_average(env, texel_directions(8), s)
+        np.testing.assert_allclose(got, convolve_exact(env, s), rtol=1e-12, atol=0)
+        lab = (np.arange(6 * 64).reshape(6, 8, 8) % 5)
+        reg = lobe_average(env, texel_directions(8), s, labels=lab)
+        assert reg.shape == (6, 8, 8, 5, 3)
+        np.testing.assert_allclose(reg.sum(axis=-2), got, rtol=1e-12)
+        # truncated gather: within its own bound δ·max L of the dense sum, and the bound is not vacuous
+        tr, b = lobe_average(env, texel_directions(8), s, weight_eps=1e-6, return_bound=True)
+        assert np.all(np.abs(tr - got) <= b[..., None] * env.max() * (1 + 1e-9) + 1e-12)
+        assert b.max() < 1e-3
+
+
+def test_lobe_average_closed_form_and_errors():
+    # gradient map L = a + b·ω: Ē_1(d) = a + (b·d)(s+1)/(s+2) (synthetic_envs.gradient_lobe_average, a closed form);
+    # the cube quadrature is second-order, 64² faces → 2e-3
+    from ibl_ref.phong_convolution import lobe_average
+    from ibl_ref.synthetic_envs import gradient_lobe_average, make_env
+
+    env = make_env("gradient", n=64)
+    d = np.random.default_rng(0).normal(size=(50, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    np.testing.assert_allclose(lobe_average(env, d, 1.0), gradient_lobe_average(d, 1.0), atol=2e-3)
+    with pytest.raises(IBLError):
+        lobe_average(env, d, 0.5)
+    with pytest.raises(IBLError):
+        lobe_average(env, d, np.inf)
+    with pytest.raises(IBLError):
+        lobe_average(env, np.zeros((2, 3)), 1.0)

@@ -116,3 +116,88 @@ def test_parallel_visibility_matches_trimesh_rays():
     diff = a != b
     assert np.all(np.abs(n[diff] @ w) < 0.15), np.abs(n[diff] @ w).max()
     assert 0.2 < a.mean() < 0.9
+
+
+def _floor(s=1.0, y=0.0):
+    return trimesh.Trimesh([[-s, y, -s], [s, y, -s], [s, y, s], [-s, y, s]], [[0, 2, 1], [0, 3, 2]], process=False)
+
+
+def test_thin_sheet_contact_shadow_no_leak():
+    # a sheet 5e-5 R above a floor (paper on a table): floor points under it are shadowed for every light above
+    # the horizon whose ray stays under the sheet until it reaches the sheet's height (closed form: the ray rises
+    # 5e-5 R over a horizontal run of 5e-5 R / tan(elevation) << the 0.1 margin to the sheet's edge)
+    floor, sheet = _floor(1.0), _floor(0.5, 0.0)
+    meshes = [(floor, 0), (sheet, 1)]
+    R = raycast.prepare_scene(meshes, warn=False).bounds()[1]
+    sheet.apply_translation([0, 5e-5 * R, 0])
+    rng = np.random.default_rng(1)
+    pts = np.c_[rng.uniform(-0.4, 0.4, 300), np.zeros(300), rng.uniform(-0.4, 0.4, 300)]
+    n = np.tile([0.0, 1.0, 0.0], (300, 1))
+    w = rng.normal(size=(16, 3))
+    w[:, 1] = np.abs(w[:, 1]) + 0.2
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    V = raycast.parallel_visibility(meshes, pts, w, normals=n)
+    assert V.shape == (300, 16)
+    np.testing.assert_array_equal(V, 0.0)
+    # the usual origin offset of 1e-4 R (trimesh route) starts the rays above the sheet: light leaks under it
+    leak = raycast.visibility_to_directions(meshes, pts[:40], n[:40], w[:4])
+    assert leak.mean() == 1.0
+    # floor points outside the sheet's shadow stay lit (shadow = sheet shifted by 5e-5 R / tan: < 0.01 here)
+    out = np.c_[rng.uniform(0.52, 0.9, 100), np.zeros(100), rng.uniform(-0.9, 0.9, 100)]
+    np.testing.assert_array_equal(raycast.parallel_visibility(meshes, out, w, normals=n[:100]), 1.0)
+
+
+def test_sphere_on_plane_contact_shadow_and_no_acne():
+    # icosphere (radius 0.5) touching the floor at its lowest vertex
+    from ibl_ref.camera import PerspectiveCamera
+    from ibl_ref.raster import rasterize
+
+    s = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    s.apply_translation(-np.array([0, s.vertices[:, 1].min(), 0]))
+    c = s.vertices[np.argmin(s.vertices[:, 1])]
+    meshes = [(s, 0), (_floor(2.0), 1)]
+    rng = np.random.default_rng(2)
+    w = rng.normal(size=(24, 3))
+    w[:, 1] = np.abs(w[:, 1]) + 0.6  # elevations above ~30°
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    # contact shadow: floor points within 0.01 of the contact point are below the sphere's faces (which rise
+    # at least ~0.01² / (2·0.5) above the floor there), so every upward ray enters the sphere
+    ang = rng.uniform(0, 2 * np.pi, 200)
+    rad = 0.01 * np.sqrt(rng.uniform(0, 1, 200))
+    pts = c + np.c_[rad * np.cos(ang), np.zeros(200), rad * np.sin(ang)]
+    pts[:, 1] = 0.0
+    V = raycast.parallel_visibility(meshes, pts, w, normals=np.tile([0.0, 1.0, 0.0], (200, 1)))
+    np.testing.assert_array_equal(V, 0.0)
+    # no acne: points on the (convex) sphere, from the G-buffer of a camera, are lit by every light above their
+    # face's plane (nothing else is above them), also at grazing incidence down to n·ω = 1e-3
+    cam = PerspectiveCamera(eye=[0.3, 1.2, 2.0], target=[0, 0.5, 0], up=[0, 1, 0], fov_y_deg=40, width=48, height=48)
+    gb = rasterize(meshes, cam)
+    on = gb.mask & (gb.material_id == 0)
+    P, fn = gb.position[on], gb.face_normal[on]
+    ww = np.vstack([w, [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [-0.7, 0.1, 0.7]]])
+    ww /= np.linalg.norm(ww, axis=1, keepdims=True)
+    V = raycast.parallel_visibility(meshes, P, ww, normals=fn)
+    up = (fn @ ww.T) > 1e-3
+    above_floor = P[:, 1][:, None] + 0 * ww[:, 0] > 0.05  # rays from these cannot reach the floor going up/level
+    sel = up & (above_floor | (ww[:, 1] > 0))
+    assert sel.sum() > 1000
+    np.testing.assert_array_equal(V[sel], 1.0)
+
+
+def test_parallel_visibility_many_directions_mask_and_one_direction_agree():
+    box = trimesh.creation.box(extents=[1, 1, 1])
+    box.apply_translation([0, 1, 0])
+    meshes = [(box, 0), (_floor(3.0), 1)]
+    rng = np.random.default_rng(3)
+    pts = np.c_[rng.uniform(-2, 2, 500), np.zeros(500), rng.uniform(-2, 2, 500)]
+    n = np.tile([0.0, 1.0, 0.0], (500, 1))
+    w = rng.normal(size=(6, 3))
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    V = raycast.parallel_visibility(meshes, pts, w, normals=n)
+    for j in range(6):
+        np.testing.assert_array_equal(V[:, j], raycast.parallel_visibility(meshes, pts, w[j], normals=n))
+    mask = rng.random(V.shape) < 0.5
+    Vm = raycast.parallel_visibility(meshes, pts, w, normals=n, mask=mask)
+    np.testing.assert_array_equal(Vm[mask], V[mask])
+    below = (n @ w.T) <= 0
+    np.testing.assert_array_equal(Vm[~mask], np.where(below[~mask], 0.0, 1.0))  # not cast: 1, or 0 below n

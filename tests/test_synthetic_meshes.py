@@ -60,8 +60,10 @@ def test_teapot_triangle_count(m, teapot):
     mesh = teapot if m == 16 else sm.make_mesh("teapot", subdiv=m)
     # 32 patches × 2m² triangles, minus one triangle per pole quad: 8 patches (4 lid, 4 bottom) have a
     # degenerate first control row → m collapsed triangles each
-    assert len(mesh.faces) == 32 * 2 * m * m - 8 * m
+    # … plus the lid ledge (close_lid_gap): a ring of 4m quads between the lid's and the rim's edge loops
+    assert len(mesh.faces) == 32 * 2 * m * m - 8 * m + 8 * m
     assert np.all(face_areas(mesh) > 0)  # no degenerate faces left
+    assert len(sm.make_mesh("teapot", subdiv=m, close_lid_gap=False).faces) == 32 * 2 * m * m - 8 * m
 
 
 def test_teapot_bounds_and_topology(teapot):
@@ -74,7 +76,8 @@ def test_teapot_bounds_and_topology(teapot):
     assert 3.3 < hi[0] < 3.525
     assert not teapot.is_watertight  # documented: the original data has open handle/spout ends
     assert teapot.is_winding_consistent
-    assert len(teapot.split(only_watertight=False)) == 4  # body(+rim+bottom), lid, handle, spout
+    # body(+rim+bottom), lid, handle, spout, and the lid ledge (own vertices: a crease with the plane's normal)
+    assert len(teapot.split(only_watertight=False)) == 5
     # mirror symmetry z → −z of the tessellated surface
     assert np.all(cKDTree(teapot.vertices).query(teapot.vertices * [1, 1, -1])[0] < 1e-9)
 
@@ -98,6 +101,44 @@ def test_teapot_normals_point_outward(teapot):
     body = part(teapot, "body")
     c, fn = body.triangles_center, body.face_normals
     assert np.mean(np.einsum("ij,ij->i", fn[:, [0, 2]], c[:, [0, 2]]) > 0) > 0.99
+
+
+def test_teapot_lid_ledge_closes_the_gap_seen_as_dark_rim_pixels(teapot):
+    # 1) geometry, by an independent intersector (trimesh rays): vertical rays through the annulus between the
+    #    lid (r = 1.3) and the rim (r = 1.4) hit a surface at height 2.4 with the ledge, and fall into the pot
+    #    (first hit far below, on the bottom) without it
+    ang = np.linspace(0, 2 * np.pi, 50, endpoint=False)
+    o = np.c_[1.35 * np.cos(ang), np.full(50, 5.0), 1.35 * np.sin(ang)]
+    d = np.tile([0.0, -1.0, 0.0], (50, 1))
+    for closed, want in ((True, 2.4), (False, None)):
+        mesh = sm.make_mesh("teapot", close_lid_gap=closed)
+        loc, ray, _ = mesh.ray.intersects_location(o, d, multiple_hits=True)
+        top = np.full(50, -np.inf)
+        np.maximum.at(top, ray, loc[:, 1])
+        if want is None:
+            assert np.all(top < 1.0)
+        else:
+            np.testing.assert_allclose(top, want, atol=1e-9)
+    led = part(teapot, "lid_ledge")
+    np.testing.assert_allclose(led.face_normals, np.tile([0.0, 1.0, 0.0], (len(led.faces), 1)), atol=1e-12)
+    np.testing.assert_allclose(teapot.vertex_normals[np.unique(led.faces)], np.tile([0, 1.0, 0], (128, 1)))
+    # 2) what a render sees: the rasteriser's G-buffer from two views above the lid; back faces (the pot's
+    #    inside, whose reflection vectors point into the pot: the dark lid-rim pixels) are visible around
+    #    the lid only through the open gap
+    from ibl_ref.raster import rasterize
+    from ibl_ref.scenes import default_camera
+
+    for view, dist in (((0.6, 0.5, 1.0), "fit"), ((0.3, 0.5, 1.0), 2.6)):
+        counts = []
+        for closed in (True, False):
+            mesh = teapot if closed else sm.make_mesh("teapot", close_lid_gap=False)
+            cam = default_camera([mesh], view_dir=view, distance=dist, width=192, height=192)
+            gb = rasterize([mesh], cam)
+            # around the lid: height 2.15–2.55, radius < 1.6 (the spout's open tip, at r > 2.5, is not in it)
+            lid_zone = (gb.mask & (np.abs(gb.position[..., 1] - 2.35) < 0.2)
+                        & (np.hypot(gb.position[..., 0], gb.position[..., 2]) < 1.6))
+            counts.append(int((lid_zone & ((gb.face_normal * gb.view).sum(-1) < 0)).sum()))
+        assert counts[0] == 0 and counts[1] > 5, counts
 
 
 def test_teapot_y_up_flag():

@@ -1,6 +1,6 @@
 """``ibl-ref km00-render``: the glossy teapot by Kautz & McCool (2000) fitted lobes, or by the exact reference.
 
-Thin layer over :func:`ibl_ref.experiments.km00_render.render_single_method` (library:
+Thin layer over :func:`ibl_ref.lobe_render.render_single_method` (library:
 :mod:`ibl_ref.prefiltered_lobes`).  No visibility (KM2000 has none).
 """
 
@@ -29,12 +29,13 @@ def _env(text: str, size: int):
 
 
 def run(args) -> int:
-    from ..experiments.km00_render import render_single_method
+    from ..lobe_render import render_single_method
     from ..image_io import write_image_exr
 
-    from .cmd_render import _check_output, _size
+    from .cmd_render import _check_output, _size, parse_exposure
 
     out = _check_output(Path(args.out), (".exr",))
+    stops = parse_exposure(args.exposure)
     w, h = _size(args.size)
     if args.env_size < 2 or args.env_size & (args.env_size - 1):
         raise IBLError(f"--env-size must be a power of two >= 2, got {args.env_size}")
@@ -53,7 +54,7 @@ def run(args) -> int:
     if args.png:
         from ..tonemap import save_png
 
-        save_png(out.with_suffix(".png"), img, mask=mask)
+        save_png(out.with_suffix(".png"), img, stops=stops, mask=mask)
     if not args.quiet:
         print(f"wrote {out} ({w}x{h}, method {args.method}, {info['time_s']} s)")
     return 0
@@ -81,5 +82,7 @@ def register(sub) -> None:
     p.add_argument("--env-size", type=int, default=64, help="cube face size of the environment (default 64)")
     p.add_argument("--out", required=True, help="output OpenEXR image (linear radiance)")
     p.add_argument("--png", action="store_true", help="also write a tone-mapped PNG next to it")
+    p.add_argument("--exposure", default="auto", metavar="auto|EV|xK",
+                   help="PNG exposure: 'auto' (default), EV stops (e.g. -2) or a linear scale (e.g. x0.25)")
     p.add_argument("--quiet", action="store_true", help="no progress bars / messages")
     p.set_defaults(func=run)

@@ -1,7 +1,8 @@
 """``ibl-ref render``: render a mesh lit by partial environment maps with shadows (Knuth et al. 2014, Eq. 5).
 
-Thin layer over :func:`ibl_ref.render.render_pem` (modes ``ours`` and ``no-occlusion``) and
-:func:`ibl_ref.ao_modes.render_mode` (modes ``ao``, ``ao-color``, ``reference``, imported lazily).
+Thin layer over :func:`ibl_ref.scenes.teapot_on_ground` / :func:`ibl_ref.scenes.default_camera` (scene and view),
+:func:`ibl_ref.render.render_pem` (modes ``ours`` and ``no-occlusion``) and :func:`ibl_ref.ao_modes.render_mode`
+(modes ``ao``, ``ao-color``, ``reference``, imported lazily).
 """
 
 from __future__ import annotations
@@ -71,41 +72,50 @@ def _size(values):
     return int(w), int(h)
 
 
-def _ground_quad(mesh):
-    import trimesh
+def parse_exposure(text, option: str = "--exposure"):
+    """``auto`` → None (auto exposure), a number → EV stops, ``xK`` or ``Kx`` → a linear scale K (stops = log2 K)."""
+    import math
 
-    lo, hi = mesh.bounds
-    s = 1.5 * float((hi - lo).max())
-    y0 = float(lo[1])
-    c = 0.5 * (lo + hi)
-    return trimesh.Trimesh(
-        [[c[0] - s, y0, c[2] - s], [c[0] + s, y0, c[2] - s], [c[0] + s, y0, c[2] + s], [c[0] - s, y0, c[2] + s]],
-        [[0, 2, 1], [0, 3, 2]], process=False)
+    t = str(text).strip().lower()
+    if t == "auto":
+        return None
+    try:
+        if t.startswith("x") or t.endswith("x"):
+            k = float(t.strip("x"))
+            if not (math.isfinite(k) and k > 0):
+                raise ValueError
+            return math.log2(k)
+        v = float(t)
+        if not math.isfinite(v):
+            raise ValueError
+        return v
+    except ValueError:
+        raise IBLError(f"{option}: expected 'auto', EV stops (e.g. -2 or 1.5) or a linear scale (e.g. x0.25), "
+                       f"got {text!r}") from None
 
 
-def _camera(args, mesh_scene):
+def _camera(args, meshes):
+    """:func:`ibl_ref.scenes.default_camera` from the camera flags (framing: the object's bounding sphere)."""
     import numpy as np
 
-    from ..camera import PerspectiveCamera
+    from ..scenes import default_camera
 
-    centre, radius = mesh_scene.bounds()
     w, h = _size(args.size)
-    target = np.asarray(args.camera_target, float) if args.camera_target is not None else centre
-    if args.camera_eye is not None:
-        eye = np.asarray(args.camera_eye, float)
-    else:
-        direction = np.asarray(args.view_dir, float)
-        if not np.all(np.isfinite(direction)) or np.linalg.norm(direction) == 0:
-            raise IBLError("--view-dir must be a finite non-zero vector")
-        direction = direction / np.linalg.norm(direction)
-        if not (0 < args.fov < 180):
-            raise IBLError(f"--fov must be in (0, 180) degrees, got {args.fov}")
-        dist = radius / np.sin(np.radians(args.fov) / 2) * 1.1  # bounding sphere fits the vertical fov
-        eye = target + dist * direction
-    dist = float(np.linalg.norm(eye - target))
-    scale = max(dist + radius, 1e-9)
-    return PerspectiveCamera(eye=eye, target=target, up=args.camera_up, fov_y_deg=args.fov, width=w, height=h,
-                             near=1e-4 * scale, far=100 * scale)
+    if not (0 < args.fov < 180):
+        raise IBLError(f"--fov must be in (0, 180) degrees, got {args.fov}")
+    dist = args.distance
+    if dist != "fit":
+        try:
+            dist = float(dist)
+        except ValueError:
+            raise IBLError(f"--distance: expected a number of bounding radii or 'fit', got {dist!r}") from None
+        if not (np.isfinite(dist) and dist > 0):
+            raise IBLError(f"--distance must be > 0, got {args.distance}")
+    v = np.asarray(args.view_dir, float)
+    if not np.all(np.isfinite(v)) or np.linalg.norm(v) == 0:
+        raise IBLError("--view-dir must be a finite non-zero vector")
+    return default_camera(meshes, view_dir=v, fov_y_deg=args.fov, distance=dist, width=w, height=h,
+                          eye=args.camera_eye, target=args.camera_target, up=args.camera_up)
 
 
 def _ao_render_mode():
@@ -121,14 +131,14 @@ def cmd_render(args) -> int:
     import numpy as np
 
     from ..atomic import atomic_path, write_json
-    from ..raster import prepare_scene
     from ..render import Material, render_pem
-    from ..synthetic_meshes import load_mesh
+    from ..scenes import teapot_on_ground
 
     # ---- validate everything cheap before the expensive parts ----------------------------------------------
     out = _check_output(Path(args.out), OUT_EXTS, "--out")
     png = _check_output(Path(args.png), (".png",), "--png") if args.png else None
     w, h = _size(args.size)
+    stops = parse_exposure(args.exposure)
     if args.lights < 1:
         raise IBLError(f"--lights must be >= 1, got {args.lights}")
     mat = parse_material(args.material) if args.material else Material(kd=0.0, ks=1.0, g=args.gloss)
@@ -145,9 +155,10 @@ def cmd_render(args) -> int:
     render_mode = None
     if mode in _AO_MODES:
         render_mode = _ao_render_mode()
-        if np.ndim(mat.kd) or np.ndim(mat.ks) or mat.g_map is not None:
-            raise IBLError(f"--mode {mode}: ibl_ref.ao_modes takes scalar kd, ks and one g; RGB weights and "
-                           "--gmap are only supported by --mode ours / no-occlusion")
+        if mode == "reference" and (np.ndim(mat.kd) or np.ndim(mat.ks) or mat.g_map is not None
+                                    or np.ndim(gmat.kd) or np.ndim(gmat.ks)):
+            raise IBLError("--mode reference: the ray-traced reference takes scalar kd, ks and one g per "
+                           "material; RGB weights and --gmap work with the other modes")
     progress = sys.stderr.isatty() if args.progress is None else args.progress
 
     # ---- scene -------------------------------------------------------------------------------------------
@@ -159,15 +170,13 @@ def cmd_render(args) -> int:
         from ..synthetic_envs import make_env
 
         cube = make_env(args.synthetic, n=args.env_size)
-    mesh = load_mesh(args.mesh)
-    meshes = [(mesh, 0)]
-    if args.ground:
-        meshes.append((_ground_quad(mesh), 1))
-    cam = _camera(args, prepare_scene([(mesh, 0)], warn=False))
+    meshes = teapot_on_ground(args.mesh, ground=args.ground)
+    cam = _camera(args, meshes[:1])
 
     t0 = time.perf_counter()
     info = {"out": str(out), "mode": mode, "size": [w, h], "fov_y_deg": args.fov,
             "camera_eye": cam.eye.tolist(), "camera_target": cam.target.tolist(),
+            "background": args.background, "exposure_stops": stops,
             "material": {"kd": mat.kd, "ks": mat.ks, "g": mat.g, "g_map": args.gmap},
             "ground_material": ({"kd": gmat.kd, "ks": gmat.ks, "g": gmat.g} if args.ground else None)}
     pems = None
@@ -187,17 +196,14 @@ def cmd_render(args) -> int:
     if render_mode is None:
         res = render_pem(meshes, cam, pems, materials={0: mat, 1: gmat}, visibility=visibility,
                          vsm_resolution=args.vsm_res, vsm_dtype=args.vsm_dtype, exact_backend=args.exact_backend,
-                         horizon=args.horizon, progress=progress)
+                         horizon=args.horizon, background=args.background, progress=progress)
         image, mask = res.image, res.mask
         extra = dict(unshadowed=res.unshadowed, visibility=res.visibility, depth=res.gbuffer.depth,
                      diffuse=res.diffuse, specular=res.specular, glossiness=res.glossiness)
         info["visibility"] = visibility
     else:
-        if args.ground and (gmat.kd, gmat.ks, gmat.g) != (mat.kd, mat.ks, mat.g):
-            print(f"note: --mode {mode} shades every mesh with the --material (ibl_ref.ao_modes has one "
-                  "material); the ground material is ignored", file=sys.stderr)
-        kw = dict(camera=cam, kd=float(mat.kd), ks=float(mat.ks), g=float(mat.g), vsm_resolution=args.vsm_res,
-                  vsm_dtype=args.vsm_dtype, progress=progress)
+        kw = dict(camera=cam, materials={0: mat, 1: gmat}, vsm_resolution=args.vsm_res, vsm_dtype=args.vsm_dtype,
+                  background=args.background, progress=progress)
         if pems is not None:
             kw["pems"] = pems
         try:
@@ -207,7 +213,7 @@ def cmd_render(args) -> int:
                            f"({exc}); the two modules are out of step") from exc
         from ..raster import rasterize
 
-        mask = rasterize(meshes, cam, warn=False).mask
+        mask = rasterize(meshes, cam, warn=False).mask  # coverage (the image holds the backdrop elsewhere)
     t2 = time.perf_counter()
     if image.shape[:2] != (h, w):
         raise IBLError(f"renderer returned an image of shape {image.shape}, expected ({h}, {w}, C)")
@@ -227,7 +233,7 @@ def cmd_render(args) -> int:
     if png is not None:
         from ..tonemap import save_png
 
-        save_png(png, image, mask=mask)
+        save_png(png, image, stops=stops, mask=mask)
         info["png"] = str(png)
     write_json(out.with_suffix(".json"), info)
     print(f"wrote {out} ({w}x{h}, mode {mode}; {info['render_time_s']} s render, {info['pem_time_s']} s PEMs)"
@@ -252,7 +258,9 @@ Without options it renders the Utah teapot on a ground quad under the synthetic 
 Output: OUT.exr is linear radiance (float32 RGB, no tone mapping); OUT.npz instead stores the image plus
 unshadowed image, per-light visibility, depth, mask, diffuse/specular terms and per-pixel g. A small
 OUT.json next to it records the settings and timings. --png writes a tone-mapped preview
-(auto exposure, Reinhard, sRGB).
+(Reinhard, sRGB; auto exposure from the object's pixels unless --exposure is given). Pixels not covered
+by geometry show the environment seen along the camera ray (--background env, default) or are 0
+(--background black); the .npz 'mask' marks the covered pixels.
 """
 
 _EPILOG = """\
@@ -262,7 +270,8 @@ modes:
   no-occlusion  VIS_i = 1 (Fig. 6a)
   ao, ao-color  ambient-occlusion comparisons of Fig. 6b/6c (ibl_ref.ao_modes)
   reference     exact lobes and ray-cast visibility (ibl_ref.reference_render; slow)
-  ao / ao-color / reference shade every mesh with --material (scalar kd, ks; no --gmap).
+  every mode shades the mesh with --material and the ground with --ground-material
+  (reference: scalar kd, ks and no --gmap).
 
 examples:
   ibl-ref render --out x.exr
@@ -270,6 +279,7 @@ examples:
   ibl-ref render --env studio.exr --mesh bunny.obj --size 320 240 --lights 48 --out b.exr
   ibl-ref render --mesh cloth --gmap yarns.png --gmap-fallback spherical --out c.exr
   ibl-ref render --camera-eye 3 2 4 --camera-target 0 0.5 0 --fov 30 --out v.exr
+  ibl-ref render --env probe.hdr --background env --exposure -1 --out p.exr --png p.png
 """
 
 
@@ -336,17 +346,27 @@ def register(sub) -> None:
     g.add_argument("--fov", type=float, default=40.0, metavar="DEG",
                    help="VERTICAL field of view in degrees (default 40)")
     g.add_argument("--camera-eye", type=float, nargs=3, metavar=("X", "Y", "Z"),
-                   help="eye position (default: on --view-dir, far enough for the mesh to fit the view)")
+                   help="eye position (default: on --view-dir at --distance from the target)")
     g.add_argument("--camera-target", type=float, nargs=3, metavar=("X", "Y", "Z"),
                    help="point looked at (default: centre of the mesh's bounding sphere)")
     g.add_argument("--camera-up", type=float, nargs=3, default=[0.0, 1.0, 0.0], metavar=("X", "Y", "Z"),
                    help="up hint (default 0 1 0)")
-    g.add_argument("--view-dir", type=float, nargs=3, default=[0.6, 0.5, 1.0], metavar=("X", "Y", "Z"),
-                   help="direction from the target to the eye when --camera-eye is not given (default 0.6 0.5 1)")
+    g.add_argument("--view-dir", type=float, nargs=3, default=[0.3, 0.5, 1.0], metavar=("X", "Y", "Z"),
+                   help="direction from the target to the eye when --camera-eye is not given (default 0.3 0.5 1, "
+                   "the view of 'ibl-ref experiment fig6')")
+    g.add_argument("--distance", default="2.6", metavar="R|fit",
+                   help="eye distance from the target in bounding radii of the mesh (default 2.6), or 'fit': the "
+                   "mesh's bounding sphere fits the vertical field of view with a 10%% margin")
     g = p.add_argument_group("output")
     g.add_argument("--out", required=True, metavar="OUT.exr",
                    help="output radiance image: .exr (float32 RGB) or .npz (image + intermediate buffers)")
     g.add_argument("--png", metavar="OUT.png", help="also write a tone-mapped PNG preview")
+    g.add_argument("--background", choices=("env", "black"), default="env",
+                   help="pixels without geometry: the environment seen along the camera ray (default; the same "
+                   "look-up a mirror reflection gets) or black")
+    g.add_argument("--exposure", default="auto", metavar="auto|EV|xK",
+                   help="PNG exposure: 'auto' (default: the object's 90th-percentile luminance maps to 0.8), EV "
+                   "stops (e.g. -2), or a linear scale (e.g. x0.25)")
     g.add_argument("--progress", dest="progress", action="store_true", default=None,
                    help="show progress bars (default: only on a terminal)")
     g.add_argument("--no-progress", dest="progress", action="store_false", help="never show progress bars")

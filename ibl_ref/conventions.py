@@ -1,0 +1,49 @@
+"""Conventions shared by the ground truth, the paper's approximation and the renderers (no dependencies).
+
+* Glossiness → Phong exponent, Knuth et al. (2014) Eq. 3: ``s_Phong = 1/(1 − g)``, g ∈ [0, 1]; g = 0 is the
+  diffuse-like s = 1 lobe, g = 1 the mirror (s = ∞).
+* Width of the clamped cosine lobe max(cos θ, 0)^s of Eq. 4: half-width at half maximum
+  θ½ = arccos(2^(−1/s)) (≈ 1.18/√s for large s).
+
+They live here so that the exact reference (:mod:`ibl_ref.reference_render`), the prefilters
+(:mod:`ibl_ref.lobe_chain`, :mod:`ibl_ref.pyramid`) and the run-time look-up (:mod:`ibl_ref.gloss_lookup`) can all use
+them without importing one another; the old import places re-export them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import IBLError
+
+__all__ = ["phong_exponent", "lobe_half_angle"]
+
+
+def phong_exponent(g):
+    """s_Phong = 1/(1 − g) (Eq. 3); g = 1 → ``np.inf`` (mirror) without a division warning.
+
+    Parameters
+    ----------
+    g : float or array in [0, 1]
+
+    Raises
+    ------
+    IBLError
+        If any g is NaN or outside [0, 1].
+    """
+    g_arr = np.asarray(g, dtype=np.float64)
+    if np.any(np.isnan(g_arr)):
+        raise IBLError("glossiness g is NaN; g must be in [0, 1] (0 = diffuse, 1 = mirror)")
+    if np.any((g_arr < 0) | (g_arr > 1)):
+        bad = g_arr[(g_arr < 0) | (g_arr > 1)].ravel()[0]
+        raise IBLError(f"glossiness g must be in [0, 1] (0 = diffuse, 1 = mirror), got {bad!r}")
+    one_minus = 1.0 - g_arr
+    s = np.full(g_arr.shape, np.inf)
+    np.divide(1.0, one_minus, out=s, where=one_minus > 0)  # Eq. 3
+    return float(s) if s.ndim == 0 else s
+
+
+def lobe_half_angle(s) -> np.ndarray:
+    """Half-width at half maximum of max(cos θ, 0)^s: θ½ = arccos(2^(−1/s)) (≈ 1.18/√s for large s)."""
+    s = np.asarray(s, dtype=np.float64)
+    return np.arccos(np.power(2.0, -1.0 / s))

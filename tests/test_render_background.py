@@ -1,0 +1,112 @@
+"""Backdrops (``background="env"``) and the ground material in every mode; ``ibl-ref render --background/--exposure``."""
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from ibl_ref.camera import PerspectiveCamera
+from ibl_ref.cli import main
+from ibl_ref.errors import IBLError
+
+CAM = PerspectiveCamera(eye=[0.0, 1.2, 3.0], target=[0, 0.3, 0], up=[0, 1, 0], fov_y_deg=50, width=20, height=16)
+
+
+def _scene():
+    s = trimesh.creation.icosphere(2, 0.4).apply_translation([0, 0.4, 0])
+    q = trimesh.Trimesh([[-1, 0, -1], [1, 0, -1], [1, 0, 1], [-1, 0, 1]], [[0, 2, 1], [0, 3, 2]], process=False)
+    return [(s, 0), (q, 1)]
+
+
+def _unit_rays(cam):
+    _, d = cam.pixel_rays()
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def test_env_background_is_the_environment_along_camera_rays():
+    # gradient map L(ω) = a + b·ω (texel averages): the bilinear look-up along the camera ray equals the closed form
+    # a + b·d up to the cube's bilinear interpolation error, O(1/N²) (32² faces: < 3e-3 with |b| = 0.5)
+    from ibl_ref.pem import build_pems
+    from ibl_ref.render import render_pem
+    from ibl_ref.synthetic_envs import make_env
+
+    env = make_env("gradient", n=32)
+    pems = build_pems(env, n_lights=6)
+    black = render_pem(_scene(), CAM, pems, 0.5, visibility="none")
+    res = render_pem(_scene(), CAM, pems, 0.5, visibility="none", background="env")
+    m = res.mask
+    assert 0 < m.sum() < m.size
+    np.testing.assert_array_equal(res.image[m], black.image[m])  # the object is untouched
+    np.testing.assert_array_equal(black.image[~m], 0.0)
+    d = _unit_rays(CAM)[~m]
+    want = 1.0 + d @ np.array([0.0, 0.5, 0.0])
+    np.testing.assert_allclose(res.image[~m], np.repeat(want[:, None], 3, 1), atol=3e-3)
+    with pytest.raises(IBLError, match="background"):
+        render_pem(_scene(), CAM, pems, 0.5, visibility="none", background="grey")
+
+
+def test_background_pem_mirror_lookup_equals_cube_lookup_and_modes_share_it():
+    # Σ_i PEM_i(d, g = 1) is the pyramid's level-0 bilinear look-up of the full map (linearity, Sec. 3.1): equal to
+    # the cube's bilinear look-up up to the PEMs' float32 storage (rel. 1e-6)
+    from ibl_ref.ao_modes import render_modes
+    from ibl_ref.pem import build_pems
+    from ibl_ref.render import background_image
+    from ibl_ref.synthetic_envs import make_env
+
+    env = make_env("sky_sun", n=16)
+    pems = build_pems(env, n_lights=6)
+    a, b = background_image(CAM, pems), background_image(CAM, env)
+    np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6 * b.max())
+    res = render_modes(_scene(), CAM, env, ("ours", "no-occlusion", "ao", "ao-color", "reference"), pems=pems,
+                       kd=0.2, ks=0.8, g=0.5, vsm_resolution=32, background="env",
+                       reference_kw=dict(n_env_glossy=8))
+    m = res.mask
+    for k, img in res.images.items():
+        np.testing.assert_array_equal(img[~m], b[~m], err_msg=k)
+
+
+def test_every_mode_honours_per_material_weights():
+    # constant environment L ≡ 1 with normalised lobes and no occluder between the lights and the ground's top:
+    # unoccluded modes give kd + ks per material exactly (float32 PEMs: 1e-5); the reference too (exact lobes)
+    from ibl_ref.ao_modes import render_modes
+    from ibl_ref.render import Material
+
+    env = np.ones((6, 8, 8, 3))
+    mats = {0: Material(kd=0.1, ks=0.2, g=0.3), 1: Material(kd=0.5, ks=0.4, g=0.0)}
+    res = render_modes(_scene(), CAM, env, ("no-occlusion", "reference"), n_lights=6, materials=mats,
+                       reference_kw=dict(n_env_glossy=8))
+    mid = res.gbuffer.material_id
+    for k in ("no-occlusion",):
+        np.testing.assert_allclose(res.images[k][mid == 0], 0.3, rtol=1e-5, err_msg=k)
+        np.testing.assert_allclose(res.images[k][mid == 1], 0.9, rtol=1e-5, err_msg=k)
+    un = res.extras["reference-unoccluded"]
+    np.testing.assert_allclose(un[mid == 0], 0.3, rtol=1e-12)
+    np.testing.assert_allclose(un[mid == 1], 0.9, rtol=1e-12)
+    assert res.images["reference"][mid == 1].mean() < 0.9  # the sphere shadows part of the ground
+
+
+def test_cli_background_and_exposure(tmp_path, capsys):
+    from ibl_ref.cli.cmd_render import parse_exposure
+
+    assert parse_exposure("auto") is None and parse_exposure("-1.5") == -1.5 and parse_exposure("x0.25") == -2.0
+    assert parse_exposure("4x") == 2.0
+    for bad in ("x0", "bright", "nan"):
+        with pytest.raises(IBLError, match="--exposure"):
+            parse_exposure(bad)
+    base = ["render", "--size", "24", "--lights", "6", "--vsm-res", "32", "--no-progress", "--mode", "no-occlusion"]
+    for bg in ("black", "env"):
+        assert main(base + ["--background", bg, "--out", str(tmp_path / f"{bg}.npz")]) == 0
+    a, b = np.load(tmp_path / "black.npz"), np.load(tmp_path / "env.npz")
+    m = a["mask"]
+    np.testing.assert_array_equal(a["image"][m], b["image"][m])
+    assert np.all(a["image"][~m] == 0) and np.all(b["image"][~m] > 0)
+    assert json.loads((tmp_path / "env.json").read_text())["background"] == "env"
+    # a fixed exposure is honoured (the PNG of x4 is brighter than that of x0.25)
+    import matplotlib.image as mpimg
+
+    for e in ("x4", "x0.25"):
+        assert main(base + ["--exposure", e, "--out", str(tmp_path / f"{e}.exr"), "--png", str(tmp_path / f"{e}.png")]) == 0
+    assert mpimg.imread(str(tmp_path / "x4.png")).mean() > mpimg.imread(str(tmp_path / "x0.25.png")).mean() + 0.05
+    assert main(base + ["--exposure", "loud", "--out", str(tmp_path / "z.exr")]) == 1
+    assert "--exposure" in capsys.readouterr().err
