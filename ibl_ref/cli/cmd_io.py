@@ -27,11 +27,12 @@ def _load_any(path: Path):
         layout = exr_io.infer_layout(img.shape[0], img.shape[1], layout, str(path))
         extra = {"envmap_attribute": header.get("envmap", "-"), "convention": header.get("iblref_convention", "-")}
         fmt = "OpenEXR"
-        if layout == "cube" and header.get("iblref_convention", "openexr") != "openexr":
+        conv = exr_io._convention(header, None, str(path)) if layout == "cube" else "openexr"
+        if conv != "openexr":
             from .. import envmap
 
             n = img.shape[1]
-            img = envmap.convert_convention(img.reshape(6, n, n, -1), header["iblref_convention"], "openexr")
+            img = envmap.convert_convention(img.reshape(6, n, n, -1), conv, "openexr")
     if layout == "cube":
         n = img.shape[-2]
         data = img.reshape(6, n, n, img.shape[-1])
