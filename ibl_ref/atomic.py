@@ -249,12 +249,15 @@ def refuse_overwriting_inputs(inputs: dict, outputs: dict) -> None:
     """Raise :class:`OutputError` if an output path names the same file as an input path.
 
     ``inputs`` and ``outputs`` map a label (the CLI flag or argument name, e.g. ``"--env"``) to a path
-    (``None`` entries are skipped).  Symlinks and hard links are seen through.
+    (dicts or lists of ``(label, path)`` pairs; ``None`` paths are skipped).  Symlinks and hard links are
+    seen through.
     """
-    for ol, op in outputs.items():
+    inputs = list(inputs.items()) if isinstance(inputs, dict) else list(inputs)
+    outputs = list(outputs.items()) if isinstance(outputs, dict) else list(outputs)
+    for ol, op in outputs:
         if op is None:
             continue
-        for il, ip in inputs.items():
+        for il, ip in inputs:
             if ip is None:
                 continue
             if Path(op).exists() and Path(ip).exists() and _same_file(Path(op), Path(ip)):
@@ -304,7 +307,10 @@ def _json_default(o):
 
 def write_json(path, data):
     """Write ``data`` as indented JSON atomically (NaN/Inf are rejected: they are not JSON)."""
-    text = json.dumps(data, indent=2, default=_json_default, allow_nan=False, sort_keys=False)
+    try:
+        text = json.dumps(data, indent=2, default=_json_default, allow_nan=False, sort_keys=False)
+    except ValueError as exc:  # NaN / Inf: refuse, naming the file (the previous file stays)
+        raise OutputError(f"{path}: cannot write NaN or Inf to JSON ({exc})") from exc
     with atomic_write(path) as fh:
         fh.write(text + "\n")
     return Path(path)

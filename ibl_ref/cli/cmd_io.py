@@ -9,6 +9,8 @@ import numpy as np
 
 from ..errors import IBLError
 
+OUT_SUFFIXES = (".exr", ".hdr", ".pic")  #: file types ``convert`` writes
+
 
 def _load_any(path: Path):
     """(data, layout, channels, pixel_type, file_format, extra) of any supported file without resampling."""
@@ -75,7 +77,14 @@ def cmd_convert(args) -> int:
     from .. import exr_io, resample
     from ..hdr_io import write_hdr
 
+    from ..atomic import refuse_overwriting_inputs, resolve_output
+
     src, dst = Path(args.input), Path(args.output)
+    if dst.suffix.lower() not in OUT_SUFFIXES:
+        raise IBLError(f"OUT {dst}: convert writes OpenEXR (.exr) or Radiance (.hdr, .pic) files; "
+                       f"use one of these extensions (a {dst.suffix or 'missing'} extension would mislabel the file)")
+    refuse_overwriting_inputs({"IN": src}, {"OUT": dst})
+    resolve_output(dst)  # a folder / device / FIFO as OUT: refuse before the work
     if args.clamp_half and not args.half:
         raise IBLError("--clamp-half only applies with --half")
     if args.size is not None and args.size < 1:

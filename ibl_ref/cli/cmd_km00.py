@@ -35,6 +35,10 @@ def run(args) -> int:
     from .cmd_render import _check_output, _size
 
     out = _check_output(Path(args.out), (".exr",))
+    from ..atomic import refuse_overwriting_inputs
+
+    env_file = args.env if Path(args.env).exists() else None
+    refuse_overwriting_inputs({"--env": env_file}, {"--out": out, "--png": out.with_suffix(".png") if args.png else None})
     w, h = _size(args.size)
     if args.env_size < 2 or args.env_size & (args.env_size - 1):
         raise IBLError(f"--env-size must be a power of two >= 2, got {args.env_size}")
