@@ -334,8 +334,9 @@ class OutputSet:
             outs.commit({"files": [...], ...})                              # move into place, manifest last
 
     :meth:`path` returns a staging path inside ``.MANIFEST.ibl-tmp-PID-RANDOM/`` in the final file's
-    folder.  :meth:`commit` moves every staged file over its final name (fsync-ed), then writes the
-    manifest (atomically), then deletes the files the previous manifest listed under ``owned_key``
+    folder.  :meth:`commit` writes the manifest into the staging folder too (so every write that needs
+    disk space happens before anything is replaced), fsyncs the staged files, renames them over their
+    final names and the manifest last, then deletes the files the previous manifest listed under ``owned_key``
     (base names, looked up in the manifest's folder) that this run did not produce, except the paths in
     ``keep`` (e.g. the inputs).  Leaving the block without :meth:`commit` (an exception) removes the
     staging folders and leaves the previous outputs and manifest untouched.
@@ -397,15 +398,19 @@ class OutputSet:
         missing = [str(g) for s, g in self._staged.values() if not s.exists()]
         if missing:
             raise OutputError(f"{self.manifest}: output file(s) were never written: {', '.join(missing)}")
+        # everything that needs disk space happens in the staging folder: a full disk fails here
+        staged_manifest = self._stage_dir(self.folder) / self._real_manifest.name
+        write_json(staged_manifest, manifest_data)
         try:
             for real, (staged, given) in self._staged.items():
                 _fsync_path(staged)
+            for real, (staged, given) in self._staged.items():
                 os.replace(staged, real)
-            for folder in {real.parent for real in self._staged}:
+            os.replace(staged_manifest, self._real_manifest)  # the manifest last
+            for folder in {real.parent for real in self._staged} | {self.folder}:
                 _fsync_path(folder, directory=True)
         except OSError as exc:
             raise OutputError(f"{self.manifest}: cannot move the outputs into place: {_reason(exc)}") from exc
-        write_json(self.manifest, manifest_data)
         self.committed = True
         produced = set(self._staged) | {Path(os.path.realpath(self._real_manifest))}
         protected = {Path(os.path.realpath(k)) for k in self.keep}
