@@ -413,8 +413,17 @@ def _scan_headers(path: Path, buf: bytes) -> list:
     return parts
 
 
+def _flush_c_stdio() -> None:
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError):  # pragma: no cover - no C library handle on this platform
+        pass
+
+
 class _NativeOutput:
-    """Capture what C++ code writes on file descriptors 1 and 2 (OpenEXR prints warnings there)."""
+    """Capture what the OpenEXR binding prints (on file descriptors 1 and 2 and on sys.stdout/stderr)."""
 
     def __enter__(self):
         import sys
@@ -432,14 +441,23 @@ class _NativeOutput:
             except OSError:  # no such descriptor (embedded interpreter): nothing to capture
                 pass
         self.text = ""
+        # the binding also prints through Python's sys.stdout (pybind11 py::print): capture that level too
+        import io
+
+        self._py = io.StringIO()
+        self._redirects = contextlib.ExitStack()
+        self._redirects.enter_context(contextlib.redirect_stdout(self._py))
+        self._redirects.enter_context(contextlib.redirect_stderr(self._py))
         return self
 
     def __exit__(self, *exc):
+        self._redirects.close()
+        _flush_c_stdio()  # C++ iostreams write through C stdio buffers (sync_with_stdio): flush them here
         for fd, saved in self._saved:
             os.dup2(saved, fd)
             os.close(saved)
         self._tmp.seek(0)
-        self.text = self._tmp.read().decode("utf-8", "replace")
+        self.text = self._tmp.read().decode("utf-8", "replace") + self._py.getvalue()
         self._tmp.close()
         return False
 
