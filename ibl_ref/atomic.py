@@ -357,6 +357,11 @@ class OutputSet:
         return self
 
     def __exit__(self, exc_type, exc, tb):
+        if isinstance(exc, IBLError) and exc.args and isinstance(exc.args[0], str):
+            msg = exc.args[0]  # name the final file, not its staging path
+            for staged, given in self._staged.values():
+                msg = msg.replace(str(staged), str(given))
+            exc.args = (msg,) + exc.args[1:]
         self._cleanup()
         return False
 

@@ -69,6 +69,12 @@ def validate_args(parser, args) -> None:
     from ..limits import SizeError, check_face_size
 
     sp = _subparser(parser, getattr(args, "command", None))
+    while sp is not None:  # nested sub-commands (``synth env``): validate the innermost parser
+        nested = next((a for a in sp._actions if isinstance(a, argparse._SubParsersAction)), None)
+        inner = nested.choices.get(getattr(args, nested.dest, None)) if nested is not None and nested.dest else None
+        if inner is None:
+            break
+        sp = inner
     if sp is None:
         return
     for a in sp._actions:

@@ -6,6 +6,7 @@ Thin layer over :func:`ibl_ref.median_cut.median_cut`, :func:`ibl_ref.pem.build_
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from ..errors import IBLError
@@ -71,8 +72,9 @@ def cmd_pem(args) -> int:
         raise IBLError(f"--kernel: {exc}") from None
     cube = _load(args.input, args.size)
     ls = median_cut(cube, args.lights, args.variant)
+    progress = sys.stderr.isatty()  # progress bars only for a terminal: errors stay one line in logs
     pems = build_pems(cube, ls, kernel=args.kernel, order=args.order, seam=args.seam, dtype=np.float32,
-                      progress=True)
+                      progress=progress)
     if args.pixel_type == "half":  # refuse before writing anything (pem has no clamping option)
         vmax = max(float(lev.max()) for lev in pems.levels)
         if vmax > HALF_MAX:
@@ -84,7 +86,7 @@ def cmd_pem(args) -> int:
     try:
         from tqdm import tqdm
 
-        rng = tqdm(rng, desc="writing PEMs", unit="file")
+        rng = tqdm(rng, desc="writing PEMs", unit="file", disable=not progress)
     except ImportError:  # pragma: no cover
         pass
     outs = OutputSet(out / "pems.json", owned_key="files", keep=[args.input])  # all or nothing; stale PEMs removed
