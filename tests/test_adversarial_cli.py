@@ -42,7 +42,10 @@ def _alarm():
 
 def run(argv, capfd, expect: int):
     """Run the CLI in-process; return stderr.  Checks the exit code and the one-line, no-traceback rule."""
-    rc = main([str(a) for a in argv])
+    try:
+        rc = main([str(a) for a in argv])
+    except SystemExit as exc:  # argparse usage errors (and the numeric-flag validation) exit with 2
+        rc = exc.code
     out, err = capfd.readouterr()
     assert "Traceback" not in out + err
     assert rc == expect, f"rc={rc}\nstdout: {out}\nstderr: {err}"
@@ -205,7 +208,9 @@ def test_usage_errors_are_one_line(argv, fragment, good, tmp_path, capfd, monkey
     argv = [str(good) if a == "IN" else a for a in argv]
     expect = 1 if fragment == "--exponent" and "abc" in argv else 2
     if argv[0] == "nosuchcommand":
-        rc = main(argv)
+        with pytest.raises(SystemExit) as ei:
+            main(argv)
+        rc = ei.value.code
         _, err = capfd.readouterr()
         assert rc == 2 and len(err.strip().splitlines()) == 1 and fragment in err
         return

@@ -118,12 +118,9 @@ def _flag_hints(message: str, sp) -> str:
 
 def main(argv=None) -> int:
     parser = build_parser()
-    try:
-        args = parser.parse_args(argv)
-        if getattr(args, "func", None):
-            validate_args(parser, args)
-    except SystemExit as exc:  # argparse: --help, --version, usage errors
-        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    args = parser.parse_args(argv)  # usage errors / --help raise SystemExit, as argparse does
+    if getattr(args, "func", None):
+        validate_args(parser, args)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
