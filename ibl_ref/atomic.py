@@ -419,8 +419,9 @@ class OutputSet:
         self.committed = True
         produced = set(self._staged) | {Path(os.path.realpath(self._real_manifest))}
         protected = {Path(os.path.realpath(k)) for k in self.keep}
+        owner = self.manifest.parent  # names are relative to the manifest as given (not its symlink target)
         for name in old_owned:
-            cand = self.folder / name
+            cand = owner / name
             key = Path(os.path.realpath(cand))
             if key in produced or key in protected or cand.is_symlink() or not cand.is_file():
                 continue

@@ -472,6 +472,8 @@ def _open(path: Path):
         raise EnvMapFileError(f"{path}: file not found")
     if path.is_dir():
         raise EnvMapFileError(f"{path}: is a folder, expected an OpenEXR file")
+    if not path.is_file():  # a FIFO or device would block or never end
+        raise EnvMapFileError(f"{path}: not a regular file (device, FIFO or socket), expected an OpenEXR file")
     try:
         with open(path, "rb") as fh:
             head = fh.read(1 << 20)

@@ -141,6 +141,8 @@ def _open(path: Path):
         raise EnvMapFileError(f"{path}: file not found")
     if path.is_dir():
         raise EnvMapFileError(f"{path}: is a folder, expected a Radiance .hdr file")
+    if not path.is_file():  # a FIFO or device would block or never end
+        raise EnvMapFileError(f"{path}: not a regular file (device, FIFO or socket), expected a Radiance .hdr file")
     return open(path, "rb")
 
 

@@ -126,6 +126,21 @@ def test_missing_input_file(cmd, tmp_path, capfd):
     assert listing(out) == {}
 
 
+@pytest.mark.parametrize("kind", ["fifo.exr", "fifo.hdr", "/dev/zero", "folder.exr"])
+@pytest.mark.parametrize("cmd", sorted(ENV_COMMANDS))
+def test_special_input_files_do_not_hang(cmd, kind, tmp_path, capfd):
+    if kind.startswith("/"):
+        src = Path(kind)
+    else:
+        src = tmp_path / kind
+        os.mkfifo(src) if kind.startswith("fifo") else src.mkdir()
+    out = tmp_path / "out"
+    out.mkdir()
+    err = run(ENV_COMMANDS[cmd](src, out), capfd, 1)
+    assert src.name in err and ("not a regular file" in err or "folder" in err), err
+    assert listing(out) == {}
+
+
 @pytest.mark.parametrize("name", sorted(af.VALID_EXR))
 @pytest.mark.parametrize("cmd", ["info", "convert", "mediancut"])
 def test_unusual_valid_files_work(name, cmd, tmp_path, capfd):
