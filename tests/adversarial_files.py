@@ -298,3 +298,77 @@ def bad_meshes(d: Path) -> dict:
     (d / "binary.obj").write_bytes(b"v 0 0 0\n\0\0\0\x01\x02")
     out["binary_obj"] = (d / "binary.obj", "binary content")
     return out
+
+
+# ------------------------------------------------------------------------------------------------
+# injected file-system failures
+# ------------------------------------------------------------------------------------------------
+def inject_enospc(monkeypatch, nth: int) -> dict:
+    """Make the nth file fsync of ibl_ref.atomic fail with ENOSPC (a disk that fills up at that file)."""
+    import errno
+    import os
+
+    from ibl_ref import atomic
+
+    real = atomic._fsync_path
+    calls = {"n": 0}
+
+    def fake(p, directory=False):
+        if not directory:
+            calls["n"] += 1
+            if calls["n"] == nth:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real(p, directory)
+
+    monkeypatch.setattr(atomic, "_fsync_path", fake)
+    return calls
+
+
+def inject_read_only(monkeypatch) -> None:
+    """Every file creation by ibl_ref.atomic fails with EROFS (a read-only mount; tests run as root)."""
+    import errno
+    import os
+
+    from ibl_ref import atomic
+
+    real_open = os.open
+
+    def ro_open(path, flags, *a, **k):
+        if flags & os.O_CREAT:
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(path))
+        return real_open(path, flags, *a, **k)
+
+    monkeypatch.setattr(atomic.os, "open", ro_open)
+
+
+def inject_read_only_mkdir(monkeypatch) -> None:
+    """Every Path.mkdir fails with EROFS."""
+    import errno
+    import os
+
+    def ro_mkdir(self, *a, **k):
+        raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(self))
+
+    monkeypatch.setattr(Path, "mkdir", ro_mkdir)
+
+
+def make_special(kind: str, p: Path) -> Path:
+    """Create a special output target at ``p``: fifo, folder, link_to_dev_null, link_to_dev_full,
+    link_to_fifo or symlink_loop."""
+    import os
+
+    if kind == "fifo":
+        os.mkfifo(p)
+    elif kind == "folder":
+        p.mkdir()
+    elif kind in ("link_to_dev_null", "link_to_dev_full"):
+        p.symlink_to("/dev/" + kind.rsplit("_", 1)[1])
+    elif kind == "link_to_fifo":
+        os.mkfifo(p.parent / "the_fifo")
+        p.symlink_to(p.parent / "the_fifo")
+    elif kind == "symlink_loop":
+        p.symlink_to(p.parent / "loop2")
+        (p.parent / "loop2").symlink_to(p)
+    else:
+        raise ValueError(kind)
+    return p

@@ -15,7 +15,6 @@ Cases owned by other engineers that still fail are ``xfail`` with the owner in t
 
 from __future__ import annotations
 
-import errno
 import json
 import os
 import subprocess
@@ -223,26 +222,10 @@ WRITERS = {
 }
 
 
-@pytest.fixture
-def fifo(tmp_path):
-    p = tmp_path / "fifo.out"
-    os.mkfifo(p)
-    return p
-
-
 @pytest.mark.parametrize("writer", sorted(WRITERS))
-@pytest.mark.parametrize("target", ["fifo", "folder", "symlink_to_dev_null", "symlink_loop"])
+@pytest.mark.parametrize("target", ["fifo", "folder", "link_to_dev_null", "link_to_fifo", "symlink_loop"])
 def test_special_targets_are_refused(writer, target, tmp_path):
-    p = tmp_path / "target.out"
-    if target == "fifo":
-        os.mkfifo(p)
-    elif target == "folder":
-        p.mkdir()
-    elif target == "symlink_to_dev_null":
-        p.symlink_to("/dev/null")
-    else:
-        p.symlink_to(tmp_path / "loop2")
-        (tmp_path / "loop2").symlink_to(p)
+    p = af.make_special(target, tmp_path / "target.out")
     before = sorted(x.name for x in tmp_path.iterdir())
     with pytest.raises(atomic.OutputError) as ei:
         WRITERS[writer](p)
@@ -250,7 +233,7 @@ def test_special_targets_are_refused(writer, target, tmp_path):
     assert sorted(x.name for x in tmp_path.iterdir()) == before  # nothing created, nothing replaced
     if target == "fifo":
         assert os.path.exists(p) and not p.is_file() and not p.is_symlink()
-    if target == "symlink_to_dev_null":
+    if target == "link_to_dev_null":
         assert p.is_symlink() and os.readlink(p) == "/dev/null"
 
 
@@ -288,27 +271,11 @@ def test_under_a_file_is_a_clear_error(writer, tmp_path):
     assert (tmp_path / "file").read_text() == "x"
 
 
-def _inject_enospc(monkeypatch, nth: int):
-    """Make the nth file fsync of ibl_ref.atomic fail with ENOSPC (a disk that fills up)."""
-    real = atomic._fsync_path
-    calls = {"n": 0}
-
-    def fake(p, directory=False):
-        if not directory:
-            calls["n"] += 1
-            if calls["n"] == nth:
-                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-        return real(p, directory)
-
-    monkeypatch.setattr(atomic, "_fsync_path", fake)
-    return calls
-
-
 @pytest.mark.parametrize("writer", sorted(WRITERS))
 def test_full_disk_keeps_the_old_file(writer, tmp_path, monkeypatch):
     p = tmp_path / "out.dat"
     p.write_bytes(b"previous version")
-    _inject_enospc(monkeypatch, 1)
+    af.inject_enospc(monkeypatch, 1)
     with pytest.raises(atomic.OutputError, match="No space left"):
         WRITERS[writer](p)
     assert p.read_bytes() == b"previous version"
@@ -317,14 +284,7 @@ def test_full_disk_keeps_the_old_file(writer, tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("writer", sorted(WRITERS))
 def test_read_only_file_system_is_a_clear_error(writer, tmp_path, monkeypatch):
-    real_open = os.open
-
-    def ro_open(path, flags, *a, **k):
-        if flags & os.O_CREAT:
-            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(path))
-        return real_open(path, flags, *a, **k)
-
-    monkeypatch.setattr(atomic.os, "open", ro_open)
+    af.inject_read_only(monkeypatch)
     with pytest.raises(atomic.OutputError, match="Read-only file system"):
         WRITERS[writer](tmp_path / "out.dat")
     assert list(tmp_path.iterdir()) == []
@@ -369,7 +329,7 @@ def test_killed_writer_leaves_a_recognisable_temp_that_the_next_write_removes(tm
 
 def _outset_run(folder: Path, names, content: bytes, fail_at=None, monkeypatch=None):
     if fail_at is not None:
-        _inject_enospc(monkeypatch, fail_at)
+        af.inject_enospc(monkeypatch, fail_at)
     with atomic.OutputSet(folder / "manifest.json", owned_key="files") as outs:
         for n in names:
             with atomic.atomic_write(outs.path(folder / n), "wb") as fh:

@@ -8,7 +8,6 @@ written under the output name, no temporary/staging files, and the previous outp
 
 from __future__ import annotations
 
-import errno
 import json
 import os
 import signal
@@ -249,24 +248,12 @@ OUT_COMMANDS = {  # command -> (argv builder, relative name of the output the ar
 }
 
 
-def _make_special(kind: str, p: Path):
-    if kind == "fifo":
-        os.mkfifo(p)
-    elif kind == "folder":
-        p.mkdir()
-    elif kind == "link_to_dev_full":
-        p.symlink_to("/dev/full")
-    elif kind == "link_to_fifo":
-        os.mkfifo(p.parent / "the_fifo")
-        p.symlink_to(p.parent / "the_fifo")
-
-
 @pytest.mark.parametrize("kind", ["fifo", "folder", "link_to_dev_full", "link_to_fifo"])
 @pytest.mark.parametrize("cmd", sorted(OUT_COMMANDS))
 def test_special_output_targets_are_refused(cmd, kind, good, tmp_path, capfd):
     build, name = OUT_COMMANDS[cmd]
     target = tmp_path / name
-    _make_special(kind, target)
+    af.make_special(kind, target)
     before = sorted(p.name for p in tmp_path.iterdir())
     err = run(build(good, target), capfd, 1)
     assert name in err
@@ -300,14 +287,7 @@ def test_output_through_a_symlink_keeps_the_link(cmd, good, tmp_path, capfd):
 @pytest.mark.parametrize("cmd", sorted(OUT_COMMANDS))
 def test_read_only_file_system(cmd, good, tmp_path, capfd, monkeypatch):
     build, name = OUT_COMMANDS[cmd]
-    real_open = os.open
-
-    def ro_open(path, flags, *a, **k):
-        if flags & os.O_CREAT:
-            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(path))
-        return real_open(path, flags, *a, **k)
-
-    monkeypatch.setattr(atomic.os, "open", ro_open)
+    af.inject_read_only(monkeypatch)
     (tmp_path / "out").mkdir()
     err = run(build(good, tmp_path / "out" / name), capfd, 1)
     assert "Read-only file system" in err
@@ -321,10 +301,7 @@ def test_experiment_out_under_a_file_or_read_only(cmd, tmp_path, capfd, monkeypa
     err = run(argv, capfd, 1)
     assert "afile" in err and "not a folder" in err
 
-    def ro_mkdir(self, *a, **k):
-        raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(self))
-
-    monkeypatch.setattr(Path, "mkdir", ro_mkdir)
+    af.inject_read_only_mkdir(monkeypatch)
     argv = [cmd, "--quick", "--out", tmp_path / "ro" / "res"] + (["fig1"] if cmd == "experiment" else [])
     err = run(argv, capfd, 1)
     assert "Read-only file system" in err
@@ -372,20 +349,6 @@ def test_input_equal_to_output_is_refused(cmd, how, tmp_path, capfd):
 # ------------------------------------------------------------------------------------------------
 # multi-file outputs: full disk at the n-th file, stale files, leftovers
 # ------------------------------------------------------------------------------------------------
-def _enospc_at(monkeypatch, nth):
-    real = atomic._fsync_path
-    calls = {"n": 0}
-
-    def fake(p, directory=False):
-        if not directory:
-            calls["n"] += 1
-            if calls["n"] == nth:
-                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-        return real(p, directory)
-
-    monkeypatch.setattr(atomic, "_fsync_path", fake)
-
-
 @pytest.mark.parametrize("nth", [1, 2, 3, 4, 5, 6, 7])
 def test_convolve_full_disk_keeps_the_previous_set(nth, tmp_path, capfd, monkeypatch):
     # 3 EXR writes + the staged JSON = 4 fsyncs while staging, then 4 before the renames
@@ -394,7 +357,7 @@ def test_convolve_full_disk_keeps_the_previous_set(nth, tmp_path, capfd, monkeyp
     out = tmp_path / "out"
     run(["convolve", a, out / "o.exr", "-s", "1", "-s", "4", "-s", "16", "--method", "exact"], capfd, 0)
     before = listing(out)
-    _enospc_at(monkeypatch, nth)
+    af.inject_enospc(monkeypatch, nth)
     err = run(["convolve", b, out / "o.exr", "-s", "1", "-s", "4", "-s", "16", "--method", "exact"], capfd, 1)
     assert "No space left" in err
     assert listing(out) == before  # old _s1/_s4/_s16 and JSON, nothing new, no staging folder
@@ -408,7 +371,7 @@ def test_pem_full_disk_keeps_the_previous_set(nth, tmp_path, capfd, monkeypatch)
     out = tmp_path / "pems"
     run(["pem", a, "--lights", "6", "--out", out], capfd, 0)
     before = listing(out)
-    _enospc_at(monkeypatch, nth)
+    af.inject_enospc(monkeypatch, nth)
     err = run(["pem", b, "--lights", "6", "--out", out], capfd, 1)
     assert "No space left" in err
     assert listing(out) == before
@@ -559,10 +522,7 @@ def test_pem_out_folder_problems(case, good, tmp_path, capfd, monkeypatch):
     out = {"under_a_file": tmp_path / "afile" / "pems", "is_a_file": tmp_path / "afile",
            "read_only": tmp_path / "ro" / "pems"}[case]
     if case == "read_only":
-        def ro_mkdir(self, *a, **k):
-            raise OSError(errno.EROFS, os.strerror(errno.EROFS), str(self))
-
-        monkeypatch.setattr(Path, "mkdir", ro_mkdir)
+        af.inject_read_only_mkdir(monkeypatch)
     err = run(["pem", good, "--lights", "6", "--out", out], capfd, 1)
     assert str(out.name) in err or "afile" in err
     assert (tmp_path / "afile").read_text() == "x"
