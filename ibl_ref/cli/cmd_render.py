@@ -169,6 +169,11 @@ def cmd_render(args) -> int:
         from ..synthetic_envs import make_env
 
         cube = make_env(args.synthetic, n=args.env_size)
+    # Eq. 5 sums L+1 terms, each at most weight x max radiance: refuse weights that overflow float64
+    wmax = max(float(np.max(x)) for x in (mat.kd, mat.ks, gmat.kd, gmat.ks))
+    if wmax * float(np.max(cube)) * (args.lights + 1) > np.finfo(np.float64).max:
+        raise IBLError(f"--material / --ground-material: weights up to {wmax:g} times radiance up to "
+                       f"{float(np.max(cube)):g} overflow float64 in the shading sum; use smaller weights")
     mesh = load_mesh(args.mesh)
     meshes = [(mesh, 0)]
     if args.ground:
