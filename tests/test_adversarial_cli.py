@@ -540,3 +540,42 @@ def test_info_negative_alpha_is_not_reported_as_clean(tmp_path, capfd):
     if rc == 0 and "no negative radiance" in check and "alpha" not in check.lower():
         pytest.xfail("info reports a file with negative alpha as clean (info diagnostics: engineer h13's area)")
     assert rc in (0, 1)
+
+
+@pytest.mark.parametrize("argv,fragment", [
+    (["convolve", "IN", "OUT/o.exr", "-s=nan"], "--exponent"),
+    (["convolve", "IN", "OUT/o.exr", "-s=0.5"], "--exponent"),
+    (["convolve", "IN", "OUT/o.exr", "-s=-1"], "--exponent"),
+    (["convolve", "IN", "OUT/o.exr", "-s=1e400"], "write 'inf'"),  # overflow must not silently mean the mirror
+    (["convolve", "IN", "OUT/o.exr", "-s", "4", "--rtol", "0"], "--rtol"),
+    (["convolve", "IN", "OUT/o.exr", "-s", "4", "--rtol", "2"], "--rtol"),
+    (["km00-render", "--alpha", "0", "--out", "OUT/k.exr", "--size", "8", "--env-size", "4", "--quiet"], "--alpha"),
+    (["km00-render", "--ks=-1", "--out", "OUT/k.exr", "--size", "8", "--env-size", "4", "--quiet"], "--ks"),
+    (["km00-render", "--env-size", "3", "--out", "OUT/k.exr", "--size", "8", "--quiet"], "--env-size"),
+    (["render", "--mesh", "torus", "--fov", "0", "--out", "OUT/r.exr"], "--fov"),
+    (["render", "--mesh", "torus", "--size", "1", "2", "3", "--out", "OUT/r.exr"], "--size"),
+    (["render", "--mesh", "torus", "--size", "9000", "--out", "OUT/r.exr"], "--size"),
+    (["render", "--mesh", "torus", "--material", "1,2", "--out", "OUT/r.exr"], "--material"),
+    (["render", "--mesh", "torus", "--material", "nan,0.5,0.5", "--out", "OUT/r.exr"], "--material"),
+    (["render", "--mesh", "torus", "--out", "OUT/r.png"], "--out"),
+    (["render", "--mesh", "nosuchmesh", "--out", "OUT/r.exr"], "nosuchmesh"),
+    (["convert", "IN", "OUT/o.exr", "--layout", "cube", "--clamp-half"], "--clamp-half"),
+    (["convert", "IN", "OUT/o.hdr", "--layout", "cube"], "latlong"),
+    (["synth", "mesh", "torus", "OUT/m.xyz"], "unsupported mesh format"),
+    (["synth", "env", "sky_sun", "OUT/e.exr", "--size", "4", "--param", "nosuch=1"], "nosuch"),
+])
+def test_bad_values_name_the_cli_flag(argv, fragment, good, tmp_path, capfd):
+    out = tmp_path / "out"
+    out.mkdir()
+    argv = [str(good) if a == "IN" else a.replace("OUT", str(out)) for a in argv]
+    err = run(argv, capfd, 1)
+    assert fragment in err, err
+    assert listing(out) == {}
+
+
+def test_subprocess_overflowing_material_prints_one_line(tmp_path):
+    # in a real process numpy's RuntimeWarnings would reach stderr: the check happens before any arithmetic
+    r = _sub(["render", "--mesh", "torus", "--material", "1e308,1e308,0.5", "--out", tmp_path / "r.exr",
+              "--size", "8", "--lights", "6", "--env-size", "8"])
+    assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1 and "--material" in r.stderr
+    assert list(tmp_path.iterdir()) == []

@@ -27,6 +27,10 @@ def _exponent(text: str) -> float:
         v = float(text)
     except ValueError:
         raise IBLError(f"--exponent: not a number: {text!r}") from None
+    if math.isinf(v) and text.strip().lower().lstrip("+") not in ("inf", "infinity"):
+        raise IBLError(f"--exponent: {text} overflows float64; write 'inf' for the mirror")
+    if not (v >= 1):  # also NaN
+        raise IBLError(f"--exponent: the Phong exponent must be >= 1 or 'inf' (mirror), got {text}")
     return v
 
 
