@@ -6,11 +6,12 @@ code).  Modules are discovered automatically, in alphabetical order.
 
 Errors (this module, for every command):
 
-* usage errors print **one line** ``ibl-ref CMD: error: argument --flag: …`` (plus a pointer to
-  ``--help``) and return 2;
+* argparse usage errors print **one line** ``ibl-ref CMD: error: argument --flag: …`` (plus a pointer
+  to ``--help``) and exit with 2;
 * every numeric option is validated once, here, right after parsing (:func:`validate_args`): integer
   options must be >= 1 and, if they are sizes, their float64 cube map must fit in memory
-  (:mod:`ibl_ref.limits`); float options must be finite;
+  (:mod:`ibl_ref.limits`); float options must be finite.  A bad value is one line naming the flag,
+  exit code 1 (like every other bad input);
 * an :class:`~ibl_ref.errors.IBLError` prints one line and returns 1; Python parameter hints in library
   messages (``variant='global'``) are rewritten to the command's flags (``--variant global``);
 * last resort: an unexpected ``OSError`` / ``MemoryError`` prints one line asking for a report instead
@@ -65,7 +66,10 @@ def _subparser(parser, command):
 
 
 def validate_args(parser, args) -> None:
-    """Check every int/float option of the chosen command (see module docstring); usage error otherwise."""
+    """Check every int/float option of the chosen command (see module docstring).
+
+    Raises :class:`~ibl_ref.limits.SizeError` naming the flag (``main`` prints it as one line, exit code 1).
+    """
     from ..limits import SizeError, check_face_size
 
     sp = _subparser(parser, getattr(args, "command", None))
@@ -84,15 +88,12 @@ def validate_args(parser, args) -> None:
         flag = max(a.option_strings, key=len) if a.option_strings else a.dest
         for v in value if isinstance(value, list) else [value]:
             if a.type is float and not math.isfinite(v):
-                sp.error(f"argument {flag}: must be a finite number, got {v!r}")
+                raise SizeError(f"argument {flag}: must be a finite number, got {v!r}")
             if a.type is int:
                 if v < 1:
-                    sp.error(f"argument {flag}: must be a positive integer, got {v}")
+                    raise SizeError(f"argument {flag}: must be a positive integer, got {v}")
                 if a.dest in SIZE_DESTS:
-                    try:
-                        check_face_size(v, f"argument {flag}")
-                    except SizeError as exc:
-                        sp.error(str(exc))
+                    check_face_size(v, f"argument {flag}")
 
 
 def _flag_hints(message: str, sp) -> str:
@@ -122,13 +123,12 @@ def _flag_hints(message: str, sp) -> str:
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)  # usage errors / --help raise SystemExit, as argparse does
-    if getattr(args, "func", None):
-        validate_args(parser, args)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
     prog = f"ibl-ref {args.command}"
     try:
+        validate_args(parser, args)  # numeric flags, before any work
         return int(args.func(args) or 0)
     except IBLError as exc:
         msg = " ".join(str(exc).split("\n"))
