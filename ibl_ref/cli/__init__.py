@@ -110,9 +110,9 @@ def _flag_hints(message: str, sp) -> str:
         return f"{flag}" if val in ("True",) else f"{flag} {val}"
 
     message = re.sub(r"\b([a-z][a-z_]*)=(['\"]?)([\w.+-]+)\2", repl, message)
-    m = re.match(r"([a-z][a-z_]*) must\b", message)  # "rtol must be in (0, 1)" -> "--rtol must ..."
+    m = re.match(r"([a-z][a-z_]*) must\b", message)  # "rtol must be in (0, 1)" -> "--rtol: rtol must ..."
     if m and "--" + m.group(1).replace("_", "-") in flags:
-        message = "--" + m.group(1).replace("_", "-") + message[len(m.group(1)):]
+        message = "--" + m.group(1).replace("_", "-") + ": " + message
     message = message.replace("pass layout= explicitly",
                               "the CLI takes the layout from the file's 'envmap' attribute or its aspect ratio")
     if "--size" in flags:
