@@ -563,6 +563,10 @@ def test_info_negative_alpha_is_not_reported_as_clean(tmp_path, capfd):
     (["convert", "IN", "OUT/o.hdr", "--layout", "cube"], "latlong"),
     (["synth", "mesh", "torus", "OUT/m.xyz"], "unsupported mesh format"),
     (["synth", "env", "sky_sun", "OUT/e.exr", "--size", "4", "--param", "nosuch=1"], "nosuch"),
+    (["mediancut", "IN", "--lights", "3", "--out", "OUT/m.json"], "--lights"),
+    (["render", "--mesh", "torus", "--lights", "5", "--out", "OUT/r.exr", "--size", "8"], "--lights"),
+    (["render", "--mesh", "torus", "--lights", "7", "--out", "OUT/r.exr", "--size", "8"], "--median-cut global"),
+    (["pem", "IN", "--lights", "7", "--out", "OUT/p"], "--variant global"),
 ])
 def test_bad_values_name_the_cli_flag(argv, fragment, good, tmp_path, capfd):
     out = tmp_path / "out"

@@ -96,23 +96,34 @@ def validate_args(parser, args) -> None:
                     check_face_size(v, f"argument {flag}")
 
 
+#: library parameter -> CLI flags that set it, where the names differ (the first flag the command has wins)
+PARAM_FLAGS = {"n_lights": ("--lights",), "variant": ("--variant", "--median-cut"), "n_lobes": ("--lobes",),
+               "out_size": ("--size",), "vsm_resolution": ("--vsm-res",)}
+
+
 def _flag_hints(message: str, sp) -> str:
     """Rewrite ``name='value'`` / ``name=value`` hints of library messages to this command's flags."""
     if sp is None:
         return message
     flags = {s for a in sp._actions for s in a.option_strings}
 
+    def flag_of(name):
+        for f in PARAM_FLAGS.get(name, ()) + ("--" + name.replace("_", "-"),):
+            if f in flags:
+                return f
+        return None
+
     def repl(m):
-        flag = "--" + m.group(1).replace("_", "-")
-        if flag not in flags:
+        flag = flag_of(m.group(1))
+        if flag is None:
             return m.group(0)
         val = m.group(3)
         return f"{flag}" if val in ("True",) else f"{flag} {val}"
 
     message = re.sub(r"\b([a-z][a-z_]*)=(['\"]?)([\w.+-]+)\2", repl, message)
     m = re.match(r"([a-z][a-z_]*) must\b", message)  # "rtol must be in (0, 1)" -> "--rtol: rtol must ..."
-    if m and "--" + m.group(1).replace("_", "-") in flags:
-        message = "--" + m.group(1).replace("_", "-") + ": " + message
+    if m and flag_of(m.group(1)):
+        message = flag_of(m.group(1)) + ": " + message
     message = message.replace("pass layout= explicitly",
                               "the CLI takes the layout from the file's 'envmap' attribute or its aspect ratio")
     if "--size" in flags:
