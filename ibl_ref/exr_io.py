@@ -547,7 +547,12 @@ def _part_image(path: Path, part, label: str = ""):
         raise RadianceError(f"{where}: {neg} negative radiance value(s) in the file (min {colour.min():g})")
     ptype = {"HALF": "half", "FLOAT": "float", "UINT": "uint"}
     pixel_type = ptype.get(types.pop(), "mixed") if len(types) == 1 else "mixed"
-    header = {k: _simple(v) for k, v in part.header.items()}
+    header = {}
+    for k, v in part.header.items():
+        try:
+            header[k] = _simple(v)
+        except (UnicodeDecodeError, ValueError) as exc:  # a corrupt string attribute surfaces only here
+            raise EnvMapFileError(f"{where}: corrupt OpenEXR header attribute {k!r} ({exc})") from None
     return img, tuple(order), pixel_type, header
 
 

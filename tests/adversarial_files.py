@@ -151,6 +151,13 @@ def _zeroed_chunks(d: Path):  # header intact, offset table and pixel chunks zer
     return p
 
 
+def _bad_type_name(d: Path):  # the envmap attribute's type name made invalid UTF-8 (found by fuzzing)
+    good = write_good_exr(d / "good_for_typename.exr").read_bytes()
+    p = d / "typename.exr"
+    p.write_bytes(good.replace(b"envmap\0envmap\0", b"envmap\0\xcdnvmap\0", 1))
+    return p
+
+
 BAD_EXR = {
     "trunc_8B": (_truncated(0, 8), "truncated"),
     "trunc_40B": (_truncated(0, 40), "OpenEXR header"),
@@ -174,6 +181,7 @@ BAD_EXR = {
     "version3": (_mixed_sizes_version, "version"),
     "attr_size": (_corrupt_attr_size, "OpenEXR header"),
     "zeroed_chunks": (_zeroed_chunks, "OpenEXR"),
+    "bad_attribute_type_name": (_bad_type_name, "corrupt OpenEXR header attribute"),
 }
 
 

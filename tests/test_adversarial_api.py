@@ -397,3 +397,40 @@ def test_json_with_nan_is_an_output_error_naming_the_file(tmp_path):
     with pytest.raises(atomic.OutputError, match=r"x\.json: cannot write NaN"):
         atomic.write_json(tmp_path / "x.json", {"v": float("inf")})
     assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------------------------------------
+# byte-level fuzzing of the readers (seeded): an IBLError or a finite, non-negative cube, nothing else
+# ------------------------------------------------------------------------------------------------
+def _mutations(base: bytes, seed: int, count: int):
+    rng = np.random.default_rng(seed)
+    for _ in range(count):
+        b = bytearray(base)
+        for _ in range(int(rng.integers(1, 4))):  # 1-3 random bytes overwritten
+            b[int(rng.integers(0, len(b)))] = int(rng.integers(0, 256))
+        if rng.random() < 0.3:  # and sometimes truncated as well
+            b = b[: int(rng.integers(0, len(b)))]
+        yield bytes(b)
+
+
+@pytest.mark.parametrize("seed", range(12))
+@pytest.mark.parametrize("fmt", ["exr", "hdr"])
+def test_fuzzed_files_give_an_iblerror_or_a_valid_cube(fmt, seed, tmp_path, capfd):
+    from ibl_ref.hdr_io import write_hdr
+
+    if fmt == "exr":
+        base = af.write_good_exr(tmp_path / "g.exr").read_bytes()
+    else:
+        write_hdr(tmp_path / "g.hdr", np.random.default_rng(0).random((8, 16, 3)) + 0.1)
+        base = (tmp_path / "g.hdr").read_bytes()
+    p = tmp_path / f"fuzz.{fmt}"
+    for data in _mutations(base, seed, 25):
+        p.write_bytes(data)
+        try:
+            cube = load_cube(p)
+        except IBLError as exc:
+            assert "\n" not in str(exc) and "fuzz" in str(exc)
+            continue
+        assert cube.ndim == 4 and cube.shape[0] == 6 and np.all(np.isfinite(cube)) and np.all(cube >= 0)
+    out, err = capfd.readouterr()
+    assert out + err == ""  # nothing printed by the OpenEXR library either
