@@ -1,64 +1,230 @@
 """Atomic file output and tabular results with units.
 
-Every file ibl_ref writes goes through :func:`atomic_write`: the content is written to a temporary
-file in the destination folder and moved over the destination with :func:`os.replace`, so a crash or
-an error never leaves a half-written file and never destroys the previous version.
+Every file ibl_ref writes goes through :func:`atomic_path` / :func:`atomic_write` (one file) or
+:class:`OutputSet` (several files that belong together).  The rules:
+
+* **Temporary file beside the target.**  The content goes to ``.NAME.ibl-tmp-PID-RANDOM[.ext]`` in the
+  destination folder, is flushed and ``fsync``-ed, then moved over the destination with
+  :func:`os.replace`; the folder is ``fsync``-ed after the rename (POSIX: a rename is durable only once
+  its directory entry is).  A crash or an error never leaves a half-written file under the final name
+  and never destroys the previous version.
+* **Leftovers are recognisable and cleaned.**  A killed run (SIGKILL, power loss) can leave its
+  temporary file behind.  The ``.ibl-tmp-PID-`` tag names the writing process; the next write to the
+  same target removes every such leftover whose process no longer exists (:func:`clean_stale_temps`).
+* **Only regular files are replaced.**  A target that is a device (``/dev/full``), a FIFO, a socket or
+  a folder is refused with :class:`OutputError` before anything is written.  A **symlink is written
+  through**: its final target is replaced atomically and the link itself is kept (a dangling link gets
+  its target created).
+* **Multi-file outputs are committed as a unit** (:class:`OutputSet`): every file is first written into
+  a staging folder ``.MANIFEST.ibl-tmp-PID-RANDOM/`` beside the manifest; only when all of them were
+  written are they moved into place, the JSON manifest last, and files that the *previous* manifest
+  listed but the new run did not produce (a ``pem`` rerun with fewer lights, ``convolve`` with other
+  exponents) are deleted.  A failure while writing (full disk, overflow, interrupt) leaves the previous
+  outputs and manifest exactly as they were.
+* **Inputs are never outputs**: :func:`refuse_overwriting_inputs` rejects an output path that names
+  the same file as an input (``render --env X --out X``), before any work.
+* OS errors while writing (``ENOSPC``, ``EROFS``, ``EACCES`` …) become :class:`OutputError` naming the
+  file and the reason.
 """
 
 from __future__ import annotations
 
 import contextlib
 import csv
+import errno
 import io
 import json
 import os
-import tempfile
+import re
+import secrets
+import shutil
+import stat
 from pathlib import Path
 
 from .errors import IBLError
 
-__all__ = ["atomic_write", "atomic_path", "write_csv", "write_json", "OutputError"]
+__all__ = [
+    "atomic_write",
+    "atomic_path",
+    "write_csv",
+    "write_json",
+    "read_csv",
+    "OutputError",
+    "OutputSet",
+    "TEMP_TAG",
+    "clean_stale_temps",
+    "ensure_output_dir",
+    "refuse_overwriting_inputs",
+    "resolve_output",
+]
+
+TEMP_TAG = ".ibl-tmp-"  #: marker in every temporary file / staging folder name (followed by the PID)
 
 
 class OutputError(IBLError):
     """An output file or folder cannot be written."""
 
 
-def _check_dir(path: Path) -> Path:
-    parent = path.resolve().parent
-    if not parent.exists():
+def _kind(mode: int) -> str:
+    for test, name in ((stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+                       (stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISSOCK, "a socket"),
+                       (stat.S_ISDIR, "a folder")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def _reason(exc: OSError) -> str:
+    return exc.strerror or str(exc)
+
+
+def resolve_output(path) -> Path:
+    """The file that a write to ``path`` really replaces: ``path`` itself or, for a symlink, its final target.
+
+    Raises :class:`OutputError` if that file exists and is not a regular file (device, FIFO, socket,
+    folder) or the symlink chain cannot be resolved (a loop).
+    """
+    path = Path(path)
+    real = path
+    if path.is_symlink():
         try:
-            parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise OutputError(f"{path}: cannot create output folder {parent}: {exc.strerror}") from exc
-    if not os.access(parent, os.W_OK):
-        raise OutputError(f"{path}: output folder {parent} is not writable")
-    if path.exists() and path.is_dir():
+            real = Path(os.path.realpath(path, strict=False))
+        except OSError as exc:  # pragma: no cover - realpath(strict=False) only fails on odd platforms
+            raise OutputError(f"{path}: cannot resolve the symlink: {_reason(exc)}") from exc
+        if real.is_symlink():  # realpath stops at a loop
+            raise OutputError(f"{path}: symlink loop, cannot write through it")
+    try:
+        st = os.stat(real)
+    except FileNotFoundError:
+        return real
+    except NotADirectoryError:
+        return real  # a parent is a file: reported by _check_dir
+    except OSError as exc:
+        raise OutputError(f"{path}: cannot inspect the output path: {_reason(exc)}") from exc
+    if stat.S_ISDIR(st.st_mode):
         raise OutputError(f"{path}: is a folder, expected a file path")
-    return parent
+    if not stat.S_ISREG(st.st_mode):
+        raise OutputError(f"{path}: is {_kind(st.st_mode)}; ibl_ref only replaces regular files "
+                          "(choose a file path)")
+    return real
+
+
+def ensure_output_dir(folder, what: str = "output folder") -> Path:
+    """Create ``folder`` (and parents) if needed; clear :class:`OutputError` if it cannot be a writable folder."""
+    folder = Path(folder)
+    for anc in [folder, *folder.parents]:
+        if anc.exists() or anc.is_symlink():
+            if not anc.is_dir():
+                raise OutputError(f"{folder}: cannot create {what}: {anc} is a file, not a folder")
+            break
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{folder}: cannot create {what}: {_reason(exc)}") from exc
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise OutputError(f"{folder}: {what} is not writable")
+    return folder
+
+
+def _check_dir(path: Path) -> Path:
+    return ensure_output_dir(path.parent if str(path.parent) else Path("."), f"output folder for {path.name}")
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    except OSError:  # pragma: no cover
+        return True
+    return True
+
+
+def clean_stale_temps(folder, name: str) -> list:
+    """Remove leftovers ``.NAME.ibl-tmp-PID-*`` in ``folder`` whose process ``PID`` is gone; returns their paths.
+
+    Files and staging folders of a live process (a concurrent writer) are left alone.
+    """
+    folder = Path(folder)
+    pat = re.compile(re.escape(f".{name}{TEMP_TAG}") + r"(\d+)-[0-9a-f]+")
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    for e in entries:
+        m = pat.match(e.name)
+        if not m or _pid_alive(int(m.group(1))):
+            continue
+        with contextlib.suppress(OSError):
+            if e.is_dir(follow_symlinks=False):
+                shutil.rmtree(e.path)
+            else:
+                os.unlink(e.path)
+            removed.append(Path(e.path))
+    return removed
+
+
+def _temp_name(name: str, suffix: str) -> str:
+    return f".{name}{TEMP_TAG}{os.getpid()}-{secrets.token_hex(4)}{suffix}"
+
+
+def _fsync_path(p, directory: bool = False) -> None:
+    flags = os.O_RDONLY | (getattr(os, "O_DIRECTORY", 0) if directory else 0)
+    try:
+        fd = os.open(p, flags)
+    except OSError:
+        if directory:  # some file systems do not allow opening folders; durability is best-effort there
+            return
+        raise
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        if not directory or exc.errno not in (errno.EINVAL, errno.EBADF, errno.ENOTSUP):
+            raise
+    finally:
+        os.close(fd)
+
+
+def _umask() -> int:
+    umask = os.umask(0)
+    os.umask(umask)
+    return umask
 
 
 @contextlib.contextmanager
 def atomic_path(path, suffix: str | None = None):
     """Yield a temporary path next to ``path``; on success it replaces ``path`` atomically.
 
-    Use for writers that need a file name (e.g. OpenEXR, matplotlib).  On error the temporary file is
-    removed and ``path`` is left as it was.
+    Use for writers that need a file name (e.g. OpenEXR, matplotlib).  The temporary file is fsync-ed
+    before the rename and the folder after it.  On error the temporary file is removed and ``path`` is
+    left as it was; an ``OSError`` of the writer (full disk, read-only file system) becomes
+    :class:`OutputError` naming ``path``.  See the module docstring for symlinks and special files.
     """
     path = Path(path)
-    parent = _check_dir(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix if suffix is not None else path.suffix, dir=parent)
-    os.close(fd)
-    # mkstemp creates 0600 files; give the result the mode a plain open() would (0666 & ~umask)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)
+    real = resolve_output(path)
+    parent = _check_dir(real)
+    clean_stale_temps(parent, real.name)
+    tmp = parent / _temp_name(real.name, suffix if suffix is not None else real.suffix)
     try:
-        yield Path(tmp)
-        os.replace(tmp, path)
-    except BaseException:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666 & ~_umask())
+        os.close(fd)
+    except OSError as exc:
+        raise OutputError(f"{path}: cannot create a file in {parent}: {_reason(exc)}") from exc
+    try:
+        yield tmp
+        _fsync_path(tmp)
+        os.replace(tmp, real)
+        _fsync_path(parent, directory=True)
+    except BaseException as exc:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and not isinstance(exc, IBLError):
+            raise OutputError(f"{path}: cannot write: {_reason(exc)}") from exc
         raise
 
 
@@ -70,6 +236,33 @@ def atomic_write(path, mode: str = "w", **kwargs):
             yield fh
             fh.flush()
             os.fsync(fh.fileno())
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return os.path.realpath(a) == os.path.realpath(b)
+
+
+def refuse_overwriting_inputs(inputs: dict, outputs: dict) -> None:
+    """Raise :class:`OutputError` if an output path names the same file as an input path.
+
+    ``inputs`` and ``outputs`` map a label (the CLI flag or argument name, e.g. ``"--env"``) to a path
+    (dicts or lists of ``(label, path)`` pairs; ``None`` paths are skipped).  Symlinks and hard links are
+    seen through.
+    """
+    inputs = list(inputs.items()) if isinstance(inputs, dict) else list(inputs)
+    outputs = list(outputs.items()) if isinstance(outputs, dict) else list(outputs)
+    for ol, op in outputs:
+        if op is None:
+            continue
+        for il, ip in inputs:
+            if ip is None:
+                continue
+            if Path(op).exists() and Path(ip).exists() and _same_file(Path(op), Path(ip)):
+                raise OutputError(f"{ol} {op}: is the same file as the input {il} {ip}; refusing to overwrite "
+                                  "the input (choose another output path)")
 
 
 def write_csv(path, rows, columns=None, comment: str | None = None):
@@ -114,7 +307,10 @@ def _json_default(o):
 
 def write_json(path, data):
     """Write ``data`` as indented JSON atomically (NaN/Inf are rejected: they are not JSON)."""
-    text = json.dumps(data, indent=2, default=_json_default, allow_nan=False, sort_keys=False)
+    try:
+        text = json.dumps(data, indent=2, default=_json_default, allow_nan=False, sort_keys=False)
+    except ValueError as exc:  # NaN / Inf: refuse, naming the file (the previous file stays)
+        raise OutputError(f"{path}: cannot write NaN or Inf to JSON ({exc})") from exc
     with atomic_write(path) as fh:
         fh.write(text + "\n")
     return Path(path)
@@ -125,3 +321,129 @@ def read_csv(path):
     with open(path, newline="") as fh:
         lines = [ln for ln in fh if not ln.startswith("#")]
     return list(csv.DictReader(lines))
+
+
+class OutputSet:
+    """Several output files committed as a unit; the JSON manifest is written last.
+
+    Usage::
+
+        with OutputSet(folder / "pems.json", owned_key="files") as outs:
+            for i, level in ...:
+                write_pyramid(outs.path(folder / f"pem_{i:03d}.exr"), ...)   # staged, not yet visible
+            outs.commit({"files": [...], ...})                              # move into place, manifest last
+
+    :meth:`path` returns a staging path inside ``.MANIFEST.ibl-tmp-PID-RANDOM/`` in the final file's
+    folder.  :meth:`commit` writes the manifest into the staging folder too (so every write that needs
+    disk space happens before anything is replaced), fsyncs the staged files, renames them over their
+    final names and the manifest last, then deletes the files the previous manifest listed under ``owned_key``
+    (base names, looked up in the manifest's folder) that this run did not produce, except the paths in
+    ``keep`` (e.g. the inputs).  Leaving the block without :meth:`commit` (an exception) removes the
+    staging folders and leaves the previous outputs and manifest untouched.
+    """
+
+    def __init__(self, manifest, owned_key: str = "files", keep=()):
+        self.manifest = Path(manifest)
+        self.owned_key = owned_key
+        self._real_manifest = resolve_output(self.manifest)
+        self.folder = _check_dir(self._real_manifest)
+        self.keep = [Path(k) for k in keep if k is not None]
+        self._staged: dict = {}  # real final path -> (staged path, given path)
+        self._stage_dirs: dict = {}  # folder -> staging folder
+        self.committed = False
+        self.removed_stale: list = []
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if isinstance(exc, IBLError) and exc.args and isinstance(exc.args[0], str):
+            msg = exc.args[0]  # name the final file, not its staging path
+            for staged, given in self._staged.values():
+                msg = msg.replace(str(staged), str(given))
+            exc.args = (msg,) + exc.args[1:]
+        self._cleanup()
+        return False
+
+    def _cleanup(self):
+        for d in self._stage_dirs.values():
+            shutil.rmtree(d, ignore_errors=True)
+        self._stage_dirs.clear()
+
+    def _stage_dir(self, folder: Path) -> Path:
+        key = os.path.realpath(folder)
+        if key not in self._stage_dirs:
+            clean_stale_temps(folder, self._real_manifest.name)
+            d = folder / _temp_name(self._real_manifest.name, "")
+            try:
+                d.mkdir()
+            except OSError as exc:
+                raise OutputError(f"{self.manifest}: cannot create a staging folder in {folder}: {_reason(exc)}") from exc
+            self._stage_dirs[key] = d
+        return self._stage_dirs[key]
+
+    def path(self, final) -> Path:
+        """Staging path for the output file ``final`` (pass it to any writer)."""
+        if self.committed:
+            raise OutputError(f"{self.manifest}: output set already committed")
+        final = Path(final)
+        real = resolve_output(final)
+        folder = _check_dir(real)
+        clean_stale_temps(folder, real.name)
+        key = Path(os.path.realpath(real))
+        if key in self._staged:
+            raise OutputError(f"{final}: named twice in one output set")
+        staged = self._stage_dir(folder) / real.name
+        self._staged[key] = (staged, final)
+        return staged
+
+    def commit(self, manifest_data) -> Path:
+        """Move the staged files into place, write ``manifest_data`` as the manifest, delete stale files."""
+        old_owned = self._previous_owned()
+        missing = [str(g) for s, g in self._staged.values() if not s.exists()]
+        if missing:
+            raise OutputError(f"{self.manifest}: output file(s) were never written: {', '.join(missing)}")
+        # everything that needs disk space happens in the staging folder: a full disk fails here
+        staged_manifest = self._stage_dir(self.folder) / self._real_manifest.name
+        write_json(staged_manifest, manifest_data)
+        try:
+            for real, (staged, given) in self._staged.items():
+                _fsync_path(staged)
+            for real, (staged, given) in self._staged.items():
+                os.replace(staged, real)
+            os.replace(staged_manifest, self._real_manifest)  # the manifest last
+            for folder in {real.parent for real in self._staged} | {self.folder}:
+                _fsync_path(folder, directory=True)
+        except OSError as exc:
+            raise OutputError(f"{self.manifest}: cannot move the outputs into place: {_reason(exc)}") from exc
+        self.committed = True
+        produced = set(self._staged) | {Path(os.path.realpath(self._real_manifest))}
+        protected = {Path(os.path.realpath(k)) for k in self.keep}
+        owner = self.manifest.parent  # names are relative to the manifest as given (not its symlink target)
+        for name in old_owned:
+            cand = owner / name
+            key = Path(os.path.realpath(cand))
+            if key in produced or key in protected or cand.is_symlink() or not cand.is_file():
+                continue
+            with contextlib.suppress(OSError):
+                os.unlink(cand)
+                self.removed_stale.append(cand)
+        self._cleanup()
+        return self.manifest
+
+    def _previous_owned(self) -> list:
+        """Base names listed under ``owned_key`` by the manifest of the previous run (empty if none/unreadable)."""
+        try:
+            old = json.loads(self._real_manifest.read_text())
+        except (OSError, ValueError):
+            return []
+        entries = old.get(self.owned_key) if isinstance(old, dict) else None
+        if not isinstance(entries, list):
+            return []
+        names = []
+        for e in entries:
+            if isinstance(e, str) and e:
+                n = Path(e).name
+                if n not in ("", ".", "..") and TEMP_TAG not in n:
+                    names.append(n)
+        return names

@@ -41,6 +41,8 @@ not an EXR / truncated, non-finite or negative radiance, wrong aspect ratio, mis
 
 from __future__ import annotations
 
+import contextlib
+import os
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -328,29 +330,190 @@ def write_pyramid(path, levels, pixel_type: str = "float", clamp_half: bool = Fa
 # ----------------------------------------------------------------------------------------------
 # reading
 # ----------------------------------------------------------------------------------------------
+_EXR_MAGIC = b"\x76\x2f\x31\x01"
+_FLAG_TILED, _FLAG_LONG_NAMES, _FLAG_DEEP, _FLAG_MULTIPART = 0x200, 0x400, 0x800, 0x1000
+
+
+def _scan_headers(path: Path, buf: bytes) -> list:
+    """Parse the OpenEXR header(s) ourselves, before the binding allocates anything.
+
+    OpenEXR file layout (openexr.com, "OpenEXR File Layout"): magic ``76 2f 31 01``, a 4-byte version
+    field (bits 0-7 version 2; flag bits 0x200 single-part tiled, 0x800 deep / "non-image", 0x1000
+    multi-part), then per part a list of attributes ``name\\0 type\\0 int32 size value`` ended by an
+    empty name (multi-part files: one such list per part, the sequence ended by an empty header).
+    Returns one dict per part with ``type`` (storage string or None), ``dataWindow`` (xmin, ymin, xmax,
+    ymax) and ``n_channels``.  Raises :class:`EnvMapFileError` for deep files, truncated headers and
+    invalid data windows, :class:`~ibl_ref.limits.SizeError` for data windows that cannot fit in memory.
+    """
+    import struct
+
+    from .limits import SizeError, check_allocation
+
+    if len(buf) < 8:
+        raise EnvMapFileError(f"{path}: truncated OpenEXR file ({len(buf)} bytes)")
+    flags = struct.unpack_from("<i", buf, 4)[0]
+    if flags & 0xFF != 2:
+        raise EnvMapFileError(f"{path}: unsupported OpenEXR version {flags & 0xFF} (expected 2)")
+    if flags & _FLAG_DEEP:
+        raise EnvMapFileError(f"{path}: deep OpenEXR file (a list of samples per pixel); ibl_ref reads flat "
+                              "scanline or tiled images only (flatten it first)")
+    pos, parts = 8, []
+
+    def cstr():
+        nonlocal pos
+        end = buf.find(b"\0", pos)
+        if end < 0 or end - pos > 255:
+            raise EnvMapFileError(f"{path}: truncated or corrupt OpenEXR header")
+        out = buf[pos:end].decode("latin-1")
+        pos = end + 1
+        return out
+
+    while True:
+        hdr = {"type": None, "dataWindow": None, "n_channels": 0}
+        name = cstr()
+        if name == "":
+            if not parts:
+                raise EnvMapFileError(f"{path}: corrupt OpenEXR header (no attributes)")
+            break
+        while name != "":
+            typ = cstr()
+            if pos + 4 > len(buf):
+                raise EnvMapFileError(f"{path}: truncated OpenEXR header")
+            size = struct.unpack_from("<i", buf, pos)[0]
+            pos += 4
+            if size < 0 or pos + size > len(buf):
+                raise EnvMapFileError(f"{path}: truncated or corrupt OpenEXR header (attribute {name!r})")
+            val = buf[pos : pos + size]
+            pos += size
+            if name == "type" and typ == "string":
+                hdr["type"] = val.decode("latin-1")
+            elif name == "dataWindow" and typ == "box2i" and size == 16:
+                hdr["dataWindow"] = struct.unpack("<4i", val)
+            elif name == "channels" and typ == "chlist":
+                hdr["n_channels"] = max(1, val.count(b"\0") - 1)
+            name = cstr()
+        parts.append(hdr)
+        if not flags & _FLAG_MULTIPART:
+            break
+    for i, hdr in enumerate(parts):
+        where = f"{path}" + (f" (part {i})" if len(parts) > 1 else "")
+        if hdr["type"] and hdr["type"].startswith("deep"):
+            raise EnvMapFileError(f"{where}: deep OpenEXR image ({hdr['type']}: a list of samples per pixel); "
+                                  "ibl_ref reads flat scanline or tiled images only (flatten it first)")
+        if hdr["dataWindow"] is None:
+            raise EnvMapFileError(f"{where}: corrupt OpenEXR header (no dataWindow attribute)")
+        x0, y0, x1, y1 = hdr["dataWindow"]
+        w, h = x1 - x0 + 1, y1 - y0 + 1
+        if w < 1 or h < 1:
+            raise EnvMapFileError(f"{where}: invalid OpenEXR data window {hdr['dataWindow']} ({w} x {h} pixels)")
+        try:  # the binding's arrays (≤ 4 bytes per sample) plus our float64 copy
+            check_allocation(w * h * max(hdr["n_channels"], 1) * 12, f"the {w} x {h} data window", str(where))
+        except SizeError as exc:
+            raise EnvMapFileError(str(exc)) from None
+    return parts
+
+
+def _flush_c_stdio() -> None:
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError):  # pragma: no cover - no C library handle on this platform
+        pass
+
+
+class _NativeOutput:
+    """Capture what the OpenEXR binding prints (on file descriptors 1 and 2 and on sys.stdout/stderr)."""
+
+    def __enter__(self):
+        import sys
+        import tempfile
+
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        self._tmp = tempfile.TemporaryFile()
+        self._saved = []
+        for fd in (1, 2):
+            try:
+                self._saved.append((fd, os.dup(fd)))
+                os.dup2(self._tmp.fileno(), fd)
+            except OSError:  # no such descriptor (embedded interpreter): nothing to capture
+                pass
+        self.text = ""
+        # the binding also prints through Python's sys.stdout (pybind11 py::print): capture that level too
+        import io
+
+        self._py = io.StringIO()
+        self._redirects = contextlib.ExitStack()
+        self._redirects.enter_context(contextlib.redirect_stdout(self._py))
+        self._redirects.enter_context(contextlib.redirect_stderr(self._py))
+        return self
+
+    def __exit__(self, *exc):
+        self._redirects.close()
+        _flush_c_stdio()  # C++ iostreams write through C stdio buffers (sync_with_stdio): flush them here
+        for fd, saved in self._saved:
+            os.dup2(saved, fd)
+            os.close(saved)
+        self._tmp.seek(0)
+        self.text = self._tmp.read().decode("utf-8", "replace") + self._py.getvalue()
+        self._tmp.close()
+        return False
+
+    def first_line(self) -> str:
+        lines = [ln.strip() for ln in self.text.splitlines() if ln.strip()]
+        return lines[0] if lines else ""
+
+
 def _open(path: Path):
     ox = _openexr()
     if not path.exists():
         raise EnvMapFileError(f"{path}: file not found")
     if path.is_dir():
         raise EnvMapFileError(f"{path}: is a folder, expected an OpenEXR file")
-    with open(path, "rb") as fh:
-        magic = fh.read(4)
-    if magic != b"\x76\x2f\x31\x01":
-        raise EnvMapFileError(f"{path}: not an OpenEXR file (bad magic number {magic!r})")
+    if not path.is_file():  # a FIFO or device would block or never end
+        raise EnvMapFileError(f"{path}: not a regular file (device, FIFO or socket), expected an OpenEXR file")
     try:
-        f = ox.File(str(path), separate_channels=True)
-        parts = list(f.parts)
-        if not parts:
-            raise EnvMapFileError(f"{path}: corrupt or truncated OpenEXR file (no readable parts)")
-        for p in parts:  # force pixel access now so that truncation errors surface here
-            for ch in p.channels.values():
-                _ = ch.pixels.shape
+        with open(path, "rb") as fh:
+            head = fh.read(1 << 20)
+    except OSError as exc:
+        raise EnvMapFileError(f"{path}: cannot read: {exc.strerror}") from exc
+    magic = head[:4]
+    if magic != _EXR_MAGIC:
+        raise EnvMapFileError(f"{path}: not an OpenEXR file (bad magic number {magic!r})")
+    _scan_headers(path, head)
+    native = _NativeOutput()
+    try:
+        with native:
+            f = ox.File(str(path), separate_channels=True)
+            parts = list(f.parts)
+            if parts:
+                for p in parts:  # force pixel access now so that truncation errors surface here
+                    for ch in p.channels.values():
+                        _ = ch.pixels.shape
     except IBLError:
         raise
-    except Exception as exc:  # the binding raises RuntimeError/ValueError for corrupt files
-        raise EnvMapFileError(f"{path}: corrupt or truncated OpenEXR file ({exc})") from exc
+    except MemoryError:
+        raise EnvMapFileError(f"{path}: not enough memory to read the OpenEXR file") from None
+    except Exception as exc:  # the binding raises RuntimeError/ValueError/IndexError for corrupt files
+        detail = native.first_line() or str(exc)
+        raise EnvMapFileError(f"{path}: corrupt or truncated OpenEXR file ({detail})") from exc
+    if not parts:
+        detail = native.first_line() or "no readable parts"
+        raise EnvMapFileError(f"{path}: corrupt or truncated OpenEXR file ({detail})")
+    if "Exception raised" in native.text or "EXR_ERR" in native.text:
+        raise EnvMapFileError(f"{path}: corrupt or truncated OpenEXR file ({native.first_line()})")
     return f, parts
+
+
+def _convention(header: dict, override, where: str) -> str:
+    """Cube face convention: ``override`` or the file's ``iblref_convention`` attribute, validated."""
+    conv = override if override is not None else header.get("iblref_convention", "openexr")
+    if not isinstance(conv, str) or conv not in envmap.CONVENTIONS:
+        src = "convention" if override is not None else "iblref_convention attribute"
+        raise LayoutError(f"{where}: unknown cube {src} {conv!r}; expected one of {envmap.CONVENTIONS}")
+    return conv
 
 
 def _part_image(path: Path, part, label: str = ""):
@@ -384,7 +547,12 @@ def _part_image(path: Path, part, label: str = ""):
         raise RadianceError(f"{where}: {neg} negative radiance value(s) in the file (min {colour.min():g})")
     ptype = {"HALF": "half", "FLOAT": "float", "UINT": "uint"}
     pixel_type = ptype.get(types.pop(), "mixed") if len(types) == 1 else "mixed"
-    header = {k: _simple(v) for k, v in part.header.items()}
+    header = {}
+    for k, v in part.header.items():
+        try:
+            header[k] = _simple(v)
+        except (UnicodeDecodeError, ValueError) as exc:  # a corrupt string attribute surfaces only here
+            raise EnvMapFileError(f"{where}: corrupt OpenEXR header attribute {k!r} ({exc})") from None
     return img, tuple(order), pixel_type, header
 
 
@@ -469,9 +637,7 @@ def read_envmap(path, layout: str | None = None, convention: str | None = None, 
     data = img
     if layout == "cube":
         data = img.reshape(6, w, w, img.shape[2])
-        conv = convention or header.get("iblref_convention") or "openexr"
-        if conv not in envmap.CONVENTIONS:
-            raise LayoutError(f"{path}: unknown cube convention {conv!r}")
+        conv = _convention(header, convention, str(path))
         if conv != "openexr":
             data = envmap.convert_convention(data, conv, "openexr")
     return EnvMap(data=data, layout=layout, path=path, channels=chans, header=header, pixel_type=ptype)
@@ -519,8 +685,11 @@ def load_cube(path, size: int | None = None, layout: str | None = None, conventi
         Face orientation of a cube strip in the file (see :func:`read_envmap`).
     """
     from . import resample
+    from .limits import check_face_size
 
     path = Path(path)
+    if size is not None:
+        size = check_face_size(size, "size")
     if path.suffix.lower() in (".hdr", ".pic", ".rgbe"):
         from .hdr_io import read_hdr
 
@@ -534,7 +703,7 @@ def load_cube(path, size: int | None = None, layout: str | None = None, conventi
     lay = infer_layout(h, w, lay, where)
     if lay == "cube":
         cube = img.reshape(6, w, w, img.shape[2])
-        conv = convention or header.get("iblref_convention") or "openexr"
+        conv = _convention(header, convention, where)
         cube = envmap.convert_convention(cube, conv, "openexr") if conv != "openexr" else cube
     elif lay in ("hcross", "vcross"):
         cube = resample.cross_to_cube(img, lay)

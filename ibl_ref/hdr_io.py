@@ -68,7 +68,7 @@ def float_to_rgbe(rgb: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 # reading
 # ----------------------------------------------------------------------------------------------
-def _parse_header(buf: bytes, path) -> tuple[dict, int]:
+def _parse_header(buf: bytes, path, data_complete: bool = True) -> tuple[dict, int]:
     """Parse header + resolution line; returns (info, offset of pixel data)."""
     if not (buf.startswith(b"#?RADIANCE") or buf.startswith(b"#?RGBE")):
         raise EnvMapFileError(f"{path}: not a Radiance HDR file (missing '#?RADIANCE' signature)")
@@ -103,7 +103,27 @@ def _parse_header(buf: bytes, path) -> tuple[dict, int]:
     info.update(major=(s1.decode() + a1.decode()), minor=(s2.decode() + a2.decode()), n_major=int(n1), n_minor=int(n2))
     if info["n_major"] < 1 or info["n_minor"] < 1:
         raise EnvMapFileError(f"{path}: empty image ({res.decode('latin-1')})")
+    _check_claimed_size(info["n_major"], info["n_minor"], len(buf) - (end + 1) if data_complete else -1, path, res)
     return info, end + 1
+
+
+def _check_claimed_size(n_major: int, n_minor: int, n_data: int, path, res: bytes) -> None:
+    """Refuse a resolution line the file cannot hold or memory cannot hold, before any allocation.
+
+    Every scanline takes at least 4 bytes in any encoding (a flat pixel, an old-style RLE pixel or the new
+    RLE marker), so fewer than ``4·n_major`` bytes of pixel data mean a truncated file or a false header.
+    ``n_data < 0`` means only the header was read (:func:`read_hdr_header`), then only memory is checked.
+    """
+    from .limits import SizeError, check_allocation
+
+    claim = res.decode("latin-1")
+    if 0 <= n_data < 4 * n_major:
+        raise EnvMapFileError(f"{path}: header claims {claim} but the file holds only {n_data} byte(s) of "
+                              f"pixel data (truncated or corrupt)")
+    try:  # uint8 RGBE + float64 RGB per pixel
+        check_allocation(n_major * n_minor * (4 + 24), f"the {claim} image", str(path))
+    except SizeError as exc:
+        raise EnvMapFileError(str(exc)) from None
 
 
 def read_hdr_header(path) -> dict:
@@ -111,7 +131,8 @@ def read_hdr_header(path) -> dict:
     path = Path(path)
     with _open(path) as fh:
         buf = fh.read(65536)
-    info, _ = _parse_header(buf, path)
+        complete = not fh.read(1)
+    info, _ = _parse_header(buf, path, data_complete=complete)
     return info
 
 
@@ -120,6 +141,8 @@ def _open(path: Path):
         raise EnvMapFileError(f"{path}: file not found")
     if path.is_dir():
         raise EnvMapFileError(f"{path}: is a folder, expected a Radiance .hdr file")
+    if not path.is_file():  # a FIFO or device would block or never end
+        raise EnvMapFileError(f"{path}: not a regular file (device, FIFO or socket), expected a Radiance .hdr file")
     return open(path, "rb")
 
 

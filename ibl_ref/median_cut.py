@@ -49,6 +49,13 @@ Rules (choices that change results; all documented here)
 * **Light** of a region (Debevec 2008): direction = normalised energy centroid Σ w·d / |Σ w·d| (for a
   dark region the solid-angle centroid), colour = ∫_region L dω = Σ L·Ω per channel, and the region's
   solid angle Σ Ω.
+* **Overflow-safe accumulation**: a map whose maximum is outside [2^-500, 2^500] (≈ 3e-151 … 3e150)
+  is scaled by an exact power of two 2^-k before any sum, so that sums of energies and their squares
+  (variance cut) neither overflow nor underflow; the region energies and colours are scaled back by 2^k
+  at the end.  Split decisions are unchanged by the scaling except that, for very bright maps, texels
+  more than 2^-1574 times dimmer than the maximum underflow to 0 (count as dark).  If a light's colour or energy is not
+  representable in float64 after scaling back (e.g. ``ones * 1e308``: ∫L dω over 1/6 of the sphere
+  ≈ 2.1e308), :class:`~ibl_ref.errors.IBLError` says so instead of returning Inf.
 """
 
 from __future__ import annotations
@@ -428,6 +435,9 @@ def median_cut(cube, n_lights: int, variant: str = "per-face", *, luminance_weig
     n_lights = int(n_lights)
     if n_lights < 6:
         raise IBLError(f"n_lights must be >= 6 (regions never cross a cube edge, so each face holds >= 1); got {n_lights}")
+    k = _overflow_exponent(cube)
+    if k:
+        cube = np.ldexp(cube, -k)  # exact power-of-two scaling (module docstring)
     y = luminance(cube, luminance_weights)
     if np.any(y < 0):
         raise IBLError("luminance is negative somewhere (check luminance_weights)")
@@ -452,7 +462,31 @@ def median_cut(cube, n_lights: int, variant: str = "per-face", *, luminance_weig
     regions = _per_face(tab, per_face_counts(n_lights)) if variant == "per-face" else _greedy(tab, n_lights, variant)
     if len(regions) != n_lights:  # pragma: no cover - internal invariant
         raise IBLError(f"internal: produced {len(regions)} regions instead of {n_lights}")
-    return _lights_from_regions(cube, w, regions, variant, luminance_weights)
+    ls = _lights_from_regions(cube, w, regions, variant, luminance_weights)
+    if k:
+        big = float(np.max(ls.rgb))
+        with np.errstate(over="ignore"):
+            ls.rgb, ls.energy = np.ldexp(ls.rgb, k), np.ldexp(ls.energy, k)
+        if not (np.all(np.isfinite(ls.rgb)) and np.all(np.isfinite(ls.energy))):
+            raise IBLError(f"median cut: a light's colour (integral of L over its region, {big:.4g} x 2^{k}) exceeds "
+                           f"the largest float64 ({np.finfo(np.float64).max:.4g}); scale the map down or use more lights")
+    return ls
+
+
+SAFE_EXPONENT = 500  #: maps brighter than 2^SAFE_EXPONENT are scaled down before summing (module docstring)
+
+
+def _overflow_exponent(cube: np.ndarray) -> int:
+    """k with ``cube · 2^-k`` having its maximum in [2^-SAFE_EXPONENT, 2^SAFE_EXPONENT] (0 for ordinary maps).
+
+    k > 0 scales very bright maps down (sums overflow otherwise), k < 0 very dim ones up (squares
+    underflow otherwise, e.g. in the centroid's norm).
+    """
+    vmax = float(np.max(cube)) if np.size(cube) else 0.0
+    if vmax == 0.0 or 2.0**-SAFE_EXPONENT <= vmax <= 2.0**SAFE_EXPONENT:
+        return 0
+    e = int(np.frexp(vmax)[1])
+    return e - SAFE_EXPONENT if e > 0 else e + SAFE_EXPONENT
 
 
 def _lights_from_regions(cube, w, regions, variant, luminance_weights) -> LightSet:
@@ -474,6 +508,7 @@ def _lights_from_regions(cube, w, regions, variant, luminance_weights) -> LightS
     cw = np.stack([np.bincount(lab, weights=wf * dirs[:, k], minlength=L) for k in range(3)], -1)
     cg = np.stack([np.bincount(lab, weights=omega * dirs[:, k], minlength=L) for k in range(3)], -1)
     centroid = np.where((energy > 0)[:, None], cw, cg)
+    centroid = centroid / np.max(np.abs(centroid), axis=-1, keepdims=True)  # scale first: no under/overflow
     directions = centroid / np.linalg.norm(centroid, axis=-1, keepdims=True)
     lw = tuple(luminance_weights) if luminance_weights is not None else (REC709 if cflat.shape[1] == 3 else (1.0,))
     return LightSet(
@@ -509,8 +544,9 @@ def check_partition(lights: LightSet, cube) -> dict:
         ref_labels[f, r0:r1, c0:c1] = i
     omega = texel_solid_angles(n)
     c = cube if cube.ndim == 4 else cube[..., None]
-    integral = np.einsum("fijc,ij->c", c, omega)
-    rgb_sum = lights.rgb.sum(axis=0)
+    k = max(_overflow_exponent(c), _overflow_exponent(lights.rgb))  # relative errors are scale-invariant
+    integral = np.einsum("fijc,ij->c", np.ldexp(c, -k), omega)
+    rgb_sum = np.ldexp(lights.rgb, -k).sum(axis=0)
     denom = np.where(integral > 0, integral, 1.0)
     return {
         "uncovered": int(np.sum(count == 0)),
@@ -528,6 +564,7 @@ def energy_spread(lights: LightSet) -> dict:
     region energies), ``n_zero_energy`` (regions without energy, e.g. dark faces in ``per-face``).
     """
     e = np.asarray(lights.energy, dtype=np.float64)
+    e = np.ldexp(e, -_overflow_exponent(e))  # the statistics are scale-invariant; avoid overflow in std()
     pos = e[e > 0]
     return {
         "max_over_min": float(pos.max() / pos.min()) if pos.size else float("nan"),

@@ -632,7 +632,9 @@ def render_pem(
     vis_img = np.ones((L, H, W))
     vis_img[:, m] = vis
     if not np.all(np.isfinite(image)):
-        raise IBLError("render produced non-finite values (check the PEMs for Inf/NaN)")
+        big = float(np.max(pem_vals[np.isfinite(pem_vals)], initial=0.0))
+        raise IBLError(f"render produced non-finite values: material weight x radiance overflows float64 (largest "
+                       f"finite shaded term {big:g}); use smaller material weights kd, ks (--material) or a dimmer map")
     parts = {}
     if mats is not None:
         for name, vals in (("diffuse", diffuse), ("specular", specular)):

@@ -508,6 +508,50 @@ def validate_mesh(mesh, name: str = "mesh", area_eps: float = 0.0) -> trimesh.Tr
     return mesh
 
 
+_MAGICS = {b"\x76\x2f\x31\x01": "an OpenEXR image", b"#?RADIANCE": "a Radiance HDR image", b"#?RGBE": "a Radiance HDR image",
+           b"\x89PNG": "a PNG image", b"PK\x03\x04": "a ZIP archive", b"\x93NUMPY": "a NumPy array file"}
+
+
+def _sniff_mesh_file(path: Path) -> None:
+    """Clear :class:`MeshError` for files that are not what their extension says, before trimesh sees them.
+
+    Checks (file-format facts): other known formats by magic number; a binary STL's size must be
+    84 + 50·T bytes for the T triangles its header announces; OBJ / OFF are text (no NUL bytes); a PLY
+    whose header declares no ``face`` element (or 0 faces) is a point cloud.
+    """
+    import struct
+
+    ext = path.suffix.lower()
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        head = fh.read(4096)
+    for magic, what in _MAGICS.items():
+        if head.startswith(magic):
+            raise MeshError(f"{path}: is {what}, not a {ext or 'mesh'} mesh file")
+    if ext == ".stl" and not head.lstrip().startswith(b"solid"):
+        if size < 84:
+            raise MeshError(f"{path}: truncated binary STL ({size} bytes, the header alone is 84)")
+        (tri,) = struct.unpack_from("<I", head, 80)
+        if size != 84 + 50 * tri:
+            raise MeshError(f"{path}: truncated or corrupt binary STL: its header announces {tri} triangles "
+                            f"({84 + 50 * tri} bytes), the file has {size} bytes")
+    if ext in (".obj", ".off") and b"\0" in head:
+        raise MeshError(f"{path}: binary content in a {ext} file (OBJ/OFF meshes are text)")
+    if ext == ".ply" and head.startswith(b"ply"):
+        end = head.find(b"end_header")
+        hdr = head[: end if end >= 0 else len(head)].decode("latin-1", "replace").split("\n")
+        n_vert = n_face = 0
+        for line in hdr:
+            f = line.split()
+            if len(f) == 3 and f[0] == "element" and f[2].isdigit():
+                if f[1] == "vertex":
+                    n_vert = int(f[2])
+                elif f[1] == "face":
+                    n_face = int(f[2])
+        if n_face == 0:
+            raise MeshError(f"{path}: a point cloud ({n_vert} vertices, no faces); a triangle mesh is needed")
+
+
 def load_mesh(path_or_name, **params) -> trimesh.Trimesh:
     """A mesh from a name in :data:`MESH_NAMES` (generated with ``params``) or from a file.
 
@@ -525,11 +569,18 @@ def load_mesh(path_or_name, **params) -> trimesh.Trimesh:
     path = Path(path_or_name)
     if not path.is_file():
         raise MeshError(f"{path}: no such mesh file (and not a generated mesh name: {', '.join(MESH_NAMES)})")
+    _sniff_mesh_file(path)
     try:
         # process=False: trimesh's processing would silently drop NaN vertices and their faces
         mesh = trimesh.load(str(path), force="mesh", process=False)
+    except ImportError as exc:  # trimesh falls back to optional text-encoding detectors on odd bytes
+        raise MeshError(f"{path}: cannot read mesh: not a valid {path.suffix or 'mesh'} file "
+                        f"(trimesh could not parse it: {exc})") from exc
     except Exception as exc:  # trimesh raises many types for bad files
         raise MeshError(f"{path}: cannot read mesh: {exc}") from exc
+    if len(getattr(mesh, "faces", ())) == 0 and path.stat().st_size > 0:
+        raise MeshError(f"{path}: no triangles could be read from this {path.stat().st_size}-byte "
+                        f"{path.suffix or 'mesh'} file (corrupt, truncated or not a triangle mesh)")
     validate_mesh(mesh, str(path))
     mesh.process(validate=False)  # merge duplicate vertices (split normals/uv seams in OBJ files)
     return validate_mesh(mesh, str(path))

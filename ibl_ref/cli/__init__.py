@@ -3,22 +3,47 @@
 Sub-commands live in modules ``ibl_ref/cli/cmd_*.py``; each defines ``register(subparsers)`` which
 adds one or more sub-parsers and sets ``func`` (called with the parsed arguments, returns an exit
 code).  Modules are discovered automatically, in alphabetical order.
+
+Errors (this module, for every command):
+
+* argparse usage errors print **one line** ``ibl-ref CMD: error: argument --flag: …`` (plus a pointer
+  to ``--help``) and exit with 2;
+* every numeric option is validated once, here, right after parsing (:func:`validate_args`): integer
+  options must be >= 1 and, if they are sizes, their float64 cube map must fit in memory
+  (:mod:`ibl_ref.limits`); float options must be finite.  A bad value is one line naming the flag,
+  exit code 1 (like every other bad input);
+* an :class:`~ibl_ref.errors.IBLError` prints one line and returns 1; Python parameter hints in library
+  messages (``variant='global'``) are rewritten to the command's flags (``--variant global``);
+* last resort: an unexpected ``OSError`` / ``MemoryError`` prints one line asking for a report instead
+  of a traceback (known cases are translated where they happen, not here).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import math
 import pkgutil
+import re
 import sys
 
 from ..errors import IBLError
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "build_parser", "validate_args"]
+
+#: int options whose value is an array size (checked against memory as a cube face size)
+SIZE_DESTS = ("size", "input_size", "env_size", "vsm_res")
+
+
+class _Parser(argparse.ArgumentParser):
+    """ArgumentParser whose usage errors are a single line naming the flag."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="ibl-ref",
         description=(
             "ibl_ref: exact references and measured approximations for image-based lighting of glossy "
@@ -33,17 +58,102 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _subparser(parser, command):
+    for a in parser._actions:
+        if isinstance(a, argparse._SubParsersAction):
+            return a.choices.get(command)
+    return None
+
+
+def validate_args(parser, args) -> None:
+    """Check every int/float option of the chosen command (see module docstring).
+
+    Raises :class:`~ibl_ref.limits.SizeError` naming the flag (``main`` prints it as one line, exit code 1).
+    """
+    from ..limits import SizeError, check_face_size
+
+    sp = _subparser(parser, getattr(args, "command", None))
+    while sp is not None:  # nested sub-commands (``synth env``): validate the innermost parser
+        nested = next((a for a in sp._actions if isinstance(a, argparse._SubParsersAction)), None)
+        inner = nested.choices.get(getattr(args, nested.dest, None)) if nested is not None and nested.dest else None
+        if inner is None:
+            break
+        sp = inner
+    if sp is None:
+        return
+    for a in sp._actions:
+        value = getattr(args, a.dest, None)
+        if a.type not in (int, float) or value is None:
+            continue
+        flag = max(a.option_strings, key=len) if a.option_strings else a.dest
+        for v in value if isinstance(value, list) else [value]:
+            if a.type is float and not math.isfinite(v):
+                raise SizeError(f"argument {flag}: must be a finite number, got {v!r}")
+            if a.type is int:
+                if v < 1:
+                    raise SizeError(f"argument {flag}: must be a positive integer, got {v}")
+                if a.dest in SIZE_DESTS:
+                    check_face_size(v, f"argument {flag}")
+
+
+#: library parameter -> CLI flags that set it, where the names differ (the first flag the command has wins)
+PARAM_FLAGS = {"n_lights": ("--lights",), "variant": ("--variant", "--median-cut"), "n_lobes": ("--lobes",),
+               "out_size": ("--size",), "vsm_resolution": ("--vsm-res",)}
+
+
+def _flag_hints(message: str, sp) -> str:
+    """Rewrite ``name='value'`` / ``name=value`` hints of library messages to this command's flags."""
+    if sp is None:
+        return message
+    flags = {s for a in sp._actions for s in a.option_strings}
+
+    def flag_of(name):
+        for f in PARAM_FLAGS.get(name, ()) + ("--" + name.replace("_", "-"),):
+            if f in flags:
+                return f
+        return None
+
+    def repl(m):
+        flag = flag_of(m.group(1))
+        if flag is None:
+            return m.group(0)
+        val = m.group(3)
+        return f"{flag}" if val in ("True",) else f"{flag} {val}"
+
+    message = re.sub(r"\b([a-z][a-z_]*)=(['\"]?)([\w.+-]+)\2", repl, message)
+    m = re.match(r"([a-z][a-z_]*) must\b", message)  # "rtol must be in (0, 1)" -> "--rtol: rtol must ..."
+    if m and flag_of(m.group(1)):
+        message = flag_of(m.group(1)) + ": " + message
+    message = message.replace("pass layout= explicitly",
+                              "the CLI takes the layout from the file's 'envmap' attribute or its aspect ratio")
+    if "--size" in flags:
+        message = message.replace("Resample the map first (e.g. ibl_ref.resample)", "Resample it with --size")
+    return message
+
+
 def main(argv=None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(argv)  # usage errors / --help raise SystemExit, as argparse does
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    prog = f"ibl-ref {args.command}"
     try:
+        validate_args(parser, args)  # numeric flags, before any work
         return int(args.func(args) or 0)
     except IBLError as exc:
-        print(f"ibl-ref {args.command}: error: {exc}", file=sys.stderr)
+        msg = " ".join(str(exc).split("\n"))
+        print(f"{prog}: error: {_flag_hints(msg, _subparser(parser, args.command))}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except MemoryError:  # last resort: sizes are checked up front, this is a case we did not foresee
+        print(f"{prog}: error: out of memory (try smaller sizes; please report the command that caused this)",
+              file=sys.stderr)
+        return 1
+    except OSError as exc:  # last resort: known cases are OutputError / EnvMapFileError at their source
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        print(f"{prog}: error: {where}{exc.strerror or exc} (unexpected system error; please report it)",
+              file=sys.stderr)
+        return 1

@@ -27,41 +27,48 @@ def _exponent(text: str) -> float:
         v = float(text)
     except ValueError:
         raise IBLError(f"--exponent: not a number: {text!r}") from None
+    if math.isinf(v) and text.strip().lower().lstrip("+") not in ("inf", "infinity"):
+        raise IBLError(f"--exponent: {text} overflows float64; write 'inf' for the mirror")
+    if not (v >= 1):  # also NaN
+        raise IBLError(f"--exponent: the Phong exponent must be >= 1 or 'inf' (mirror), got {text}")
     return v
 
 
 def cmd_convolve(args) -> int:
-    from ..atomic import write_json
+    from ..atomic import OutputSet, refuse_overwriting_inputs
     from ..convolve import convolve
     from ..exr_io import load_cube, write_envmap
 
-    cube = load_cube(args.input, size=args.input_size)
     exps = [_exponent(e) for e in args.exponent]
+    side = Path(args.output).with_suffix(".json")
+    refuse_overwriting_inputs({"IN": args.input}, [("OUT", side)] + [("OUT", exponent_path(args.output, s)) for s in exps])
+    cube = load_cube(args.input, size=args.input_size)
     res = convolve(
         cube, exps, method=args.method, rtol=args.rtol, out_size=args.size, normalized=not args.unnormalized,
         workers=args.workers, backend=args.parallel,
     )
     written = []
-    for s, m in res.maps.items():
-        p = exponent_path(args.output, s)
-        write_envmap(p, m, layout="cube")
-        written.append(str(p))
-    summary = res.summary()
-    summary.update(
-        {
-            "workers": res.info.get("workers"),
-            "parallel_backend": res.info.get("backend"),
-            "input": str(args.input),
-            "outputs": written,
-            "normalized": not args.unnormalized,
-            "rtol": args.rtol,
-            "method_requested": args.method,
-            "face_size_in": int(cube.shape[1]),
-            "face_size_out": int(next(iter(res.maps.values())).shape[1]),
-        }
-    )
-    side = Path(args.output).with_suffix(".json")
-    write_json(side, summary)
+    outs = OutputSet(side, owned_key="outputs", keep=[args.input])  # all files or none; stale _s* removed
+    with outs:
+        for s, m in res.maps.items():
+            p = exponent_path(args.output, s)
+            write_envmap(outs.path(p), m, layout="cube")
+            written.append(str(p))
+        summary = res.summary()
+        summary.update(
+            {
+                "workers": res.info.get("workers"),
+                "parallel_backend": res.info.get("backend"),
+                "input": str(args.input),
+                "outputs": written,
+                "normalized": not args.unnormalized,
+                "rtol": args.rtol,
+                "method_requested": args.method,
+                "face_size_in": int(cube.shape[1]),
+                "face_size_out": int(next(iter(res.maps.values())).shape[1]),
+            }
+        )
+        outs.commit(summary)
     for e in summary["exponents"]:
         b = e["rel_bound_max"]
         print(f"s={e['s']}: {e['method']:6s} rel. bound max {b if b is not None else 'inf'} ({e['bound_kind']})")
@@ -73,6 +80,9 @@ def cmd_irradiance(args) -> int:
     from ..exr_io import load_cube, write_envmap
     from ..kan2015 import irradiance_map
 
+    from ..atomic import refuse_overwriting_inputs
+
+    refuse_overwriting_inputs({"IN": args.input}, {"OUT": args.output})
     cube = load_cube(args.input, size=args.input_size)
     ed = irradiance_map(cube, quadrature=args.quadrature, out_size=args.size)
     write_envmap(args.output, ed, layout="cube")

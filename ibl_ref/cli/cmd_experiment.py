@@ -10,7 +10,9 @@ from .. import experiments
 
 
 def _run_one(mod, out: Path, quick: bool) -> dict:
-    out.mkdir(parents=True, exist_ok=True)
+    from ..atomic import ensure_output_dir
+
+    ensure_output_dir(out, "--out folder")  # under a file / read-only: one-line error, no traceback
     t0 = time.perf_counter()
     summary = mod.run(out, quick=quick) or {}
     t1 = time.perf_counter()

@@ -9,6 +9,8 @@ import numpy as np
 
 from ..errors import IBLError
 
+OUT_SUFFIXES = (".exr", ".hdr", ".pic")  #: file types ``convert`` writes
+
 
 def _load_any(path: Path):
     """(data, layout, channels, pixel_type, file_format, extra) of any supported file without resampling."""
@@ -27,11 +29,12 @@ def _load_any(path: Path):
         layout = exr_io.infer_layout(img.shape[0], img.shape[1], layout, str(path))
         extra = {"envmap_attribute": header.get("envmap", "-"), "convention": header.get("iblref_convention", "-")}
         fmt = "OpenEXR"
-        if layout == "cube" and header.get("iblref_convention", "openexr") != "openexr":
+        conv = exr_io._convention(header, None, str(path)) if layout == "cube" else "openexr"
+        if conv != "openexr":
             from .. import envmap
 
             n = img.shape[1]
-            img = envmap.convert_convention(img.reshape(6, n, n, -1), header["iblref_convention"], "openexr")
+            img = envmap.convert_convention(img.reshape(6, n, n, -1), conv, "openexr")
     if layout == "cube":
         n = img.shape[-2]
         data = img.reshape(6, n, n, img.shape[-1])
@@ -74,7 +77,14 @@ def cmd_convert(args) -> int:
     from .. import exr_io, resample
     from ..hdr_io import write_hdr
 
+    from ..atomic import refuse_overwriting_inputs, resolve_output
+
     src, dst = Path(args.input), Path(args.output)
+    if dst.suffix.lower() not in OUT_SUFFIXES:
+        raise IBLError(f"OUT {dst}: convert writes OpenEXR (.exr) or Radiance (.hdr, .pic) files; "
+                       f"use one of these extensions (a {dst.suffix or 'missing'} extension would mislabel the file)")
+    refuse_overwriting_inputs({"IN": src}, {"OUT": dst})
+    resolve_output(dst)  # a folder / device / FIFO as OUT: refuse before the work
     if args.clamp_half and not args.half:
         raise IBLError("--clamp-half only applies with --half")
     if args.size is not None and args.size < 1:

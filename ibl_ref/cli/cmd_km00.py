@@ -36,6 +36,10 @@ def run(args) -> int:
 
     out = _check_output(Path(args.out), (".exr",))
     stops = parse_exposure(args.exposure)
+    from ..atomic import refuse_overwriting_inputs
+
+    env_file = args.env if Path(args.env).exists() else None
+    refuse_overwriting_inputs({"--env": env_file}, {"--out": out, "--png": out.with_suffix(".png") if args.png else None})
     w, h = _size(args.size)
     if args.env_size < 2 or args.env_size & (args.env_size - 1):
         raise IBLError(f"--env-size must be a power of two >= 2, got {args.env_size}")

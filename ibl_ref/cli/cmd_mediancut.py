@@ -6,6 +6,7 @@ Thin layer over :func:`ibl_ref.median_cut.median_cut`, :func:`ibl_ref.pem.build_
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from ..errors import IBLError
@@ -26,9 +27,11 @@ def _load(path, size):
 
 
 def cmd_mediancut(args) -> int:
-    from ..atomic import write_json
+    from ..atomic import refuse_overwriting_inputs, resolve_output, write_json
     from ..median_cut import check_partition, energy_spread, median_cut
 
+    refuse_overwriting_inputs({"IN": args.input}, {"--out": args.out})
+    resolve_output(args.out)  # a folder / device / FIFO as --out: refuse before the work
     cube = _load(args.input, args.size)
     ls = median_cut(cube, args.lights, args.variant)
     chk = check_partition(ls, cube)
@@ -54,41 +57,54 @@ def cmd_mediancut(args) -> int:
 def cmd_pem(args) -> int:
     import numpy as np
 
-    from ..atomic import write_json
-    from ..exr_io import write_pyramid
+    from ..atomic import OutputSet, ensure_output_dir
+    from ..exr_io import HALF_MAX, write_pyramid
+    from ..filters import kernel_taps
     from ..median_cut import median_cut
     from ..pem import build_pems
 
-    cube = _load(args.input, args.size)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
-        raise IBLError(f"{out}: exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
+        raise IBLError(f"--out {out}: exists and is not a folder")
+    try:  # an unknown --kernel fails here, before any folder is created
+        kernel_taps(args.kernel)
+    except IBLError as exc:
+        raise IBLError(f"--kernel: {exc}") from None
+    cube = _load(args.input, args.size)
     ls = median_cut(cube, args.lights, args.variant)
+    progress = sys.stderr.isatty()  # progress bars only for a terminal: errors stay one line in logs
     pems = build_pems(cube, ls, kernel=args.kernel, order=args.order, seam=args.seam, dtype=np.float32,
-                      progress=True)
+                      progress=progress)
+    if args.pixel_type == "half":  # refuse before writing anything (pem has no clamping option)
+        vmax = max(float(lev.max()) for lev in pems.levels)
+        if vmax > HALF_MAX:
+            raise IBLError(f"--pixel-type half: PEM values up to {vmax:g} exceed the largest half float "
+                           f"({HALF_MAX:g}); use --pixel-type float")
+    ensure_output_dir(out, "--out folder")
     files = []
     rng = range(len(pems))
     try:
         from tqdm import tqdm
 
-        rng = tqdm(rng, desc="writing PEMs", unit="file")
+        rng = tqdm(rng, desc="writing PEMs", unit="file", disable=not progress)
     except ImportError:  # pragma: no cover
         pass
-    for i in rng:
-        p = out / f"pem_{i:03d}.exr"
-        write_pyramid(p, [lev[:, :, :, i, :] for lev in pems.levels], pixel_type=args.pixel_type)
-        files.append(p.name)
-    info = {"source": str(args.input), "face_size": pems.base_size, "n_pems": len(pems), "kernel": pems.kernel,
+    outs = OutputSet(out / "pems.json", owned_key="files", keep=[args.input])  # all or nothing; stale PEMs removed
+    with outs:
+        for i in rng:
+            p = out / f"pem_{i:03d}.exr"
+            write_pyramid(outs.path(p), [lev[:, :, :, i, :] for lev in pems.levels], pixel_type=args.pixel_type)
+            files.append(p.name)
+        info = {"source": str(args.input), "face_size": pems.base_size, "n_pems": len(pems), "kernel": pems.kernel,
             "order": pems.order, "seam": pems.seam, "dense_nbytes_float32": pems.nbytes,
-            "pixel_type": args.pixel_type, "files": files, "lights": ls.to_records()}
-    if args.sparse_report:
-        from ..sparse_pem import sparsify
+                "pixel_type": args.pixel_type, "files": files, "lights": ls.to_records()}
+        if args.sparse_report:
+            from ..sparse_pem import sparsify
 
-        sp = sparsify(pems, rtol=0.0)
-        info["sparse_lossless_nbytes"] = sp.nbytes
-        info["sparse_ratio"] = pems.nbytes / sp.nbytes
-    write_json(out / "pems.json", info)
+            sp = sparsify(pems, rtol=0.0)
+            info["sparse_lossless_nbytes"] = sp.nbytes
+            info["sparse_ratio"] = pems.nbytes / sp.nbytes
+        outs.commit(info)
     print(f"{len(pems)} PEM pyramids ({pems.n_levels} levels, {pems.kernel}) → {out}/pem_*.exr "
           f"(in memory: {pems.nbytes / 2**20:.2f} MiB float32)")
     if args.sparse_report:

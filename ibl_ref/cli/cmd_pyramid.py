@@ -6,9 +6,18 @@ import json
 
 
 def cmd_pyramid(args) -> int:
+    from ..atomic import refuse_overwriting_inputs, resolve_output
+    from ..errors import IBLError
     from ..exr_io import load_cube, write_pyramid
+    from ..filters import kernel_taps
     from ..pyramid import build_pyramid, pyramid_energy
 
+    refuse_overwriting_inputs({"IN": args.input}, {"OUT": args.output})
+    resolve_output(args.output)  # a folder / device / FIFO as OUT: refuse before the work
+    try:
+        kernel_taps(args.kernel)
+    except IBLError as exc:
+        raise IBLError(f"--kernel: {exc}") from None
     cube = load_cube(args.input, size=args.size)
     pyr = build_pyramid(cube, kernel=args.kernel, order=args.order, seam=args.seam)
     write_pyramid(args.output, pyr.levels, pixel_type=args.pixel_type, clamp_half=args.clamp_half)

@@ -57,6 +57,12 @@ def _check_output(path: Path, exts=None, option: str = "--out") -> Path:
             raise IBLError(f"{option} {path}: cannot create output folder {parent}: {exc.strerror}") from exc
     if not os.access(parent, os.W_OK):
         raise IBLError(f"{option} {path}: output folder {parent} is not writable")
+    from ..atomic import resolve_output
+
+    try:  # a device, FIFO or socket (also behind a symlink) is refused here, before rendering
+        resolve_output(path)
+    except IBLError as exc:
+        raise IBLError(f"{option} {exc}") from None
     return path
 
 
@@ -130,13 +136,17 @@ def cmd_render(args) -> int:
 
     import numpy as np
 
-    from ..atomic import atomic_path, write_json
+    from ..atomic import atomic_path
     from ..render import Material, render_pem
     from ..scenes import teapot_on_ground
 
     # ---- validate everything cheap before the expensive parts ----------------------------------------------
+    from ..atomic import OutputSet, refuse_overwriting_inputs
+
     out = _check_output(Path(args.out), OUT_EXTS, "--out")
     png = _check_output(Path(args.png), (".png",), "--png") if args.png else None
+    refuse_overwriting_inputs({"--env": args.env, "--mesh": args.mesh, "--gmap": args.gmap},
+                              {"--out": out, "--png": png, "--out (.json sidecar)": out.with_suffix(".json")})
     w, h = _size(args.size)
     stops = parse_exposure(args.exposure)
     if args.lights < 1:
@@ -170,6 +180,11 @@ def cmd_render(args) -> int:
         from ..synthetic_envs import make_env
 
         cube = make_env(args.synthetic, n=args.env_size)
+    # Eq. 5 sums L+1 terms, each at most weight x max radiance: refuse weights that overflow float64
+    wmax = max(float(np.max(x)) for x in (mat.kd, mat.ks, gmat.kd, gmat.ks))
+    if wmax * float(np.max(cube)) * (args.lights + 1) > np.finfo(np.float64).max:
+        raise IBLError(f"--material / --ground-material: weights up to {wmax:g} times radiance up to "
+                       f"{float(np.max(cube)):g} overflow float64 in the shading sum; use smaller weights")
     meshes = teapot_on_ground(args.mesh, ground=args.ground)
     cam = _camera(args, meshes[:1])
 
@@ -218,24 +233,25 @@ def cmd_render(args) -> int:
     if image.shape[:2] != (h, w):
         raise IBLError(f"renderer returned an image of shape {image.shape}, expected ({h}, {w}, C)")
 
-    # ---- outputs -------------------------------------------------------------------------------------------
-    if out.suffix.lower() == ".exr":
-        from ..image_io import write_image_exr
+    # ---- outputs (image, --png and the JSON sidecar committed together, the JSON last) -----------------------
+    with OutputSet(out.with_suffix(".json"), owned_key="outputs") as outs:
+        if out.suffix.lower() == ".exr":
+            from ..image_io import write_image_exr
 
-        write_image_exr(out, image)
-    else:
-        arrays = {"image": image, "mask": mask}
-        arrays.update({k: v for k, v in extra.items() if v is not None})
-        with atomic_path(out, suffix=".npz") as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez_compressed(fh, **arrays)
-    info.update({"pem_time_s": round(t1 - t0, 3), "render_time_s": round(t2 - t1, 3)})
-    if png is not None:
-        from ..tonemap import save_png
+            write_image_exr(outs.path(out), image)
+        else:
+            arrays = {"image": image, "mask": mask}
+            arrays.update({k: v for k, v in extra.items() if v is not None})
+            with atomic_path(outs.path(out), suffix=".npz") as tmp:
+                with open(tmp, "wb") as fh:
+                    np.savez_compressed(fh, **arrays)
+        info.update({"pem_time_s": round(t1 - t0, 3), "render_time_s": round(t2 - t1, 3)})
+        if png is not None:
+            from ..tonemap import save_png
 
-        save_png(png, image, stops=stops, mask=mask)
-        info["png"] = str(png)
-    write_json(out.with_suffix(".json"), info)
+            save_png(outs.path(png), image, stops=stops, mask=mask)
+            info["png"] = str(png)
+        outs.commit(info)
     print(f"wrote {out} ({w}x{h}, mode {mode}; {info['render_time_s']} s render, {info['pem_time_s']} s PEMs)"
           + (f" and {png}" if png is not None else ""))
     return 0

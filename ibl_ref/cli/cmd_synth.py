@@ -40,9 +40,14 @@ def cmd_synth_env(args) -> int:
     from ..atomic import atomic_path
     from ..envmap import cube_solid_angles
 
+    out = Path(args.out)
+    if out.suffix.lower() not in (".exr", ".npy"):
+        raise IBLError(f"OUT {out}: synth env writes OpenEXR (.exr) or NumPy (.npy) files; use one of these extensions")
+    from ..atomic import resolve_output
+
+    resolve_output(out)  # a folder / device / FIFO as OUT: refuse before generating
     params = parse_params(args.param)
     cube = se.make_env(args.name, args.size, **params)
-    out = Path(args.out)
     if out.suffix.lower() == ".npy":
         with atomic_path(out) as tmp:
             with open(tmp, "wb") as fh:
