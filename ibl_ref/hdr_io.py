@@ -198,7 +198,8 @@ def _decode_pixels(buf: bytes, pos: int, h: int, w: int, path) -> np.ndarray:
     return out
 
 
-def read_hdr(path, apply_exposure: bool = False) -> np.ndarray:
+def read_hdr(path, apply_exposure: bool = False, negative: str = "auto", nonfinite: str = "error",
+             return_report: bool = False):
     """Read a Radiance RGBE file as an ``(H, W, 3)`` float64 image (top row first, left column first).
 
     Parameters
@@ -207,6 +208,11 @@ def read_hdr(path, apply_exposure: bool = False) -> np.ndarray:
     apply_exposure : bool
         Divide by the product of the header's EXPOSURE values (recovering Radiance's original
         radiance).  Off by default, like most HDR loaders (see module docstring).
+    negative, nonfinite : str
+        Radiance policy (:mod:`ibl_ref.radiance_policy`).  RGBE cannot store negative, NaN or infinite
+        values, so the check always passes; the parameters exist so that every reader takes the same ones.
+    return_report : bool
+        Return ``(image, RadianceReport)``.
     """
     path = Path(path)
     with _open(path) as fh:
@@ -231,7 +237,13 @@ def read_hdr(path, apply_exposure: bool = False) -> np.ndarray:
         if not info["exposure"] > 0:
             raise EnvMapFileError(f"{path}: EXPOSURE product {info['exposure']} is not positive")
         img = img / info["exposure"]
-    return np.ascontiguousarray(img)
+    img = np.ascontiguousarray(img)
+    from .radiance_policy import apply_policy, pixel_solid_angles
+
+    h, w = img.shape[:2]
+    img, rep = apply_policy(img, f"{path}: radiance", negative, nonfinite,
+                            weights=pixel_solid_angles(h, w, "latlong" if w == 2 * h else None), inplace=True)
+    return (img, rep) if return_report else img
 
 
 # ----------------------------------------------------------------------------------------------
