@@ -8,65 +8,176 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import IBLError
+from .radiance_args import add_radiance_args
 
 
-def _load_any(path: Path):
-    """(data, layout, channels, pixel_type, file_format, extra) of any supported file without resampling."""
-    from .. import exr_io, resample
-    from ..hdr_io import read_hdr, read_hdr_header
+def _load_any(path: Path, negative: str = "auto", nonfinite: str = "error"):
+    """(data, layout, channels, pixel_type, file_format, extra, radiance report) of any supported file.
+
+    No resampling; the radiance policy (:mod:`ibl_ref.radiance_policy`) is applied to the colour channels.
+    """
+    from .. import exr_io
+    from ..hdr_io import read_hdr
 
     if path.suffix.lower() in (".hdr", ".pic", ".rgbe"):
-        img = read_hdr(path)
-        hdr = read_hdr_header(path)
-        layout = exr_io.infer_layout(img.shape[0], img.shape[1], None, str(path))
-        extra = {"exposure_product": hdr["exposure"], "orientation": f"{hdr['major']} {hdr['minor']}"}
-        ptype, fmt, chans = "rgbe", "Radiance RGBE", ("R", "G", "B")
+        img, rep = read_hdr(path, negative=negative, nonfinite=nonfinite, return_report=True)
+        img, layout, chans, ptype, fmt, extra, header = _hdr_meta(path, img)
     else:
-        img, chans, ptype, header = exr_io.read_image(path)
-        layout = exr_io._declared(header, str(path))
-        layout = exr_io.infer_layout(img.shape[0], img.shape[1], layout, str(path))
-        extra = {"envmap_attribute": header.get("envmap", "-"), "convention": header.get("iblref_convention", "-")}
-        fmt = "OpenEXR"
-        if layout == "cube" and header.get("iblref_convention", "openexr") != "openexr":
-            from .. import envmap
+        img, chans, ptype, header, where = exr_io._read_raw(path)
+        layout = exr_io.infer_layout(img.shape[0], img.shape[1], exr_io._declared(header, str(path)), str(path))
+        rep = exr_io._radiance(img, chans, where, layout, negative, nonfinite)
+        fmt, extra = "OpenEXR", _exr_extra(header)
+    return _as_layout(img, layout, header) + (chans, ptype, fmt, extra, rep)
 
-            n = img.shape[1]
-            img = envmap.convert_convention(img.reshape(6, n, n, -1), header["iblref_convention"], "openexr")
+
+def _hdr_meta(path: Path, img):
+    from .. import exr_io
+    from ..hdr_io import read_hdr_header
+
+    hdr = read_hdr_header(path)
+    layout = exr_io.infer_layout(img.shape[0], img.shape[1], None, str(path))
+    extra = {"exposure_product": hdr["exposure"], "orientation": f"{hdr['major']} {hdr['minor']}"}
+    return img, layout, ("R", "G", "B"), "rgbe", "Radiance RGBE", extra, {}
+
+
+def _exr_extra(header: dict) -> dict:
+    return {"envmap_attribute": header.get("envmap", "-"), "convention": header.get("iblref_convention", "-")}
+
+
+def _as_layout(img, layout: str, header: dict):
+    """(data, layout): cube strips reshaped (and re-oriented to OpenEXR), crosses cut, lat-long as is."""
+    from .. import envmap, resample
+
     if layout == "cube":
-        n = img.shape[-2]
+        n = img.shape[1]
         data = img.reshape(6, n, n, img.shape[-1])
+        conv = header.get("iblref_convention", "openexr")
+        if conv != "openexr":
+            data = envmap.convert_convention(data, conv, "openexr")
     elif layout in ("hcross", "vcross"):
         data = resample.cross_to_cube(img, layout)
     else:
         data = img
-    return data, layout, chans, ptype, fmt, extra
+    return data, layout
+
+
+_LAYOUT_RULES = "N wide x 6N high = cube strip, 2H x H = lat-long, 4N x 3N = horizontal cross, 3N x 4N = vertical cross"
+
+
+def _info_read(path: Path):
+    """Everything ``info`` shows, without refusing anything a decoder can read.
+
+    Returns (image (H, W, C) with every channel, channel names, colour channel count, pixel type, format,
+    extra fields, header, n_parts).
+    """
+    from .. import exr_io
+    from ..hdr_io import read_hdr
+
+    if path.suffix.lower() in (".hdr", ".pic", ".rgbe"):
+        img, _, chans, ptype, fmt, extra, header = _hdr_meta(path, read_hdr(path, negative="clamp", nonfinite="zero"))
+        return img, chans, 3, ptype, fmt, extra, header, 1
+    _, parts = exr_io._open(path)
+    part = parts[0]
+    names = sorted(part.channels)
+    colour = [c for c in ("R", "G", "B") if c in names] if {"R", "G", "B"} <= set(names) else (
+        ["Y"] if "Y" in names else [])
+    order = colour + [c for c in names if c not in colour]
+    arrs = [part.channels[c].pixels for c in order]
+    if len({a.shape for a in arrs}) != 1 or arrs[0].ndim != 2:
+        raise IBLError(f"{path}: channels have different sizes {sorted({a.shape for a in arrs})} "
+                       "(subsampled channels unsupported)")
+    img = np.empty(arrs[0].shape + (len(arrs),))
+    for i, a in enumerate(arrs):
+        img[..., i] = a
+    types = {exr_io._simple(part.channels[c].type()) for c in order}
+    ptype = {"HALF": "half", "FLOAT": "float", "UINT": "uint"}.get(types.pop(), "mixed") if len(types) == 1 else "mixed"
+    header = {k: exr_io._simple(v) for k, v in part.header.items()}
+    extra = _exr_extra(header)
+    extra["compression"] = header.get("compression", "-")
+    return img, tuple(order), len(colour), ptype, "OpenEXR", extra, header, len(parts)
+
+
+def _layout_reason(path: Path, h: int, w: int, header: dict):
+    """(layout or None, sentence saying where it came from)."""
+    from .. import exr_io
+
+    try:
+        declared = exr_io._declared(header, str(path))
+    except IBLError as exc:
+        return None, str(exc)
+    try:
+        lay = exr_io.infer_layout(h, w, declared, str(path))
+    except IBLError as exc:
+        return None, f"{exc}"
+    if declared is not None:
+        return lay, f"from the envmap attribute ({header.get('envmap')})"
+    if path.suffix.lower() in (".hdr", ".pic", ".rgbe"):
+        return lay, f"Radiance files carry no layout: inferred from the aspect ratio {w} x {h} ({_LAYOUT_RULES})"
+    return lay, f"no envmap attribute: inferred from the aspect ratio {w} x {h} ({_LAYOUT_RULES})"
 
 
 def cmd_info(args) -> int:
     from .. import resample
+    from ..radiance_policy import assess, decide, pixel_solid_angles
 
     path = Path(args.file)
-    data, layout, chans, ptype, fmt, extra = _load_any(path)
-    if data.ndim == 4:
-        n = data.shape[1]
-        integ = resample.integral_cube(data)
-        size = f"6 faces of {n} x {n}" + (f" (read from a {layout})" if layout != "cube" else "")
-    else:
-        integ = resample.integral_latlong(data)
-        size = f"{data.shape[1]} x {data.shape[0]} (W x H)"
-    flat = data.reshape(-1, data.shape[-1])
+    img, chans, nc, ptype, fmt, extra, header, n_parts = _info_read(path)
+    h, w = img.shape[:2]
+    layout, why = _layout_reason(path, h, w, header)
     print(f"file:       {path}")
-    print(f"format:     {fmt}  pixel type: {ptype}")
-    print(f"layout:     {layout}  size: {size}")
-    print(f"channels:   {','.join(chans)}")
+    print(f"format:     {fmt}  pixel type: {ptype}" + (f"  parts: {n_parts} (showing part 0)" if n_parts > 1 else ""))
+    print(f"layout:     {layout or 'unknown'}  image: {w} x {h} (W x H)")
+    print(f"layout from: {why}")
+    print(f"channels:   {','.join(chans)}" + ("" if nc else "  (no R,G,B or Y channel: not an environment map)"))
     for k, v in extra.items():
         print(f"{k + ':':18s}{v}")
-    print("channel     min           max           mean          integral_L_domega_(sr)")
+    finite = np.isfinite(img)
+    clean = np.where(finite, img, 0.0)
+    if layout is not None:
+        data, _ = _as_layout(clean, layout, header)
+        integ = resample.integral_cube(data) if data.ndim == 4 else resample.integral_latlong(data)
+        if data.ndim == 4:
+            print(f"cube:       6 faces of {data.shape[1]} x {data.shape[1]}")
+    else:
+        integ = np.full(img.shape[-1], np.nan)
+    print("channel     min           max           mean          integral_L_domega_(sr)  NaN      Inf      negative")
     for i, c in enumerate(chans):
-        col = flat[:, i]
-        print(f"{c:11s} {col.min():<13.6g} {col.max():<13.6g} {col.mean():<13.6g} {float(np.atleast_1d(integ)[i]):<.9g}")
-    # readers reject NaN/Inf/negative radiance, so reaching this line means the check passed
-    print("check:      no NaN, no Inf, no negative radiance")
+        col, ok = img[..., i], finite[..., i]
+        v = col[ok]
+        lo, hi, mu = (v.min(), v.max(), v.mean()) if v.size else (np.nan, np.nan, np.nan)
+        n_nan, n_inf = int(np.isnan(col).sum()), int(np.isinf(col).sum())
+        n_neg = int((v < 0).sum())
+        print(f"{c:11s} {lo:<13.6g} {hi:<13.6g} {mu:<13.6g} {float(integ[i]):<23.9g} {n_nan:<8d} {n_inf:<8d} {n_neg}")
+    print("(statistics and integrals over the finite values; NaN/Inf counted as 0)" if not finite.all() else "", end="")
+    if not finite.all():
+        print()
+    if nc:
+        weights = pixel_solid_angles(h, w, layout)
+        rep = assess(img[..., :nc], f"{path}: radiance", weights, args.negative, args.nonfinite)
+        if rep.clean and finite.all():
+            print("check:      no NaN, no Inf, no negative radiance")
+        else:
+            print(f"check:      {rep.summary().split(': radiance: ', 1)[-1].replace(': left unchanged', '')}"
+                  if not rep.clean else "check:      colour channels clean (see the table for other channels)")
+        verdict = None
+        try:
+            zero_nf, clamp = decide(rep)
+            todo = []
+            if zero_nf:
+                todo.append(f"replace {rep.n_nonfinite} NaN/Inf value(s) by 0")
+            if clamp:
+                todo.append(f"clamp {rep.n_negative} negative value(s) to 0 "
+                            f"(removing {rep.removed_fraction:.2e} of the integral of |L| domega)")
+            verdict = "; ".join(todo) if todo else "use the radiance unchanged"
+            if nc < len(chans) and not finite[..., nc:].all():
+                verdict += ("; NaN/Inf in the other channels: " + ("replaced by 0" if args.nonfinite == "zero"
+                            else "refused (--nonfinite zero replaces them by 0)"))
+        except IBLError as exc:
+            verdict = f"refuse the file: {str(exc).split(': radiance: ', 1)[-1]}"
+        if layout is None:
+            verdict = "refuse the file: its layout cannot be inferred"
+        print(f"commands:   with --negative {args.negative} --nonfinite {args.nonfinite} the other commands "
+              f"would {verdict}")
     return 0
 
 
@@ -79,7 +190,10 @@ def cmd_convert(args) -> int:
         raise IBLError("--clamp-half only applies with --half")
     if args.size is not None and args.size < 1:
         raise IBLError(f"--size must be a positive integer, got {args.size}")
-    data, layout, chans, _, _, _ = _load_any(src)
+    data, layout, chans, _, _, _, rep = _load_any(src, args.negative, args.nonfinite)
+    from .radiance_args import tell
+
+    tell(rep)
     if data.ndim == 4:  # cube
         src_int = resample.integral_cube(data)
         if args.layout == "cube":
@@ -140,14 +254,18 @@ def register(sub) -> None:
     p.add_argument("--half", action="store_true", help="write 16-bit half floats (default 32-bit float)")
     p.add_argument("--clamp-half", action="store_true",
                    help="with --half, clamp values above 65504 instead of failing (reported)")
+    add_radiance_args(p)
     p.set_defaults(func=cmd_convert)
 
     i = sub.add_parser(
         "info",
         help="print layout, size, channels and radiance statistics of an environment map",
         description="Print layout, size, channels, pixel type, min/max/mean radiance and the integral of "
-        "L dω per channel (exact texel solid angles) of an OpenEXR or Radiance .hdr environment map. "
-        "Files with NaN, Inf or negative radiance are reported as errors.",
+        "L dω per channel (exact texel solid angles) of an OpenEXR or Radiance .hdr environment map, "
+        "the counts of NaN, Inf and negative values in every channel, where the layout came from (envmap "
+        "attribute or aspect ratio) and what the other commands would do with the file under --negative / "
+        "--nonfinite. Never refuses a file it can decode.",
     )
     i.add_argument("file", metavar="FILE")
+    add_radiance_args(i)
     i.set_defaults(func=cmd_info)
