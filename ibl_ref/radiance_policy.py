@@ -104,10 +104,8 @@ class RadianceReport:
         d["auto_max_removed_fraction"] = AUTO_MAX_REMOVED_FRACTION
         return d
 
-    def summary(self) -> str:
-        """One line for stderr; empty when the data were clean."""
-        if self.clean:
-            return ""
+    def findings(self) -> str:
+        """What was found (counts, minimum, removed fraction), without the name; empty when clean."""
         parts = []
         if self.n_nonfinite:
             parts.append(f"{self.n_nonfinite} NaN/Inf value(s) ({self.n_nan} NaN, {self.n_posinf} +Inf, "
@@ -115,8 +113,14 @@ class RadianceReport:
         if self.n_negative:
             parts.append(f"{self.n_negative} negative value(s) (min {self.negative_min:.3g}, "
                          f"{self.removed_fraction:.2e} of the integral of |L| domega)")
+        return ", ".join(parts)
+
+    def summary(self) -> str:
+        """One line for stderr; empty when the data were clean."""
+        if self.clean:
+            return ""
         did = "; ".join(self.action) if self.action else "left unchanged"
-        return f"{self.name}: {', '.join(parts)}: {did}"
+        return f"{self.name}: {self.findings()}: {did}"
 
 
 def _check_modes(negative: str, nonfinite: str) -> None:

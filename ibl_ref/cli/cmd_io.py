@@ -157,9 +157,7 @@ def cmd_info(args) -> int:
         if rep.clean and finite.all():
             print("check:      no NaN, no Inf, no negative radiance")
         else:
-            print(f"check:      {rep.summary().split(': radiance: ', 1)[-1].replace(': left unchanged', '')}"
-                  if not rep.clean else "check:      colour channels clean (see the table for other channels)")
-        verdict = None
+            print(f"check:      {rep.findings() or 'colour channels clean (see the table for the other channels)'}")
         try:
             zero_nf, clamp = decide(rep)
             todo = []
@@ -176,8 +174,9 @@ def cmd_info(args) -> int:
             verdict = f"refuse the file: {str(exc).split(': radiance: ', 1)[-1]}"
         if layout is None:
             verdict = "refuse the file: its layout cannot be inferred"
-        print(f"commands:   with --negative {args.negative} --nonfinite {args.nonfinite} the other commands "
-              f"would {verdict}")
+    else:
+        verdict = "refuse the file: no R,G,B or Y channel"
+    print(f"commands:   with --negative {args.negative} --nonfinite {args.nonfinite} the other commands would {verdict}")
     return 0
 
 
