@@ -255,6 +255,59 @@ def _cube_hat_taps(d: np.ndarray, n: int):
     return idx, wt
 
 
+# The 8 symmetries shared by both grids when H is even: rotations by q·90° about +Y (longitude − q·π/2,
+# lat-long columns shift by q·W/4) and the mirror y → −y (rows flip).  g = (q, m).
+_GROUP = tuple((q, m) for m in (0, 1) for q in range(4))
+_ROT = ((1, 0), (0, 1), (-1, 0), (0, -1))  # (cos β, sin β) for β = q·π/2, exact
+
+
+def _apply_g(d: np.ndarray, q: int, m: int, inverse: bool = False) -> np.ndarray:
+    """Direction map of g = (q, m): rotate longitude by −q·π/2, then mirror y if m (or the inverse map)."""
+    c, s_ = _ROT[(-q) % 4] if inverse else _ROT[q]
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    y = -y if m else y
+    return np.stack([x * c - z * s_, y, z * c + x * s_], axis=-1)
+
+
+_DIHEDRAL = (
+    lambda a: a, lambda a: np.rot90(a, 1), lambda a: np.rot90(a, 2), lambda a: np.rot90(a, 3),
+    lambda a: np.swapaxes(a, 0, 1), lambda a: np.rot90(np.swapaxes(a, 0, 1), 1),
+    lambda a: np.rot90(np.swapaxes(a, 0, 1), 2), lambda a: np.rot90(np.swapaxes(a, 0, 1), 3),
+)
+_FACE_OPS: dict = {}
+
+
+def _face_ops(q: int, m: int, inverse: bool) -> tuple:
+    """Per destination face f': ``(f, k)`` with ``out[f'] = _DIHEDRAL[k](src[f])`` meaning
+    ``out[t'] = src[texel containing map(centre of t')]`` (map = g or its inverse).
+
+    Derived once numerically on a 5² cube (odd, so every dihedral operation is distinguishable) and
+    valid for every face size, because g maps the texel grid onto itself.
+    """
+    key = (q, m, inverse)
+    if key not in _FACE_OPS:
+        k5 = 5
+        d = _apply_g(envmap.texel_directions(k5), q, m, inverse=inverse)
+        face, x, y = envmap.direction_to_texel_coords(d, k5)
+        col, row = np.rint(x).astype(int), np.rint(y).astype(int)
+        ref = np.arange(k5 * k5).reshape(k5, k5)
+        ops = []
+        for fp in range(6):
+            fs = np.unique(face[fp])
+            if fs.size != 1:  # pragma: no cover - the maps are cube symmetries
+                raise AssertionError("cube symmetry does not map faces to faces")
+            local = row[fp] * k5 + col[fp]
+            k = next(i for i, op in enumerate(_DIHEDRAL) if np.array_equal(op(ref), local))
+            ops.append((int(fs[0]), k))
+        _FACE_OPS[key] = tuple(ops)
+    return _FACE_OPS[key]
+
+
+def _gather_faces(src: np.ndarray, ops) -> np.ndarray:
+    """``out[f'] = _DIHEDRAL[k](src[f])`` for the (6, n, n, ...) array ``src``."""
+    return np.stack([_DIHEDRAL[k](src[f]) for f, k in ops])
+
+
 class ConservativeKernel:
     """Overlap kernel between an ``h × 2h`` lat-long grid and an ``n``-face cube grid.
 
@@ -276,6 +329,15 @@ class ConservativeKernel:
 
     The residual imbalances are the worst-case relative change of ∫L dω for a map that is zero except
     in one source texel (measured 2e-4 … 1e-3 after 100 steps for H = 16 … 512).
+
+    **Symmetry (speed and memory).**  For even ``h`` both grids are invariant under the 8 maps g of
+    ``_GROUP`` (4 rotations about +Y × the equator mirror), so only the columns of K whose source texel
+    lies in the fundamental domain D (upper hemisphere, first quarter of the columns, ``h/2 × h/2``
+    texels) are built and stored (``k0``); the full kernel is ``K[τ_g(t), σ_g(s)] = K0[t, s]``
+    (σ_g, τ_g the texel maps of g), and the Sinkhorn steps and applications run on ``k0`` with 8
+    face-permuted copies of a cube-sized vector.  The balanced kernel is symmetric by construction,
+    ``1/8`` of the sub-samples and of the memory of the unsymmetrised kernel.  Odd ``h`` uses the
+    whole grid (D = all texels, identity only).
     """
 
     def __init__(self, h: int, n: int, ks: int, iters: int = 100):
@@ -283,51 +345,89 @@ class ConservativeKernel:
 
         self.h, self.w, self.n, self.ks = h, 2 * h, n, ks
         w = self.w
+        self.sym = h % 2 == 0
+        self.group = _GROUP if self.sym else ((0, 0),)
+        hd, wd = (h // 2, w // 4) if self.sym else (h, w)  # fundamental domain D (rows, cols)
+        self.hd, self.wd = hd, wd
         hk, wk = h * ks, w * ks
         om_sub = envmap.latlong_solid_angles(hk, wk)[:, 0]
-        parts = []
-        rows_per = max(1, _CHUNK // wk // ks) * ks  # whole lat-long rows per chunk: disjoint columns
-        cols_src = np.arange(wk) // ks
-        for r0 in range(0, hk, rows_per):
-            r1 = min(hk, r0 + rows_per)
-            d = _latlong_rows(hk, wk, r0, r1)
+        rows, cols, vals = [], [], []
+        rows_per = max(1, _CHUNK // (wd * ks) // ks) * ks  # whole source rows per chunk: disjoint columns
+        cols_src = np.arange(wd * ks) // ks
+        for r0 in range(0, hd * ks, rows_per):
+            r1 = min(hd * ks, r0 + rows_per)
+            d = _latlong_rows(hk, wk, r0, r1)[:, : wd * ks]
             idx, wt = _cube_hat_taps(d, n)
             wt = wt * om_sub[r0:r1, None, None]
-            s_idx = (np.arange(r0, r1) // ks)[:, None] * w + cols_src[None, :]
+            s_idx = (np.arange(r0, r1) // ks)[:, None] * wd + cols_src[None, :]
             s_idx = np.broadcast_to(s_idx[..., None], idx.shape)
             keep = wt > 0
-            part = sp.csr_matrix((wt[keep], (idx[keep], s_idx[keep])), shape=(6 * n * n, h * w)).tocoo()
-            parts.append((part.row, part.col, part.data))  # duplicates summed within the chunk
-        k_mat = sp.csr_matrix(
-            (np.concatenate([q[2] for q in parts]), (np.concatenate([q[0] for q in parts]),
-                                                     np.concatenate([q[1] for q in parts]))),
-            shape=(6 * n * n, h * w),
-        )
+            part = sp.csr_matrix((wt[keep], (idx[keep], s_idx[keep])), shape=(6 * n * n, hd * wd)).tocoo()
+            rows.append(part.row)
+            cols.append(part.col)
+            vals.append(part.data)  # duplicates summed within the chunk
+            del d, idx, wt, s_idx, keep, part
+        k0 = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                           shape=(6 * n * n, hd * wd))
+        del rows, cols, vals
         self.om_t = np.broadcast_to(envmap.texel_solid_angles(n), (6, n, n)).ravel().copy()
-        self.om_s = np.broadcast_to(envmap.latlong_solid_angles(h, w), (h, w)).ravel().copy()
-        if np.any(np.asarray(k_mat.sum(axis=1)).ravel() <= 0):
+        self.om_d = np.broadcast_to(envmap.latlong_solid_angles(h, w)[:hd], (hd, wd)).ravel().copy()
+        if np.any(self._sym_rows(k0 @ np.ones(k0.shape[1])) <= 0):
             raise _Undersampled
-        r, c = np.ones(k_mat.shape[0]), np.ones(k_mat.shape[1])
-        kt = k_mat.T.tocsr()
-        for _ in range(iters):  # Sinkhorn: rows -> Ω_t, columns -> Ω_s
-            r = self.om_t / (k_mat @ c)
-            c = self.om_s / (kt @ r)
-        self.k = (sp.diags(r) @ k_mat @ sp.diags(c)).tocsr()
-        self.kt = self.k.T.tocsr()
-        self.row = np.asarray(self.k.sum(axis=1)).ravel()
-        self.col = np.asarray(self.k.sum(axis=0)).ravel()
+        c = np.ones(k0.shape[1])
+        for _ in range(iters):  # Sinkhorn: rows -> Ω_t, columns -> Ω_s (on D; symmetric by construction)
+            r = self.om_t / self._sym_rows(k0 @ c)
+            c = self.om_d / (k0.T @ r)
+        self.k0 = (sp.diags(r) @ k0 @ sp.diags(c)).tocsr()
+        del k0
+        self.row = self._sym_rows(self.k0 @ np.ones(self.k0.shape[1]))
+        self.col_d = np.asarray(self.k0.sum(axis=0)).ravel()
         # ll -> cube uses K / row: source texel s contributes Σ_t K[t,s] Ω_t / row_t instead of Ω_s
-        self.energy_error_ll = float(np.abs((self.kt @ (self.om_t / self.row)) / self.om_s - 1).max())
-        self.energy_error_cube = float(np.abs((self.k @ (self.om_s / self.col)) / self.om_t - 1).max())
+        self.energy_error_ll = float(np.abs((self.k0.T @ (self.om_t / self.row)) / self.om_d - 1).max())
+        self.energy_error_cube = float(np.abs(self._sym_rows(self.k0 @ (self.om_d / self.col_d)) / self.om_t - 1).max())
         self.iters = iters
 
+    def _sym_rows(self, y: np.ndarray) -> np.ndarray:
+        """Σ_g of ``y`` (cube-length, from the D columns) moved to the cube texels of g(D): the full K product."""
+        if not self.sym:
+            return y
+        n = self.n
+        y3 = y.reshape((6, n, n) + y.shape[1:])
+        out = np.zeros_like(y3)
+        for q, m in self.group:
+            out += _gather_faces(y3, _face_ops(q, m, inverse=True))
+        return out.reshape(y.shape)
+
+    def _block(self, img: np.ndarray, q: int, m: int) -> np.ndarray:
+        """Source texels σ_g(D) of an (h, w, C) image, in the order of D (rows, then columns)."""
+        if not self.sym:
+            return img.reshape(self.h * self.w, -1)
+        rows = img[::-1][: self.hd] if m else img[: self.hd]
+        return np.ascontiguousarray(rows[:, q * self.wd : (q + 1) * self.wd]).reshape(self.hd * self.wd, -1)
+
     def to_cube(self, img: np.ndarray) -> np.ndarray:
-        flat = img.reshape(self.h * self.w, -1)
-        return (self.k @ flat / self.row[:, None]).reshape(6, self.n, self.n, -1)
+        n, c = self.n, img.shape[-1]
+        out = np.zeros((6, n, n, c))
+        for q, m in self.group:
+            y = (self.k0 @ self._block(img, q, m)).reshape(6, n, n, c)
+            out += _gather_faces(y, _face_ops(q, m, inverse=True)) if self.sym else y
+        return out / self.row.reshape(6, n, n, 1)
 
     def to_latlong(self, cube: np.ndarray) -> np.ndarray:
-        flat = cube.reshape(6 * self.n * self.n, -1)
-        return (self.kt @ flat / self.col[:, None]).reshape(self.h, self.w, -1)
+        n, c = self.n, cube.shape[-1]
+        out = np.empty((self.h, self.w, c))
+        cube = cube.reshape(6, n, n, c)
+        for q, m in self.group:
+            z = _gather_faces(cube, _face_ops(q, m, inverse=False)) if self.sym else cube
+            vals = (self.k0.T @ z.reshape(6 * n * n, c)) / self.col_d[:, None]
+            if not self.sym:
+                return vals.reshape(self.h, self.w, c)
+            blk = vals.reshape(self.hd, self.wd, c)
+            if m:
+                out[self.h - 1 : self.h - 1 - self.hd : -1, q * self.wd : (q + 1) * self.wd] = blk
+            else:
+                out[: self.hd, q * self.wd : (q + 1) * self.wd] = blk
+        return out
 
 
 class _Undersampled(Exception):
