@@ -92,6 +92,8 @@ __all__ = [
     "CROSS_LAYOUTS",
     "ConservativeKernel",
     "conservative_kernel",
+    "latlong_block_reduce",
+    "prereduce_factor",
 ]
 
 _INTERP = ("bilinear", "box")
@@ -105,9 +107,9 @@ def _relax(x: np.ndarray, t: np.ndarray) -> np.ndarray:
     return t * z * np.sqrt(z)  # sub-samples per evaluation chunk (memory bound)
 
 
-def supersample_factor(p_dst: float, p_src: float, k_max: int = K_MAX) -> int:
-    """``k = clip(ceil(2·p_dst/p_src), 2, k_max)`` sub-texels per destination texel edge."""
-    return int(min(max(math.ceil(2.0 * p_dst / p_src - 1e-9), 2), k_max))
+def supersample_factor(p_dst: float, p_src: float, k_max: int = K_MAX, k_min: int = 2) -> int:
+    """``k = clip(ceil(2·p_dst/p_src), k_min, k_max)`` sub-texels per destination texel edge."""
+    return int(min(max(math.ceil(2.0 * p_dst / p_src - 1e-9), k_min), k_max))
 
 
 def _pitch_cube(n: int) -> float:
@@ -498,13 +500,15 @@ class ConservativeKernel:
     def to_cube(self, img: np.ndarray) -> np.ndarray:
         n, c = self.n, img.shape[-1]
         out = np.zeros((6, n, n, c))
-        # one sparse product for all 8 source blocks (columns g·C … g·C + C−1)
-        blocks = np.concatenate([self._block(img, q, m) for q, m in self.group], axis=1)
-        ys = self.k0 @ blocks
-        del blocks
+        # sparse products for several source blocks at once (columns g·C … g·C + C−1), at most ~256 MB each
+        per = max(1, min(len(self.group), (1 << 25) // max(1, self.hd * self.wd * c)))
         y = np.zeros((6 * n * n, c))
         for i, (q, m) in enumerate(self.group):
-            y[self.S] = ys[:, i * c : (i + 1) * c]
+            if i % per == 0:
+                grp = self.group[i : i + per]
+                ys = self.k0 @ np.concatenate([self._block(img, qq, mm).astype(np.float64) for qq, mm in grp], axis=1)
+            j = i % per
+            y[self.S] = ys[:, j * c : (j + 1) * c]
             if not self.sym:
                 out += y.reshape(6, n, n, c)
                 continue
@@ -542,10 +546,11 @@ def conservative_kernel(h: int, n: int, ks: int | None = None, iters: int | None
     """The (cached) :class:`ConservativeKernel` between an ``h × 2h`` lat-long grid and face size ``n``.
 
     ``ks`` default: ``clip(ceil(2·p_latlong/p_cube), 2, 16)`` lat-long sub-texels per edge, doubled until
-    every cube texel receives samples.
+    every cube texel receives samples; ``ks = 1`` when the lat-long grid is already at least twice as
+    fine as the cube (H ≥ 4N: big probes reduced to a working cube, 4× fewer sub-samples).
     """
     if ks is None:
-        ks = supersample_factor(_pitch_latlong(h), _pitch_cube(n))
+        ks = supersample_factor(_pitch_latlong(h), _pitch_cube(n), k_min=1 if h >= 4 * n else 2)
     key = (h, n, ks, iters)
     if key not in _KERNELS:
         while True:
@@ -568,8 +573,10 @@ def _finite(out):
     return out
 
 
-def _prep(a, what: str, ndim_img: int):
-    a = np.asarray(a, dtype=np.float64)
+def _prep(a, what: str, ndim_img: int, keep_float32: bool = False):
+    a = np.asarray(a)
+    if not (keep_float32 and a.dtype == np.float32):
+        a = a.astype(np.float64, copy=False)
     squeeze = a.ndim == ndim_img - 1
     if squeeze:
         a = a[..., None]
@@ -598,8 +605,42 @@ def _check_method(method):
         raise ValueError(f"unknown resampling method {method!r}; choose one of {_METHODS}")
 
 
+def latlong_block_reduce(img, r: int) -> np.ndarray:
+    """Exact area-weighted average of ``r × r`` texel blocks of an ``(H, 2H, C)`` lat-long map (r divides H).
+
+    A block of rows i0 … i0+r−1 and columns j0 … j0+r−1 gets ``Σ Ω_i L_ij / Σ Ω_i`` (Ω_i the exact
+    texel solid angle of row i, the same for every column), so ∫L dω of every block — hence of the map —
+    is kept to rounding and constants stay exact.  Works in row blocks (float64 temporaries of
+    ~``_CHUNK`` values); a float32 input is accumulated in float64.
+    """
+    a = np.asarray(img)
+    h, w, c = a.shape
+    if h % r or w % r:
+        raise LayoutError(f"block reduction by {r} needs H and W divisible by {r}, got {w} x {h}")
+    om = envmap.latlong_solid_angles(h, w)[:, 0]
+    out = np.empty((h // r, w // r, c))
+    per = max(1, _CHUNK // max(1, r * w * c))
+    for b0 in range(0, h // r, per):
+        b1 = min(h // r, b0 + per)
+        blk = a[b0 * r : b1 * r].astype(np.float64) * om[b0 * r : b1 * r, None, None]
+        num = blk.reshape(b1 - b0, r, w // r, r, c).sum(axis=(1, 3))
+        out[b0:b1] = num / (om[b0 * r : b1 * r].reshape(b1 - b0, r).sum(axis=1) * r)[:, None, None]
+    return out
+
+
+def prereduce_factor(h: int, n: int) -> int:
+    """Largest ``r`` dividing ``h`` with ``h / r ≥ 4n`` (1 if none): the block reduction applied before the
+    conservative kernel when the lat-long map is much finer than the cube."""
+    best = 1
+    for r in range(2, h // (4 * n) + 1):
+        if h % r == 0:
+            best = r
+    return best
+
+
 def latlong_to_cube(img, n: int, *, method: str = "conservative", k: int | None = None,
-                    interpolation: str = "bilinear", conserve: bool = False, iters: int | None = None):
+                    interpolation: str = "bilinear", conserve: bool = False, iters: int | None = None,
+                    prereduce: bool = True):
     """Resample an ``(H, 2H[, C])`` lat-long map to a ``(6, n, n[, C])`` cube map (module docstring).
 
     Parameters
@@ -617,10 +658,15 @@ def latlong_to_cube(img, n: int, *, method: str = "conservative", k: int | None 
         Source interpolation of the ``gather`` method.
     conserve : bool
         Rescale each channel so that ∫L dω matches the source exactly.
-    iters : int
-        Sinkhorn balancing steps of the ``conservative`` kernel.
+    iters : int, optional
+        Sinkhorn balancing steps of the ``conservative`` kernel (default 100; 50 above H = 1024).
+    prereduce : bool
+        ``conservative`` only: when H ≥ 8n, first average ``r × r`` blocks exactly
+        (:func:`latlong_block_reduce`, r = :func:`prereduce_factor`: the reduced map keeps H/r ≥ 4n rows,
+        still twice the cube's texel density), so that a big probe reduced to a small working cube
+        costs memory of the order of the input plus the cube.  ∫L dω is kept exactly by the reduction.
     """
-    a, squeeze = _prep(img, "lat-long map", 3)
+    a, squeeze = _prep(img, "lat-long map", 3, keep_float32=method == "conservative")
     h, w = a.shape[:2]
     if w != 2 * h:
         raise LayoutError(f"lat-long map must have shape (H, 2H[, C]), got {np.shape(img)}")
@@ -628,10 +674,14 @@ def latlong_to_cube(img, n: int, *, method: str = "conservative", k: int | None 
     _check_method(method)
     n = envmap._check_face_size(n)
     if method == "conservative":
-        out = _finite(conservative_kernel(h, n, k, iters).to_cube(a))
-    else:
-        k = k or supersample_factor(_pitch_cube(n), _pitch_latlong(h))
-        out = _to_cube(_LatLongSampler(a, interpolation), n, k, a.shape[2])
+        src_int = integral_latlong(a) if conserve else None
+        r = prereduce_factor(h, n) if prereduce else 1
+        if r > 1:
+            a = latlong_block_reduce(a, r)
+        out = _finite(conservative_kernel(a.shape[0], n, k, iters).to_cube(a))
+        return _finish(out, src_int, integral_cube, conserve, squeeze)
+    k = k or supersample_factor(_pitch_cube(n), _pitch_latlong(h))
+    out = _to_cube(_LatLongSampler(a, interpolation), n, k, a.shape[2])
     return _finish(out, integral_latlong(a) if conserve else None, integral_cube, conserve, squeeze)
 
 

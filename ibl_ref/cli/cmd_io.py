@@ -208,6 +208,8 @@ def cmd_convert(args) -> int:
     dst_int = resample.integral_cube(out) if out.ndim == 4 else resample.integral_latlong(out)
     if (data.ndim == 4) != (out.ndim == 4) and args.method == "conservative":  # lat-long <-> cube: report the kernel's per-texel bound
         h, n = (out.shape[0], data.shape[1]) if out.ndim == 3 else (data.shape[0], out.shape[1])
+        if out.ndim == 4:  # lat-long -> cube reduces big inputs block-wise first (exact)
+            h //= resample.prereduce_factor(h, n)
         kern = resample.conservative_kernel(h, n)
         print(f"conservative kernel ({h}-row lat-long <-> {n}-face cube): energy of any single source texel "
               f"preserved to {max(kern.energy_error_ll, kern.energy_error_cube):.1e} (relative)")
