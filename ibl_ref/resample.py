@@ -375,15 +375,16 @@ class ConservativeKernel:
     (σ_g, τ_g the texel maps of g), and the Sinkhorn steps and applications run on ``k0`` with 8
     face-permuted copies of a cube-sized vector.  The balanced kernel is symmetric by construction,
     ``1/8`` of the sub-samples and of the memory of the unsymmetrised kernel.  Odd ``h`` uses the
-    whole grid (D = all texels, identity only).
+    whole grid (D = all texels, identity only), as does ``symmetric=False`` (the independent route the
+    tests compare with).
     """
 
-    def __init__(self, h: int, n: int, ks: int, iters: int | None = None):
+    def __init__(self, h: int, n: int, ks: int, iters: int | None = None, symmetric: bool = True):
         import scipy.sparse as sp
 
         self.h, self.w, self.n, self.ks = h, 2 * h, n, ks
         w = self.w
-        self.sym = h % 2 == 0
+        self.sym = symmetric and h % 2 == 0
         self.group = _GROUP if self.sym else ((0, 0),)
         hd, wd = (h // 2, w // 4) if self.sym else (h, w)  # fundamental domain D (rows, cols)
         self.hd, self.wd = hd, wd

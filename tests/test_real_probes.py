@@ -159,6 +159,10 @@ def test_info_reports_layout_source_and_negatives(dwab_file, capsys):
     assert "negative value(s)" in out and "would clamp" in out and "DWAB" in out
     assert main(["info", str(dwab_file), "--negative", "error"]) == 0  # info never refuses
     assert "would refuse the file" in capsys.readouterr().out
+    half = write_probe_exr(dwab_file.with_name("half.exr"), sky_sun_latlong(16)[0], "piz", "half")
+    assert main(["info", str(half)]) == 0
+    out = capsys.readouterr().out
+    assert "pixel type: half" in out and "PIZ" in out and "use the radiance unchanged" in out
 
 
 def test_info_never_refuses_readable_files(tmp_path, capsys):
@@ -212,3 +216,37 @@ def test_render_and_km00_with_env_probe(tmp_path, dwab_file, capsys):
     hdr_io.write_hdr(hdr, exr_io.read_image(dwab_file)[0])
     assert main(["km00-render", "--env", str(hdr), "--env-size", "8", "--size", "16", "--method", "single",
                  "--n-theta", "4", "--out", str(tmp_path / "k.exr"), "--quiet"]) == 0
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# big-probe machinery of ibl_ref.resample on small sizes
+# ---------------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("h", [16, 32])
+def test_symmetric_kernel_equals_the_whole_grid_kernel(h):
+    """The 8-fold fundamental-domain kernel is the kernel built over every texel (symmetric=False)."""
+    rng = np.random.default_rng(h)
+    n = h // 2
+    ks = resample.supersample_factor(np.pi / h, np.pi / (2 * n))
+    a = resample.ConservativeKernel(h, n, ks, iters=100)
+    b = resample.ConservativeKernel(h, n, ks, iters=100, symmetric=False)
+    ll, cube = rng.random((h, 2 * h, 3)), rng.random((6, n, n, 3))
+    # same Sinkhorn steps on the same matrix up to the order of floating-point sums
+    np.testing.assert_allclose(a.to_cube(ll), b.to_cube(ll), rtol=1e-9)
+    np.testing.assert_allclose(a.to_latlong(cube), b.to_latlong(cube), rtol=1e-9)
+    assert a.k0.nnz * 7 < b.k0.nnz  # 1/8 of the columns (plus seams)
+
+
+def test_block_reduction_and_prereduced_resampling_conserve_the_closed_form():
+    img, exact = sky_sun_latlong(128, sun=5e4, sun_radius_deg=0.8)
+    red = resample.latlong_block_reduce(img, 4)
+    # exact block averages: ∫ kept to rounding (closed form of the source)
+    np.testing.assert_allclose(_closed_form_integral(red), exact, rtol=1e-12)
+    np.testing.assert_array_equal(resample.latlong_block_reduce(np.ones((8, 16, 1)), 2), np.ones((4, 8, 1)))
+    assert resample.prereduce_factor(128, 8) == 4 and resample.prereduce_factor(128, 32) == 1
+    cube = resample.latlong_to_cube(img.astype(np.float32), 8)  # 128 rows → 32 rows → 8² faces
+    assert np.abs(resample.integral_cube(cube) / exact - 1).max() <= RESAMPLE_TOL
+    # a one-texel sun keeps its energy through reduction + kernel (per-texel imbalance bound)
+    one = np.zeros((128, 256))
+    one[3, 77] = 1.0
+    e = resample.integral_cube(resample.latlong_to_cube(one, 8)) / _closed_form_integral(one[..., None])[0]
+    assert abs(e - 1) <= RESAMPLE_TOL

@@ -86,15 +86,49 @@ def _info_read(path: Path):
     if len({a.shape for a in arrs}) != 1 or arrs[0].ndim != 2:
         raise IBLError(f"{path}: channels have different sizes {sorted({a.shape for a in arrs})} "
                        "(subsampled channels unsupported)")
-    img = np.empty(arrs[0].shape + (len(arrs),))
-    for i, a in enumerate(arrs):
-        img[..., i] = a
     types = {exr_io._simple(part.channels[c].type()) for c in order}
+    img = np.empty(arrs[0].shape + (len(arrs),), np.float32)  # float32 holds half/float exactly
+    del arrs
+    for i, c in enumerate(order):
+        img[..., i] = part.channels[c].pixels
+        part.channels[c].pixels = np.empty((0, 0), np.float32)  # release the binding's copy
     ptype = {"HALF": "half", "FLOAT": "float", "UINT": "uint"}.get(types.pop(), "mixed") if len(types) == 1 else "mixed"
     header = {k: exr_io._simple(v) for k, v in part.header.items()}
     extra = _exr_extra(header)
     extra["compression"] = header.get("compression", "-")
     return img, tuple(order), len(colour), ptype, "OpenEXR", extra, header, len(parts)
+
+
+def _channel_stats(img: np.ndarray, weights) -> dict:
+    """Per channel: min / max / mean of the finite values, NaN / Inf / negative counts and ∫ dω (NaN/Inf as 0).
+
+    Works in row chunks (``weights``: per-pixel solid angles broadcastable to (H, W), or None).
+    """
+    c = img.shape[-1]
+    st = {"min": np.full(c, np.inf), "max": np.full(c, -np.inf), "sum": np.zeros(c), "n": np.zeros(c, np.int64),
+          "nan": [0] * c, "inf": [0] * c, "neg": [0] * c, "integral": np.zeros(c)}
+    wts = None if weights is None else np.broadcast_to(weights, img.shape[:2])
+    step = max(1, (1 << 22) // max(1, img.shape[1] * c))
+    for r0 in range(0, img.shape[0], step):
+        blk = img[r0 : r0 + step].astype(np.float64)
+        fin = np.isfinite(blk)
+        for i in range(c):
+            b, f = blk[..., i], fin[..., i]
+            st["nan"][i] += int(np.isnan(b).sum())
+            st["inf"][i] += int(np.isinf(b).sum())
+            v = b[f]
+            if v.size:
+                st["min"][i] = min(st["min"][i], v.min())
+                st["max"][i] = max(st["max"][i], v.max())
+                st["sum"][i] += v.sum()
+                st["n"][i] += v.size
+                st["neg"][i] += int((v < 0).sum())
+            if wts is not None:
+                st["integral"][i] += float(np.sum(np.where(f, b, 0.0) * wts[r0 : r0 + step]))
+    st["mean"] = np.where(st["n"] > 0, st["sum"] / np.maximum(st["n"], 1), np.nan)
+    st["min"] = np.where(st["n"] > 0, st["min"], np.nan)
+    st["max"] = np.where(st["n"] > 0, st["max"], np.nan)
+    return st
 
 
 def _layout_reason(path: Path, h: int, w: int, header: dict):
@@ -117,7 +151,6 @@ def _layout_reason(path: Path, h: int, w: int, header: dict):
 
 
 def cmd_info(args) -> int:
-    from .. import resample
     from ..radiance_policy import assess, decide, pixel_solid_angles
 
     path = Path(args.file)
@@ -131,30 +164,22 @@ def cmd_info(args) -> int:
     print(f"channels:   {','.join(chans)}" + ("" if nc else "  (no R,G,B or Y channel: not an environment map)"))
     for k, v in extra.items():
         print(f"{k + ':':18s}{v}")
-    finite = np.isfinite(img)
-    clean = np.where(finite, img, 0.0)
-    if layout is not None:
-        data, _ = _as_layout(clean, layout, header)
-        integ = resample.integral_cube(data) if data.ndim == 4 else resample.integral_latlong(data)
-        if data.ndim == 4:
-            print(f"cube:       6 faces of {data.shape[1]} x {data.shape[1]}")
-    else:
-        integ = np.full(img.shape[-1], np.nan)
+    if layout in ("cube", "hcross", "vcross"):
+        print(f"cube:       6 faces of {w if layout == 'cube' else h // {'hcross': 3, 'vcross': 4}[layout]}²")
+    weights = pixel_solid_angles(h, w, layout)
+    if nc:  # before anything is zeroed
+        rep = assess(img[..., :nc], f"{path}: radiance", weights, args.negative, args.nonfinite)
+    st = _channel_stats(img, weights)
     print("channel     min           max           mean          integral_L_domega_(sr)  NaN      Inf      negative")
     for i, c in enumerate(chans):
-        col, ok = img[..., i], finite[..., i]
-        v = col[ok]
-        lo, hi, mu = (v.min(), v.max(), v.mean()) if v.size else (np.nan, np.nan, np.nan)
-        n_nan, n_inf = int(np.isnan(col).sum()), int(np.isinf(col).sum())
-        n_neg = int((v < 0).sum())
-        print(f"{c:11s} {lo:<13.6g} {hi:<13.6g} {mu:<13.6g} {float(integ[i]):<23.9g} {n_nan:<8d} {n_inf:<8d} {n_neg}")
-    print("(statistics and integrals over the finite values; NaN/Inf counted as 0)" if not finite.all() else "", end="")
-    if not finite.all():
-        print()
+        integ = st["integral"][i] if layout is not None else np.nan
+        print(f"{c:11s} {st['min'][i]:<13.6g} {st['max'][i]:<13.6g} {st['mean'][i]:<13.6g} {integ:<23.9g} "
+              f"{st['nan'][i]:<8d} {st['inf'][i]:<8d} {st['neg'][i]}")
+    other_nonfinite = any(st["nan"][i] + st["inf"][i] for i in range(nc, len(chans)))
+    if any(st["nan"]) or any(st["inf"]):
+        print("(statistics and integrals over the finite values; NaN/Inf counted as 0)")
     if nc:
-        weights = pixel_solid_angles(h, w, layout)
-        rep = assess(img[..., :nc], f"{path}: radiance", weights, args.negative, args.nonfinite)
-        if rep.clean and finite.all():
+        if rep.clean and not other_nonfinite:
             print("check:      no NaN, no Inf, no negative radiance")
         else:
             print(f"check:      {rep.findings() or 'colour channels clean (see the table for the other channels)'}")
@@ -167,7 +192,7 @@ def cmd_info(args) -> int:
                 todo.append(f"clamp {rep.n_negative} negative value(s) to 0 "
                             f"(removing {rep.removed_fraction:.2e} of the integral of |L| domega)")
             verdict = "; ".join(todo) if todo else "use the radiance unchanged"
-            if nc < len(chans) and not finite[..., nc:].all():
+            if other_nonfinite:
                 verdict += ("; NaN/Inf in the other channels: " + ("replaced by 0" if args.nonfinite == "zero"
                             else "refused (--nonfinite zero replaces them by 0)"))
         except IBLError as exc:
