@@ -4,14 +4,14 @@ Run:  python experiments/bench_probe_sizes.py [--sizes 1k 4k 16k] [--out results
       python experiments/bench_probe_sizes.py --kernels      # balance of the conservative kernel vs H
 
 Each size runs in its own process (fresh peak RSS).  A synthetic probe like a published one (2:1
-lat-long float32 RGB: sky gradient, dark ground, a 0.5° sun of 3e4; DWAB-compressed, no ``envmap``
+lat-long float32 RGB: sky gradient, dark ground with a black strip, a 0.5° sun of 3e4; DWAB-compressed, no ``envmap``
 attribute) is written to a temporary folder, then the steps of ``ibl-ref mediancut PROBE --size N``
 are timed one by one:
 
 * ``read``: :func:`ibl_ref.exr_io.read_image` as float32 with the radiance policy (DWAB's negatives
   are clamped and reported);
 * ``to-cube``: :func:`ibl_ref.resample.latlong_to_cube` to face N (the conservative kernel; inputs
-  with H ≥ 8N are block-reduced exactly first);
+  with H ≥ 4N are block-reduced exactly to H ≥ 2N first);
 * ``mediancut``: :func:`ibl_ref.median_cut.median_cut` with 24 lights (per-face variant).
 
 Peak RSS is sampled every 5 ms by a thread reading ``/proc/self/statm`` (the whole process, input
@@ -84,6 +84,7 @@ def make_probe_planes(h: int, sun: float = 3e4, sun_radius_deg: float = 0.5):
         la = lat[r0:r1, None]
         y = np.sin(la)
         base = np.where(y > 0, 0.4 + 1.2 * y, 0.05 * (0.2 + 0.8 * rng.random((r1 - r0, w)))) * np.ones((1, w))
+        base[(la[:, 0] < -0.3) & (la[:, 0] > -0.4), : w // 4] = 0.0  # a black strip: DWAB rings below 0 there
         cosang = np.cos(la) * (np.sin(lon)[None] * d[0] + np.cos(lon)[None] * d[2]) + y * d[1]
         sunm = cosang >= cos_r
         for c in range(3):
@@ -111,6 +112,10 @@ def run_one(name: str, compression: str, lights: int) -> list:
 
     h, n = SIZES[name]
     rows = []
+
+    def log(msg):
+        print(f"[{name}] {time.strftime('%H:%M:%S')} {msg} (RSS {_rss() / 2**20:.0f} MiB)", file=sys.stderr, flush=True)
+
     with tempfile.TemporaryDirectory(prefix="bench_probe_") as tmp:
         path = Path(tmp) / f"probe_{name}.exr"
         with Peak() as p:
@@ -119,11 +124,13 @@ def run_one(name: str, compression: str, lights: int) -> list:
                          dict(zip("RGB", planes))).write(str(path))
             del planes
         rows.append(dict(size=name, step="make+write", seconds=p.seconds, peak_rss_bytes=p.peak))
+        log(f"written {path.stat().st_size / 2**20:.0f} MiB; make+write peak {p.peak / 2**20:.0f} MiB")
         with Peak() as p:
             img, _, _, _, rep = exr_io.read_image(path, dtype=np.float32, return_report=True)
         decoded = img.nbytes
         rows.append(dict(size=name, step="read", seconds=p.seconds, peak_rss_bytes=p.peak,
                          negatives_clamped=rep.n_negative, removed_fraction=rep.removed_fraction))
+        log(f"read peak {p.peak / 2**20:.0f} MiB in {p.seconds:.1f} s")
         src = _integral_latlong_chunked(img)
         resample._KERNELS.clear()
         with Peak() as p:
@@ -131,6 +138,7 @@ def run_one(name: str, compression: str, lights: int) -> list:
         rel = float(np.max(np.abs(resample.integral_cube(cube) / src - 1)))
         rows.append(dict(size=name, step=f"to-cube {n}", seconds=p.seconds, peak_rss_bytes=p.peak,
                          rel_int_change=rel, prereduce=resample.prereduce_factor(h, n)))
+        log(f"to-cube peak {p.peak / 2**20:.0f} MiB in {p.seconds:.1f} s")
         del img
         with Peak() as p:
             median_cut(cube, lights, "per-face")
@@ -173,7 +181,7 @@ def main(argv=None) -> int:
     all_rows = []
     for name in args.sizes:
         res = subprocess.run([sys.executable, __file__, "--child", name, "--compression", args.compression,
-                              "--lights", str(args.lights)], capture_output=True, text=True)
+                              "--lights", str(args.lights)], stdout=subprocess.PIPE, text=True)
         if res.returncode:
             print(res.stderr, file=sys.stderr)
             return res.returncode

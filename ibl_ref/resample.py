@@ -630,10 +630,11 @@ def latlong_block_reduce(img, r: int) -> np.ndarray:
 
 
 def prereduce_factor(h: int, n: int) -> int:
-    """Largest ``r`` dividing ``h`` with ``h / r ≥ 4n`` (1 if none): the block reduction applied before the
-    conservative kernel when the lat-long map is much finer than the cube."""
+    """Largest ``r`` dividing ``h`` with ``h / r ≥ 2n`` (1 if none): the block reduction applied before the
+    conservative kernel when the lat-long map is finer than the cube (the reduced map keeps the cube's
+    texel density at the face centres, π/(2n), and the kernel samples it with 2 × 2 sub-texels)."""
     best = 1
-    for r in range(2, h // (4 * n) + 1):
+    for r in range(2, h // (2 * n) + 1):
         if h % r == 0:
             best = r
     return best
@@ -662,10 +663,12 @@ def latlong_to_cube(img, n: int, *, method: str = "conservative", k: int | None 
     iters : int, optional
         Sinkhorn balancing steps of the ``conservative`` kernel (default 100; 50 above H = 1024).
     prereduce : bool
-        ``conservative`` only: when H ≥ 8n, first average ``r × r`` blocks exactly
-        (:func:`latlong_block_reduce`, r = :func:`prereduce_factor`: the reduced map keeps H/r ≥ 4n rows,
-        still twice the cube's texel density), so that a big probe reduced to a small working cube
-        costs memory of the order of the input plus the cube.  ∫L dω is kept exactly by the reduction.
+        ``conservative`` only: when H ≥ 4n, first average ``r × r`` blocks exactly
+        (:func:`latlong_block_reduce`, r = :func:`prereduce_factor`: the reduced map keeps H/r ≥ 2n rows,
+        the cube's texel density at the face centres), so that a big probe reduced to a smaller working
+        cube costs memory of the order of the input plus the cube (the kernel of a 16384 × 8192 input
+        and 2048² faces has 6 entries per texel of the 8192 × 4096 reduced map instead of 4 per input
+        texel).  ∫L dω is kept exactly by the reduction.
     """
     a, squeeze = _prep(img, "lat-long map", 3, keep_float32=method == "conservative")
     h, w = a.shape[:2]

@@ -242,8 +242,9 @@ def test_block_reduction_and_prereduced_resampling_conserve_the_closed_form():
     # exact block averages: ∫ kept to rounding (closed form of the source)
     np.testing.assert_allclose(_closed_form_integral(red), exact, rtol=1e-12)
     np.testing.assert_array_equal(resample.latlong_block_reduce(np.ones((8, 16, 1)), 2), np.ones((4, 8, 1)))
-    assert resample.prereduce_factor(128, 8) == 4 and resample.prereduce_factor(128, 32) == 1
-    cube = resample.latlong_to_cube(img.astype(np.float32), 8)  # 128 rows → 32 rows → 8² faces
+    assert resample.prereduce_factor(128, 8) == 8 and resample.prereduce_factor(96, 20) == 2
+    assert resample.prereduce_factor(128, 64) == 1
+    cube = resample.latlong_to_cube(img.astype(np.float32), 8)  # 128 rows → 16 rows → 8² faces
     assert np.abs(resample.integral_cube(cube) / exact - 1).max() <= RESAMPLE_TOL
     # a one-texel sun keeps its energy through reduction + kernel (per-texel imbalance bound)
     one = np.zeros((128, 256))
