@@ -243,10 +243,9 @@ def _cube_hat_taps(d: np.ndarray, n: int):
     """Seam-aware bilinear "hat" taps of cube texels at directions d: flat texel indices and weights (..., 12).
 
     Bilinear weights on the face grid padded by one texel (:func:`ibl_ref.sampling.padding_tables`,
-    neighbour-face unfolding, corner texels shared by three faces); weights are ≥ 0 and sum to 1.
+    neighbour-face unfolding, corner texels shared by three faces; evaluated by :func:`_padded_taps`);
+    weights are ≥ 0 and sum to 1.
     """
-    from .sampling import padding_tables
-
     face, x, y = envmap.direction_to_texel_coords(d, n)
     m = n + 2
     xp, yp = x + 1.0, y + 1.0
@@ -256,10 +255,10 @@ def _cube_hat_taps(d: np.ndarray, n: int):
     base = face * m * m + y0 * m + x0
     p = np.stack([base, base + 1, base + m, base + m + 1], -1)
     wp = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], -1)
-    src, w = padding_tables(n, 1)
-    src, w = src.reshape(-1, 3), w.reshape(-1, 3)
-    idx = src[p].reshape(p.shape[:-1] + (12,))
-    wt = (wp[..., None] * w[p]).reshape(p.shape[:-1] + (12,))
+    pf, rem = np.divmod(p, m * m)
+    src, w = _padded_taps(pf, rem // m, rem % m, n)
+    idx = src.reshape(p.shape[:-1] + (12,))
+    wt = (wp[..., None] * w).reshape(p.shape[:-1] + (12,))
     return idx, wt
 
 
@@ -319,6 +318,87 @@ def _face_ops(q: int, m: int, inverse: bool) -> tuple:
 def _gather_faces(src: np.ndarray, ops) -> np.ndarray:
     """``out[f'] = _DIHEDRAL[k](src[f])`` for the (6, n, n, ...) array ``src``."""
     return np.stack([_DIHEDRAL[k](src[f]) for f, k in ops])
+
+
+_RING: dict = {}
+_N0 = 5  # size the ring pattern is read at (odd: t and n−1−t differ)
+
+
+def _ring_pattern():
+    """Where the one-texel ring of padding around each face reads from, as size-independent rules.
+
+    Read once from :func:`ibl_ref.sampling.padding_tables` at face size 5: for an edge cell at position t
+    along side ``side`` (0: row −1, 1: row n, 2: column −1, 3: column n) of face f the source is texel
+    (f', r', c') of weight 1 with r', c' each one of {0, n−1, t, n−1−t} (codes 0…3); a corner cell
+    reads three texels with r, c ∈ {0, n−1} and weight ⅓ each.  These rules hold at every n because
+    the unfolding maps face edges onto face edges.
+    """
+    if "edge" in _RING:
+        return _RING
+    from .sampling import padding_tables
+
+    n, m = _N0, _N0 + 2
+    src, w = padding_tables(n, 1)
+    forms = lambda t: (0, n - 1, t, n - 1 - t)  # noqa: E731
+    edge = np.zeros((6, 4, 3), np.int64)  # f', row code, col code
+    corner = np.zeros((6, 4, 3, 3), np.int64)  # 3 × (f', row is n−1, col is n−1)
+    cw = np.zeros((6, 4, 3))
+    for f in range(6):
+        for side, cells in enumerate(((0, None), (m - 1, None), (None, 0), (None, m - 1))):
+            codes = set()
+            for t in range(n):
+                yp, xp = (cells[0], t + 1) if cells[0] is not None else (t + 1, cells[1])
+                if not np.isclose(w[f, yp, xp, 0], 1.0):  # pragma: no cover - k = 1 edges read one texel
+                    raise AssertionError("unexpected padding weights")
+                fq, rq, cq = np.unravel_index(src[f, yp, xp, 0], (6, n, n))
+                rc = tuple(k for k, v in enumerate(forms(t)) if v == rq)
+                cc = tuple(k for k, v in enumerate(forms(t)) if v == cq)
+                codes.add((int(fq), rc, cc))
+            common = (None, set.intersection(*[set(c[1]) for c in codes]), set.intersection(*[set(c[2]) for c in codes]))
+            fqs = {c[0] for c in codes}
+            if len(fqs) != 1 or not common[1] or not common[2]:  # pragma: no cover
+                raise AssertionError("padding ring is not an affine edge map")
+            edge[f, side] = (fqs.pop(), min(common[1]), min(common[2]))
+        for ci, (yp, xp) in enumerate(((0, 0), (0, m - 1), (m - 1, 0), (m - 1, m - 1))):
+            for k in range(3):
+                fq, rq, cq = np.unravel_index(src[f, yp, xp, k], (6, n, n))
+                corner[f, ci, k] = (fq, rq == n - 1, cq == n - 1)
+                cw[f, ci, k] = w[f, yp, xp, k]
+    _RING.update(edge=edge, corner=corner, cw=cw)
+    return _RING
+
+
+def _padded_taps(face, yp, xp, n: int):
+    """``(src (..., 3), w (..., 3))`` of padded-grid cells (face, yp, xp) of a face of size n padded by one
+    texel — the entries :func:`ibl_ref.sampling.padding_tables` (n, 1) holds — without building that
+    (6, n+2, n+2, 3) table (2.6 GB of temporaries at n = 2048)."""
+    pat = _ring_pattern()
+    i, j = yp - 1, xp - 1
+    src = np.zeros(face.shape + (3,), np.int64)
+    w = np.zeros(face.shape + (3,))
+    out_i, out_j = (i < 0) | (i >= n), (j < 0) | (j >= n)
+    inside = ~out_i & ~out_j
+    src[inside, 0] = face[inside] * n * n + i[inside] * n + j[inside]
+    w[inside, 0] = 1.0
+    ed = out_i ^ out_j
+    if ed.any():
+        f, ii, jj = face[ed], i[ed], j[ed]
+        side = np.where(ii < 0, 0, np.where(ii >= n, 1, np.where(jj < 0, 2, 3)))
+        t = np.where(side < 2, jj, ii)
+        fq, rcode, ccode = (pat["edge"][f, side, k] for k in range(3))
+        vals = np.stack([np.zeros_like(t), np.full_like(t, n - 1), t, n - 1 - t])
+        rq = np.take_along_axis(vals, rcode[None], 0)[0]
+        cq = np.take_along_axis(vals, ccode[None], 0)[0]
+        src[ed, 0] = fq * n * n + rq * n + cq
+        w[ed, 0] = 1.0
+    co = out_i & out_j
+    if co.any():
+        f = face[co]
+        ci = 2 * (i[co] >= n) + (j[co] >= n)
+        c = pat["corner"][f, ci]  # (k, 3, 3)
+        src[co] = c[..., 0] * n * n + c[..., 1] * (n - 1) * n + c[..., 2] * (n - 1)
+        w[co] = pat["cw"][f, ci]
+    return src, w
 
 
 def _cube_hat_taps_flat(d: np.ndarray, n: int):
@@ -466,9 +546,9 @@ class ConservativeKernel:
         n = self.n
         if not self.sym:
             return []
-        lookup = np.full(6 * n * n, -1, dtype=np.int64)
-        lookup[S] = np.arange(S.size)
-        ids = np.arange(6 * n * n, dtype=np.int64).reshape(6, n, n)
+        lookup = np.full(6 * n * n, -1, dtype=np.int32)
+        lookup[S] = np.arange(S.size, dtype=np.int32)
+        ids = np.arange(6 * n * n, dtype=np.int32).reshape(6, n, n)
         out = []
         for q, m in self.group[1:]:
             inv = np.empty_like(ids)
@@ -606,20 +686,20 @@ def _check_method(method):
         raise ValueError(f"unknown resampling method {method!r}; choose one of {_METHODS}")
 
 
-def latlong_block_reduce(img, r: int) -> np.ndarray:
+def latlong_block_reduce(img, r: int, dtype=np.float64) -> np.ndarray:
     """Exact area-weighted average of ``r × r`` texel blocks of an ``(H, 2H, C)`` lat-long map (r divides H).
 
     A block of rows i0 … i0+r−1 and columns j0 … j0+r−1 gets ``Σ Ω_i L_ij / Σ Ω_i`` (Ω_i the exact
     texel solid angle of row i, the same for every column), so ∫L dω of every block — hence of the map —
     is kept to rounding and constants stay exact.  Works in row blocks (float64 temporaries of
-    ~``_CHUNK`` values); a float32 input is accumulated in float64.
+    ~``_CHUNK`` values); sums are accumulated in float64 and stored as ``dtype``.
     """
     a = np.asarray(img)
     h, w, c = a.shape
     if h % r or w % r:
         raise LayoutError(f"block reduction by {r} needs H and W divisible by {r}, got {w} x {h}")
     om = envmap.latlong_solid_angles(h, w)[:, 0]
-    out = np.empty((h // r, w // r, c))
+    out = np.empty((h // r, w // r, c), dtype=dtype)
     per = max(1, _CHUNK // max(1, r * w * c))
     for b0 in range(0, h // r, per):
         b1 = min(h // r, b0 + per)
@@ -681,7 +761,7 @@ def latlong_to_cube(img, n: int, *, method: str = "conservative", k: int | None 
         src_int = integral_latlong(a) if conserve else None
         r = prereduce_factor(h, n) if prereduce else 1
         if r > 1:
-            a = latlong_block_reduce(a, r)
+            a = latlong_block_reduce(a, r, dtype=a.dtype)
         out = _finite(conservative_kernel(a.shape[0], n, k, iters).to_cube(a))
         return _finish(out, src_int, integral_cube, conserve, squeeze)
     k = k or supersample_factor(_pitch_cube(n), _pitch_latlong(h))
