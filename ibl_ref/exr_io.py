@@ -584,9 +584,10 @@ def load_cube(path, size: int | None = None, layout: str | None = None, conventi
         compression and report them, refuse NaN/Inf).
     return_report : bool
         Return ``(cube, RadianceReport)`` instead of the cube.
-    """
-    from . import resample
 
+    EXR pixels are read as float32 (exact for half and float files; half the memory of a big probe) and
+    the result is float64.
+    """
     path = Path(path)
     where = str(path)
     if path.suffix.lower() in (".hdr", ".pic", ".rgbe"):
