@@ -251,3 +251,22 @@ def test_block_reduction_and_prereduced_resampling_conserve_the_closed_form():
     one[3, 77] = 1.0
     e = resample.integral_cube(resample.latlong_to_cube(one, 8)) / _closed_form_integral(one[..., None])[0]
     assert abs(e - 1) <= RESAMPLE_TOL
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 8])
+def test_ring_rules_reproduce_the_padding_tables(n):
+    """resample._padded_taps (size-independent rules read at n = 5) equals sampling.padding_tables(n, 1)."""
+    from ibl_ref.sampling import padding_tables
+
+    m = n + 2
+    f, y, x = np.meshgrid(np.arange(6), np.arange(m), np.arange(m), indexing="ij")
+    src, w = resample._padded_taps(f, y, x, n)
+    src0, w0 = padding_tables(n, 1)
+    size = 6 * n * n
+    # compare the weight each padded cell gives every texel (tap order may differ)
+    dense = np.zeros((6 * m * m, size))
+    dense0 = np.zeros_like(dense)
+    rows = np.repeat(np.arange(6 * m * m), 3)
+    np.add.at(dense, (rows, src.reshape(-1)), w.reshape(-1))
+    np.add.at(dense0, (rows, src0.reshape(-1)), w0.reshape(-1))
+    np.testing.assert_allclose(dense, dense0, atol=1e-15)
