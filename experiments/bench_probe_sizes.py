@@ -15,6 +15,7 @@ are timed one by one:
 * ``mediancut``: :func:`ibl_ref.median_cut.median_cut` with 24 lights (per-face variant), for faces up
   to 1024² (median_cut's own working set is ~280 bytes per texel: 1.9 GB at 1024², so 7 GB at 2048²).
 
+``cpu_s`` (to-cube) is the CPU time of the process, which depends less on the load than the wall time.
 Peak RSS is sampled every 5 ms by a thread reading ``/proc/self/statm`` (the whole process, input
 included); ``rel_int_change`` is the relative change of ∫L dω from the float32 input to the cube (max
 over channels).  Goals (issue 13): 4K → face 1024 in ≤ 10 s and ≤ 1.5 GB; 16K → face 2048 in ≤ 120 s
@@ -54,6 +55,7 @@ class Peak:
         self._t = threading.Thread(target=self._run, daemon=True)
         self._t.start()
         self.t0 = time.perf_counter()
+        self.c0 = time.process_time()
         return self
 
     def _run(self):
@@ -63,6 +65,7 @@ class Peak:
 
     def __exit__(self, *exc):
         self.seconds = time.perf_counter() - self.t0
+        self.cpu_seconds = time.process_time() - self.c0  # CPU of this process: a proxy less sensitive to load
         self._stop = True
         self._t.join()
         self.peak = max(self.peak, _rss())
@@ -140,7 +143,8 @@ def run_one(name: str, compression: str, lights: int) -> list:
         rel = float(np.max(np.abs(resample.integral_cube(cube) / src - 1)))
         rows.append(dict(size=name, step=f"to-cube {n}", seconds=p.seconds, peak_rss_bytes=p.peak,
                          rel_int_change=rel, prereduce=resample.prereduce_factor(h, n)))
-        log(f"to-cube peak {p.peak / 2**20:.0f} MiB in {p.seconds:.1f} s")
+        rows[-1]["cpu_seconds"] = p.cpu_seconds
+        log(f"to-cube peak {p.peak / 2**20:.0f} MiB in {p.seconds:.1f} s ({p.cpu_seconds:.1f} s CPU)")
         del img
         if n > MEDIANCUT_MAX_FACE:
             log(f"mediancut skipped: median_cut needs ~280 bytes per texel (1.9 GB at 1024² faces), "
@@ -192,7 +196,7 @@ def main(argv=None) -> int:
             print(res.stderr, file=sys.stderr)
             return res.returncode
         all_rows.extend(json.loads(res.stdout.strip().splitlines()[-1]))
-    print(f"{'size':9s} {'step':16s} {'time_s':>8} {'peak_rss_MiB':>13} {'x_input':>8}  notes")
+    print(f"{'size':9s} {'step':16s} {'time_s':>8} {'cpu_s':>7} {'peak_rss_MiB':>13} {'x_input':>8}  notes")
     for r in all_rows:
         note = ""
         if r["step"].startswith("to-cube"):
@@ -204,13 +208,14 @@ def main(argv=None) -> int:
                 note += f"; goal <= {goal[0]:g} s and <= {lim / 2**30:.2f} GiB: {'met' if ok else 'NOT met'}"
         if r["step"] == "read":
             note = f"{r['negatives_clamped']} negatives clamped ({r['removed_fraction']:.1e} of the integral)"
-        print(f"{r['size']:9s} {r['step']:16s} {r['seconds']:8.2f} {r['peak_rss_bytes'] / 2**20:13.0f} "
+        cpu = f"{r['cpu_seconds']:7.2f}" if "cpu_seconds" in r else f"{'':7s}"
+        print(f"{r['size']:9s} {r['step']:16s} {r['seconds']:8.2f} {cpu} {r['peak_rss_bytes'] / 2**20:13.0f} "
               f"{r['peak_rss_bytes'] / r['decoded_input_bytes']:8.2f}  {note}")
     print("load:", subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip())
     if args.out:
         from ibl_ref.atomic import write_csv
 
-        cols = ["size", "step", "seconds", "peak_rss_bytes", "decoded_input_bytes", "rel_int_change", "prereduce",
+        cols = ["size", "step", "seconds", "cpu_seconds", "peak_rss_bytes", "decoded_input_bytes", "rel_int_change", "prereduce",
                 "negatives_clamped", "removed_fraction"]
         write_csv(args.out, [{c: r.get(c, "") for c in cols} for r in all_rows], columns=cols)
     return 0
