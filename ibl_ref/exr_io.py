@@ -593,7 +593,7 @@ def load_cube(path, size: int | None = None, layout: str | None = None, conventi
     if path.suffix.lower() in (".hdr", ".pic", ".rgbe"):
         from .hdr_io import read_hdr
 
-        img, rep = read_hdr(path, negative=negative, nonfinite=nonfinite, return_report=True)
+        img, rep = read_hdr(path, negative=negative, nonfinite=nonfinite, return_report=True, dtype=np.float32)
         header = {}
         lay = infer_layout(img.shape[0], img.shape[1], layout, where)
     else:

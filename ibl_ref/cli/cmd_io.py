@@ -23,7 +23,7 @@ def _load_any(path: Path, negative: str = "auto", nonfinite: str = "error"):
         img, rep = read_hdr(path, negative=negative, nonfinite=nonfinite, return_report=True)
         img, layout, chans, ptype, fmt, extra, header = _hdr_meta(path, img)
     else:
-        img, chans, ptype, header, where = exr_io._read_raw(path)
+        img, chans, ptype, header, where = exr_io._read_raw(path, dtype=np.float32)  # exact for half/float
         layout = exr_io.infer_layout(img.shape[0], img.shape[1], exr_io._declared(header, str(path)), str(path))
         rep = exr_io._radiance(img, chans, where, layout, negative, nonfinite)
         fmt, extra = "OpenEXR", _exr_extra(header)
