@@ -31,23 +31,13 @@ class MeshError(IBLError):
     """A mesh is empty, degenerate or contains non-finite vertices."""
 
 
-def check_radiance(values, name: str = "radiance") -> np.ndarray:
+def check_radiance(values, name: str = "radiance", negative: str = "error", nonfinite: str = "error") -> np.ndarray:
     """Return ``values`` as an array after checking it is finite and non-negative.
 
-    Raises :class:`RadianceError` naming ``name``, the count of offending values and the first index.
+    Raises :class:`RadianceError` naming ``name``, the count of offending values and the first index;
+    complex, integer and boolean arrays are refused too.  ``negative`` / ``nonfinite`` select another
+    policy of :mod:`ibl_ref.radiance_policy` (then a repaired copy may be returned).
     """
-    a = np.asarray(values)
-    if not np.issubdtype(a.dtype, np.number):
-        raise RadianceError(f"{name}: expected a numeric array, got dtype {a.dtype}")
-    bad_nan = ~np.isfinite(a)
-    if bad_nan.any():
-        idx = tuple(int(i) for i in np.argwhere(bad_nan)[0])
-        kind = "NaN" if np.isnan(a[idx]) else "Inf"
-        raise RadianceError(f"{name}: {int(bad_nan.sum())} non-finite value(s) (first: {kind} at index {idx})")
-    neg = a < 0
-    if neg.any():
-        idx = tuple(int(i) for i in np.argwhere(neg)[0])
-        raise RadianceError(
-            f"{name}: {int(neg.sum())} negative radiance value(s) (first: {a[idx]!r} at index {idx})"
-        )
-    return a
+    from .radiance_policy import apply_policy
+
+    return apply_policy(values, name, negative=negative, nonfinite=nonfinite)[0]

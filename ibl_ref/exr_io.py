@@ -36,7 +36,10 @@ the ``.exr`` suffix): on any error the previous file is untouched and no tempora
 
 Readers raise :class:`~ibl_ref.errors.EnvMapFileError`, :class:`~ibl_ref.errors.LayoutError` or
 :class:`~ibl_ref.errors.RadianceError` with a message that names the file and the problem (missing,
-not an EXR / truncated, non-finite or negative radiance, wrong aspect ratio, missing R/G/B channels).
+not an EXR / truncated, wrong aspect ratio, missing R/G/B channels).  Negative and non-finite
+radiance follow :mod:`ibl_ref.radiance_policy` (parameters ``negative`` and ``nonfinite`` of every
+reader): by default the tiny negatives of lossy (DWAB) compression are clamped to 0 and reported,
+negatives carrying more than 1e-4 of ∫|L| dω and any NaN/Inf are errors.
 """
 
 from __future__ import annotations
@@ -98,6 +101,8 @@ class EnvMap:
         File header attributes converted to simple Python values (str, int, float, lists).
     pixel_type : str
         ``"half"``, ``"float"``, ``"uint"`` or ``"mixed"`` as stored in the file.
+    radiance : RadianceReport
+        What the radiance policy found and did (:mod:`ibl_ref.radiance_policy`).
     """
 
     data: np.ndarray
@@ -106,6 +111,7 @@ class EnvMap:
     channels: tuple
     header: dict = field(default_factory=dict)
     pixel_type: str = "float"
+    radiance: object = None  #: :class:`ibl_ref.radiance_policy.RadianceReport` of the read
 
     @property
     def size(self) -> int:
@@ -516,8 +522,13 @@ def _convention(header: dict, override, where: str) -> str:
     return conv
 
 
-def _part_image(path: Path, part, label: str = ""):
-    """(H, W, C) float64 image, channel names, pixel type and simple header of one part."""
+def _part_image(path: Path, part, label: str = "", dtype=np.float64):
+    """Raw (H, W, C) image (``dtype``), channel names, pixel type and simple header of one part.
+
+    No radiance check here (see :func:`_radiance`); channels are copied one by one into the result and
+    the binding's copy of each is released at once (no stacked temporary: a 16K float32 RGB file peaks
+    at the binding's 1.6 GB plus the result).  The part's channels are empty afterwards.
+    """
     where = f"{path}{label}"
     chans = part.channels
     names = set(chans)
@@ -537,23 +548,60 @@ def _part_image(path: Path, part, label: str = ""):
     shapes = {a.shape for a in arrs}
     if len(shapes) != 1:
         raise LayoutError(f"{where}: channels have different sizes {sorted(shapes)} (subsampled channels unsupported)")
-    img = np.stack(arrs, axis=-1).astype(np.float64)
-    colour = img[..., :3] if len(order) >= 3 else img
-    if not np.all(np.isfinite(img)):
-        bad = int((~np.isfinite(img)).sum())
-        raise RadianceError(f"{where}: {bad} NaN/Inf pixel value(s) in the file")
-    if np.any(colour < 0):
-        neg = int((colour < 0).sum())
-        raise RadianceError(f"{where}: {neg} negative radiance value(s) in the file (min {colour.min():g})")
+    img = np.empty(arrs[0].shape + (len(arrs),), dtype=dtype)
+    del arrs
+    for i, nm in enumerate(order):
+        img[..., i] = chans[nm].pixels
+        chans[nm].pixels = np.empty((0, 0), np.float32)  # release the binding's copy now (big probes)
     ptype = {"HALF": "half", "FLOAT": "float", "UINT": "uint"}
     pixel_type = ptype.get(types.pop(), "mixed") if len(types) == 1 else "mixed"
+    return img, tuple(order), pixel_type, header_dict(part, where)
+
+
+def header_dict(part, where: str) -> dict:
+    """A part's header as plain Python values; a corrupt attribute is an :class:`EnvMapFileError` naming it."""
     header = {}
     for k, v in part.header.items():
         try:
             header[k] = _simple(v)
         except (UnicodeDecodeError, ValueError) as exc:  # a corrupt string attribute surfaces only here
             raise EnvMapFileError(f"{where}: corrupt OpenEXR header attribute {k!r} ({exc})") from None
-    return img, tuple(order), pixel_type, header
+    return header
+
+
+def _weights_layout(h: int, w: int, header: dict, layout=None):
+    """Layout used for the solid-angle weights of the radiance policy (None when not inferable)."""
+    try:
+        return infer_layout(h, w, layout or _declared(header, ""), "")
+    except IBLError:
+        return None
+
+
+def _radiance(img: np.ndarray, chans, where: str, layout, negative: str, nonfinite: str):
+    """Apply :mod:`ibl_ref.radiance_policy` to the colour channels of ``img`` in place → report.
+
+    An alpha channel is checked for NaN/Inf under the same ``nonfinite`` policy, never clamped.
+    """
+    from .radiance_policy import apply_policy, pixel_solid_angles
+
+    h, w = img.shape[:2]
+    nc = 3 if len(chans) >= 3 else 1
+    colour = img[..., :nc]
+    weights = pixel_solid_angles(h, w, layout)
+    fixed, rep = apply_policy(colour, f"{where}: radiance", negative=negative, nonfinite=nonfinite,
+                              weights=weights, inplace=True)
+    if fixed is not colour:
+        img[..., :nc] = fixed
+    if len(chans) > nc:
+        alpha = img[..., nc:]
+        if not np.all(np.isfinite(alpha)):
+            bad = int((~np.isfinite(alpha)).sum())
+            if nonfinite == "error":
+                raise RadianceError(f"{where}: {bad} NaN/Inf value(s) in the alpha channel; pass --nonfinite zero "
+                                    "(Python: nonfinite='zero') to replace them by 0")
+            alpha[~np.isfinite(alpha)] = 0
+            rep.action.append(f"replaced {bad} NaN/Inf alpha value(s) by 0")
+    return rep
 
 
 def infer_layout(h: int, w: int, declared=None, where: str = "image") -> str:
@@ -577,8 +625,7 @@ def infer_layout(h: int, w: int, declared=None, where: str = "image") -> str:
             return name
     raise LayoutError(
         f"{where}: cannot infer the environment-map layout of a {w} wide x {h} high image without an "
-        f"'envmap' attribute (expected N x 6N cube strip, 2H x H lat-long, 4N x 3N or 3N x 4N cross); "
-        f"pass layout= explicitly"
+        f"'envmap' attribute (expected N x 6N cube strip, 2H x H lat-long, 4N x 3N or 3N x 4N cross)"
     )
 
 
@@ -593,19 +640,33 @@ def _declared(header: dict, where: str):
     raise LayoutError(f"{where}: unsupported envmap attribute {env!r}")
 
 
-def read_image(path, part: int = 0):
-    """Read one part of an EXR file as ``(image (H, W, C) float64, channels, pixel_type, header)``.
+def read_image(path, part: int = 0, negative: str = "auto", nonfinite: str = "error", return_report: bool = False,
+               dtype=np.float64):
+    """Read one part of an EXR file as ``(image (H, W, C), channels, pixel_type, header)``.
 
-    Radiance and channels are validated (see module docstring); the layout is not interpreted.
+    Radiance is checked and repaired under ``negative`` / ``nonfinite`` (:mod:`ibl_ref.radiance_policy`;
+    solid-angle weights of the layout from the ``envmap`` attribute or the aspect ratio, uniform if
+    neither applies); the layout is not otherwise interpreted.  ``return_report=True`` appends the
+    :class:`~ibl_ref.radiance_policy.RadianceReport` to the tuple.  ``dtype``: float64 (default) or
+    float32 (half the memory for big probes).
     """
-    path = Path(path)
+    img, chans, ptype, header, where = _read_raw(Path(path), part, dtype)
+    rep = _radiance(img, chans, where, _weights_layout(img.shape[0], img.shape[1], header), negative, nonfinite)
+    return (img, chans, ptype, header, rep) if return_report else (img, chans, ptype, header)
+
+
+def _read_raw(path: Path, part: int = 0, dtype=np.float64):
+    """(image, channels, pixel_type, header, name for messages) of one part, radiance unchecked."""
     _, parts = _open(path)
     if not 0 <= part < len(parts):
         raise EnvMapFileError(f"{path}: has {len(parts)} part(s), part {part} requested")
-    return _part_image(path, parts[part], f" (part {part})" if len(parts) > 1 else "")
+    label = f" (part {part})" if len(parts) > 1 else ""
+    img, chans, ptype, header = _part_image(path, parts[part], label, dtype=dtype)
+    return img, chans, ptype, header, f"{path}{label}"
 
 
-def read_envmap(path, layout: str | None = None, convention: str | None = None, part: int = 0) -> EnvMap:
+def read_envmap(path, layout: str | None = None, convention: str | None = None, part: int = 0,
+                negative: str = "auto", nonfinite: str = "error") -> EnvMap:
     """Read an OpenEXR environment map.
 
     Parameters
@@ -619,13 +680,16 @@ def read_envmap(path, layout: str | None = None, convention: str | None = None, 
         ``"openexr"``).  The returned array is always in OpenEXR orientation.
     part : int
         Part index of a multi-part file (0 = first; use :func:`read_pyramid` for pyramids).
+    negative, nonfinite : str
+        Radiance policy (:mod:`ibl_ref.radiance_policy`): default clamp negligible negatives (reported in
+        ``EnvMap.radiance``), refuse NaN/Inf.
 
     Returns
     -------
     EnvMap
     """
     path = Path(path)
-    img, chans, ptype, header = read_image(path, part)
+    img, chans, ptype, header, rep = read_image(path, part, negative, nonfinite, return_report=True)
     h, w = img.shape[:2]
     if layout is None:
         layout = _declared(header, str(path))
@@ -640,7 +704,7 @@ def read_envmap(path, layout: str | None = None, convention: str | None = None, 
         conv = _convention(header, convention, str(path))
         if conv != "openexr":
             data = envmap.convert_convention(data, conv, "openexr")
-    return EnvMap(data=data, layout=layout, path=path, channels=chans, header=header, pixel_type=ptype)
+    return EnvMap(data=data, layout=layout, path=path, channels=chans, header=header, pixel_type=ptype, radiance=rep)
 
 
 def read_pyramid(path) -> list:
@@ -649,9 +713,10 @@ def read_pyramid(path) -> list:
     _, parts = _open(path)
     levels = []
     for i, p in enumerate(parts):
-        img, _, _, header = _part_image(path, p, f" (part {i})")
+        img, chans, _, header = _part_image(path, p, f" (part {i})")
         h, w = img.shape[:2]
         infer_layout(h, w, "cube", f"{path} (part {i})")
+        _radiance(img, chans, f"{path} (part {i})", "cube", "auto", "error")
         levels.append(img.reshape(6, w, w, img.shape[2]))
     return levels
 
@@ -666,7 +731,8 @@ def _rgb(data: np.ndarray) -> np.ndarray:
     return data[..., :3]
 
 
-def load_cube(path, size: int | None = None, layout: str | None = None, convention: str | None = None) -> np.ndarray:
+def load_cube(path, size: int | None = None, layout: str | None = None, convention: str | None = None,
+              negative: str = "auto", nonfinite: str = "error", return_report: bool = False):
     """Load any supported environment-map file as a ``(6, N, N, 3)`` float64 cube map.
 
     Supported: OpenEXR CUBE strips and LATLONG maps (attribute or aspect ratio), Radiance ``.hdr`` /
@@ -683,24 +749,40 @@ def load_cube(path, size: int | None = None, layout: str | None = None, conventi
         Override the layout (otherwise from the ``envmap`` attribute or the aspect ratio).
     convention : {"openexr", "opengl"}, optional
         Face orientation of a cube strip in the file (see :func:`read_envmap`).
-    """
-    from . import resample
-    from .limits import check_face_size
+    negative, nonfinite : str
+        Radiance policy (:mod:`ibl_ref.radiance_policy`; default: clamp the negligible negatives of lossy
+        compression and report them, refuse NaN/Inf).
+    return_report : bool
+        Return ``(cube, RadianceReport)`` instead of the cube.
 
+    EXR pixels are read as float32 (exact for half and float files; half the memory of a big probe) and
+    the result is float64.
+    """
     path = Path(path)
+    where = str(path)
     if size is not None:
+        from .limits import check_face_size
+
         size = check_face_size(size, "size")
     if path.suffix.lower() in (".hdr", ".pic", ".rgbe"):
         from .hdr_io import read_hdr
 
-        img = read_hdr(path)
+        img, rep = read_hdr(path, negative=negative, nonfinite=nonfinite, return_report=True, dtype=np.float32)
         header = {}
+        lay = infer_layout(img.shape[0], img.shape[1], layout, where)
     else:
-        img, _, _, header = read_image(path)
+        # float32 holds every half/float pixel exactly and halves the memory of big probes
+        img, chans, _, header, _ = _read_raw(path, dtype=np.float32)
+        lay = infer_layout(img.shape[0], img.shape[1], layout or _declared(header, where), where)
+        rep = _radiance(img, chans, where, lay, negative, nonfinite)
+    cube = _load_cube_image(img, lay, header, size, convention, where)
+    return (cube, rep) if return_report else cube
+
+
+def _load_cube_image(img, lay, header, size, convention, where: str = "image"):
+    from . import resample
+
     h, w = img.shape[:2]
-    where = str(path)
-    lay = layout or _declared(header, where)
-    lay = infer_layout(h, w, lay, where)
     if lay == "cube":
         cube = img.reshape(6, w, w, img.shape[2])
         conv = _convention(header, convention, where)

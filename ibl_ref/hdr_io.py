@@ -221,7 +221,8 @@ def _decode_pixels(buf: bytes, pos: int, h: int, w: int, path) -> np.ndarray:
     return out
 
 
-def read_hdr(path, apply_exposure: bool = False) -> np.ndarray:
+def read_hdr(path, apply_exposure: bool = False, negative: str = "auto", nonfinite: str = "error",
+             return_report: bool = False, dtype=np.float64):
     """Read a Radiance RGBE file as an ``(H, W, 3)`` float64 image (top row first, left column first).
 
     Parameters
@@ -230,6 +231,14 @@ def read_hdr(path, apply_exposure: bool = False) -> np.ndarray:
     apply_exposure : bool
         Divide by the product of the header's EXPOSURE values (recovering Radiance's original
         radiance).  Off by default, like most HDR loaders (see module docstring).
+    negative, nonfinite : str
+        Radiance policy (:mod:`ibl_ref.radiance_policy`).  RGBE cannot store negative, NaN or infinite
+        values, so the check always passes; the parameters exist so that every reader takes the same ones.
+    return_report : bool
+        Return ``(image, RadianceReport)``.
+    dtype : float64 (default) or float32
+        Of the result; RGBE values (8-bit mantissas) are exact in float32.  Decoding runs in row blocks,
+        so a big probe needs the file, its (H, W, 4) bytes and the result only.
     """
     path = Path(path)
     with _open(path) as fh:
@@ -237,7 +246,12 @@ def read_hdr(path, apply_exposure: bool = False) -> np.ndarray:
     info, pos = _parse_header(buf, path)
     n_major, n_minor = info["n_major"], info["n_minor"]
     raw = _decode_pixels(buf, pos, n_major, n_minor, path)  # (scanline, pixel, 4)
-    img = rgbe_to_float(raw)
+    del buf
+    img = np.empty(raw.shape[:2] + (3,), dtype=dtype)
+    step = max(1, (1 << 20) // max(1, raw.shape[1]))
+    for r0 in range(0, raw.shape[0], step):
+        img[r0 : r0 + step] = rgbe_to_float(raw[r0 : r0 + step])
+    del raw
     # orient to the standard -Y H +X W
     if info["major"][1] == "Y":
         if info["major"][0] == "+":
@@ -253,8 +267,14 @@ def read_hdr(path, apply_exposure: bool = False) -> np.ndarray:
     if apply_exposure:
         if not info["exposure"] > 0:
             raise EnvMapFileError(f"{path}: EXPOSURE product {info['exposure']} is not positive")
-        img = img / info["exposure"]
-    return np.ascontiguousarray(img)
+        img /= info["exposure"]
+    img = np.ascontiguousarray(img)
+    from .radiance_policy import apply_policy, pixel_solid_angles
+
+    h, w = img.shape[:2]
+    img, rep = apply_policy(img, f"{path}: radiance", negative, nonfinite,
+                            weights=pixel_solid_angles(h, w, "latlong" if w == 2 * h else None), inplace=True)
+    return (img, rep) if return_report else img
 
 
 # ----------------------------------------------------------------------------------------------

@@ -124,8 +124,6 @@ def _flag_hints(message: str, sp) -> str:
     m = re.match(r"([a-z][a-z_]*) must\b", message)  # "rtol must be in (0, 1)" -> "--rtol: rtol must ..."
     if m and flag_of(m.group(1)):
         message = flag_of(m.group(1)) + ": " + message
-    message = message.replace("pass layout= explicitly",
-                              "the CLI takes the layout from the file's 'envmap' attribute or its aspect ratio")
     if "--size" in flags:
         message = message.replace("Resample the map first (e.g. ibl_ref.resample)", "Resample it with --size")
     return message

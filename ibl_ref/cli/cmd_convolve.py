@@ -13,6 +13,7 @@ import math
 from pathlib import Path
 
 from ..errors import IBLError
+from .radiance_args import add_radiance_args
 
 
 def exponent_path(out, s) -> Path:
@@ -37,12 +38,13 @@ def _exponent(text: str) -> float:
 def cmd_convolve(args) -> int:
     from ..atomic import OutputSet, refuse_overwriting_inputs
     from ..convolve import convolve
-    from ..exr_io import load_cube, write_envmap
+    from ..exr_io import write_envmap
+    from .radiance_args import load_env
 
     exps = [_exponent(e) for e in args.exponent]
     side = Path(args.output).with_suffix(".json")
     refuse_overwriting_inputs({"IN": args.input}, [("OUT", side)] + [("OUT", exponent_path(args.output, s)) for s in exps])
-    cube = load_cube(args.input, size=args.input_size)
+    cube, radiance = load_env(args, args.input, args.input_size)
     res = convolve(
         cube, exps, method=args.method, rtol=args.rtol, out_size=args.size, normalized=not args.unnormalized,
         workers=args.workers, backend=args.parallel,
@@ -66,6 +68,7 @@ def cmd_convolve(args) -> int:
                 "method_requested": args.method,
                 "face_size_in": int(cube.shape[1]),
                 "face_size_out": int(next(iter(res.maps.values())).shape[1]),
+                "radiance": radiance,
             }
         )
         outs.commit(summary)
@@ -77,13 +80,14 @@ def cmd_convolve(args) -> int:
 
 
 def cmd_irradiance(args) -> int:
-    from ..exr_io import load_cube, write_envmap
+    from ..exr_io import write_envmap
     from ..kan2015 import irradiance_map
+    from .radiance_args import load_env
 
     from ..atomic import refuse_overwriting_inputs
 
     refuse_overwriting_inputs({"IN": args.input}, {"OUT": args.output})
-    cube = load_cube(args.input, size=args.input_size)
+    cube, _ = load_env(args, args.input, args.input_size)
     ed = irradiance_map(cube, quadrature=args.quadrature, out_size=args.size)
     write_envmap(args.output, ed, layout="cube")
     print(f"wrote {args.output} (Kán et al. 2015 Ed map, {ed.shape[1]}² faces)")
@@ -119,6 +123,7 @@ def register(sub) -> None:
                         "are bit-for-bit identical for every W")
     p.add_argument("--parallel", choices=("auto", "process", "thread"), default="auto",
                    help="how W > 1 workers run: forked processes or threads (auto: processes when possible)")
+    add_radiance_args(p)
     p.set_defaults(func=cmd_convolve)
 
     q = sub.add_parser(
@@ -132,4 +137,5 @@ def register(sub) -> None:
                    help="literal (1/π) sum, or divided by the discrete lobe weight (see ibl_ref.kan2015)")
     q.add_argument("--size", type=int, default=None, help="output face size (default: input face size)")
     q.add_argument("--input-size", type=int, default=None, help="resample the input to this face size first")
+    add_radiance_args(q)
     q.set_defaults(func=cmd_irradiance)

@@ -8,68 +8,219 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import IBLError
+from .radiance_args import add_radiance_args
 
 OUT_SUFFIXES = (".exr", ".hdr", ".pic")  #: file types ``convert`` writes
 
 
-def _load_any(path: Path):
-    """(data, layout, channels, pixel_type, file_format, extra) of any supported file without resampling."""
-    from .. import exr_io, resample
-    from ..hdr_io import read_hdr, read_hdr_header
+def _load_any(path: Path, negative: str = "auto", nonfinite: str = "error"):
+    """(data, layout, channels, pixel_type, file_format, extra, radiance report) of any supported file.
+
+    No resampling; the radiance policy (:mod:`ibl_ref.radiance_policy`) is applied to the colour channels.
+    """
+    from .. import exr_io
+    from ..hdr_io import read_hdr
 
     if path.suffix.lower() in (".hdr", ".pic", ".rgbe"):
-        img = read_hdr(path)
-        hdr = read_hdr_header(path)
-        layout = exr_io.infer_layout(img.shape[0], img.shape[1], None, str(path))
-        extra = {"exposure_product": hdr["exposure"], "orientation": f"{hdr['major']} {hdr['minor']}"}
-        ptype, fmt, chans = "rgbe", "Radiance RGBE", ("R", "G", "B")
+        img, rep = read_hdr(path, negative=negative, nonfinite=nonfinite, return_report=True)
+        img, layout, chans, ptype, fmt, extra, header = _hdr_meta(path, img)
     else:
-        img, chans, ptype, header = exr_io.read_image(path)
-        layout = exr_io._declared(header, str(path))
-        layout = exr_io.infer_layout(img.shape[0], img.shape[1], layout, str(path))
-        extra = {"envmap_attribute": header.get("envmap", "-"), "convention": header.get("iblref_convention", "-")}
-        fmt = "OpenEXR"
-        conv = exr_io._convention(header, None, str(path)) if layout == "cube" else "openexr"
-        if conv != "openexr":
-            from .. import envmap
+        img, chans, ptype, header, where = exr_io._read_raw(path, dtype=np.float32)  # exact for half/float
+        layout = exr_io.infer_layout(img.shape[0], img.shape[1], exr_io._declared(header, str(path)), str(path))
+        rep = exr_io._radiance(img, chans, where, layout, negative, nonfinite)
+        fmt, extra = "OpenEXR", _exr_extra(header)
+    return _as_layout(img, layout, header, str(path)) + (chans, ptype, fmt, extra, rep)
 
-            n = img.shape[1]
-            img = envmap.convert_convention(img.reshape(6, n, n, -1), conv, "openexr")
+
+def _hdr_meta(path: Path, img):
+    from .. import exr_io
+    from ..hdr_io import read_hdr_header
+
+    hdr = read_hdr_header(path)
+    layout = exr_io.infer_layout(img.shape[0], img.shape[1], None, str(path))
+    extra = {"exposure_product": hdr["exposure"], "orientation": f"{hdr['major']} {hdr['minor']}"}
+    return img, layout, ("R", "G", "B"), "rgbe", "Radiance RGBE", extra, {}
+
+
+def _exr_extra(header: dict) -> dict:
+    return {"envmap_attribute": header.get("envmap", "-"), "convention": header.get("iblref_convention", "-")}
+
+
+def _as_layout(img, layout: str, header: dict, where: str):
+    """(data, layout): cube strips reshaped (and re-oriented to OpenEXR), crosses cut, lat-long as is."""
+    from .. import envmap, exr_io, resample
+
     if layout == "cube":
-        n = img.shape[-2]
+        n = img.shape[1]
         data = img.reshape(6, n, n, img.shape[-1])
+        conv = exr_io._convention(header, None, where)  # a bad iblref_convention attribute: LayoutError
+        if conv != "openexr":
+            data = envmap.convert_convention(data, conv, "openexr")
     elif layout in ("hcross", "vcross"):
         data = resample.cross_to_cube(img, layout)
     else:
         data = img
-    return data, layout, chans, ptype, fmt, extra
+    return data, layout
+
+
+_LAYOUT_RULES = "N wide x 6N high = cube strip, 2H x H = lat-long, 4N x 3N = horizontal cross, 3N x 4N = vertical cross"
+
+
+def _info_read(path: Path):
+    """Everything ``info`` shows, without refusing anything a decoder can read.
+
+    Returns (image (H, W, C) with every channel, channel names, colour channel count, pixel type, format,
+    extra fields, header, n_parts).
+    """
+    from .. import exr_io
+    from ..hdr_io import read_hdr
+
+    if path.suffix.lower() in (".hdr", ".pic", ".rgbe"):
+        img, _, chans, ptype, fmt, extra, header = _hdr_meta(path, read_hdr(path, negative="clamp", nonfinite="zero"))
+        return img, chans, 3, ptype, fmt, extra, header, 1
+    _, parts = exr_io._open(path)
+    part = parts[0]
+    names = sorted(part.channels)
+    colour = [c for c in ("R", "G", "B") if c in names] if {"R", "G", "B"} <= set(names) else (
+        ["Y"] if "Y" in names else [])
+    order = colour + [c for c in names if c not in colour]
+    arrs = [part.channels[c].pixels for c in order]
+    if len({a.shape for a in arrs}) != 1 or arrs[0].ndim != 2:
+        raise IBLError(f"{path}: channels have different sizes {sorted({a.shape for a in arrs})} "
+                       "(subsampled channels unsupported)")
+    types = {exr_io._simple(part.channels[c].type()) for c in order}
+    img = np.empty(arrs[0].shape + (len(arrs),), np.float32)  # float32 holds half/float exactly
+    del arrs
+    for i, c in enumerate(order):
+        img[..., i] = part.channels[c].pixels
+        part.channels[c].pixels = np.empty((0, 0), np.float32)  # release the binding's copy
+    ptype = {"HALF": "half", "FLOAT": "float", "UINT": "uint"}.get(types.pop(), "mixed") if len(types) == 1 else "mixed"
+    header = exr_io.header_dict(part, str(path))
+    extra = _exr_extra(header)
+    extra["compression"] = header.get("compression", "-")
+    return img, tuple(order), len(colour), ptype, "OpenEXR", extra, header, len(parts)
+
+
+def _channel_stats(img: np.ndarray, weights) -> dict:
+    """Per channel: min / max / mean of the finite values, NaN / Inf / negative counts and ∫ dω (NaN/Inf as 0).
+
+    Works in row chunks (``weights``: per-pixel solid angles broadcastable to (H, W), or None).
+    """
+    c = img.shape[-1]
+    st = {"min": np.full(c, np.inf), "max": np.full(c, -np.inf), "sum": np.zeros(c), "n": np.zeros(c, np.int64),
+          "nan": [0] * c, "inf": [0] * c, "neg": [0] * c, "integral": np.zeros(c)}
+    wts = None if weights is None else np.broadcast_to(weights, img.shape[:2])
+    step = max(1, (1 << 22) // max(1, img.shape[1] * c))
+    for r0 in range(0, img.shape[0], step):
+        blk = img[r0 : r0 + step].astype(np.float64)
+        fin = np.isfinite(blk)
+        for i in range(c):
+            b, f = blk[..., i], fin[..., i]
+            st["nan"][i] += int(np.isnan(b).sum())
+            st["inf"][i] += int(np.isinf(b).sum())
+            v = b[f]
+            if v.size:
+                st["min"][i] = min(st["min"][i], v.min())
+                st["max"][i] = max(st["max"][i], v.max())
+                st["sum"][i] += v.sum()
+                st["n"][i] += v.size
+                st["neg"][i] += int((v < 0).sum())
+            if wts is not None:
+                st["integral"][i] += float(np.sum(np.where(f, b, 0.0) * wts[r0 : r0 + step]))
+    st["mean"] = np.where(st["n"] > 0, st["sum"] / np.maximum(st["n"], 1), np.nan)
+    st["min"] = np.where(st["n"] > 0, st["min"], np.nan)
+    st["max"] = np.where(st["n"] > 0, st["max"], np.nan)
+    return st
+
+
+def _layout_reason(path: Path, h: int, w: int, header: dict):
+    """(layout or None, sentence saying where it came from)."""
+    from .. import exr_io
+
+    try:
+        declared = exr_io._declared(header, str(path))
+    except IBLError as exc:
+        return None, str(exc)
+    try:
+        lay = exr_io.infer_layout(h, w, declared, str(path))
+    except IBLError as exc:
+        return None, f"{exc}"
+    if declared is not None:
+        return lay, f"from the envmap attribute ({header.get('envmap')})"
+    if path.suffix.lower() in (".hdr", ".pic", ".rgbe"):
+        return lay, f"Radiance files carry no layout: inferred from the aspect ratio {w} x {h} ({_LAYOUT_RULES})"
+    return lay, f"no envmap attribute: inferred from the aspect ratio {w} x {h} ({_LAYOUT_RULES})"
 
 
 def cmd_info(args) -> int:
-    from .. import resample
+    from ..radiance_policy import assess, decide, pixel_solid_angles
 
     path = Path(args.file)
-    data, layout, chans, ptype, fmt, extra = _load_any(path)
-    if data.ndim == 4:
-        n = data.shape[1]
-        integ = resample.integral_cube(data)
-        size = f"6 faces of {n} x {n}" + (f" (read from a {layout})" if layout != "cube" else "")
-    else:
-        integ = resample.integral_latlong(data)
-        size = f"{data.shape[1]} x {data.shape[0]} (W x H)"
-    flat = data.reshape(-1, data.shape[-1])
+    img, chans, nc, ptype, fmt, extra, header, n_parts = _info_read(path)
+    h, w = img.shape[:2]
+    layout, why = _layout_reason(path, h, w, header)
+    bad_convention = None
+    if layout == "cube" and fmt == "OpenEXR":
+        from .. import exr_io
+
+        try:
+            exr_io._convention(header, None, str(path))
+        except IBLError as exc:
+            bad_convention = str(exc)
     print(f"file:       {path}")
-    print(f"format:     {fmt}  pixel type: {ptype}")
-    print(f"layout:     {layout}  size: {size}")
-    print(f"channels:   {','.join(chans)}")
+    print(f"format:     {fmt}  pixel type: {ptype}" + (f"  parts: {n_parts} (showing part 0)" if n_parts > 1 else ""))
+    print(f"layout:     {layout or 'unknown'}  image: {w} x {h} (W x H)")
+    print(f"layout from: {why}")
+    print(f"channels:   {','.join(chans)}" + ("" if nc else "  (no R,G,B or Y channel: not an environment map)"))
     for k, v in extra.items():
         print(f"{k + ':':18s}{v}")
-    print("channel     min           max           mean          integral_L_domega_(sr)")
+    if layout in ("cube", "hcross", "vcross"):
+        print(f"cube:       6 faces of {w if layout == 'cube' else h // {'hcross': 3, 'vcross': 4}[layout]}²")
+    weights = pixel_solid_angles(h, w, layout)
+    if nc:  # before anything is zeroed
+        rep = assess(img[..., :nc], f"{path}: radiance", weights, args.negative, args.nonfinite)
+    st = _channel_stats(img, weights)
+    print("channel     min           max           mean          integral_L_domega_(sr)  NaN      Inf      negative")
     for i, c in enumerate(chans):
-        col = flat[:, i]
-        print(f"{c:11s} {col.min():<13.6g} {col.max():<13.6g} {col.mean():<13.6g} {float(np.atleast_1d(integ)[i]):<.9g}")
-    # readers reject NaN/Inf/negative radiance, so reaching this line means the check passed
-    print("check:      no NaN, no Inf, no negative radiance")
+        integ = st["integral"][i] if layout is not None else np.nan
+        print(f"{c:11s} {st['min'][i]:<13.6g} {st['max'][i]:<13.6g} {st['mean'][i]:<13.6g} {integ:<23.9g} "
+              f"{st['nan'][i]:<8d} {st['inf'][i]:<8d} {st['neg'][i]}")
+    other_nonfinite = any(st["nan"][i] + st["inf"][i] for i in range(nc, len(chans)))
+    other_negative = {chans[i]: st["neg"][i] for i in range(nc, len(chans)) if st["neg"][i]}
+    if any(st["nan"]) or any(st["inf"]):
+        print("(statistics and integrals over the finite values; NaN/Inf counted as 0)")
+    if nc:
+        if rep.clean and not other_nonfinite and not other_negative:
+            print("check:      no NaN, no Inf, no negative radiance")
+        else:
+            found = [rep.findings() or "colour channels clean"]
+            if other_negative:
+                found.append("negative values in channel(s) " + ", ".join(f"{c} ({n})" for c, n in other_negative.items())
+                             + ", which are not radiance: left as they are")
+            if other_nonfinite:
+                found.append("NaN/Inf in the other channels (see the table)")
+            print(f"check:      {'; '.join(found)}")
+        try:
+            zero_nf, clamp = decide(rep)
+            todo = []
+            if zero_nf:
+                todo.append(f"replace {rep.n_nonfinite} NaN/Inf value(s) by 0")
+            if clamp:
+                todo.append(f"clamp {rep.n_negative} negative value(s) to 0 "
+                            f"(removing {rep.removed_fraction:.2e} of the integral of |L| domega)")
+            verdict = "; ".join(todo) if todo else "use the radiance unchanged"
+            if other_nonfinite:
+                verdict += ("; NaN/Inf in the other channels: " + ("replaced by 0" if args.nonfinite == "zero"
+                            else "refused (--nonfinite zero replaces them by 0)"))
+        except IBLError as exc:
+            verdict = f"refuse the file: {str(exc).split(': radiance: ', 1)[-1]}"
+        if layout is None:
+            verdict = "refuse the file: its layout cannot be inferred"
+        elif bad_convention:
+            verdict = f"refuse the file: {bad_convention.split(': ', 1)[-1]}"
+    else:
+        verdict = "refuse the file: no R,G,B or Y channel"
+    print(f"commands:   with --negative {args.negative} --nonfinite {args.nonfinite} the other commands would {verdict}")
     return 0
 
 
@@ -89,7 +240,10 @@ def cmd_convert(args) -> int:
         raise IBLError("--clamp-half only applies with --half")
     if args.size is not None and args.size < 1:
         raise IBLError(f"--size must be a positive integer, got {args.size}")
-    data, layout, chans, _, _, _ = _load_any(src)
+    data, layout, chans, _, _, _, rep = _load_any(src, args.negative, args.nonfinite)
+    from .radiance_args import tell
+
+    tell(rep)
     if data.ndim == 4:  # cube
         src_int = resample.integral_cube(data)
         if args.layout == "cube":
@@ -105,6 +259,8 @@ def cmd_convert(args) -> int:
     dst_int = resample.integral_cube(out) if out.ndim == 4 else resample.integral_latlong(out)
     if (data.ndim == 4) != (out.ndim == 4) and args.method == "conservative":  # lat-long <-> cube: report the kernel's per-texel bound
         h, n = (out.shape[0], data.shape[1]) if out.ndim == 3 else (data.shape[0], out.shape[1])
+        if out.ndim == 4:  # lat-long -> cube reduces big inputs block-wise first (exact)
+            h //= resample.prereduce_factor(h, n)
         kern = resample.conservative_kernel(h, n)
         print(f"conservative kernel ({h}-row lat-long <-> {n}-face cube): energy of any single source texel "
               f"preserved to {max(kern.energy_error_ll, kern.energy_error_cube):.1e} (relative)")
@@ -150,14 +306,18 @@ def register(sub) -> None:
     p.add_argument("--half", action="store_true", help="write 16-bit half floats (default 32-bit float)")
     p.add_argument("--clamp-half", action="store_true",
                    help="with --half, clamp values above 65504 instead of failing (reported)")
+    add_radiance_args(p)
     p.set_defaults(func=cmd_convert)
 
     i = sub.add_parser(
         "info",
         help="print layout, size, channels and radiance statistics of an environment map",
         description="Print layout, size, channels, pixel type, min/max/mean radiance and the integral of "
-        "L dω per channel (exact texel solid angles) of an OpenEXR or Radiance .hdr environment map. "
-        "Files with NaN, Inf or negative radiance are reported as errors.",
+        "L dω per channel (exact texel solid angles) of an OpenEXR or Radiance .hdr environment map, "
+        "the counts of NaN, Inf and negative values in every channel, where the layout came from (envmap "
+        "attribute or aspect ratio) and what the other commands would do with the file under --negative / "
+        "--nonfinite. Never refuses a file it can decode.",
     )
     i.add_argument("file", metavar="FILE")
+    add_radiance_args(i)
     i.set_defaults(func=cmd_info)

@@ -15,7 +15,7 @@ METHOD_HELP = ("reference: per-pixel exact filtering over the environment texels
                "(Sec. 5.2); pyramid: the lobes' Phong fits looked up in the sqrt-cos pyramid (Knuth 2014)")
 
 
-def _env(text: str, size: int):
+def _env(text: str, size: int, args=None):
     from ..synthetic_envs import ENV_NAMES, make_env
 
     if text in ENV_NAMES:
@@ -23,9 +23,9 @@ def _env(text: str, size: int):
     p = Path(text)
     if not p.exists():
         raise IBLError(f"--env {text!r}: neither a synthetic environment ({', '.join(ENV_NAMES)}) nor an existing file")
-    from ..exr_io import load_cube
+    from .radiance_args import load_env
 
-    return load_cube(p, size=size)
+    return load_env(args, p, size)[0]
 
 
 def run(args) -> int:
@@ -50,7 +50,7 @@ def run(args) -> int:
         params["s"] = args.s
     if args.brdf == "cook_torrance":
         params.pop("ks")
-    env = _env(args.env, args.env_size)
+    env = _env(args.env, args.env_size, args)
     img, mask, info = render_single_method(args.method, env, width=w, height=h, brdf=args.brdf, brdf_params=params,
                                            n_lobes=args.lobes, n_theta=args.n_theta, rescale_lobes=args.rescale_lobes,
                                            progress=not args.quiet)
@@ -89,4 +89,7 @@ def register(sub) -> None:
     p.add_argument("--exposure", default="auto", metavar="auto|EV|xK",
                    help="PNG exposure: 'auto' (default), EV stops (e.g. -2) or a linear scale (e.g. x0.25)")
     p.add_argument("--quiet", action="store_true", help="no progress bars / messages")
+    from .radiance_args import add_radiance_args
+
+    add_radiance_args(p)
     p.set_defaults(func=run)

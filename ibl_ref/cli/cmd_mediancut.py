@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 from ..errors import IBLError
+from .radiance_args import add_radiance_args
 
 VARIANT_HELP = (
     "per-face: the paper (N/6 regions per face, Debevec's recursion; N must be a multiple of 6); "
@@ -17,13 +18,13 @@ VARIANT_HELP = (
 )
 
 
-def _load(path, size):
-    from ..exr_io import load_cube
+def _load(path, size, args):
+    from .radiance_args import load_env
 
     p = Path(path)
     if not p.exists():
         raise IBLError(f"{p}: no such file")
-    return load_cube(p, size=size)
+    return load_env(args, p, size)
 
 
 def cmd_mediancut(args) -> int:
@@ -32,7 +33,7 @@ def cmd_mediancut(args) -> int:
 
     refuse_overwriting_inputs({"IN": args.input}, {"--out": args.out})
     resolve_output(args.out)  # a folder / device / FIFO as --out: refuse before the work
-    cube = _load(args.input, args.size)
+    cube, radiance = _load(args.input, args.size, args)
     ls = median_cut(cube, args.lights, args.variant)
     chk = check_partition(ls, cube)
     data = {
@@ -45,6 +46,7 @@ def cmd_mediancut(args) -> int:
         "energy_spread": energy_spread(ls),
         "partition_check": chk,
         "lights": ls.to_records(),
+        "radiance": radiance,
     }
     write_json(args.out, data)
     sp = data["energy_spread"]
@@ -70,7 +72,7 @@ def cmd_pem(args) -> int:
         kernel_taps(args.kernel)
     except IBLError as exc:
         raise IBLError(f"--kernel: {exc}") from None
-    cube = _load(args.input, args.size)
+    cube, radiance = _load(args.input, args.size, args)
     ls = median_cut(cube, args.lights, args.variant)
     progress = sys.stderr.isatty()  # progress bars only for a terminal: errors stay one line in logs
     pems = build_pems(cube, ls, kernel=args.kernel, order=args.order, seam=args.seam, dtype=np.float32,
@@ -97,7 +99,7 @@ def cmd_pem(args) -> int:
             files.append(p.name)
         info = {"source": str(args.input), "face_size": pems.base_size, "n_pems": len(pems), "kernel": pems.kernel,
             "order": pems.order, "seam": pems.seam, "dense_nbytes_float32": pems.nbytes,
-                "pixel_type": args.pixel_type, "files": files, "lights": ls.to_records()}
+                "pixel_type": args.pixel_type, "files": files, "lights": ls.to_records(), "radiance": radiance}
         if args.sparse_report:
             from ..sparse_pem import sparsify
 
@@ -118,6 +120,7 @@ def _common(p):
     p.add_argument("--lights", type=int, required=True, help="number of lights / regions N")
     p.add_argument("--variant", choices=("per-face", "global", "variance"), default="per-face", help=VARIANT_HELP)
     p.add_argument("--size", type=int, default=None, help="resample to this face size first (default: the file's)")
+    add_radiance_args(p)
 
 
 def register(sub) -> None:

@@ -8,9 +8,10 @@ import json
 def cmd_pyramid(args) -> int:
     from ..atomic import refuse_overwriting_inputs, resolve_output
     from ..errors import IBLError
-    from ..exr_io import load_cube, write_pyramid
+    from ..exr_io import write_pyramid
     from ..filters import kernel_taps
     from ..pyramid import build_pyramid, pyramid_energy
+    from .radiance_args import load_env
 
     refuse_overwriting_inputs({"IN": args.input}, {"OUT": args.output})
     resolve_output(args.output)  # a folder / device / FIFO as OUT: refuse before the work
@@ -18,13 +19,13 @@ def cmd_pyramid(args) -> int:
         kernel_taps(args.kernel)
     except IBLError as exc:
         raise IBLError(f"--kernel: {exc}") from None
-    cube = load_cube(args.input, size=args.size)
+    cube, radiance = load_env(args, args.input, args.size)
     pyr = build_pyramid(cube, kernel=args.kernel, order=args.order, seam=args.seam)
     write_pyramid(args.output, pyr.levels, pixel_type=args.pixel_type, clamp_half=args.clamp_half)
     drift = [max(abs(x) for x in r["rel_drift"]) for r in pyramid_energy(pyr)]
     print(json.dumps({"output": str(args.output), "levels": pyr.n_levels, "base_size": pyr.base_size,
                       "kernel": pyr.kernel, "order": pyr.order, "seam": pyr.seam,
-                      "max_rel_energy_drift": max(drift)}, indent=1))
+                      "max_rel_energy_drift": max(drift), "radiance": radiance}, indent=1))
     return 0
 
 
@@ -51,4 +52,7 @@ def register(sub) -> None:
     p.add_argument("--size", type=int, default=None, help="resample to this power-of-two face size first")
     p.add_argument("--pixel-type", default="float", choices=("float", "half"), help="EXR pixel type")
     p.add_argument("--clamp-half", action="store_true", help="clamp values above the fp16 maximum when writing half")
+    from .radiance_args import add_radiance_args
+
+    add_radiance_args(p)
     p.set_defaults(func=cmd_pyramid)

@@ -172,10 +172,11 @@ def cmd_render(args) -> int:
     progress = sys.stderr.isatty() if args.progress is None else args.progress
 
     # ---- scene -------------------------------------------------------------------------------------------
+    radiance = None
     if args.env is not None:
-        from ..exr_io import load_cube
+        from .radiance_args import load_env
 
-        cube = load_cube(args.env, size=args.env_size)
+        cube, radiance = load_env(args, args.env, args.env_size)
     else:
         from ..synthetic_envs import make_env
 
@@ -193,7 +194,8 @@ def cmd_render(args) -> int:
             "camera_eye": cam.eye.tolist(), "camera_target": cam.target.tolist(),
             "background": args.background, "exposure_stops": stops,
             "material": {"kd": mat.kd, "ks": mat.ks, "g": mat.g, "g_map": args.gmap},
-            "ground_material": ({"kd": gmat.kd, "ks": gmat.ks, "g": gmat.g} if args.ground else None)}
+            "ground_material": ({"kd": gmat.kd, "ks": gmat.ks, "g": gmat.g} if args.ground else None),
+            "radiance": radiance}
     pems = None
     if mode != "reference":
         from ..pem import build_pems
@@ -386,4 +388,7 @@ def register(sub) -> None:
     g.add_argument("--progress", dest="progress", action="store_true", default=None,
                    help="show progress bars (default: only on a terminal)")
     g.add_argument("--no-progress", dest="progress", action="store_false", help="never show progress bars")
+    from .radiance_args import add_radiance_args
+
+    add_radiance_args(p)
     p.set_defaults(func=cmd_render)
