@@ -98,6 +98,18 @@ MOMENT_UNITS_PER_PAIR = 0.45
 #: summed over its three jobs in ``experiments/bench_convolution.py``); this factor lowers it for the
 #: ordering of the jobs only (routing keeps the model)
 SPARSE_JOB_ORDER_FACTOR = 0.4
+#: :func:`convolve` rescales the input by a power of two (exact) when its largest radiance is above
+#: 2^SCALE_EXP or below 2^-SCALE_EXP, so that no sum of ≤ 6N² weighted terms overflows (e.g.
+#: ``ones·1e308``) and nothing underflows needlessly; the maps are scaled back at the end
+SCALE_EXP = 64
+#: absolute underflow allowance, relative to the largest (scaled) radiance: every weight that
+#: underflows (a power of a cosine, a product of small factors) is off by < 2^-1022 in absolute terms;
+#: summed over ≤ 6·1024² source texels with Ω_max/Ω_min ≤ 5.2 and divided by a lobe weight ≥ the
+#: largest (=1 after the shift by the maximum) times Ω_min, the error of a lobe average is below
+#: L_max·2^-1022·4π·5.2·6.3e6 < L_max·2^-990.  Added to every bound as ``u/value`` (inf where the value
+#: is 0 and u > 0: an exact value that underflowed cannot be told from 0); it is invisible (≪ 1e-16
+#: relative) wherever the value is above ≈ 1e-280·L_max.
+UNDERFLOW_ABS = 2.0 ** -990
 #: output faces of each job of the moment and sparse routes.  Fixed (not derived from the worker count),
 #: so that every worker count computes exactly the same pieces: bit-for-bit identical results.
 FACE_PARTS = ((0, 1), (2, 3), (4, 5))
@@ -281,6 +293,29 @@ def _check_exponents(exponents):
     return out
 
 
+def _power_of_two_scaled(a4):
+    """``(a4·2^-k, k)`` with 2^k near the largest radiance when that is outside [2^-SCALE_EXP, 2^SCALE_EXP].
+
+    Multiplying by a power of two is exact (except for texels that would become subnormal: those
+    below 2^(k−1022) of the largest, i.e. 1e-290 of it and less, lose low bits).  k = 0 otherwise.
+    """
+    l_max = float(a4.max()) if a4.size else 0.0
+    if l_max == 0.0 or 2.0 ** -SCALE_EXP <= l_max <= 2.0 ** SCALE_EXP:
+        return a4, 0
+    k = math.frexp(l_max)[1]
+    return np.ldexp(a4, -k), k
+
+
+def _with_underflow(maps, rel, u):
+    """Relative bound ``rel`` (per texel) plus the underflow allowance ``u/value`` (max over channels)."""
+    if u == 0.0:
+        return rel
+    with np.errstate(divide="ignore"):
+        extra = np.where(maps > 0, u / np.where(maps > 0, maps, 1.0), np.inf)
+    extra = extra.max(axis=-1)
+    return np.where(extra > 0, rel + extra, rel)
+
+
 def _rel_from_abs(maps, abs_bound):
     """Relative bound per texel (max over channels) from an absolute per-channel bound."""
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -378,6 +413,7 @@ def convolve(
     a4 = a[..., None] if squeeze else a
     if a4.shape[-1] < 1:
         raise LayoutError(f"environment cube map: zero channels in shape {a.shape}")
+    a4, scale_k = _power_of_two_scaled(a4)
     if out_size is None:
         out_size = n
     if isinstance(out_size, bool) or not isinstance(out_size, (int, np.integer)) or out_size < 1:
@@ -569,8 +605,16 @@ def convolve(
     res.info["workers"] = workers
     res.info["backend"] = backend
 
+    u = float(a4.max()) * UNDERFLOW_ABS if a4.size else 0.0
     for s in s_list:
         m, b, meth, kind = results[s]
+        b = _with_underflow(m, b, u)
+        if scale_k:
+            with np.errstate(over="ignore"):
+                m = np.ldexp(m, scale_k)
+            if not np.all(np.isfinite(m)):
+                raise IBLError(f"the convolved map for s = {_s_json(s)} exceeds the float64 range "
+                               "(literal Eq. 4 sum of a radiance near 1e308); use normalized=True")
         res.maps[s] = m[..., 0] if squeeze else m
         res.error_bound[s] = b
         res.method_used[s] = meth
