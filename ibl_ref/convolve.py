@@ -56,7 +56,7 @@ import os
 import sys
 import threading
 import time
-from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import BrokenExecutor, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -146,14 +146,110 @@ _FORK_JOBS: list | None = None
 _FORK_LOCK = threading.Lock()
 
 
-def _run_job(job):
+def _call_job(key, fn):
+    """Run one job with BLAS held at one thread (also on a remote executor's worker); ``(key, result, s)``."""
     t0 = time.perf_counter()
-    r = job[3]()
-    return job[1], r, time.perf_counter() - t0
+    with threadpool_limits(limits=1, user_api="blas"):
+        r = fn()
+    return key, r, time.perf_counter() - t0
+
+
+def _run_job(job):
+    return _call_job(job[1], job[3])
 
 
 def _run_forked_job(i):
     return _run_job(_FORK_JOBS[i])
+
+
+def resolve_executor(executor):
+    """A :class:`concurrent.futures.Executor` from ``executor``: an Executor, or a ``dask.distributed.Client``
+    (its :meth:`get_executor`), or a scheduler address string (``"tcp://host:8786"``; needs the ``dask``
+    extra).  ``None`` stays ``None``.  Returns ``(executor, owned_client)``; close the client when done."""
+    if executor is None:
+        return None, None
+    if isinstance(executor, str):
+        try:
+            from distributed import Client
+        except ImportError:
+            raise IBLError("a scheduler address needs dask.distributed: pip install \".[dask]\"") from None
+        try:
+            client = Client(executor, timeout=30)
+        except (OSError, TimeoutError) as exc:
+            raise IBLError(f"cannot connect to the Dask scheduler at {executor!r}: {exc}") from None
+        return client.get_executor(), client
+    if hasattr(executor, "get_executor") and hasattr(executor, "scheduler_info"):  # dask.distributed.Client
+        return executor.get_executor(), None
+    if not hasattr(executor, "submit"):
+        raise IBLError(f"executor must be a concurrent.futures.Executor, a dask Client or an address, got {executor!r}")
+    return executor, None
+
+
+def _worker_died(exc):
+    return IBLError(
+        "a convolution worker process died before finishing its job (most likely killed by the operating "
+        f"system for lack of memory: {type(exc).__name__}); retry with fewer workers (--workers 1) or a "
+        "smaller --size")
+
+
+def available_memory_bytes() -> float | None:
+    """Memory this process may still use: ``MemAvailable`` of ``/proc/meminfo``, lowered to the cgroup
+    limit minus its usage when one is set (containers); ``None`` where neither can be read."""
+    avail = None
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    avail = float(line.split()[1]) * 1024.0
+                    break
+    except OSError:
+        pass
+    try:
+        with open("/sys/fs/cgroup/memory.max") as fh:
+            lim = fh.read().strip()
+        with open("/sys/fs/cgroup/memory.current") as fh:
+            cur = float(fh.read().strip())
+        if lim != "max":
+            room = float(lim) - cur
+            avail = room if avail is None else min(avail, room)
+    except (OSError, ValueError):
+        pass
+    return avail
+
+
+#: fraction of the available memory the planner lets the concurrent jobs of :func:`convolve` use
+MEMORY_FRACTION = 0.8
+
+
+def plan_memory_workers(workers: int, job_bytes, available) -> int:
+    """Largest worker count ≤ ``workers`` whose concurrent jobs fit in ``MEMORY_FRACTION · available``.
+
+    ``job_bytes``: estimated peak memory of each job; with w workers the w largest may run at once.
+    At least 1 (a single job that does not fit is run anyway, serially; :func:`convolve` records it
+    in ``info["memory_warning"]``).  ``available = None`` (unknown) keeps ``workers``.
+    """
+    if available is None or workers <= 1:
+        return workers
+    big = sorted((float(b) for b in job_bytes), reverse=True)
+    w = workers
+    while w > 1 and sum(big[:w]) > MEMORY_FRACTION * available:
+        w -= 1
+    return w
+
+
+def _job_bytes(stage, n, out_size, C, n_faces, K, need2=True):
+    """Estimated peak memory (bytes) of one job of :func:`convolve` (used by the memory planner only)."""
+    n_src, n_out = 6 * n * n, n_faces * out_size * out_size
+    maps = K * n_out * C * 8.0 * 2  # maps + bounds
+    if stage == "moment":
+        from .moment_convolution import moment_peak_bytes
+
+        return moment_peak_bytes(n, out_size, n_faces, C, need2)
+    if stage == "sh":  # SH matrix cache / chunk (≤ 256 MB + 128 MB) and per-texel work arrays
+        return 4.0e8 + 4 * maps + n_src * (C + 4) * 8.0 * 4
+    if stage == "sparse":  # sources, KD-tree, tile geometry
+        return n_src * (C + 5) * 8.0 * 6 + n_out * 8 * 8.0 * 2 + 2 * maps
+    return n_src * (C + 5) * 8.0 * 2 + 2 * maps + 3.2e7  # exact: chunked weight matrices
 
 
 def _resolve_backend(backend, workers):
@@ -175,7 +271,7 @@ def _resolve_backend(backend, workers):
     return backend
 
 
-def _run_jobs(jobs, workers, backend="thread"):
+def _run_jobs(jobs, workers, backend="thread", executor=None):
     """Run ``(stage, key, cost, fn)`` jobs, longest model cost first, on ``workers`` threads or processes.
 
     Returns ``({key: fn()}, {key: seconds}, child CPU seconds)``.  ``"process"``: a pool of forked
@@ -188,7 +284,13 @@ def _run_jobs(jobs, workers, backend="thread"):
     order = sorted(jobs, key=lambda j: -min(float(j[2]), 1e300))
     out, busy = {}, {}
     child_cpu = 0.0
-    if workers <= 1 or len(order) <= 1 or backend == "serial":
+    if executor is not None:  # any concurrent.futures.Executor (jobs and inputs are pickled)
+        futs = [executor.submit(_call_job, j[1], j[3]) for j in order]
+        try:
+            done = [f.result() for f in futs]
+        except BrokenExecutor as exc:
+            raise _worker_died(exc) from None
+    elif workers <= 1 or len(order) <= 1 or backend == "serial":
         done = [_run_job(j) for j in order]
     elif backend == "process":
         with _FORK_LOCK:  # one forked pool at a time (the job table is a module global)
@@ -198,7 +300,10 @@ def _run_jobs(jobs, workers, backend="thread"):
                 ctx = multiprocessing.get_context("fork")
                 with ProcessPoolExecutor(max_workers=min(workers, len(order)), mp_context=ctx) as ex:
                     futs = [ex.submit(_run_forked_job, i) for i in range(len(order))]
-                    done = [f.result() for f in futs]
+                    try:
+                        done = [f.result() for f in futs]
+                    except BrokenExecutor as exc:
+                        raise _worker_died(exc) from None
             finally:
                 _FORK_JOBS = None
             r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -355,6 +460,8 @@ def convolve(
     normalized: bool = True,
     workers: int | None = None,
     backend: str = "auto",
+    executor=None,
+    memory_limit: float | None = None,
 ) -> ConvolutionResult:
     """Convolve a cube map with Phong lobes ``max(r·ω,0)^s`` for several exponents, with error bounds.
 
@@ -384,6 +491,19 @@ def convolve(
         ``"thread"`` — a thread pool; ``"auto"`` (default) — processes on Linux when the calling process
         has a single thread (forking a multi-threaded process is unsafe) and is not daemonic, else
         threads.
+    executor : concurrent.futures.Executor, dask.distributed.Client or str, optional
+        Run the independent jobs on this executor instead (``workers``/``backend`` are then unused):
+        any :class:`concurrent.futures.Executor` (e.g. a ``ProcessPoolExecutor`` of your own), a
+        ``dask.distributed.Client`` (its :meth:`get_executor`) or a Dask scheduler address
+        (``"tcp://host:8786"``; the client is closed after the call).  Jobs and their inputs are
+        pickled; each job holds BLAS at one thread on its worker, so the maps and bounds are
+        bit-for-bit those of a serial run.
+    memory_limit : float, optional
+        Bytes the concurrent jobs may use (default: what the machine has available,
+        :func:`available_memory_bytes`).  The planner estimates each job's peak memory and runs
+        fewer workers when ``workers`` of them would not fit (``info["workers_planned"]``); results
+        do not change.  A worker process that dies anyway (killed for lack of memory) raises
+        :class:`~ibl_ref.errors.IBLError`.
 
     Returns
     -------
@@ -430,6 +550,25 @@ def convolve(
         raise IBLError("method 'sparse' computes the normalised lobe average only; use 'sh' or 'exact'")
     workers = _resolve_workers(workers)
     backend = _resolve_backend(backend, workers)
+    if memory_limit is not None:
+        try:
+            memory_limit = float(memory_limit)
+        except (TypeError, ValueError):
+            raise IBLError(f"memory_limit must be a number of bytes, got {memory_limit!r}") from None
+        if not memory_limit > 0:
+            raise IBLError(f"memory_limit must be positive, got {memory_limit!r}")
+    executor, owned_client = resolve_executor(executor)
+    try:
+        return _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, workers, backend,
+                         executor, memory_limit, scale_k, t_start, c_start)
+    finally:
+        if owned_client is not None:
+            owned_client.close()
+
+
+def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, workers, backend, executor,
+              memory_limit, scale_k, t_start, c_start):
+    """Body of :func:`convolve` after the argument checks (routing, jobs, collection)."""
 
     from . import phong_convolution as pc
     from . import sh_convolution as shc
@@ -515,6 +654,7 @@ def convolve(
     stage_busy = {"sh": 0.0, "sparse": 0.0, "exact": 0.0, "moment": 0.0}
     t_par = 0.0
     child_cpu = 0.0
+    planned = []
     # one BLAS thread per worker (no oversubscription) and, serial included, the same BLAS blocking
     # for every worker count: bit-for-bit identical results (threadpoolctl restores the limits after)
     with threadpool_limits(limits=1, user_api="blas"):
@@ -544,8 +684,18 @@ def convolve(
                 jobs.append(("exact", ("exact",), EXACT_UNITS_PER_PAIR * pair_units * len(ex_set),
                              functools.partial(pc.convolve_exact_many, a4, ex_set, normalized=normalized,
                                                out_size=out_size)))
+            C = a4.shape[-1]
+            # (a job's callable is a partial of (cube, exponents, ..., faces=...))
+            job_mem = [_job_bytes(j[0], n, out_size, C, len(j[3].keywords.get("faces") or range(6)),
+                                  len(j[3].args[1]), 2.0 in mo_set) for j in jobs]
+            avail = memory_limit if memory_limit is not None else available_memory_bytes()
+            w_plan = plan_memory_workers(workers, job_mem, avail) if executor is None else workers
+            planned.append(w_plan)
+            if avail is not None and max(job_mem) > MEMORY_FRACTION * avail:
+                res.info["memory_warning"] = (f"a job needs ≈ {max(job_mem) / 1e9:.1f} GB, "
+                                              f"{avail / 1e9:.1f} GB available")
             t0 = time.perf_counter()
-            out, busy, cpu_c = _run_jobs(jobs, workers, backend)
+            out, busy, cpu_c = _run_jobs(jobs, w_plan, backend, executor)
             t_par += time.perf_counter() - t0
             child_cpu += cpu_c
             for stage, key, _c, _f in jobs:
@@ -603,7 +753,8 @@ def convolve(
     timings.update(stage_busy)
     timings["jobs_wall"] = t_par
     res.info["workers"] = workers
-    res.info["backend"] = backend
+    res.info["workers_planned"] = min(planned) if planned else workers
+    res.info["backend"] = "executor" if executor is not None else backend
 
     u = float(a4.max()) * UNDERFLOW_ABS if a4.size else 0.0
     for s in s_list:

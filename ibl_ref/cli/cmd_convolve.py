@@ -39,7 +39,7 @@ def cmd_convolve(args) -> int:
     exps = [_exponent(e) for e in args.exponent]
     res = convolve(
         cube, exps, method=args.method, rtol=args.rtol, out_size=args.size, normalized=not args.unnormalized,
-        workers=args.workers, backend=args.parallel,
+        workers=args.workers, backend=args.parallel, executor=args.scheduler,
     )
     written = []
     for s, m in res.maps.items():
@@ -109,6 +109,9 @@ def register(sub) -> None:
                         "are bit-for-bit identical for every W")
     p.add_argument("--parallel", choices=("auto", "process", "thread"), default="auto",
                    help="how W > 1 workers run: forked processes or threads (auto: processes when possible)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run the jobs on a Dask cluster (e.g. tcp://host:8786; needs pip install '.[dask]'); "
+                        "the maps are bit-for-bit those of a local run")
     p.set_defaults(func=cmd_convolve)
 
     q = sub.add_parser(
