@@ -110,6 +110,10 @@ SCALE_EXP = 64
 #: is 0 and u > 0: an exact value that underflowed cannot be told from 0); it is invisible (≪ 1e-16
 #: relative) wherever the value is above ≈ 1e-280·L_max.
 UNDERFLOW_ABS = 2.0 ** -990
+#: jobs whose model cost sums to less than this many seconds run serially even when ``workers > 1``:
+#: starting a forked pool costs ≈ 0.05–0.1 s (measured: 64², s = 1024, sparse: 0.35 s serial vs
+#: 0.44–0.54 s with 2 processes on the loaded 2-core machine); results are the same either way
+PARALLEL_MIN_SECONDS = 1.0
 #: output faces of each job of the moment and sparse routes.  Fixed (not derived from the worker count),
 #: so that every worker count computes exactly the same pieces: bit-for-bit identical results.
 FACE_PARTS = ((0, 1), (2, 3), (4, 5))
@@ -146,16 +150,21 @@ _FORK_JOBS: list | None = None
 _FORK_LOCK = threading.Lock()
 
 
-def _call_job(key, fn):
-    """Run one job with BLAS held at one thread (also on a remote executor's worker); ``(key, result, s)``."""
+def _call_job(key, fn, limit_blas=True):
+    """Run one job, with BLAS held at one thread when ``limit_blas`` (on an executor's worker; local
+    runs are already inside :func:`convolve`'s limit, and threadpoolctl costs ≈ 8 ms per entry);
+    returns ``(key, result, seconds)``."""
     t0 = time.perf_counter()
-    with threadpool_limits(limits=1, user_api="blas"):
+    if limit_blas:
+        with threadpool_limits(limits=1, user_api="blas"):
+            r = fn()
+    else:
         r = fn()
     return key, r, time.perf_counter() - t0
 
 
 def _run_job(job):
-    return _call_job(job[1], job[3])
+    return _call_job(job[1], job[3], limit_blas=False)
 
 
 def _run_forked_job(i):
@@ -630,8 +639,6 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
     # ---- execute: independent jobs (route × output-face part) on a pool of `workers` threads --------
     # Every job computes a fixed piece of work (its exponents, its output faces) that does not depend
     # on the number of workers, so the maps and bounds are bit-for-bit the same for any worker count.
-    from . import moment_convolution as mc
-
     results = {}
     parts = FACE_PARTS
     pair_units = n_out * n_src
@@ -660,6 +667,8 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
     with threadpool_limits(limits=1, user_api="blas"):
         while mo_set or sh_set or sparse_batches or ex_set:
             jobs = []  # (stage, key, model cost, callable)
+            if mo_set:
+                from . import moment_convolution as mc
             for pi, fc in enumerate(parts if mo_set else ()):
                 jobs.append(("moment", ("moment", pi), MOMENT_UNITS_PER_PAIR * pair_units * len(fc) / 6,
                              functools.partial(mc.convolve_moment_many, a4, mo_set, out_size=out_size,
@@ -690,6 +699,9 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
                                   len(j[3].args[1]), 2.0 in mo_set) for j in jobs]
             avail = memory_limit if memory_limit is not None else available_memory_bytes()
             w_plan = plan_memory_workers(workers, job_mem, avail) if executor is None else workers
+            est_s = sum(min(float(j[2]), 1e300) for j in jobs) * shc.SECONDS_PER_UNIT
+            if executor is None and est_s < PARALLEL_MIN_SECONDS:
+                w_plan = 1  # worker start-up would not pay
             planned.append(w_plan)
             if avail is not None and max(job_mem) > MEMORY_FRACTION * avail:
                 res.info["memory_warning"] = (f"a job needs ≈ {max(job_mem) / 1e9:.1f} GB, "

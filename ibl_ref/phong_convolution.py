@@ -76,6 +76,7 @@ s = 16: 3.5× faster than exact, max rel err 4.8e-5, max rel bound 6.6e-4; s = 2
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -434,6 +435,7 @@ def _log_bound_annuli(s: float, theta_c: float, rho: float) -> float:
     return best
 
 
+@functools.lru_cache(maxsize=4096)
 def neglected_weight_bound(s: float, theta_c: float, rho: float) -> float:
     """log of a rigorous upper bound W_b on Σ_{j: θ_j ≥ θc} max(cos θ_j, 0)^s Ω_j (module docstring).
 
@@ -449,6 +451,7 @@ def neglected_weight_bound(s: float, theta_c: float, rho: float) -> float:
     return b
 
 
+@functools.lru_cache(maxsize=1024)
 def cutoff_angle(s: float, eps: float, rho: float) -> float:
     """Smallest θc ∈ (0, π/2] (bisection, W_b is non-increasing) with W_b(θc) ≤ eps · 2π/(s+1)."""
     target = math.log(eps) + math.log(2.0 * np.pi / (s + 1.0))
