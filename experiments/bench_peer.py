@@ -23,7 +23,9 @@ What it runs, per cell (face size N, exponent s):
   thread only waits), the same 2 cores the lab uses.  The mirror ``s = ∞`` is timed against
   ``--filter none`` (a copy: the least cmft can do).
 
-Wall time is the median of ``--repeat`` runs of the whole process.  A cmft run that exceeds ``--timeout``
+Wall time is the median of ``--repeat`` runs of the whole process; CPU time (user + system of the process
+and its children, i.e. the lab's forked workers and cmft's threads) is printed too, as the measure that
+depends least on what else runs on a shared machine.  A cmft run that exceeds ``--timeout``
 seconds is killed and reported as ``> timeout`` (the ratio is then a lower bound).
 
 **cmft reaches only s = 2^K.**  For the 8-exponent set {1, 2, 5, 10, 20, 50, 100, 1000} (``--set8``) the
@@ -55,6 +57,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import resource
 import struct
 import subprocess
 import sys
@@ -128,16 +131,22 @@ def _load():
         return "load avg n/a"
 
 
+def _child_cpu():
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
 def _timed_run(cmd, timeout, env=None):
-    t0 = time.perf_counter()
+    """Run ``cmd``; returns ``(completed or None on timeout, wall s, CPU s of the process and its children)``."""
+    t0, c0 = time.perf_counter(), _child_cpu()
     try:
         p = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, timeout=timeout, env=env)
     except subprocess.TimeoutExpired:
-        return None, time.perf_counter() - t0
-    dt = time.perf_counter() - t0
+        return None, time.perf_counter() - t0, math.nan
+    dt, dc = time.perf_counter() - t0, _child_cpu() - c0
     if p.returncode != 0:
         raise RuntimeError(f"{cmd[0]} failed ({p.returncode}): {p.stderr.decode(errors='replace')[-400:]}")
-    return p, dt
+    return p, dt, dc
 
 
 def cmft_cmd(binary, inp, outbase, s):
@@ -229,13 +238,15 @@ def check_face_mapping(binary, tmp):
 
 
 def median_wall(cmd, repeat, timeout, env=None):
-    walls = []
+    """Median wall and CPU seconds over ``repeat`` runs (``(None, ...)`` if a run timed out)."""
+    walls, cpus = [], []
     for _ in range(repeat):
-        p, dt = _timed_run(cmd, timeout, env)
+        p, dt, dc = _timed_run(cmd, timeout, env)
         if p is None:
-            return None, [dt]
+            return None, [dt], math.nan
         walls.append(dt)
-    return float(np.median(walls)), walls
+        cpus.append(dc)
+    return float(np.median(walls)), walls, float(np.median(cpus))
 
 
 def main(argv=None):
@@ -278,40 +289,46 @@ def main(argv=None):
             for kind, ss in cells:
                 label = "8 exponents" if kind == "set8" else ("inf" if math.isinf(ss[0]) else format(ss[0], "g"))
                 out = tmp / f"lab{n}.exr"
-                wall, walls = median_wall(lab_cmd(inp_exr, out, ss), args.repeat, None, env)
+                wall, walls, cpu = median_wall(lab_cmd(inp_exr, out, ss), args.repeat, None, env)
                 from ibl_ref.cli.cmd_convolve import exponent_path
 
                 lab_err = None
                 if ref is not None:
                     lab_err = max(ref.error(load_cube(exponent_path(out, s)), s) for s in ss)
-                row = {"face": n, "s": label, "lab_wall_s": wall, "lab_max_rel_error": lab_err}
+                row = {"face": n, "s": label, "lab_wall_s": wall, "lab_cpu_s": cpu, "lab_max_rel_error": lab_err}
                 for ci, c in enumerate(cmfts):
                     tag = f"cmft{ci}"
                     ss_c = [s if math.isinf(s) else nearest_pow2(s) for s in ss]
-                    tot, err_c, timed_out = 0.0, 0.0, False
+                    tot, tot_cpu, err_c, timed_out = 0.0, 0.0, 0.0, False
                     for s_c in dict.fromkeys(ss_c):
-                        w_c, _ = median_wall(cmft_cmd(c, inp_dds, tmp / "cm", s_c), args.repeat, args.timeout)
+                        w_c, _, c_c = median_wall(cmft_cmd(c, inp_dds, tmp / "cm", s_c), args.repeat, args.timeout)
                         if w_c is None:
                             timed_out = True
                             break
                         tot += w_c
+                        tot_cpu += c_c
                         if ref is not None:
                             got = envmap.convert_convention(read_dds_cube(tmp / "cm.dds"), "opengl", "openexr")
                             err_c = max(err_c, ref.error(got, s_c))
                     row[f"{tag}_wall_s"] = None if timed_out else tot
+                    row[f"{tag}_cpu_s"] = None if timed_out else tot_cpu
                     row[f"{tag}_timed_out_after_s"] = args.timeout if timed_out else None
                     row[f"{tag}_max_rel_error"] = None if (timed_out or ref is None) else err_c
                     row[f"{tag}_over_lab"] = (args.timeout / wall if timed_out else tot / wall)
+                    row[f"{tag}_cpu_over_lab"] = None if timed_out else tot_cpu / cpu
                 rows.append(row)
-                msg = f"{n:5d}² s={label:>11s}: lab {wall:7.2f} s (runs {', '.join(f'{w:.2f}' for w in walls)})"
+                msg = (f"{n:5d}² s={label:>11s}: lab {wall:7.2f} s (runs {', '.join(f'{w:.2f}' for w in walls)}; "
+                       f"CPU {cpu:.2f} s)")
                 if lab_err is not None:
                     msg += f" err {lab_err:.1e}"
                 for ci in range(len(cmfts)):
                     t = row[f"cmft{ci}_wall_s"]
                     tt = f"> {args.timeout:.0f} s" if t is None else f"{t:.2f} s"
                     e = row[f"cmft{ci}_max_rel_error"]
+                    cr = row[f"cmft{ci}_cpu_over_lab"]
                     msg += (f" | cmft{ci} {tt}" + (f" err {e:.1e}" if e is not None else "")
-                            + f" ratio {'≥ ' if t is None else ''}{row[f'cmft{ci}_over_lab']:.2f}")
+                            + f" ratio {'≥ ' if t is None else ''}{row[f'cmft{ci}_over_lab']:.2f}"
+                            + (f" (CPU {row[f'cmft{ci}_cpu_s']:.2f} s, ratio {cr:.2f})" if cr is not None else ""))
                 print(msg, flush=True)
     print(_load())
     if args.csv and rows:

@@ -68,8 +68,8 @@ except ImportError:  # pragma: no cover - not POSIX (no fork either)
     resource = None
 
 from . import envmap
-from .errors import IBLError, LayoutError, check_radiance
-from .phong_convolution import _check_exponent
+from .errors import IBLError
+from .convolution_args import check_cube, check_exponents, check_out_size
 
 __all__ = ["ConvolutionResult", "convolve", "default_workers", "METHODS", "WORKERS_ENV"]
 
@@ -395,18 +395,6 @@ def _jsonable(d):
     return d
 
 
-def _check_exponents(exponents):
-    ex = np.atleast_1d(np.asarray(exponents, dtype=object)).ravel()
-    if ex.size == 0:
-        raise IBLError("no Phong exponents given")
-    out = []
-    for s in ex:
-        v = _check_exponent(s)
-        if v not in out:
-            out.append(v)
-    return out
-
-
 def _power_of_two_scaled(a4):
     """``(a4·2^-k, k)`` with 2^k near the largest radiance when that is outside [2^-SCALE_EXP, 2^SCALE_EXP].
 
@@ -535,20 +523,11 @@ def convolve(
         raise IBLError(f"rtol must be a number in (0, 1), got {rtol!r}") from None
     if not (0.0 < rtol < 1.0):
         raise IBLError(f"rtol must be in (0, 1), got {rtol!r}")
-    n = envmap.check_cube_shape(cube, "environment cube map")
-    a = np.asarray(cube, dtype=np.float64)
-    check_radiance(a, "environment cube map")
-    squeeze = a.ndim == 3
-    a4 = a[..., None] if squeeze else a
-    if a4.shape[-1] < 1:
-        raise LayoutError(f"environment cube map: zero channels in shape {a.shape}")
+    a4, squeeze = check_cube(cube)
+    n = a4.shape[1]
     a4, scale_k = _power_of_two_scaled(a4)
-    if out_size is None:
-        out_size = n
-    if isinstance(out_size, bool) or not isinstance(out_size, (int, np.integer)) or out_size < 1:
-        raise IBLError(f"out_size must be a positive integer, got {out_size!r}")
-    out_size = int(out_size)
-    s_list = _check_exponents(exponents)
+    out_size = check_out_size(out_size, n)
+    s_list = check_exponents(exponents)
     if not normalized and any(not np.isfinite(s) for s in s_list):
         raise IBLError("the unnormalised Eq. 4 integral vanishes for s = inf; use normalized=True")
     if method == "sh" and any(not np.isfinite(s) for s in s_list):

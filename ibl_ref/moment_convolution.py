@@ -47,8 +47,8 @@ import time
 import numpy as np
 
 from . import envmap
-from .errors import IBLError, LayoutError, check_radiance
-from .phong_convolution import _check_faces
+from .errors import IBLError
+from .convolution_args import check_cube, check_faces, check_out_size
 
 __all__ = ["convolve_moment_many", "convolve_moment", "SUPPORTED_EXPONENTS", "ROUNDING_REL"]
 
@@ -362,22 +362,13 @@ def convolve_moment_many(
     rel_bound : ndarray (K, F, n, n)
         Rigorous bound on ``|approx − exact|/exact`` (max over channels; inf where exact may be 0).
     """
-    a = np.asarray(cube, dtype=np.float64)
-    n = envmap.check_cube_shape(a, "environment cube map")
-    check_radiance(a, "environment cube map")
-    squeeze = a.ndim == 3
-    a4 = a[..., None] if squeeze else a
-    if a4.shape[-1] < 1:
-        raise LayoutError(f"environment cube map: zero channels in shape {a.shape}")
+    a4, squeeze = check_cube(cube)
+    n = a4.shape[1]
     s_in = [float(s) for s in np.atleast_1d(np.asarray(exponents, dtype=float))]
     s_list = sorted(set(s_in))  # s = 1 before s = 2 (the band gather squares in place)
     if not s_list or any(s not in SUPPORTED_EXPONENTS for s in s_list):
         raise IBLError(f"moment convolution supports Phong exponents {SUPPORTED_EXPONENTS}, got {exponents!r}")
-    if out_size is None:
-        out_size = n
-    if isinstance(out_size, bool) or not isinstance(out_size, (int, np.integer)) or out_size < 1:
-        raise IBLError(f"out_size must be a positive integer, got {out_size!r}")
-    out_size = int(out_size)
+    out_size = check_out_size(out_size, n)
     if tile is None:
         tile = 8 if out_size >= 128 else 4
     if gather is None:
@@ -386,7 +377,7 @@ def convolve_moment_many(
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1 or (v & (v - 1)):
             raise IBLError(f"{name} must be a positive power of two, got {v!r}")
     leaf, tile, gather = int(leaf), int(tile), int(gather)
-    faces = _check_faces(faces)
+    faces = check_faces(faces)
     nF = len(faces)
     need2 = 2.0 in s_list
     C = a4.shape[-1]

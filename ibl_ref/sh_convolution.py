@@ -88,8 +88,8 @@ import time
 import numpy as np
 
 from . import envmap
-from .errors import IBLError, LayoutError, check_radiance
-from .phong_convolution import _check_exponent
+from .convolution_args import check_cube, check_exponent, check_out_size
+from .errors import IBLError, LayoutError
 
 __all__ = [
     "zonal_coefficients",
@@ -112,31 +112,6 @@ __all__ = [
 SH_L_MAX = 160
 
 _FOUR_PI = 4.0 * np.pi
-
-
-# ----------------------------------------------------------------------------------------------
-# input checks (the exponent check is shared with ibl_ref.phong_convolution)
-# ----------------------------------------------------------------------------------------------
-
-
-def _check_cube(cube, name="environment cube map"):
-    envmap.check_cube_shape(cube, name)
-    a = np.asarray(cube)
-    check_radiance(a, name)
-    squeeze = a.ndim == 3
-    if squeeze:
-        a = a[..., None]
-    if a.shape[-1] < 1:
-        raise LayoutError(f"{name}: zero channels in shape {np.shape(cube)}")
-    return np.asarray(a, dtype=np.float64), squeeze
-
-
-def _check_out_size(out_size, n):
-    if out_size is None:
-        return n
-    if isinstance(out_size, bool) or not isinstance(out_size, (int, np.integer)) or out_size < 1:
-        raise IBLError(f"out_size must be a positive integer, got {out_size!r}")
-    return int(out_size)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -602,7 +577,7 @@ def sh_project(cube, L: int) -> np.ndarray:
     -------
     ndarray ((L+1)², C) float64, index l² + l + m
     """
-    a, _ = _check_cube(cube)
+    a, _ = check_cube(cube)
     n = a.shape[1]
     L = int(L)
     dirs = envmap.texel_directions(n).reshape(-1, 3)
@@ -790,10 +765,10 @@ def plan_sh(cube, exponents, *, rtol=1e-3, out_size=None, hybrid=True, L_max=SH_
     Returns dict ``L`` (joint band limit or None), ``tau``, ``L_per_s`` (list, None = would need more
     than L_max), ``cost`` (model units, comparable with :func:`sh_cost`).
     """
-    a, _ = _check_cube(cube)
+    a, _ = check_cube(cube)
     n = a.shape[1]
-    out_size = _check_out_size(out_size, n)
-    s_list = [_check_exponent(s) for s in np.atleast_1d(np.asarray(exponents, dtype=object))]
+    out_size = check_out_size(out_size, n)
+    s_list = [check_exponent(s) for s in np.atleast_1d(np.asarray(exponents, dtype=object))]
     src = envmap.texel_directions(n).reshape(-1, 3)
     omega = np.ascontiguousarray(envmap.cube_solid_angles(n)).reshape(-1)
     rad = a.reshape(-1, a.shape[-1])
@@ -855,10 +830,10 @@ def convolve_sh_many(
     info : dict (L, tau, n_bright, bound_kind list, timings)
     """
     t0 = time.perf_counter()
-    a, squeeze = _check_cube(cube)
+    a, squeeze = check_cube(cube)
     n = a.shape[1]
-    out_size = _check_out_size(out_size, n)
-    s_list = [_check_exponent(s) for s in np.atleast_1d(np.asarray(exponents, dtype=object))]
+    out_size = check_out_size(out_size, n)
+    s_list = [check_exponent(s) for s in np.atleast_1d(np.asarray(exponents, dtype=object))]
     if not s_list:
         raise IBLError("no Phong exponents given")
     if any(not np.isfinite(s) for s in s_list):
