@@ -39,6 +39,27 @@ Concurrency (``workers``)
     {1, 2, 5, 10, 20, 50, 100, 1000}, 2-core VM, load ≈ 1.2, three runs each): 3.0–3.6 s serial;
     2.0–2.3 s wall with 2 processes, 2.4–3.0 s with 2 threads.
 
+Scale-out (``executor``)
+    The same jobs run on any :class:`concurrent.futures.Executor` (a process pool of your own, a
+    ``dask.distributed.Client`` or its scheduler address, ``ibl-ref convolve --scheduler ADDRESS``):
+    jobs and inputs are pickled, each job holds BLAS at one thread on its worker, and the results are
+    bit-for-bit those of a serial run (``tests/test_convolve_executor.py``, a 2-worker Dask
+    ``LocalCluster``).
+
+Resources
+    Jobs whose model cost sums to < :data:`PARALLEL_MIN_SECONDS` run serially (starting a pool would
+    not pay).  Each job's peak memory is estimated (:func:`_job_bytes`; the moment route's by
+    :func:`ibl_ref.moment_convolution.moment_peak_bytes`, which its output-tile chunking bounds) and
+    the worker count is lowered until the largest concurrent jobs fit in :data:`MEMORY_FRACTION` of
+    the available memory (:func:`available_memory_bytes`, or ``memory_limit``).  A worker process
+    that dies anyway (out-of-memory killer) raises :class:`~ibl_ref.errors.IBLError`.
+
+Float64 range
+    Inputs whose largest radiance is outside [2^-64, 2^64] are scaled by a power of two (exact) and the
+    maps scaled back, so ``ones·1e308`` gives finite maps for every method (a literal Eq. 4 sum beyond
+    the float64 range is an IBLError); every bound carries an underflow allowance
+    (:data:`UNDERFLOW_ABS`), so it also holds where exact values are subnormal.
+
 The returned ``error_bound[s]`` is a per-texel bound on ``|approx − exact| / exact`` (max over channels,
 ``inf`` where the bound is useless, e.g. a black output texel); ``bound_kind[s]`` says whether it is
 ``"rigorous"`` (SH, sparse), ``"estimate"`` (SH for very broad lobes, s ≈ 1, whose rigorous bound
@@ -554,6 +575,63 @@ def convolve(
             owned_client.close()
 
 
+def _route_auto(a4, s_list, rtol, out_size, normalized, info):
+    """Method per exponent for ``method="auto"`` (module docstring): ``(route, SH plan or None, finite)``.
+
+    ``finite``: the finite exponents left to the SH / sparse / exact cost comparison (the SH plan was
+    made for exactly these).  Writes the planning diagnostics into ``info``.
+    """
+    n = a4.shape[1]
+    n_src, n_out = 6 * n * n, 6 * out_size * out_size
+    from . import sh_convolution as shc
+
+    route, plan = {}, None
+    finite = [s for s in s_list if np.isfinite(s)]
+    for s in s_list:
+        if not np.isfinite(s):
+            route[s] = "exact"
+    if finite and n_out * n_src * len(finite) <= AUTO_EXACT_PAIRS:
+        info["auto_tiny_map_exact"] = True
+        for s in finite:
+            route[s] = "exact"
+        finite = []
+    if n_out * n_src >= MOMENT_MIN_PAIRS:
+        for s in finite:
+            if s in MOMENT_EXPONENTS:
+                route[s] = "moment"
+        finite = [s for s in finite if s not in MOMENT_EXPONENTS]
+    if finite:
+        plan = shc.plan_sh(a4, finite, rtol=rtol, out_size=out_size)
+        info["sh_plan_L_per_s"] = {_s_json(s): L for s, L in zip(finite, plan["L_per_s"])}
+        info["sh_plan_L_estimate"] = {_s_json(s): L for s, L in plan["L_est"].items()}
+        Q = a4.shape[-1] + 1
+        L_of = {}
+        other = {}
+        for s, L_s in zip(finite, plan["L_per_s"]):
+            # rigorous band limit (estimate-mode band limit only if estimates were planned)
+            L_s = L_s if L_s is not None else plan["L_est"].get(s)
+            if L_s is not None:
+                L_of[s] = L_s
+            c_sp = _sparse_cost(s, rtol, n_src, n_out) if normalized else np.inf
+            c_ex = n_out * n_src * (EXACT_UNITS_PER_PAIR_S1 if s == 1.0 else EXACT_UNITS_PER_PAIR)
+            other[s] = ("sparse", c_sp) if c_sp < c_ex else ("exact", c_ex)
+        # The SH exponents share one pass whose cost is set by the largest band limit: try every
+        # prefix of the SH-capable exponents sorted by band limit, the rest by sparse/exact.
+        cand = sorted(L_of, key=lambda s: L_of[s])
+        best = None
+        for j in range(len(cand) + 1):
+            grp = cand[:j]
+            cost = sum(other[s][1] for s in finite if s not in grp)
+            if grp:
+                cost += shc.sh_cost(L_of[grp[-1]], n_src, n_out, len(grp), Q) + shc.SH_OVERHEAD_UNITS
+            if best is None or cost < best[0]:
+                best = (cost, grp)
+        info["auto_model_cost_s"] = float(best[0] * shc.SECONDS_PER_UNIT)
+        for s in finite:
+            route[s] = "sh" if s in best[1] else other[s][0]
+    return route, plan, finite
+
+
 def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, workers, backend, executor,
               memory_limit, scale_k, t_start, c_start):
     """Body of :func:`convolve` after the argument checks (routing, jobs, collection)."""
@@ -567,51 +645,9 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
     n_out = 6 * out_size * out_size
 
     # ---- route every exponent ----------------------------------------------------------------
-    route = {}
+    plan, finite = None, []
     if method == "auto":
-        finite = [s for s in s_list if np.isfinite(s)]
-        for s in s_list:
-            if not np.isfinite(s):
-                route[s] = "exact"
-        if finite and n_out * n_src * len(finite) <= AUTO_EXACT_PAIRS:
-            res.info["auto_tiny_map_exact"] = True
-            for s in finite:
-                route[s] = "exact"
-            finite = []
-        if n_out * n_src >= MOMENT_MIN_PAIRS:
-            for s in finite:
-                if s in MOMENT_EXPONENTS:
-                    route[s] = "moment"
-            finite = [s for s in finite if s not in MOMENT_EXPONENTS]
-        if finite:
-            plan = shc.plan_sh(a4, finite, rtol=rtol, out_size=out_size)
-            res.info["sh_plan_L_per_s"] = {_s_json(s): L for s, L in zip(finite, plan["L_per_s"])}
-            res.info["sh_plan_L_estimate"] = {_s_json(s): L for s, L in plan["L_est"].items()}
-            Q = a4.shape[-1] + 1
-            L_of = {}
-            other = {}
-            for s, L_s in zip(finite, plan["L_per_s"]):
-                # rigorous band limit (estimate-mode band limit only if estimates were planned)
-                L_s = L_s if L_s is not None else plan["L_est"].get(s)
-                if L_s is not None:
-                    L_of[s] = L_s
-                c_sp = _sparse_cost(s, rtol, n_src, n_out) if normalized else np.inf
-                c_ex = n_out * n_src * (EXACT_UNITS_PER_PAIR_S1 if s == 1.0 else EXACT_UNITS_PER_PAIR)
-                other[s] = ("sparse", c_sp) if c_sp < c_ex else ("exact", c_ex)
-            # The SH exponents share one pass whose cost is set by the largest band limit: try every
-            # prefix of the SH-capable exponents sorted by band limit, the rest by sparse/exact.
-            cand = sorted(L_of, key=lambda s: L_of[s])
-            best = None
-            for j in range(len(cand) + 1):
-                grp = cand[:j]
-                cost = sum(other[s][1] for s in finite if s not in grp)
-                if grp:
-                    cost += shc.sh_cost(L_of[grp[-1]], n_src, n_out, len(grp), Q) + shc.SH_OVERHEAD_UNITS
-                if best is None or cost < best[0]:
-                    best = (cost, grp)
-            res.info["auto_model_cost_s"] = float(best[0] * shc.SECONDS_PER_UNIT)
-            for s in finite:
-                route[s] = "sh" if s in best[1] else other[s][0]
+        route, plan, finite = _route_auto(a4, s_list, rtol, out_size, normalized, res.info)
     else:
         route = {s: method for s in s_list}
 

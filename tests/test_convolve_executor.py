@@ -32,6 +32,7 @@ def routed_like_large(monkeypatch):
     monkeypatch.setattr(cv, "MOMENT_MIN_PAIRS", 0)
     monkeypatch.setattr(cv, "EXACT_UNITS_PER_PAIR", 1e6)
     monkeypatch.setattr(cv, "EXACT_UNITS_PER_PAIR_S1", 1e6)
+    monkeypatch.setattr(cv, "PARALLEL_MIN_SECONDS", 0.0)  # tiny jobs still go to the pool
 
 
 def _same(a, b):
@@ -100,6 +101,15 @@ def test_memory_limit_lowers_workers_not_results(routed_like_large):
     assert r.info["workers_planned"] == 2
     with pytest.raises(IBLError, match="memory_limit"):
         convolve(cube, S, memory_limit=-1)
+
+
+def test_tiny_jobs_do_not_start_a_pool(monkeypatch):
+    # 16² faces: the model cost of all jobs is far below PARALLEL_MIN_SECONDS (1 s)
+    monkeypatch.setattr(cv, "MOMENT_MIN_PAIRS", 0)
+    monkeypatch.setattr(cv, "AUTO_EXACT_PAIRS", 0)
+    r = convolve(_sun_env(16), [1.0, 2.0], workers=2, backend="process")
+    assert r.method_used == {1.0: "moment", 2.0: "moment"}
+    assert r.info["workers_planned"] == 1
 
 
 def test_moment_memory_estimate_bounds_the_chunked_working_set():
