@@ -72,8 +72,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import envmap
-from .convolution_args import check_cube
-from .errors import IBLError
+from .errors import IBLError, LayoutError, check_radiance
 
 __all__ = ["ProfileError", "ElevationRangeError", "check_profile", "profile_integral", "support_angle",
            "convolve_profiles", "convolve_profile", "profile_hwhm", "auto_supersample", "LobeSet", "build_lobe_set", "build_2d_lobe",
@@ -169,6 +168,17 @@ def support_angle(gamma, profile, tail_rtol: float = 0.0):
 # ----------------------------------------------------------------------------------------------
 # (a) exact convolution with tabulated radial profiles
 # ----------------------------------------------------------------------------------------------
+def _check_cube(cube, name="environment cube map"):
+    envmap.check_cube_shape(cube, name)
+    a = np.asarray(cube)
+    check_radiance(a, name)
+    squeeze = a.ndim == 3
+    a = np.asarray(a[..., None] if squeeze else a, dtype=np.float64)
+    if a.shape[-1] < 1:
+        raise LayoutError(f"{name}: zero channels in shape {np.shape(cube)}")
+    return a, squeeze
+
+
 def _pos_int(name, v):
     if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
         raise IBLError(f"{name} must be a positive integer, got {v!r}")
@@ -311,7 +321,7 @@ def convolve_profiles(cube, gamma, profiles, *, out_size: int | None = None, sup
     -------
     ndarray (P, 6, n, n, C) (or (6, n, n, C) for a 1-D ``profiles``; C dropped for a 3-d cube)[, info].
     """
-    a, squeeze = check_cube(cube)
+    a, squeeze = _check_cube(cube)
     g, p = check_profile(gamma, profiles)
     single = p.ndim == 1
     p = np.atleast_2d(p)
@@ -837,7 +847,7 @@ def render_reference(cube, n, wo, brdf, *, supersample: int = 1, cut_angle: floa
     """
     from scipy.spatial import cKDTree
 
-    a, squeeze = check_cube(cube)
+    a, squeeze = _check_cube(cube)
     nb = _pos_int("bucket_size", bucket_size)
     nn = _unit(n, "n").reshape(-1, 3)
     vv = _unit(wo, "wo").reshape(-1, 3)

@@ -16,23 +16,10 @@ from ibl_ref import moment_convolution as mc
 from ibl_ref.convolve import convolve, plan_memory_workers
 from ibl_ref.errors import IBLError
 
+# the sky + sun scene and the routing of a small map like a 128² one are shared with the worker tests
+from test_convolve_workers import _sun_env, routed_like_large  # noqa: F401 (fixture)
+
 S = [1.0, 2.0, 10.0, 1000.0]
-
-
-def _sun_env(n):
-    from ibl_ref.synthetic_envs import SUN_NEAR_CORNER, make_env
-
-    return make_env("sky_sun", n, sun_direction=SUN_NEAR_CORNER, sun_radiance=1e5)
-
-
-@pytest.fixture
-def routed_like_large(monkeypatch):
-    """Route a small map like a 128² one: moment for s = 1, 2, SH / sparse for the rest."""
-    monkeypatch.setattr(cv, "AUTO_EXACT_PAIRS", 0)
-    monkeypatch.setattr(cv, "MOMENT_MIN_PAIRS", 0)
-    monkeypatch.setattr(cv, "EXACT_UNITS_PER_PAIR", 1e6)
-    monkeypatch.setattr(cv, "EXACT_UNITS_PER_PAIR_S1", 1e6)
-    monkeypatch.setattr(cv, "PARALLEL_MIN_SECONDS", 0.0)  # tiny jobs still go to the pool
 
 
 def _same(a, b):

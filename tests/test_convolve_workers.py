@@ -31,6 +31,7 @@ def routed_like_large(monkeypatch):
     monkeypatch.setattr(cv, "MOMENT_MIN_PAIRS", 0)
     monkeypatch.setattr(cv, "EXACT_UNITS_PER_PAIR", 1e6)  # exact only as the bound-driven fallback
     monkeypatch.setattr(cv, "EXACT_UNITS_PER_PAIR_S1", 1e6)
+    monkeypatch.setattr(cv, "PARALLEL_MIN_SECONDS", 0.0)  # tiny jobs still go to the pool
 
 
 def test_results_bit_identical_for_any_worker_count(routed_like_large):
