@@ -115,10 +115,8 @@ BACKENDS = ("auto", "process", "thread")
 #: cost units per (output × source texel) pair of the moment route (both s = 1 and 2 in one call: 3.4 s CPU
 #: at 128² faces, 1 BLAS thread); only used to order the jobs (longest first)
 MOMENT_UNITS_PER_PAIR = 0.45
-#: the sparse cost model over-estimates the current gather (s = 1000 at 128²: model 6.1 s, measured 1.1 s
-#: summed over its three jobs in ``experiments/bench_convolution.py``); this factor lowers it for the
-#: ordering of the jobs only (routing keeps the model)
-SPARSE_JOB_ORDER_FACTOR = 0.4
+#: correction of the sparse cost model for the ordering of the jobs only (1: the model as fitted)
+SPARSE_JOB_ORDER_FACTOR = 1.0
 #: :func:`convolve` rescales the input by a power of two (exact) when its largest radiance is above
 #: 2^SCALE_EXP or below 2^-SCALE_EXP, so that no sum of ≤ 6N² weighted terms overflows (e.g.
 #: ``ones·1e308``) and nothing underflows needlessly; the maps are scaled back at the end
@@ -138,6 +136,11 @@ PARALLEL_MIN_SECONDS = 1.0
 #: output faces of each job of the moment and sparse routes.  Fixed (not derived from the worker count),
 #: so that every worker count computes exactly the same pieces: bit-for-bit identical results.
 FACE_PARTS = ((0, 1), (2, 3), (4, 5))
+#: from this output face size on, the moment route runs one job per output face (six jobs balance
+#: better on 2 workers than three: 3 rounds of one face instead of 2 rounds of two); also fixed by
+#: the sizes alone
+MOMENT_SPLIT_MIN_SIZE = 256
+MOMENT_FACE_PARTS_LARGE = tuple((f,) for f in range(6))
 
 
 def default_workers() -> int:
@@ -452,10 +455,15 @@ def _rel_from_abs(maps, abs_bound):
 #: 46.7 s CPU at 128²)
 EXACT_UNITS_PER_PAIR = 17.0
 EXACT_UNITS_PER_PAIR_S1 = 6.0
-#: same for the candidate texels of the sparse gather, plus a cost per output texel (tiles, KD-tree
-#: queries); fitted to ≈ 4.7 s CPU per exponent at 128², 0.5 s at 64², 0.09 s at 32² (s = 64…4096)
-SPARSE_UNITS_PER_PAIR = 25.0
-SPARSE_UNITS_PER_OUTPUT = 2.5e4
+#: same for the candidate texels of the sparse gather, plus a cost per output texel (tiles, cap
+#: queries).  Checked against measurement (process CPU time, 1 worker, ``method="sparse"``, sky + sun,
+#: rtol 1e-3; shared 2-core machine at load ≈ 12): 32² s = 1024: 0.033 s; 64² s = 64 / 256 / 1024:
+#: 0.45 / 0.23 / 0.15 s; 128² s = 64 / 256 / 1024: 4.8 / 2.5 / 0.98 s — 0.16–0.27× the previous
+#: constants (25, 2.5e4), hence these (×0.25).  The SH model (:func:`ibl_ref.sh_convolution.sh_cost`)
+#: at the same cells: 64² s = 64 / 256: model 0.18 / 0.57 s, measured 0.09 / 0.16 s; 128²: 0.58 / 2.2 s
+#: vs 0.66 / 1.4 s.
+SPARSE_UNITS_PER_PAIR = 6.25
+SPARSE_UNITS_PER_OUTPUT = 6.25e3
 
 
 def _sparse_cost(s, rtol, n_src, n_out):
@@ -656,6 +664,7 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
     # on the number of workers, so the maps and bounds are bit-for-bit the same for any worker count.
     results = {}
     parts = FACE_PARTS
+    mo_parts = MOMENT_FACE_PARTS_LARGE if out_size >= MOMENT_SPLIT_MIN_SIZE else FACE_PARTS
     pair_units = n_out * n_src
     scale0 = 1.0
     if method == "auto" and any(route[s] in ("sparse", "sh") for s in s_list):
@@ -684,7 +693,7 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
             jobs = []  # (stage, key, model cost, callable)
             if mo_set:
                 from . import moment_convolution as mc
-            for pi, fc in enumerate(parts if mo_set else ()):
+            for pi, fc in enumerate(mo_parts if mo_set else ()):
                 jobs.append(("moment", ("moment", pi), MOMENT_UNITS_PER_PAIR * pair_units * len(fc) / 6,
                              functools.partial(mc.convolve_moment_many, a4, mo_set, out_size=out_size,
                                                normalized=normalized, faces=fc)))
@@ -730,8 +739,8 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
             # ---- collect ----
             nxt_batches, nxt_exact = [], []
             if mo_set:
-                maps = np.concatenate([out[("moment", pi)][0] for pi in range(len(parts))], axis=1)
-                rel = np.concatenate([out[("moment", pi)][1] for pi in range(len(parts))], axis=1)
+                maps = np.concatenate([out[("moment", pi)][0] for pi in range(len(mo_parts))], axis=1)
+                rel = np.concatenate([out[("moment", pi)][1] for pi in range(len(mo_parts))], axis=1)
                 for k, s in enumerate(mo_set):
                     results[s] = (maps[k], rel[k], "moment", "rounding")
                 mo_set = []
