@@ -45,8 +45,11 @@ def test_any_executor_gives_the_serial_result(routed_like_large):
     _same(r, ref)
 
 
-def test_dask_local_cluster_bit_identical(routed_like_large):
+def test_dask_local_cluster_bit_identical(routed_like_large, tmp_path):
     distributed = pytest.importorskip("distributed")
+    from ibl_ref.cli import main
+    from ibl_ref.exr_io import load_cube, write_envmap
+
     cube = _sun_env(16)
     ref = convolve(cube, S, workers=1)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
@@ -56,6 +59,15 @@ def test_dask_local_cluster_bit_identical(routed_like_large):
             _same(r, ref)
             r2 = convolve(cube, S, executor=cluster.scheduler_address)  # by address (own client)
             _same(r2, ref)
+        # the command line: --scheduler ADDRESS writes the serial run's maps (stored as float32)
+        src = tmp_path / "in.exr"
+        write_envmap(src, cube.astype(np.float32), layout="cube")
+        cube32 = load_cube(src)
+        ref32 = convolve(cube32, [10.0], workers=1).maps[10.0]
+        assert main(["convolve", str(src), str(tmp_path / "out.exr"), "-s", "10",
+                     "--scheduler", cluster.scheduler_address]) == 0
+        got = load_cube(tmp_path / "out_s10.exr")
+        assert np.array_equal(got, ref32.astype(np.float32).astype(np.float64))
 
 
 def test_bad_executor_and_address_are_clear_errors():
