@@ -640,17 +640,84 @@ def _route_auto(a4, s_list, rtol, out_size, normalized, info):
     return route, plan, finite
 
 
+def _sparse_rtol_scale(a4):
+    """Pre-scale of the sparse gather's tolerance for ``auto``: its bound at the darkest texels is
+    ≈ rtol·(mean/min) larger than at texels of typical radiance, so rtol is multiplied by min/mean
+    (≥ 1e-6; the mean over the body, the brightest 0.1 % of texels left out), then corrected once."""
+    n = a4.shape[1]
+    lum = a4.max(axis=-1).ravel()
+    w = np.broadcast_to(envmap.cube_solid_angles(n), a4.shape[:3]).ravel()
+    body = lum <= np.quantile(lum, 0.999)
+    l_mean = float(np.sum(lum[body] * w[body]) / np.sum(w[body]))
+    return min(1.0, max(float(a4.min()) / max(l_mean, 1e-300), 1e-6))
+
+
+def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_plan, sparse_batches, parts, ex_set):
+    """The independent jobs ``(stage, key, model cost, callable)`` of one round of :func:`convolve`.
+
+    Every job computes a fixed piece of work (its exponents, its output faces) that does not depend on
+    the number of workers, so the maps and bounds are bit-for-bit the same for any worker count.
+    """
+    from . import phong_convolution as pc
+    from . import sh_convolution as shc
+
+    n = a4.shape[1]
+    n_src, n_out = 6 * n * n, 6 * out_size * out_size
+    pair_units = n_out * n_src
+    jobs = []
+    if mo_set:
+        from . import moment_convolution as mc
+
+        for pi, fc in enumerate(mo_parts):
+            jobs.append(("moment", ("moment", pi), MOMENT_UNITS_PER_PAIR * pair_units * len(fc) / 6,
+                         functools.partial(mc.convolve_moment_many, a4, mo_set, out_size=out_size,
+                                           normalized=normalized, faces=fc)))
+    if sh_set:
+        L_guess = (sh_plan or {}).get("L") or 32
+        jobs.append(("sh", ("sh",), shc.sh_cost(L_guess, n_src, n_out, len(sh_set), a4.shape[-1] + 1),
+                     functools.partial(shc.convolve_sh_many, a4, sh_set, rtol=rtol, out_size=out_size,
+                                       normalized=normalized, plan=sh_plan)))
+    for bi, (sb, sc, _att) in enumerate(sparse_batches):
+        for pi, fc in enumerate(parts):
+            cost = sum(_sparse_cost(x, rtol * sc, n_src, n_out) for x in sb)
+            cost = cost * len(fc) / 6 * SPARSE_JOB_ORDER_FACTOR if np.isfinite(cost) else (
+                pair_units * EXACT_UNITS_PER_PAIR)
+            jobs.append(("sparse", ("sparse", bi, pi), cost,
+                         functools.partial(pc.convolve_sparse_many, a4, list(sb),
+                                           rtol=min(rtol * sc, 0.5), out_size=out_size, faces=fc)))
+    if ex_set:
+        jobs.append(("exact", ("exact",), EXACT_UNITS_PER_PAIR * pair_units * len(ex_set),
+                     functools.partial(pc.convolve_exact_many, a4, ex_set, normalized=normalized,
+                                       out_size=out_size)))
+    return jobs
+
+
+def _round_workers(jobs, a4, out_size, workers, executor, memory_limit, need2):
+    """Workers for one round: the memory planner, and serial when the jobs are too small to pay for a
+    pool (:data:`PARALLEL_MIN_SECONDS`).  Returns ``(workers, memory warning or None)``."""
+    from .sh_convolution import SECONDS_PER_UNIT
+
+    n, C = a4.shape[1], a4.shape[-1]
+    # (a job's callable is a partial of (cube, exponents, ..., faces=...))
+    job_mem = [_job_bytes(j[0], n, out_size, C, len(j[3].keywords.get("faces") or range(6)),
+                          len(j[3].args[1]), need2) for j in jobs]
+    avail = memory_limit if memory_limit is not None else available_memory_bytes()
+    w_plan = plan_memory_workers(workers, job_mem, avail) if executor is None else workers
+    est_s = sum(min(float(j[2]), 1e300) for j in jobs) * SECONDS_PER_UNIT
+    if executor is None and est_s < PARALLEL_MIN_SECONDS:
+        w_plan = 1  # worker start-up would not pay
+    warning = None
+    if avail is not None and max(job_mem) > MEMORY_FRACTION * avail:
+        warning = f"a job needs ≈ {max(job_mem) / 1e9:.1f} GB, {avail / 1e9:.1f} GB available"
+    return w_plan, warning
+
+
 def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, workers, backend, executor,
               memory_limit, scale_k, t_start, c_start):
     """Body of :func:`convolve` after the argument checks (routing, jobs, collection)."""
 
-    from . import phong_convolution as pc
-    from . import sh_convolution as shc
-
     res = ConvolutionResult()
     timings = {"sh": 0.0, "sparse": 0.0, "exact": 0.0, "moment": 0.0}
-    n_src = 6 * n * n
-    n_out = 6 * out_size * out_size
 
     # ---- route every exponent ----------------------------------------------------------------
     plan, finite = None, []
@@ -659,22 +726,13 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
     else:
         route = {s: method for s in s_list}
 
-    # ---- execute: independent jobs (route × output-face part) on a pool of `workers` threads --------
-    # Every job computes a fixed piece of work (its exponents, its output faces) that does not depend
-    # on the number of workers, so the maps and bounds are bit-for-bit the same for any worker count.
+    # ---- execute: rounds of independent jobs (route × output-face part, :func:`_round_jobs`) --------
     results = {}
     parts = FACE_PARTS
     mo_parts = MOMENT_FACE_PARTS_LARGE if out_size >= MOMENT_SPLIT_MIN_SIZE else FACE_PARTS
-    pair_units = n_out * n_src
     scale0 = 1.0
     if method == "auto" and any(route[s] in ("sparse", "sh") for s in s_list):
-        # The sparse gather targets rtol at texels of typical radiance; its bound at the darkest texels
-        # is ≈ rtol·(mean/min) larger, so the requested tolerance is pre-scaled (then corrected once).
-        lum = a4.max(axis=-1).ravel()
-        w = np.broadcast_to(envmap.cube_solid_angles(n), a4.shape[:3]).ravel()
-        body = lum <= np.quantile(lum, 0.999)
-        l_mean = float(np.sum(lum[body] * w[body]) / np.sum(w[body]))
-        scale0 = min(1.0, max(float(a4.min()) / max(l_mean, 1e-300), 1e-6)) if method == "auto" else 1.0
+        scale0 = _sparse_rtol_scale(a4)
 
     mo_set = [s for s in s_list if route[s] == "moment"]
     sh_set = [s for s in s_list if route[s] == "sh"]
@@ -690,46 +748,15 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
     # for every worker count: bit-for-bit identical results (threadpoolctl restores the limits after)
     with threadpool_limits(limits=1, user_api="blas"):
         while mo_set or sh_set or sparse_batches or ex_set:
-            jobs = []  # (stage, key, model cost, callable)
-            if mo_set:
-                from . import moment_convolution as mc
-            for pi, fc in enumerate(mo_parts if mo_set else ()):
-                jobs.append(("moment", ("moment", pi), MOMENT_UNITS_PER_PAIR * pair_units * len(fc) / 6,
-                             functools.partial(mc.convolve_moment_many, a4, mo_set, out_size=out_size,
-                                               normalized=normalized, faces=fc)))
-            if sh_set:
-                sub_plan = None
-                if method == "auto":  # re-plan only if the SH subset differs from the planned set
-                    sub_plan = plan if len(sh_set) == len(finite) else None
-                L_guess = (sub_plan or {}).get("L") or 32
-                jobs.append(("sh", ("sh",), shc.sh_cost(L_guess, n_src, n_out, len(sh_set), a4.shape[-1] + 1),
-                             functools.partial(shc.convolve_sh_many, a4, sh_set, rtol=rtol, out_size=out_size,
-                                               normalized=normalized, plan=sub_plan)))
-            for bi, (sb, sc, _att) in enumerate(sparse_batches):
-                for pi, fc in enumerate(parts):
-                    cost = sum(_sparse_cost(x, rtol * sc, n_src, n_out) for x in sb)
-                    cost = cost * len(fc) / 6 * SPARSE_JOB_ORDER_FACTOR if np.isfinite(cost) else (
-                        pair_units * EXACT_UNITS_PER_PAIR)
-                    jobs.append(("sparse", ("sparse", bi, pi), cost,
-                                 functools.partial(pc.convolve_sparse_many, a4, list(sb),
-                                                   rtol=min(rtol * sc, 0.5), out_size=out_size, faces=fc)))
-            if ex_set:
-                jobs.append(("exact", ("exact",), EXACT_UNITS_PER_PAIR * pair_units * len(ex_set),
-                             functools.partial(pc.convolve_exact_many, a4, ex_set, normalized=normalized,
-                                               out_size=out_size)))
-            C = a4.shape[-1]
-            # (a job's callable is a partial of (cube, exponents, ..., faces=...))
-            job_mem = [_job_bytes(j[0], n, out_size, C, len(j[3].keywords.get("faces") or range(6)),
-                                  len(j[3].args[1]), 2.0 in mo_set) for j in jobs]
-            avail = memory_limit if memory_limit is not None else available_memory_bytes()
-            w_plan = plan_memory_workers(workers, job_mem, avail) if executor is None else workers
-            est_s = sum(min(float(j[2]), 1e300) for j in jobs) * shc.SECONDS_PER_UNIT
-            if executor is None and est_s < PARALLEL_MIN_SECONDS:
-                w_plan = 1  # worker start-up would not pay
+            sub_plan = None
+            if sh_set and method == "auto":  # re-plan only if the SH subset differs from the planned set
+                sub_plan = plan if len(sh_set) == len(finite) else None
+            jobs = _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sub_plan,
+                               sparse_batches, parts, ex_set)
+            w_plan, warning = _round_workers(jobs, a4, out_size, workers, executor, memory_limit, 2.0 in mo_set)
             planned.append(w_plan)
-            if avail is not None and max(job_mem) > MEMORY_FRACTION * avail:
-                res.info["memory_warning"] = (f"a job needs ≈ {max(job_mem) / 1e9:.1f} GB, "
-                                              f"{avail / 1e9:.1f} GB available")
+            if warning:
+                res.info["memory_warning"] = warning
             t0 = time.perf_counter()
             out, busy, cpu_c = _run_jobs(jobs, w_plan, backend, executor)
             t_par += time.perf_counter() - t0
