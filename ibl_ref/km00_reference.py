@@ -21,7 +21,8 @@ import numpy as np
 
 from . import envmap
 from .errors import IBLError
-from .profile_convolution import BLOCK_ELEMS, check_cube, positive_int
+from .convolution_args import check_cube
+from .profile_convolution import BLOCK_ELEMS, positive_int
 
 __all__ = ["render_reference", "brdf_min_hwhm", "ward_cut_angle", "ward_neglected_bound"]
 

@@ -29,10 +29,11 @@ import math
 import numpy as np
 
 from . import envmap
-from .errors import IBLError, LayoutError, check_radiance
+from .convolution_args import check_cube
+from .errors import IBLError
 
 __all__ = ["ProfileError", "check_profile", "profile_integral", "support_angle", "convolve_profiles",
-           "convolve_profile", "profile_hwhm", "auto_supersample", "check_cube", "positive_int"]
+           "convolve_profile", "profile_hwhm", "auto_supersample", "positive_int"]
 
 #: target number of float64 elements of one (outputs × candidates) block
 BLOCK_ELEMS = 1 << 18
@@ -117,17 +118,6 @@ def support_angle(gamma, profile, tail_rtol: float = 0.0):
 # ----------------------------------------------------------------------------------------------
 # (a) exact convolution with tabulated radial profiles
 # ----------------------------------------------------------------------------------------------
-def check_cube(cube, name="environment cube map"):
-    envmap.check_cube_shape(cube, name)
-    a = np.asarray(cube)
-    check_radiance(a, name)
-    squeeze = a.ndim == 3
-    a = np.asarray(a[..., None] if squeeze else a, dtype=np.float64)
-    if a.shape[-1] < 1:
-        raise LayoutError(f"{name}: zero channels in shape {np.shape(cube)}")
-    return a, squeeze
-
-
 def positive_int(name, v):
     if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
         raise IBLError(f"{name} must be a positive integer, got {v!r}")

@@ -632,7 +632,7 @@ def render_pem(
     vis_img = np.ones((L, H, W))
     vis_img[:, m] = vis
     if not np.all(np.isfinite(image)):
-        big = float(np.max(pem_vals[np.isfinite(pem_vals)], initial=0.0))
+        big = max(float(np.max(t[np.isfinite(t)], initial=0.0)) for t in (diffuse, specular) if t is not None)
         raise IBLError(f"render produced non-finite values: material weight x radiance overflows float64 (largest "
                        f"finite shaded term {big:g}); use smaller material weights kd, ks (--material) or a dimmer map")
     parts = {}

@@ -31,6 +31,11 @@ def routed_like_large(monkeypatch):
     monkeypatch.setattr(cv, "MOMENT_MIN_PAIRS", 0)
     monkeypatch.setattr(cv, "EXACT_UNITS_PER_PAIR", 1e6)  # exact only as the bound-driven fallback
     monkeypatch.setattr(cv, "EXACT_UNITS_PER_PAIR_S1", 1e6)
+    monkeypatch.setattr(cv, "PARALLEL_MIN_SECONDS", 0.0)  # tiny jobs still go to the pool
+    # at 16² the sparse gather is cheap even for s = 10; cost it 4× higher so that s = 10 goes to SH
+    # as it does at 128² (three routes in one call)
+    monkeypatch.setattr(cv, "SPARSE_UNITS_PER_PAIR", 4 * cv.SPARSE_UNITS_PER_PAIR)
+    monkeypatch.setattr(cv, "SPARSE_UNITS_PER_OUTPUT", 4 * cv.SPARSE_UNITS_PER_OUTPUT)
 
 
 def test_results_bit_identical_for_any_worker_count(routed_like_large):

@@ -47,7 +47,7 @@ def cmd_convolve(args) -> int:
     cube, radiance = load_env(args, args.input, args.input_size)
     res = convolve(
         cube, exps, method=args.method, rtol=args.rtol, out_size=args.size, normalized=not args.unnormalized,
-        workers=args.workers, backend=args.parallel,
+        workers=args.workers, backend=args.parallel, executor=args.scheduler,
     )
     written = []
     outs = OutputSet(side, owned_key="outputs", keep=[args.input])  # all files or none; stale _s* removed
@@ -124,6 +124,9 @@ def register(sub) -> None:
     p.add_argument("--parallel", choices=("auto", "process", "thread"), default="auto",
                    help="how W > 1 workers run: forked processes or threads (auto: processes when possible)")
     add_radiance_args(p)
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run the jobs on a Dask cluster (e.g. tcp://host:8786; needs pip install '.[dask]'); "
+                        "the maps are bit-for-bit those of a local run")
     p.set_defaults(func=cmd_convolve)
 
     q = sub.add_parser(
