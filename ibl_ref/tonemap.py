@@ -56,10 +56,7 @@ def exposure_srgb(img, stops: float = 0.0, operator: str = "reinhard") -> np.nda
 
 def save_png(path, img, stops: float | None = None, mask=None, operator: str = "reinhard"):
     """Tone-map and write an 8-bit PNG atomically (matplotlib ``imsave`` via :func:`ibl_ref.atomic.atomic_path`)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.image as mpimg  # writing a PNG needs no pyplot and no backend
 
     from .atomic import atomic_path
 
@@ -70,5 +67,5 @@ def save_png(path, img, stops: float | None = None, mask=None, operator: str = "
     if out.ndim == 3 and out.shape[-1] == 1:
         out = out[..., 0]
     with atomic_path(path, suffix=".png") as tmp:
-        plt.imsave(tmp, out, cmap="gray" if out.ndim == 2 else None, vmin=0.0, vmax=1.0, format="png")
+        mpimg.imsave(tmp, out, cmap="gray" if out.ndim == 2 else None, vmin=0.0, vmax=1.0, format="png")
     return path

@@ -23,18 +23,29 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path, read_csv, write_csv, write_json
+from ..atomic import read_csv, write_csv, write_json
 from .. import envmap
 from ..phong_convolution import convolve_exact_many, phong_lobe_integral
+from . import Param, resolve_params
 
 NAME = "convergence"
 DESCRIPTION = "exact Phong convolution vs source resolution and supersampling (closed-form targets)"
+PAPER = "Knuth et al. 2014, Eq. 4 (the exact Phong lobe average the lab uses as ground truth): convergence"
 IN_QUICK_REPRODUCE = True
+RUNTIME = {"quick": "2.1 s", "full": "?"}
+OUTPUTS = ("convergence_resolution.csv", "convergence_supersample.csv", "convergence_summary.json",
+           "convergence_resolution.png", "convergence_supersample.png")
 
 EXPONENTS = (1.0, 16.0, 256.0, 4096.0)
 #: face sizes / supersampling factors of the quick and full runs (tests shrink them)
 QUICK_SIZES, FULL_SIZES = (8, 16, 32), (8, 16, 32, 64)
 QUICK_SS, FULL_SS = (8, (1, 2, 4, 8), 16), (16, (1, 2, 4, 8), 16)  # (face size, factors, reference factor)
+PARAMS = (
+    Param("face_sizes", FULL_SIZES, QUICK_SIZES, "face sizes N of the resolution study"),
+    Param("ss_face_size", FULL_SS[0], QUICK_SS[0], "face size of the supersampling study"),
+    Param("ss_factors", FULL_SS[1], None, "supersampling factors k (k x k sub-texels)"),
+    Param("ss_reference", FULL_SS[2], None, "supersampling factor of the self-convergence reference"),
+)
 GRAD_A = 1.0
 GRAD_B = np.array([0.3, -0.2, 0.4])
 
@@ -44,9 +55,10 @@ def _gradient(n: int):
     return (GRAD_A + d @ GRAD_B)[..., None], d
 
 
-def run(out_dir: Path, quick: bool) -> dict:
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
     out_dir = Path(out_dir)
-    sizes = QUICK_SIZES if quick else FULL_SIZES
+    p = resolve_params(__name__, quick, params)
+    sizes = p["face_sizes"]
     rows = []
     for n in sizes:
         cube, d = _gradient(n)
@@ -86,7 +98,7 @@ def run(out_dir: Path, quick: bool) -> dict:
         ),
     )
 
-    n_ss, ks, k_ref = QUICK_SS if quick else FULL_SS
+    n_ss, ks, k_ref = p["ss_face_size"], p["ss_factors"], p["ss_reference"]
     cube, _ = _gradient(n_ss)
     ref_avg = convolve_exact_many(cube, EXPONENTS, supersample=k_ref)[..., 0]
     ss_rows = []
@@ -128,10 +140,9 @@ def run(out_dir: Path, quick: bool) -> dict:
 
 
 def plot(out_dir: Path) -> list[Path]:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out_dir = Path(out_dir)
     paths = []
@@ -151,9 +162,7 @@ def plot(out_dir: Path) -> list[Path]:
         ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
     p = out_dir / "convergence_resolution.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
+    save_figure(fig, p, dpi=120)
     paths.append(p)
 
     rows = read_csv(out_dir / "convergence_supersample.csv")
@@ -170,8 +179,6 @@ def plot(out_dir: Path) -> list[Path]:
         ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
     p = out_dir / "convergence_supersample.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
+    save_figure(fig, p, dpi=120)
     paths.append(p)
     return paths

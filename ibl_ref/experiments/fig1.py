@@ -16,10 +16,14 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import write_json
+from . import images_from_json, images_to_json, params_from_settings, settings_with
 
 NAME = "fig1"
 DESCRIPTION = "Knuth 2014 Fig. 1: diffuse-to-mirror gallery (g = 0 … 1) under sky_sun and studio, our method"
+PAPER = "Knuth et al. 2014, Fig. 1 (materials from diffuse to mirror, our method, Eq. 5)"
 IN_QUICK_REPRODUCE = True
+RUNTIME = {"quick": "1.4 s", "full": "?"}
+OUTPUTS = ("fig1_images.json", "fig1_meta.json", "fig1.png")
 
 GLOSS = (0.0, 0.5, 0.9, 0.99, 1.0)
 ENVS = ("sky_sun", "studio")
@@ -31,16 +35,18 @@ def settings(quick: bool) -> dict:
     return dict(size=128, n_lights=96, vsm_resolution=512, env_size=128)
 
 
-def run(out_dir: Path, quick: bool) -> dict:
+PARAMS = params_from_settings(settings)
+
+
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..ao_modes import default_camera, light_visibilities, shade_eq5
     from ..pem import build_pems
     from ..raster import prepare_scene, rasterize
     from ..synthetic_envs import make_env
     from ..synthetic_meshes import make_mesh
-    from .fig6 import images_to_json
 
     out_dir = Path(out_dir)
-    st = settings(quick)
+    st = settings_with(__name__, quick, params)
     t0 = time.perf_counter()
     meshes = [(make_mesh("sphere_on_plane"), 0)]
     sc = prepare_scene(meshes, warn=False)
@@ -69,14 +75,11 @@ def run(out_dir: Path, quick: bool) -> dict:
 
 
 def plot(out_dir: Path) -> list:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
-    from ..atomic import atomic_path
     from ..tonemap import auto_exposure, exposure_srgb
-    from .fig6 import images_from_json
 
     out_dir = Path(out_dir)
     imgs, mask = images_from_json(out_dir / "fig1_images.json")
@@ -90,7 +93,5 @@ def plot(out_dir: Path) -> list:
             ax[i, j].set_yticks([])
     fig.tight_layout()
     p = out_dir / "fig1.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, p, dpi=100)
     return [p]

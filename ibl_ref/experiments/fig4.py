@@ -18,19 +18,24 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import read_csv, write_csv
+from . import Param, resolve_params
 
 NAME = "fig4"
 DESCRIPTION = "Knuth 2014 Fig. 4: polar cross-sections of the s=1 lobe for MIP-only/gauss/cos/box/sqrtcos"
+PAPER = "Knuth et al. 2014, Fig. 4 (s = 1 lobe of each 5x5 filter's MIP pyramid vs the cosine target)"
 IN_QUICK_REPRODUCE = True
+PARAMS = (Param("face_size", 256, 64, "cube face size N of the pyramid (texels)"),)
+RUNTIME = {"quick": "1 s", "full": "?"}
+OUTPUTS = ("fig4_cross_sections.csv", "fig4_levels.csv", "fig4.png")
 
 KERNELS = ("none", "gauss", "cos", "box", "sqrtcos")
 TITLES = {"none": "MIP map only", "gauss": "Gaussian", "cos": "cosine", "box": "box", "sqrtcos": "sqrt cosine"}
 
 
-def run(out_dir: Path, quick: bool) -> dict:
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..lobe_analysis import LobeResponse, target_lobe
 
-    n = 64 if quick else 256
+    n = resolve_params(__name__, quick, params)["face_size"]
     s = 1.0
     theta = np.deg2rad(np.linspace(-180.0, 180.0, 721))
     rows, lev_rows = [], []
@@ -59,12 +64,10 @@ def run(out_dir: Path, quick: bool) -> dict:
 
 
 def plot(out_dir: Path) -> list[Path]:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
-    from ..atomic import atomic_path
 
     rows = read_csv(Path(out_dir) / "fig4_cross_sections.csv")
     levs = {(r["kernel"], r["volume"]): r for r in read_csv(Path(out_dir) / "fig4_levels.csv")}
@@ -87,7 +90,5 @@ def plot(out_dir: Path) -> list[Path]:
     fig.suptitle("Fig. 4 reproduction: s=1 target (blue) vs pyramid lobe (red)", fontsize=10)
     fig.tight_layout()
     p = Path(out_dir) / "fig4.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, p, dpi=100)
     return [p]

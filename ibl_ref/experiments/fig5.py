@@ -21,10 +21,19 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import read_csv, write_csv, write_json
+from . import Param, resolve_params
 
 NAME = "fig5"
 DESCRIPTION = "Knuth 2014 Fig. 5: relative lobe error vs s_Phong for none/gauss/cos/box/sqrtcos filters"
+PAPER = "Knuth et al. 2014, Fig. 5 (relative lobe error vs s_Phong of the five filters, Sec. 5)"
 IN_QUICK_REPRODUCE = True
+PARAMS = (
+    Param("face_sizes", (64, 128, 256), (64,), "face sizes N with all three white-texel positions (centre, edge, corner)"),
+    Param("centre_only_sizes", (512,), (128,), "further face sizes with the face-centre position only"),
+    Param("exponents", 32, 24, "number of s_Phong values from 1 to the texel limit (log spaced)"),
+)
+RUNTIME = {"quick": "8 s", "full": "?"}
+OUTPUTS = ("fig5_errors.csv", "fig5_meta.json", "fig5_<N>.png", "fig5_<N>_centroid.png")
 
 KERNELS = ("none", "gauss", "cos", "box", "sqrtcos")
 # the paper's colours/styles (Fig. 5 caption)
@@ -33,11 +42,12 @@ STYLE = {"none": dict(color="darkviolet", ls=":"), "gauss": dict(color="black", 
          "sqrtcos": dict(color="blue", ls="-")}
 
 
-def configs(quick: bool):
+def configs(quick: bool, **params):
     """(face_size, position, s-count) combinations of the quick and the full run."""
-    if quick:
-        return [(64, p, 24) for p in ("centre", "edge", "corner")] + [(128, "centre", 24)]
-    return [(n, p, 32) for n in (64, 128, 256) for p in ("centre", "edge", "corner")] + [(512, "centre", 32)]
+    p = resolve_params(__name__, quick, params)
+    k = p["exponents"]
+    return ([(n, pos, k) for n in p["face_sizes"] for pos in ("centre", "edge", "corner")]
+            + [(n, "centre", k) for n in p["centre_only_sizes"]])
 
 
 def compute_rows(n, position, count, kernels=KERNELS, order="shrink_then_filter", seam="neighbour"):
@@ -52,13 +62,13 @@ def compute_rows(n, position, count, kernels=KERNELS, order="shrink_then_filter"
     return rows
 
 
-def run(out_dir: Path, quick: bool) -> dict:
-    from tqdm import tqdm
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
+    from ..progress import track
 
     out_dir = Path(out_dir)
     t0 = time.perf_counter()
     rows, timing = [], []
-    for n, pos, count in tqdm(configs(quick), desc="fig5 configs", leave=False):
+    for n, pos, count in track(configs(quick, **params), desc="fig5 configurations", unit="config"):
         t = time.perf_counter()
         rows += compute_rows(n, pos, count)
         timing.append({"face_size": n, "position": pos, "time_s": round(time.perf_counter() - t, 3)})
@@ -76,12 +86,10 @@ def run(out_dir: Path, quick: bool) -> dict:
 
 
 def plot(out_dir: Path) -> list[Path]:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
-    from ..atomic import atomic_path
 
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "fig5_errors.csv")
@@ -118,8 +126,6 @@ def plot(out_dir: Path) -> list[Path]:
             fig.tight_layout()
             suffix = "" if centring == "texel" else "_centroid"
             p = out_dir / f"fig5_{n}{suffix}.png"
-            with atomic_path(p) as tmp:
-                fig.savefig(tmp, format="png", dpi=110)
-            plt.close(fig)
+            save_figure(fig, p, dpi=110)
             figs.append(p)
     return figs

@@ -13,17 +13,20 @@ all, and relative error maps).
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
 from ..atomic import read_csv, write_csv, write_json
+from . import images_from_json, images_to_json, params_from_settings, settings_with
 
 NAME = "fig6"
 DESCRIPTION = "Knuth 2014 Fig. 6: no occlusion / AO / AO+color / ours / ray-traced reference on a glossy teapot"
+PAPER = "Knuth et al. 2014, Fig. 6 (no occlusion / AO / AO with colour / our method) plus a ray-traced reference"
 IN_QUICK_REPRODUCE = True
+RUNTIME = {"quick": "1.8 s", "full": "?"}
+OUTPUTS = ("fig6_metrics.csv", "fig6_images.json", "fig6_meta.json", "fig6.png")
 
 ORDER = ("no-occlusion", "ao", "ao-color", "ours", "reference")
 LABELS = {"no-occlusion": "(a) no occlusion", "ao": "(b) AO (shadow only)", "ao-color": "(c) AO with color",
@@ -36,27 +39,17 @@ def settings(quick: bool) -> dict:
     return dict(size=96, n_lights=96, vsm_resolution=256, env_size=64, g=0.9)
 
 
-def images_to_json(images: dict, mask) -> dict:
-    """Images (H, W, C) → nested lists rounded to 6 significant digits (JSON-friendly), plus the mask."""
-    out = {k: np.vectorize(lambda x: float(f"{x:.6g}"))(np.asarray(v)).tolist() for k, v in images.items()}
-    out["_mask"] = np.asarray(mask, dtype=int).tolist()
-    return out
+PARAMS = params_from_settings(settings)
 
 
-def images_from_json(path: Path):
-    d = json.loads(Path(path).read_text())
-    mask = np.asarray(d.pop("_mask"), dtype=bool)
-    return {k: np.asarray(v, dtype=np.float64) for k, v in d.items()}, mask
-
-
-def run(out_dir: Path, quick: bool) -> dict:
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..ao_modes import default_camera, render_modes
     from ..image_metrics import all_metrics, rel_l1
     from ..synthetic_envs import make_env
     from ..synthetic_meshes import make_mesh
 
     out_dir = Path(out_dir)
-    st = settings(quick)
+    st = settings_with(__name__, quick, params)
     t0 = time.perf_counter()
     meshes = [(make_mesh("teapot"), 0)]
     env = make_env("sky_sun", n=st["env_size"])
@@ -88,12 +81,10 @@ def run(out_dir: Path, quick: bool) -> dict:
 
 
 def plot(out_dir: Path) -> list:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
-    from ..atomic import atomic_path
     from ..image_metrics import error_map
     from ..tonemap import auto_exposure, exposure_srgb
 
@@ -114,7 +105,5 @@ def plot(out_dir: Path) -> list:
             a.set_yticks([])
     fig.colorbar(im, ax=ax[1, :].tolist(), shrink=0.8, label="|ΔY| / Y_ref")
     p = out_dir / "fig6.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, p, dpi=100)
     return [p]

@@ -17,11 +17,15 @@ from pathlib import Path
 
 import numpy as np
 
+from . import params_from_settings, settings_with
 from ..atomic import read_csv, write_csv, write_json
 
 NAME = "fig7"
 DESCRIPTION = "Knuth 2014 Fig. 7: render time vs number of lights (teapot, cloth) with a per-stage breakdown"
+PAPER = "Knuth et al. 2014, Fig. 7 (frame time vs number of lights, teapot and cloth)"
 IN_QUICK_REPRODUCE = True
+RUNTIME = {"quick": "1.5 s", "full": "?"}
+OUTPUTS = ("fig7_timings.csv", "fig7_fit.json", "fig7.png")
 
 STAGES = ("raster", "shadow_maps", "blur", "visibility", "lookup", "shading")
 SCENES = ("teapot", "cloth")
@@ -31,6 +35,9 @@ def settings(quick: bool) -> dict:
     if quick:
         return dict(lights=[6, 12, 24], size=64, vsm_resolution=128, env_size=32)
     return dict(lights=[6, 12, 24, 48, 96, 192], size=128, vsm_resolution=256, env_size=64)
+
+
+PARAMS = params_from_settings(settings)
 
 
 def fit_line(x, y) -> dict:
@@ -44,14 +51,14 @@ def fit_line(x, y) -> dict:
     return dict(slope_s_per_light=float(a), intercept_s=float(b), r2=float(r2))
 
 
-def run(out_dir: Path, quick: bool) -> dict:
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..ao_modes import default_camera, render_modes
     from ..pem import build_pems
     from ..synthetic_envs import make_env
     from ..synthetic_meshes import make_mesh
 
     out_dir = Path(out_dir)
-    st = settings(quick)
+    st = settings_with(__name__, quick, params)
     env = make_env("sky_sun", n=st["env_size"])
     rows = []
     for scene in SCENES:
@@ -81,12 +88,10 @@ def run(out_dir: Path, quick: bool) -> dict:
 
 
 def plot(out_dir: Path) -> list:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
-    from ..atomic import atomic_path
 
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "fig7_timings.csv")
@@ -114,7 +119,5 @@ def plot(out_dir: Path) -> list:
     ax[1].set_title("where the time goes")
     fig.tight_layout()
     p = out_dir / "fig7.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, p, dpi=100)
     return [p]

@@ -21,21 +21,23 @@ from pathlib import Path
 
 import numpy as np
 
+from . import Param, resolve_params
+
 NAME = "fig8"
 DESCRIPTION = "Fig. 8 memory table: published vs model vs this library's arrays; sparse PEM savings"
+PAPER = "Knuth et al. 2014, Fig. 8 (memory of PEMs and VSMs) and Sec. 6 (sparse PEMs, not built in the paper)"
 IN_QUICK_REPRODUCE = True
+PARAMS = (Param("sparse_sizes", (128, 256), (128,), "face sizes of the sparse-PEM study"),
+          Param("regions", (12, 24, 48, 96), None, "region (PEM) counts of the sparse-PEM study"))
+RUNTIME = {"quick": "5 s", "full": "?"}
+OUTPUTS = ("fig8_table.csv", "fig8_sparse.csv", "fig8_meta.json", "fig8_table.png", "fig8_sparse.png")
 
 SCENE_G = (0.0, 0.5, 0.9)
 
 
-def _env(name, n):
-    from ..synthetic_envs import make_env
-
-    return make_env("sky_sun" if name == "sky_sun" else "studio", n)
-
-
-def run(out_dir: Path, quick: bool) -> dict:
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..atomic import write_csv, write_json
+    from ..synthetic_envs import make_env
     from ..memory_model import (MIB, PAPER_FIG8, FIG8_COLUMNS, fig8_model_table, infer_fig8_rows, library_pem_bytes,
                                 library_vsm_bytes, paper_pem_bytes)
 
@@ -65,7 +67,7 @@ def run(out_dir: Path, quick: bool) -> dict:
 
     checks = {}
     t0 = time.perf_counter()
-    small = _env("sky_sun", 16)
+    small = make_env("sky_sun", 16)
     for L in (12, 32):
         pems = build_pems(small, n_lights=L, variant="global")
         checks[f"measured_check_pem16_L{L}"] = {"nbytes": pems.nbytes, "model": library_pem_bytes(L, 16),
@@ -77,12 +79,12 @@ def run(out_dir: Path, quick: bool) -> dict:
     # sparse PEMs
     from ..sparse_pem import build_sparse_pems, levels_touched
 
-    sizes = (128,) if quick else (128, 256)
-    region_counts = (12, 24, 48, 96)
+    p = resolve_params(__name__, quick, params)
+    sizes, region_counts = p["sparse_sizes"], p["regions"]
     srows = []
     for env in ("sky_sun", "studio"):
         for n in sizes:
-            cube = _env(env, n)
+            cube = make_env(env, n)
             touched = levels_touched(SCENE_G, n)
             for L in region_counts:
                 t = time.perf_counter()
@@ -130,12 +132,11 @@ def run(out_dir: Path, quick: bool) -> dict:
 
 
 def plot(out_dir: Path) -> list:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
-    from ..atomic import atomic_path, read_csv
+    from ..atomic import read_csv
 
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "fig8_table.csv")
@@ -159,9 +160,7 @@ def plot(out_dir: Path) -> list:
                  "'lib' = this library (PEM float32 RGB true MIP chain; VSM float16 μ,μ²)", fontsize=9)
     paths = []
     p = out_dir / "fig8_table.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=130, bbox_inches="tight")
-    plt.close(fig)
+    save_figure(fig, p, dpi=130)
     paths.append(p)
 
     srows = read_csv(out_dir / "fig8_sparse.csv")
@@ -184,8 +183,6 @@ def plot(out_dir: Path) -> list:
     ax.set_title("Sparse PEM storage vs dense cube maps (float32, full MIP chain)")
     ax.legend(fontsize=7)
     p = out_dir / "fig8_sparse.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=130, bbox_inches="tight")
-    plt.close(fig)
+    save_figure(fig, p, dpi=130)
     paths.append(p)
     return paths

@@ -17,11 +17,21 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path, read_csv, write_csv, write_json
+from ..atomic import read_csv, write_csv, write_json
+from . import Param, resolve_params
 
 NAME = "km00"
 DESCRIPTION = "Kautz & McCool 2000 greedy lobe fits: RMS error vs number of lobes (Fig. 7), lobes per elevation"
+PAPER = "Kautz & McCool 2000, Fig. 7 (RMS error of the greedy lobe fit vs number of lobes), Sec. 4-5"
 IN_QUICK_REPRODUCE = True
+PARAMS = (
+    Param("n_theta", 16, 5, "view elevations in [0, 80] degrees"),
+    Param("n_lobes", 8, 5, "maximum number of greedy lobes"),
+    Param("n_gamma", 256, 192, "BRDF samples in the polar angle"),
+    Param("n_phi", 64, 48, "BRDF samples in azimuth"),
+)
+RUNTIME = {"quick": "2.3 s", "full": "?"}
+OUTPUTS = ("rms_vs_lobes.csv", "lobes.csv", "profiles.csv", "summary.json", "km00_rms_vs_lobes.png", "km00_lobes.png")
 
 BRDFS = {
     "ward_ks0.8_a0.04": ("ward", dict(kd=0.0, ks=0.8, alpha=0.04)),
@@ -29,13 +39,13 @@ BRDFS = {
 }
 
 
-def run(out_dir: Path, quick: bool) -> dict:
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from .. import brdfs as B
     from .. import kautz_mccool2000 as km
 
     out_dir = Path(out_dir)
-    n_theta, n_lobes = (5, 5) if quick else (16, 8)
-    n_gamma, n_phi = (192, 48) if quick else (256, 64)
+    p = resolve_params(__name__, quick, params)
+    n_theta, n_lobes, n_gamma, n_phi = p["n_theta"], p["n_lobes"], p["n_gamma"], p["n_phi"]
     thetas = np.radians(np.linspace(0.0, 80.0, n_theta))
     rms_rows, lobe_rows, prof_rows = [], [], []
     summary: dict = {"quick": quick, "n_theta": n_theta, "theta_o_deg": np.degrees(thetas).tolist(),
@@ -100,10 +110,9 @@ def run(out_dir: Path, quick: bool) -> dict:
 
 
 def plot(out_dir: Path) -> list[Path]:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "rms_vs_lobes.csv")
@@ -122,9 +131,7 @@ def plot(out_dir: Path) -> list[Path]:
         a.legend(fontsize=8)
     fig.tight_layout()
     p = out_dir / "km00_rms_vs_lobes.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, p, dpi=110)
     figs.append(p)
 
     prof = read_csv(out_dir / "profiles.csv")
@@ -158,8 +165,6 @@ def plot(out_dir: Path) -> list[Path]:
         ax[1, j].legend(fontsize=7)
     fig.tight_layout()
     p = out_dir / "km00_lobes.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, p, dpi=110)
     figs.append(p)
     return figs

@@ -28,10 +28,15 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import read_csv, write_csv, write_json
+from . import params_from_settings, settings_with
 
 NAME = "lobe-chain"
 DESCRIPTION = "filter pyramid vs exact-lobe chain: lookup error vs s, build time and memory"
+PAPER = ("Knuth et al. 2014, Sec. 3.2 / Eq. 3-4: the filter pyramid's lookup vs the exact Phong lobe average, "
+         "and the exact-lobe chain (not in the paper)")
 IN_QUICK_REPRODUCE = True
+RUNTIME = {"quick": "?", "full": "80 s"}
+OUTPUTS = ("lobe_chain.csv", "lobe_chain_meta.json", "lobe_chain.png")
 
 PREFILTERS = ("pyramid-sqrtcos", "pyramid-box", "pyramid-sqrtcos-solid-angle", "chain-f4", "chain-f2", "chain-f1.41")
 
@@ -41,6 +46,10 @@ def settings(quick: bool) -> dict:
         return dict(env_size=32, envs=["sky_sun"], n_dirs=1500, s_values=[1, 2, 4, 10, 30, 100, 300])
     return dict(env_size=64, envs=["sky_sun", "studio"], n_dirs=4000,
                 s_values=[1, 1.5, 2, 3, 5, 7, 10, 15, 20, 30, 50, 70, 100, 200, 300, 500, 1000])
+
+
+PARAMS = params_from_settings(settings, {"envs": "synthetic environments", "n_dirs": "random test directions",
+                                         "s_values": "Phong exponents s"})
 
 
 def build(name: str, env):
@@ -78,13 +87,13 @@ def best_constant_level(per_level, exact):
     return best
 
 
-def run(out_dir: Path, quick: bool) -> dict:
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..gloss_lookup import get_calibration, level_for_gloss, lookup
     from ..reference_render import lobe_average
     from ..synthetic_envs import make_env
 
     out_dir = Path(out_dir)
-    st = settings(quick)
+    st = settings_with(__name__, quick, params)
     rng = np.random.default_rng(20141)
     d = rng.normal(size=(st["n_dirs"], 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
@@ -135,12 +144,10 @@ def run(out_dir: Path, quick: bool) -> dict:
 
 
 def plot(out_dir: Path) -> list:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
-    from ..atomic import atomic_path
 
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "lobe_chain.csv")
@@ -163,7 +170,5 @@ def plot(out_dir: Path) -> list:
         ax.legend(fontsize=7)
     fig.tight_layout()
     p = out_dir / "lobe_chain.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, p, dpi=100)
     return [p]

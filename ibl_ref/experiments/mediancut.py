@@ -20,20 +20,22 @@ from pathlib import Path
 
 import numpy as np
 
+from . import Param, resolve_params
+
 NAME = "mediancut"
 DESCRIPTION = "median-cut regions and lights (per-face/global/variance) on the unfolded cube, energy spread"
+PAPER = "Knuth et al. 2014, Sec. 3.1 (median cut, Debevec 2008) and Meunier et al. 2009, Eq. 32-34 (equivalent lobes)"
 IN_QUICK_REPRODUCE = True
+PARAMS = (Param("face_size", 128, 64, "environment cube face size N"),
+          Param("light_counts", (6, 12, 24, 48, 96), None, "numbers of lights (regions)"))
+RUNTIME = {"quick": "2.1 s", "full": "?"}
+OUTPUTS = ("mediancut_lights.csv", "mediancut_summary.csv", "mediancut_maps.json", "mediancut_<variant>.png",
+           "mediancut_energy_spread.png")
 
 #: face index → (row, col) of the horizontal cross in face units
 CROSS = {2: (0, 1), 1: (1, 0), 5: (1, 1), 0: (1, 2), 4: (1, 3), 3: (2, 1)}
 LIGHT_COUNTS = (6, 12, 24, 48, 96)
 ENVS = ("sky_sun", "studio")
-
-
-def _env(name, n):
-    from .fig8 import _env as env
-
-    return env(name, n)
 
 
 def to_cross(face_data: np.ndarray, fill=np.nan) -> np.ndarray:
@@ -45,21 +47,23 @@ def to_cross(face_data: np.ndarray, fill=np.nan) -> np.ndarray:
     return out
 
 
-def run(out_dir: Path, quick: bool) -> dict:
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..atomic import write_csv, write_json
+    from ..synthetic_envs import make_env
     from ..envmap import direction_to_texel_coords
     from ..median_cut import VARIANTS, check_partition, energy_spread, luminance, median_cut
 
     out_dir = Path(out_dir)
-    n = 64 if quick else 128
+    p = resolve_params(__name__, quick, params)
+    n = p["face_size"]
     light_rows, summary, maps = [], [], {}
     for env in ENVS:
-        cube = _env(env, n)
+        cube = make_env(env, n)
         y = luminance(cube)
         maps[env] = {"face_size": n, "log10_luminance_cross": np.round(
             np.nan_to_num(to_cross(np.log10(np.maximum(y, 1e-6))), nan=-99.0), 4).tolist()}
         for variant in VARIANTS:
-            for L in LIGHT_COUNTS:
+            for L in p["light_counts"]:
                 ls = median_cut(cube, L, variant)
                 chk = check_partition(ls, cube)
                 sp = energy_spread(ls)
@@ -104,14 +108,13 @@ def run(out_dir: Path, quick: bool) -> dict:
 def plot(out_dir: Path) -> list:
     import json
 
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     from matplotlib.collections import PatchCollection
     from matplotlib.patches import Rectangle
 
-    from ..atomic import atomic_path, read_csv
+    from ..atomic import read_csv
 
     out_dir = Path(out_dir)
     maps = json.loads((out_dir / "mediancut_maps.json").read_text())
@@ -147,9 +150,7 @@ def plot(out_dir: Path) -> list:
                      fontsize=9)
         fig.tight_layout()
         p = out_dir / f"mediancut_{variant}.png"
-        with atomic_path(p) as tmp:
-            fig.savefig(tmp, format="png", dpi=110)
-        plt.close(fig)
+        save_figure(fig, p, dpi=110)
         paths.append(p)
 
     fig, ax = plt.subplots(figsize=(6, 4))
@@ -164,8 +165,6 @@ def plot(out_dir: Path) -> list:
     ax.set_ylabel("CV of region energies (0 = equally important)")
     ax.legend(fontsize=7)
     p = out_dir / "mediancut_energy_spread.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=120, bbox_inches="tight")
-    plt.close(fig)
+    save_figure(fig, p, dpi=120)
     paths.append(p)
     return paths
