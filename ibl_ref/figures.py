@@ -64,12 +64,30 @@ def integer_ticks(axis) -> None:
 
 
 def _texts(fig):
+    """Visible, non-empty texts that are actually drawn (tick labels only of ticks inside the view)."""
     from matplotlib.text import Text
 
+    tick_labels, drawn = set(), set()
+    for ax in fig.axes:
+        for axis in ax._axis_map.values() if hasattr(ax, "_axis_map") else (ax.xaxis, ax.yaxis):
+            ticks = axis.get_major_ticks() + axis.get_minor_ticks()
+            for tick in ticks:
+                tick_labels.update({id(tick.label1), id(tick.label2)})
+            if not (ax.axison and axis.get_visible()):
+                continue
+            for tick in axis._update_ticks():  # the ticks inside the view interval: the ones drawn
+                for lab in (tick.label1, tick.label2):
+                    if lab.get_visible():
+                        drawn.add(id(lab))
     out = []
     for t in fig.findobj(Text):
-        if t.get_visible() and t.get_text().strip() and t.figure is fig:
-            out.append(t)
+        if not (t.get_visible() and t.get_text().strip() and t.figure is fig):
+            continue
+        if id(t) in tick_labels and id(t) not in drawn:
+            continue
+        if t.axes is not None and not t.axes.get_visible():
+            continue
+        out.append(t)
     return out
 
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from .errors import IBLError
 
-__all__ = ["srgb_encode", "reinhard", "exposure_srgb", "auto_exposure", "save_png"]
+__all__ = ["srgb_encode", "reinhard", "exposure_srgb", "auto_exposure", "save_png", "backdrop", "with_backdrop"]
 
 
 def srgb_encode(x) -> np.ndarray:
@@ -52,6 +52,22 @@ def exposure_srgb(img, stops: float = 0.0, operator: str = "reinhard") -> np.nda
     elif operator != "clip":
         raise IBLError(f"operator must be 'reinhard' or 'clip', got {operator!r}")
     return srgb_encode(a)
+
+
+def backdrop(env, camera) -> np.ndarray:
+    """(H, W, C) radiance of the environment seen through every pixel of ``camera`` (bilinear, seam-aware).
+
+    The background of a render for display: what a camera would see behind the object.
+    """
+    from .sampling import sample_bilinear
+
+    _, d = camera.pixel_rays(normalize=True)
+    return sample_bilinear(np.asarray(env, dtype=np.float64), d.reshape(-1, 3)).reshape(d.shape[:2] + (-1,))
+
+
+def with_backdrop(img, mask, background) -> np.ndarray:
+    """``img`` where ``mask`` (covered pixels), ``background`` elsewhere (display only)."""
+    return np.where(np.asarray(mask, bool)[..., None], np.asarray(img, float), np.asarray(background, float))
 
 
 def save_png(path, img, stops: float | None = None, mask=None, operator: str = "reinhard"):

@@ -192,20 +192,25 @@ def plot(out_dir: Path) -> list[Path]:
 
     plt = pyplot()
 
-
     rows = read_csv(Path(out_dir) / "claims.csv")
     cells = [[r["claim"]] + [r[f"reproduced_{o}_{v}_{c}"] for o, v, c in INTERPRETATIONS] + [r["reproduced"]]
              for r in rows]
-    fig, ax = plt.subplots(figsize=(15, 0.4 * len(rows) + 1.2))
+    fig, ax = plt.subplots(figsize=(9.5, 0.2 * (len(rows) + 1) + 0.55))
     ax.axis("off")
     t = ax.table(cellText=cells, colLabels=["claim"] + [f"{o}/{v[:3]}/{c[:3]}" for o, v, c in INTERPRETATIONS]
                  + ["overall"],
-                 loc="center", cellLoc="left")
+                 loc="upper center", cellLoc="left")
     t.auto_set_font_size(False)
     t.set_fontsize(8)
-    t.scale(1, 1.3)
-    ax.set_title("Knuth 2014 claims: reproduced? (order stf=shrink_then_filter, fts=filter_then_shrink / "
-                 "volume definition / target axis)", fontsize=10)
+    t.auto_set_column_width(list(range(len(cells[0]))))  # every label fits its cell
+    colour = {"yes": "#d9f0d3", "no": "#f4cccc", "partly": "#fff2cc"}
+    for (i, j), cell in t.get_celld().items():
+        if i > 0 and j > 0:
+            cell.set_facecolor(colour.get(cell.get_text().get_text(), "white"))
+    ax.set_title("Knuth 2014 claims reproduced? Columns: pyramid order (stf = shrink_then_filter, fts = "
+                 "filter_then_shrink) /\nlobe volume (int = ∫f dω, rad = ⅓∫f³ dω) / target axis (tex = lit texel, "
+                 "cen = response centroid)", fontsize=9)
+    fig.tight_layout()
     p = Path(out_dir) / "claims.png"
     save_figure(fig, p, dpi=110)
     return [p]

@@ -147,37 +147,56 @@ def plot(out_dir: Path) -> list[Path]:
     out_dir = Path(out_dir)
     paths = []
     rows = read_csv(out_dir / "convergence_resolution.csv")
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.6), layout="constrained")
+    sizes = sorted({int(r["face_size_texels"]) for r in rows})
+    unresolved = []
     for s in sorted({float(r["s_phong"]) for r in rows}):
         r = [x for x in rows if float(x["s_phong"]) == s]
         n = [int(x["face_size_texels"]) for x in r]
-        axes[0].loglog(n, [float(x["max_abs_err"]) for x in r], "o-", label=f"s={s:g}")
-        axes[1].loglog(n, [float(x["weight_rel_err_max"]) for x in r], "o-", label=f"s={s:g}")
-    nn = np.array([8, 64])
-    axes[0].loglog(nn, 1e-2 * (nn / 8.0) ** -2, "k--", lw=0.8, label="N$^{-2}$")
-    axes[0].set(xlabel="face size N (texels)", ylabel="max |exact − closed form|", title="gradient env, lobe average")
+        axes[0].loglog(n, [float(x["max_abs_err"]) for x in r], "o-", label=f"s = {s:g}")
+        axes[1].loglog(n, [float(x["weight_rel_err_max"]) for x in r], "o-", label=f"s = {s:g}")
+        # half width of cos^s (cos^s θ = 1/2) vs the texel's angular size 90°/N: below one texel the lobe is not
+        # resolved and the error is pre-asymptotic (it may grow with N until the texels resolve the lobe)
+        hw = np.degrees(np.arccos(0.5 ** (1.0 / s)))
+        if hw < 90.0 / max(n):
+            unresolved.append(f"s = {s:g}: lobe half width {hw:.2f}° < one texel (90°/N = {90.0 / max(n):.1f}° at "
+                              f"N = {max(n)}): not resolved, the error is pre-asymptotic")
+    nn = np.array([sizes[0], sizes[-1]], dtype=float)
+    axes[0].loglog(nn, 1e-2 * (nn / nn[0]) ** -2, "k--", lw=0.8, label="∝ N$^{-2}$")
+    axes[0].set(xlabel="face size N (texels)", ylabel="max |exact − closed form| (radiance)",
+                title="gradient environment: lobe average")
     axes[1].set(xlabel="face size N (texels)", ylabel="max |Σcos$^s$Ω / (2π/(s+1)) − 1|", title="lobe weight (L ≡ 1)")
     for ax in axes:
-        ax.legend(fontsize=8)
-        ax.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
+        ax.set_xscale("log", base=2)
+        ax.set_xticks(sizes, [str(v) for v in sizes])
+        ax.minorticks_off()
+        ax.grid(True, which="major", alpha=0.3)
+    axes[0].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    if unresolved:
+        fig.text(0.01, 0.0, "\n".join(unresolved), fontsize=8, ha="left", va="bottom")
+        fig.get_layout_engine().set(rect=(0, 0.06 * len(unresolved), 1, 1 - 0.06 * len(unresolved)))
     p = out_dir / "convergence_resolution.png"
     save_figure(fig, p, dpi=120)
     paths.append(p)
 
     rows = read_csv(out_dir / "convergence_supersample.csv")
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), layout="constrained")
     for s in sorted({float(r["s_phong"]) for r in rows}):
         r = [x for x in rows if float(x["s_phong"]) == s]
         k = [int(x["supersample"]) for x in r]
         axes[0].loglog(k, [max(float(x["weight_rel_err_max"]), 1e-17) for x in r], "o-", label=f"s={s:g}")
         axes[1].loglog(k, [max(float(x["self_conv_max_abs_err"]), 1e-17) for x in r], "o-", label=f"s={s:g}")
-    axes[0].set(xlabel="supersample k", ylabel="max |Σcos$^s$Ω / (2π/(s+1)) − 1|", title="lobe weight (L ≡ 1)")
-    axes[1].set(xlabel="supersample k", ylabel="max |avg_k − avg_ref|", title="gradient env, self-convergence")
+    ks = sorted({int(r["supersample"]) for r in rows})
+    axes[0].set(xlabel="supersample k (k × k sub-texels)", ylabel="max |Σcos$^s$Ω / (2π/(s+1)) − 1|",
+                title="lobe weight (L ≡ 1)")
+    axes[1].set(xlabel="supersample k (k × k sub-texels)", ylabel="max |avg_k − avg_ref| (radiance)",
+                title=f"gradient environment: self-convergence (ref. k = {rows[0]['reference_supersample']})")
     for ax in axes:
-        ax.legend(fontsize=8)
-        ax.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
+        ax.set_xscale("log", base=2)
+        ax.set_xticks(ks, [str(v) for v in ks])
+        ax.minorticks_off()
+        ax.grid(True, which="major", alpha=0.3)
+    axes[1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     p = out_dir / "convergence_supersample.png"
     save_figure(fig, p, dpi=120)
     paths.append(p)

@@ -58,7 +58,6 @@ def plot(out_dir: Path) -> list[Path]:
 
     plt = pyplot()
 
-
     d = json.loads((Path(out_dir) / "fig3_spheres.json").read_text())
     imgs = [np.asarray(a, dtype=np.float64) for a in d["images_linear_rgb"]]
     ref = imgs[0][imgs[0].sum(-1) > 0]

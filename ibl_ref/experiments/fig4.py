@@ -68,12 +68,11 @@ def plot(out_dir: Path) -> list[Path]:
 
     plt = pyplot()
 
-
     rows = read_csv(Path(out_dir) / "fig4_cross_sections.csv")
     levs = {(r["kernel"], r["volume"]): r for r in read_csv(Path(out_dir) / "fig4_levels.csv")}
     vols = ("integral", "radial")
     fig, axes = plt.subplots(len(vols), len(KERNELS), subplot_kw={"projection": "polar"},
-                             figsize=(3.0 * len(KERNELS), 3.2 * len(vols)))
+                             figsize=(3.0 * len(KERNELS), 3.6 * len(vols)), layout="constrained")
     for i, vol in enumerate(vols):
         for j, k in enumerate(KERNELS):
             rr = [r for r in rows if r["kernel"] == k and r["volume"] == vol]
@@ -82,13 +81,17 @@ def plot(out_dir: Path) -> list[Path]:
             ax.plot(th, [float(r["target"]) for r in rr], color="blue", lw=1.2)
             ax.plot(th, [float(r["response"]) for r in rr], color="red", lw=1.0)
             ax.set_theta_zero_location("N")
+            ax.set_thetagrids([0, 45, 90, 135, 180, 225, 270, 315],
+                              ["0°", "45°", "90°", "135°", "±180°", "−135°", "−90°", "−45°"], fontsize=7)
             ax.set_ylim(0, 1.05)
-            ax.set_yticklabels([])
+            ax.set_rticks([0.25, 0.5, 0.75, 1.0])
+            ax.set_yticklabels(["", "0.5", "", "1"], fontsize=6)
+            ax.set_rlabel_position(112.5)
             lv = levs[(k, vol)]
             ax.set_title(f"{TITLES[k]} ({vol})\nlevel {float(lv['level']):.2f}, err {float(lv['err_symdiff_pct']):.1f}%",
-                         fontsize=8)
-    fig.suptitle("Fig. 4 reproduction: s=1 target (blue) vs pyramid lobe (red)", fontsize=10)
-    fig.tight_layout()
+                         fontsize=8, pad=10)
+    fig.suptitle("Fig. 4 reproduction: s = 1 target max(cos θ, 0) (blue) vs pyramid lobe (red), both peak-normalised "
+                 "(radius: relative response); θ = angle from the lit texel's direction", fontsize=9)
     p = Path(out_dir) / "fig4.png"
     save_figure(fig, p, dpi=100)
     return [p]

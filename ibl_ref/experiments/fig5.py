@@ -90,7 +90,6 @@ def plot(out_dir: Path) -> list[Path]:
 
     plt = pyplot()
 
-
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "fig5_errors.csv")
     groups: dict = {}
@@ -104,9 +103,13 @@ def plot(out_dir: Path) -> list[Path]:
         for n in sorted({k[0] for k in groups}):
             positions = [p for p in ("centre", "edge", "corner") if any(k[0] == n and k[3] == p for k in groups)]
             vols = ("integral", "radial")
-            fig, axes = plt.subplots(len(vols), len(positions), figsize=(4.2 * len(positions), 3.4 * len(vols)),
-                                     squeeze=False, sharex=True)
+            fig, axes = plt.subplots(len(vols), len(positions),
+                                     figsize=(max(4.4 * len(positions), 7.0), 3.4 * len(vols)),
+                                     squeeze=False, sharex=True, layout="constrained")
             for i, vol in enumerate(vols):
+                # the y range of a row shows every curve (the unfiltered "none" pyramid reaches ~170 %)
+                top = max((max(groups[key][1]) for key in groups
+                           if key[0] == n and key[1] == centring and key[2] == vol), default=100.0)
                 for j, pos in enumerate(positions):
                     ax = axes[i, j]
                     for k in KERNELS:
@@ -114,16 +117,16 @@ def plot(out_dir: Path) -> list[Path]:
                         if g:
                             ax.plot(np.array(g[0]), np.array(g[1]), label=k, **STYLE[k])
                     ax.set_xscale("log")
-                    ax.set_ylim(0, 160)
+                    ax.set_ylim(0, 1.05 * top)
                     ax.axhline(10, color="0.7", lw=0.6)
-                    ax.set_title(f"N={n}, {pos}, volume={vol}", fontsize=9)
+                    ax.set_title(f"N = {n}, lit texel at face {pos}, volume = {vol}", fontsize=9)
                     if i == len(vols) - 1:
-                        ax.set_xlabel("s_Phong")
+                        ax.set_xlabel("Phong exponent s")
                     if j == 0:
                         ax.set_ylabel("error, % of target volume")
-            axes[0, 0].legend(fontsize=8)
-            fig.suptitle(f"Fig. 5 reproduction (symmetric-difference error, target axis: {centring})", fontsize=10)
-            fig.tight_layout()
+            axes[0, -1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), title="filter")
+            fig.suptitle(f"Fig. 5 reproduction: symmetric-difference error\n(target axis: {centring}; grey line: 10 %)",
+                         fontsize=10)
             suffix = "" if centring == "texel" else "_centroid"
             p = out_dir / f"fig5_{n}{suffix}.png"
             save_figure(fig, p, dpi=110)

@@ -92,19 +92,21 @@ def plot(out_dir: Path) -> list:
 
     plt = pyplot()
 
-
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "fig7_timings.csv")
-    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4.2), layout="constrained")
     colors = {"teapot": "red", "cloth": "blue"}
     for scene in SCENES:
         r = [x for x in rows if x["scene"] == scene]
         x = np.array([float(q["lights"]) for q in r])
         y = np.array([float(q["frame_s"]) for q in r])
         ax[0].plot(x, y, "o-", color=colors[scene], label=scene)
+    counts = sorted({int(q["lights"]) for q in rows})
+    ax[0].set_xticks(counts, [str(c) for c in counts])  # light counts are integers
     ax[0].set_xlabel("number of lights")
-    ax[0].set_ylabel("frame time [s] (CPU, under load)")
-    ax[0].legend()
+    ax[0].set_ylabel("frame time (s, CPU wall clock)")
+    ax[0].set_ylim(0, None)
+    ax[0].legend(loc="upper left")
     ax[0].set_title("render time vs lights")
     labels = [f"{q['scene'][:3]} {q['lights']}" for q in rows]
     bottom = np.zeros(len(rows))
@@ -114,10 +116,10 @@ def plot(out_dir: Path) -> list:
         bottom += v
     ax[1].set_xticks(range(len(rows)))
     ax[1].set_xticklabels(labels, rotation=60, fontsize=7)
-    ax[1].set_ylabel("seconds")
-    ax[1].legend(fontsize=7)
+    ax[1].set_ylabel("time per frame (s)")
+    ax[1].set_xlabel("scene, number of lights")
+    ax[1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), title="stage")
     ax[1].set_title("where the time goes")
-    fig.tight_layout()
     p = out_dir / "fig7.png"
     save_figure(fig, p, dpi=100)
     return [p]

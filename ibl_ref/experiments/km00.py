@@ -110,7 +110,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 
 
 def plot(out_dir: Path) -> list[Path]:
-    from ..figures import pyplot, save_figure
+    from ..figures import integer_ticks, pyplot, save_figure
 
     plt = pyplot()
 
@@ -118,7 +118,7 @@ def plot(out_dir: Path) -> list[Path]:
     rows = read_csv(out_dir / "rms_vs_lobes.csv")
     keys = sorted({r["brdf"] for r in rows})
     figs = []
-    fig, ax = plt.subplots(1, len(keys), figsize=(5 * len(keys), 4), squeeze=False)
+    fig, ax = plt.subplots(1, len(keys), figsize=(5 * len(keys), 4), squeeze=False, layout="constrained")
     for a, key in zip(ax[0], keys):
         rr = [r for r in rows if r["brdf"] == key]
         mk = [(int(r["n_lobes"]), float(r["rel_rms"])) for r in rr if r["method"] == "multi"]
@@ -127,16 +127,16 @@ def plot(out_dir: Path) -> list[Path]:
             if r["method"] != "multi":
                 a.plot([1], [float(r["rel_rms"])], "s" if r["method"] == "single" else "^", ms=9,
                        label=f"{r['method']} lobe")
-        a.set(xlabel="number of lobes", ylabel="relative RMS error", title=key, ylim=(0, None))
+        a.set(xlabel="number of lobes", ylabel="relative RMS error of the BRDF fit", title=key, ylim=(0, None))
+        integer_ticks(a.xaxis)
         a.legend(fontsize=8)
-    fig.tight_layout()
     p = out_dir / "km00_rms_vs_lobes.png"
     save_figure(fig, p, dpi=110)
     figs.append(p)
 
     prof = read_csv(out_dir / "profiles.csv")
     lobes = read_csv(out_dir / "lobes.csv")
-    fig, ax = plt.subplots(2, len(keys), figsize=(5 * len(keys), 8), squeeze=False)
+    fig, ax = plt.subplots(2, len(keys), figsize=(5.5 * len(keys), 8.5), squeeze=False, layout="constrained")
     for j, key in enumerate(keys):
         pr = [r for r in prof if r["brdf"] == key]
         ths = sorted({float(r["theta_o_deg"]) for r in pr})
@@ -149,9 +149,10 @@ def plot(out_dir: Path) -> list[Path]:
             sel = [r for r in pr if float(r["theta_o_deg"]) == t and r["cut"] == "toward_horizon"]
             ax[0, j].plot([float(r["gamma_deg"]) for r in sel], [float(r["lobe"]) for r in sel], "--", color=col,
                           lw=1.6, label=f"θo={t:.0f}°")
-        ax[0, j].set(xlabel="γ from peak (deg)", ylabel="f", xlim=(0, 15),
-                     title=f"{key}: lobe (dashed) vs BRDF in-plane cuts")
-        ax[0, j].legend(fontsize=7)
+        ax[0, j].set(xlabel="γ from peak (deg)", ylabel="f (1/sr)", xlim=(0, 15),
+                     title=f"{key}:\nlobe (dashed) vs BRDF in-plane cuts (solid: toward horizon, dotted: normal)")
+        ax[0, j].title.set_fontsize(9)
+        ax[0, j].legend(fontsize=7, ncol=2)
         lm = [r for r in lobes if r["brdf"] == key and r["method"] == "multi"]
         for tid in sorted({int(r["track_id"]) for r in lm}):
             sel = sorted([r for r in lm if int(r["track_id"]) == tid], key=lambda r: float(r["theta_o_deg"]))
@@ -162,8 +163,8 @@ def plot(out_dir: Path) -> list[Path]:
                       label="single lobe peak offset")
         ax[1, j].set(xlabel="θo (deg)", ylabel="peak elevation offset θ_off (deg)",
                      title="multi-lobe tracks (one colour per track)")
+        ax[1, j].title.set_fontsize(9)
         ax[1, j].legend(fontsize=7)
-    fig.tight_layout()
     p = out_dir / "km00_lobes.png"
     save_figure(fig, p, dpi=110)
     figs.append(p)

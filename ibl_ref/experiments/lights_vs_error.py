@@ -164,7 +164,7 @@ def plot(out_dir: Path) -> list:
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "lights_vs_error.csv")
     paths = []
-    fig, axes = plt.subplots(1, len(ENVS), figsize=(11, 4), sharey=True)
+    fig, axes = plt.subplots(1, len(ENVS), figsize=(11, 4.2), sharey=True, layout="constrained")
     for ax, env in zip(axes, ENVS):
         sel = [x for x in rows if x["env"] == env]
         counts = sorted({int(x["lights"]) for x in sel})
@@ -182,7 +182,7 @@ def plot(out_dir: Path) -> list:
         ax.set_title(env)
         ax.grid(True, which="both", lw=0.3)
     axes[0].set_ylabel("relative L1 error vs exact (sphere)")
-    axes[0].legend(fontsize=7)
+    axes[-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     fig.suptitle("Unoccluded glossy sphere: median-cut point lights vs PEM lookups (normalised Phong lobe)", fontsize=9)
     p = out_dir / "lights_vs_error.png"
     save_figure(fig, p, dpi=120)

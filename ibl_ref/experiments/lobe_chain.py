@@ -148,11 +148,10 @@ def plot(out_dir: Path) -> list:
 
     plt = pyplot()
 
-
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "lobe_chain.csv")
     envs = list(dict.fromkeys(q["env"] for q in rows))
-    fig, axes = plt.subplots(1, len(envs), figsize=(6.5 * len(envs), 4.5), squeeze=False)
+    fig, axes = plt.subplots(1, len(envs), figsize=(6.5 * len(envs) + 2.0, 4.5), squeeze=False, layout="constrained")
     for ax, env_name in zip(axes[0], envs):
         for pf in dict.fromkeys(q["prefilter"] for q in rows):
             r = [q for q in rows if q["env"] == env_name and q["prefilter"] == pf]
@@ -167,8 +166,7 @@ def plot(out_dir: Path) -> list:
         ax.set_ylabel("relative L1 of one lookup vs exact lobe average")
         ax.set_title(f"{env_name}: filter pyramid vs exact-lobe chain")
         ax.axhline(0.05, color="gray", lw=0.8, ls=":")
-        ax.legend(fontsize=7)
-    fig.tight_layout()
+    axes[0, -1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     p = out_dir / "lobe_chain.png"
     save_figure(fig, p, dpi=100)
     return [p]
