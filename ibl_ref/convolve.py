@@ -35,7 +35,7 @@ Concurrency (``workers``)
     whole call, serial included: a multi-threaded BLAS splits the SH matrix products differently and
     changes their rounding (≈ 5e-16 relative, measured at 128²).  The jobs do not depend on the worker
     count or back-end, so results are bit-for-bit identical for every ``workers``/``backend``.
-    Measured (``python experiments/bench_convolution.py --repeat 3``, 128² faces, the 8 exponents
+    Measured (``python benchmarks/bench_convolution.py --repeat 3``, 128² faces, the 8 exponents
     {1, 2, 5, 10, 20, 50, 100, 1000}, 2-core VM, load ≈ 1.2, three runs each): 3.0–3.6 s serial;
     2.0–2.3 s wall with 2 processes, 2.4–3.0 s with 2 threads.
 
@@ -95,7 +95,7 @@ BACKENDS = ("auto", "process", "thread")
 #: at 128² faces, 1 BLAS thread); only used to order the jobs (longest first)
 MOMENT_UNITS_PER_PAIR = 0.45
 #: the sparse cost model over-estimates the current gather (s = 1000 at 128²: model 6.1 s, measured 1.1 s
-#: summed over its three jobs in ``experiments/bench_convolution.py``); this factor lowers it for the
+#: summed over its three jobs in ``benchmarks/bench_convolution.py``); this factor lowers it for the
 #: ordering of the jobs only (routing keeps the model)
 SPARSE_JOB_ORDER_FACTOR = 0.4
 #: output faces of each job of the moment and sparse routes.  Fixed (not derived from the worker count),

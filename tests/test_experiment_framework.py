@@ -187,3 +187,15 @@ def test_progress_can_be_silenced_and_used_as_a_callback(monkeypatch):
         cb()
     cb.close()
     assert s.getvalue() == "" and cb.progress.n == 5
+
+
+def test_each_experiment_has_a_thin_script_in_experiments_folder():
+    # the top-level experiments/ folder is where a reader looks for a figure's script; each one only forwards
+    # to `ibl-ref experiment NAME` (the benchmarks live in benchmarks/)
+    scripts = {p.stem: p.read_text() for p in (ROOT / "experiments").glob("*.py")}
+    for name, mod in EXPS.items():
+        stem = mod.__name__.rsplit(".", 1)[1]
+        assert stem in scripts, name
+        assert f'main(["experiment", "{name}", *sys.argv[1:]])' in scripts[stem]
+    assert not list((ROOT / "experiments").glob("bench_*.py"))
+    assert sorted(p.name for p in (ROOT / "benchmarks").glob("bench_*.py"))

@@ -453,10 +453,15 @@ def plot(out_dir: Path) -> list:
     for j, k in enumerate(METHODS):
         ax[0, j].imshow(exposure_srgb(ims[k], stops))
         ax[0, j].set_title(LABELS[k], fontsize=8)
-        e = error_map(ims[k], ims["reference"], mask)
-        im = ax[1, j].imshow(e, cmap="magma", vmin=0, vmax=0.5)
-        ax[1, j].set_title(f"rel L1 {float(rows[k]['rel_l1']):.3f}, median {float(rows[k]['rel_err_median']):.3f}",
-                           fontsize=7)
+        if k == "reference":  # its own error is 0 by definition: show the view elevation the lobes depend on
+            th = read_image_exr(out_dir / "km00_render_theta.exr")[..., 0]
+            ax[1, j].imshow(np.where(mask, th, np.nan), cmap="viridis", vmin=0, vmax=90)
+            ax[1, j].set_title(f"view elevation θo, 0…90° (lobes up to {THETA_MAX_DEG:g}°)", fontsize=7)
+        else:
+            e = error_map(ims[k], ims["reference"], mask)
+            im = ax[1, j].imshow(np.where(mask, e, np.nan), cmap="magma", vmin=0, vmax=0.5)
+            ax[1, j].set_title(f"rel L1 {float(rows[k]['rel_l1']):.3f}, median "
+                               f"{float(rows[k]['rel_err_median']):.3f}", fontsize=7)
         for a in ax[:, j]:
             a.set_xticks([])
             a.set_yticks([])
