@@ -71,7 +71,7 @@ def with_backdrop(img, mask, background) -> np.ndarray:
 
 
 def save_png(path, img, stops: float | None = None, mask=None, operator: str = "reinhard"):
-    """Tone-map and write an 8-bit PNG atomically (matplotlib ``imsave`` via :func:`ibl_ref.atomic.atomic_path`)."""
+    """Tone-map and write an 8-bit sRGB PNG atomically (nearest code value; :func:`ibl_ref.atomic.atomic_path`)."""
     import matplotlib.image as mpimg  # writing a PNG needs no pyplot and no backend
 
     from .atomic import atomic_path
@@ -82,6 +82,10 @@ def save_png(path, img, stops: float | None = None, mask=None, operator: str = "
     out = exposure_srgb(a, stops, operator)
     if out.ndim == 3 and out.shape[-1] == 1:
         out = out[..., 0]
+    if out.ndim == 2:
+        out = np.repeat(out[..., None], 3, axis=-1)
+    # round to the nearest 8-bit code (matplotlib's float → uint8 conversion truncates: up to 1 code too dark)
+    out8 = np.round(np.clip(out, 0.0, 1.0) * 255.0).astype(np.uint8)
     with atomic_path(path, suffix=".png") as tmp:
-        mpimg.imsave(tmp, out, cmap="gray" if out.ndim == 2 else None, vmin=0.0, vmax=1.0, format="png")
+        mpimg.imsave(tmp, out8, format="png")
     return path
