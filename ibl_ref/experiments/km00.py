@@ -30,7 +30,7 @@ PARAMS = (
     Param("n_gamma", 256, 192, "BRDF samples in the polar angle"),
     Param("n_phi", 64, 48, "BRDF samples in azimuth"),
 )
-RUNTIME = {"quick": "2.3 s", "full": "?"}
+RUNTIME = {"quick": "2.3 s", "full": "not measured"}
 OUTPUTS = ("rms_vs_lobes.csv", "lobes.csv", "profiles.csv", "summary.json", "km00_rms_vs_lobes.png", "km00_lobes.png")
 
 BRDFS = {
