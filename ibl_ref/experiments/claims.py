@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 from . import Param, resolve_params
 
@@ -149,7 +150,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     t0 = time.perf_counter()
     n = p["face_size"]
     rows = []
-    for order in ORDER_CODES.values():
+    for order in track(list(ORDER_CODES.values()), "claims: pyramid orders", unit="order"):
         rows += compute_rows(n, "centre", p["exponents"], FILTERS, order=order)
     table = []
     evals = {ic: _evaluate(_curves(rows, *ic)) for ic in INTERPRETATIONS}

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 from .. import envmap
 from ..phong_convolution import convolve_exact_many, phong_lobe_integral
@@ -60,7 +61,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     p = resolve_params(__name__, quick, params)
     sizes = p["face_sizes"]
     rows = []
-    for n in sizes:
+    for n in track(sizes, "convergence: face sizes", unit="size"):
         cube, d = _gradient(n)
         t0 = time.perf_counter()
         avg, wsum = convolve_exact_many(cube, EXPONENTS, return_weights=True)  # wsum = Σ cos^s Ω
@@ -102,7 +103,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     cube, _ = _gradient(n_ss)
     ref_avg = convolve_exact_many(cube, EXPONENTS, supersample=k_ref)[..., 0]
     ss_rows = []
-    for k in ks:
+    for k in track(ks, "convergence: supersampling factors", unit="factor"):
         t0 = time.perf_counter()
         avg, wsum = convolve_exact_many(cube, EXPONENTS, supersample=k, return_weights=True)
         avg = avg[..., 0]

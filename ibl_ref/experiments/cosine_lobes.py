@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 from . import Param, resolve_params
 
@@ -117,7 +118,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     thetas = np.linspace(0.0, np.pi, n_theta)
     rows = []
     t0 = time.perf_counter()
-    for i, e1 in enumerate(es):
+    for i, e1 in track(list(enumerate(es)), "cosine-lobes: product fits", unit="e1"):
         for e2 in es[i:]:
             wgt = 1.0 if e1 == e2 else 2.0
             for th in thetas:

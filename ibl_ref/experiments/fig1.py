@@ -5,7 +5,8 @@ materials g ∈ {0, 0.5, 0.9, 0.99, 1}: g = 0 is the diffuse material (kd = 1, k
 normal), the others are pure glossy (kd = 0, ks = 1, lobe s = 1/(1−g) around r; g = 1 mirror).  Eq. 5 with VSM
 visibilities; the visibilities are computed once per environment (they do not depend on the material).
 
-Files: ``fig1_images.json`` (linear radiance per env × g, + mask), ``fig1_meta.json``.  Plot: ``fig1.png``.
+Files: ``fig1_images.json`` (linear radiance per env × g, the environment seen behind the scene per env
+(``ENV|background``, display only), + mask), ``fig1_meta.json``.  Plot: ``fig1.png``.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ ENVS = ("sky_sun", "studio")
 
 def settings(quick: bool) -> dict:
     if quick:
-        return dict(size=48, n_lights=24, vsm_resolution=128, env_size=64)
+        return dict(size=64, n_lights=24, vsm_resolution=128, env_size=64)
     return dict(size=128, n_lights=96, vsm_resolution=512, env_size=128)
 
 
@@ -44,6 +45,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..raster import prepare_scene, rasterize
     from ..synthetic_envs import make_env
     from ..synthetic_meshes import make_mesh
+    from ..tonemap import backdrop
 
     out_dir = Path(out_dir)
     st = settings_with(__name__, quick, params)
@@ -56,6 +58,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     images = {}
     for env_name in ENVS:
         env = make_env(env_name, n=st["env_size"])
+        images[f"{env_name}|background"] = backdrop(env, cam)  # display only: the environment behind the scene
         pems = build_pems(env, n_lights=st["n_lights"])
         V = light_visibilities(sc, gb.position[m], gb.face_normal[m], pems.lights,
                                vsm_resolution=st["vsm_resolution"])
@@ -79,7 +82,7 @@ def plot(out_dir: Path) -> list:
 
     plt = pyplot()
 
-    from ..tonemap import auto_exposure, exposure_srgb
+    from ..tonemap import auto_exposure, exposure_srgb, with_backdrop
 
     out_dir = Path(out_dir)
     imgs, mask = images_from_json(out_dir / "fig1_images.json")
@@ -87,7 +90,10 @@ def plot(out_dir: Path) -> list:
     for i, e in enumerate(ENVS):
         stops = auto_exposure(imgs[f"{e}|0.0"], mask)
         for j, g in enumerate(GLOSS):
-            ax[i, j].imshow(exposure_srgb(imgs[f"{e}|{g}"], stops))
+            img = imgs[f"{e}|{g}"]
+            if f"{e}|background" in imgs:
+                img = with_backdrop(img, mask, imgs[f"{e}|background"])
+            ax[i, j].imshow(exposure_srgb(img, stops))
             ax[i, j].set_title(f"{e}, g = {g}" + (" (diffuse)" if g == 0 else ""), fontsize=8)
             ax[i, j].set_xticks([])
             ax[i, j].set_yticks([])

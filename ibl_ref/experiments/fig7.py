@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from . import params_from_settings, settings_with
+from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 
 NAME = "fig7"
@@ -61,7 +62,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     st = settings_with(__name__, quick, params)
     env = make_env("sky_sun", n=st["env_size"])
     rows = []
-    for scene in SCENES:
+    for scene in track(SCENES, "fig7: scenes", unit="scene"):
         meshes = [(make_mesh(scene), 0)]
         cam = default_camera(meshes, size=st["size"])
         # warm-up (caches: calibration tables, samplers) so the first timed frame is not penalised

@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..progress import track
+
 from . import Param, resolve_params
 
 NAME = "fig8"
@@ -82,7 +84,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     p = resolve_params(__name__, quick, params)
     sizes, region_counts = p["sparse_sizes"], p["regions"]
     srows = []
-    for env in ("sky_sun", "studio"):
+    for env in track(("sky_sun", "studio"), "fig8: sparse PEMs per environment", unit="env"):
         for n in sizes:
             cube = make_env(env, n)
             touched = levels_touched(SCENE_G, n)

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 from . import Param, resolve_params
 
@@ -58,7 +59,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     sizes, exact_max = p["face_sizes"], p["exact_max"]
     convolve(environment(4), [2.0, 64.0], method="auto")  # warm-up: imports and scipy set-up not timed
     rows = []
-    for n in sizes:
+    for n in track(sizes, "kan-table1: face sizes", unit="size"):
         cube = environment(n)
         t0 = time.perf_counter()
         res = convolve(cube, EXPONENTS, method="auto", rtol=1e-3)

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 from . import Param, resolve_params
 
@@ -50,7 +51,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     rms_rows, lobe_rows, prof_rows = [], [], []
     summary: dict = {"quick": quick, "n_theta": n_theta, "theta_o_deg": np.degrees(thetas).tolist(),
                      "n_gamma": n_gamma, "n_phi": n_phi, "brdfs": {}}
-    for key, (name, params) in BRDFS.items():
+    for key, (name, params) in track(list(BRDFS.items()), "km00: BRDF fits", unit="BRDF"):
         t0 = time.perf_counter()
         f = B.get_brdf(name, **params)
         single = [km.fit_single_lobe(f, t, n_gamma=n_gamma, n_phi=n_phi) for t in thetas]

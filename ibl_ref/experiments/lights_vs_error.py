@@ -32,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..progress import track
+
 from . import Param, resolve_params
 
 NAME = "lights-vs-error"
@@ -103,7 +105,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     mask, _, r = orthographic_sphere(res)
     rows, images, checks = [], {}, {}
     t0 = time.perf_counter()
-    for env in ENVS:
+    for env in track(ENVS, "lights-vs-error: environments", unit="env"):
         cube = make_env(env, n)
         full = build_pyramid(cube)
         exact = {}

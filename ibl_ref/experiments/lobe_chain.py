@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 from . import params_from_settings, settings_with
 
@@ -99,7 +100,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     rows, meta_builds = [], {}
     t_start = time.perf_counter()
-    for env_name in st["envs"]:
+    for env_name in track(st["envs"], "lobe-chain: environments", unit="env"):
         env = make_env(env_name, n=st["env_size"])
         exact = {s: lobe_average(env, d, float(s)) for s in st["s_values"]}
         for pf in PREFILTERS:

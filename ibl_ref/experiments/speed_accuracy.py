@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import envmap
+from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 from . import Param, resolve_params
 
@@ -91,7 +92,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     rng = np.random.default_rng(SEED)
     rows = []
     summary = {"sizes": list(sizes), "exponents": list(S), "rtol": RTOL, "per_size": {}}
-    for n in sizes:
+    for n in track(sizes, "speed-accuracy: face sizes", unit="size"):
         cube = environment(n)
         P = 6 * n * n
         full_ref = n <= 64
