@@ -184,8 +184,10 @@ def plot(out_dir: Path) -> list:
             ax.plot([int(s["lights"]) for s in sel], [float(s["energy_cv"]) for s in sel], ls, marker=mk,
                     label=f"{env} {variant}")
     ax.set_xscale("log", base=2)
+    ax.set_xticks(counts, [str(c) for c in counts])  # light counts are integers
+    ax.minorticks_off()
     ax.set_yscale("log")
-    ax.set_xlabel("lights")
+    ax.set_xlabel("lights (regions)")
     ax.set_ylabel("CV of region energies (0 = equally important)")
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     p = out_dir / "mediancut_energy_spread.png"
