@@ -35,7 +35,7 @@ Concurrency (``workers``)
     whole call, serial included: a multi-threaded BLAS splits the SH matrix products differently and
     changes their rounding (≈ 5e-16 relative, measured at 128²).  The jobs do not depend on the worker
     count or back-end, so results are bit-for-bit identical for every ``workers``/``backend``.
-    Measured (``python experiments/bench_convolution.py --repeat 3``, 128² faces, the 8 exponents
+    Measured (``python benchmarks/bench_convolution.py --repeat 3``, 128² faces, the 8 exponents
     {1, 2, 5, 10, 20, 50, 100, 1000}, 2-core VM, load ≈ 1.2, three runs each): 3.0–3.6 s serial;
     2.0–2.3 s wall with 2 processes, 2.4–3.0 s with 2 threads.
 

@@ -21,7 +21,7 @@ tile's horizon) are handled per output texel:
     3.4 s CPU in one call vs ≈ 54 s per exponent for the dense gather (extrapolated in
     ``ibl-ref experiment speed-accuracy``); max relative difference to
     :func:`ibl_ref.phong_convolution.convolve_exact_many` 1.9e-14 at 64² (sky + 1e5 sun near a cube
-    corner, ``experiments/bench_convolution.py``).  ``leaf > 1`` is no faster at 128² and far less
+    corner, ``benchmarks/bench_convolution.py``).  ``leaf > 1`` is no faster at 128² and far less
     accurate (leaf 2: 29 s, bound 4.7e-4; leaf 8: 3.5 s, bound 2.4e-2), so ``auto`` keeps ``leaf = 1``;
 ``leaf > 1``
     an interval per (r, block, channel) from convexity of ``f(x) = max(x,0)^s`` on the block's range

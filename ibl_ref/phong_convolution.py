@@ -36,7 +36,7 @@ average tends to the radiance of the texel containing r, i.e. to the mirror look
 
 Complexity: O(N_out² · (k·N_in)²) operations per exponent (every output texel sees every source
 texel; ≈ 15–25 ns per texel pair, dominated by log/exp); memory is bounded by chunking output texels
-(chunk × sources weight matrix, ≈ 2 MB).  Measured CPU time (``experiments/bench_phong_convolution.py``,
+(chunk × sources weight matrix, ≈ 2 MB).  Measured CPU time (``benchmarks/bench_phong_convolution.py``,
 1 BLAS thread, shared machine under heavy load): s = 16 at 32² faces 0.52 s, at 64² 9.2 s; eight
 exponents at once 2.6 s (32²) and 32 s (64²) — the shared dot products/logs save ≈ 2×.  128² would
 take ≈ 16 × 9 s ≈ 2.5 min per exponent (N⁴ scaling); use :func:`convolve_sparse` there.

@@ -8,7 +8,7 @@ rasterizer (:mod:`ibl_ref.raster`) can be checked against an independent algorit
 Backend: ``trimesh`` uses Embree (package ``embreex``) automatically when it is installed, otherwise its pure
 NumPy/rtree intersector, which is ~3 orders of magnitude slower (docs/background.md §4: ~0.5–1 M rays/s with Embree,
 < 1 k rays/s without; measured here: ~100 rays/s on the 16k-triangle teapot, see
-``experiments/bench_raster.py`` and :data:`FALLBACK_TESTS_PER_S`).  :func:`backend` reports which one is
+``benchmarks/bench_raster.py`` and :data:`FALLBACK_TESTS_PER_S`).  :func:`backend` reports which one is
 used; casting more than :data:`WARN_RAYS` rays without Embree emits a warning with an estimated run time.
 
 For a *directional* light all shadow rays are parallel, and :func:`parallel_visibility` answers them exactly

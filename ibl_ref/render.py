@@ -24,7 +24,7 @@ and the light counts as visible), and Eq. 5 as printed has no such term.  ``hori
 paper's semantics for every method (the binned exact route then only counts *other* geometry, like a shadow map
 would); ``horizon=True`` multiplies every VIS_i by [n_face·ω_i > 0] for all methods.  The trimesh route always
 includes the receiver's own surface (its rays start on it).  On the teapot-on-ground scene of
-``experiments/bench_raster.py --render`` this term alone changes the image by ~10 % (mean |Δ| / mean).
+``benchmarks/bench_raster.py --render`` this term alone changes the image by ~10 % (mean |Δ| / mean).
 
 **Materials (Eq. 5 with a diffuse and a glossy term).**  With ``materials={id: Material(kd, ks, g)}`` every
 pixel is shaded as

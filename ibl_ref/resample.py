@@ -16,11 +16,11 @@ the destination side is normalised exactly on application:
 
 Constants are reproduced exactly, and ∫L dω is conserved *per source texel* to the remaining
 imbalance (measured ≤ 4.6e-5 for H = 16 … 512, 1.0e-4 at H = 1024, 1.8e-4 at H = 2048 with 50 steps, N = H/2:
-``python experiments/bench_probe_sizes.py --kernels``; :attr:`ConservativeKernel.energy_error_ll`,
+``python benchmarks/bench_probe_sizes.py --kernels``; :attr:`ConservativeKernel.energy_error_ll`,
 ``energy_error_cube``), so even a one-texel sun keeps its energy wherever it lies — including the tiny
 lat-long texels near the poles,
 which a destination-side supersampler skips or over-counts (the ``gather`` method changes the energy of
-a single bright lat-long texel by up to 100 % at k = 2; measured in ``experiments/bench_resample.py``).
+a single bright lat-long texel by up to 100 % at k = 2; measured in ``benchmarks/bench_resample.py``).
 
 **gather** (also used by :func:`cube_to_cube` for non-integer ratios).  A destination texel T receives
 the area-weighted average of the interpolated source over T, L_T = ∫_T L dω / Ω_T, evaluated with
@@ -44,7 +44,7 @@ face centre (lat-long H: π/H; cube N: π/(2N)); ``gather`` sub-samples the dest
 destination, p_b = source pitch), ``conservative`` the lat-long grid (p_a = lat-long, p_b = cube pitch;
 doubled until every cube texel receives samples).  That places ≥ 2 sub-samples per texel pitch of the other grid.
 
-Accuracy (texel averages of a smooth function, ``experiments/bench_resample.py``): mean round-trip
+Accuracy (texel averages of a smooth function, ``benchmarks/bench_resample.py``): mean round-trip
 error O(h²); the maximum error is first order near the lat-long poles (a lat-long texel's value is
 treated as constant over a sliver whose centroid is not its centre) and, for ``conservative``, in the
 cube-corner texels (the hat of the corner is shared by three faces).
@@ -447,7 +447,7 @@ class ConservativeKernel:
       :attr:`energy_error_cube`).
 
     The residual imbalances are the worst-case relative change of ∫L dω for a map that is zero except
-    in one source texel (measured with ``experiments/bench_probe_sizes.py --kernels``; see there).
+    in one source texel (measured with ``benchmarks/bench_probe_sizes.py --kernels``; see there).
 
     **Symmetry (speed and memory).**  For even ``h`` both grids are invariant under the 8 maps g of
     ``_GROUP`` (4 rotations about +Y × the equator mirror), so only the columns of K whose source texel

@@ -11,7 +11,7 @@ import numpy as np
 
 from .errors import IBLError
 
-__all__ = ["srgb_encode", "reinhard", "exposure_srgb", "auto_exposure", "save_png"]
+__all__ = ["srgb_encode", "reinhard", "exposure_srgb", "auto_exposure", "save_png", "backdrop", "with_backdrop"]
 
 
 def srgb_encode(x) -> np.ndarray:
@@ -54,12 +54,25 @@ def exposure_srgb(img, stops: float = 0.0, operator: str = "reinhard") -> np.nda
     return srgb_encode(a)
 
 
-def save_png(path, img, stops: float | None = None, mask=None, operator: str = "reinhard"):
-    """Tone-map and write an 8-bit PNG atomically (matplotlib ``imsave`` via :func:`ibl_ref.atomic.atomic_path`)."""
-    import matplotlib
+def backdrop(env, camera) -> np.ndarray:
+    """(H, W, C) radiance of the environment seen through every pixel of ``camera`` (bilinear, seam-aware).
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    The background of a render for display: what a camera would see behind the object.
+    """
+    from .sampling import sample_bilinear
+
+    _, d = camera.pixel_rays(normalize=True)
+    return sample_bilinear(np.asarray(env, dtype=np.float64), d.reshape(-1, 3)).reshape(d.shape[:2] + (-1,))
+
+
+def with_backdrop(img, mask, background) -> np.ndarray:
+    """``img`` where ``mask`` (covered pixels), ``background`` elsewhere (display only)."""
+    return np.where(np.asarray(mask, bool)[..., None], np.asarray(img, float), np.asarray(background, float))
+
+
+def save_png(path, img, stops: float | None = None, mask=None, operator: str = "reinhard"):
+    """Tone-map and write an 8-bit sRGB PNG atomically (nearest code value; :func:`ibl_ref.atomic.atomic_path`)."""
+    import matplotlib.image as mpimg  # writing a PNG needs no pyplot and no backend
 
     from .atomic import atomic_path
 
@@ -69,6 +82,10 @@ def save_png(path, img, stops: float | None = None, mask=None, operator: str = "
     out = exposure_srgb(a, stops, operator)
     if out.ndim == 3 and out.shape[-1] == 1:
         out = out[..., 0]
+    if out.ndim == 2:
+        out = np.repeat(out[..., None], 3, axis=-1)
+    # round to the nearest 8-bit code (matplotlib's float → uint8 conversion truncates: up to 1 code too dark)
+    out8 = np.round(np.clip(out, 0.0, 1.0) * 255.0).astype(np.uint8)
     with atomic_path(path, suffix=".png") as tmp:
-        plt.imsave(tmp, out, cmap="gray" if out.ndim == 2 else None, vmin=0.0, vmax=1.0, format="png")
+        mpimg.imsave(tmp, out8, format="png")
     return path

@@ -37,7 +37,7 @@ Pass ``sigma_texels`` to override the mapping.
 
 Precision (``dtype="float16"``): M2 − M1² cancels catastrophically.  With d ≈ 0.5, the half-float spacing of
 M2 ≈ 0.25 is 2⁻¹³ ≈ 1.2e-4, so variances below ~1e-4 (depth spreads below ~1 % of the depth range) are
-noise; ``experiments/bench_raster.py`` and the tests measure the resulting visibility error.
+noise; ``benchmarks/bench_raster.py`` and the tests measure the resulting visibility error.
 """
 
 from __future__ import annotations

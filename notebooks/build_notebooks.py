@@ -3,7 +3,9 @@
     python notebooks/build_notebooks.py
 
 The notebooks only import ``ibl_ref`` and call its functions; they define no core logic.  CI executes
-every notebook at quick sizes (``tests/test_notebooks.py``).
+every notebook at quick sizes with the notebook's own (inline) matplotlib backend and checks that every
+figure an experiment writes is shown (``tests/test_notebooks.py``).  Results go to a temporary folder (or
+``$IBL_REF_NOTEBOOK_OUT``), so running a notebook leaves nothing behind in ``notebooks/``.
 """
 
 from pathlib import Path
@@ -15,6 +17,8 @@ HERE = Path(__file__).resolve().parent
 
 SETUP = """\
 import json
+import os
+import tempfile
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -24,19 +28,12 @@ import ibl_ref
 from ibl_ref import experiments
 from ibl_ref.atomic import read_csv
 
-OUT = Path("notebook_results")
-OUT.mkdir(exist_ok=True)
-print("ibl_ref", ibl_ref.__version__)"""
+# results of this notebook: a temporary folder unless $IBL_REF_NOTEBOOK_OUT names one
+OUT = Path(os.environ.get("IBL_REF_NOTEBOOK_OUT") or tempfile.mkdtemp(prefix="ibl_ref_notebook_"))
+OUT.mkdir(parents=True, exist_ok=True)
+print("ibl_ref", ibl_ref.__version__, "- results in", OUT)"""
 
 SHOW = """\
-def show_pngs(folder, limit=4):
-    pngs = sorted(Path(folder).glob("*.png"))[:limit]
-    for p in pngs:
-        fig = plt.figure(figsize=(10, 6))
-        plt.imshow(plt.imread(p)); plt.axis("off"); plt.title(p.name)
-        plt.show()
-    return [p.name for p in pngs]
-
 def show_csv(path, max_rows=30):
     rows = read_csv(path)
     cols = list(rows[0]) if rows else []
@@ -54,10 +51,10 @@ def figure_notebook(fig: str, exp_names, title: str, text: str):
              new_code_cell(SETUP), new_code_cell(SHOW)]
     for e in exp_names:
         cells.append(new_code_cell(
-            f"mod = experiments.get({e!r})\nprint(mod.DESCRIPTION)\nout = OUT / {e!r}\n"
+            f"mod = experiments.get({e!r})\nprint(experiments.describe(mod))\nout = OUT / {e!r}\n"
             f"summary = mod.run(out, quick=True)\nfigures = mod.plot(out)\n"
             f"print(json.dumps(summary, indent=1, default=str)[:3000])"))
-        cells.append(new_code_cell("show_pngs(out)"))
+        cells.append(new_code_cell("# every figure the experiment wrote, in order\nexperiments.show(figures)"))
         cells.append(new_code_cell(
             "for csv in sorted(out.glob('*.csv'))[:3]:\n    print('==', csv.name)\n    show_csv(csv, 15)"))
     return new_notebook(cells=cells, metadata={"kernelspec": {"name": "python3", "display_name": "Python 3",
@@ -129,8 +126,8 @@ SPEED = [
 mod = experiments.get("speed-accuracy")
 out = OUT / "speed-accuracy"
 summary = mod.run(out, quick=True)
-mod.plot(out)
-show_pngs(out)"""),
+figures = mod.plot(out)
+experiments.show(figures)"""),
     new_code_cell("""\
 from ibl_ref.convolve import convolve
 from ibl_ref.phong_convolution import convolve_exact

@@ -173,7 +173,17 @@ def test_any_leading_shape():
     d = np.random.default_rng(0).normal(size=(2, 3, 4, 3))
     f, r, c = E.direction_to_texel(d, 8)
     assert f.shape == r.shape == c.shape == (2, 3, 4)
-    assert E.face_uv_to_direction(f, 0.1, 0.2).shape == (2, 3, 4, 3)
+    # same values as one direction at a time (the shape handling changes nothing)
+    for idx in np.ndindex(2, 3, 4):
+        one = E.direction_to_texel(d[idx], 8)
+        assert (f[idx], r[idx], c[idx]) == tuple(int(np.asarray(v)) for v in one)
+    back = E.face_uv_to_direction(f, 0.1, 0.2)
+    assert back.shape == (2, 3, 4, 3)
+    for idx in np.ndindex(2, 3, 4):
+        np.testing.assert_array_equal(back[idx], E.face_uv_to_direction(int(f[idx]), 0.1, 0.2))
+    # and every texel found contains its direction: the direction's face is the one returned
+    face, _, _ = E.direction_to_face_uv(d)
+    np.testing.assert_array_equal(face, f)
 
 
 # ---- lat-long -------------------------------------------------------------------------------------

@@ -78,9 +78,16 @@ def test_every_cli_command_has_help(capsys):
     sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
     assert {"experiment", "reproduce"} <= set(sub.choices)
     for name, p in sub.choices.items():
-        text = p.format_help()
-        assert p.description or p.format_usage(), name
-        assert len(text) > 80, name
+        # a description of its own (not just the usage line), and every option explained in the help
+        assert p.description and len(p.description) > 40, name
+        with pytest.raises(SystemExit) as ex:
+            main([name, "--help"])
+        assert ex.value.code == 0
+        text = capsys.readouterr().out
+        assert " ".join(p.description.split())[:60] in " ".join(text.split()), name
+        for action in p._actions:
+            if action.option_strings and action.help and action.help != "==SUPPRESS==":
+                assert max(action.option_strings, key=len) in text, (name, action.option_strings)
 
 
 def test_cli_unknown_experiment_is_a_clean_error(capsys):

@@ -116,6 +116,16 @@ def test_product_extreme_exponents_no_nan(e1, e2, theta):
         assert np.isfinite(v)
     assert not np.isnan(f.log_p)
     assert 0 <= f.t <= theta and f.e_r >= 0 and f.p >= 0
+    # the exact integral of the product in closed form at the extremes:
+    # e = 0 lobes are hemispheres; two of them with axes θ apart overlap in a lune of 2(π − θ) sr
+    if e1 == 0.0 and e2 == 0.0:
+        assert f.integral_exact == pytest.approx(2 * (np.pi - theta), abs=1e-9)
+    # a 1e5 lobe is a near-delta of weight 2π/(e+1) at its axis: times the other lobe's value there
+    # (1 for a hemisphere containing it, 0 outside; cos(θ)^1e5 ≈ 0 for two narrow lobes θ apart);
+    # relative tolerance 1e-3 from the lobe's width (≈ 0.3°) against the hemisphere's edge or the other lobe
+    if max(e1, e2) == 1e5 and min(e1, e2) == 0.0:
+        inside = theta < np.pi / 2
+        assert f.integral_exact == pytest.approx(2 * np.pi / (1e5 + 1) * inside, rel=1e-3, abs=1e-12)
 
 
 def test_cap_exponent_closed_form_error_matches_quadrature():

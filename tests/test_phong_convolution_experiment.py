@@ -5,11 +5,10 @@ from ibl_ref.atomic import read_csv
 from ibl_ref.experiments import convergence
 
 
-def test_convergence_quick_run_and_plot(tmp_path, monkeypatch):
-    # smaller grids than the real quick run (test time budget); same code path
-    monkeypatch.setattr(convergence, "QUICK_SIZES", (4, 8, 16))
-    monkeypatch.setattr(convergence, "QUICK_SS", (4, (1, 2, 4), 8))
-    summary = convergence.run(tmp_path, quick=True)
+def test_convergence_quick_run_and_plot(tmp_path):
+    # smaller grids than the real quick run (test time budget; the experiment's parameters); same code path
+    summary = convergence.run(tmp_path, quick=True, face_sizes=(4, 8, 16), ss_face_size=4, ss_factors=(1, 2, 4),
+                              ss_reference=8)
     rows = read_csv(tmp_path / "convergence_resolution.csv")
     assert len(rows) == 3 * len(convergence.EXPONENTS)
     # second-order convergence for a resolved lobe (s = 16): observed 3.06 (4→8), 1.91 (8→16);

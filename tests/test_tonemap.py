@@ -32,12 +32,20 @@ def test_auto_exposure_maps_percentile_to_key():
 
 
 def test_save_png_roundtrip(tmp_path):
-    import matplotlib.pyplot as plt
+    import matplotlib.image as mpimg
 
-    img = np.random.default_rng(0).uniform(0, 1e5, (6, 5, 3))
-    p = tm.save_png(tmp_path / "x.png", img)
-    back = plt.imread(p)
-    assert back.shape[:2] == (6, 5)
+    # values chosen so the display value is known in closed form: Reinhard x/(1+x) gives 0, 1/2, 3/4, 1e5/(1+1e5),
+    # then the sRGB curve (IEC 61966-2-1) written out here, independent of tonemap.srgb_encode
+    x = np.array([0.0, 1.0, 3.0, 1e5])
+    img = np.stack([np.tile(x, (2, 1))] * 3, axis=-1)  # (2, 4, 3)
+    p = tm.save_png(tmp_path / "x.png", img, stops=0.0)
+    back = mpimg.imread(p)[..., :3]
+    v = x / (1 + x)
+    want = np.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1 / 2.4) - 0.055)
+    assert back.shape == (2, 4, 3)
+    # 8-bit PNG: within half a code value
+    np.testing.assert_allclose(back, np.broadcast_to(want[None, :, None], back.shape), atol=0.5 / 255 + 1e-6)
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["x.png"]  # atomic: no temporary file left
 
 
 def test_bad_inputs():

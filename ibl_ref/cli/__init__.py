@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import math
+import os
 import pkgutil
 import re
 import sys
@@ -130,6 +131,8 @@ def _flag_hints(message: str, sp) -> str:
 
 
 def main(argv=None) -> int:
+    # the command line only writes figure files: a non-interactive backend unless the user chose one
+    os.environ.setdefault("MPLBACKEND", "Agg")
     parser = build_parser()
     args = parser.parse_args(argv)  # usage errors / --help raise SystemExit, as argparse does
     if not getattr(args, "func", None):

@@ -1,35 +1,62 @@
-"""``ibl-ref experiment NAME`` and ``ibl-ref reproduce``: run the figure experiments."""
+"""``ibl-ref experiment NAME`` and ``ibl-ref reproduce``: run the figure experiments.
+
+Every experiment gets its own sub-parser, built from its declarations (:mod:`ibl_ref.experiments`): its
+``--help`` shows the description, the paper item, the typical run time, the outputs and one ``--PARAM``
+option per parameter (default and quick value).
+"""
 
 from __future__ import annotations
 
+import argparse
 import json
-import time
 from pathlib import Path
 
 from .. import experiments
 
 
-def _run_one(mod, out: Path, quick: bool) -> dict:
+def _run_one(mod, out: Path, quick: bool, overrides: dict | None = None) -> dict:
     from ..atomic import ensure_output_dir
 
     ensure_output_dir(out, "--out folder")  # under a file / read-only: one-line error, no traceback
-    t0 = time.perf_counter()
-    summary = mod.run(out, quick=quick) or {}
-    t1 = time.perf_counter()
-    figs = mod.plot(out) or []
-    t2 = time.perf_counter()
-    return {"experiment": mod.NAME, "quick": quick, "compute_time_s": round(t1 - t0, 3),
-            "plot_time_s": round(t2 - t1, 3), "figures": [str(f) for f in figs], "summary": summary}
+    return experiments.run_experiment(mod, out, quick, overrides)
+
+
+def experiment_parser(mod, defaults=None) -> argparse.ArgumentParser:
+    """The parser of ``ibl-ref experiment NAME``: common options plus one ``--PARAM`` per parameter."""
+    d = defaults or {}
+    e = argparse.ArgumentParser(prog=f"ibl-ref experiment {mod.NAME}", description=experiments.describe(mod),
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    e.add_argument("--out", default=d.get("out", "results"), help="output folder (default: results)")
+    e.add_argument("--quick", action="store_true", default=d.get("quick", False),
+                   help="quick sizes (the parameters' quick values) for a fast run")
+    e.add_argument("--no-subdir", dest="subdir", action="store_false", default=d.get("subdir", True),
+                   help="write directly into --out instead of --out/NAME")
+    g = e.add_argument_group("parameters of this experiment (default = full run; quick = with --quick)")
+    for prm in getattr(mod, "PARAMS", ()):
+        q = "" if prm.quick is None else f"; quick: {experiments._fmt(prm.quick)}"
+        g.add_argument(f"--{prm.flag}", dest=f"param_{prm.name}", metavar="V",
+                       help=f"{prm.help} (default: {experiments._fmt(prm.default)}{q})".replace("%", "%%"))
+    return e
+
+
+def _overrides(mod, args) -> dict:
+    out = {}
+    for p in getattr(mod, "PARAMS", ()):
+        text = getattr(args, f"param_{p.name}", None)
+        if text is not None:
+            out[p.name] = p.parse(text)
+    return out
 
 
 def cmd_experiment(args) -> int:
-    if args.list or not args.name:
+    if args.list or not getattr(args, "name", None):
         for name, mod in experiments.available().items():
             print(f"{name:16s} {getattr(mod, 'DESCRIPTION', '')}")
         return 0
     mod = experiments.get(args.name)
+    args = experiment_parser(mod, vars(args)).parse_args(args.rest)
     out = Path(args.out) / mod.NAME if args.subdir else Path(args.out)
-    res = _run_one(mod, out, args.quick)
+    res = _run_one(mod, out, args.quick, _overrides(mod, args))
     print(json.dumps({k: v for k, v in res.items() if k != "summary"}, indent=1))
     print(f"results in {out}")
     return 0
@@ -63,7 +90,8 @@ def cmd_reproduce(args) -> int:
     for i, mod in enumerate(chosen, 1):
         print(f"[{i}/{len(chosen)}] {mod.NAME}: {getattr(mod, 'DESCRIPTION', '')}", flush=True)
         res = _run_one(mod, out / mod.NAME, args.quick)
-        print(f"    done in {res['compute_time_s'] + res['plot_time_s']:.1f} s; figures: {', '.join(res['figures']) or '-'}")
+        print(f"    {mod.NAME} done in {res['compute_time_s'] + res['plot_time_s']:.1f} s; "
+              f"figures: {', '.join(res['figures']) or '-'}", flush=True)
         results.append(res)
     skipped = sorted(set(exps) - {m.NAME for m in chosen})
     write_json(out / "reproduce_summary.json", {"quick": args.quick, "runs": results, "skipped_in_quick": skipped})
@@ -80,12 +108,14 @@ def register(sub) -> None:
     p = sub.add_parser(
         "experiment",
         help="run one experiment (a paper figure or a speed/accuracy study) and plot it",
-        description="Run one experiment: compute its data into CSV/JSON under --out, then plot PNG/PDF "
-        "figures from those files. 'ibl-ref experiment --list' shows the experiments.",
+        description="Run one experiment: compute its data into CSV/JSON under --out, then plot PNG "
+        "figures from those files. 'ibl-ref experiment --list' shows the experiments, "
+        "'ibl-ref experiment NAME --help' what one reproduces, its parameters, outputs and run time.",
     )
-    p.add_argument("name", nargs="?", help="experiment name (see --list)")
+    p.add_argument("name", nargs="?", help="experiment name (see --list); 'NAME --help' for its parameters")
+    p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
     p.add_argument("--out", default="results", help="output folder (default: results)")
-    p.add_argument("--quick", action="store_true", help="small sizes for a fast run (seconds to a minute)")
+    p.add_argument("--quick", action="store_true", help="quick sizes for a fast run (seconds to a minute)")
     p.add_argument("--list", action="store_true", help="list the experiments and exit")
     p.add_argument("--no-subdir", dest="subdir", action="store_false",
                    help="write directly into --out instead of --out/NAME")

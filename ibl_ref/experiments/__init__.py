@@ -1,28 +1,164 @@
 """Experiments that reproduce the papers' figures and measure the lab's speed/accuracy trades.
 
-Each experiment is a module of this package defining
+The experiment framework.  Each experiment is a module of this package declaring
 
 ``NAME`` (str)
     the name used by ``ibl-ref experiment NAME``;
 ``DESCRIPTION`` (str)
-    one line for ``--help``;
-``run(out_dir: Path, quick: bool) -> dict``
-    computes the data and writes CSV/JSON into ``out_dir`` (units in column names or metadata);
+    one line for ``--list``;
+``PAPER`` (str)
+    which paper item it reproduces (figure, table, section or equation);
+``PARAMS`` (tuple of :class:`Param`)
+    its parameters: name, full-size default, quick value, help.  ``ibl-ref experiment NAME --PARAM VALUE``
+    overrides one; :func:`resolve_params` merges defaults, quick values and overrides;
+``RUNTIME`` (dict)
+    typical wall-clock time of the quick and the full run on the reference machine (2 shared cores; the load
+    average of the measurement in brackets where it was not quiet), ``{"quick": "8 s", "full": "1 min"}``;
+``OUTPUTS`` (tuple of str)
+    the files ``run`` writes (CSV/JSON/EXR, units in column names or metadata) and ``plot`` writes (PNG);
+``run(out_dir: Path, quick: bool, **params) -> dict``
+    the compute step: writes the data files into ``out_dir`` and returns a small summary;
 ``plot(out_dir: Path) -> list[Path]``
-    reads only those files and writes PNG/PDF figures.
+    the plot step: reads only those files and writes the figures (via :func:`ibl_ref.figures.save_figure`);
 ``IN_QUICK_REPRODUCE`` (bool, default True)
     whether ``ibl-ref reproduce --quick`` (the README's first command) runs it.
 
-Data flows one way: ``run`` never plots and ``plot`` never computes.
+Data flows one way: ``run`` never plots and ``plot`` never computes.  Shared scenes and environments come
+from the library (:func:`ibl_ref.synthetic_envs.make_env`, :mod:`ibl_ref.synthetic_meshes`,
+:mod:`ibl_ref.sphere_render`), never from another experiment.  :func:`run_experiment` runs both steps with
+progress lines (:mod:`ibl_ref.progress`) and timings; :func:`describe` is the ``--help`` text.
 """
 
 from __future__ import annotations
 
 import importlib
 import pkgutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
 from types import ModuleType
+from typing import Any
 
-__all__ = ["available", "get"]
+__all__ = ["available", "get", "Param", "resolve_params", "run_experiment", "describe", "show", "images_to_json",
+           "images_from_json"]
+
+
+@dataclass(frozen=True)
+class Param:
+    """One parameter of an experiment: ``default`` for the full run, ``quick`` for ``--quick``.
+
+    Values are numbers, strings or tuples of numbers/strings; on the command line a tuple is given
+    comma-separated (``--lights 6,24,96``).
+    """
+
+    name: str
+    default: Any
+    quick: Any = None
+    help: str = ""
+
+    def value(self, quick: bool):
+        return self.quick if quick and self.quick is not None else self.default
+
+    def parse(self, text: str):
+        """Convert a command-line string to this parameter's type (the type of ``default``)."""
+        from ..errors import IBLError
+
+        proto = self.default
+        try:
+            if isinstance(proto, (tuple, list)):
+                item = type(proto[0]) if len(proto) else str
+                return tuple(_scalar(item, t.strip()) for t in text.split(",") if t.strip())
+            return _scalar(type(proto), text)
+        except ValueError:
+            raise IBLError(f"--{self.flag}: expected {_kind(proto)}, got {text!r}") from None
+
+    @property
+    def flag(self) -> str:
+        return self.name.replace("_", "-")
+
+
+def _scalar(kind, text: str):
+    if kind is bool:
+        if text.lower() in ("1", "true", "yes", "on"):
+            return True
+        if text.lower() in ("0", "false", "no", "off"):
+            return False
+        raise ValueError(text)
+    return kind(text)
+
+
+def _kind(proto) -> str:
+    if isinstance(proto, (tuple, list)):
+        return f"a comma-separated list of {_kind(proto[0]) if len(proto) else 'values'}s"
+    return {int: "an integer", float: "a number", str: "a string", bool: "true/false"}.get(type(proto), "a value")
+
+
+def _fmt(v) -> str:
+    return ",".join(str(x) for x in v) if isinstance(v, (tuple, list)) else str(v)
+
+
+#: help texts of the settings keys the rendering experiments share
+SETTING_HELP = {'size': 'image width = height (pixels)', 'n_lights': 'median-cut lights (PEMs)', 'vsm_resolution': 'VSM resolution (texels)', 'env_size': 'environment cube face size (texels)', 'g': 'glossiness g of the material (s = 1/(1-g))', 'lights': 'light counts', 'materials': 'materials (diffuse, g0.9, g0.99)', 'vsm': 'VSM resolutions at 96 lights', 'vsm_default': 'VSM resolution of the light-count sweep', 'chain_factor': 'exact-lobe chain exponent ratio'}
+
+
+def params_from_settings(settings, helps: dict | None = None) -> tuple:
+    """:class:`Param` s from an experiment's ``settings(quick) -> dict`` (full values as defaults).
+
+    Lists become tuples; ``helps`` maps a name to its help text.
+    """
+    full, quick = settings(False), settings(True)
+    tup = lambda v: tuple(v) if isinstance(v, list) else v  # noqa: E731
+    helps = {**SETTING_HELP, **(helps or {})}
+    return tuple(Param(k, tup(v), tup(quick.get(k)) if quick.get(k) != v else None, helps.get(k, ""))
+                 for k, v in full.items())
+
+
+def settings_with(mod, quick: bool, params: dict) -> dict:
+    """``mod.settings(quick)`` updated with the resolved parameters (the ``run`` of a settings-based experiment)."""
+    import sys
+
+    mod = sys.modules[mod] if isinstance(mod, str) else mod
+    return {**mod.settings(quick), **resolve_params(mod, quick, params)}
+
+
+def resolve_params(mod: ModuleType, quick: bool, overrides: dict | None = None) -> dict:
+    """Parameter values of ``mod`` for a quick or full run, with ``overrides`` (name → value) applied.
+
+    ``mod`` may be the module or its ``__name__`` (an experiment's ``run`` calls
+    ``resolve_params(__name__, quick, params)``).  ``None`` values in ``overrides`` keep the default.
+    """
+    import sys
+
+    from ..errors import IBLError
+
+    if isinstance(mod, str):
+        mod = sys.modules[mod]
+
+    params = {p.name: p.value(quick) for p in getattr(mod, "PARAMS", ())}
+    for k, v in (overrides or {}).items():
+        if k not in params:
+            raise IBLError(f"experiment {mod.NAME}: unknown parameter {k!r}; parameters: "
+                           f"{', '.join(params) or '(none)'}")
+        if v is not None:
+            params[k] = v
+    return params
+
+
+def describe(mod: ModuleType) -> str:
+    """The ``ibl-ref experiment NAME --help`` text: description, paper item, parameters, outputs, run time."""
+    lines = [getattr(mod, "DESCRIPTION", ""), ""]
+    if getattr(mod, "PAPER", ""):
+        lines.append(f"Reproduces: {mod.PAPER}")
+    rt = getattr(mod, "RUNTIME", {})
+    if rt:
+        lines.append(f"Typical run time (reference machine, 2 shared cores; quick: load 0.3): --quick {rt.get('quick', '?')}, "
+                     f"full {rt.get('full', '?')}")
+    if not getattr(mod, "IN_QUICK_REPRODUCE", True):
+        lines.append("Not part of 'ibl-ref reproduce --quick' (too slow); run it on its own.")
+    outs = getattr(mod, "OUTPUTS", ())
+    if outs:
+        lines.append("Outputs (in OUT/NAME): " + ", ".join(outs))
+    return "\n".join(lines)
 
 
 def available() -> dict[str, ModuleType]:
@@ -45,3 +181,66 @@ def get(name: str) -> ModuleType:
 
         raise IBLError(f"unknown experiment {name!r}; available: {', '.join(sorted(exps)) or '(none yet)'}")
     return exps[name]
+
+
+def run_experiment(mod: ModuleType, out: Path, quick: bool, overrides: dict | None = None) -> dict:
+    """Compute step then plot step of ``mod`` into ``out``, with a status line per step and timings."""
+    from .. import progress
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    params = resolve_params(mod, quick, overrides)
+    t0 = time.perf_counter()
+    with progress.step(f"{mod.NAME}: compute", announce=False):
+        summary = mod.run(out, quick=quick, **params) or {}
+    t1 = time.perf_counter()
+    with progress.step(f"{mod.NAME}: plot", announce=False):
+        figs = mod.plot(out) or []
+    t2 = time.perf_counter()
+    return {"experiment": mod.NAME, "quick": quick, "params": {k: _jsonable(v) for k, v in params.items()},
+            "compute_time_s": round(t1 - t0, 3), "plot_time_s": round(t2 - t1, 3),
+            "figures": [str(f) for f in figs], "summary": summary}
+
+
+def _jsonable(v):
+    return list(v) if isinstance(v, tuple) else v
+
+
+def show(figures) -> list:
+    """Display the PNG files ``figures`` in a notebook (IPython), in order; returns their names.
+
+    Experiments close their figures after saving them, so a notebook shows what they wrote with this.
+    """
+    from IPython.display import Image, display
+
+    names = []
+    for f in figures:
+        f = Path(f)
+        if f.suffix.lower() == ".png":
+            display(Image(filename=str(f)))
+            names.append(f.name)
+    return names
+
+
+def images_to_json(images: dict, mask) -> dict:
+    """Images (H, W, C) → nested lists rounded to 6 significant digits (JSON-friendly), plus the mask.
+
+    The storage format of the rendering experiments' images (``*_images.json``), read by their plot step
+    with :func:`images_from_json`.
+    """
+    import numpy as np
+
+    out = {k: np.vectorize(lambda x: float(f"{x:.6g}"))(np.asarray(v)).tolist() for k, v in images.items()}
+    out["_mask"] = np.asarray(mask, dtype=int).tolist()
+    return out
+
+
+def images_from_json(path: Path):
+    """(images name → (H, W, C) float64, mask (H, W) bool) from a file written with :func:`images_to_json`."""
+    import json
+
+    import numpy as np
+
+    d = json.loads(Path(path).read_text())
+    mask = np.asarray(d.pop("_mask"), dtype=bool)
+    return {k: np.asarray(v, dtype=np.float64) for k, v in d.items()}, mask

@@ -20,11 +20,18 @@ from pathlib import Path
 
 import numpy as np
 
+from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
+from . import Param, resolve_params
 
 NAME = "claims"
 DESCRIPTION = "Knuth 2014 Sec. 5 filter claims (box ~4% at s=1, spikes, Gauss stable, cos <10%, sqrt-cos) checked"
+PAPER = "Knuth et al. 2014, Sec. 3.2 and Sec. 5 (the statements about Figs. 4 and 5, and energy conservation)"
 IN_QUICK_REPRODUCE = True
+PARAMS = (Param("face_size", 128, 64, "cube face size N (texels)"),
+          Param("exponents", 40, 24, "number of s_Phong values from 1 to the texel limit"))
+RUNTIME = {"quick": "2.4 s", "full": "105 s (load 3.5-6.9)"}
+OUTPUTS = ("claims.csv", "claims.json", "claims.png")
 
 ORDER_CODES = {"stf": "shrink_then_filter", "fts": "filter_then_shrink"}
 INTERPRETATIONS = [(o, v, c) for o in ORDER_CODES for v in ("integral", "radial") for c in ("texel", "centroid")]
@@ -136,14 +143,15 @@ def _energy_claim(n):
     return out
 
 
-def run(out_dir: Path, quick: bool) -> dict:
-    from .fig5 import compute_rows
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
+    from .fig5 import compute_rows  # the Fig. 5 error curves (public; same rows as fig5_errors.csv)
 
+    p = resolve_params(__name__, quick, params)
     t0 = time.perf_counter()
-    n = 64 if quick else 128
+    n = p["face_size"]
     rows = []
-    for order in ORDER_CODES.values():
-        rows += compute_rows(n, "centre", 24 if quick else 40, order=order)
+    for order in track(list(ORDER_CODES.values()), "claims: pyramid orders", unit="order"):
+        rows += compute_rows(n, "centre", p["exponents"], FILTERS, order=order)
     table = []
     evals = {ic: _evaluate(_curves(rows, *ic)) for ic in INTERPRETATIONS}
     for key, (statement, criterion) in STATEMENTS.items():
@@ -181,28 +189,29 @@ def run(out_dir: Path, quick: bool) -> dict:
 
 
 def plot(out_dir: Path) -> list[Path]:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..atomic import atomic_path
+    plt = pyplot()
 
     rows = read_csv(Path(out_dir) / "claims.csv")
     cells = [[r["claim"]] + [r[f"reproduced_{o}_{v}_{c}"] for o, v, c in INTERPRETATIONS] + [r["reproduced"]]
              for r in rows]
-    fig, ax = plt.subplots(figsize=(15, 0.4 * len(rows) + 1.2))
+    fig, ax = plt.subplots(figsize=(9.5, 0.2 * (len(rows) + 1) + 0.55))
     ax.axis("off")
     t = ax.table(cellText=cells, colLabels=["claim"] + [f"{o}/{v[:3]}/{c[:3]}" for o, v, c in INTERPRETATIONS]
                  + ["overall"],
-                 loc="center", cellLoc="left")
+                 loc="upper center", cellLoc="left")
     t.auto_set_font_size(False)
     t.set_fontsize(8)
-    t.scale(1, 1.3)
-    ax.set_title("Knuth 2014 claims: reproduced? (order stf=shrink_then_filter, fts=filter_then_shrink / "
-                 "volume definition / target axis)", fontsize=10)
+    t.auto_set_column_width(list(range(len(cells[0]))))  # every label fits its cell
+    colour = {"yes": "#d9f0d3", "no": "#f4cccc", "partly": "#fff2cc"}
+    for (i, j), cell in t.get_celld().items():
+        if i > 0 and j > 0:
+            cell.set_facecolor(colour.get(cell.get_text().get_text(), "white"))
+    ax.set_title("Knuth 2014 claims reproduced? Columns: pyramid order (stf = shrink_then_filter, fts = "
+                 "filter_then_shrink) /\nlobe volume (int = ∫f dω, rad = ⅓∫f³ dω) / target axis (tex = lit texel, "
+                 "cen = response centroid)", fontsize=9)
+    fig.tight_layout()
     p = Path(out_dir) / "claims.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
+    save_figure(fig, p, dpi=110)
     return [p]

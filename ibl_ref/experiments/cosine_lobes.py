@@ -23,11 +23,23 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path, read_csv, write_csv, write_json
+from ..progress import track
+from ..atomic import read_csv, write_csv, write_json
+from . import Param, resolve_params
 
 NAME = "cosine-lobes"
 DESCRIPTION = "Meunier 2009 cosine lobes: integral table, product-of-lobes fit errors (vs paper 7.1e-4), cap fit"
+PAPER = "Meunier et al. 2009, Eq. 20-21 (lobe integral), Sec. 4.1-4.2 (tables, product fit: mean error 7.1e-4), Eq. 32-34 (cap fit)"
 IN_QUICK_REPRODUCE = True
+PARAMS = (
+    Param("cap_angles", 6000, 2000, "cap half-angles alpha sampled in (0, pi/2]"),
+    Param("per_interval", 6, 2, "product-table exponent samples per decade interval (the paper's sampling)"),
+    Param("n_theta", 12, 5, "product-table angles theta in [0, pi]"),
+    Param("random_checks", 600, 60, "random off-node product-table look-ups checked against quadrature"),
+)
+RUNTIME = {"quick": "7.8 s", "full": "not measured"}
+OUTPUTS = ("integral_check.csv", "integral_table_error.csv", "cap_fit.csv", "product_fit.csv",
+           "product_table_interp.csv", "summary.json", "cosine_lobes_tables.png", "cosine_lobes_product.png")
 
 PAPER_MEAN_ABS_ERR = 7.1379e-4  # Meunier 2009 Sec. 4.1 (adaptive Simpson, tol 1e-7); variance 1.2091e-8, median 0
 PAPER_VAR_ABS_ERR = 1.2091e-8
@@ -44,7 +56,8 @@ def _weighted_stats(x, w):
     return dict(mean=mean, variance=var, median=median, max=float(x.max()))
 
 
-def run(out_dir: Path, quick: bool) -> dict:
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
+    p = resolve_params(__name__, quick, params)
     from .. import meunier2009 as m
 
     out_dir = Path(out_dir)
@@ -76,7 +89,7 @@ def run(out_dir: Path, quick: bool) -> dict:
                                      max_abs_err_sr=float(np.max(np.abs(approx - exact))))
 
     # 3. cap fit (Eq. 32-34) and its tables
-    alpha = np.linspace(np.pi / 2 / 1000, np.pi / 2, 2000 if quick else 6000)[:-1]
+    alpha = np.linspace(np.pi / 2 / 1000, np.pi / 2, p["cap_angles"])[:-1]
     alpha_mid = alpha + 0.5 * (alpha[1] - alpha[0])  # off-node angles
     e_cap = m.cap_exponent(alpha_mid)
     f2 = 2 * np.pi * 2 * np.sin(alpha_mid / 2) ** 2  # ∫ f_cap² = cap solid angle
@@ -100,12 +113,12 @@ def run(out_dir: Path, quick: bool) -> dict:
         fit_rel_l2_range=[float(np.sqrt(resid / f2).min()), float(np.sqrt(resid / f2).max())])
 
     # 4. product fit over the paper's sampling
-    per_interval, n_theta = (2, 5) if quick else (6, 12)
+    per_interval, n_theta = p["per_interval"], p["n_theta"]
     es = m.paper_exponent_samples(per_interval)
     thetas = np.linspace(0.0, np.pi, n_theta)
     rows = []
     t0 = time.perf_counter()
-    for i, e1 in enumerate(es):
+    for i, e1 in track(list(enumerate(es)), "cosine-lobes: product fits", unit="e1"):
         for e2 in es[i:]:
             wgt = 1.0 if e1 == e2 else 2.0
             for th in thetas:
@@ -144,7 +157,8 @@ def run(out_dir: Path, quick: bool) -> dict:
     #    linear interpolations"); exponents drawn like the paper's sampling: a random interval [d, 10d] (or [0,1]),
     #    uniform inside it
     t0 = time.perf_counter()
-    tab_per, tab_emax, tab_nt, n_rand = (2, 100.0, 5, 60) if quick else (4, 1000.0, 13, 600)
+    tab_per, tab_emax, tab_nt = (2, 100.0, 5) if quick else (4, 1000.0, 13)
+    n_rand = p["random_checks"]
     tab_es = m.paper_exponent_samples(tab_per, tab_emax)
     tab_th = np.linspace(0.0, np.pi, tab_nt)
     ptab_log = m.ProductTable(tab_es, tab_th, interp_p="log")
@@ -175,10 +189,9 @@ def run(out_dir: Path, quick: bool) -> dict:
 
 
 def plot(out_dir: Path) -> list[Path]:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out_dir = Path(out_dir)
     figs = []
@@ -204,9 +217,7 @@ def plot(out_dir: Path) -> list[Path]:
     ax[2].legend()
     fig.tight_layout()
     p = out_dir / "cosine_lobes_tables.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, p, dpi=110)
     figs.append(p)
 
     rows = read_csv(out_dir / "product_fit.csv")
@@ -241,8 +252,6 @@ def plot(out_dir: Path) -> list[Path]:
     ax[1].legend(fontsize=7)
     fig.tight_layout()
     p = out_dir / "cosine_lobes_product.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, p, dpi=110)
     figs.append(p)
     return figs

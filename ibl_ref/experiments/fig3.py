@@ -19,55 +19,44 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import write_json
+from . import Param, resolve_params
 
 NAME = "fig3"
 DESCRIPTION = "Knuth 2014 Fig. 3: a row of spheres from mirror to diffuse via the sqrtcos pyramid lookup"
+PAPER = "Knuth et al. 2014, Fig. 3 (glossiness row from one filter pyramid; Eq. 3 lookup)"
 IN_QUICK_REPRODUCE = True
+PARAMS = (
+    Param("face_size", 256, 64, "environment cube face size N (texels)"),
+    Param("pixels", 128, 48, "sphere image size (pixels)"),
+    Param("gloss", (1.0, 0.995, 0.98, 0.95, 0.9, 0.75, 0.5, 0.0), None, "glossiness values g, mirror (1) to diffuse (0)"),
+    Param("environment", "studio", None, "synthetic environment (ibl_ref.synthetic_envs.make_env name)"),
+)
+RUNTIME = {"quick": "0.4 s", "full": "5 s (load 3.4)"}
+OUTPUTS = ("fig3_spheres.json", "fig3.png")
 
-GLOSS = (1.0, 0.995, 0.98, 0.95, 0.9, 0.75, 0.5, 0.0)
+GLOSS = PARAMS[2].default
 
 
-def _environment(n: int):
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
+    from ..pyramid import build_pyramid
+    from ..sphere_render import render_sphere_lookup
     from ..synthetic_envs import make_env
 
-    return make_env("studio", n=n), "synthetic_envs.studio"
-
-
-def render_sphere(pyr, g: float, px: int) -> np.ndarray:
-    """(px, px, C) image of the unit sphere; background 0."""
-    from ..gloss_lookup import lookup
-
-    c = (np.arange(px) + 0.5) / px * 2 - 1
-    x, y = np.meshgrid(c, -c)  # y up
-    inside = x * x + y * y < 1.0
-    nrm = np.stack([x, y, np.sqrt(np.clip(1 - x * x - y * y, 0, 1))], axis=-1)[inside]
-    v = np.array([0.0, 0.0, 1.0])
-    r = 2.0 * (nrm @ v)[:, None] * nrm - v  # reflection of the view vector
-    img = np.zeros((px, px, pyr.levels[0].shape[3]))
-    img[inside] = lookup(pyr, r, g)
-    return img
-
-
-def run(out_dir: Path, quick: bool) -> dict:
-    from ..pyramid import build_pyramid
-
-    n, px = (64, 48) if quick else (256, 128)
-    env, env_name = _environment(n)
-    pyr = build_pyramid(env, "sqrtcos")
-    spheres = [render_sphere(pyr, g, px).astype(np.float32).round(6).tolist() for g in GLOSS]
+    p = resolve_params(__name__, quick, params)
+    n, px = p["face_size"], p["pixels"]
+    env_name = f"synthetic_envs.{p['environment']}"
+    pyr = build_pyramid(make_env(p["environment"], n=n), "sqrtcos")
+    spheres = [render_sphere_lookup(pyr, g, px).astype(np.float32).round(6).tolist() for g in p["gloss"]]
     write_json(Path(out_dir) / "fig3_spheres.json", {"face_size": n, "pixels": px, "environment": env_name,
-                                                     "kernel": "sqrtcos", "gloss": list(GLOSS),
+                                                     "kernel": "sqrtcos", "gloss": list(p["gloss"]),
                                                      "images_linear_rgb": spheres})
     return {"face_size": n, "pixels": px, "environment": env_name}
 
 
 def plot(out_dir: Path) -> list[Path]:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..atomic import atomic_path
+    plt = pyplot()
 
     d = json.loads((Path(out_dir) / "fig3_spheres.json").read_text())
     imgs = [np.asarray(a, dtype=np.float64) for a in d["images_linear_rgb"]]
@@ -82,7 +71,5 @@ def plot(out_dir: Path) -> list[Path]:
     fig.suptitle(f"Fig. 3 reproduction ({d['environment']}, sqrtcos pyramid, N={d['face_size']})", fontsize=9)
     fig.tight_layout()
     p = Path(out_dir) / "fig3.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, p, dpi=110)
     return [p]

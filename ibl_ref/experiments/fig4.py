@@ -18,19 +18,24 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import read_csv, write_csv
+from . import Param, resolve_params
 
 NAME = "fig4"
 DESCRIPTION = "Knuth 2014 Fig. 4: polar cross-sections of the s=1 lobe for MIP-only/gauss/cos/box/sqrtcos"
+PAPER = "Knuth et al. 2014, Fig. 4 (s = 1 lobe of each 5x5 filter's MIP pyramid vs the cosine target)"
 IN_QUICK_REPRODUCE = True
+PARAMS = (Param("face_size", 256, 64, "cube face size N of the pyramid (texels)"),)
+RUNTIME = {"quick": "1.0 s", "full": "11 s (load 3.5)"}
+OUTPUTS = ("fig4_cross_sections.csv", "fig4_levels.csv", "fig4.png")
 
 KERNELS = ("none", "gauss", "cos", "box", "sqrtcos")
 TITLES = {"none": "MIP map only", "gauss": "Gaussian", "cos": "cosine", "box": "box", "sqrtcos": "sqrt cosine"}
 
 
-def run(out_dir: Path, quick: bool) -> dict:
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..lobe_analysis import LobeResponse, target_lobe
 
-    n = 64 if quick else 256
+    n = resolve_params(__name__, quick, params)["face_size"]
     s = 1.0
     theta = np.deg2rad(np.linspace(-180.0, 180.0, 721))
     rows, lev_rows = [], []
@@ -59,18 +64,15 @@ def run(out_dir: Path, quick: bool) -> dict:
 
 
 def plot(out_dir: Path) -> list[Path]:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..atomic import atomic_path
+    plt = pyplot()
 
     rows = read_csv(Path(out_dir) / "fig4_cross_sections.csv")
     levs = {(r["kernel"], r["volume"]): r for r in read_csv(Path(out_dir) / "fig4_levels.csv")}
     vols = ("integral", "radial")
     fig, axes = plt.subplots(len(vols), len(KERNELS), subplot_kw={"projection": "polar"},
-                             figsize=(3.0 * len(KERNELS), 3.2 * len(vols)))
+                             figsize=(3.0 * len(KERNELS), 3.6 * len(vols)), layout="constrained")
     for i, vol in enumerate(vols):
         for j, k in enumerate(KERNELS):
             rr = [r for r in rows if r["kernel"] == k and r["volume"] == vol]
@@ -79,15 +81,17 @@ def plot(out_dir: Path) -> list[Path]:
             ax.plot(th, [float(r["target"]) for r in rr], color="blue", lw=1.2)
             ax.plot(th, [float(r["response"]) for r in rr], color="red", lw=1.0)
             ax.set_theta_zero_location("N")
+            ax.set_thetagrids([0, 45, 90, 135, 180, 225, 270, 315],
+                              ["0°", "45°", "90°", "135°", "±180°", "−135°", "−90°", "−45°"], fontsize=7)
             ax.set_ylim(0, 1.05)
-            ax.set_yticklabels([])
+            ax.set_rticks([0.25, 0.5, 0.75, 1.0])
+            ax.set_yticklabels(["", "0.5", "", "1"], fontsize=6)
+            ax.set_rlabel_position(112.5)
             lv = levs[(k, vol)]
             ax.set_title(f"{TITLES[k]} ({vol})\nlevel {float(lv['level']):.2f}, err {float(lv['err_symdiff_pct']):.1f}%",
-                         fontsize=8)
-    fig.suptitle("Fig. 4 reproduction: s=1 target (blue) vs pyramid lobe (red)", fontsize=10)
-    fig.tight_layout()
+                         fontsize=8, pad=10)
+    fig.suptitle("Fig. 4 reproduction: s = 1 target max(cos θ, 0) (blue) vs pyramid lobe (red), both peak-normalised "
+                 "(radius: relative response); θ = angle from the lit texel's direction", fontsize=9)
     p = Path(out_dir) / "fig4.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, p, dpi=100)
     return [p]

@@ -21,10 +21,19 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import read_csv, write_csv, write_json
+from . import Param, resolve_params
 
 NAME = "fig5"
 DESCRIPTION = "Knuth 2014 Fig. 5: relative lobe error vs s_Phong for none/gauss/cos/box/sqrtcos filters"
+PAPER = "Knuth et al. 2014, Fig. 5 (relative lobe error vs s_Phong of the five filters, Sec. 5)"
 IN_QUICK_REPRODUCE = True
+PARAMS = (
+    Param("face_sizes", (64, 128, 256), (64,), "face sizes N with all three white-texel positions (centre, edge, corner)"),
+    Param("centre_only_sizes", (512,), (128,), "further face sizes with the face-centre position only"),
+    Param("exponents", 32, 24, "number of s_Phong values from 1 to the texel limit (log spaced)"),
+)
+RUNTIME = {"quick": "7.9 s", "full": "not measured (N up to 512)"}
+OUTPUTS = ("fig5_errors.csv", "fig5_meta.json", "fig5_<N>.png", "fig5_<N>_centroid.png")
 
 KERNELS = ("none", "gauss", "cos", "box", "sqrtcos")
 # the paper's colours/styles (Fig. 5 caption)
@@ -33,11 +42,12 @@ STYLE = {"none": dict(color="darkviolet", ls=":"), "gauss": dict(color="black", 
          "sqrtcos": dict(color="blue", ls="-")}
 
 
-def configs(quick: bool):
+def configs(quick: bool, **params):
     """(face_size, position, s-count) combinations of the quick and the full run."""
-    if quick:
-        return [(64, p, 24) for p in ("centre", "edge", "corner")] + [(128, "centre", 24)]
-    return [(n, p, 32) for n in (64, 128, 256) for p in ("centre", "edge", "corner")] + [(512, "centre", 32)]
+    p = resolve_params(__name__, quick, params)
+    k = p["exponents"]
+    return ([(n, pos, k) for n in p["face_sizes"] for pos in ("centre", "edge", "corner")]
+            + [(n, "centre", k) for n in p["centre_only_sizes"]])
 
 
 def compute_rows(n, position, count, kernels=KERNELS, order="shrink_then_filter", seam="neighbour"):
@@ -52,13 +62,13 @@ def compute_rows(n, position, count, kernels=KERNELS, order="shrink_then_filter"
     return rows
 
 
-def run(out_dir: Path, quick: bool) -> dict:
-    from tqdm import tqdm
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
+    from ..progress import track
 
     out_dir = Path(out_dir)
     t0 = time.perf_counter()
     rows, timing = [], []
-    for n, pos, count in tqdm(configs(quick), desc="fig5 configs", leave=False):
+    for n, pos, count in track(configs(quick, **params), desc="fig5 configurations", unit="config"):
         t = time.perf_counter()
         rows += compute_rows(n, pos, count)
         timing.append({"face_size": n, "position": pos, "time_s": round(time.perf_counter() - t, 3)})
@@ -76,12 +86,9 @@ def run(out_dir: Path, quick: bool) -> dict:
 
 
 def plot(out_dir: Path) -> list[Path]:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..atomic import atomic_path
+    plt = pyplot()
 
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "fig5_errors.csv")
@@ -96,9 +103,13 @@ def plot(out_dir: Path) -> list[Path]:
         for n in sorted({k[0] for k in groups}):
             positions = [p for p in ("centre", "edge", "corner") if any(k[0] == n and k[3] == p for k in groups)]
             vols = ("integral", "radial")
-            fig, axes = plt.subplots(len(vols), len(positions), figsize=(4.2 * len(positions), 3.4 * len(vols)),
-                                     squeeze=False, sharex=True)
+            fig, axes = plt.subplots(len(vols), len(positions),
+                                     figsize=(max(4.4 * len(positions), 7.0), 3.4 * len(vols)),
+                                     squeeze=False, sharex=True, layout="constrained")
             for i, vol in enumerate(vols):
+                # the y range of a row shows every curve (the unfiltered "none" pyramid reaches ~170 %)
+                top = max((max(groups[key][1]) for key in groups
+                           if key[0] == n and key[1] == centring and key[2] == vol), default=100.0)
                 for j, pos in enumerate(positions):
                     ax = axes[i, j]
                     for k in KERNELS:
@@ -106,20 +117,18 @@ def plot(out_dir: Path) -> list[Path]:
                         if g:
                             ax.plot(np.array(g[0]), np.array(g[1]), label=k, **STYLE[k])
                     ax.set_xscale("log")
-                    ax.set_ylim(0, 160)
+                    ax.set_ylim(0, 1.05 * top)
                     ax.axhline(10, color="0.7", lw=0.6)
-                    ax.set_title(f"N={n}, {pos}, volume={vol}", fontsize=9)
+                    ax.set_title(f"N = {n}, lit texel at face {pos}, volume = {vol}", fontsize=9)
                     if i == len(vols) - 1:
-                        ax.set_xlabel("s_Phong")
+                        ax.set_xlabel("Phong exponent s")
                     if j == 0:
                         ax.set_ylabel("error, % of target volume")
-            axes[0, 0].legend(fontsize=8)
-            fig.suptitle(f"Fig. 5 reproduction (symmetric-difference error, target axis: {centring})", fontsize=10)
-            fig.tight_layout()
+            axes[0, -1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), title="filter")
+            fig.suptitle(f"Fig. 5 reproduction: symmetric-difference error\n(target axis: {centring}; grey line: 10 %)",
+                         fontsize=10)
             suffix = "" if centring == "texel" else "_centroid"
             p = out_dir / f"fig5_{n}{suffix}.png"
-            with atomic_path(p) as tmp:
-                fig.savefig(tmp, format="png", dpi=110)
-            plt.close(fig)
+            save_figure(fig, p, dpi=110)
             figs.append(p)
     return figs

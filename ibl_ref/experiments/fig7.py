@@ -17,11 +17,16 @@ from pathlib import Path
 
 import numpy as np
 
+from . import params_from_settings, settings_with
+from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 
 NAME = "fig7"
 DESCRIPTION = "Knuth 2014 Fig. 7: render time vs number of lights (teapot, cloth) with a per-stage breakdown"
+PAPER = "Knuth et al. 2014, Fig. 7 (frame time vs number of lights, teapot and cloth)"
 IN_QUICK_REPRODUCE = True
+RUNTIME = {"quick": "1.5 s", "full": "not measured"}
+OUTPUTS = ("fig7_timings.csv", "fig7_fit.json", "fig7.png")
 
 STAGES = ("raster", "shadow_maps", "blur", "visibility", "lookup", "shading")
 SCENES = ("teapot", "cloth")
@@ -31,6 +36,9 @@ def settings(quick: bool) -> dict:
     if quick:
         return dict(lights=[6, 12, 24], size=64, vsm_resolution=128, env_size=32)
     return dict(lights=[6, 12, 24, 48, 96, 192], size=128, vsm_resolution=256, env_size=64)
+
+
+PARAMS = params_from_settings(settings)
 
 
 def fit_line(x, y) -> dict:
@@ -44,17 +52,17 @@ def fit_line(x, y) -> dict:
     return dict(slope_s_per_light=float(a), intercept_s=float(b), r2=float(r2))
 
 
-def run(out_dir: Path, quick: bool) -> dict:
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..ao_modes import default_camera, render_modes
     from ..pem import build_pems
     from ..synthetic_envs import make_env
     from ..synthetic_meshes import make_mesh
 
     out_dir = Path(out_dir)
-    st = settings(quick)
+    st = settings_with(__name__, quick, params)
     env = make_env("sky_sun", n=st["env_size"])
     rows = []
-    for scene in SCENES:
+    for scene in track(SCENES, "fig7: scenes", unit="scene"):
         meshes = [(make_mesh(scene), 0)]
         cam = default_camera(meshes, size=st["size"])
         # warm-up (caches: calibration tables, samplers) so the first timed frame is not penalised
@@ -81,25 +89,25 @@ def run(out_dir: Path, quick: bool) -> dict:
 
 
 def plot(out_dir: Path) -> list:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..atomic import atomic_path
+    plt = pyplot()
 
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "fig7_timings.csv")
-    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4.2), layout="constrained")
     colors = {"teapot": "red", "cloth": "blue"}
     for scene in SCENES:
         r = [x for x in rows if x["scene"] == scene]
         x = np.array([float(q["lights"]) for q in r])
         y = np.array([float(q["frame_s"]) for q in r])
         ax[0].plot(x, y, "o-", color=colors[scene], label=scene)
+    counts = sorted({int(q["lights"]) for q in rows})
+    ax[0].set_xticks(counts, [str(c) for c in counts])  # light counts are integers
     ax[0].set_xlabel("number of lights")
-    ax[0].set_ylabel("frame time [s] (CPU, under load)")
-    ax[0].legend()
+    ax[0].set_ylabel("frame time (s, CPU wall clock)")
+    ax[0].set_ylim(0, None)
+    ax[0].legend(loc="upper left")
     ax[0].set_title("render time vs lights")
     labels = [f"{q['scene'][:3]} {q['lights']}" for q in rows]
     bottom = np.zeros(len(rows))
@@ -109,12 +117,10 @@ def plot(out_dir: Path) -> list:
         bottom += v
     ax[1].set_xticks(range(len(rows)))
     ax[1].set_xticklabels(labels, rotation=60, fontsize=7)
-    ax[1].set_ylabel("seconds")
-    ax[1].legend(fontsize=7)
+    ax[1].set_ylabel("time per frame (s)")
+    ax[1].set_xlabel("scene, number of lights")
+    ax[1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), title="stage")
     ax[1].set_title("where the time goes")
-    fig.tight_layout()
     p = out_dir / "fig7.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, p, dpi=100)
     return [p]

@@ -27,11 +27,18 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path, read_csv, write_csv, write_json
+from ..progress import track
+from ..atomic import read_csv, write_csv, write_json
+from . import Param, resolve_params
 
 NAME = "kan-table1"
 DESCRIPTION = "time for 8 exponents at once vs face size, next to Kán et al. 2015 Table 1 (mobile GPU)"
+PAPER = "Kan et al. 2015, Table 1 (time to prefilter 8 Phong exponents at once vs map resolution)"
 IN_QUICK_REPRODUCE = True
+PARAMS = (Param("face_sizes", (32, 64, 128, 256), (16, 32), "cube face sizes N"),
+          Param("exact_max", 64, 32, "largest face size also timed with the exact dense gather"))
+RUNTIME = {"quick": "1.7 s", "full": "not measured this session (README: 40 s)"}
+OUTPUTS = ("kan_table1.csv", "kan_table1.json", "kan_table1.png")
 
 EXPONENTS = (1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0, 1000.0)
 #: Kán et al. 2015, Table 1 (output resolution → seconds; NVIDIA Shield tablet, 8 maps at once)
@@ -39,17 +46,20 @@ KAN_TABLE1_S = {32: 0.040, 64: 1.450, 128: 6.360, 256: 28.090, 512: 158.370, 102
 CITATION = "Kan, Unterguggenberger, Kaufmann 2015, Table 1 (NVIDIA Shield tablet, OpenGL ES 3.0)"
 
 
-def run(out_dir: Path, quick: bool) -> dict:
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..convolve import convolve
     from ..phong_convolution import convolve_exact_many
-    from .speed_accuracy import environment
+    from ..synthetic_envs import SUN_NEAR_CORNER, make_env
+
+    def environment(n):  # the speed-accuracy environment: sky + a 1e5 sun near a cube corner
+        return make_env("sky_sun", n, sun_direction=SUN_NEAR_CORNER, sun_radiance=1e5)
 
     out_dir = Path(out_dir)
-    sizes = (16, 32) if quick else (32, 64, 128, 256)
-    exact_max = 32 if quick else 64
+    p = resolve_params(__name__, quick, params)
+    sizes, exact_max = p["face_sizes"], p["exact_max"]
     convolve(environment(4), [2.0, 64.0], method="auto")  # warm-up: imports and scipy set-up not timed
     rows = []
-    for n in sizes:
+    for n in track(sizes, "kan-table1: face sizes", unit="size"):
         cube = environment(n)
         t0 = time.perf_counter()
         res = convolve(cube, EXPONENTS, method="auto", rtol=1e-3)
@@ -90,10 +100,9 @@ def run(out_dir: Path, quick: bool) -> dict:
 
 
 def plot(out_dir: Path) -> list:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "kan_table1.csv")
@@ -112,7 +121,5 @@ def plot(out_dir: Path) -> list:
     ax.legend(fontsize=7)
     fig.tight_layout()
     p = out_dir / "kan_table1.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, p, dpi=110)
     return [p]

@@ -17,11 +17,22 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path, read_csv, write_csv, write_json
+from ..progress import track
+from ..atomic import read_csv, write_csv, write_json
+from . import Param, resolve_params
 
 NAME = "km00"
 DESCRIPTION = "Kautz & McCool 2000 greedy lobe fits: RMS error vs number of lobes (Fig. 7), lobes per elevation"
+PAPER = "Kautz & McCool 2000, Fig. 7 (RMS error of the greedy lobe fit vs number of lobes), Sec. 4-5"
 IN_QUICK_REPRODUCE = True
+PARAMS = (
+    Param("n_theta", 16, 5, "view elevations in [0, 80] degrees"),
+    Param("n_lobes", 8, 5, "maximum number of greedy lobes"),
+    Param("n_gamma", 256, 192, "BRDF samples in the polar angle"),
+    Param("n_phi", 64, 48, "BRDF samples in azimuth"),
+)
+RUNTIME = {"quick": "2.3 s", "full": "not measured"}
+OUTPUTS = ("rms_vs_lobes.csv", "lobes.csv", "profiles.csv", "summary.json", "km00_rms_vs_lobes.png", "km00_lobes.png")
 
 BRDFS = {
     "ward_ks0.8_a0.04": ("ward", dict(kd=0.0, ks=0.8, alpha=0.04)),
@@ -29,18 +40,18 @@ BRDFS = {
 }
 
 
-def run(out_dir: Path, quick: bool) -> dict:
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from .. import brdfs as B
     from .. import kautz_mccool2000 as km
 
     out_dir = Path(out_dir)
-    n_theta, n_lobes = (5, 5) if quick else (16, 8)
-    n_gamma, n_phi = (192, 48) if quick else (256, 64)
+    p = resolve_params(__name__, quick, params)
+    n_theta, n_lobes, n_gamma, n_phi = p["n_theta"], p["n_lobes"], p["n_gamma"], p["n_phi"]
     thetas = np.radians(np.linspace(0.0, 80.0, n_theta))
     rms_rows, lobe_rows, prof_rows = [], [], []
     summary: dict = {"quick": quick, "n_theta": n_theta, "theta_o_deg": np.degrees(thetas).tolist(),
                      "n_gamma": n_gamma, "n_phi": n_phi, "brdfs": {}}
-    for key, (name, params) in BRDFS.items():
+    for key, (name, params) in track(list(BRDFS.items()), "km00: BRDF fits", unit="BRDF"):
         t0 = time.perf_counter()
         f = B.get_brdf(name, **params)
         single = [km.fit_single_lobe(f, t, n_gamma=n_gamma, n_phi=n_phi) for t in thetas]
@@ -100,16 +111,15 @@ def run(out_dir: Path, quick: bool) -> dict:
 
 
 def plot(out_dir: Path) -> list[Path]:
-    import matplotlib
+    from ..figures import integer_ticks, pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "rms_vs_lobes.csv")
     keys = sorted({r["brdf"] for r in rows})
     figs = []
-    fig, ax = plt.subplots(1, len(keys), figsize=(5 * len(keys), 4), squeeze=False)
+    fig, ax = plt.subplots(1, len(keys), figsize=(5 * len(keys), 4), squeeze=False, layout="constrained")
     for a, key in zip(ax[0], keys):
         rr = [r for r in rows if r["brdf"] == key]
         mk = [(int(r["n_lobes"]), float(r["rel_rms"])) for r in rr if r["method"] == "multi"]
@@ -118,18 +128,16 @@ def plot(out_dir: Path) -> list[Path]:
             if r["method"] != "multi":
                 a.plot([1], [float(r["rel_rms"])], "s" if r["method"] == "single" else "^", ms=9,
                        label=f"{r['method']} lobe")
-        a.set(xlabel="number of lobes", ylabel="relative RMS error", title=key, ylim=(0, None))
+        a.set(xlabel="number of lobes", ylabel="relative RMS error of the BRDF fit", title=key, ylim=(0, None))
+        integer_ticks(a.xaxis)
         a.legend(fontsize=8)
-    fig.tight_layout()
     p = out_dir / "km00_rms_vs_lobes.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, p, dpi=110)
     figs.append(p)
 
     prof = read_csv(out_dir / "profiles.csv")
     lobes = read_csv(out_dir / "lobes.csv")
-    fig, ax = plt.subplots(2, len(keys), figsize=(5 * len(keys), 8), squeeze=False)
+    fig, ax = plt.subplots(2, len(keys), figsize=(5.5 * len(keys), 8.5), squeeze=False, layout="constrained")
     for j, key in enumerate(keys):
         pr = [r for r in prof if r["brdf"] == key]
         ths = sorted({float(r["theta_o_deg"]) for r in pr})
@@ -142,9 +150,10 @@ def plot(out_dir: Path) -> list[Path]:
             sel = [r for r in pr if float(r["theta_o_deg"]) == t and r["cut"] == "toward_horizon"]
             ax[0, j].plot([float(r["gamma_deg"]) for r in sel], [float(r["lobe"]) for r in sel], "--", color=col,
                           lw=1.6, label=f"θo={t:.0f}°")
-        ax[0, j].set(xlabel="γ from peak (deg)", ylabel="f", xlim=(0, 15),
-                     title=f"{key}: lobe (dashed) vs BRDF in-plane cuts")
-        ax[0, j].legend(fontsize=7)
+        ax[0, j].set(xlabel="γ from peak (deg)", ylabel="f (1/sr)", xlim=(0, 15),
+                     title=f"{key}:\nlobe (dashed) vs BRDF in-plane cuts (solid: toward horizon, dotted: normal)")
+        ax[0, j].title.set_fontsize(9)
+        ax[0, j].legend(fontsize=7, ncol=2)
         lm = [r for r in lobes if r["brdf"] == key and r["method"] == "multi"]
         for tid in sorted({int(r["track_id"]) for r in lm}):
             sel = sorted([r for r in lm if int(r["track_id"]) == tid], key=lambda r: float(r["theta_o_deg"]))
@@ -155,11 +164,9 @@ def plot(out_dir: Path) -> list[Path]:
                       label="single lobe peak offset")
         ax[1, j].set(xlabel="θo (deg)", ylabel="peak elevation offset θ_off (deg)",
                      title="multi-lobe tracks (one colour per track)")
+        ax[1, j].title.set_fontsize(9)
         ax[1, j].legend(fontsize=7)
-    fig.tight_layout()
     p = out_dir / "km00_lobes.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, p, dpi=110)
     figs.append(p)
     return figs

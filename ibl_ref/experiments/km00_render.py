@@ -47,11 +47,16 @@ import numpy as np
 from ..atomic import read_csv, write_csv, write_json
 from ..lobe_render import SINGLE_METHODS, THETA_MAX_DEG, reference_supersample, render_single_method  # noqa: F401
 from ..lobe_render import teapot_gbuffer as _gbuffer
+from . import params_from_settings, settings_with
 
 NAME = "km00-render"
 DESCRIPTION = ("Kautz & McCool 2000 renders: Ward teapot by per-pixel exact filtering vs 3 lobes / single lobe / "
                "single 2D lobe / pyramid lookup of the lobes' Phong fits")
+PAPER = "Kautz & McCool 2000, Figs. 9-18 analogue (Ward teapot: per-pixel exact vs fitted lobes), Sec. 3 and 5"
 IN_QUICK_REPRODUCE = True
+RUNTIME = {"quick": "16 s", "full": "not measured this session (README: 3 min)"}
+OUTPUTS = ("km00_render_metrics.csv", "km00_render_reference_convergence.csv", "km00_render_meta.json",
+           "km00_render_<method>.exr", "km00_render_mask.exr", "km00_render_theta.exr", "km00_render.png")
 
 METHODS = ("reference", "lobes3", "lobes3_peakcos", "lobes3_rescaled", "single", "single2d", "pyramid3",
            "pyramid3_profile",
@@ -71,6 +76,15 @@ def settings(quick: bool) -> dict:
     return dict(size=256, env="sky_sun", env_size=64, n_theta=16, n_lobes=3, n_gamma=256, n_phi=64,
                 map_supersample="auto", map_out_size=64, tail_rtol=1e-6,
                 ref_samples_per_hwhm=1.0, ref_k_multipliers=[1, 2, 4], ref_max_supersample=16, ref_eps=1e-12)
+
+
+PARAMS = params_from_settings(settings, {
+    "env": "synthetic environment", "n_theta": "sampled view elevations", "n_lobes": "greedy lobes",
+    "n_gamma": "BRDF samples in the polar angle", "n_phi": "BRDF samples in azimuth",
+    "map_supersample": "3D-map supersampling ('auto' or an integer)", "map_out_size": "3D-map face size",
+    "tail_rtol": "profile tail cut", "ref_samples_per_hwhm": "reference sub-texels per BRDF half width",
+    "ref_k_multipliers": "reference supersampling multipliers (last = reference)",
+    "ref_max_supersample": "reference supersampling cap", "ref_eps": "reference cone cut (epsilon)"})
 
 
 def render_all(st: dict, env: np.ndarray, progress: bool = False) -> dict:
@@ -241,8 +255,8 @@ def _constant_env_images(L3, L3r, L1, L2, f, n, wo) -> dict:
     return out
 
 
-def run(out_dir: Path, quick: bool) -> dict:
-    return run_with(out_dir, settings(quick), quick=quick)
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
+    return run_with(out_dir, settings_with(__name__, quick, params), quick=quick)
 
 
 def run_with(out_dir: Path, st: dict, quick: bool = False, progress: bool = False) -> dict:
@@ -325,12 +339,10 @@ def run_with(out_dir: Path, st: dict, quick: bool = False, progress: bool = Fals
 
 
 def plot(out_dir: Path) -> list:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
-    from ..atomic import atomic_path
     from ..image_io import read_image_exr
     from ..image_metrics import error_map
     from ..tonemap import auto_exposure, exposure_srgb
@@ -346,10 +358,15 @@ def plot(out_dir: Path) -> list:
     for j, k in enumerate(METHODS):
         ax[0, j].imshow(exposure_srgb(ims[k], stops))
         ax[0, j].set_title(LABELS[k], fontsize=8)
-        e = error_map(ims[k], ims["reference"], mask)
-        im = ax[1, j].imshow(e, cmap="magma", vmin=0, vmax=0.5)
-        ax[1, j].set_title(f"rel L1 {float(rows[k]['rel_l1']):.3f}, median {float(rows[k]['rel_err_median']):.3f}",
-                           fontsize=7)
+        if k == "reference":  # its own error is 0 by definition: show the view elevation the lobes depend on
+            th = read_image_exr(out_dir / "km00_render_theta.exr")[..., 0]
+            ax[1, j].imshow(np.where(mask, th, np.nan), cmap="viridis", vmin=0, vmax=90)
+            ax[1, j].set_title(f"view elevation θo, 0…90° (lobes up to {THETA_MAX_DEG:g}°)", fontsize=7)
+        else:
+            e = error_map(ims[k], ims["reference"], mask)
+            im = ax[1, j].imshow(np.where(mask, e, np.nan), cmap="magma", vmin=0, vmax=0.5)
+            ax[1, j].set_title(f"rel L1 {float(rows[k]['rel_l1']):.3f}, median "
+                               f"{float(rows[k]['rel_err_median']):.3f}", fontsize=7)
         for a in ax[:, j]:
             a.set_xticks([])
             a.set_yticks([])
@@ -357,7 +374,5 @@ def plot(out_dir: Path) -> list:
     fig.colorbar(im, cax=cax, label="|ΔY| / Y_ref")
     fig.suptitle("Ward kd=0 ks=0.8 α=0.04, sky_sun, no visibility", fontsize=9)
     p = out_dir / "km00_render.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, p, dpi=100)
     return [p]

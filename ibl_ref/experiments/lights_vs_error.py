@@ -2,7 +2,7 @@
 environment map with a set of light sources which is problematic when dealing with high gloss surfaces").
 
 Scene: unoccluded sphere, orthographic camera on +Z looking down −Z (image row 0 = +y), view v = +Z;
-per pixel the reflection direction r = 2(n·v)n − v.
+per pixel the reflection direction r = 2(n·v)n − v (:func:`ibl_ref.sphere_render.orthographic_sphere`).
 
 Shading model (stated): the *normalised* Phong lobe of exponent s around r (the lobe average that the
 filter pyramid approximates, docs/background.md §2),
@@ -32,30 +32,26 @@ from pathlib import Path
 
 import numpy as np
 
+from ..progress import track
+
+from . import Param, resolve_params
+
 NAME = "lights-vs-error"
 DESCRIPTION = "sphere lit by median-cut point lights vs PEM lookups vs exact Phong convolution, s = 1..1000"
+PAPER = "Knuth et al. 2014, Sec. 1 and 3 (point lights alone fail for glossy surfaces; PEMs do not)"
 IN_QUICK_REPRODUCE = True
+PARAMS = (
+    Param("face_size", 64, 32, "environment cube face size N"),
+    Param("sphere_pixels", 128, 48, "sphere image size (pixels)"),
+    Param("supersample", 2, None, "sub-texels per texel side of the exact quadrature"),
+    Param("light_counts", (6, 24, 96, 384), (6, 24, 96), "median-cut light counts"),
+)
+RUNTIME = {"quick": "14 s", "full": "not measured"}
+OUTPUTS = ("lights_vs_error.csv", "lights_vs_error_images.json", "lights_vs_error_meta.json", "lights_vs_error.png",
+           "lights_vs_error_spheres.png")
 
 S_VALUES = (1.0, 10.0, 100.0, 1000.0)
 ENVS = ("sky_sun", "studio")
-
-
-def _env(name, n):
-    from .fig8 import _env as env
-
-    return env(name, n)
-
-
-def sphere_reflections(res: int):
-    """Pixel mask (res, res) and reflection directions (P, 3) of an orthographic unit sphere seen from +Z."""
-    c = (np.arange(res) + 0.5) / res * 2 - 1
-    x, y = np.meshgrid(c, -c)  # row 0 = top = +y
-    rr = x * x + y * y
-    mask = rr < 1.0
-    n = np.stack([x[mask], y[mask], np.sqrt(1.0 - rr[mask])], axis=-1)
-    v = np.array([0.0, 0.0, 1.0])
-    r = 2.0 * (n @ v)[:, None] * n - v
-    return mask, r / np.linalg.norm(r, axis=-1, keepdims=True)
 
 
 def exact_lobe_average(cube, r, s, supersample: int = 1, chunk: int = 512):
@@ -93,22 +89,24 @@ def rel_l1(a, ref):
     return float(np.abs(a - ref).sum() / np.abs(ref).sum())
 
 
-def run(out_dir: Path, quick: bool) -> dict:
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..atomic import write_csv, write_json
+    from ..synthetic_envs import make_env
     from ..median_cut import median_cut
     from ..pem import build_pems
     from ..pyramid import build_pyramid
     from ..gloss_lookup import lookup
+    from ..sphere_render import orthographic_sphere
 
     out_dir = Path(out_dir)
-    n, res, ss = (32, 48, 2) if quick else (64, 128, 2)
-    counts = (6, 24, 96) if quick else (6, 24, 96, 384)
+    p = resolve_params(__name__, quick, params)
+    n, res, ss, counts = p["face_size"], p["sphere_pixels"], p["supersample"], p["light_counts"]
     img_lights = 24
-    mask, r = sphere_reflections(res)
+    mask, _, r = orthographic_sphere(res)
     rows, images, checks = [], {}, {}
     t0 = time.perf_counter()
-    for env in ENVS:
-        cube = _env(env, n)
+    for env in track(ENVS, "lights-vs-error: environments", unit="env"):
+        cube = make_env(env, n)
         full = build_pyramid(cube)
         exact = {}
         for s in S_VALUES:
@@ -159,17 +157,16 @@ def run(out_dir: Path, quick: bool) -> dict:
 def plot(out_dir: Path) -> list:
     import json
 
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
-    from ..atomic import atomic_path, read_csv
+    from ..atomic import read_csv
 
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "lights_vs_error.csv")
     paths = []
-    fig, axes = plt.subplots(1, len(ENVS), figsize=(11, 4), sharey=True)
+    fig, axes = plt.subplots(1, len(ENVS), figsize=(11, 4.2), sharey=True, layout="constrained")
     for ax, env in zip(axes, ENVS):
         sel = [x for x in rows if x["env"] == env]
         counts = sorted({int(x["lights"]) for x in sel})
@@ -187,12 +184,10 @@ def plot(out_dir: Path) -> list:
         ax.set_title(env)
         ax.grid(True, which="both", lw=0.3)
     axes[0].set_ylabel("relative L1 error vs exact (sphere)")
-    axes[0].legend(fontsize=7)
+    axes[-1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     fig.suptitle("Unoccluded glossy sphere: median-cut point lights vs PEM lookups (normalised Phong lobe)", fontsize=9)
     p = out_dir / "lights_vs_error.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=120, bbox_inches="tight")
-    plt.close(fig)
+    save_figure(fig, p, dpi=120)
     paths.append(p)
 
     data = json.loads((out_dir / "lights_vs_error_images.json").read_text())
@@ -211,8 +206,6 @@ def plot(out_dir: Path) -> list:
             axes[i, j].axis("off")
     fig.tight_layout()
     p = out_dir / "lights_vs_error_spheres.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
+    save_figure(fig, p, dpi=120)
     paths.append(p)
     return paths

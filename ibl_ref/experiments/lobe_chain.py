@@ -27,11 +27,17 @@ from pathlib import Path
 
 import numpy as np
 
+from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
+from . import params_from_settings, settings_with
 
 NAME = "lobe-chain"
 DESCRIPTION = "filter pyramid vs exact-lobe chain: lookup error vs s, build time and memory"
+PAPER = ("Knuth et al. 2014, Sec. 3.2 / Eq. 3-4: the filter pyramid's lookup vs the exact Phong lobe average, "
+         "and the exact-lobe chain (not in the paper)")
 IN_QUICK_REPRODUCE = True
+RUNTIME = {"quick": "9 s", "full": "not measured this session (README: 80 s)"}
+OUTPUTS = ("lobe_chain.csv", "lobe_chain_meta.json", "lobe_chain.png")
 
 PREFILTERS = ("pyramid-sqrtcos", "pyramid-box", "pyramid-sqrtcos-solid-angle", "chain-f4", "chain-f2", "chain-f1.41")
 
@@ -41,6 +47,10 @@ def settings(quick: bool) -> dict:
         return dict(env_size=32, envs=["sky_sun"], n_dirs=1500, s_values=[1, 2, 4, 10, 30, 100, 300])
     return dict(env_size=64, envs=["sky_sun", "studio"], n_dirs=4000,
                 s_values=[1, 1.5, 2, 3, 5, 7, 10, 15, 20, 30, 50, 70, 100, 200, 300, 500, 1000])
+
+
+PARAMS = params_from_settings(settings, {"envs": "synthetic environments", "n_dirs": "random test directions",
+                                         "s_values": "Phong exponents s"})
 
 
 def build(name: str, env):
@@ -78,19 +88,19 @@ def best_constant_level(per_level, exact):
     return best
 
 
-def run(out_dir: Path, quick: bool) -> dict:
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..gloss_lookup import get_calibration, level_for_gloss, lookup
     from ..reference_render import lobe_average
     from ..synthetic_envs import make_env
 
     out_dir = Path(out_dir)
-    st = settings(quick)
+    st = settings_with(__name__, quick, params)
     rng = np.random.default_rng(20141)
     d = rng.normal(size=(st["n_dirs"], 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     rows, meta_builds = [], {}
     t_start = time.perf_counter()
-    for env_name in st["envs"]:
+    for env_name in track(st["envs"], "lobe-chain: environments", unit="env"):
         env = make_env(env_name, n=st["env_size"])
         exact = {s: lobe_average(env, d, float(s)) for s in st["s_values"]}
         for pf in PREFILTERS:
@@ -135,17 +145,14 @@ def run(out_dir: Path, quick: bool) -> dict:
 
 
 def plot(out_dir: Path) -> list:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..atomic import atomic_path
+    plt = pyplot()
 
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "lobe_chain.csv")
     envs = list(dict.fromkeys(q["env"] for q in rows))
-    fig, axes = plt.subplots(1, len(envs), figsize=(6.5 * len(envs), 4.5), squeeze=False)
+    fig, axes = plt.subplots(1, len(envs), figsize=(6.5 * len(envs) + 2.0, 4.5), squeeze=False, layout="constrained")
     for ax, env_name in zip(axes[0], envs):
         for pf in dict.fromkeys(q["prefilter"] for q in rows):
             r = [q for q in rows if q["env"] == env_name and q["prefilter"] == pf]
@@ -160,10 +167,7 @@ def plot(out_dir: Path) -> list:
         ax.set_ylabel("relative L1 of one lookup vs exact lobe average")
         ax.set_title(f"{env_name}: filter pyramid vs exact-lobe chain")
         ax.axhline(0.05, color="gray", lw=0.8, ls=":")
-        ax.legend(fontsize=7)
-    fig.tight_layout()
+    axes[0, -1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     p = out_dir / "lobe_chain.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, p, dpi=100)
     return [p]

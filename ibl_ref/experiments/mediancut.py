@@ -8,10 +8,10 @@ log-luminance on the horizontal cross to ``mediancut_maps.json`` (plot input).  
 its region's equivalent cosine lobe (Meunier et al. 2009 Eq. 32–34, :meth:`ibl_ref.median_cut.LightSet.equivalent_lobes`):
 cap half-angle of the region's solid angle, lobe exponent and energy scale; the summary gives their range.
 
-Horizontal cross (OpenEXR orientation, faces seen from inside, no rotation needed):
-top row +Y above −Z; middle row −X, −Z, +X, +Z; bottom row −Y below −Z.  Every shared edge of this
-layout is a true cube edge (checked numerically when this layout was written: neighbouring cross pixels
-are at most one texel apart in angle).
+Maps and regions are drawn on the horizontal cross of :func:`ibl_ref.resample.cube_to_cross` (the
+library's unfolding and face orientation, see :mod:`ibl_ref.resample`); region rectangles and
+light positions are carried onto it by the per-face index map of that same function (:func:`cross_placement`),
+so the plot and the maps cannot disagree about orientation.
 """
 
 from __future__ import annotations
@@ -20,46 +20,69 @@ from pathlib import Path
 
 import numpy as np
 
+from . import Param, resolve_params
+
 NAME = "mediancut"
 DESCRIPTION = "median-cut regions and lights (per-face/global/variance) on the unfolded cube, energy spread"
+PAPER = "Knuth et al. 2014, Sec. 3.1 (median cut, Debevec 2008) and Meunier et al. 2009, Eq. 32-34 (equivalent lobes)"
 IN_QUICK_REPRODUCE = True
+PARAMS = (Param("face_size", 128, 64, "environment cube face size N"),
+          Param("light_counts", (6, 12, 24, 48, 96), None, "numbers of lights (regions)"))
+RUNTIME = {"quick": "2.1 s", "full": "not measured"}
+OUTPUTS = ("mediancut_lights.csv", "mediancut_summary.csv", "mediancut_maps.json", "mediancut_<variant>.png",
+           "mediancut_energy_spread.png")
 
-#: face index → (row, col) of the horizontal cross in face units
-CROSS = {2: (0, 1), 1: (1, 0), 5: (1, 1), 0: (1, 2), 4: (1, 3), 3: (2, 1)}
 LIGHT_COUNTS = (6, 12, 24, 48, 96)
 ENVS = ("sky_sun", "studio")
 
 
-def _env(name, n):
-    from .fig8 import _env as env
+def cross_placement(n: int, layout: str = "hcross") -> dict:
+    """face → (A, b): cross pixel (Y, X) = A @ (row, col) + b for texel coordinates of that face (centres integer).
 
-    return env(name, n)
+    Read off :func:`ibl_ref.resample.cube_to_cross` applied to an index cube, so it is that function's layout and
+    orientation; each face lands as a rotated/flipped copy, an affine map of its texel indices.
+    """
+    from ..resample import cube_to_cross
 
-
-def to_cross(face_data: np.ndarray, fill=np.nan) -> np.ndarray:
-    """(6, n, n, ...) → (3n, 4n, ...) horizontal cross (see module docstring)."""
-    n = face_data.shape[1]
-    out = np.full((3 * n, 4 * n) + face_data.shape[3:], fill, dtype=np.float64)
-    for f, (r, c) in CROSS.items():
-        out[r * n:(r + 1) * n, c * n:(c + 1) * n] = face_data[f]
+    idx = (np.arange(6 * n * n, dtype=np.float64) + 1.0).reshape(6, n, n, 1)
+    cross = cube_to_cross(idx, layout)[..., 0]
+    where = {int(v) - 1: (yy, xx) for (yy, xx), v in np.ndenumerate(cross) if v > 0}
+    out = {}
+    for f in range(6):
+        p00 = np.array(where[f * n * n], float)
+        p10 = np.array(where[f * n * n + n], float) if n > 1 else p00 + (1, 0)
+        p01 = np.array(where[f * n * n + 1], float) if n > 1 else p00 + (0, 1)
+        A = np.column_stack([p10 - p00, p01 - p00])
+        out[f] = (A, p00)
     return out
 
 
-def run(out_dir: Path, quick: bool) -> dict:
+def log_luminance_cross(y, layout: str = "hcross") -> np.ndarray:
+    """log10 luminance (6, n, n) on the cross of :func:`ibl_ref.resample.cube_to_cross`; −99 where no face."""
+    from ..resample import cube_to_cross
+
+    img = cube_to_cross(np.log10(np.maximum(y, 1e-6))[..., None], layout)[..., 0]
+    inside = cube_to_cross(np.ones(y.shape + (1,)), layout)[..., 0] > 0
+    return np.where(inside, img, -99.0)
+
+
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..atomic import write_csv, write_json
+    from ..synthetic_envs import make_env
     from ..envmap import direction_to_texel_coords
     from ..median_cut import VARIANTS, check_partition, energy_spread, luminance, median_cut
 
     out_dir = Path(out_dir)
-    n = 64 if quick else 128
+    p = resolve_params(__name__, quick, params)
+    n = p["face_size"]
     light_rows, summary, maps = [], [], {}
     for env in ENVS:
-        cube = _env(env, n)
+        cube = make_env(env, n)
         y = luminance(cube)
-        maps[env] = {"face_size": n, "log10_luminance_cross": np.round(
-            np.nan_to_num(to_cross(np.log10(np.maximum(y, 1e-6))), nan=-99.0), 4).tolist()}
+        maps[env] = {"face_size": n, "layout": "hcross (ibl_ref.resample.cube_to_cross)",
+                     "log10_luminance_cross": np.round(log_luminance_cross(y), 4).tolist()}
         for variant in VARIANTS:
-            for L in LIGHT_COUNTS:
+            for L in p["light_counts"]:
                 ls = median_cut(cube, L, variant)
                 chk = check_partition(ls, cube)
                 sp = energy_spread(ls)
@@ -104,38 +127,43 @@ def run(out_dir: Path, quick: bool) -> dict:
 def plot(out_dir: Path) -> list:
     import json
 
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     from matplotlib.collections import PatchCollection
     from matplotlib.patches import Rectangle
 
-    from ..atomic import atomic_path, read_csv
+    from ..atomic import read_csv
 
     out_dir = Path(out_dir)
     maps = json.loads((out_dir / "mediancut_maps.json").read_text())
     lights = read_csv(out_dir / "mediancut_lights.csv")
     summary = read_csv(out_dir / "mediancut_summary.csv")
     paths = []
+    counts = sorted({int(r["lights"]) for r in summary})
     for variant in ("per-face", "global", "variance"):
-        fig, axes = plt.subplots(len(LIGHT_COUNTS), len(ENVS), figsize=(11, 2.9 * len(LIGHT_COUNTS)))
+        fig, axes = plt.subplots(len(counts), len(ENVS), figsize=(11, 2.9 * len(counts)), squeeze=False,
+                                 layout="constrained")
         for j, env in enumerate(ENVS):
             n = maps[env]["face_size"]
+            place = cross_placement(n)
             img = np.array(maps[env]["log10_luminance_cross"])
             img = np.ma.masked_less(img, -98)
-            for i, L in enumerate(LIGHT_COUNTS):
+            for i, L in enumerate(counts):
                 ax = axes[i, j]
                 ax.imshow(img, cmap="gray", interpolation="nearest", vmin=np.percentile(img.compressed(), 1),
                           vmax=np.percentile(img.compressed(), 99.5))
                 sel = [r for r in lights if r["env"] == env and r["variant"] == variant and int(r["lights"]) == L]
                 rects, xs, ys, sz = [], [], [], []
                 for r in sel:
-                    fr, fc = CROSS[int(r["face"])]
+                    A, b = place[int(r["face"])]
                     r0, r1, c0, c1 = (int(r[k]) for k in ("row0", "row1", "col0", "col1"))
-                    rects.append(Rectangle((fc * n + c0 - 0.5, fr * n + r0 - 0.5), c1 - c0, r1 - r0))
-                    xs.append(fc * n + float(r["tex_x"]))
-                    ys.append(fr * n + float(r["tex_y"]))
+                    corners = A @ np.array([[r0 - 0.5, r1 - 0.5], [c0 - 0.5, c1 - 0.5]]) + b[:, None]
+                    (y0, y1), (x0, x1) = np.sort(corners, axis=1)
+                    rects.append(Rectangle((x0, y0), x1 - x0, y1 - y0))
+                    ys_, xs_ = A @ np.array([float(r["tex_y"]), float(r["tex_x"])]) + b
+                    xs.append(xs_)
+                    ys.append(ys_)
                     sz.append(4 + 300 * float(r["energy_fraction"]))
                 ax.add_collection(PatchCollection(rects, facecolor="none", edgecolor="tab:orange", linewidth=0.6))
                 ax.scatter(xs, ys, s=sz, c="red", edgecolors="white", linewidths=0.3)
@@ -143,29 +171,26 @@ def plot(out_dir: Path) -> list:
                 ax.set_title(f"{env}, {L} lights ({variant}); energy CV {float(srow['energy_cv']):.2f}", fontsize=8)
                 ax.set_xticks([])
                 ax.set_yticks([])
-        fig.suptitle("Median cut on the cube (horizontal cross: +Y over -Z; -X -Z +X +Z; -Y); dot area ∝ light power",
-                     fontsize=9)
-        fig.tight_layout()
+        fig.suptitle("Median cut on the cube (horizontal cross of ibl_ref.resample.cube_to_cross: +Y on top, "
+                     "−X +Z +X −Z across, −Y below); log luminance; dot area ∝ light power", fontsize=9)
         p = out_dir / f"mediancut_{variant}.png"
-        with atomic_path(p) as tmp:
-            fig.savefig(tmp, format="png", dpi=110)
-        plt.close(fig)
+        save_figure(fig, p, dpi=110)
         paths.append(p)
 
-    fig, ax = plt.subplots(figsize=(6, 4))
+    fig, ax = plt.subplots(figsize=(7.5, 4), layout="constrained")
     for env, mk in (("sky_sun", "o"), ("studio", "s")):
         for variant, ls in (("per-face", "-"), ("global", "--"), ("variance", ":")):
             sel = [s for s in summary if s["env"] == env and s["variant"] == variant]
             ax.plot([int(s["lights"]) for s in sel], [float(s["energy_cv"]) for s in sel], ls, marker=mk,
                     label=f"{env} {variant}")
     ax.set_xscale("log", base=2)
+    ax.set_xticks(counts, [str(c) for c in counts])  # light counts are integers
+    ax.minorticks_off()
     ax.set_yscale("log")
-    ax.set_xlabel("lights")
+    ax.set_xlabel("lights (regions)")
     ax.set_ylabel("CV of region energies (0 = equally important)")
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     p = out_dir / "mediancut_energy_spread.png"
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, format="png", dpi=120, bbox_inches="tight")
-    plt.close(fig)
+    save_figure(fig, p, dpi=120)
     paths.append(p)
     return paths

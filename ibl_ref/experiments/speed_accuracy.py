@@ -35,17 +35,24 @@ from pathlib import Path
 import numpy as np
 
 from .. import envmap
-from ..atomic import atomic_path, read_csv, write_csv, write_json
+from ..progress import track
+from ..atomic import read_csv, write_csv, write_json
+from . import Param, resolve_params
 
 NAME = "speed-accuracy"
 DESCRIPTION = "time vs max/mean relative error of exact / SH-hybrid / sparse / auto Phong convolution"
+PAPER = "Knuth et al. 2014, Eq. 4 (exact Phong convolution) and Kan et al. 2015 (fast prefiltering): speed vs accuracy"
 IN_QUICK_REPRODUCE = True
+RUNTIME = {"quick": "9 s", "full": "not measured this session (README: 29 s)"}
+OUTPUTS = ("speed_accuracy.csv", "speed_accuracy.json", "speed_accuracy_n<N>.png")
 
 EXPONENTS = (1.0, 4.0, 16.0, 64.0, 256.0, 1024.0, 4096.0)
 QUICK_EXPONENTS = (1.0, 16.0, 256.0, 4096.0)
 RTOL = 1e-3
 SUBSET = 2000
 SEED = 20140
+PARAMS = (Param("face_sizes", (32, 64, 128), (16, 32), "cube face sizes N"),
+          Param("exponents", EXPONENTS, QUICK_EXPONENTS, "Phong exponents s"))
 
 
 def environment(n: int) -> np.ndarray:
@@ -74,18 +81,18 @@ def exact_subset(cube, exponents, idx):
     return out
 
 
-def run(out_dir: Path, quick: bool) -> dict:
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..convolve import convolve
     from ..phong_convolution import convolve_exact_many
 
     out_dir = Path(out_dir)
-    sizes = (16, 32) if quick else (32, 64, 128)
-    S = QUICK_EXPONENTS if quick else EXPONENTS
+    p = resolve_params(__name__, quick, params)
+    sizes, S = p["face_sizes"], p["exponents"]
     convolve(environment(4), [2.0, 64.0], method="auto")  # warm-up: imports and scipy set-up not timed
     rng = np.random.default_rng(SEED)
     rows = []
     summary = {"sizes": list(sizes), "exponents": list(S), "rtol": RTOL, "per_size": {}}
-    for n in sizes:
+    for n in track(sizes, "speed-accuracy: face sizes", unit="size"):
         cube = environment(n)
         P = 6 * n * n
         full_ref = n <= 64
@@ -174,10 +181,9 @@ def run(out_dir: Path, quick: bool) -> dict:
 
 
 def plot(out_dir: Path) -> list:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "speed_accuracy.csv")
@@ -213,8 +219,6 @@ def plot(out_dir: Path) -> list:
         fig.text(0.01, 0.005, f"exact = reference (plotted at the 1e-17 floor); runs cover {subsets}", fontsize=7)
         fig.tight_layout(rect=(0, 0.03, 1, 1))
         p = out_dir / f"speed_accuracy_n{n}.png"
-        with atomic_path(p) as tmp:
-            fig.savefig(tmp, format="png", dpi=110)
-        plt.close(fig)
+        save_figure(fig, p, dpi=110)
         paths.append(p)
     return paths

@@ -10,7 +10,7 @@ Prints:
   moments (the paper's RG16F), the max error of M2 − M1² per dtype, and the difference to the exact (hard)
   visibility of the same light direction (includes the intended penumbra softening).
 
-Run:  OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python experiments/bench_raster.py [--size 256] [--rays 2000]
+Run:  OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python benchmarks/bench_raster.py [--size 256] [--rays 2000]
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 Builds both for a 6×N² RGB float32 map (default N = 512) in the same run, best of ``--repeat`` runs
 each, and prints the ratio (target: ≤ 3).  Also times the other kernels, both orders and seam modes.
 
-    OMP_NUM_THREADS=1 python experiments/bench_pyramid.py [--size 512] [--repeat 5]
+    OMP_NUM_THREADS=1 python benchmarks/bench_pyramid.py [--size 512] [--repeat 5]
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Accuracy (and time) of ibl_ref.resample: round trips and ∫L dω conservation at 3 resolutions.
 
-Run:  OMP_NUM_THREADS=1 python experiments/bench_resample.py
+Run:  OMP_NUM_THREADS=1 python benchmarks/bench_resample.py
 
 Inputs are *texel area averages* of a smooth positive function f (computed by brute-force midpoint
 quadrature on an 8x finer grid), so that a perfect resampler would reproduce them; lat-long maps are

@@ -1,6 +1,6 @@
 """Benchmark of the Eq. 5 renderer (issue target: teapot 256², 24 lights, 256² VSMs ≤ 30 s wall on 2 cores).
 
-Usage: python experiments/bench_render.py [--size 256] [--vsm 256] [--lights 6 12 24 48 96] [--repeat 2]
+Usage: python benchmarks/bench_render.py [--size 256] [--vsm 256] [--lights 6 12 24 48 96] [--repeat 2]
 
 Scene: the tessellated teapot (16,256 triangles) under ``sky_sun`` (64² faces), pure glossy g = 0.5, the paper's
 method (``ours``: median cut → PEM pyramids → one VSM per light → Eq. 5).  For every light count it prints the

@@ -1,6 +1,6 @@
 """Benchmark of ibl_ref.convolve: ``auto`` vs ``exact`` at 64² (same run) and the 128² targets.
 
-Usage: OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python experiments/bench_convolution.py [--skip-128]
+Usage: OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python benchmarks/bench_convolution.py [--skip-128]
        [--without-s1] [--workers W] [--repeat R] [--check-128] [--exact-128]
 
 Environment: the synthetic sky + 1e5 sun 0.0015 rad from a cube corner (``make_env("sky_sun", ...)``).

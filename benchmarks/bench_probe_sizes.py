@@ -1,7 +1,7 @@
 """Time and peak memory of real-probe sizes: read → lat-long to cube → median cut, against the goals.
 
-Run:  python experiments/bench_probe_sizes.py [--sizes 1k 4k 16k] [--out results/bench_probe_sizes.csv]
-      python experiments/bench_probe_sizes.py --kernels      # balance of the conservative kernel vs H
+Run:  python benchmarks/bench_probe_sizes.py [--sizes 1k 4k 16k] [--out results/bench_probe_sizes.csv]
+      python benchmarks/bench_probe_sizes.py --kernels      # balance of the conservative kernel vs H
 
 Each size runs in its own process (fresh peak RSS).  A synthetic probe like a published one (2:1
 lat-long float32 RGB: sky gradient, dark ground with a black strip, a 0.5° sun of 3e4; DWAB-compressed, no ``envmap``

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python experiments/bench_peer.py [--cmft PATH [--cmft PATH ...]] [--faces 32 64 128]
+    python benchmarks/bench_peer.py [--cmft PATH [--cmft PATH ...]] [--faces 32 64 128]
         [--exponents 1 4 16 64 256 1024 4096 inf] [--set8] [--repeat 3] [--timeout 120]
         [--csv OUT.csv]
 

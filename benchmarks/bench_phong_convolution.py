@@ -1,6 +1,6 @@
 """Benchmark of ibl_ref.phong_convolution: exact gather timings and sparse speed-up / accuracy.
 
-Usage: OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python experiments/bench_phong_convolution.py [--sizes 32,64]
+Usage: OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python benchmarks/bench_phong_convolution.py [--sizes 32,64]
        [--sparse-size 64] [--big 0]
 Environment: smooth sky + noise + a 1e5 sun texel near a cube corner (seeded).  Ratios are against the
 exact (dense) gather measured in the same run.  Times are CPU seconds of this process

@@ -1,0 +1,184 @@
+"""Progress reporting for long work: a bar on a terminal, periodic one-line status in logs.
+
+One small API that every long step can use (experiments, ``reproduce``; offered to the renderer,
+convolution and pyramid/PEM builders through :func:`callback`):
+
+``track(iterable, desc, total=None, unit="it")``
+    iterate with progress.  On a terminal (the stream's ``isatty()``) a tqdm bar that disappears when done;
+    otherwise one line ``desc: 3/10 (30 %), 12.3 s`` at most every ``interval`` seconds
+    (``$IBL_REF_PROGRESS_INTERVAL``, default 10 s) and a final ``desc: 10/10 (100 %), 31.0 s`` — no
+    carriage-return bars in non-terminal logs.
+``step(desc)``
+    context manager for one block of work: prints ``desc …`` when it starts and ``desc: done in 3.2 s`` on
+    its own line when it ends (``.update(done, total)`` inside reports intermediate progress).
+``callback(desc, total, unit)``
+    a plain function ``cb(n=1)`` advancing a counter, plus ``cb.close()`` — the form a library function can
+    accept as ``progress=`` without importing this module's classes.
+
+Everything goes to ``sys.stderr`` (``stream=`` to change); ``$IBL_REF_PROGRESS=0`` silences it all
+(tests and scripted runs), ``=bar`` / ``=lines`` forces one style.  Every message starts on a fresh line:
+a line printed while a bar is active first ends the bar's line (nothing is glued to a bar).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import time
+
+__all__ = ["track", "step", "callback", "Progress", "mode", "say"]
+
+_ACTIVE_BARS: list = []
+
+
+def mode(stream=None) -> str:
+    """``"bar"`` on a terminal, ``"lines"`` otherwise, ``"off"`` if ``$IBL_REF_PROGRESS=0``."""
+    env = os.environ.get("IBL_REF_PROGRESS", "").strip().lower()
+    if env in ("0", "off", "no", "false"):
+        return "off"
+    if env in ("bar", "lines"):
+        return env
+    stream = sys.stderr if stream is None else stream
+    try:
+        return "bar" if stream.isatty() else "lines"
+    except (AttributeError, ValueError):
+        return "lines"
+
+
+def _interval() -> float:
+    try:
+        return max(0.0, float(os.environ.get("IBL_REF_PROGRESS_INTERVAL", "10")))
+    except ValueError:
+        return 10.0
+
+
+def say(msg: str, stream=None) -> None:
+    """Print one status line, never glued to a bar (tqdm.write clears and redraws active bars)."""
+    stream = sys.stderr if stream is None else stream
+    if mode(stream) == "off":
+        return
+    if _ACTIVE_BARS:
+        from tqdm import tqdm
+
+        tqdm.write(msg, file=stream)
+    else:
+        print(msg, file=stream, flush=True)
+
+
+def _fmt_time(t: float) -> str:
+    return f"{t:.1f} s" if t < 120 else f"{int(t // 60)} min {t % 60:.0f} s"
+
+
+class Progress:
+    """Counter with a bar (terminal) or periodic status lines (logs); see the module docstring."""
+
+    def __init__(self, desc: str, total: int | None = None, unit: str = "it", stream=None):
+        self.desc, self.total, self.unit = desc, total, unit
+        self.stream = sys.stderr if stream is None else stream
+        self.mode = mode(self.stream)
+        self.n = 0
+        self.t0 = time.perf_counter()
+        self._last = self.t0
+        self._bar = None
+        self._closed = False
+        if self.mode == "bar":
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total, desc=desc, unit=unit, file=self.stream, leave=False, dynamic_ncols=True)
+            _ACTIVE_BARS.append(self._bar)
+        elif self.mode == "lines":
+            size = f" ({total} {unit})" if total else ""
+            print(f"{desc}{size} …", file=self.stream, flush=True)
+
+    def _line(self) -> str:
+        el = _fmt_time(time.perf_counter() - self.t0)
+        if self.total:
+            return f"{self.desc}: {self.n}/{self.total} {self.unit} ({100.0 * self.n / self.total:.0f} %), {el}"
+        return f"{self.desc}: {self.n} {self.unit}, {el}"
+
+    def update(self, n: int = 1) -> None:
+        self.n += n
+        if self._bar is not None:
+            self._bar.update(n)
+        elif self.mode == "lines":
+            now = time.perf_counter()
+            if now - self._last >= _interval() and not (self.total and self.n >= self.total):
+                self._last = now
+                print(self._line(), file=self.stream, flush=True)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        if self._bar is not None:
+            self._bar.close()
+            _ACTIVE_BARS.remove(self._bar)
+        elif self.mode == "lines" and time.perf_counter() - self.t0 >= _interval():
+            print(self._line(), file=self.stream, flush=True)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+
+def track(iterable, desc: str, total: int | None = None, unit: str = "it", stream=None):
+    """Yield the items of ``iterable`` while reporting progress (bar or status lines)."""
+    if total is None:
+        try:
+            total = len(iterable)
+        except TypeError:
+            total = None
+    with Progress(desc, total, unit, stream) as p:
+        for item in iterable:
+            yield item
+            p.update(1)
+
+
+class _Step:
+    def __init__(self, desc, stream):
+        self.desc, self.stream = desc, stream
+        self.t0 = time.perf_counter()
+        self._last = self.t0
+        self.elapsed = 0.0
+
+    def update(self, done, total=None) -> None:
+        """Report intermediate progress of the step (rate-limited like :class:`Progress`)."""
+        now = time.perf_counter()
+        if now - self._last >= _interval():
+            self._last = now
+            frac = f" ({100.0 * done / total:.0f} %)" if total else ""
+            say(f"{self.desc}: {done}{'/' + str(total) if total else ''}{frac}, {_fmt_time(now - self.t0)}",
+                self.stream)
+
+
+@contextlib.contextmanager
+def step(desc: str, stream=None, announce: bool = True):
+    """Time a block: ``desc …`` at the start, ``desc: done in X s`` on its own line at the end."""
+    s = _Step(desc, sys.stderr if stream is None else stream)
+    if announce:
+        say(f"{desc} …", s.stream)
+    try:
+        yield s
+    finally:
+        s.elapsed = time.perf_counter() - s.t0
+        say(f"{desc}: done in {_fmt_time(s.elapsed)}", s.stream)
+
+
+def callback(desc: str, total: int | None = None, unit: str = "it", stream=None):
+    """A function ``cb(n=1)`` that advances a :class:`Progress`; ``cb.close()`` ends it.
+
+    For library functions that take ``progress=`` as a plain callable: they call ``progress(1)`` per unit of
+    work and need not know how (or whether) it is shown.
+    """
+    p = Progress(desc, total, unit, stream)
+
+    def cb(n: int = 1):
+        p.update(n)
+
+    cb.close = p.close
+    cb.progress = p
+    return cb
