@@ -14,7 +14,19 @@ with ``s = 1/(1−g)`` (Eq. 3), ``r = 2(n·v)n − v``, V_j the exact binary vis
 surface point, and the sums over **all** texels j of an environment level (the normalisation includes occluded
 and below-horizon texels, so V ≡ 1 reproduces :func:`ibl_ref.phong_convolution.convolve_exact`).
 
-Quadrature (choices that change numbers, all explicit parameters):
+Default: converged to a tolerance (``render_reference(..., rtol=2e-3)``, :func:`converged_shading`).  Two
+discretisations are refined separately until each one's estimated share of the image's relative L1 error is
+≤ rtol/2: the radiance × lobe quadrature (the map's exact piecewise-constant radiance summed at texel centres of a
+face size M = N·2^k, compared with M/2 → 2M) and the visibility (one exact ray per direction cell along the cell's
+energy centroid, applied to the exact weight of the whole cell; cells split 2×2 where a shadow edge crosses the
+pixel's lobe, compared level to level; a pixel may leave its dimmest edge cells unrefined within
+``VIS_SKIP_SHARE``·rtol, which is added to its estimate).  Conventions (docs/background.md §8): one-sided shading
+(n·v ≤ 0 → black, ``sided="two"`` flips n), both lobes over the hemisphere Ω⁺ of the shading normal n with the lobe
+normalised over the whole sphere (the normalised Phong BRDF of Kán et al. 2015, Eq. 2), one material per mesh.
+Scattered refinement rays are cast one by one against a two-level bounding-sphere hierarchy (:class:`_LeafBVH`,
+Möller–Trumbore), dense ones with the projection caster below.
+
+Fixed quadrature (``rtol=0``; choices that change numbers, all explicit parameters):
 
 * ``n_env`` — face size of the COARSE level used for (*): L_j is the exact solid-angle-weighted area average of
   the fine texels inside coarse texel j, so ∫L dω is kept exactly; Ω_j is the exact coarse solid angle.

@@ -45,7 +45,7 @@ def settings(quick: bool) -> dict:
         return dict(size=20, env_size=16, spp=1024, envmap_height=512, rtol=4e-3,
                     cases=[("sphere_on_plane", "sky_sun", m) for m in MATERIALS])
     cases = [(sc, "sky_sun", m) for sc in SCENES for m in MATERIALS] + [("teapot", "studio", "diffuse")]
-    return dict(size=48, env_size=32, spp=4096, envmap_height=1024, rtol=None, cases=cases)
+    return dict(size=32, env_size=32, spp=4096, envmap_height=1024, rtol=None, cases=cases)
 
 
 def scene_meshes(name: str):
