@@ -706,7 +706,7 @@ def _upsample(a: np.ndarray, M: int) -> np.ndarray:
 
 def _lobe(d, nrm, w, s, hemisphere: bool):
     """max(d·ω, 0)^s (P, J), times [n·ω > 0] (the hemisphere Ω⁺ of the shading normal) if ``hemisphere``."""
-    c = np.clip(d @ w.T, 0.0, None)
+    c = np.maximum(d @ w.T, 0.0)
     with np.errstate(divide="ignore", under="ignore"):
         f = c if s == 1.0 else np.power(c, s)
     if hemisphere:
@@ -759,6 +759,26 @@ class _LeafBVH:
             c = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
             self.centre[k] = c
             self.radius[k] = np.linalg.norm(pts - c, axis=1).max() * (1 + 1e-9) + 1e-12
+        # top level: runs of ``group`` consecutive leaves (depth-first order: neighbouring subtrees) in one sphere
+        group = 16
+        self.group = group
+        G = -(-K // group)
+        self.top_centre = np.zeros((G, 3))
+        self.top_radius = np.zeros(G)
+        for gi in range(G):
+            c0, r0 = self.centre[gi * group:(gi + 1) * group], self.radius[gi * group:(gi + 1) * group]
+            c = 0.5 * ((c0 - r0[:, None]).min(axis=0) + (c0 + r0[:, None]).max(axis=0))
+            self.top_centre[gi] = c
+            self.top_radius[gi] = (np.linalg.norm(c0 - c, axis=1) + r0).max() * (1 + 1e-9)
+        self.n_leaves = K
+
+    @staticmethod
+    def _sphere_hits(o, d, centre, radius):
+        """(ray, sphere) index pairs whose ray o + t·d (t > 0) meets the sphere."""
+        oc = centre[None, :, :] - o[:, None, :]
+        tca = np.einsum("rkc,rc->rk", oc, d)
+        d2 = np.einsum("rkc,rkc->rk", oc, oc) - tca ** 2
+        return np.nonzero((d2 <= radius[None, :] ** 2) & (tca + radius[None, :] > 0))
 
     def any_hit(self, o, d, ray_chunk: int = 4096, pair_chunk: int = 8192) -> np.ndarray:
         """hit (R,) bool of the rays o + t·d, t > 0 (d unit)."""
@@ -766,11 +786,17 @@ class _LeafBVH:
         hit = np.zeros(R, dtype=bool)
         for i in range(0, R, ray_chunk):
             oo, dd = o[i:i + ray_chunk], d[i:i + ray_chunk]
-            oc = self.centre[None, :, :] - oo[:, None, :]
-            tca = np.einsum("rkc,rc->rk", oc, dd)
-            d2 = np.einsum("rkc,rkc->rk", oc, oc) - tca ** 2
-            r2 = self.radius[None, :] ** 2
-            ray, lf = np.nonzero((d2 <= r2) & (tca + self.radius[None, :] > 0))
+            tr, tg = self._sphere_hits(oo, dd, self.top_centre, self.top_radius)
+            # expand each (ray, group) pair to its leaves and test the leaf spheres
+            lf = (tg[:, None] * self.group + np.arange(self.group)[None, :]).reshape(-1)
+            rr0 = np.repeat(tr, self.group)
+            ok = lf < self.n_leaves
+            rr0, lf = rr0[ok], lf[ok]
+            oc = self.centre[lf] - oo[rr0]
+            tca = np.einsum("kc,kc->k", oc, dd[rr0])
+            d2 = np.einsum("kc,kc->k", oc, oc) - tca ** 2
+            hs = (d2 <= self.radius[lf] ** 2) & (tca + self.radius[lf] > 0)
+            ray, lf = rr0[hs], lf[hs]
             for j in range(0, len(ray), pair_chunk):
                 rr_, kk = ray[j:j + pair_chunk], lf[j:j + pair_chunk]
                 keep = ~hit[i + rr_]
@@ -868,6 +894,8 @@ def converged_shading(scene, points, normals, face_normals, d_lobe, cube, s: flo
     ≤ 1, the same as the one-sided BRDF of :mod:`ibl_ref.mitsuba_render`.  ``error`` (P,) is the estimated absolute
     error of the occluded value (channel mean): quadrature + visibility estimates.
     """
+    from scipy import sparse
+
     from .envmap import cube_solid_angles, direction_to_texel, texel_directions
     from .raster import prepare_scene
 
@@ -991,19 +1019,20 @@ def converged_shading(scene, points, normals, face_normals, d_lobe, cube, s: flo
             idx = order[i:i + chunk]
             c = d[idx] @ wq.T
             cols = np.flatnonzero(c.max(axis=0) > cos_cut)
-            if nested:
-                cols = cols[np.argsort(cell[cols], kind="stable")]
-            c = np.clip(c[:, cols], 0.0, None)
+            c = np.maximum(c[:, cols], 0.0)
             with np.errstate(divide="ignore", under="ignore"):
                 lob = (c if s == 1.0 else np.power(c, s)) * oq[cols]
             ws = lob.sum(axis=1)
             wv = lob * ((nrm[idx] @ wq[cols].T) > 0)
             un[idx] = (wv @ Lq[cols]) / ws[:, None]
             if nested:
-                cc = cell[cols]
-                starts = np.flatnonzero(np.r_[True, cc[1:] != cc[:-1]])
-                Wc = np.add.reduceat(wv[:, :, None] * Lq[cols][None], starts, axis=1)  # (p, cells used, C)
-                occ[idx] = (V[idx][:, cc[starts], None] * Wc).sum(axis=1) / ws[:, None]
+                # Σ over the texels of each visibility cell as a sparse (texel → cell) matrix product per channel
+                St = sparse.csr_matrix((np.ones(len(cols)), (cell[cols], np.arange(len(cols)))),
+                                       shape=(6 * n_vis * n_vis, len(cols)))
+                Vi = V[idx]
+                for ch in range(C):
+                    Wc = (St @ (wv * Lq[cols, ch][None, :]).T).T  # (p, cells)
+                    occ[idx, ch] = (Vi * Wc).sum(axis=1) / ws
         return occ, un
 
     quad_levels = []

@@ -1,7 +1,8 @@
 """``ibl-ref render``: render a mesh lit by partial environment maps with shadows (Knuth et al. 2014, Eq. 5).
 
 Thin layer over :func:`ibl_ref.render.render_pem` (modes ``ours`` and ``no-occlusion``) and
-:func:`ibl_ref.ao_modes.render_mode` (modes ``ao``, ``ao-color``, ``reference``, imported lazily).
+:func:`ibl_ref.ao_modes.render_mode` (modes ``ao``, ``ao-color``, imported lazily) and
+:mod:`ibl_ref.cli.exact_modes` (modes ``reference``, ``mitsuba``: per-mesh materials).
 """
 
 from __future__ import annotations
