@@ -1,8 +1,9 @@
 """``ibl-ref render``: render a mesh lit by partial environment maps with shadows (Knuth et al. 2014, Eq. 5).
 
 Thin layer over :func:`ibl_ref.scenes.teapot_on_ground` / :func:`ibl_ref.scenes.default_camera` (scene and view),
-:func:`ibl_ref.render.render_pem` (modes ``ours`` and ``no-occlusion``) and :func:`ibl_ref.ao_modes.render_mode`
-(modes ``ao``, ``ao-color``, ``reference``, imported lazily).
+:func:`ibl_ref.render.render_pem` (modes ``ours`` and ``no-occlusion``), :func:`ibl_ref.ao_modes.render_mode`
+(modes ``ao``, ``ao-color``, imported lazily) and :mod:`ibl_ref.cli.exact_modes` (modes ``reference``, ``mitsuba``:
+per-mesh materials).
 """
 
 from __future__ import annotations
@@ -13,8 +14,9 @@ from pathlib import Path
 
 from ..errors import IBLError
 
-MODES = ("ours", "no-occlusion", "ao", "ao-color", "reference")
-_AO_MODES = ("ao", "ao-color", "reference")
+MODES = ("ours", "no-occlusion", "ao", "ao-color", "reference", "mitsuba")
+_AO_MODES = ("ao", "ao-color")
+_EXACT_MODES = ("reference", "mitsuba")  # ibl_ref.cli.exact_modes (per-mesh materials)
 OUT_EXTS = (".exr", ".npz")
 
 
@@ -159,6 +161,10 @@ def cmd_render(args) -> int:
 
         mat = Material(kd=mat.kd, ks=mat.ks, g=mat.g, g_map=read_g_map(args.gmap), uv_fallback=args.gmap_fallback)
     mode = args.mode
+    if mode in _EXACT_MODES:
+        from .exact_modes import check_args
+
+        check_args(args)
     visibility = {"ours": args.visibility or "vsm", "no-occlusion": "none"}.get(mode)
     if mode == "no-occlusion" and args.visibility not in (None, "none"):
         raise IBLError("--visibility only applies to --mode ours (no-occlusion means VIS_i = 1)")
@@ -197,7 +203,7 @@ def cmd_render(args) -> int:
             "ground_material": ({"kd": gmat.kd, "ks": gmat.ks, "g": gmat.g} if args.ground else None),
             "radiance": radiance}
     pems = None
-    if mode != "reference":
+    if mode not in _EXACT_MODES:
         from ..pem import build_pems
 
         pems = build_pems(cube, n_lights=args.lights, variant=args.median_cut, progress=progress)
@@ -210,7 +216,15 @@ def cmd_render(args) -> int:
         info["prefilter"] = args.prefilter
     t1 = time.perf_counter()
     extra = {}
-    if render_mode is None:
+    if mode in _EXACT_MODES:
+        from .exact_modes import render_exact
+
+        from ..render import apply_background
+
+        image, mask, more = render_exact(mode, meshes, cam, cube, mat, gmat if args.ground else None, args, progress)
+        image = apply_background(np.array(image, dtype=np.float64), mask, cam, cube, args.background)
+        info.update(more)
+    elif render_mode is None:
         res = render_pem(meshes, cam, pems, materials={0: mat, 1: gmat}, visibility=visibility,
                          vsm_resolution=args.vsm_res, vsm_dtype=args.vsm_dtype, exact_backend=args.exact_backend,
                          horizon=args.horizon, background=args.background, progress=progress)
@@ -287,9 +301,10 @@ modes:
                 shadows of the same lights, --visibility none no shadows
   no-occlusion  VIS_i = 1 (Fig. 6a)
   ao, ao-color  ambient-occlusion comparisons of Fig. 6b/6c (ibl_ref.ao_modes)
-  reference     exact lobes and ray-cast visibility (ibl_ref.reference_render; slow)
+  reference     exact lobes and ray-cast visibility, converged to --ref-rtol (ibl_ref.reference_render; slow)
+  mitsuba       the same scene rendered by Mitsuba 3 (pip install ".[mitsuba]"; --spp, --seed)
   every mode shades the mesh with --material and the ground with --ground-material
-  (reference: scalar kd, ks and no --gmap).
+  (reference, mitsuba: scalar kd, ks and no --gmap).
 
 examples:
   ibl-ref render --out x.exr
@@ -358,6 +373,12 @@ def register(sub) -> None:
     g.add_argument("--vsm-res", type=int, default=256, metavar="N", help="shadow map size (default 256)")
     g.add_argument("--vsm-dtype", choices=("float16", "float32", "float64"), default="float32",
                    help="shadow-map moment storage (float16 = the paper's RG16F; default float32)")
+    g.add_argument("--ref-rtol", type=float, default=None, metavar="R",
+                   help="--mode reference: estimated relative L1 error to converge to (default 2e-3; 0 = the "
+                   "fixed coarse quadrature)")
+    g.add_argument("--spp", type=int, default=1024, metavar="N",
+                   help="--mode mitsuba: samples per pixel (two halves with seeds S, S+1 estimate the noise)")
+    g.add_argument("--seed", type=int, default=0, metavar="S", help="--mode mitsuba: first seed (default 0)")
     g = p.add_argument_group("camera (perspective, y is up)")
     g.add_argument("--size", type=int, nargs="+", default=[96, 96], metavar="N",
                    help="image size W H in pixels, or one N for N x N (default 96 96)")
