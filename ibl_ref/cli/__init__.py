@@ -9,7 +9,7 @@ Errors (this module, for every command):
 * argparse usage errors print **one line** ``ibl-ref CMD: error: argument --flag: …`` (plus a pointer
   to ``--help``) and exit with 2;
 * every numeric option is validated once, here, right after parsing (:func:`validate_args`): integer
-  options must be >= 1 and, if they are sizes, their float64 cube map must fit in memory
+  options must be >= 1 (seeds >= 0) and, if they are sizes, their float64 cube map must fit in memory
   (:mod:`ibl_ref.limits`); float options must be finite.  A bad value is one line naming the flag,
   exit code 1 (like every other bad input);
 * an :class:`~ibl_ref.errors.IBLError` prints one line and returns 1; Python parameter hints in library
@@ -34,6 +34,8 @@ __all__ = ["main", "build_parser", "validate_args"]
 
 #: int options whose value is an array size (checked against memory as a cube face size)
 SIZE_DESTS = ("size", "input_size", "env_size", "vsm_res")
+#: integer options for which 0 is meaningful (random seeds): they must be >= 0 instead of >= 1
+NONNEGATIVE_DESTS = ("seed",)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -91,7 +93,10 @@ def validate_args(parser, args) -> None:
             if a.type is float and not math.isfinite(v):
                 raise SizeError(f"argument {flag}: must be a finite number, got {v!r}")
             if a.type is int:
-                if v < 1:
+                if a.dest in NONNEGATIVE_DESTS:
+                    if v < 0:
+                        raise SizeError(f"argument {flag}: must be a non-negative integer, got {v}")
+                elif v < 1:
                     raise SizeError(f"argument {flag}: must be a positive integer, got {v}")
                 if a.dest in SIZE_DESTS:
                     check_face_size(v, f"argument {flag}")

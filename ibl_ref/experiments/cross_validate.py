@@ -27,10 +27,15 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_path, read_csv, write_csv, write_json
+from . import params_from_settings, settings_with
 
 NAME = "cross-validate"
 DESCRIPTION = "reference renderer vs Mitsuba 3 (same scene, rays, radiance, BRDF): rel. L1 / RMSE next to noise"
-IN_QUICK_REPRODUCE = False  # needs Mitsuba 3 (extra `mitsuba`); the quick run takes about a minute
+PAPER = ("Knuth et al. 2014 Eq. 4-5 with exact lobes and visibility (the lab's reference) against an independent "
+         "renderer, Mitsuba 3 direct illumination")
+IN_QUICK_REPRODUCE = False  # needs Mitsuba 3 (extra `mitsuba`)
+RUNTIME = {"quick": "90 s (load 10)", "full": "23 min (load 12-18)"}
+OUTPUTS = ("cross_validate.csv", "cross_validate_meta.json", "cross_validate_images.npz", "cross_validate.png")
 
 MATERIALS = {"diffuse": (1.0, 0.0, 0.0), "g0.9": (0.0, 1.0, 0.9), "g0.99": (0.0, 1.0, 0.99)}
 SCENES = ("teapot", "sphere_on_plane", "torus")
@@ -45,18 +50,25 @@ def settings(quick: bool) -> dict:
         return dict(size=20, env_size=16, spp=1024, envmap_height=512, rtol=4e-3,
                     cases=[("sphere_on_plane", "sky_sun", m) for m in MATERIALS])
     cases = [(sc, "sky_sun", m) for sc in SCENES for m in MATERIALS] + [("teapot", "studio", "diffuse")]
-    return dict(size=32, env_size=32, spp=4096, envmap_height=1024, rtol=None, cases=cases)
+    return dict(size=32, env_size=32, spp=4096, envmap_height=1024, rtol=2e-3, cases=cases)
+
+
+#: the case list is not a command-line parameter; the others are (``ibl-ref experiment cross-validate --help``)
+PARAMS = tuple(p for p in params_from_settings(settings, {
+    "size": "image size (px)", "env_size": "face size of the synthetic environment", "spp": "Mitsuba samples per pixel",
+    "envmap_height": "height of the lat-long bitmap handed to Mitsuba", "rtol": "reference tolerance (estimated rel. L1 of the image)"})
+    if p.name != "cases")
 
 
 def scene_meshes(name: str):
     """(mesh, material id) list of a named scene: the generated mesh, plus a ground quad for teapot and torus."""
-    from ..cli.cmd_render import _ground_quad
+    from ..scenes import ground_quad
     from ..synthetic_meshes import make_mesh
 
     mesh = make_mesh(name)
     meshes = [(mesh, 0)]
     if name in ("teapot", "torus"):
-        meshes.append((_ground_quad(mesh), 0))
+        meshes.append((ground_quad(mesh), 0))
     return mesh, meshes
 
 
@@ -73,19 +85,21 @@ def compare(ref_img, ref_mask, mi_img, mi_mask, noise_rel_l1: float, noise_rmse:
                 mask_agreement=float((ref_mask == mi_mask).mean()))
 
 
-def run(out_dir: Path, quick: bool) -> dict:
-    from ..ao_modes import default_camera
+def run(out_dir: Path, quick: bool = False, **params) -> dict:
+    from ..scenes import default_camera
     from ..mitsuba_render import render_mitsuba
     from ..reference_render import render_reference
     from ..synthetic_envs import make_env
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    st = settings(quick)
+    from ..progress import track
+
+    st = settings_with(__name__, quick, params)
     t_start = time.perf_counter()
     rows, meta_cases, arrays = [], [], {}
     envs = {}
-    for k, (scene, env_name, mat) in enumerate(st["cases"]):
+    for k, (scene, env_name, mat) in track(list(enumerate(st["cases"])), desc="cross-validate cases", unit="case"):
         if env_name not in envs:
             envs[env_name] = make_env(env_name, n=st["env_size"])
         env = envs[env_name]
@@ -125,10 +139,9 @@ def run(out_dir: Path, quick: bool) -> dict:
 
 
 def plot(out_dir: Path) -> list:
-    import matplotlib
+    from ..figures import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "cross_validate.csv")
@@ -145,8 +158,4 @@ def plot(out_dir: Path) -> list:
     ax.set_title("reference renderer vs Mitsuba 3")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    out = out_dir / "cross_validate.png"
-    with atomic_path(out, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    return [out]
+    return [save_figure(fig, out_dir / "cross_validate.png", dpi=110)]
