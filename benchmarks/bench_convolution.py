@@ -1,4 +1,4 @@
-"""Benchmark of ibl_ref.convolve: ``auto`` vs ``exact`` at 64² (same run) and the 128² targets.
+"""Benchmark of ibl_ref.groundtruth.convolve: ``auto`` vs ``exact`` at 64² (same run) and the 128² targets.
 
 Usage: OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python benchmarks/bench_convolution.py [--skip-128]
        [--without-s1] [--workers W] [--repeat R] [--check-128] [--exact-128]
@@ -8,7 +8,7 @@ Prints, at 64² faces and exponents {1, 4, 16, 64, 256, 1024, 4096}: the time of
 of ``exact`` measured in the same run, their ratio, and auto's max / mean relative error per exponent
 against exact.  Then the 128² targets: one exponent s = 16 (target ≤ 3 s) and the 8 exponents
 {1, 2, 5, 10, 20, 50, 100, 1000} (target ≤ 6.4 s wall on 2 cores), run with ``workers = W``
-(default :func:`ibl_ref.convolve.default_workers`) on the ``--backend`` (default auto = forked
+(default :func:`ibl_ref.groundtruth.convolve.default_workers`) on the ``--backend`` (default auto = forked
 processes), with W threads and serially (``workers = 1``), R times each (min and all runs printed), and
 whether all give bit-for-bit identical maps.  CPU times are process + forked-worker CPU.  ``--check-128`` compares
 the 8-exponent result with the moment route (s = 1, 2; exact up to rounding) and reports the bounds of
@@ -31,9 +31,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from ibl_ref.convolve import convolve, default_workers  # noqa: E402
+from ibl_ref.groundtruth.convolve import convolve, default_workers  # noqa: E402
 from ibl_ref.experiments.speed_accuracy import environment  # noqa: E402
-from ibl_ref.phong_convolution import convolve_exact_many  # noqa: E402
+from ibl_ref.groundtruth.phong_convolution import convolve_exact_many  # noqa: E402
 
 S7 = [1.0, 4.0, 16.0, 64.0, 256.0, 1024.0, 4096.0]
 S8 = [1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0, 1000.0]
@@ -56,7 +56,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--skip-128", action="store_true")
     ap.add_argument("--without-s1", action="store_true", help="drop s = 1 from the 128² eight-exponent target")
-    ap.add_argument("--workers", type=int, default=None, help="workers of the timed auto runs (default: ibl_ref.convolve.default_workers)")
+    ap.add_argument("--workers", type=int, default=None, help="workers of the timed auto runs (default: ibl_ref.groundtruth.convolve.default_workers)")
     ap.add_argument("--repeat", type=int, default=2, help="repetitions of the 128² eight-exponent timing")
     ap.add_argument("--backend", default="auto", choices=("auto", "process", "thread"),
                     help="parallel back-end of the main timed runs (threads are always timed too)")
@@ -118,7 +118,7 @@ def main():
           f"{', '.join(f'{k} {v:.2f} s' for k, v in res.timings_s.items())}")
     print("  bound max per exponent: " + ", ".join(f"{s:g}:{float(res.error_bound[s].max()):.1e}" for s in s8))
     if args.check_128 or args.exact_128:
-        from ibl_ref.moment_convolution import convolve_moment_many
+        from ibl_ref.groundtruth.moment_convolution import convolve_moment_many
 
         if args.exact_128 and args.exact_cache is not None and args.exact_cache.exists():
             ref = np.load(args.exact_cache)

@@ -35,7 +35,7 @@ log₂ ({1, 2, 4, 8, 16, 64, 128, 1024}), one process each, summed.
 Input.  The synthetic sky + 1e5 sun 0.0015 rad from a cube corner (on three edges)
 (:func:`ibl_ref.experiments.speed_accuracy.environment`), rounded to float32 once; the lab reads it as an
 OpenEXR cube (float32), cmft as a DDS RGBA32F cube map written here after re-orienting the faces to the
-OpenGL/D3D convention (:func:`ibl_ref.envmap.convert_convention`).  cmft's DDS output is read back
+OpenGL/D3D convention (:func:`ibl_ref.environment.envmap.convert_convention`).  cmft's DDS output is read back
 (128-byte header, optional 20-byte DX10 header, then RGBA32F faces +X −X +Y −Y +Z −Z) and re-oriented to
 the lab's convention.  The face mapping is verified before any timing: a smooth test pattern filtered by
 the first cmft binary at s = 64 on 16² faces must agree with the lab's exact gather to 5 % (a wrong
@@ -70,7 +70,7 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
-from ibl_ref import envmap  # noqa: E402
+from ibl_ref.environment import envmap  # noqa: E402
 from ibl_ref.atomic import write_csv  # noqa: E402
 
 S8 = (1.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0, 1000.0)
@@ -221,7 +221,7 @@ class Reference:
 
 def check_face_mapping(binary, tmp):
     """cmft on a smooth pattern (16² faces, s = 64) vs the lab's exact gather: max rel. error (must be < 5 %)."""
-    from ibl_ref.phong_convolution import convolve_exact_many
+    from ibl_ref.groundtruth.phong_convolution import convolve_exact_many
 
     n = 16
     d = envmap.texel_directions(n)
@@ -250,7 +250,7 @@ def median_wall(cmd, repeat, timeout, env=None):
 
 
 def main(argv=None):
-    from ibl_ref.exr_io import load_cube, write_envmap
+    from ibl_ref.environment.exr_io import load_cube, write_envmap
     from ibl_ref.experiments.speed_accuracy import environment
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

@@ -1,4 +1,4 @@
-"""Benchmark of ibl_ref.phong_convolution: exact gather timings and sparse speed-up / accuracy.
+"""Benchmark of ibl_ref.groundtruth.phong_convolution: exact gather timings and sparse speed-up / accuracy.
 
 Usage: OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python benchmarks/bench_phong_convolution.py [--sizes 32,64]
        [--sparse-size 64] [--big 0]
@@ -27,8 +27,8 @@ class _Clock:
 
 import numpy as np
 
-from ibl_ref import envmap
-from ibl_ref.phong_convolution import convolve_exact, convolve_exact_many, convolve_sparse_many
+from ibl_ref.environment import envmap
+from ibl_ref.groundtruth.phong_convolution import convolve_exact, convolve_exact_many, convolve_sparse_many
 
 EIGHT = [1.0, 4.0, 16.0, 64.0, 256.0, 1024.0, 4096.0, 16384.0]
 

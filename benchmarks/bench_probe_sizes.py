@@ -8,11 +8,11 @@ lat-long float32 RGB: sky gradient, dark ground with a black strip, a 0.5° sun 
 attribute) is written to a temporary folder, then the steps of ``ibl-ref mediancut PROBE --size N``
 are timed one by one:
 
-* ``read``: :func:`ibl_ref.exr_io.read_image` as float32 with the radiance policy (DWAB's negatives
+* ``read``: :func:`ibl_ref.environment.exr_io.read_image` as float32 with the radiance policy (DWAB's negatives
   are clamped and reported);
-* ``to-cube``: :func:`ibl_ref.resample.latlong_to_cube` to face N (the conservative kernel; inputs
+* ``to-cube``: :func:`ibl_ref.environment.resample.latlong_to_cube` to face N (the conservative kernel; inputs
   with H ≥ 4N are block-reduced exactly to H ≥ 2N first);
-* ``mediancut``: :func:`ibl_ref.median_cut.median_cut` with 24 lights (per-face variant), for faces up
+* ``mediancut``: :func:`ibl_ref.knuth2014.median_cut.median_cut` with 24 lights (per-face variant), for faces up
   to 1024² (median_cut's own working set is ~280 bytes per texel: 1.9 GB at 1024², so 7 GB at 2048²).
 
 ``cpu_s`` (to-cube) is the CPU time of the process, which depends less on the load than the wall time.
@@ -98,7 +98,7 @@ def make_probe_planes(h: int, sun: float = 3e4, sun_radius_deg: float = 0.5):
 
 
 def _integral_latlong_chunked(img) -> np.ndarray:
-    from ibl_ref import envmap
+    from ibl_ref.environment import envmap
 
     h, w = img.shape[:2]
     om = envmap.latlong_solid_angles(h, w)[:, 0]
@@ -111,9 +111,9 @@ def _integral_latlong_chunked(img) -> np.ndarray:
 def run_one(name: str, compression: str, lights: int) -> list:
     import OpenEXR
 
-    from ibl_ref import exr_io, resample
-    from ibl_ref.median_cut import median_cut
-    from ibl_ref.probe_files import _ox_compression
+    from ibl_ref.environment import exr_io, resample
+    from ibl_ref.knuth2014.median_cut import median_cut
+    from ibl_ref.environment.probe_files import _ox_compression
 
     h, n = SIZES[name]
     rows = []
@@ -159,7 +159,7 @@ def run_one(name: str, compression: str, lights: int) -> list:
 
 
 def kernels():
-    from ibl_ref import resample
+    from ibl_ref.environment import resample
 
     print(f"{'H':>5} {'N':>5} {'ks':>3} {'iters':>5} {'energy_error_ll':>16} {'energy_error_cube':>18} {'build_s':>8}")
     for h in (16, 64, 256, 512, 1024, 2048):

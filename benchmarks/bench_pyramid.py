@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from ibl_ref.pyramid import build_mip_chain, build_pyramid
+from ibl_ref.knuth2014.pyramid import build_mip_chain, build_pyramid
 
 
 def best_time(fn, repeat):

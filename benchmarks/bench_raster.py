@@ -1,7 +1,7 @@
-"""Benchmark of the geometry pass (ibl_ref.raster / vsm / raycast), Knuth et al. 2014 Sec. 3.3–3.4.
+"""Benchmark of the geometry pass (ibl_ref.rendering.raster / vsm / raycast), Knuth et al. 2014 Sec. 3.3–3.4.
 
 Prints:
-* rasterization time of the teapot (tessellation of ibl_ref.synthetic_meshes, ~16k triangles) at 256² (G-buffer
+* rasterization time of the teapot (tessellation of ibl_ref.synthetic.synthetic_meshes, ~16k triangles) at 256² (G-buffer
   and depth only), with the cost of projecting the vertices as the in-run baseline (ratio raster / projection);
 * exact directional visibility with the binned parallel-ray test (points/s), for comparison;
 * rays/s of trimesh's ray backend (embree or the pure-NumPy fallback) on the same mesh, and the ratio of
@@ -41,10 +41,10 @@ def main(argv=None):
                          "visibility and print the image errors")
     args = ap.parse_args(argv)
 
-    from ibl_ref import raycast, vsm
-    from ibl_ref.camera import PerspectiveCamera
-    from ibl_ref.raster import prepare_scene, rasterize, render_depth
-    from ibl_ref.synthetic_meshes import make_mesh
+    from ibl_ref.rendering import raycast, vsm
+    from ibl_ref.rendering.camera import PerspectiveCamera
+    from ibl_ref.rendering.raster import prepare_scene, rasterize, render_depth
+    from ibl_ref.synthetic.synthetic_meshes import make_mesh
 
     teapot = make_mesh("teapot")
     scene = prepare_scene(teapot)
@@ -104,9 +104,9 @@ def main(argv=None):
               f"mean = {np.abs(a - b).mean():.2e}")
 
     if args.render:
-        from ibl_ref.pem import build_pems
-        from ibl_ref.render import render_pem
-        from ibl_ref.synthetic_envs import make_env
+        from ibl_ref.knuth2014.pem import build_pems
+        from ibl_ref.rendering.render import render_pem
+        from ibl_ref.synthetic.synthetic_envs import make_env
 
         pems = build_pems(make_env("sky_sun", n=32), n_lights=24)
         rcam = PerspectiveCamera(eye=c + r * np.array([1.0, 1.0, 2.4]), target=c, up=[0, 1, 0], fov_y_deg=40,

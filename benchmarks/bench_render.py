@@ -28,12 +28,12 @@ def main():
     ap.add_argument("--repeat", type=int, default=2, help="frames per light count; the best is kept")
     args = ap.parse_args()
 
-    from ibl_ref.ao_modes import default_camera, render_modes
+    from ibl_ref.rendering.ao_modes import default_camera, render_modes
     from ibl_ref.experiments.fig7 import STAGES, fit_line
-    from ibl_ref.pem import build_pems
-    from ibl_ref.raster import prepare_scene, rasterize
-    from ibl_ref.synthetic_envs import make_env
-    from ibl_ref.synthetic_meshes import make_mesh
+    from ibl_ref.knuth2014.pem import build_pems
+    from ibl_ref.rendering.raster import prepare_scene, rasterize
+    from ibl_ref.synthetic.synthetic_envs import make_env
+    from ibl_ref.synthetic.synthetic_meshes import make_mesh
 
     env = make_env("sky_sun", n=args.env_size)
     meshes = [(make_mesh("teapot"), 0)]

@@ -1,4 +1,4 @@
-"""Accuracy (and time) of ibl_ref.resample: round trips and ∫L dω conservation at 3 resolutions.
+"""Accuracy (and time) of ibl_ref.environment.resample: round trips and ∫L dω conservation at 3 resolutions.
 
 Run:  OMP_NUM_THREADS=1 python benchmarks/bench_resample.py
 
@@ -13,8 +13,8 @@ import time
 
 import numpy as np
 
-from ibl_ref import envmap
-from ibl_ref import resample as R
+from ibl_ref.environment import envmap
+from ibl_ref.environment import resample as R
 
 S = 8
 

@@ -5,8 +5,8 @@
 * Width of the clamped cosine lobe max(cos θ, 0)^s of Eq. 4: half-width at half maximum
   θ½ = arccos(2^(−1/s)) (≈ 1.18/√s for large s).
 
-They live here so that the exact reference (:mod:`ibl_ref.reference_render`), the prefilters
-(:mod:`ibl_ref.lobe_chain`, :mod:`ibl_ref.pyramid`) and the run-time look-up (:mod:`ibl_ref.gloss_lookup`) can all use
+They live here so that the exact reference (:mod:`ibl_ref.rendering.reference_render`), the prefilters
+(:mod:`ibl_ref.knuth2014.lobe_chain`, :mod:`ibl_ref.knuth2014.pyramid`) and the run-time look-up (:mod:`ibl_ref.knuth2014.gloss_lookup`) can all use
 them without importing one another; the old import places re-export them.
 """
 

@@ -36,8 +36,8 @@ def check_radiance(values, name: str = "radiance", negative: str = "error", nonf
 
     Raises :class:`RadianceError` naming ``name``, the count of offending values and the first index;
     complex, integer and boolean arrays are refused too.  ``negative`` / ``nonfinite`` select another
-    policy of :mod:`ibl_ref.radiance_policy` (then a repaired copy may be returned).
+    policy of :mod:`ibl_ref.environment.radiance_policy` (then a repaired copy may be returned).
     """
-    from .radiance_policy import apply_policy
+    from .environment.radiance_policy import apply_policy
 
     return apply_policy(values, name, negative=negative, nonfinite=nonfinite)[0]

@@ -64,12 +64,12 @@ def figure_notebook(fig: str, exp_names, title: str, text: str):
 TOUR = [
     new_markdown_cell("# A tour of ibl_ref\n\nLoad (here: synthesise) an HDR environment, look at it, build the "
                       "paper's filter pyramid, look up glossiness, and compare with the exact Phong-lobe "
-                      "convolution (Knuth et al. 2014, Eq. 3-4). Conventions: `ibl_ref.envmap` (OpenEXR cube "
+                      "convolution (Knuth et al. 2014, Eq. 3-4). Conventions: `ibl_ref.environment.envmap` (OpenEXR cube "
                       "layout, texel centres, exact solid angles)."),
     new_code_cell(SETUP),
     new_code_cell("""\
 from ibl_ref import envmap, resample, tonemap
-from ibl_ref.synthetic_envs import make_env, SUN_NEAR_CORNER
+from ibl_ref.synthetic.synthetic_envs import make_env, SUN_NEAR_CORNER
 
 n = 32
 env = make_env("sky_sun", n)
@@ -85,15 +85,15 @@ for a in ax: a.axis("off")
 plt.show()"""),
     new_markdown_cell("## The filter pyramid (Fig. 2) and the glossiness lookup (Eq. 3)"),
     new_code_cell("""\
-from ibl_ref.pyramid import build_pyramid, pyramid_energy
-from ibl_ref.gloss_lookup import lookup, phong_exponent
+from ibl_ref.knuth2014.pyramid import build_pyramid, pyramid_energy
+from ibl_ref.knuth2014.gloss_lookup import lookup, phong_exponent
 
 pyr = build_pyramid(env, kernel="sqrtcos")
 print("levels:", [lv.shape[1] for lv in pyr.levels])
 for row in pyramid_energy(pyr):
     print(row)"""),
     new_code_cell("""\
-from ibl_ref.phong_convolution import convolve_exact
+from ibl_ref.groundtruth.phong_convolution import convolve_exact
 
 dirs = envmap.texel_directions(n)
 rows = []
@@ -120,7 +120,7 @@ SPEED = [
     new_markdown_cell("# Speed vs accuracy of the convolution methods\n\nEvery fast method returns its result "
                       "*and* an error bound. This notebook runs the `speed-accuracy` experiment at quick size, "
                       "shows the Pareto plots, and shows how to pick a method for a tolerance with "
-                      "`ibl_ref.convolve.convolve(..., method='auto', rtol=...)`."),
+                      "`ibl_ref.groundtruth.convolve.convolve(..., method='auto', rtol=...)`."),
     new_code_cell(SETUP), new_code_cell(SHOW),
     new_code_cell("""\
 mod = experiments.get("speed-accuracy")
@@ -129,9 +129,9 @@ summary = mod.run(out, quick=True)
 figures = mod.plot(out)
 experiments.show(figures)"""),
     new_code_cell("""\
-from ibl_ref.convolve import convolve
-from ibl_ref.phong_convolution import convolve_exact
-from ibl_ref.synthetic_envs import make_env, SUN_NEAR_CORNER
+from ibl_ref.groundtruth.convolve import convolve
+from ibl_ref.groundtruth.phong_convolution import convolve_exact
+from ibl_ref.synthetic.synthetic_envs import make_env, SUN_NEAR_CORNER
 
 env = make_env("sky_sun", 32, sun_direction=SUN_NEAR_CORNER, sun_radiance=1e5)
 for s in (16.0, 1024.0):
@@ -154,9 +154,9 @@ PROBE = None   # e.g. "my_probe.hdr" or "my_probe.exr"
 MESH = None    # e.g. "my_mesh.obj"
 
 from ibl_ref import resample
-from ibl_ref.hdr_io import write_hdr
-from ibl_ref.synthetic_envs import make_env
-from ibl_ref.synthetic_meshes import make_mesh
+from ibl_ref.environment.hdr_io import write_hdr
+from ibl_ref.synthetic.synthetic_envs import make_env
+from ibl_ref.synthetic.synthetic_meshes import make_mesh
 
 if PROBE is None:
     PROBE = OUT / "probe.hdr"
@@ -166,18 +166,18 @@ if MESH is None:
     make_mesh("teapot").export(MESH)
 print(PROBE, MESH)"""),
     new_code_cell("""\
-from ibl_ref.exr_io import load_cube
-from ibl_ref.median_cut import median_cut, check_partition
+from ibl_ref.environment.exr_io import load_cube
+from ibl_ref.knuth2014.median_cut import median_cut, check_partition
 
 cube = load_cube(PROBE, size=32)
 lights = median_cut(cube, 24, variant="per-face")
 print(check_partition(lights, cube))
 print(lights.to_records()[:3])"""),
     new_code_cell("""\
-from ibl_ref.pem import build_pems
-from ibl_ref.synthetic_meshes import load_mesh
-from ibl_ref.render import render_pem, Material
-from ibl_ref.ao_modes import default_camera
+from ibl_ref.knuth2014.pem import build_pems
+from ibl_ref.synthetic.synthetic_meshes import load_mesh
+from ibl_ref.rendering.render import render_pem, Material
+from ibl_ref.rendering.ao_modes import default_camera
 from ibl_ref import tonemap
 
 pems = build_pems(cube, lights)          # one filtered partial environment map per median-cut region
@@ -206,7 +206,7 @@ FIGURES = {
     "prefilter_pyramid_vs_exact": ("lobe-chain", ["lobe-chain"],
                                    "Where the filter pyramid breaks: pyramid vs exact-lobe chain",
                                    "One lookup at glossiness g against the exact Phong lobe average, for the paper's "
-                                   "filter pyramid and for the exact-lobe chain (`ibl_ref.lobe_chain`: the same "
+                                   "filter pyramid and for the exact-lobe chain (`ibl_ref.knuth2014.lobe_chain`: the same "
                                    "lookup, levels holding exact lobe averages), with build time and memory. "
                                    "In a render (`ibl-ref experiment render-error`, `ibl-ref render --prefilter "
                                    "exact-lobe`) this is the difference between 30 % and 0.75 % at s = 1."),

@@ -40,7 +40,7 @@ def _rgb(strip):
 
 
 def write_good_exr(path: Path, seed: int = 0) -> Path:
-    from ibl_ref.exr_io import write_envmap
+    from ibl_ref.environment.exr_io import write_envmap
 
     write_envmap(path, good_cube(seed), layout="cube")
     return path
@@ -199,7 +199,7 @@ def tiled_exr(d: Path):
 
 
 def multipart_exr(d: Path):
-    from ibl_ref.exr_io import write_pyramid
+    from ibl_ref.environment.exr_io import write_pyramid
 
     l0, l1 = good_cube(4), good_cube(5, 2)
     p = d / "multipart.exr"
@@ -208,7 +208,7 @@ def multipart_exr(d: Path):
 
 
 def opengl_exr(d: Path):
-    from ibl_ref.exr_io import write_envmap
+    from ibl_ref.environment.exr_io import write_envmap
 
     cube = good_cube(6)
     p = d / "opengl.exr"
@@ -274,7 +274,7 @@ def write_hdr_bytes(d: Path, name: str) -> Path:
 # meshes
 # ------------------------------------------------------------------------------------------------
 def _good_stl(d: Path) -> bytes:
-    from ibl_ref.synthetic_meshes import make_mesh
+    from ibl_ref.synthetic.synthetic_meshes import make_mesh
 
     p = d / "good_for_trunc.stl"
     make_mesh("torus").export(str(p))

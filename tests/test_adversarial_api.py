@@ -27,9 +27,9 @@ import pytest
 import adversarial_files as af
 from ibl_ref import atomic
 from ibl_ref.errors import IBLError, RadianceError
-from ibl_ref.exr_io import load_cube, read_envmap, write_envmap
+from ibl_ref.environment.exr_io import load_cube, read_envmap, write_envmap
 from ibl_ref.limits import SizeError
-from ibl_ref.median_cut import check_partition, median_cut
+from ibl_ref.knuth2014.median_cut import check_partition, median_cut
 
 
 @pytest.fixture(scope="module")
@@ -97,7 +97,7 @@ def test_load_cube_accepts_integral_float_size(files):
 @pytest.mark.parametrize("name", ["truncated_stl", "tiny_stl", "exr_renamed_obj", "point_cloud_ply", "empty_obj",
                                   "nan_vertex", "degenerate_faces", "vertices_only_obj", "binary_obj"])
 def test_bad_mesh_files(files, name):
-    from ibl_ref.synthetic_meshes import load_mesh
+    from ibl_ref.synthetic.synthetic_meshes import load_mesh
 
     d = files / "meshes"
     d.mkdir(exist_ok=True)
@@ -160,7 +160,7 @@ def test_median_cut_ones_1e308_six_lights_is_a_clear_error():
 
 def test_median_cut_integer_map_is_refused():
     # an integer array is a display image (0..255), not linear radiance: the radiance policy refuses it
-    # (ibl_ref.radiance_policy), naming the dtype, instead of guessing a scale
+    # (ibl_ref.environment.radiance_policy), naming the dtype, instead of guessing a scale
     cube = (af.good_cube(3) * 100).astype(np.int64)
     with pytest.raises(RadianceError, match="int64"):
         median_cut(cube, 12, "global")
@@ -169,7 +169,7 @@ def test_median_cut_integer_map_is_refused():
 def test_median_cut_single_subnormal_texel():
     # one lit texel of 5e-324 (the smallest subnormal): the per-face cut still partitions the map and
     # the light that holds it points at that texel (its own direction: a one-texel centroid)
-    from ibl_ref.envmap import texel_directions
+    from ibl_ref.environment.envmap import texel_directions
 
     cube = np.zeros((6, 4, 4, 3))
     cube[2, 1, 3] = 5e-324
@@ -181,7 +181,7 @@ def test_median_cut_single_subnormal_texel():
 
 @pytest.mark.parametrize("method", ["exact", "sh", "sparse", "auto"])
 def test_convolve_1e308_is_finite_or_an_error(method):
-    from ibl_ref.convolve import convolve
+    from ibl_ref.groundtruth.convolve import convolve
 
     try:
         res = convolve(np.ones((6, 4, 4, 3)) * 1e308, [1.0], method=method)
@@ -195,7 +195,7 @@ def test_convolve_1e308_is_finite_or_an_error(method):
 
 @pytest.mark.parametrize("entry", ["check_radiance", "median_cut", "convolve", "write_envmap"])
 def test_complex_input_is_refused(entry, tmp_path):
-    from ibl_ref.convolve import convolve
+    from ibl_ref.groundtruth.convolve import convolve
     from ibl_ref.errors import check_radiance
 
     z = np.ones((6, 4, 4, 3), dtype=complex) * (1 + 1e-3j)
@@ -220,7 +220,7 @@ WRITERS = {
     "write_json": lambda p: atomic.write_json(p, {"a": 1}),
     "write_csv": lambda p: atomic.write_csv(p, [{"x_m": 1}]),
     "write_envmap": lambda p: write_envmap(p, af.good_cube(), layout="cube"),
-    "write_hdr": lambda p: __import__("ibl_ref.hdr_io", fromlist=["write_hdr"]).write_hdr(p, np.ones((4, 8, 3))),
+    "write_hdr": lambda p: __import__("ibl_ref.environment.hdr_io", fromlist=["write_hdr"]).write_hdr(p, np.ones((4, 8, 3))),
 }
 
 
@@ -418,7 +418,7 @@ def _mutations(base: bytes, seed: int, count: int):
 @pytest.mark.parametrize("seed", range(12))
 @pytest.mark.parametrize("fmt", ["exr", "hdr"])
 def test_fuzzed_files_give_an_iblerror_or_a_valid_cube(fmt, seed, tmp_path, capfd):
-    from ibl_ref.hdr_io import write_hdr
+    from ibl_ref.environment.hdr_io import write_hdr
 
     if fmt == "exr":
         base = af.write_good_exr(tmp_path / "g.exr").read_bytes()

@@ -395,7 +395,7 @@ def test_pem_full_disk_keeps_the_previous_set(nth, tmp_path, capfd, monkeypatch)
 
 
 def test_pem_half_overflow_refused_before_writing(tmp_path, capfd):
-    from ibl_ref.exr_io import write_envmap
+    from ibl_ref.environment.exr_io import write_envmap
 
     cube = af.good_cube()
     cube[0, 0, 0] = 1e6  # > 65504 after filtering too (level 0 is the map itself)
@@ -463,11 +463,11 @@ def test_mediancut_hint_names_the_cli_flag(good, tmp_path, capfd):
 
 
 def test_pyramid_hint_names_the_cli_flag(tmp_path, capfd):
-    from ibl_ref.exr_io import write_envmap
+    from ibl_ref.environment.exr_io import write_envmap
 
     write_envmap(tmp_path / "n3.exr", np.ones((6, 3, 3, 3)))
     err = run(["pyramid", tmp_path / "n3.exr", tmp_path / "p.exr"], capfd, 1)
-    assert "--size" in err and "ibl_ref.resample" not in err
+    assert "--size" in err and "ibl_ref.environment.resample" not in err
 
 
 def test_layout_hint_does_not_name_a_python_parameter(bad_dir, tmp_path, capfd):
@@ -498,7 +498,7 @@ def test_render_bad_meshes(name, tmp_path, capfd):
 
 
 def test_mediancut_1e308_map_gives_finite_json_or_clear_error(tmp_path, capfd):
-    from ibl_ref.exr_io import write_envmap
+    from ibl_ref.environment.exr_io import write_envmap
 
     # float32 files top out at 3.4e38: a 1e38 map; the JSON must stay finite (no NaN/Inf written)
     write_envmap(tmp_path / "b.exr", np.ones((6, 4, 4, 3)) * 1e38)

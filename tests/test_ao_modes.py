@@ -1,12 +1,12 @@
-"""Tests of the Fig. 6 comparison modes (ibl_ref.ao_modes)."""
+"""Tests of the Fig. 6 comparison modes (ibl_ref.rendering.ao_modes)."""
 
 import numpy as np
 import pytest
 import trimesh
 
-from ibl_ref import ao_modes as am
-from ibl_ref.camera import PerspectiveCamera
-from ibl_ref.envmap import cube_solid_angles
+from ibl_ref.rendering import ao_modes as am
+from ibl_ref.rendering.camera import PerspectiveCamera
+from ibl_ref.environment.envmap import cube_solid_angles
 from ibl_ref.errors import IBLError
 
 CAM = PerspectiveCamera(eye=[0.0, 2.0, 0.3], target=[0, 0, 0], up=[0, 1, 0], fov_y_deg=40, width=12, height=12)
@@ -20,8 +20,8 @@ def _quad(size=2.0):
 
 def _one_light_pems(env):
     """One region = the whole sphere, light straight above (+y)."""
-    from ibl_ref.median_cut import LightSet
-    from ibl_ref.pem import build_pems
+    from ibl_ref.knuth2014.median_cut import LightSet
+    from ibl_ref.knuth2014.pem import build_pems
 
     n = env.shape[1]
     om = cube_solid_angles(n)
@@ -46,10 +46,10 @@ def test_one_light_whole_sphere_no_occluder_modes_agree():
 
 
 def test_no_occlusion_equals_full_pyramid_lookup():
-    from ibl_ref.gloss_lookup import lookup
-    from ibl_ref.pem import build_pems
-    from ibl_ref.pyramid import build_pyramid
-    from ibl_ref.synthetic_envs import make_env
+    from ibl_ref.knuth2014.gloss_lookup import lookup
+    from ibl_ref.knuth2014.pem import build_pems
+    from ibl_ref.knuth2014.pyramid import build_pyramid
+    from ibl_ref.synthetic.synthetic_envs import make_env
 
     env = make_env("studio", n=16)
     pems = build_pems(env, n_lights=12)
@@ -62,16 +62,16 @@ def test_no_occlusion_equals_full_pyramid_lookup():
 
 
 def test_ours_equals_render_pem_and_ao_bounds():
-    from ibl_ref.pem import build_pems
-    from ibl_ref.render import render_pem
-    from ibl_ref.synthetic_envs import make_env
+    from ibl_ref.knuth2014.pem import build_pems
+    from ibl_ref.rendering.render import render_pem
+    from ibl_ref.synthetic.synthetic_envs import make_env
 
     mesh = trimesh.util.concatenate([_quad(4.0), trimesh.creation.icosphere(1, 0.5).apply_translation([0, 0.6, 0])])
     env = make_env("sky_sun", n=16)
     pems = build_pems(env, n_lights=12)
     res = am.render_modes(mesh, CAM, env, ("ours", "no-occlusion", "ao", "ao-color"), pems=pems, kd=0.0, ks=1.0,
                           g=0.8, vsm_resolution=64)
-    f = render_pem(mesh, CAM, pems, 0.8, vsm_resolution=64)  # ibl_ref.render's Eq. 5 (glossy only)
+    f = render_pem(mesh, CAM, pems, 0.8, vsm_resolution=64)  # ibl_ref.rendering.render's Eq. 5 (glossy only)
     np.testing.assert_allclose(res.images["ours"], f.image, rtol=1e-12, atol=0)
     m = res.mask
     un = res.images["no-occlusion"][m]

@@ -1,9 +1,9 @@
-"""Tests of ibl_ref.brdfs (analytic isotropic BRDFs, albedo quadrature)."""
+"""Tests of ibl_ref.lobes.brdfs (analytic isotropic BRDFs, albedo quadrature)."""
 
 import numpy as np
 import pytest
 
-from ibl_ref import brdfs as b
+from ibl_ref.lobes import brdfs as b
 from ibl_ref.errors import IBLError
 
 ALL = [("lambert", dict(kd=0.5)), ("phong", dict(ks=0.7, s=30, kd=0.1)), ("phong_classic", dict(ks=0.5, s=20)),

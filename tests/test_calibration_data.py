@@ -1,6 +1,6 @@
 """The calibration tables shipped in ibl_ref/data are what build_calibration_tables computes today.
 
-The shipped JSON files were written by an earlier run of :func:`ibl_ref.gloss_lookup.build_calibration_tables`;
+The shipped JSON files were written by an earlier run of :func:`ibl_ref.knuth2014.gloss_lookup.build_calibration_tables`;
 rebuilding them into a temporary folder must reproduce them, so the data cannot drift from the code that
 defines it (Knuth et al. 2014, Sec. 5: the level for an exponent is the one whose lobe volume matches).
 """
@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 
-from ibl_ref import gloss_lookup
+from ibl_ref.knuth2014 import gloss_lookup
 
 
 @pytest.mark.parametrize("kernel", ["none", "box", "gauss", "cos", "sqrtcos"])

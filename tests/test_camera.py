@@ -1,9 +1,9 @@
-"""Tests of ibl_ref.camera: pixel mapping, vertical fov, matrices, light camera fit, bad input."""
+"""Tests of ibl_ref.rendering.camera: pixel mapping, vertical fov, matrices, light camera fit, bad input."""
 
 import numpy as np
 import pytest
 
-from ibl_ref.camera import CameraError, OrthographicCamera, PerspectiveCamera, light_camera, scene_bounds
+from ibl_ref.rendering.camera import CameraError, OrthographicCamera, PerspectiveCamera, light_camera, scene_bounds
 from ibl_ref.errors import IBLError
 
 

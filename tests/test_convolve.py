@@ -1,18 +1,18 @@
-"""Tests of ibl_ref.convolve (method dispatcher) and the ``convolve`` / ``irradiance`` CLI."""
+"""Tests of ibl_ref.groundtruth.convolve (method dispatcher) and the ``convolve`` / ``irradiance`` CLI."""
 
 import json
 
 import numpy as np
 import pytest
 
-from ibl_ref.convolve import ConvolutionResult, convolve
+from ibl_ref.groundtruth.convolve import ConvolutionResult, convolve
 from ibl_ref.errors import IBLError, LayoutError, RadianceError
 
-from ibl_ref import phong_convolution as pc
+from ibl_ref.groundtruth import phong_convolution as pc
 
 
 def _sun_env(n):
-    from ibl_ref.synthetic_envs import SUN_NEAR_CORNER, make_env
+    from ibl_ref.synthetic.synthetic_envs import SUN_NEAR_CORNER, make_env
 
     return make_env("sky_sun", n, sun_direction=SUN_NEAR_CORNER, sun_radiance=1e5)
 
@@ -20,7 +20,7 @@ def _sun_env(n):
 @pytest.fixture
 def no_tiny_shortcut(monkeypatch):
     """Route small test maps like large ones (auto would otherwise use exact on tiny maps)."""
-    import ibl_ref.convolve as cv
+    import ibl_ref.groundtruth.convolve as cv
 
     monkeypatch.setattr(cv, "AUTO_EXACT_PAIRS", 0)
     monkeypatch.setattr(cv, "EXACT_UNITS_PER_PAIR", 1e6)  # exact only as the bound-driven fallback
@@ -101,7 +101,7 @@ def test_errors():
 
 def test_cli_convolve_and_irradiance(tmp_path):
     pytest.importorskip("OpenEXR")
-    from ibl_ref import exr_io as exr_io
+    from ibl_ref.environment import exr_io
     from ibl_ref.cli import main
     from ibl_ref.cli.cmd_convolve import exponent_path
 

@@ -1,4 +1,4 @@
-"""Scale-out and resource planning of ibl_ref.convolve: executors, Dask, the memory planner, dying workers.
+"""Scale-out and resource planning of ibl_ref.groundtruth.convolve: executors, Dask, the memory planner, dying workers.
 
 The reference is always the serial run of the same call (``workers=1``), an independent execution path
 (no pool, no pickling); results must agree bit for bit because the jobs are fixed by the sizes alone.
@@ -11,9 +11,9 @@ from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 import numpy as np
 import pytest
 
-import ibl_ref.convolve as cv
-from ibl_ref import moment_convolution as mc
-from ibl_ref.convolve import convolve, plan_memory_workers
+import ibl_ref.groundtruth.convolve as cv
+from ibl_ref.groundtruth import moment_convolution as mc
+from ibl_ref.groundtruth.convolve import convolve, plan_memory_workers
 from ibl_ref.errors import IBLError
 
 # the sky + sun scene and the routing of a small map like a 128² one are shared with the worker tests
@@ -48,7 +48,7 @@ def test_any_executor_gives_the_serial_result(routed_like_large):
 def test_dask_local_cluster_bit_identical(routed_like_large, tmp_path):
     distributed = pytest.importorskip("distributed")
     from ibl_ref.cli import main
-    from ibl_ref.exr_io import load_cube, write_envmap
+    from ibl_ref.environment.exr_io import load_cube, write_envmap
 
     cube = _sun_env(16)
     ref = convolve(cube, S, workers=1)

@@ -1,4 +1,4 @@
-"""Float64 range of ibl_ref.convolve.convolve: no overflow near 1e308, rigorous bounds where exact values underflow.
+"""Float64 range of ibl_ref.groundtruth.convolve.convolve: no overflow near 1e308, rigorous bounds where exact values underflow.
 
 References are independent of the code under test: the lobe average of a constant map is the constant
 (a convex combination), and for a map with a single lit texel j the exact lobe average has the closed
@@ -9,8 +9,8 @@ below the float64 range (subnormal or < 1e-324) are still known exactly in logar
 import numpy as np
 import pytest
 
-from ibl_ref import envmap
-from ibl_ref.convolve import convolve
+from ibl_ref.environment import envmap
+from ibl_ref.groundtruth.convolve import convolve
 from ibl_ref.errors import IBLError
 
 N = 16

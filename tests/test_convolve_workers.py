@@ -1,4 +1,4 @@
-"""Tests of the ``workers`` option of ibl_ref.convolve and of the pieces it runs concurrently.
+"""Tests of the ``workers`` option of ibl_ref.groundtruth.convolve and of the pieces it runs concurrently.
 
 Reference values come from independent routes: the full (unsplit) call of each route for face
 subsets, the dense SH matrix (no symmetry folding) for the octant-symmetric SH projection, and
@@ -8,16 +8,16 @@ subsets, the dense SH matrix (no symmetry folding) for the octant-symmetric SH p
 import numpy as np
 import pytest
 
-from ibl_ref import envmap
-from ibl_ref import moment_convolution as mc
-from ibl_ref import phong_convolution as pc
-from ibl_ref import sh_convolution as shc
-from ibl_ref.convolve import WORKERS_ENV, convolve, default_workers
+from ibl_ref.environment import envmap
+from ibl_ref.groundtruth import moment_convolution as mc
+from ibl_ref.groundtruth import phong_convolution as pc
+from ibl_ref.groundtruth import sh_convolution as shc
+from ibl_ref.groundtruth.convolve import WORKERS_ENV, convolve, default_workers
 from ibl_ref.errors import IBLError
 
 
 def _sun_env(n):
-    from ibl_ref.synthetic_envs import SUN_NEAR_CORNER, make_env
+    from ibl_ref.synthetic.synthetic_envs import SUN_NEAR_CORNER, make_env
 
     return make_env("sky_sun", n, sun_direction=SUN_NEAR_CORNER, sun_radiance=1e5)
 
@@ -25,7 +25,7 @@ def _sun_env(n):
 @pytest.fixture
 def routed_like_large(monkeypatch):
     """Route a small map like a 128² one: moment for s = 1, 2, SH / sparse for the rest."""
-    import ibl_ref.convolve as cv
+    import ibl_ref.groundtruth.convolve as cv
 
     monkeypatch.setattr(cv, "AUTO_EXACT_PAIRS", 0)
     monkeypatch.setattr(cv, "MOMENT_MIN_PAIRS", 0)
@@ -150,7 +150,7 @@ def test_blas_held_at_one_thread_inside_and_restored_after(monkeypatch):
 
 def test_cli_workers_option(tmp_path):
     pytest.importorskip("OpenEXR")
-    from ibl_ref import exr_io as exr_io
+    from ibl_ref.environment import exr_io
     import json
 
     from ibl_ref.cli import main

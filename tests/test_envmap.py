@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import integrate
 
-from ibl_ref import envmap as E
+from ibl_ref.environment import envmap as E
 from ibl_ref.errors import LayoutError
 
 

@@ -96,10 +96,10 @@ def check_fig3(out, summary):
     # the diffuse-end sphere (g = 0: s = 1 around r) against the exact lobe average of a different code path
     # (phong_convolution.convolve_exact on the same studio map, sampled at r): within the README's lobe-chain
     # range of the sqrt-cos pyramid for studio at s = 1 (8-22 %), here < 25 %
-    from ibl_ref.phong_convolution import convolve_exact
-    from ibl_ref.sampling import sample_bilinear
-    from ibl_ref.sphere_render import orthographic_sphere
-    from ibl_ref.synthetic_envs import make_env
+    from ibl_ref.groundtruth.phong_convolution import convolve_exact
+    from ibl_ref.environment.sampling import sample_bilinear
+    from ibl_ref.rendering.sphere_render import orthographic_sphere
+    from ibl_ref.synthetic.synthetic_envs import make_env
 
     d = json.loads((out / "fig3_spheres.json").read_text())
     mask, _, r = orthographic_sphere(d["pixels"])
@@ -149,7 +149,7 @@ def check_fig7(out, summary):
 
 
 def check_fig8(out, summary):
-    # the 42 published numbers of Fig. 8 (ibl_ref.memory_model.PAPER_FIG8 holds them as printed) are reproduced
+    # the 42 published numbers of Fig. 8 (ibl_ref.knuth2014.memory_model.PAPER_FIG8 holds them as printed) are reproduced
     # by the byte model, and sparse PEMs reach the 10x storage goal (README: 10.8x at 12 regions, 128²)
     assert summary["model_equals_paper_everywhere"] is True
     assert summary["light_counts"] == [1, 12, 32, 64, 128, 256]
@@ -210,8 +210,8 @@ def check_lobe_chain(out, summary):
 
 
 def check_mediancut(out, summary):
-    from ibl_ref.envmap import direction_to_texel
-    from ibl_ref.synthetic_envs import DEFAULT_SUN_DIRECTION
+    from ibl_ref.environment.envmap import direction_to_texel
+    from ibl_ref.synthetic.synthetic_envs import DEFAULT_SUN_DIRECTION
 
     assert summary["partition_ok"] and summary["max_rgb_sum_rel_err"] < 1e-12
     lights = read_csv(out / "mediancut_lights.csv")

@@ -1,10 +1,10 @@
-"""Tests of ibl_ref.filters (Knuth et al. 2014 Sec. 4 5-tap kernels, seam modes)."""
+"""Tests of ibl_ref.knuth2014.filters (Knuth et al. 2014 Sec. 4 5-tap kernels, seam modes)."""
 
 import numpy as np
 import pytest
 
 from ibl_ref.errors import IBLError
-from ibl_ref.filters import KERNELS, SEAM_MODES, filter_cube, kernel_taps, pad_cube
+from ibl_ref.knuth2014.filters import KERNELS, SEAM_MODES, filter_cube, kernel_taps, pad_cube
 
 
 @pytest.mark.parametrize("name", list(KERNELS) + ["cos^2", "cos^0"])
@@ -45,7 +45,7 @@ def test_constant_map_stays_constant(seam, n):
 
 
 def test_pad_cube_matches_shared_pad_faces():
-    from ibl_ref.sampling import pad_faces
+    from ibl_ref.environment.sampling import pad_faces
 
     rng = np.random.default_rng(1)
     for n in (2, 4, 8):

@@ -1,15 +1,14 @@
-"""Tests of ibl_ref.gloss_lookup (Knuth et al. 2014 Eq. 3 and the trilinear glossiness lookup)."""
+"""Tests of ibl_ref.knuth2014.gloss_lookup (Knuth et al. 2014 Eq. 3 and the trilinear glossiness lookup)."""
 
 import warnings
 
 import numpy as np
 import pytest
 
-from ibl_ref.envmap import face_uv_to_direction, texel_directions
+from ibl_ref.environment.envmap import face_uv_to_direction, texel_directions
 from ibl_ref.errors import IBLError
-from ibl_ref.gloss_lookup import (analytic_calibration, calibrate, lookup,
-                                  phong_exponent)
-from ibl_ref.pyramid import build_pyramid
+from ibl_ref.knuth2014.gloss_lookup import analytic_calibration, calibrate, lookup, phong_exponent
+from ibl_ref.knuth2014.pyramid import build_pyramid
 
 
 def test_phong_exponent_eq3():
@@ -55,7 +54,7 @@ def test_per_direction_g_equals_scalar_calls():
 
 def test_calibration_monotone_raw_fit():
     # the raw lobe-volume fits (before the monotone envelope) must already decrease with s
-    from ibl_ref.lobe_analysis import LobeResponse
+    from ibl_ref.knuth2014.lobe_analysis import LobeResponse
 
     resp = LobeResponse(16, "sqrtcos")
     s = np.geomspace(1, 300, 15)
@@ -101,7 +100,7 @@ def test_shipped_calibration_tables_match_recomputation():
     # fits are bisected to ~1e-9 level, so 1e-5 level allows any rounding in the JSON round trip
     import json
 
-    from ibl_ref.gloss_lookup import DATA_DIR, Calibration
+    from ibl_ref.knuth2014.gloss_lookup import DATA_DIR, Calibration
 
     for kernel in ("sqrtcos", "box"):
         p = DATA_DIR / f"calibration_{kernel}_shrink_then_filter_neighbour_integral_16.json"
@@ -116,7 +115,7 @@ def test_shipped_calibration_tables_match_recomputation():
 def test_lookup_uses_level_between_integer_levels():
     # trilinear: at a level ℓ = L + t the lookup is (1-t)·bilinear_L + t·bilinear_{L+1} (independent
     # evaluation through the per-level samplers)
-    from ibl_ref.gloss_lookup import Calibration
+    from ibl_ref.knuth2014.gloss_lookup import Calibration
 
     rng = np.random.default_rng(9)
     c = rng.random((6, 8, 8, 3))

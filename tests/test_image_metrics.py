@@ -1,9 +1,9 @@
-"""Tests of ibl_ref.image_metrics on hand-computed arrays."""
+"""Tests of ibl_ref.rendering.image_metrics on hand-computed arrays."""
 
 import numpy as np
 import pytest
 
-from ibl_ref import image_metrics as im
+from ibl_ref.rendering import image_metrics as im
 from ibl_ref.errors import IBLError
 
 A = np.array([[1.0, 2.0], [3.0, 4.0]])

@@ -7,7 +7,7 @@ import re
 import numpy as np
 import OpenEXR
 
-from ibl_ref import envmap, exr_io, hdr_io
+from ibl_ref.environment import envmap, exr_io, hdr_io
 from ibl_ref.cli import main
 
 

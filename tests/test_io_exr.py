@@ -1,4 +1,4 @@
-"""OpenEXR environment-map I/O (ibl_ref.exr_io): round trips, orientation, overflow, atomicity, bad input."""
+"""OpenEXR environment-map I/O (ibl_ref.environment.exr_io): round trips, orientation, overflow, atomicity, bad input."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from ibl_ref import envmap, exr_io
+from ibl_ref.environment import envmap, exr_io
 from ibl_ref.errors import EnvMapFileError, IBLError, LayoutError, RadianceError
 
 RNG = np.random.default_rng(1234)
@@ -350,7 +350,7 @@ def test_load_cube_from_latlong_and_resize(tmp_path):
 
 
 def test_load_cube_from_cross_files(tmp_path):
-    from ibl_ref import resample
+    from ibl_ref.environment import resample
 
     cube = _cube(n=4)
     for layout in ("hcross", "vcross"):

@@ -1,4 +1,4 @@
-"""Radiance RGBE files (ibl_ref.hdr_io): round trips, hand-built byte streams, orientation, bad input."""
+"""Radiance RGBE files (ibl_ref.environment.hdr_io): round trips, hand-built byte streams, orientation, bad input."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import os
 import numpy as np
 import pytest
 
-from ibl_ref import exr_io, hdr_io
+from ibl_ref.environment import exr_io, hdr_io
 from ibl_ref.errors import EnvMapFileError
 
 RNG = np.random.default_rng(7)

@@ -1,12 +1,12 @@
-"""Tests of ibl_ref.kan2015 (Kán et al. 2015, Eq. 2-4): irradiance and specular maps."""
+"""Tests of ibl_ref.groundtruth.kan2015 (Kán et al. 2015, Eq. 2-4): irradiance and specular maps."""
 
 import numpy as np
 import pytest
 
-from ibl_ref import envmap
+from ibl_ref.environment import envmap
 from ibl_ref.errors import IBLError
-from ibl_ref.kan2015 import irradiance_map, phong_brdf, reflected_radiance, specular_map, specular_maps
-from ibl_ref.phong_convolution import convolve_exact
+from ibl_ref.groundtruth.kan2015 import irradiance_map, phong_brdf, reflected_radiance, specular_map, specular_maps
+from ibl_ref.groundtruth.phong_convolution import convolve_exact
 
 
 def test_constant_env_gives_constant_maps():

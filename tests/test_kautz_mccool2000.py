@@ -1,10 +1,10 @@
-"""Tests of ibl_ref.kautz_mccool2000 (greedy radially symmetric lobe fitting)."""
+"""Tests of ibl_ref.lobes.kautz_mccool2000 (greedy radially symmetric lobe fitting)."""
 
 import numpy as np
 import pytest
 
-from ibl_ref import brdfs as b
-from ibl_ref import kautz_mccool2000 as km
+from ibl_ref.lobes import brdfs as b
+from ibl_ref.lobes import kautz_mccool2000 as km
 from ibl_ref.errors import IBLError
 
 WARD = dict(ks=0.8, alpha=0.04)

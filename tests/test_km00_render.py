@@ -6,7 +6,7 @@ import numpy as np
 
 from ibl_ref.atomic import read_csv
 from ibl_ref.experiments import km00_render as E
-from ibl_ref.image_io import read_image_exr
+from ibl_ref.rendering.image_io import read_image_exr
 
 
 def _tiny(env="sky_sun"):

@@ -1,12 +1,18 @@
-"""Tests of ibl_ref.lobe_analysis (Knuth et al. 2014 Sec. 5 lobe-volume fit)."""
+"""Tests of ibl_ref.knuth2014.lobe_analysis (Knuth et al. 2014 Sec. 5 lobe-volume fit)."""
 
 import numpy as np
 import pytest
 
-from ibl_ref.envmap import cube_solid_angles, texel_directions
+from ibl_ref.environment.envmap import cube_solid_angles, texel_directions
 from ibl_ref.errors import IBLError
-from ibl_ref.lobe_analysis import (LobeResponse, analyse, lobe_volume, s_texel_limit, target_lobe,
-                                   target_volume)
+from ibl_ref.knuth2014.lobe_analysis import (
+    LobeResponse,
+    analyse,
+    lobe_volume,
+    s_texel_limit,
+    target_lobe,
+    target_volume,
+)
 
 
 @pytest.mark.parametrize("s", [1.0, 4.0, 20.0])

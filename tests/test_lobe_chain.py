@@ -1,16 +1,21 @@
-"""Exact-lobe chain (ibl_ref.lobe_chain): levels against the independent dense gather, PEM identity, lookups."""
+"""Exact-lobe chain (ibl_ref.knuth2014.lobe_chain): levels against the independent dense gather, PEM identity, lookups."""
 
 import numpy as np
 import pytest
 
-from ibl_ref.envmap import texel_directions
+from ibl_ref.environment.envmap import texel_directions
 from ibl_ref.errors import IBLError, LayoutError, RadianceError
-from ibl_ref.gloss_lookup import lookup
-from ibl_ref.lobe_chain import (build_lobe_chain, build_lobe_chain_pems, chain_spec, lobe_average_regions,
-                                lobe_half_angle)
-from ibl_ref.phong_convolution import convolve_exact_many
-from ibl_ref.reference_render import lobe_average
-from ibl_ref.synthetic_envs import make_env
+from ibl_ref.knuth2014.gloss_lookup import lookup
+from ibl_ref.knuth2014.lobe_chain import (
+    build_lobe_chain,
+    build_lobe_chain_pems,
+    chain_spec,
+    lobe_average_regions,
+    lobe_half_angle,
+)
+from ibl_ref.groundtruth.phong_convolution import convolve_exact_many
+from ibl_ref.rendering.reference_render import lobe_average
+from ibl_ref.synthetic.synthetic_envs import make_env
 
 
 @pytest.fixture(scope="module")

@@ -1,17 +1,11 @@
-"""Tests of ibl_ref.median_cut (Debevec 2008 median cut on the cube faces; Knuth et al. 2014 Sec. 3.1, 4)."""
+"""Tests of ibl_ref.knuth2014.median_cut (Debevec 2008 median cut on the cube faces; Knuth et al. 2014 Sec. 3.1, 4)."""
 
 import numpy as np
 import pytest
 
-from ibl_ref.envmap import texel_directions, texel_solid_angles, direction_to_texel
+from ibl_ref.environment.envmap import texel_directions, texel_solid_angles, direction_to_texel
 from ibl_ref.errors import IBLError, LayoutError, RadianceError
-from ibl_ref.median_cut import (
-    VARIANTS,
-    check_partition,
-    energy_spread,
-    median_cut,
-    region_angular_extent,
-)
+from ibl_ref.knuth2014.median_cut import VARIANTS, check_partition, energy_spread, median_cut, region_angular_extent
 
 N = 32
 

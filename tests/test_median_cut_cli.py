@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from ibl_ref.cli import main
-from ibl_ref.envmap import texel_solid_angles
+from ibl_ref.environment.envmap import texel_solid_angles
 
-from ibl_ref import exr_io as exr_io
+from ibl_ref.environment import exr_io
 
 
 def _map(n=16):

@@ -1,9 +1,9 @@
-"""Tests of ibl_ref.memory_model against the published Fig. 8 of Knuth et al. (2014)."""
+"""Tests of ibl_ref.knuth2014.memory_model against the published Fig. 8 of Knuth et al. (2014)."""
 
 import numpy as np
 import pytest
 
-from ibl_ref.memory_model import (
+from ibl_ref.knuth2014.memory_model import (
     MIB,
     PAPER_FIG8,
     fig8_model_table,

@@ -1,11 +1,11 @@
-"""Tests of ibl_ref.meunier2009 (Meunier et al. 2009 cosine-lobe algebra)."""
+"""Tests of ibl_ref.lobes.meunier2009 (Meunier et al. 2009 cosine-lobe algebra)."""
 
 import numpy as np
 import pytest
 from scipy import integrate
 
-from ibl_ref import meunier2009 as m
-from ibl_ref.envmap import cube_solid_angles, texel_directions
+from ibl_ref.lobes import meunier2009 as m
+from ibl_ref.environment.envmap import cube_solid_angles, texel_directions
 from ibl_ref.errors import IBLError
 
 

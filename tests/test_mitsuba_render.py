@@ -1,4 +1,4 @@
-"""Tests of the Mitsuba 3 renderer (ibl_ref.mitsuba_render): Mitsuba's own envmap emitter and integrator are the
+"""Tests of the Mitsuba 3 renderer (ibl_ref.rendering.mitsuba_render): Mitsuba's own envmap emitter and integrator are the
 independent route; the lab's cube lookup and G-buffer are what they are compared with.
 
 Mitsuba is in the ``test`` extra, so these tests run (they are not skipped) wherever the README's test command ran.
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import trimesh
 
-from ibl_ref import mitsuba_render as mr
-from ibl_ref.camera import PerspectiveCamera
+from ibl_ref.rendering import mitsuba_render as mr
+from ibl_ref.rendering.camera import PerspectiveCamera
 from ibl_ref.errors import IBLError
-from ibl_ref.sampling import sample_nearest
+from ibl_ref.environment.sampling import sample_nearest
 
 
 def _random_dirs(n, seed=0):
@@ -80,7 +80,7 @@ def test_mitsuba_envmap_reproduces_cube_lookup():
 def test_bright_patch_energy_and_direction():
     # a single bright texel: Mitsuba's emitter integrated over the sphere (equal-area grid, 2M directions) holds
     # the cube's ∫L dω of the patch, and the patch's energy centroid is the texel's
-    from ibl_ref.envmap import cube_solid_angles, texel_directions
+    from ibl_ref.environment.envmap import cube_solid_angles, texel_directions
 
     cube = _patch_env(n=8, background=0.0)
     nt, nph = 1000, 2000
@@ -104,7 +104,7 @@ def test_bright_patch_energy_and_direction():
 def test_mirror_sphere_shows_the_cube():
     # Mitsuba renders a perfect mirror (its own conductor BSDF) through the lab's pixel centres: every pixel shows
     # L(r) of the lab's G-buffer reflection vector, except where r lies within a lat-long pixel of a texel border
-    from ibl_ref.raster import rasterize
+    from ibl_ref.rendering.raster import rasterize
 
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
     cam = PerspectiveCamera(eye=[0.4, 0.6, 4.0], target=[0, 0, 0], up=[0, 1, 0], fov_y_deg=35, width=40, height=40)

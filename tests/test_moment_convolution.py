@@ -1,21 +1,21 @@
-"""Tests of ibl_ref.moment_convolution (hierarchical moments for broad Phong lobes, s ∈ {1, 2}).
+"""Tests of ibl_ref.groundtruth.moment_convolution (hierarchical moments for broad Phong lobes, s ∈ {1, 2}).
 
-Reference: the dense exact gather :func:`ibl_ref.phong_convolution.convolve_exact_many` (an independent
+Reference: the dense exact gather :func:`ibl_ref.groundtruth.phong_convolution.convolve_exact_many` (an independent
 route: every source texel for every output texel).
 """
 
 import numpy as np
 import pytest
 
-from ibl_ref.convolve import convolve
+from ibl_ref.groundtruth.convolve import convolve
 from ibl_ref.errors import IBLError, RadianceError
-from ibl_ref.moment_convolution import convolve_moment, convolve_moment_many
+from ibl_ref.groundtruth.moment_convolution import convolve_moment, convolve_moment_many
 
-from ibl_ref import phong_convolution as pc
+from ibl_ref.groundtruth import phong_convolution as pc
 
 
 def _sun_env(n):
-    from ibl_ref.synthetic_envs import SUN_NEAR_CORNER, make_env
+    from ibl_ref.synthetic.synthetic_envs import SUN_NEAR_CORNER, make_env
 
     return make_env("sky_sun", n, sun_direction=SUN_NEAR_CORNER, sun_radiance=1e5)
 
@@ -98,7 +98,7 @@ def test_errors():
 
 
 def test_convolve_moment_method_and_auto(monkeypatch):
-    import ibl_ref.convolve as cv
+    import ibl_ref.groundtruth.convolve as cv
 
     cube = _sun_env(16)
     S = [1.0, 2.0, 64.0]

@@ -1,14 +1,14 @@
-"""Tests of ibl_ref.pem (partial environment maps, Knuth et al. 2014 Sec. 3.1/4) and ibl_ref.sparse_pem."""
+"""Tests of ibl_ref.knuth2014.pem (partial environment maps, Knuth et al. 2014 Sec. 3.1/4) and ibl_ref.knuth2014.sparse_pem."""
 
 import numpy as np
 import pytest
 
 from ibl_ref.errors import IBLError
-from ibl_ref.memory_model import library_pem_bytes
-from ibl_ref.pem import build_pems
-from ibl_ref.pyramid import build_pyramid
-from ibl_ref.gloss_lookup import lookup
-from ibl_ref.sparse_pem import build_sparse_pems, levels_touched, sparsify
+from ibl_ref.knuth2014.memory_model import library_pem_bytes
+from ibl_ref.knuth2014.pem import build_pems
+from ibl_ref.knuth2014.pyramid import build_pyramid
+from ibl_ref.knuth2014.gloss_lookup import lookup
+from ibl_ref.knuth2014.sparse_pem import build_sparse_pems, levels_touched, sparsify
 
 N = 32
 G_VALUES = (0.0, 0.3, 0.6, 0.9, 0.99, 1.0)

@@ -1,4 +1,4 @@
-"""Tests of ibl_ref.phong_convolution (exact Phong-lobe convolution, Knuth et al. 2014 Eq. 4).
+"""Tests of ibl_ref.groundtruth.phong_convolution (exact Phong-lobe convolution, Knuth et al. 2014 Eq. 4).
 
 Reference values come from independent routes: closed forms (constant, linear-gradient environments,
 2π/(s+1)), brute-force sums written in the test with np.power, and symmetry/identity arguments.
@@ -7,13 +7,9 @@ Reference values come from independent routes: closed forms (constant, linear-gr
 import numpy as np
 import pytest
 
-from ibl_ref import envmap
+from ibl_ref.environment import envmap
 from ibl_ref.errors import IBLError, LayoutError, RadianceError
-from ibl_ref.phong_convolution import (
-    convolve_exact,
-    convolve_exact_many,
-    phong_lobe_integral,
-)
+from ibl_ref.groundtruth.phong_convolution import convolve_exact, convolve_exact_many, phong_lobe_integral
 
 RNG_SEED = 1234
 
@@ -196,9 +192,9 @@ def test_bad_input_raises_clear_errors():
 def test_lobe_average_at_texel_centres_is_convolve_exact_and_regions_sum():
     # independent route: convolve_exact evaluates the weights as exp(s·(log c − max log c)) over the texels; at the
     # texel centres both are the same quadrature → rounding only (1e-12)
-    from ibl_ref.envmap import texel_directions
-    from ibl_ref.phong_convolution import convolve_exact, lobe_average
-    from ibl_ref.synthetic_envs import make_env
+    from ibl_ref.environment.envmap import texel_directions
+    from ibl_ref.groundtruth.phong_convolution import convolve_exact, lobe_average
+    from ibl_ref.synthetic.synthetic_envs import make_env
 
     env = make_env("sky_sun", n=8)
     for s in (1.0, 7.5, 64.0):
@@ -217,8 +213,8 @@ def test_lobe_average_at_texel_centres_is_convolve_exact_and_regions_sum():
 def test_lobe_average_closed_form_and_errors():
     # gradient map L = a + b·ω: Ē_1(d) = a + (b·d)(s+1)/(s+2) (synthetic_envs.gradient_lobe_average, a closed form);
     # the cube quadrature is second-order, 64² faces → 2e-3
-    from ibl_ref.phong_convolution import lobe_average
-    from ibl_ref.synthetic_envs import gradient_lobe_average, make_env
+    from ibl_ref.groundtruth.phong_convolution import lobe_average
+    from ibl_ref.synthetic.synthetic_envs import gradient_lobe_average, make_env
 
     env = make_env("gradient", n=64)
     d = np.random.default_rng(0).normal(size=(50, 3))

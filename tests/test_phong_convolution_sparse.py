@@ -1,4 +1,4 @@
-"""Tests of the truncated-support gather ibl_ref.phong_convolution.convolve_sparse and its error bound.
+"""Tests of the truncated-support gather ibl_ref.groundtruth.phong_convolution.convolve_sparse and its error bound.
 
 The reference is convolve_exact (dense sum over every texel, tested independently in
 test_phong_convolution.py).  The bound is a mathematical inequality, so the tests assert
@@ -8,9 +8,9 @@ test_phong_convolution.py).  The bound is a mathematical inequality, so the test
 import numpy as np
 import pytest
 
-from ibl_ref import envmap
+from ibl_ref.environment import envmap
 from ibl_ref.errors import IBLError
-from ibl_ref.phong_convolution import (
+from ibl_ref.groundtruth.phong_convolution import (
     convolve_exact,
     convolve_exact_many,
     convolve_sparse,
@@ -21,7 +21,7 @@ from ibl_ref.phong_convolution import (
 
 
 def _sky_sun(n, sun=1e5, seed=7):
-    """Smooth sky + noise + a 1e5 sun texel near a cube corner (own generator, independent of ibl_ref.synthetic_envs)."""
+    """Smooth sky + noise + a 1e5 sun texel near a cube corner (own generator, independent of ibl_ref.synthetic.synthetic_envs)."""
     rng = np.random.default_rng(seed)
     d = envmap.texel_directions(n)
     cube = 0.5 + 0.4 * np.clip(d[..., 1:2], 0, None) * np.array([0.6, 0.8, 1.0]) + 0.1 * rng.random((6, n, n, 3))
@@ -82,7 +82,7 @@ def test_weight_bound_dominates_brute_force_and_is_tight(n):
     # W_b(θc) must be ≥ the brute-force neglected discrete weight Σ_{θ_j ≥ θc} cos^s Ω_j for EVERY
     # output texel (this is the rigorous part of the error bound), and not absurdly larger: observed
     # W_b / max_r W_out = 3-16 over s ∈ 4…4096 (resolved lobes), ε ∈ 1e-2…1e-5, N ∈ 16, 32; assert < 30.
-    from ibl_ref.phong_convolution import _texel_extent, cutoff_angle
+    from ibl_ref.groundtruth.phong_convolution import _texel_extent, cutoff_angle
 
     d = envmap.texel_directions(n).reshape(-1, 3)
     om = envmap.cube_solid_angles(n).reshape(-1)
@@ -170,7 +170,7 @@ def test_cos_power_integral_is_a_tight_upper_bound():
 
     from scipy.special import betainc, betaln
 
-    from ibl_ref.phong_convolution import _log_integral_cos_pow
+    from ibl_ref.groundtruth.phong_convolution import _log_integral_cos_pow
 
     for m in (2.0, 3.5, 17.0, 65.0, 257.0, 1025.0, 4097.0, 1e5 + 1):
         for a in (0.0, 1e-4, 0.01, 0.03, 0.1, 0.5, 1.0, 1.5):

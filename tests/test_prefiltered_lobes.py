@@ -1,7 +1,7 @@
-"""Tests of ibl_ref.prefiltered_lobes (Kautz & McCool 2000 Sec. 4–5 3D maps, Knuth 2014 pyramid extension, reference).
+"""Tests of ibl_ref.lobes.prefiltered_lobes (Kautz & McCool 2000 Sec. 4–5 3D maps, Knuth 2014 pyramid extension, reference).
 
 Reference values come from independent routes: closed forms (2π/(s+1), linear-environment lobe averages), the Phong
-convolution of ibl_ref.phong_convolution (a different code path), direct evaluation for a single-texel source, and
+convolution of ibl_ref.groundtruth.phong_convolution (a different code path), direct evaluation for a single-texel source, and
 rotations of the fitting module's own frame.  Tolerances are derived in the comments.
 """
 
@@ -10,15 +10,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ibl_ref import brdfs as B
-from ibl_ref import envmap
-from ibl_ref import kautz_mccool2000 as km
-from ibl_ref import km00_reference as kref
-from ibl_ref import phong_convolution as pc
-from ibl_ref import prefiltered_lobes as pl
-from ibl_ref import synthetic_envs as se
+from ibl_ref.lobes import brdfs as B
+from ibl_ref.environment import envmap
+from ibl_ref.lobes import kautz_mccool2000 as km
+from ibl_ref.lobes import km00_reference as kref
+from ibl_ref.groundtruth import phong_convolution as pc
+from ibl_ref.lobes import prefiltered_lobes as pl
+from ibl_ref.synthetic import synthetic_envs as se
 from ibl_ref.errors import IBLError, LayoutError
-from ibl_ref.pyramid import build_pyramid
+from ibl_ref.knuth2014.pyramid import build_pyramid
 
 
 def _cos_profile(g, s):

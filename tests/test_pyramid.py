@@ -1,11 +1,11 @@
-"""Tests of ibl_ref.pyramid (Knuth et al. 2014 Fig. 2 filter pyramid) and its energy bookkeeping."""
+"""Tests of ibl_ref.knuth2014.pyramid (Knuth et al. 2014 Fig. 2 filter pyramid) and its energy bookkeeping."""
 
 import numpy as np
 import pytest
 
 from ibl_ref.errors import IBLError, LayoutError
-from ibl_ref.pyramid import ORDERS, build_mip_chain, build_pyramid, pyramid_energy, shrink_2x2
-from ibl_ref.filters import SEAM_MODES
+from ibl_ref.knuth2014.pyramid import ORDERS, build_mip_chain, build_pyramid, pyramid_energy, shrink_2x2
+from ibl_ref.knuth2014.filters import SEAM_MODES
 
 
 @pytest.mark.parametrize("order", ORDERS)
@@ -80,7 +80,7 @@ def test_radiance_check():
 
 def test_solid_angle_shrink_conserves_energy_mean_shrink_does_not():
     # independent route: energy = Σ L·Ω with Ω from envmap, compared level by level
-    from ibl_ref.envmap import cube_solid_angles
+    from ibl_ref.environment.envmap import cube_solid_angles
 
     rng = np.random.default_rng(8)
     c = np.zeros((6, 16, 16, 1))

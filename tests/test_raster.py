@@ -1,4 +1,4 @@
-"""Tests of ibl_ref.raster against ray casting (ibl_ref.raycast / trimesh) and closed forms."""
+"""Tests of ibl_ref.rendering.raster against ray casting (ibl_ref.rendering.raycast / trimesh) and closed forms."""
 
 import warnings
 
@@ -6,10 +6,16 @@ import numpy as np
 import pytest
 import trimesh
 
-from ibl_ref.camera import OrthographicCamera, PerspectiveCamera
+from ibl_ref.rendering.camera import OrthographicCamera, PerspectiveCamera
 from ibl_ref.errors import IBLError, MeshError
-from ibl_ref.raster import count_fragments, interpolate_vertex_attribute, prepare_scene, rasterize, render_depth
-from ibl_ref.raycast import primary_rays
+from ibl_ref.rendering.raster import (
+    count_fragments,
+    interpolate_vertex_attribute,
+    prepare_scene,
+    rasterize,
+    render_depth,
+)
+from ibl_ref.rendering.raycast import primary_rays
 
 # A pixel whose centre lies within EDGE_TOL pixels of a projected triangle edge may legitimately be decided
 # differently by the rasterizer's exact edge functions and trimesh's barycentric test (which accepts points up to

@@ -1,4 +1,4 @@
-"""Tests of ibl_ref.render (Eq. 5 composition) on top of the rasterizer, VSM and ray-cast visibility."""
+"""Tests of ibl_ref.rendering.render (Eq. 5 composition) on top of the rasterizer, VSM and ray-cast visibility."""
 
 from types import SimpleNamespace
 
@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from ibl_ref.camera import PerspectiveCamera
+from ibl_ref.rendering.camera import PerspectiveCamera
 from ibl_ref.errors import IBLError
-from ibl_ref.render import render_pem
+from ibl_ref.rendering.render import render_pem
 
 R_SPHERE = 0.6
 
@@ -21,7 +21,7 @@ def _sphere_on_plane():
 
 
 class FakePEMs:
-    """Closed-form stand-in for ibl_ref.pem.PEMSet: PEM_i(r, g) = rgb_i · max(r·ω_i, 0) · (1 + g)."""
+    """Closed-form stand-in for ibl_ref.knuth2014.pem.PEMSet: PEM_i(r, g) = rgb_i · max(r·ω_i, 0) · (1 + g)."""
 
     def __init__(self, dirs, rgb, omega):
         d = np.asarray(dirs, float)
@@ -76,10 +76,10 @@ def test_vsm_visibility_close_to_exact_away_from_edges():
 
 
 def test_constant_environment_unshadowed_is_constant():
-    # with ibl_ref.pem's PEMSet of a constant map, Σ_i PEM_i is the lobe average of a constant = the constant
+    # with ibl_ref.knuth2014.pem's PEMSet of a constant map, Σ_i PEM_i is the lobe average of a constant = the constant
     # (normalised filters), for every glossiness; float32 PEM storage → tolerance 1e-6
-    from ibl_ref import pem as pem_mod
-    from ibl_ref import synthetic_envs as envs
+    from ibl_ref.knuth2014 import pem as pem_mod
+    from ibl_ref.synthetic import synthetic_envs as envs
     pems = pem_mod.build_pems(envs.make_env("constant", n=16) * 0.7, n_lights=6)
     res = render_pem(_sphere_on_plane(), CAM, pems, {0: 0.9, 1: 0.2}, visibility="none")
     np.testing.assert_allclose(res.image[res.mask], 0.7, rtol=1e-6)

@@ -1,10 +1,10 @@
-"""Tests of ibl_ref.raycast: exact visibility against closed-form occlusion by a sphere and a box."""
+"""Tests of ibl_ref.rendering.raycast: exact visibility against closed-form occlusion by a sphere and a box."""
 
 import numpy as np
 import pytest
 import trimesh
 
-from ibl_ref import raycast
+from ibl_ref.rendering import raycast
 from ibl_ref.errors import IBLError
 
 
@@ -149,8 +149,8 @@ def test_thin_sheet_contact_shadow_no_leak():
 
 def test_sphere_on_plane_contact_shadow_and_no_acne():
     # icosphere (radius 0.5) touching the floor at its lowest vertex
-    from ibl_ref.camera import PerspectiveCamera
-    from ibl_ref.raster import rasterize
+    from ibl_ref.rendering.camera import PerspectiveCamera
+    from ibl_ref.rendering.raster import rasterize
 
     s = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
     s.apply_translation(-np.array([0, s.vertices[:, 1].min(), 0]))

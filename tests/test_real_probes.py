@@ -1,8 +1,8 @@
 """Probe-like files made the way published light probes are (DWAB/PIZ/ZIP lat-long EXRs, float and half,
-no ``envmap`` attribute, a small sun; RLE Radiance .hdr) and the radiance policy (ibl_ref.radiance_policy).
+no ``envmap`` attribute, a small sun; RLE Radiance .hdr) and the radiance policy (ibl_ref.environment.radiance_policy).
 
-The reference integral of every probe is the closed form of ibl_ref.probe_files (sky a·2π + b·π, texel
-solid angles Δλ·(sin φ1 − sin φ0)), not a sum computed by ibl_ref.resample.
+The reference integral of every probe is the closed form of ibl_ref.environment.probe_files (sky a·2π + b·π, texel
+solid angles Δλ·(sin φ1 − sin φ0)), not a sum computed by ibl_ref.environment.resample.
 """
 
 from __future__ import annotations
@@ -13,11 +13,11 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from ibl_ref import exr_io, hdr_io, resample
+from ibl_ref.environment import exr_io, hdr_io, resample
 from ibl_ref.cli import main
 from ibl_ref.errors import RadianceError, check_radiance
-from ibl_ref.probe_files import sky_sun_latlong, write_probe_exr
-from ibl_ref.radiance_policy import AUTO_MAX_REMOVED_FRACTION, apply_policy, assess
+from ibl_ref.environment.probe_files import sky_sun_latlong, write_probe_exr
+from ibl_ref.environment.radiance_policy import AUTO_MAX_REMOVED_FRACTION, apply_policy, assess
 
 H = 64
 # Codec error of ∫L dω (decoded file vs the closed form), the tolerance of each file kind:
@@ -219,7 +219,7 @@ def test_render_and_km00_with_env_probe(tmp_path, dwab_file, capsys):
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# big-probe machinery of ibl_ref.resample on small sizes
+# big-probe machinery of ibl_ref.environment.resample on small sizes
 # ---------------------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("h", [16, 32])
 def test_symmetric_kernel_equals_the_whole_grid_kernel(h):
@@ -256,7 +256,7 @@ def test_block_reduction_and_prereduced_resampling_conserve_the_closed_form():
 @pytest.mark.parametrize("n", [1, 2, 3, 8])
 def test_ring_rules_reproduce_the_padding_tables(n):
     """resample._padded_taps (size-independent rules read at n = 5) equals sampling.padding_tables(n, 1)."""
-    from ibl_ref.sampling import padding_tables
+    from ibl_ref.environment.sampling import padding_tables
 
     m = n + 2
     f, y, x = np.meshgrid(np.arange(6), np.arange(m), np.arange(m), indexing="ij")

@@ -1,12 +1,12 @@
-"""Tests of the ray-traced reference (ibl_ref.reference_render)."""
+"""Tests of the ray-traced reference (ibl_ref.rendering.reference_render)."""
 
 import numpy as np
 import pytest
 import trimesh
 
-from ibl_ref import reference_render as rr
-from ibl_ref.camera import PerspectiveCamera
-from ibl_ref.envmap import cube_solid_angles, texel_directions
+from ibl_ref.rendering import reference_render as rr
+from ibl_ref.rendering.camera import PerspectiveCamera
+from ibl_ref.environment.envmap import cube_solid_angles, texel_directions
 from ibl_ref.errors import IBLError, LayoutError, RadianceError
 
 
@@ -20,8 +20,8 @@ CAM = PerspectiveCamera(eye=[0.0, 2.0, 0.3], target=[0, 0, 0], up=[0, 1, 0], fov
 
 
 def test_lobe_average_equals_convolve_exact_at_texel_centres():
-    # independent route: the exact convolution of ibl_ref.phong_convolution evaluates the same formula at texel centres
-    from ibl_ref.phong_convolution import convolve_exact
+    # independent route: the exact convolution of ibl_ref.groundtruth.phong_convolution evaluates the same formula at texel centres
+    from ibl_ref.groundtruth.phong_convolution import convolve_exact
 
     rng = np.random.default_rng(1)
     cube = rng.uniform(0.1, 2.0, size=(6, 4, 4, 3))
@@ -42,7 +42,7 @@ def test_coarse_env_keeps_integral():
 
 def test_coarse_quadrature_converges_on_linear_env():
     # closed form (synthetic_envs.gradient_lobe_average): a + (b·r)(s+1)/(s+2)
-    from ibl_ref.synthetic_envs import gradient_lobe_average, make_env
+    from ibl_ref.synthetic.synthetic_envs import gradient_lobe_average, make_env
 
     b = (0.2, 0.5, -0.3)
     env = make_env("gradient", n=32, a=1.0, b=b)
@@ -56,7 +56,7 @@ def test_coarse_quadrature_converges_on_linear_env():
 
 
 def test_parallel_visibility_matches_trimesh():
-    from ibl_ref.raycast import visibility_to_directions
+    from ibl_ref.rendering.raycast import visibility_to_directions
 
     mesh = trimesh.util.concatenate([_quad(4.0), trimesh.creation.icosphere(1, 0.5).apply_translation([0, 0.6, 0])])
     rng = np.random.default_rng(3)
@@ -80,7 +80,7 @@ def test_unoccluded_diffuse_on_plane_constant_env_is_exact():
 
 
 def test_reference_unoccluded_is_exact_lobe_average():
-    from ibl_ref.synthetic_envs import make_env
+    from ibl_ref.synthetic.synthetic_envs import make_env
 
     env = make_env("sky_sun", n=16)
     mesh = trimesh.util.concatenate([_quad(4.0), trimesh.creation.icosphere(1, 0.5).apply_translation([0, 0.6, 0])])
@@ -96,7 +96,7 @@ def test_reference_unoccluded_is_exact_lobe_average():
 
 
 def test_mirror_reference_on_plane():
-    from ibl_ref.sampling import sample_nearest
+    from ibl_ref.environment.sampling import sample_nearest
 
     rng = np.random.default_rng(4)
     env = rng.uniform(0.1, 1.0, size=(6, 8, 8, 3))
@@ -140,8 +140,8 @@ def test_bad_inputs():
 
 def test_exact_pem_lookup_sums_to_lobe_average():
     # Σ_i PEM_i = the exact lobe average of the full map (regions partition the sphere)
-    from ibl_ref.median_cut import median_cut
-    from ibl_ref.synthetic_envs import make_env
+    from ibl_ref.knuth2014.median_cut import median_cut
+    from ibl_ref.synthetic.synthetic_envs import make_env
 
     env = make_env("sky_sun", n=8)
     lights = median_cut(env, 12)
@@ -168,7 +168,7 @@ CAM_SMALL = PerspectiveCamera(eye=[0.0, 3.0, 2.0], target=[0, 0.2, 0], up=[0, 1,
 
 def test_leaf_bvh_matches_parallel_caster():
     # two algorithms (per-ray Möller–Trumbore over bounding-sphere leaves vs per-direction projection) agree
-    from ibl_ref.raster import prepare_scene
+    from ibl_ref.rendering.raster import prepare_scene
 
     sc = prepare_scene([(_quad(4.0), 0), (trimesh.creation.icosphere(2, 0.5).apply_translation([0, 0.6, 0]), 1)])
     rng = np.random.default_rng(7)
@@ -200,7 +200,7 @@ def test_converged_estimate_bounds_difference_to_finer_run():
     # a small bright sun (sky_sun: 1e5 over 6.8e-5 sr) casts the sphere's shadow edge across the ground in view;
     # the error estimate of a run at rtol 1e-2 must bound its actual difference to a much finer run (rtol 1e-5,
     # finer visibility level), per image (rel. L1); the finer run's own estimate is below the coarse one
-    from ibl_ref.synthetic_envs import SUN_NEAR_CORNER, make_env
+    from ibl_ref.synthetic.synthetic_envs import SUN_NEAR_CORNER, make_env
 
     meshes = _sphere_on_quad()
     default_sun = make_env("sky_sun", n=16)

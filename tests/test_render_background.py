@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from ibl_ref.camera import PerspectiveCamera
+from ibl_ref.rendering.camera import PerspectiveCamera
 from ibl_ref.cli import main
 from ibl_ref.errors import IBLError
 
@@ -27,9 +27,9 @@ def _unit_rays(cam):
 def test_env_background_is_the_environment_along_camera_rays():
     # gradient map L(ω) = a + b·ω (texel averages): the bilinear look-up along the camera ray equals the closed form
     # a + b·d up to the cube's bilinear interpolation error, O(1/N²) (32² faces: < 3e-3 with |b| = 0.5)
-    from ibl_ref.pem import build_pems
-    from ibl_ref.render import render_pem
-    from ibl_ref.synthetic_envs import make_env
+    from ibl_ref.knuth2014.pem import build_pems
+    from ibl_ref.rendering.render import render_pem
+    from ibl_ref.synthetic.synthetic_envs import make_env
 
     env = make_env("gradient", n=32)
     pems = build_pems(env, n_lights=6)
@@ -49,10 +49,10 @@ def test_env_background_is_the_environment_along_camera_rays():
 def test_background_pem_mirror_lookup_equals_cube_lookup_and_modes_share_it():
     # Σ_i PEM_i(d, g = 1) is the pyramid's level-0 bilinear look-up of the full map (linearity, Sec. 3.1): equal to
     # the cube's bilinear look-up up to the PEMs' float32 storage (rel. 1e-6)
-    from ibl_ref.ao_modes import render_modes
-    from ibl_ref.pem import build_pems
-    from ibl_ref.render import background_image
-    from ibl_ref.synthetic_envs import make_env
+    from ibl_ref.rendering.ao_modes import render_modes
+    from ibl_ref.knuth2014.pem import build_pems
+    from ibl_ref.rendering.render import background_image
+    from ibl_ref.synthetic.synthetic_envs import make_env
 
     env = make_env("sky_sun", n=16)
     pems = build_pems(env, n_lights=6)
@@ -69,8 +69,8 @@ def test_background_pem_mirror_lookup_equals_cube_lookup_and_modes_share_it():
 def test_every_mode_honours_per_material_weights():
     # constant environment L ≡ 1 with normalised lobes and no occluder between the lights and the ground's top:
     # unoccluded modes give kd + ks per material exactly (float32 PEMs: 1e-5); the reference too (exact lobes)
-    from ibl_ref.ao_modes import render_modes
-    from ibl_ref.render import Material
+    from ibl_ref.rendering.ao_modes import render_modes
+    from ibl_ref.rendering.render import Material
 
     env = np.ones((6, 8, 8, 3))
     mats = {0: Material(kd=0.1, ks=0.2, g=0.3), 1: Material(kd=0.5, ks=0.4, g=0.0)}

@@ -1,4 +1,4 @@
-"""Tests of ``ibl-ref render`` (ibl_ref/cli/cmd_render.py) and ibl_ref.image_io."""
+"""Tests of ``ibl-ref render`` (ibl_ref/cli/cmd_render.py) and ibl_ref.rendering.image_io."""
 
 import json
 
@@ -128,7 +128,7 @@ def test_parse_material_rgb():
 
 
 def test_image_io_roundtrip_and_errors(tmp_path):
-    from ibl_ref.image_io import read_g_map, write_image_exr
+    from ibl_ref.rendering.image_io import read_g_map, write_image_exr
 
     a = np.random.default_rng(0).random((5, 7, 3)) * 1e4
     write_image_exr(tmp_path / "a.exr", a)

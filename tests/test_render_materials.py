@@ -1,4 +1,4 @@
-"""Tests of the kd/ks/g materials and g maps of ibl_ref.render (Knuth et al. 2014, Eq. 5 with a diffuse term)."""
+"""Tests of the kd/ks/g materials and g maps of ibl_ref.rendering.render (Knuth et al. 2014, Eq. 5 with a diffuse term)."""
 
 from types import SimpleNamespace
 
@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from ibl_ref.camera import PerspectiveCamera
+from ibl_ref.rendering.camera import PerspectiveCamera
 from ibl_ref.errors import IBLError
-from ibl_ref.render import Material, render_pem, sample_g_map
+from ibl_ref.rendering.render import Material, render_pem, sample_g_map
 
 R_SPHERE = 0.6
 
@@ -50,16 +50,16 @@ CAM_TOP = PerspectiveCamera(eye=[0.0, 3.0, 0.3], target=[0, 0, 0], up=[0, 0, -1]
 
 @pytest.fixture(scope="module")
 def sky_pems():
-    from ibl_ref import pem as pem_mod
-    from ibl_ref import synthetic_envs as envs
+    from ibl_ref.knuth2014 import pem as pem_mod
+    from ibl_ref.synthetic import synthetic_envs as envs
     return pem_mod.build_pems(envs.make_env("sky_sun", n=16, sun_radiance=50.0), n_lights=6)
 
 
 def test_constant_environment_gives_kd_plus_ks():
     # L ≡ c, no shadows: every PEM lookup is a lobe *average* of normalised filters, so Σ_i PEM_i(·, g) = c for
     # every g and c_pixel = (kd + ks)·c per channel.  Tolerance 1e-6 relative: the PEMs are stored in float32.
-    from ibl_ref import pem as pem_mod
-    from ibl_ref import synthetic_envs as envs
+    from ibl_ref.knuth2014 import pem as pem_mod
+    from ibl_ref.synthetic import synthetic_envs as envs
     c = np.array([0.7, 1.3, 2.0])
     pems = pem_mod.build_pems(envs.make_env("constant", n=16, value=c), n_lights=6)
     mats = {0: Material(kd=[0.2, 0.3, 0.1], ks=[0.5, 0.1, 0.6], g=0.7), 1: Material(kd=0.25, ks=0.0, g=0.3)}

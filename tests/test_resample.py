@@ -1,12 +1,12 @@
-"""Resampling (ibl_ref.resample): constants, ∫L dω conservation, convergence, crosses, face lists."""
+"""Resampling (ibl_ref.environment.resample): constants, ∫L dω conservation, convergence, crosses, face lists."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from ibl_ref import envmap
-from ibl_ref import resample as R
+from ibl_ref.environment import envmap
+from ibl_ref.environment import resample as R
 from ibl_ref.errors import LayoutError, RadianceError
 
 RNG = np.random.default_rng(42)

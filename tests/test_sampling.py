@@ -5,8 +5,8 @@ import itertools
 import numpy as np
 import pytest
 
-from ibl_ref import envmap as E
-from ibl_ref import sampling as S
+from ibl_ref.environment import envmap as E
+from ibl_ref.environment import sampling as S
 from ibl_ref.errors import LayoutError
 
 

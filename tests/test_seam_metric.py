@@ -1,10 +1,10 @@
-"""Tests of ibl_ref.seam_metric: neighbour seams must beat clamp seams (Knuth et al. 2014 Sec. 4)."""
+"""Tests of ibl_ref.knuth2014.seam_metric: neighbour seams must beat clamp seams (Knuth et al. 2014 Sec. 4)."""
 
 import numpy as np
 
-from ibl_ref.envmap import texel_directions
-from ibl_ref.pyramid import build_pyramid
-from ibl_ref.seam_metric import seam_metric, seam_summary
+from ibl_ref.environment.envmap import texel_directions
+from ibl_ref.knuth2014.pyramid import build_pyramid
+from ibl_ref.knuth2014.seam_metric import seam_metric, seam_summary
 
 
 def _smooth_map(n):

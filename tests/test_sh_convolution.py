@@ -1,4 +1,4 @@
-"""Tests of ibl_ref.sh_convolution (SH / Funk–Hecke Phong-lobe convolution with a rigorous bound)."""
+"""Tests of ibl_ref.groundtruth.sh_convolution (SH / Funk–Hecke Phong-lobe convolution with a rigorous bound)."""
 
 import math
 
@@ -7,8 +7,8 @@ import pytest
 from scipy.integrate import quad
 from scipy.special import eval_legendre, sph_harm_y
 
-from ibl_ref import envmap
-from ibl_ref import sh_convolution as shc
+from ibl_ref.environment import envmap
+from ibl_ref.groundtruth import sh_convolution as shc
 from ibl_ref.errors import IBLError, LayoutError, RadianceError
 
 
@@ -129,7 +129,7 @@ def test_linear_environment_closed_form():
 
 
 # ------------------------------------------------------------------------------------------------
-# rigorous bound vs an exact reference (brute force and ibl_ref.phong_convolution's exact)
+# rigorous bound vs an exact reference (brute force and ibl_ref.groundtruth.phong_convolution's exact)
 # ------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("n", [8, 16])
 def test_hybrid_bound_holds_with_sun(n):
@@ -158,7 +158,7 @@ def test_pure_sh_bound_holds_without_hybrid():
 def test_unnormalized_bound_and_other_out_size():
     cube = _sky_with_sun(8)
     n_out = 5
-    from ibl_ref import phong_convolution as pc
+    from ibl_ref.groundtruth import phong_convolution as pc
     for normalized in (True, False):
         ref = pc.convolve_exact(cube, 16.0, normalized=normalized, out_size=n_out)
         maps, rel, info = shc.convolve_sh(cube, 16.0, L=16, normalized=normalized, out_size=n_out)
@@ -168,7 +168,7 @@ def test_unnormalized_bound_and_other_out_size():
 
 
 def test_auto_plan_meets_rtol_against_c1_exact():
-    from ibl_ref import phong_convolution as pc
+    from ibl_ref.groundtruth import phong_convolution as pc
     cube = _sky_with_sun(16)
     S = [4.0, 16.0, 64.0]
     maps, rel, info = shc.convolve_sh_many(cube, S, rtol=1e-3)

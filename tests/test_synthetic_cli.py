@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from ibl_ref import envmap
-from ibl_ref import synthetic_envs as se
+from ibl_ref.environment import envmap
+from ibl_ref.synthetic import synthetic_envs as se
 from ibl_ref.cli import main
 from ibl_ref.cli.cmd_synth import parse_params
 from ibl_ref.errors import IBLError
@@ -30,7 +30,7 @@ def test_synth_env_npy(tmp_path, capsys):
 
 
 def test_synth_env_exr_roundtrip(tmp_path):
-    from ibl_ref import exr_io as exr_io
+    from ibl_ref.environment import exr_io
     out = tmp_path / "sky.exr"
     assert main(["synth", "env", "sky_sun", str(out), "--size", "16", "--param", "sun_radiance=1e5"]) == 0
     back = exr_io.load_cube(out)

@@ -1,10 +1,10 @@
-"""Tests of ibl_ref.synthetic_envs against closed forms and independent quadratures."""
+"""Tests of ibl_ref.synthetic.synthetic_envs against closed forms and independent quadratures."""
 
 import numpy as np
 import pytest
 
-from ibl_ref import envmap
-from ibl_ref import synthetic_envs as se
+from ibl_ref.environment import envmap
+from ibl_ref.synthetic import synthetic_envs as se
 from ibl_ref.errors import IBLError, check_radiance
 
 

@@ -1,11 +1,11 @@
-"""Tests of ibl_ref.synthetic_meshes: counts, orientation, geometry against closed forms."""
+"""Tests of ibl_ref.synthetic.synthetic_meshes: counts, orientation, geometry against closed forms."""
 
 import numpy as np
 import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from ibl_ref import synthetic_meshes as sm
+from ibl_ref.synthetic import synthetic_meshes as sm
 from ibl_ref.errors import IBLError, MeshError
 
 
@@ -125,8 +125,8 @@ def test_teapot_lid_ledge_closes_the_gap_seen_as_dark_rim_pixels(teapot):
     # 2) what a render sees: the rasteriser's G-buffer from two views above the lid; back faces (the pot's
     #    inside, whose reflection vectors point into the pot: the dark lid-rim pixels) are visible around
     #    the lid only through the open gap
-    from ibl_ref.raster import rasterize
-    from ibl_ref.scenes import default_camera
+    from ibl_ref.rendering.raster import rasterize
+    from ibl_ref.rendering.scenes import default_camera
 
     for view, dist in (((0.6, 0.5, 1.0), "fit"), ((0.3, 0.5, 1.0), 2.6)):
         counts = []

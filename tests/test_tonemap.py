@@ -1,9 +1,9 @@
-"""Tests of ibl_ref.tonemap (display only)."""
+"""Tests of ibl_ref.rendering.tonemap (display only)."""
 
 import numpy as np
 import pytest
 
-from ibl_ref import tonemap as tm
+from ibl_ref.rendering import tonemap as tm
 from ibl_ref.errors import IBLError
 
 

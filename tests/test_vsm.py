@@ -1,11 +1,11 @@
-"""Tests of ibl_ref.vsm: Chebyshev bound, Ω → blur mapping, VSM vs ray-cast visibility, fp16 precision loss."""
+"""Tests of ibl_ref.rendering.vsm: Chebyshev bound, Ω → blur mapping, VSM vs ray-cast visibility, fp16 precision loss."""
 
 import numpy as np
 import pytest
 import trimesh
 from scipy.special import erf
 
-from ibl_ref import raycast, vsm
+from ibl_ref.rendering import raycast, vsm
 from ibl_ref.errors import IBLError
 
 

@@ -131,7 +131,7 @@ def _flag_hints(message: str, sp) -> str:
     if m and flag_of(m.group(1)):
         message = flag_of(m.group(1)) + ": " + message
     if "--size" in flags:
-        message = message.replace("Resample the map first (e.g. ibl_ref.resample)", "Resample it with --size")
+        message = message.replace("Resample the map first (e.g. ibl_ref.environment.resample)", "Resample it with --size")
     return message
 
 

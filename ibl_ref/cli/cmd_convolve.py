@@ -37,8 +37,8 @@ def _exponent(text: str) -> float:
 
 def cmd_convolve(args) -> int:
     from ..atomic import OutputSet, refuse_overwriting_inputs
-    from ..convolve import convolve
-    from ..exr_io import write_envmap
+    from ..groundtruth.convolve import convolve
+    from ..environment.exr_io import write_envmap
     from .radiance_args import load_env
 
     exps = [_exponent(e) for e in args.exponent]
@@ -80,8 +80,8 @@ def cmd_convolve(args) -> int:
 
 
 def cmd_irradiance(args) -> int:
-    from ..exr_io import write_envmap
-    from ..kan2015 import irradiance_map
+    from ..environment.exr_io import write_envmap
+    from ..groundtruth.kan2015 import irradiance_map
     from .radiance_args import load_env
 
     from ..atomic import refuse_overwriting_inputs
@@ -137,7 +137,7 @@ def register(sub) -> None:
     q.add_argument("input", metavar="IN")
     q.add_argument("output", metavar="OUT")
     q.add_argument("--quadrature", choices=("literal", "normalized"), default="literal",
-                   help="literal (1/π) sum, or divided by the discrete lobe weight (see ibl_ref.kan2015)")
+                   help="literal (1/π) sum, or divided by the discrete lobe weight (see ibl_ref.groundtruth.kan2015)")
     q.add_argument("--size", type=int, default=None, help="output face size (default: input face size)")
     q.add_argument("--input-size", type=int, default=None, help="resample the input to this face size first")
     add_radiance_args(q)

@@ -16,10 +16,10 @@ OUT_SUFFIXES = (".exr", ".hdr", ".pic")  #: file types ``convert`` writes
 def _load_any(path: Path, negative: str = "auto", nonfinite: str = "error"):
     """(data, layout, channels, pixel_type, file_format, extra, radiance report) of any supported file.
 
-    No resampling; the radiance policy (:mod:`ibl_ref.radiance_policy`) is applied to the colour channels.
+    No resampling; the radiance policy (:mod:`ibl_ref.environment.radiance_policy`) is applied to the colour channels.
     """
-    from .. import exr_io
-    from ..hdr_io import read_hdr
+    from ..environment import exr_io
+    from ..environment.hdr_io import read_hdr
 
     if path.suffix.lower() in (".hdr", ".pic", ".rgbe"):
         img, rep = read_hdr(path, negative=negative, nonfinite=nonfinite, return_report=True)
@@ -33,8 +33,8 @@ def _load_any(path: Path, negative: str = "auto", nonfinite: str = "error"):
 
 
 def _hdr_meta(path: Path, img):
-    from .. import exr_io
-    from ..hdr_io import read_hdr_header
+    from ..environment import exr_io
+    from ..environment.hdr_io import read_hdr_header
 
     hdr = read_hdr_header(path)
     layout = exr_io.infer_layout(img.shape[0], img.shape[1], None, str(path))
@@ -48,7 +48,7 @@ def _exr_extra(header: dict) -> dict:
 
 def _as_layout(img, layout: str, header: dict, where: str):
     """(data, layout): cube strips reshaped (and re-oriented to OpenEXR), crosses cut, lat-long as is."""
-    from .. import envmap, exr_io, resample
+    from ..environment import envmap, exr_io, resample
 
     if layout == "cube":
         n = img.shape[1]
@@ -72,8 +72,8 @@ def _info_read(path: Path):
     Returns (image (H, W, C) with every channel, channel names, colour channel count, pixel type, format,
     extra fields, header, n_parts).
     """
-    from .. import exr_io
-    from ..hdr_io import read_hdr
+    from ..environment import exr_io
+    from ..environment.hdr_io import read_hdr
 
     if path.suffix.lower() in (".hdr", ".pic", ".rgbe"):
         img, _, chans, ptype, fmt, extra, header = _hdr_meta(path, read_hdr(path, negative="clamp", nonfinite="zero"))
@@ -135,7 +135,7 @@ def _channel_stats(img: np.ndarray, weights) -> dict:
 
 def _layout_reason(path: Path, h: int, w: int, header: dict):
     """(layout or None, sentence saying where it came from)."""
-    from .. import exr_io
+    from ..environment import exr_io
 
     try:
         declared = exr_io._declared(header, str(path))
@@ -153,7 +153,7 @@ def _layout_reason(path: Path, h: int, w: int, header: dict):
 
 
 def cmd_info(args) -> int:
-    from ..radiance_policy import assess, decide, pixel_solid_angles
+    from ..environment.radiance_policy import assess, decide, pixel_solid_angles
 
     path = Path(args.file)
     img, chans, nc, ptype, fmt, extra, header, n_parts = _info_read(path)
@@ -161,7 +161,7 @@ def cmd_info(args) -> int:
     layout, why = _layout_reason(path, h, w, header)
     bad_convention = None
     if layout == "cube" and fmt == "OpenEXR":
-        from .. import exr_io
+        from ..environment import exr_io
 
         try:
             exr_io._convention(header, None, str(path))
@@ -225,8 +225,8 @@ def cmd_info(args) -> int:
 
 
 def cmd_convert(args) -> int:
-    from .. import exr_io, resample
-    from ..hdr_io import write_hdr
+    from ..environment import exr_io, resample
+    from ..environment.hdr_io import write_hdr
 
     from ..atomic import refuse_overwriting_inputs, resolve_output
 
@@ -302,7 +302,7 @@ def register(sub) -> None:
                    help="face orientation written to a cube file (opengl files carry no envmap attribute)")
     p.add_argument("--method", choices=("conservative", "gather"), default="conservative",
                    help="lat-long <-> cube resampling: balanced kernel conserving every texel's energy "
-                   "(default) or destination supersampling (ibl_ref.resample)")
+                   "(default) or destination supersampling (ibl_ref.environment.resample)")
     p.add_argument("--half", action="store_true", help="write 16-bit half floats (default 32-bit float)")
     p.add_argument("--clamp-half", action="store_true",
                    help="with --half, clamp values above 65504 instead of failing (reported)")

@@ -1,7 +1,7 @@
 """``ibl-ref km00-render``: the glossy teapot by Kautz & McCool (2000) fitted lobes, or by the exact reference.
 
-Thin layer over :func:`ibl_ref.lobe_render.render_single_method` (library:
-:mod:`ibl_ref.prefiltered_lobes`).  No visibility (KM2000 has none).
+Thin layer over :func:`ibl_ref.lobes.lobe_render.render_single_method` (library:
+:mod:`ibl_ref.lobes.prefiltered_lobes`).  No visibility (KM2000 has none).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ METHOD_HELP = ("reference: per-pixel exact filtering over the environment texels
 
 
 def _env(text: str, size: int, args=None):
-    from ..synthetic_envs import ENV_NAMES, make_env
+    from ..synthetic.synthetic_envs import ENV_NAMES, make_env
 
     if text in ENV_NAMES:
         return make_env(text, n=size)
@@ -29,8 +29,8 @@ def _env(text: str, size: int, args=None):
 
 
 def run(args) -> int:
-    from ..lobe_render import render_single_method
-    from ..image_io import write_image_exr
+    from ..lobes.lobe_render import render_single_method
+    from ..rendering.image_io import write_image_exr
 
     from .cmd_render import _check_output, _size, parse_exposure
 
@@ -56,7 +56,7 @@ def run(args) -> int:
                                            progress=not args.quiet)
     write_image_exr(out, img)
     if args.png:
-        from ..tonemap import save_png
+        from ..rendering.tonemap import save_png
 
         save_png(out.with_suffix(".png"), img, stops=stops, mask=mask)
     if not args.quiet:

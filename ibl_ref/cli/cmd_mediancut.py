@@ -1,7 +1,7 @@
 """``ibl-ref mediancut`` and ``ibl-ref pem``: median-cut lights and partial environment maps of a file.
 
-Thin layer over :func:`ibl_ref.median_cut.median_cut`, :func:`ibl_ref.pem.build_pems` and
-:mod:`ibl_ref.sparse_pem` (Knuth et al. 2014, Sec. 3.1 and 4).
+Thin layer over :func:`ibl_ref.knuth2014.median_cut.median_cut`, :func:`ibl_ref.knuth2014.pem.build_pems` and
+:mod:`ibl_ref.knuth2014.sparse_pem` (Knuth et al. 2014, Sec. 3.1 and 4).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ def _load(path, size, args):
 
 def cmd_mediancut(args) -> int:
     from ..atomic import refuse_overwriting_inputs, resolve_output, write_json
-    from ..median_cut import check_partition, energy_spread, median_cut
+    from ..knuth2014.median_cut import check_partition, energy_spread, median_cut
 
     refuse_overwriting_inputs({"IN": args.input}, {"--out": args.out})
     resolve_output(args.out)  # a folder / device / FIFO as --out: refuse before the work
@@ -41,7 +41,7 @@ def cmd_mediancut(args) -> int:
         "face_size": ls.face_size,
         "variant": ls.variant,
         "n_lights": len(ls),
-        "convention": "openexr (ibl_ref.envmap); regions row0:row1, col0:col1 with exclusive ends",
+        "convention": "openexr (ibl_ref.environment.envmap); regions row0:row1, col0:col1 with exclusive ends",
         "luminance_weights": list(ls.luminance_weights),
         "energy_spread": energy_spread(ls),
         "partition_check": chk,
@@ -60,10 +60,10 @@ def cmd_pem(args) -> int:
     import numpy as np
 
     from ..atomic import OutputSet, ensure_output_dir
-    from ..exr_io import HALF_MAX, write_pyramid
-    from ..filters import kernel_taps
-    from ..median_cut import median_cut
-    from ..pem import build_pems
+    from ..environment.exr_io import HALF_MAX, write_pyramid
+    from ..knuth2014.filters import kernel_taps
+    from ..knuth2014.median_cut import median_cut
+    from ..knuth2014.pem import build_pems
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -101,7 +101,7 @@ def cmd_pem(args) -> int:
             "order": pems.order, "seam": pems.seam, "dense_nbytes_float32": pems.nbytes,
                 "pixel_type": args.pixel_type, "files": files, "lights": ls.to_records(), "radiance": radiance}
         if args.sparse_report:
-            from ..sparse_pem import sparsify
+            from ..knuth2014.sparse_pem import sparsify
 
             sp = sparsify(pems, rtol=0.0)
             info["sparse_lossless_nbytes"] = sp.nbytes

@@ -8,9 +8,9 @@ import json
 def cmd_pyramid(args) -> int:
     from ..atomic import refuse_overwriting_inputs, resolve_output
     from ..errors import IBLError
-    from ..exr_io import write_pyramid
-    from ..filters import kernel_taps
-    from ..pyramid import build_pyramid, pyramid_energy
+    from ..environment.exr_io import write_pyramid
+    from ..knuth2014.filters import kernel_taps
+    from ..knuth2014.pyramid import build_pyramid, pyramid_energy
     from .radiance_args import load_env
 
     refuse_overwriting_inputs({"IN": args.input}, {"OUT": args.output})
@@ -30,8 +30,8 @@ def cmd_pyramid(args) -> int:
 
 
 def register(sub) -> None:
-    from ..filters import KERNELS, SEAM_MODES
-    from ..pyramid import ORDERS
+    from ..knuth2014.filters import KERNELS, SEAM_MODES
+    from ..knuth2014.pyramid import ORDERS
 
     p = sub.add_parser(
         "pyramid",

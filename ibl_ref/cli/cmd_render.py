@@ -1,7 +1,7 @@
 """``ibl-ref render``: render a mesh lit by partial environment maps with shadows (Knuth et al. 2014, Eq. 5).
 
-Thin layer over :func:`ibl_ref.scenes.teapot_on_ground` / :func:`ibl_ref.scenes.default_camera` (scene and view),
-:func:`ibl_ref.render.render_pem` (modes ``ours`` and ``no-occlusion``), :func:`ibl_ref.ao_modes.render_mode`
+Thin layer over :func:`ibl_ref.rendering.scenes.teapot_on_ground` / :func:`ibl_ref.rendering.scenes.default_camera` (scene and view),
+:func:`ibl_ref.rendering.render.render_pem` (modes ``ours`` and ``no-occlusion``), :func:`ibl_ref.rendering.ao_modes.render_mode`
 (modes ``ao``, ``ao-color``, imported lazily) and :mod:`ibl_ref.cli.exact_modes` (modes ``reference``, ``mitsuba``:
 per-mesh materials).
 """
@@ -21,8 +21,8 @@ OUT_EXTS = (".exr", ".npz")
 
 
 def parse_material(text: str, option: str = "--material"):
-    """``"kd,ks,g"`` (3 numbers) or ``"kdR,kdG,kdB,ksR,ksG,ksB,g"`` (7 numbers) → :class:`ibl_ref.render.Material`."""
-    from ..render import Material
+    """``"kd,ks,g"`` (3 numbers) or ``"kdR,kdG,kdB,ksR,ksG,ksB,g"`` (7 numbers) → :class:`ibl_ref.rendering.render.Material`."""
+    from ..rendering.render import Material
 
     parts = [p.strip() for p in str(text).split(",")]
     try:
@@ -103,10 +103,10 @@ def parse_exposure(text, option: str = "--exposure"):
 
 
 def _camera(args, meshes):
-    """:func:`ibl_ref.scenes.default_camera` from the camera flags (framing: the object's bounding sphere)."""
+    """:func:`ibl_ref.rendering.scenes.default_camera` from the camera flags (framing: the object's bounding sphere)."""
     import numpy as np
 
-    from ..scenes import default_camera
+    from ..rendering.scenes import default_camera
 
     w, h = _size(args.size)
     if not (0 < args.fov < 180):
@@ -127,8 +127,8 @@ def _camera(args, meshes):
 
 
 def _ao_render_mode():
-    """:func:`ibl_ref.ao_modes.render_mode` (imported only for the modes that need it)."""
-    from ..ao_modes import render_mode
+    """:func:`ibl_ref.rendering.ao_modes.render_mode` (imported only for the modes that need it)."""
+    from ..rendering.ao_modes import render_mode
 
     return render_mode
 
@@ -139,8 +139,8 @@ def cmd_render(args) -> int:
     import numpy as np
 
     from ..atomic import atomic_path
-    from ..render import Material, render_pem
-    from ..scenes import teapot_on_ground
+    from ..rendering.render import Material, render_pem
+    from ..rendering.scenes import teapot_on_ground
 
     # ---- validate everything cheap before the expensive parts ----------------------------------------------
     from ..atomic import OutputSet, refuse_overwriting_inputs
@@ -157,7 +157,7 @@ def cmd_render(args) -> int:
     gmat = (parse_material(args.ground_material, "--ground-material") if args.ground_material
             else Material(kd=0.0, ks=1.0, g=args.ground_gloss))
     if args.gmap:
-        from ..image_io import read_g_map
+        from ..rendering.image_io import read_g_map
 
         mat = Material(kd=mat.kd, ks=mat.ks, g=mat.g, g_map=read_g_map(args.gmap), uv_fallback=args.gmap_fallback)
     mode = args.mode
@@ -184,7 +184,7 @@ def cmd_render(args) -> int:
 
         cube, radiance = load_env(args, args.env, args.env_size)
     else:
-        from ..synthetic_envs import make_env
+        from ..synthetic.synthetic_envs import make_env
 
         cube = make_env(args.synthetic, n=args.env_size)
     # Eq. 5 sums L+1 terms, each at most weight x max radiance: refuse weights that overflow float64
@@ -204,11 +204,11 @@ def cmd_render(args) -> int:
             "radiance": radiance}
     pems = None
     if mode not in _EXACT_MODES:
-        from ..pem import build_pems
+        from ..knuth2014.pem import build_pems
 
         pems = build_pems(cube, n_lights=args.lights, variant=args.median_cut, progress=progress)
         if args.prefilter == "exact-lobe":
-            from ..lobe_chain import build_lobe_chain_pems
+            from ..knuth2014.lobe_chain import build_lobe_chain_pems
 
             pems = build_lobe_chain_pems(cube, pems.lights, progress=progress)
         info["lights"] = len(pems.lights.directions)
@@ -219,7 +219,7 @@ def cmd_render(args) -> int:
     if mode in _EXACT_MODES:
         from .exact_modes import render_exact
 
-        from ..render import apply_background
+        from ..rendering.render import apply_background
 
         image, mask, more = render_exact(mode, meshes, cam, cube, mat, gmat if args.ground else None, args, progress)
         image = apply_background(np.array(image, dtype=np.float64), mask, cam, cube, args.background)
@@ -240,9 +240,9 @@ def cmd_render(args) -> int:
         try:
             image = np.asarray(render_mode(meshes, cube, mode, **kw), dtype=np.float64)
         except TypeError as exc:
-            raise IBLError(f"ibl_ref.ao_modes.render_mode does not accept the arguments of this CLI "
+            raise IBLError(f"ibl_ref.rendering.ao_modes.render_mode does not accept the arguments of this CLI "
                            f"({exc}); the two modules are out of step") from exc
-        from ..raster import rasterize
+        from ..rendering.raster import rasterize
 
         mask = rasterize(meshes, cam, warn=False).mask  # coverage (the image holds the backdrop elsewhere)
     t2 = time.perf_counter()
@@ -252,7 +252,7 @@ def cmd_render(args) -> int:
     # ---- outputs (image, --png and the JSON sidecar committed together, the JSON last) -----------------------
     with OutputSet(out.with_suffix(".json"), owned_key="outputs") as outs:
         if out.suffix.lower() == ".exr":
-            from ..image_io import write_image_exr
+            from ..rendering.image_io import write_image_exr
 
             write_image_exr(outs.path(out), image)
         else:
@@ -263,7 +263,7 @@ def cmd_render(args) -> int:
                     np.savez_compressed(fh, **arrays)
         info.update({"pem_time_s": round(t1 - t0, 3), "render_time_s": round(t2 - t1, 3)})
         if png is not None:
-            from ..tonemap import save_png
+            from ..rendering.tonemap import save_png
 
             save_png(outs.path(png), image, stops=stops, mask=mask)
             info["png"] = str(png)
@@ -300,8 +300,8 @@ modes:
   ours          Eq. 5 with VIS_i from variance shadow maps (the paper); --visibility raycast gives exact
                 shadows of the same lights, --visibility none no shadows
   no-occlusion  VIS_i = 1 (Fig. 6a)
-  ao, ao-color  ambient-occlusion comparisons of Fig. 6b/6c (ibl_ref.ao_modes)
-  reference     exact lobes and ray-cast visibility, converged to --ref-rtol (ibl_ref.reference_render; slow)
+  ao, ao-color  ambient-occlusion comparisons of Fig. 6b/6c (ibl_ref.rendering.ao_modes)
+  reference     exact lobes and ray-cast visibility, converged to --ref-rtol (ibl_ref.rendering.reference_render; slow)
   mitsuba       the same scene rendered by Mitsuba 3 (pip install ".[mitsuba]"; --spp, --seed)
   every mode shades the mesh with --material and the ground with --ground-material
   (reference, mitsuba: scalar kd, ks and no --gmap).
@@ -363,7 +363,7 @@ def register(sub) -> None:
     g.add_argument("--prefilter", choices=("pyramid", "exact-lobe"), default="pyramid",
                    help="how each PEM is prefiltered: 'pyramid' = the paper's 2x2-shrink + 5x5-filter MIP pyramid "
                         "(default); 'exact-lobe' = the same lookup on levels holding exact Phong lobe averages "
-                        "(ibl_ref.lobe_chain; slower to build, no filter-shape error)")
+                        "(ibl_ref.knuth2014.lobe_chain; slower to build, no filter-shape error)")
     g.add_argument("--visibility", choices=("vsm", "raycast", "none"), default=None,
                    help="VIS_i for --mode ours: variance shadow maps (default), exact ray casting, none")
     g.add_argument("--exact-backend", choices=("binned", "trimesh"), default="binned",

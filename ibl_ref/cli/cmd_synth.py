@@ -36,9 +36,9 @@ def parse_params(items) -> dict:
 def cmd_synth_env(args) -> int:
     import numpy as np
 
-    from .. import synthetic_envs as se
+    from ..synthetic import synthetic_envs as se
     from ..atomic import atomic_path
-    from ..envmap import cube_solid_angles
+    from ..environment.envmap import cube_solid_angles
 
     out = Path(args.out)
     if out.suffix.lower() not in (".exr", ".npy"):
@@ -53,7 +53,7 @@ def cmd_synth_env(args) -> int:
             with open(tmp, "wb") as fh:
                 np.save(fh, cube, allow_pickle=False)
     else:
-        from ..exr_io import write_envmap
+        from ..environment.exr_io import write_envmap
 
         write_envmap(out, cube, layout="cube", pixel_type=args.pixel_type, clamp_half=args.clamp_half)
     integral = (cube * cube_solid_angles(args.size)[..., None]).sum(axis=(0, 1, 2))
@@ -63,7 +63,7 @@ def cmd_synth_env(args) -> int:
 
 
 def cmd_synth_mesh(args) -> int:
-    from .. import synthetic_meshes as sm
+    from ..synthetic import synthetic_meshes as sm
     from ..atomic import atomic_path
 
     out = Path(args.out)
@@ -79,8 +79,8 @@ def cmd_synth_mesh(args) -> int:
 
 
 def register(sub) -> None:
-    from .. import synthetic_envs as se
-    from .. import synthetic_meshes as sm
+    from ..synthetic import synthetic_envs as se
+    from ..synthetic import synthetic_meshes as sm
 
     p = sub.add_parser(
         "synth",

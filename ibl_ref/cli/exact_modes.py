@@ -1,5 +1,5 @@
-"""``ibl-ref render --mode reference|mitsuba``: the converged reference (:func:`ibl_ref.reference_render.render_reference`)
-and Mitsuba 3 (:func:`ibl_ref.mitsuba_render.render_mitsuba`) with per-mesh materials (mesh id 0, ground id 1)."""
+"""``ibl-ref render --mode reference|mitsuba``: the converged reference (:func:`ibl_ref.rendering.reference_render.render_reference`)
+and Mitsuba 3 (:func:`ibl_ref.rendering.mitsuba_render.render_mitsuba`) with per-mesh materials (mesh id 0, ground id 1)."""
 
 from __future__ import annotations
 
@@ -29,14 +29,14 @@ def render_exact(mode, meshes, camera, cube, mat, ground_mat, args, progress=Fal
     if ground_mat is not None:
         materials[1] = _scalar(ground_mat, "--ground-material")
     if mode == "reference":
-        from ..reference_render import DEFAULT_RTOL, render_reference
+        from ..rendering.reference_render import DEFAULT_RTOL, render_reference
 
         rtol = DEFAULT_RTOL if args.ref_rtol is None else float(args.ref_rtol)
         res = render_reference(meshes, camera, cube, materials=materials, rtol=rtol, progress=progress)
         keep = ("rtol", "err_rel_l1", "err_rel_p99", "converged", "n_rays", "time_s", "sided", "n_back_facing",
                 "quadrature", "lobes")
         return res.image, res.mask, {"reference": {k: res.info[k] for k in keep if k in res.info}}
-    from ..mitsuba_render import render_mitsuba
+    from ..rendering.mitsuba_render import render_mitsuba
 
     if any(m[2] >= 1.0 for m in materials.values()):
         raise IBLError("--mode mitsuba: glossiness must be < 1 (the mirror g = 1 is not a Phong lobe)")

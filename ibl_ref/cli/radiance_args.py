@@ -1,4 +1,4 @@
-"""CLI flags of the radiance policy (:mod:`ibl_ref.radiance_policy`), shared by every command that reads an
+"""CLI flags of the radiance policy (:mod:`ibl_ref.environment.radiance_policy`), shared by every command that reads an
 environment map: ``--negative auto|clamp|error`` and ``--nonfinite error|zero``.
 
 Not a command module (no ``cmd_`` prefix): the ``cmd_*`` modules call :func:`add_radiance_args` on their
@@ -38,8 +38,8 @@ def tell(rep) -> dict | None:
 
 
 def load_env(args, path, size=None):
-    """:func:`ibl_ref.exr_io.load_cube` under the command's policy → ``(cube, report dict)``; reports on stderr."""
-    from ..exr_io import load_cube
+    """:func:`ibl_ref.environment.exr_io.load_cube` under the command's policy → ``(cube, report dict)``; reports on stderr."""
+    from ..environment.exr_io import load_cube
 
     cube, rep = load_cube(path, size=size, return_report=True, **policy(args))
     return cube, tell(rep)

@@ -24,8 +24,8 @@ The experiment framework.  Each experiment is a module of this package declaring
     whether ``ibl-ref reproduce --quick`` (the README's first command) runs it.
 
 Data flows one way: ``run`` never plots and ``plot`` never computes.  Shared scenes and environments come
-from the library (:func:`ibl_ref.synthetic_envs.make_env`, :mod:`ibl_ref.synthetic_meshes`,
-:mod:`ibl_ref.sphere_render`), never from another experiment.  :func:`run_experiment` runs both steps with
+from the library (:func:`ibl_ref.synthetic.synthetic_envs.make_env`, :mod:`ibl_ref.synthetic.synthetic_meshes`,
+:mod:`ibl_ref.rendering.sphere_render`), never from another experiment.  :func:`run_experiment` runs both steps with
 progress lines (:mod:`ibl_ref.progress`) and timings; :func:`describe` is the ``--help`` text.
 """
 

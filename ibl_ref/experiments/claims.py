@@ -1,7 +1,7 @@
 """Knuth et al. (2014) Sec. 3.2 / Sec. 5 claims about the filter pyramid, checked one by one.
 
 Each statement of the paper about Fig. 4/5 is turned into a measurable criterion (stated in the table)
-and evaluated under every interpretation of the ambiguous error measure (:mod:`ibl_ref.lobe_analysis`):
+and evaluated under every interpretation of the ambiguous error measure (:mod:`ibl_ref.knuth2014.lobe_analysis`):
 pyramid order ∈ {shrink_then_filter (stf), filter_then_shrink (fts)} × volume ∈ {integral, radial} ×
 target axis ∈ {texel, centroid}; error = symmetric-difference volume in percent of the target volume.
 White texel at a face centre, seam neighbour.
@@ -125,7 +125,7 @@ def _energy_claim(n):
 
     Returns, per map/kernel/seam, the relative energy drift of largest magnitude over the levels.
     """
-    from ..pyramid import build_pyramid, pyramid_energy
+    from ..knuth2014.pyramid import build_pyramid, pyramid_energy
 
     rng = np.random.default_rng(7)
     cube = rng.random((6, n, n, 1))

@@ -3,7 +3,7 @@
 Two studies, both with closed-form or exact targets:
 
 1. **Source resolution.**  The linear-gradient environment ``L(ω) = a + b·ω`` (evaluated here at texel
-   centres from :func:`ibl_ref.envmap.texel_directions`, independent of ``synthetic_envs``) has the
+   centres from :func:`ibl_ref.environment.envmap.texel_directions`, independent of ``synthetic_envs``) has the
    closed-form lobe average ``a + b·r (s+1)/(s+2)``.  Max/RMS error of :func:`convolve_exact` at face
    sizes 8…64 for s ∈ {1, 16, 256, 4096}, observed order log2(e_N/e_2N).  Also the unnormalised total
    weight Σ cos^s Ω versus 2π/(s+1).
@@ -25,8 +25,8 @@ import numpy as np
 
 from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
-from .. import envmap
-from ..phong_convolution import convolve_exact_many, phong_lobe_integral
+from ..environment import envmap
+from ..groundtruth.phong_convolution import convolve_exact_many, phong_lobe_integral
 from . import Param, resolve_params
 
 NAME = "convergence"

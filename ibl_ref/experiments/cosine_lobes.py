@@ -58,7 +58,7 @@ def _weighted_stats(x, w):
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
     p = resolve_params(__name__, quick, params)
-    from .. import meunier2009 as m
+    from ..lobes import meunier2009 as m
 
     out_dir = Path(out_dir)
     t_start = time.perf_counter()

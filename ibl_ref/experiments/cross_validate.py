@@ -1,5 +1,5 @@
-"""Cross-validation of the lab's reference (:mod:`ibl_ref.reference_render`) against Mitsuba 3
-(:mod:`ibl_ref.mitsuba_render`): the same scene, camera rays, radiance function and one-sided normalised
+"""Cross-validation of the lab's reference (:mod:`ibl_ref.rendering.reference_render`) against Mitsuba 3
+(:mod:`ibl_ref.rendering.mitsuba_render`): the same scene, camera rays, radiance function and one-sided normalised
 Phong/Lambert BRDF (Knuth et al. 2014 Eq. 4–5 as a lobe average = Kán et al. 2015 Eq. 2), rendered by two
 independent programs.
 
@@ -10,7 +10,7 @@ has the same material as the object.
 
 Per case: ``rel_l1`` = Σ|ref − mi| / Σ|mi| and ``rmse`` over the pixels both cover (channels pooled), the signed
 ``bias`` = Σ(ref − mi)/Σ mi (noise averages out of it), Mitsuba's own noise (``noise_rel_l1``, ``noise_rmse``: the
-same metrics between its image and its expectation, from two seeds; see :mod:`ibl_ref.mitsuba_render`), the
+same metrics between its image and its expectation, from two seeds; see :mod:`ibl_ref.rendering.mitsuba_render`), the
 reference's own error estimate (``ref_err_rel_l1``) and ``excess_rel_l1 = rel_l1 − noise_rel_l1``.  Target
 (issue 14): ``excess_rel_l1 ≤ 0.5 %`` on every case (``within_target``).  Because E|δ + ε| ≥ |δ|, ``rel_l1`` itself
 is an upper bound (up to noise in its estimate) of the reference's rel. L1 against Mitsuba's expectation.
@@ -62,8 +62,8 @@ PARAMS = tuple(p for p in params_from_settings(settings, {
 
 def scene_meshes(name: str):
     """(mesh, material id) list of a named scene: the generated mesh, plus a ground quad for teapot and torus."""
-    from ..scenes import ground_quad
-    from ..synthetic_meshes import make_mesh
+    from ..rendering.scenes import ground_quad
+    from ..synthetic.synthetic_meshes import make_mesh
 
     mesh = make_mesh(name)
     meshes = [(mesh, 0)]
@@ -86,10 +86,10 @@ def compare(ref_img, ref_mask, mi_img, mi_mask, noise_rel_l1: float, noise_rmse:
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..scenes import default_camera
-    from ..mitsuba_render import render_mitsuba
-    from ..reference_render import render_reference
-    from ..synthetic_envs import make_env
+    from ..rendering.scenes import default_camera
+    from ..rendering.mitsuba_render import render_mitsuba
+    from ..rendering.reference_render import render_reference
+    from ..synthetic.synthetic_envs import make_env
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

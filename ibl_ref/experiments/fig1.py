@@ -40,12 +40,12 @@ PARAMS = params_from_settings(settings)
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..ao_modes import default_camera, light_visibilities, shade_eq5
-    from ..pem import build_pems
-    from ..raster import prepare_scene, rasterize
-    from ..synthetic_envs import make_env
-    from ..synthetic_meshes import make_mesh
-    from ..tonemap import backdrop
+    from ..rendering.ao_modes import default_camera, light_visibilities, shade_eq5
+    from ..knuth2014.pem import build_pems
+    from ..rendering.raster import prepare_scene, rasterize
+    from ..synthetic.synthetic_envs import make_env
+    from ..synthetic.synthetic_meshes import make_mesh
+    from ..rendering.tonemap import backdrop
 
     out_dir = Path(out_dir)
     st = settings_with(__name__, quick, params)
@@ -82,7 +82,7 @@ def plot(out_dir: Path) -> list:
 
     plt = pyplot()
 
-    from ..tonemap import auto_exposure, exposure_srgb, with_backdrop
+    from ..rendering.tonemap import auto_exposure, exposure_srgb, with_backdrop
 
     out_dir = Path(out_dir)
     imgs, mask = images_from_json(out_dir / "fig1_images.json")

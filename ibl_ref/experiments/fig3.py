@@ -3,9 +3,9 @@
 "Applying different filtering levels to the environment map creates more or less glossy surfaces from
 mirror-like to completely diffuse."  A unit sphere is viewed orthographically along −z (view vector
 v = (0, 0, 1) towards the camera); per pixel the normal n gives the reflection r = 2(n·v)n − v, and the
-colour is the glossiness lookup :func:`ibl_ref.gloss_lookup.lookup` of the sqrtcos pyramid at (r, g)
+colour is the glossiness lookup :func:`ibl_ref.knuth2014.gloss_lookup.lookup` of the sqrtcos pyramid at (r, g)
 (the PEM lookup of Eq. 5 without occlusion; no renderer needed).  Environment: the synthetic
-``studio`` map of :func:`ibl_ref.synthetic_envs.make_env`.
+``studio`` map of :func:`ibl_ref.synthetic.synthetic_envs.make_env`.
 
 Files: ``fig3_spheres.json`` (linear RGB per sphere, float32-rounded), plot ``fig3.png`` (tone-mapped
 x/(1+x) after scaling by the mirror sphere's 90th percentile).
@@ -29,7 +29,7 @@ PARAMS = (
     Param("face_size", 256, 64, "environment cube face size N (texels)"),
     Param("pixels", 128, 48, "sphere image size (pixels)"),
     Param("gloss", (1.0, 0.995, 0.98, 0.95, 0.9, 0.75, 0.5, 0.0), None, "glossiness values g, mirror (1) to diffuse (0)"),
-    Param("environment", "studio", None, "synthetic environment (ibl_ref.synthetic_envs.make_env name)"),
+    Param("environment", "studio", None, "synthetic environment (ibl_ref.synthetic.synthetic_envs.make_env name)"),
 )
 RUNTIME = {"quick": "0.4 s", "full": "5 s (load 3.4)"}
 OUTPUTS = ("fig3_spheres.json", "fig3.png")
@@ -38,9 +38,9 @@ GLOSS = PARAMS[2].default
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..pyramid import build_pyramid
-    from ..sphere_render import render_sphere_lookup
-    from ..synthetic_envs import make_env
+    from ..knuth2014.pyramid import build_pyramid
+    from ..rendering.sphere_render import render_sphere_lookup
+    from ..synthetic.synthetic_envs import make_env
 
     p = resolve_params(__name__, quick, params)
     n, px = p["face_size"], p["pixels"]

@@ -1,7 +1,7 @@
 """Knuth et al. (2014) Fig. 4: polar cross-sections of the s_Phong = 1 lobe for the five filters.
 
 A white texel at the centre of face +Z is filtered into the pyramid of each filter (none = "MIP map
-only", gauss, cos, box, sqrtcos); the level is fitted by lobe volume (:mod:`ibl_ref.lobe_analysis`, both
+only", gauss, cos, box, sqrtcos); the level is fitted by lobe volume (:mod:`ibl_ref.knuth2014.lobe_analysis`, both
 volume definitions) and the trilinear response is read along the great circle through the texel's
 direction d0 and the face's horizontal axis, θ ∈ [−180°, 180°].  Both lobes are peak-normalised (the
 response by its maximum over the level-0 sampling grid, as in the volume fit); the target is
@@ -33,7 +33,7 @@ TITLES = {"none": "MIP map only", "gauss": "Gaussian", "cos": "cosine", "box": "
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..lobe_analysis import LobeResponse, target_lobe
+    from ..knuth2014.lobe_analysis import LobeResponse, target_lobe
 
     n = resolve_params(__name__, quick, params)["face_size"]
     s = 1.0

@@ -1,9 +1,9 @@
 """Knuth et al. (2014) Fig. 5: relative lobe error vs s_Phong for the five 5×5 filters.
 
 For every filter (none = MIP only, gauss, cos, box, sqrtcos), face size, white-texel position and volume
-definition, :func:`ibl_ref.lobe_analysis.analyse` fits the continuous level whose lobe volume equals the
+definition, :func:`ibl_ref.knuth2014.lobe_analysis.analyse` fits the continuous level whose lobe volume equals the
 cosˢ target's and reports the remaining error in percent of the target volume, for s from 1 up to
-:func:`ibl_ref.lobe_analysis.s_texel_limit` (lobe narrower than a level-0 texel).
+:func:`ibl_ref.knuth2014.lobe_analysis.s_texel_limit` (lobe narrower than a level-0 texel).
 
 Sizes: quick = N 64 (centre, edge, corner) + N 128 (centre), 24 exponents; full = N 64, 128, 256 (three
 positions) + N 512 (centre), 32 exponents.  Pyramid order shrink_then_filter, seam neighbour.
@@ -51,7 +51,7 @@ def configs(quick: bool, **params):
 
 
 def compute_rows(n, position, count, kernels=KERNELS, order="shrink_then_filter", seam="neighbour"):
-    from ..lobe_analysis import CENTRINGS, LobeResponse, analyse, s_grid
+    from ..knuth2014.lobe_analysis import CENTRINGS, LobeResponse, analyse, s_grid
 
     rows = []
     s_values = s_grid(n, count)

@@ -1,7 +1,7 @@
 """Knuth et al. (2014) Fig. 6: our method vs ambient occlusion on a pure glossy teapot, plus the ray-traced reference.
 
-Modes (:mod:`ibl_ref.ao_modes`): (a) no occlusion, (b) AO shadow only, (c) AO with color, (d) our method (Eq. 5
-with VSM visibilities), and the reference (:mod:`ibl_ref.reference_render`: exact ray-cast visibility toward every
+Modes (:mod:`ibl_ref.rendering.ao_modes`): (a) no occlusion, (b) AO shadow only, (c) AO with color, (d) our method (Eq. 5
+with VSM visibilities), and the reference (:mod:`ibl_ref.rendering.reference_render`: exact ray-cast visibility toward every
 texel of a coarse level, exact Phong lobe).  Material kd = 0, ks = 1, g = 0.9 (s = 10), environment ``sky_sun``.
 
 Files: ``fig6_metrics.csv`` (one row per mode: RMSE, relative L1, max relative error, FLIP if available, all vs
@@ -43,10 +43,10 @@ PARAMS = params_from_settings(settings)
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..ao_modes import default_camera, render_modes
-    from ..image_metrics import all_metrics, rel_l1
-    from ..synthetic_envs import make_env
-    from ..synthetic_meshes import make_mesh
+    from ..rendering.ao_modes import default_camera, render_modes
+    from ..rendering.image_metrics import all_metrics, rel_l1
+    from ..synthetic.synthetic_envs import make_env
+    from ..synthetic.synthetic_meshes import make_mesh
 
     out_dir = Path(out_dir)
     st = settings_with(__name__, quick, params)
@@ -73,7 +73,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     note = all_metrics(res.images["ours"], ref, res.mask)["flip_note"]
     write_csv(out_dir / "fig6_metrics.csv", rows, ["mode", "rmse", "rel_l1", "rel_max", "rel_l1_occlusion_only", "flip"],
               comment=f"errors vs the ray-traced reference over covered pixels; kd=0 ks=1 g={st['g']}; {note}")
-    from ..tonemap import backdrop
+    from ..rendering.tonemap import backdrop
 
     # stored for the plot: the environment behind the teapot and the reference without visibility
     extra = {"_background": backdrop(env, cam), "_reference-unoccluded": ref_un}
@@ -98,8 +98,8 @@ def plot(out_dir: Path) -> list:
 
     plt = pyplot()
 
-    from ..image_metrics import error_map
-    from ..tonemap import auto_exposure, exposure_srgb, with_backdrop
+    from ..rendering.image_metrics import error_map
+    from ..rendering.tonemap import auto_exposure, exposure_srgb, with_backdrop
 
     out_dir = Path(out_dir)
     imgs, mask = images_from_json(out_dir / "fig6_images.json")

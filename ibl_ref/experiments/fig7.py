@@ -2,7 +2,7 @@
 
 Per frame (one image, ``kd = 0, ks = 1, g = 0.5``): rasterisation of the G-buffer, per light a shadow (depth) map,
 the moment blur, the VSM look-ups (``visibility``), the PEM look-ups (``lookup``) and the Eq. 5 sum
-(``shading``) — timed stage by stage (:func:`ibl_ref.ao_modes.light_visibilities` with ``timings``).  Building the
+(``shading``) — timed stage by stage (:func:`ibl_ref.rendering.ao_modes.light_visibilities` with ``timings``).  Building the
 PEMs (median cut + one filter pyramid per region) is a pre-process in the paper and reported separately
 (``pem_build_s``).  A least-squares line ``frame_s = intercept + slope·lights`` is fitted per scene.
 CPU NumPy timings (2 shared cores, under load) — only the trend is comparable to the paper's GPU numbers.
@@ -53,10 +53,10 @@ def fit_line(x, y) -> dict:
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..ao_modes import default_camera, render_modes
-    from ..pem import build_pems
-    from ..synthetic_envs import make_env
-    from ..synthetic_meshes import make_mesh
+    from ..rendering.ao_modes import default_camera, render_modes
+    from ..knuth2014.pem import build_pems
+    from ..synthetic.synthetic_envs import make_env
+    from ..synthetic.synthetic_meshes import make_mesh
 
     out_dir = Path(out_dir)
     st = settings_with(__name__, quick, params)

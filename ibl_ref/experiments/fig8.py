@@ -7,7 +7,7 @@ Outputs
                      and this library's bytes (float32 RGB PEMs with the true MIP chain; VSMs (μ, μ²) in
                      float32 and float16), computed from array shapes; small configurations are also
                      allocated and compared (``measured_check_*``).
-``fig8_sparse.csv``  dense vs sparse PEM bytes (:mod:`ibl_ref.sparse_pem`) for 12/24/48/96 regions at
+``fig8_sparse.csv``  dense vs sparse PEM bytes (:mod:`ibl_ref.knuth2014.sparse_pem`) for 12/24/48/96 regions at
                      128² and 256² (quick: 128² only) on the sky+sun and studio maps: lossless
                      (exact zeros only), rtol = 1e-6, and lossless + only the levels touched by a scene
                      with g ∈ {0, 0.5, 0.9} (no mirror-like material).
@@ -39,9 +39,17 @@ SCENE_G = (0.0, 0.5, 0.9)
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..atomic import write_csv, write_json
-    from ..synthetic_envs import make_env
-    from ..memory_model import (MIB, PAPER_FIG8, FIG8_COLUMNS, fig8_model_table, infer_fig8_rows, library_pem_bytes,
-                                library_vsm_bytes, paper_pem_bytes)
+    from ..synthetic.synthetic_envs import make_env
+    from ..knuth2014.memory_model import (
+        MIB,
+        PAPER_FIG8,
+        FIG8_COLUMNS,
+        fig8_model_table,
+        infer_fig8_rows,
+        library_pem_bytes,
+        library_vsm_bytes,
+        paper_pem_bytes,
+    )
 
     out_dir = Path(out_dir)
     inferred = infer_fig8_rows()
@@ -65,7 +73,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
         "MIP chain (x ~4/3), VSM (mu, mu^2) float32/float16."))
 
     # cross-check the analytic library bytes against allocated arrays for small configurations
-    from ..pem import build_pems
+    from ..knuth2014.pem import build_pems
 
     checks = {}
     t0 = time.perf_counter()
@@ -79,7 +87,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
                                               "equal": int(vsm.nbytes) == library_vsm_bytes(12, 64, np.float16)}
 
     # sparse PEMs
-    from ..sparse_pem import build_sparse_pems, levels_touched
+    from ..knuth2014.sparse_pem import build_sparse_pems, levels_touched
 
     p = resolve_params(__name__, quick, params)
     sizes, region_counts = p["sparse_sizes"], p["regions"]

@@ -9,7 +9,7 @@ input map size is not stated).  Published times (min:s:ms): 32×32 00:00:040, 64
 
 Here: the same task on this CPU — 8 Phong exponents {1, 2, 5, 10, 20, 50, 100, 1000} for a cube map
 whose input and output face size are both N, on the sky + 1e5 sun environment — with
-:func:`ibl_ref.convolve.convolve` ``method="auto"`` at rtol 1e-3 (per-exponent method and its reported
+:func:`ibl_ref.groundtruth.convolve.convolve` ``method="auto"`` at rtol 1e-3 (per-exponent method and its reported
 bound in the CSV) and, where affordable (N ≤ 32, or N ≤ 64 in the full run), the exact gather.  Kán's
 "resolution" is the size of one output map (their maps are spherical, ours are cube faces: a face of N²
 texels has 6N² texels in total) — the comparison is of orders of magnitude, not like for like.
@@ -47,9 +47,9 @@ CITATION = "Kan, Unterguggenberger, Kaufmann 2015, Table 1 (NVIDIA Shield tablet
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..convolve import convolve
-    from ..phong_convolution import convolve_exact_many
-    from ..synthetic_envs import SUN_NEAR_CORNER, make_env
+    from ..groundtruth.convolve import convolve
+    from ..groundtruth.phong_convolution import convolve_exact_many
+    from ..synthetic.synthetic_envs import SUN_NEAR_CORNER, make_env
 
     def environment(n):  # the speed-accuracy environment: sky + a 1e5 sun near a cube corner
         return make_env("sky_sun", n, sun_direction=SUN_NEAR_CORNER, sun_radiance=1e5)

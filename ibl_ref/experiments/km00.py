@@ -5,7 +5,7 @@ BRDFs: Ward isotropic ``kd=0, ks=0.8, α=0.04`` (the paper's Fig. 7/15–18 mate
 ``1/√cos θi`` makes the slice peak at the horizon beyond ≈ 85°, where a peak-centred lobe is meaningless).
 
 Outputs: ``rms_vs_lobes.csv`` (method ∈ multi/single/single2d, relative RMS over the hemisphere and all θo, see
-:func:`ibl_ref.kautz_mccool2000.rms_error`), ``lobes.csv`` (every fitted lobe: offsets, track id, Phong fit),
+:func:`ibl_ref.lobes.kautz_mccool2000.rms_error`), ``lobes.csv`` (every fitted lobe: offsets, track id, Phong fit),
 ``profiles.csv`` (single-lobe mean profile vs the BRDF's in-plane cut through the peak), ``summary.json``.
 Rendering the teapot with the fitted BRDF (paper Figs. 15–18) needs the renderer and is not done here.
 """
@@ -41,8 +41,8 @@ BRDFS = {
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from .. import brdfs as B
-    from .. import kautz_mccool2000 as km
+    from ..lobes import brdfs as B
+    from ..lobes import kautz_mccool2000 as km
 
     out_dir = Path(out_dir)
     p = resolve_params(__name__, quick, params)

@@ -1,24 +1,24 @@
 """Kautz & McCool (2000) Figs. 9–18 analogue: the glossy teapot rendered with fitted lobes vs per-pixel exact filtering.
 
 Material: Ward isotropic ``kd = 0, ks = 0.8, α = 0.04`` (the paper's Fig. 7 / 15–18 BRDF).  Environment ``sky_sun``
-(smooth sky + 1e5 sun).  Camera and teapot as in :mod:`ibl_ref.experiments.fig6` (:func:`ibl_ref.scenes.default_camera`).
+(smooth sky + 1e5 sun).  Camera and teapot as in :mod:`ibl_ref.experiments.fig6` (:func:`ibl_ref.rendering.scenes.default_camera`).
 **No visibility** in any method (KM2000 has none): every pixel integrates the whole environment hemisphere.
 
-Methods (:mod:`ibl_ref.prefiltered_lobes`):
+Methods (:mod:`ibl_ref.lobes.prefiltered_lobes`):
 
 * ``reference`` — per-pixel exact filtering ``Σ_j L_j f(ω_j, wo) max(n·ω_j, 0) Ω_j`` over the environment texels
   (piecewise constant), each split into k×k sub-texels with k per pixel chosen so that the BRDF slice's narrowest
-  half width (:func:`~ibl_ref.prefiltered_lobes.brdf_min_hwhm`, ≈ 0.7° at θo = 80° for α = 0.04) spans
-  ``ref_samples_per_hwhm`` sub-texels (:func:`~ibl_ref.prefiltered_lobes.auto_supersample`), times a multiplier
+  half width (:func:`~ibl_ref.lobes.prefiltered_lobes.brdf_min_hwhm`, ≈ 0.7° at θo = 80° for α = 0.04) spans
+  ``ref_samples_per_hwhm`` sub-texels (:func:`~ibl_ref.lobes.prefiltered_lobes.auto_supersample`), times a multiplier
   (``ref_k_multipliers``, 1/2/4; the last is the reference), capped at ``ref_max_supersample``; gathered in the cone
-  γc = :func:`~ibl_ref.prefiltered_lobes.ward_cut_angle` (ε = 1e-12) around r; the neglected radiance is bounded
+  γc = :func:`~ibl_ref.lobes.prefiltered_lobes.ward_cut_angle` (ε = 1e-12) around r; the neglected radiance is bounded
   (``meta.info.reference.neglected_bound_max``).  Successive multipliers show the quadrature convergence.
   The 3D maps use the same rule per lobe profile (``map_supersample="auto"``, 1.5 sub-texels per profile HWHM).
 * ``lobes3`` — the greedy multi-lobe fit (≤ 3 lobes, tracked across elevations), one 3D map per track (Sec. 5.3),
   cosine factor n·r (Eq. 2); ``lobes3_peakcos`` the same maps with the factor n·peak_j; ``lobes3_rescaled`` the
   same lobes with one energy factor per elevation so that their albedo is the BRDF's (not in KM2000, whose greedy
-  minimum-profile lobes leave the residual's energy out; :func:`ibl_ref.kautz_mccool2000.fit_multi_lobe`
-  ``rescale=True``, maps scaled by :meth:`~ibl_ref.prefiltered_lobes.LobeSet.scaled`).
+  minimum-profile lobes leave the residual's energy out; :func:`ibl_ref.lobes.kautz_mccool2000.fit_multi_lobe`
+  ``rescale=True``, maps scaled by :meth:`~ibl_ref.lobes.prefiltered_lobes.LobeSet.scaled`).
 * ``single`` — one mean-profile lobe per elevation (Sec. 3.1 / 5.1); ``single2d`` — one shared 2-D lobe × k(θo)
   (Sec. 3.2 / 5.2).
 * ``pyramid3`` — Knuth et al. 2014 extension: each of the 3 lobes replaced by its Phong fit ``P cos^s``, looked up in
@@ -45,8 +45,8 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import read_csv, write_csv, write_json
-from ..lobe_render import SINGLE_METHODS, THETA_MAX_DEG, reference_supersample, render_single_method  # noqa: F401
-from ..lobe_render import teapot_gbuffer as _gbuffer
+from ..lobes.lobe_render import SINGLE_METHODS, THETA_MAX_DEG, reference_supersample, render_single_method  # noqa: F401
+from ..lobes.lobe_render import teapot_gbuffer as _gbuffer
 from . import params_from_settings, settings_with
 
 NAME = "km00-render"
@@ -89,10 +89,10 @@ PARAMS = params_from_settings(settings, {
 
 def render_all(st: dict, env: np.ndarray, progress: bool = False) -> dict:
     """Fit, prefilter and render every method for settings ``st``; returns images, mask, θo map, timings, info."""
-    from .. import brdfs as B
-    from .. import kautz_mccool2000 as km
-    from .. import prefiltered_lobes as pl
-    from ..pyramid import build_pyramid
+    from ..lobes import brdfs as B
+    from ..lobes import kautz_mccool2000 as km
+    from ..lobes import prefiltered_lobes as pl
+    from ..knuth2014.pyramid import build_pyramid
 
     T: dict = {}
     t0 = time.perf_counter()
@@ -226,9 +226,9 @@ def _constant_env_images(L3, L3r, L1, L2, f, n, wo) -> dict:
     """Per-sample radiance of every method for L ≡ 1 (see :func:`render_all`); (P, 1) arrays."""
     import dataclasses
 
-    from .. import brdfs as B
-    from .. import prefiltered_lobes as pl
-    from ..pyramid import build_pyramid
+    from ..lobes import brdfs as B
+    from ..lobes import prefiltered_lobes as pl
+    from ..knuth2014.pyramid import build_pyramid
 
     def const_maps(ls):
         K, J = ls.integral.shape
@@ -261,9 +261,9 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 
 def run_with(out_dir: Path, st: dict, quick: bool = False, progress: bool = False) -> dict:
     """:func:`run` with explicit settings (see :func:`settings`)."""
-    from ..image_io import write_image_exr
-    from ..image_metrics import error_map, rel_l1, rel_max, rmse
-    from ..synthetic_envs import make_env
+    from ..rendering.image_io import write_image_exr
+    from ..rendering.image_metrics import error_map, rel_l1, rel_max, rmse
+    from ..synthetic.synthetic_envs import make_env
 
     out_dir = Path(out_dir)
     t_all = time.perf_counter()
@@ -321,7 +321,7 @@ def run_with(out_dir: Path, st: dict, quick: bool = False, progress: bool = Fals
     write_image_exr(out_dir / "km00_render_mask.exr", m.astype(np.float64))
     write_image_exr(out_dir / "km00_render_theta.exr", res["theta"])
     meta = dict(quick=quick, settings=st, brdf=dict(model=BRDF[0], **BRDF[1]), scene="teapot",
-                camera="ibl_ref.ao_modes.default_camera (as fig6)", visibility="none (KM2000 has no shadows)",
+                camera="ibl_ref.rendering.ao_modes.default_camera (as fig6)", visibility="none (KM2000 has no shadows)",
                 theta_max_deg=THETA_MAX_DEG, timings_s={k: round(v, 3) for k, v in T.items()},
                 total_time_s=round(time.perf_counter() - t_all, 2), info=res["info"],
                 definitions=dict(
@@ -343,9 +343,9 @@ def plot(out_dir: Path) -> list:
 
     plt = pyplot()
 
-    from ..image_io import read_image_exr
-    from ..image_metrics import error_map
-    from ..tonemap import auto_exposure, exposure_srgb
+    from ..rendering.image_io import read_image_exr
+    from ..rendering.image_metrics import error_map
+    from ..rendering.tonemap import auto_exposure, exposure_srgb
 
     out_dir = Path(out_dir)
     ims = {k: read_image_exr(out_dir / f"km00_render_{k}.exr") for k in METHODS}

@@ -2,7 +2,7 @@
 environment map with a set of light sources which is problematic when dealing with high gloss surfaces").
 
 Scene: unoccluded sphere, orthographic camera on +Z looking down −Z (image row 0 = +y), view v = +Z;
-per pixel the reflection direction r = 2(n·v)n − v (:func:`ibl_ref.sphere_render.orthographic_sphere`).
+per pixel the reflection direction r = 2(n·v)n − v (:func:`ibl_ref.rendering.sphere_render.orthographic_sphere`).
 
 Shading model (stated): the *normalised* Phong lobe of exponent s around r (the lobe average that the
 filter pyramid approximates, docs/background.md §2),
@@ -13,9 +13,9 @@ without the n·ω factor or the hemisphere clip (Eq. 4 integrates over Ω⁺; fo
 only matters for s ≈ 1 at grazing angles and is the same for all three estimates).
 
 * ``exact``: quadrature over the environment's texels, each split into k×k sub-texels with exact solid
-  angles (:func:`ibl_ref.envmap.texel_solid_angles` of the N·k grid), radiance piecewise constant; the
+  angles (:func:`ibl_ref.environment.envmap.texel_solid_angles` of the N·k grid), radiance piecewise constant; the
   weights are evaluated as exp(s·(log c − log c_max)) (no underflow at s = 1000).  Cross-checked against
-  :func:`ibl_ref.phong_convolution.convolve_exact` at texel centres (``exact_check_max_rel``).
+  :func:`ibl_ref.groundtruth.phong_convolution.convolve_exact` at texel centres (``exact_check_max_rel``).
 * ``lights``: the median-cut lights as point lights, I = Σ_i rgb_i max(r·ω_i, 0)^s / W_s(r), rgb_i = ∫_region L dω
   (same W_s quadrature as ``exact``, so only the light discretisation differs).
 * ``pem``: Σ_i lookup(PEM_i, r, g) with g = 1 − 1/s (Eq. 3): the paper's method without shadows.
@@ -56,7 +56,7 @@ ENVS = ("sky_sun", "studio")
 
 def exact_lobe_average(cube, r, s, supersample: int = 1, chunk: int = 512):
     """Brute-force normalised Phong lobe average at directions r (P, 3); also returns W_s(r)."""
-    from ..envmap import texel_directions, texel_solid_angles
+    from ..environment.envmap import texel_directions, texel_solid_angles
 
     n = cube.shape[1]
     m = n * supersample
@@ -91,12 +91,12 @@ def rel_l1(a, ref):
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..atomic import write_csv, write_json
-    from ..synthetic_envs import make_env
-    from ..median_cut import median_cut
-    from ..pem import build_pems
-    from ..pyramid import build_pyramid
-    from ..gloss_lookup import lookup
-    from ..sphere_render import orthographic_sphere
+    from ..synthetic.synthetic_envs import make_env
+    from ..knuth2014.median_cut import median_cut
+    from ..knuth2014.pem import build_pems
+    from ..knuth2014.pyramid import build_pyramid
+    from ..knuth2014.gloss_lookup import lookup
+    from ..rendering.sphere_render import orthographic_sphere
 
     out_dir = Path(out_dir)
     p = resolve_params(__name__, quick, params)
@@ -111,10 +111,10 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
         exact = {}
         for s in S_VALUES:
             exact[s] = exact_lobe_average(cube, r, s, ss)
-        # cross-check the brute force against the exact convolution of ibl_ref.phong_convolution at texel
+        # cross-check the brute force against the exact convolution of ibl_ref.groundtruth.phong_convolution at texel
         # centres of an 8² output
-        from ..phong_convolution import convolve_exact
-        from ..envmap import texel_directions
+        from ..groundtruth.phong_convolution import convolve_exact
+        from ..environment.envmap import texel_directions
 
         worst = 0.0
         for s in (1.0, 100.0):

@@ -1,9 +1,9 @@
 """Filter pyramid vs exact-lobe chain: lookup error, build time and memory (the prefilter's speed/accuracy trade).
 
 Knuth et al. (2014, Sec. 3.2) approximate the Phong lobe average of Eq. 4 by one trilinear lookup in a 5×5-filtered
-MIP pyramid.  :mod:`ibl_ref.lobe_chain` keeps that lookup but fills the levels with exact lobe averages.  This
+MIP pyramid.  :mod:`ibl_ref.knuth2014.lobe_chain` keeps that lookup but fills the levels with exact lobe averages.  This
 experiment measures, per environment and Phong exponent s (g = 1 − 1/s, Eq. 3), the error of one lookup against the
-exact lobe average (:func:`ibl_ref.reference_render.lobe_average`: dense sum over every texel with exact solid
+exact lobe average (:func:`ibl_ref.rendering.reference_render.lobe_average`: dense sum over every texel with exact solid
 angles) at random directions, for
 
 * ``pyramid-sqrtcos`` / ``pyramid-box``: the paper's pyramid (2×2 mean + filter, default calibration);
@@ -55,8 +55,8 @@ PARAMS = params_from_settings(settings, {"envs": "synthetic environments", "n_di
 
 def build(name: str, env):
     """(pyramid, calibration or None) of one prefilter."""
-    from ..lobe_chain import build_lobe_chain
-    from ..pyramid import build_pyramid
+    from ..knuth2014.lobe_chain import build_lobe_chain
+    from ..knuth2014.pyramid import build_pyramid
 
     if name.startswith("pyramid-"):
         kernel = name.split("-")[1]
@@ -89,9 +89,9 @@ def best_constant_level(per_level, exact):
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..gloss_lookup import get_calibration, level_for_gloss, lookup
-    from ..reference_render import lobe_average
-    from ..synthetic_envs import make_env
+    from ..knuth2014.gloss_lookup import get_calibration, level_for_gloss, lookup
+    from ..rendering.reference_render import lobe_average
+    from ..synthetic.synthetic_envs import make_env
 
     out_dir = Path(out_dir)
     st = settings_with(__name__, quick, params)

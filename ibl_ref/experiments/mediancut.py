@@ -5,11 +5,11 @@ For the sky+sun and studio maps and 6, 12, 24, 48, 96 lights, each variant (``pe
 the energy spread (max/min, coefficient of variation of region energies: the paper's "equally
 important" requirement) and partition residuals (Eq. 1) to ``mediancut_summary.csv``, and the maps'
 log-luminance on the horizontal cross to ``mediancut_maps.json`` (plot input).  Each light also gets
-its region's equivalent cosine lobe (Meunier et al. 2009 Eq. 32–34, :meth:`ibl_ref.median_cut.LightSet.equivalent_lobes`):
+its region's equivalent cosine lobe (Meunier et al. 2009 Eq. 32–34, :meth:`ibl_ref.knuth2014.median_cut.LightSet.equivalent_lobes`):
 cap half-angle of the region's solid angle, lobe exponent and energy scale; the summary gives their range.
 
-Maps and regions are drawn on the horizontal cross of :func:`ibl_ref.resample.cube_to_cross` (the
-library's unfolding and face orientation, see :mod:`ibl_ref.resample`); region rectangles and
+Maps and regions are drawn on the horizontal cross of :func:`ibl_ref.environment.resample.cube_to_cross` (the
+library's unfolding and face orientation, see :mod:`ibl_ref.environment.resample`); region rectangles and
 light positions are carried onto it by the per-face index map of that same function (:func:`cross_placement`),
 so the plot and the maps cannot disagree about orientation.
 """
@@ -39,10 +39,10 @@ ENVS = ("sky_sun", "studio")
 def cross_placement(n: int, layout: str = "hcross") -> dict:
     """face → (A, b): cross pixel (Y, X) = A @ (row, col) + b for texel coordinates of that face (centres integer).
 
-    Read off :func:`ibl_ref.resample.cube_to_cross` applied to an index cube, so it is that function's layout and
+    Read off :func:`ibl_ref.environment.resample.cube_to_cross` applied to an index cube, so it is that function's layout and
     orientation; each face lands as a rotated/flipped copy, an affine map of its texel indices.
     """
-    from ..resample import cube_to_cross
+    from ..environment.resample import cube_to_cross
 
     idx = (np.arange(6 * n * n, dtype=np.float64) + 1.0).reshape(6, n, n, 1)
     cross = cube_to_cross(idx, layout)[..., 0]
@@ -58,8 +58,8 @@ def cross_placement(n: int, layout: str = "hcross") -> dict:
 
 
 def log_luminance_cross(y, layout: str = "hcross") -> np.ndarray:
-    """log10 luminance (6, n, n) on the cross of :func:`ibl_ref.resample.cube_to_cross`; −99 where no face."""
-    from ..resample import cube_to_cross
+    """log10 luminance (6, n, n) on the cross of :func:`ibl_ref.environment.resample.cube_to_cross`; −99 where no face."""
+    from ..environment.resample import cube_to_cross
 
     img = cube_to_cross(np.log10(np.maximum(y, 1e-6))[..., None], layout)[..., 0]
     inside = cube_to_cross(np.ones(y.shape + (1,)), layout)[..., 0] > 0
@@ -68,9 +68,9 @@ def log_luminance_cross(y, layout: str = "hcross") -> np.ndarray:
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..atomic import write_csv, write_json
-    from ..synthetic_envs import make_env
-    from ..envmap import direction_to_texel_coords
-    from ..median_cut import VARIANTS, check_partition, energy_spread, luminance, median_cut
+    from ..synthetic.synthetic_envs import make_env
+    from ..environment.envmap import direction_to_texel_coords
+    from ..knuth2014.median_cut import VARIANTS, check_partition, energy_spread, luminance, median_cut
 
     out_dir = Path(out_dir)
     p = resolve_params(__name__, quick, params)
@@ -79,7 +79,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     for env in ENVS:
         cube = make_env(env, n)
         y = luminance(cube)
-        maps[env] = {"face_size": n, "layout": "hcross (ibl_ref.resample.cube_to_cross)",
+        maps[env] = {"face_size": n, "layout": "hcross (ibl_ref.environment.resample.cube_to_cross)",
                      "log10_luminance_cross": np.round(log_luminance_cross(y), 4).tolist()}
         for variant in VARIANTS:
             for L in p["light_counts"]:
@@ -171,7 +171,7 @@ def plot(out_dir: Path) -> list:
                 ax.set_title(f"{env}, {L} lights ({variant}); energy CV {float(srow['energy_cv']):.2f}", fontsize=8)
                 ax.set_xticks([])
                 ax.set_yticks([])
-        fig.suptitle("Median cut on the cube (horizontal cross of ibl_ref.resample.cube_to_cross: +Y on top, "
+        fig.suptitle("Median cut on the cube (horizontal cross of resample.cube_to_cross: +Y on top, "
                      "−X +Z +X −Z across, −Y below); log luminance; dot area ∝ light power", fontsize=9)
         p = out_dir / f"mediancut_{variant}.png"
         save_figure(fig, p, dpi=110)

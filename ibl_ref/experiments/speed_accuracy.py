@@ -1,14 +1,14 @@
 """Speed vs accuracy of the Phong-lobe convolution methods (Knuth et al. 2014, Sec. 3.2, Eq. 4).
 
-For the sky + 1e5 sun placed 0.0015 rad from a cube corner (:mod:`ibl_ref.synthetic_envs`
+For the sky + 1e5 sun placed 0.0015 rad from a cube corner (:mod:`ibl_ref.synthetic.synthetic_envs`
 ``make_env("sky_sun", n, sun_direction=SUN_NEAR_CORNER, sun_radiance=1e5)``), every method of
-:func:`ibl_ref.convolve.convolve` (``exact``, ``sh``, ``sparse``, ``auto`` at rtol = 1e-3) is timed
+:func:`ibl_ref.groundtruth.convolve.convolve` (``exact``, ``sh``, ``sparse``, ``auto`` at rtol = 1e-3) is timed
 on the whole exponent set at once (the methods share work between exponents) and its per-texel relative
 error ``|approx − exact| / exact`` (max over RGB) is measured per exponent: max and mean over texels,
 together with the method's own reported bound.
 
 Reference.  Face sizes ≤ 64: the full exact convolution
-(:func:`ibl_ref.phong_convolution.convolve_exact_many`).  Face size 128: the exact sum
+(:func:`ibl_ref.groundtruth.phong_convolution.convolve_exact_many`).  Face size 128: the exact sum
 ``Σ_j L_j max(r·ω_j,0)^s Ω_j / Σ_j max(r·ω_j,0)^s Ω_j`` over **all** source texels, evaluated only at a
 seeded random subset of 2000 output texels (an exact reference for those texels; errors at 128 are
 statistics over that subset), and the time of the full exact method at 128 is extrapolated from the
@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import envmap
+from ..environment import envmap
 from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 from . import Param, resolve_params
@@ -56,8 +56,8 @@ PARAMS = (Param("face_sizes", (32, 64, 128), (16, 32), "cube face sizes N"),
 
 
 def environment(n: int) -> np.ndarray:
-    """The sky + sun-near-corner environment (generator of :mod:`ibl_ref.synthetic_envs`)."""
-    from ..synthetic_envs import SUN_NEAR_CORNER, make_env
+    """The sky + sun-near-corner environment (generator of :mod:`ibl_ref.synthetic.synthetic_envs`)."""
+    from ..synthetic.synthetic_envs import SUN_NEAR_CORNER, make_env
 
     return make_env("sky_sun", n, sun_direction=SUN_NEAR_CORNER, sun_radiance=1e5)
 
@@ -82,8 +82,8 @@ def exact_subset(cube, exponents, idx):
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..convolve import convolve
-    from ..phong_convolution import convolve_exact_many
+    from ..groundtruth.convolve import convolve
+    from ..groundtruth.phong_convolution import convolve_exact_many
 
     out_dir = Path(out_dir)
     p = resolve_params(__name__, quick, params)

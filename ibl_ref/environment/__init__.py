@@ -1,0 +1,1 @@
+"""Environment maps: geometry and conventions, seam-aware sampling, resampling, file formats."""

@@ -1,0 +1,450 @@
+"""Environment-map geometry: the single source of truth for every convention in ibl_ref.
+
+This module fixes, once, how a direction on the unit sphere maps to a texel of a cube map or a
+latitude-longitude map, and what solid angle every texel covers.  Everything else in the package
+(resampling, filtering, convolution, median cut, rendering) calls these functions and never
+re-derives a face orientation.
+
+Conventions
+-----------
+**Cube-map array layout.**  A cube map is a float array ``cube[face, row, col, channel]`` of shape
+``(6, N, N, C)`` (or ``(6, N, N)`` for one channel).  Faces are in OpenEXR order
+``+X, -X, +Y, -Y, +Z, -Z`` (indices 0..5, :data:`FACE_NAMES`).  ``row`` 0 is the top scanline of the
+face as it is stored in an OpenEXR CUBE file (a ``N x 6N`` vertical strip, faces stacked top to
+bottom in that order); ``col`` 0 is the left column.
+
+**Face orientation** (``convention="openexr"``, the default) is the one defined by the functions
+``CubeMap::pixelPosition`` / ``CubeMap::direction`` in OpenEXR's ``ImfEnvmap.cpp``.  With the face-plane
+coordinates ``u`` (left -1 → right +1) and ``v`` (top -1 → bottom +1) it reads::
+
+    +X: ( 1, -v,  u)    -X: (-1, -v, -u)
+    +Y: ( u,  1, -v)    -Y: ( u, -1,  v)
+    +Z: (-u, -v,  1)    -Z: ( u, -v, -1)
+
+i.e. every face is seen *from inside the cube* with +Y up on the four side faces.  The alternative
+``convention="opengl"`` is the OpenGL / Direct3D cube-map layout (also used by cmft, CubeMapGen and
+py360convert), in which each face is seen from outside::
+
+    +X: ( 1, -v, -u)    -X: (-1, -v,  u)
+    +Y: ( u,  1,  v)    -Y: ( u, -1, -v)
+    +Z: ( u, -v,  1)    -Z: (-u, -v, -1)
+
+The two differ by a horizontal flip of the four side faces and a vertical flip of ±Y
+(:func:`convert_convention`).
+
+**Texel addressing.**  ibl_ref addresses texel *centres*: texel ``(row, col)`` of a face of size N covers
+the face-plane square ``u ∈ [-1 + 2·col/N, -1 + 2·(col+1)/N]``, ``v`` likewise with ``row``, and its
+centre is ``u = (col + ½)/N·2 − 1``.  Continuous texel coordinates ``(x, y) = ((u+1)/2·N − ½, (v+1)/2·N − ½)``
+put texel centres on integers, so ``x ∈ [−½, N−½]`` on a face.  OpenEXR's helper functions instead
+address pixels corner to corner (``pos/(N−1)·2 − 1``); only the face order and orientation are taken
+from them (the tests check that both addressings put every texel on the same face, in the same
+quadrant, with the same ordering).
+
+**Lat-long maps** (``envmap = LATLONG``, OpenEXR ``LatLongMap``): a ``H x W`` image with ``W = 2H``;
+the top row is latitude +π/2, the left column is longitude +π, and
+``direction = (sin λ cos φ, sin φ, cos λ cos φ)`` for latitude φ and longitude λ, so +Y is up,
+(φ, λ) = (0, 0) is +Z and λ = +π/2 is +X.  Texel centres are at ``φ = π/2 − π (row+½)/H`` and
+``λ = π − 2π (col+½)/W``.
+
+**Units.**  Arrays hold radiance in arbitrary linear units (W·sr⁻¹·m⁻² if you like); solid angles are
+in steradians; ∫L dω therefore has the units of radiance × sr.
+
+Solid angles are exact (closed form): the face-plane rectangle ``[x0, x1] × [y0, y1]`` at distance 1
+subtends ``A(x1,y1) − A(x0,y1) − A(x1,y0) + A(x0,y0)`` with ``A(x, y) = atan2(x·y, √(x² + y² + 1))``
+(see ``docs/background.md`` §2).
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import IBLError, LayoutError
+
+__all__ = [
+    "FACE_NAMES",
+    "CONVENTIONS",
+    "face_uv_to_direction",
+    "direction_to_face_uv",
+    "uv_to_texel_coords",
+    "texel_coords_to_uv",
+    "texel_center_uv",
+    "texel_directions",
+    "direction_to_texel",
+    "direction_to_texel_coords",
+    "texel_solid_angles",
+    "cube_solid_angles",
+    "face_plane_grid",
+    "convert_convention",
+    "face_frames",
+    "check_face_size",
+    "as_directions",
+    "unit_directions",
+    "MipLevel",
+    "mip_levels",
+    "latlong_directions",
+    "latlong_solid_angles",
+    "direction_to_latlong",
+    "check_cube_shape",
+]
+
+FACE_NAMES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
+CONVENTIONS = ("openexr", "opengl")
+
+# Face frames: direction = major * axis + u * u_axis + v * v_axis  (unnormalised, on the cube |major| = 1).
+# Rows are faces in FACE_NAMES order; columns: (axis, u_axis, v_axis).
+_FRAMES = {
+    "openexr": np.array(
+        [
+            [[1, 0, 0], [0, 0, 1], [0, -1, 0]],  # +X: (1, -v, u)
+            [[-1, 0, 0], [0, 0, -1], [0, -1, 0]],  # -X: (-1, -v, -u)
+            [[0, 1, 0], [1, 0, 0], [0, 0, -1]],  # +Y: (u, 1, -v)
+            [[0, -1, 0], [1, 0, 0], [0, 0, 1]],  # -Y: (u, -1, v)
+            [[0, 0, 1], [-1, 0, 0], [0, -1, 0]],  # +Z: (-u, -v, 1)
+            [[0, 0, -1], [1, 0, 0], [0, -1, 0]],  # -Z: (u, -v, -1)
+        ],
+        dtype=np.float64,
+    ),
+    "opengl": np.array(
+        [
+            [[1, 0, 0], [0, 0, -1], [0, -1, 0]],  # +X: (1, -v, -u)
+            [[-1, 0, 0], [0, 0, 1], [0, -1, 0]],  # -X: (-1, -v, u)
+            [[0, 1, 0], [1, 0, 0], [0, 0, 1]],  # +Y: (u, 1, v)
+            [[0, -1, 0], [1, 0, 0], [0, 0, -1]],  # -Y: (u, -1, -v)
+            [[0, 0, 1], [1, 0, 0], [0, -1, 0]],  # +Z: (u, -v, 1)
+            [[0, 0, -1], [-1, 0, 0], [0, -1, 0]],  # -Z: (-u, -v, -1)
+        ],
+        dtype=np.float64,
+    ),
+}
+
+
+def face_frames(convention: str) -> np.ndarray:
+    """(6, 3, 3) face frames of ``convention``: per face (rows in :data:`FACE_NAMES` order) the major axis, the
+    u axis and the v axis, so that the face-plane point (u, v) has the unnormalised direction
+    ``F[0] + u·F[1] + v·F[2]``."""
+    try:
+        return _FRAMES[convention]
+    except KeyError:
+        raise LayoutError(
+            f"unknown cube-map convention {convention!r}; choose one of {', '.join(CONVENTIONS)}"
+        ) from None
+
+
+def check_face_size(n) -> int:
+    """``n`` as an int if it is a positive integer (not a bool or a float), else ValueError."""
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or int(n) < 1:
+        raise ValueError(f"face size must be a positive integer, got {n!r}")
+    return int(n)
+
+
+# ----------------------------------------------------------------------------------------------
+# face plane <-> direction
+# ----------------------------------------------------------------------------------------------
+def face_uv_to_direction(face, u, v, convention: str = "openexr", normalize: bool = True) -> np.ndarray:
+    """Direction through the point (u, v) of a face plane.
+
+    Parameters
+    ----------
+    face : int or array of int
+        Face index 0..5 in :data:`FACE_NAMES` order.
+    u, v : float or array
+        Face-plane coordinates (u left→right, v top→bottom, both in [-1, 1] on the face; values
+        outside describe the face's extended plane).
+    convention : {"openexr", "opengl"}
+    normalize : bool
+        Return unit vectors (default) or the point on the cube surface / extended plane.
+
+    Returns
+    -------
+    ndarray, shape ``broadcast(face, u, v).shape + (3,)``, float64.
+    """
+    frames = face_frames(convention)
+    face = np.asarray(face)
+    if face.size and (np.any(face < 0) or np.any(face > 5) or not np.issubdtype(face.dtype, np.integer)):
+        raise ValueError("face indices must be integers in 0..5")
+    u = np.asarray(u, dtype=np.float64)
+    v = np.asarray(v, dtype=np.float64)
+    face, u, v = np.broadcast_arrays(face, u, v)
+    f = frames[face]  # (..., 3, 3)
+    d = f[..., 0, :] + u[..., None] * f[..., 1, :] + v[..., None] * f[..., 2, :]
+    if normalize:
+        d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    return d
+
+
+def unit_directions(v, name: str = "directions") -> np.ndarray:
+    """``v`` (..., 3) normalised to unit length; IBLError (naming ``name``) for a wrong shape, NaN/Inf or a zero
+    vector."""
+    v = np.asarray(v, dtype=np.float64)
+    if v.shape[-1:] != (3,):
+        raise IBLError(f"{name} must be (..., 3) directions, got shape {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise IBLError(f"{name} contains NaN/Inf")
+    ln = np.linalg.norm(v, axis=-1, keepdims=True)
+    if np.any(ln == 0):
+        raise IBLError(f"{name} contains zero vectors")
+    return v / ln
+
+
+def as_directions(d) -> np.ndarray:
+    """``d`` as a float64 array of finite 3-vectors (trailing axis 3), else ValueError."""
+    d = np.asarray(d, dtype=np.float64)
+    if d.shape[-1:] != (3,):
+        raise ValueError(f"directions must have a trailing axis of length 3, got shape {d.shape}")
+    if not np.all(np.isfinite(d)):
+        raise ValueError("directions contain NaN or Inf")
+    if np.any(np.all(d == 0, axis=-1)):
+        raise ValueError("zero-length direction")
+    return d
+
+
+def direction_to_face_uv(d, convention: str = "openexr"):
+    """Face index and face-plane coordinates of directions.
+
+    The face is the one of the dominant axis; ties (directions exactly on an edge or corner) go to the
+    first face in the order x, y, z, positive before negative — the same rule as OpenEXR's
+    ``faceAndPixelPosition``.
+
+    Parameters
+    ----------
+    d : array (..., 3)
+        Directions, need not be normalised.
+
+    Returns
+    -------
+    face : int array (...)
+    u, v : float64 arrays (...), in [-1, 1]
+    """
+    frames = face_frames(convention)
+    d = as_directions(d)
+    a = np.abs(d)
+    ax = np.where((a[..., 0] >= a[..., 1]) & (a[..., 0] >= a[..., 2]), 0, np.where(a[..., 1] >= a[..., 2], 1, 2))
+    comp = np.take_along_axis(d, ax[..., None], axis=-1)[..., 0]
+    face = 2 * ax + (comp < 0)
+    p = d / np.abs(comp)[..., None]  # point on the cube surface
+    f = frames[face]
+    u = np.einsum("...i,...i->...", p, f[..., 1, :])
+    v = np.einsum("...i,...i->...", p, f[..., 2, :])
+    return face.astype(np.intp), np.clip(u, -1.0, 1.0), np.clip(v, -1.0, 1.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# texel addressing
+# ----------------------------------------------------------------------------------------------
+def uv_to_texel_coords(u, v, n: int):
+    """Continuous texel coordinates (x = column, y = row) with texel centres on integers."""
+    n = check_face_size(n)
+    return (np.asarray(u) + 1.0) * 0.5 * n - 0.5, (np.asarray(v) + 1.0) * 0.5 * n - 0.5
+
+
+def texel_coords_to_uv(x, y, n: int):
+    """Inverse of :func:`uv_to_texel_coords`."""
+    n = check_face_size(n)
+    return (np.asarray(x, dtype=np.float64) + 0.5) / n * 2.0 - 1.0, (np.asarray(y, dtype=np.float64) + 0.5) / n * 2.0 - 1.0
+
+
+def texel_center_uv(n: int) -> np.ndarray:
+    """Face-plane coordinate of the texel centres 0..n-1: ``(i + ½)/n·2 − 1``."""
+    n = check_face_size(n)
+    return (np.arange(n, dtype=np.float64) + 0.5) / n * 2.0 - 1.0
+
+
+def face_plane_grid(n: int):
+    """``(u, v)`` arrays of shape (n, n) (indexed [row, col]) of the texel centres of one face."""
+    c = texel_center_uv(n)
+    v, u = np.meshgrid(c, c, indexing="ij")
+    return u, v
+
+
+@functools.lru_cache(maxsize=32)
+def _texel_directions_cached(n: int, convention: str, normalize: bool) -> np.ndarray:
+    u, v = face_plane_grid(n)
+    faces = np.arange(6)[:, None, None]
+    d = face_uv_to_direction(faces, u[None], v[None], convention, normalize=normalize)
+    d.setflags(write=False)
+    return d
+
+
+def texel_directions(n: int, convention: str = "openexr", normalize: bool = True) -> np.ndarray:
+    """Directions of all texel centres, shape (6, n, n, 3), float64 (read-only, cached)."""
+    return _texel_directions_cached(check_face_size(n), convention, bool(normalize))
+
+
+def direction_to_texel_coords(d, n: int, convention: str = "openexr"):
+    """Face and continuous texel coordinates (x = column, y = row) of directions.
+
+    Returns ``face`` (int), ``x``, ``y`` (float64) with x, y ∈ [−½, n−½]; integers are texel centres.
+    """
+    face, u, v = direction_to_face_uv(d, convention)
+    x, y = uv_to_texel_coords(u, v, n)
+    return face, x, y
+
+
+def direction_to_texel(d, n: int, convention: str = "openexr"):
+    """Face, row and column of the texel containing each direction (nearest-texel addressing)."""
+    face, x, y = direction_to_texel_coords(d, n, convention)
+    col = np.clip(np.floor(x + 0.5), 0, n - 1).astype(np.intp)
+    row = np.clip(np.floor(y + 0.5), 0, n - 1).astype(np.intp)
+    return face, row, col
+
+
+# ----------------------------------------------------------------------------------------------
+# exact solid angles
+# ----------------------------------------------------------------------------------------------
+def _area_primitive(x, y):
+    """A(x, y) = atan2(x·y, √(x² + y² + 1)): solid angle of [0,x]×[0,y] on the plane at distance 1."""
+    return np.arctan2(x * y, np.sqrt(x * x + y * y + 1.0))
+
+
+@functools.lru_cache(maxsize=32)
+def _texel_solid_angles_cached(n: int) -> np.ndarray:
+    e = np.linspace(-1.0, 1.0, n + 1)  # texel edges in the face plane
+    # exact edges: linspace gives ±1 exactly at the ends and symmetric interior points
+    a = _area_primitive(e[None, :], e[:, None])  # [row_edge, col_edge]
+    omega = a[1:, 1:] - a[1:, :-1] - a[:-1, 1:] + a[:-1, :-1]
+    omega.setflags(write=False)
+    return omega
+
+
+def texel_solid_angles(n: int) -> np.ndarray:
+    """Exact solid angle (sr) of every texel of one face, shape (n, n), float64, read-only.
+
+    The same for all six faces and both conventions.  Σ over 6 faces = 4π to rounding (the sum
+    telescopes to 6 · 4 · atan2(1, √3) = 4π).
+    """
+    return _texel_solid_angles_cached(check_face_size(n))
+
+
+def cube_solid_angles(n: int) -> np.ndarray:
+    """Exact texel solid angles of a whole cube map, shape (6, n, n) (a broadcast view)."""
+    return np.broadcast_to(texel_solid_angles(n), (6, n, n))
+
+
+def convert_convention(cube: np.ndarray, src: str, dst: str) -> np.ndarray:
+    """Re-orient the faces of a cube map from convention ``src`` to ``dst``.
+
+    The result holds, at every texel of the ``dst`` layout, the radiance of the same direction.
+    """
+    check_cube_shape(cube)
+    face_frames(src), face_frames(dst)
+    if src == dst:
+        return np.array(cube, copy=True)
+    out = np.array(cube, copy=True)
+    # openexr <-> opengl: side faces flip horizontally, ±Y flip vertically (an involution).
+    for f in (0, 1, 4, 5):
+        out[f] = cube[f][:, ::-1]
+    for f in (2, 3):
+        out[f] = cube[f][::-1, :]
+    return out
+
+
+def check_cube_shape(cube, name: str = "cube map") -> int:
+    """Validate the (6, N, N[, C]) layout and return N."""
+    shape = np.shape(cube)
+    if len(shape) not in (3, 4) or shape[0] != 6 or shape[1] != shape[2] or shape[1] < 1:
+        raise LayoutError(f"{name}: expected an array of shape (6, N, N) or (6, N, N, C), got {shape}")
+    return int(shape[1])
+
+
+# ----------------------------------------------------------------------------------------------
+# MIP pyramid description
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class MipLevel:
+    """One level of a cube-map MIP pyramid.
+
+    Attributes
+    ----------
+    level : int
+        0 is the full-resolution input.
+    face_size : int
+        N / 2**level (for a power-of-two N).
+    texel_angle : float
+        Angular width (rad) of a texel at the face centre, 2·atan(1/face_size).
+    mean_texel_solid_angle : float
+        4π / (6 · face_size²) sr.
+    """
+
+    level: int
+    face_size: int
+    texel_angle: float
+    mean_texel_solid_angle: float
+
+    def directions(self, convention: str = "openexr") -> np.ndarray:
+        return texel_directions(self.face_size, convention)
+
+    def solid_angles(self) -> np.ndarray:
+        return texel_solid_angles(self.face_size)
+
+
+def mip_levels(n: int) -> list[MipLevel]:
+    """Levels N, N/2, …, 1 of a cube-map pyramid; N must be a power of two."""
+    n = check_face_size(n)
+    if n & (n - 1):
+        raise ValueError(f"MIP pyramids need a power-of-two face size, got {n}")
+    out = []
+    lvl, m = 0, n
+    while True:
+        out.append(MipLevel(lvl, m, 2.0 * np.arctan(1.0 / m), 4.0 * np.pi / (6.0 * m * m)))
+        if m == 1:
+            break
+        m //= 2
+        lvl += 1
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# latitude-longitude maps (OpenEXR LatLongMap)
+# ----------------------------------------------------------------------------------------------
+def _check_latlong_size(h, w):
+    h = check_face_size(h)
+    w = check_face_size(w)
+    if w != 2 * h:
+        raise LayoutError(f"lat-long maps must be 2H x H (width = 2 x height), got {w} x {h}")
+    return h, w
+
+
+def latlong_angles(h: int, w: int):
+    """Latitude (per row) and longitude (per column) of the texel centres, radians."""
+    h, w = _check_latlong_size(h, w)
+    lat = np.pi / 2 - np.pi * (np.arange(h) + 0.5) / h
+    lon = np.pi - 2 * np.pi * (np.arange(w) + 0.5) / w
+    return lat, lon
+
+
+def latlong_directions(h: int, w: int) -> np.ndarray:
+    """Unit directions of the texel centres of an H x W lat-long map, shape (H, W, 3)."""
+    lat, lon = latlong_angles(h, w)
+    cl = np.cos(lat)[:, None]
+    return np.stack(
+        [np.sin(lon)[None, :] * cl, np.broadcast_to(np.sin(lat)[:, None], (h, w)), np.cos(lon)[None, :] * cl], axis=-1
+    )
+
+
+def latlong_solid_angles(h: int, w: int) -> np.ndarray:
+    """Exact solid angle of every lat-long texel, shape (H, 1) (constant along a row).
+
+    A row between latitudes φ0 < φ1 and a column of width Δλ subtends Δλ·(sin φ1 − sin φ0).
+    """
+    h, w = _check_latlong_size(h, w)
+    edges = np.pi / 2 - np.pi * np.arange(h + 1) / h
+    s = np.sin(edges)
+    return ((s[:-1] - s[1:]) * (2 * np.pi / w))[:, None]
+
+
+def direction_to_latlong(d, h: int, w: int):
+    """Continuous lat-long texel coordinates (x = column, y = row; centres on integers).
+
+    x ∈ [−½, W−½) wraps around in longitude; y ∈ [−½, H−½].
+    """
+    h, w = _check_latlong_size(h, w)
+    d = as_directions(d)
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    lat = np.arcsin(np.clip(d[..., 1], -1.0, 1.0))
+    lon = np.arctan2(d[..., 0], d[..., 2])
+    x = (np.pi - lon) / (2 * np.pi) * w - 0.5
+    y = (np.pi / 2 - lat) / np.pi * h - 0.5
+    return x, y

@@ -1,0 +1,82 @@
+"""Argument checks shared by every Phong-lobe convolution route (Knuth et al. 2014, Sec. 3.2, Eq. 4).
+
+One definition each, used by :mod:`ibl_ref.groundtruth.convolve`, :mod:`ibl_ref.groundtruth.phong_convolution` (exact and
+sparse gathers), :mod:`ibl_ref.groundtruth.sh_convolution`, :mod:`ibl_ref.groundtruth.moment_convolution` and
+:mod:`ibl_ref.lobes.prefiltered_lobes`.  Every failure is an :class:`~ibl_ref.errors.IBLError` subclass
+naming the argument.
+
+* Phong exponent ``s = s_Phong = 1/(1−g)`` (Eq. 3, g ∈ [0, 1]): a number ≥ 1, or ``inf`` (mirror, g = 1).
+* Cube map: shape ``(6, N, N[, C])`` (:func:`ibl_ref.environment.envmap.check_cube_shape`), finite non-negative
+  radiance (:func:`ibl_ref.errors.check_radiance`), at least one channel.
+* Output face subsets ``faces``: distinct indices 0…5 in OpenEXR face order.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..environment import envmap
+from ..errors import IBLError, LayoutError, check_radiance
+
+__all__ = ["check_exponent", "check_exponents", "check_cube", "check_faces", "check_out_size"]
+
+
+def check_exponent(s) -> float:
+    """A Phong exponent as a float ≥ 1 or ``inf``; IBLError otherwise (NaN, < 1, not a number)."""
+    try:
+        s = float(s)
+    except (TypeError, ValueError):
+        raise IBLError(f"Phong exponent must be a number >= 1 or inf, got {s!r}") from None
+    if math.isnan(s) or s < 1.0:
+        raise IBLError(f"Phong exponent s must be >= 1 (s_Phong = 1/(1-g) with g in [0,1]) or inf, got {s!r}")
+    return s
+
+
+def check_exponents(exponents) -> list[float]:
+    """Validated exponents (a scalar or a sequence), duplicates dropped, order kept; at least one."""
+    ex = np.atleast_1d(np.asarray(exponents, dtype=object)).ravel()
+    if ex.size == 0:
+        raise IBLError("no Phong exponents given")
+    out = []
+    for s in ex:
+        v = check_exponent(s)
+        if v not in out:
+            out.append(v)
+    return out
+
+
+def check_cube(cube, name: str = "environment cube map") -> tuple[np.ndarray, bool]:
+    """``(float64 array (6, N, N, C), squeezed)``: a 3-d input gets a channel axis (``squeezed = True``)."""
+    envmap.check_cube_shape(cube, name)  # LayoutError for a wrong shape
+    a = np.asarray(cube)
+    check_radiance(a, name)
+    squeeze = a.ndim == 3
+    if squeeze:
+        a = a[..., None]
+    if a.shape[-1] < 1:
+        raise LayoutError(f"{name}: zero channels in shape {np.shape(cube)}")
+    return np.asarray(a, dtype=np.float64), squeeze
+
+
+def check_faces(faces) -> tuple[int, ...]:
+    """Validated tuple of output face indices (default ``None``: all six, in order)."""
+    if faces is None:
+        return tuple(range(6))
+    try:
+        out = tuple(int(f) for f in faces)
+    except (TypeError, ValueError):
+        raise IBLError(f"faces must be a sequence of face indices 0..5, got {faces!r}") from None
+    if not out or any(f < 0 or f > 5 for f in out) or len(set(out)) != len(out):
+        raise IBLError(f"faces must be distinct face indices 0..5, got {faces!r}")
+    return out
+
+
+def check_out_size(out_size, n: int) -> int:
+    """Output face size: a positive integer, default (``None``) the input face size ``n``."""
+    if out_size is None:
+        return int(n)
+    if isinstance(out_size, bool) or not isinstance(out_size, (int, np.integer)) or out_size < 1:
+        raise IBLError(f"out_size must be a positive integer, got {out_size!r}")
+    return int(out_size)

@@ -1,0 +1,840 @@
+"""One entry point for Phong-lobe convolution (Knuth et al. 2014, Sec. 3.2, Eq. 4) with error bounds.
+
+:func:`convolve` computes, for several Phong exponents ``s = s_Phong`` (Eq. 3: ``s = 1/(1−g)``), the
+lobe average ``Σ_j L_j max(r·ω_j,0)^s Ω_j / Σ_j max(r·ω_j,0)^s Ω_j`` (``normalized=True``) or the
+literal Eq. 4 sum (``normalized=False``) at every output texel ``r``, by one of
+
+``"exact"``
+    :func:`ibl_ref.groundtruth.phong_convolution.convolve_exact_many` — every source texel for every output texel
+    (the reference; bound = 0 up to rounding).
+``"sh"``
+    :func:`ibl_ref.groundtruth.sh_convolution.convolve_sh_many` — spherical harmonics (Funk–Hecke) for the clipped
+    remainder plus an exact gather from the few texels above a sun threshold, with a rigorous per-texel
+    bound (see that module).
+``"sparse"``
+    :func:`ibl_ref.groundtruth.phong_convolution.convolve_sparse_many` — truncated-support gather with a rigorous
+    per-texel bound (absolute per channel, converted here to relative).
+``"moment"``
+    :func:`ibl_ref.groundtruth.moment_convolution.convolve_moment_many` — ``s ∈ {1, 2}`` only: quadtree block
+    moments (exact polynomial kernel on blocks in the positive hemisphere) plus an exact gather of
+    the horizon band; equals the exact gather up to rounding, ≈ 10× faster at 128² faces.
+``"auto"``
+    per exponent, ``s ∈ {1, 2}`` by the moment route (always within rtol; broad lobes are where the
+    SH bound is loose and the sparse gather degenerates to the dense one), otherwise the cheapest of the above whose bound meets ``rtol``: the SH/hybrid route when its
+    a-priori band limit is affordable (broad lobes), the sparse gather otherwise (narrow lobes), and the
+    exact gather when neither bound meets ``rtol`` (checked a posteriori, per exponent) or for the
+    mirror ``s = inf``.  Exponents routed to SH share one SH pass.
+
+Concurrency (``workers``)
+    The work is cut into independent jobs — the moment and sparse routes per fixed group of output
+    faces (:data:`FACE_PARTS`), the shared SH pass, the exact gather — that run on a pool of
+    ``workers`` forked processes (``backend="process"``, the default on Linux when the caller is
+    single-threaded and not a daemonic process) or threads (``backend="thread"``; NumPy releases the GIL in its array
+    kernels, but the many small array calls of the gathers still contend for it).  Default
+    ``workers``: ``$IBL_REF_WORKERS`` or min(2, usable CPUs).  BLAS is held at 1 thread (threadpoolctl) for the
+    whole call, serial included: a multi-threaded BLAS splits the SH matrix products differently and
+    changes their rounding (≈ 5e-16 relative, measured at 128²).  The jobs do not depend on the worker
+    count or back-end, so results are bit-for-bit identical for every ``workers``/``backend``.
+    Measured (``python benchmarks/bench_convolution.py --repeat 3``, 128² faces, the 8 exponents
+    {1, 2, 5, 10, 20, 50, 100, 1000}, 2-core VM, load ≈ 1.2, three runs each): 3.0–3.6 s serial;
+    2.0–2.3 s wall with 2 processes, 2.4–3.0 s with 2 threads.
+
+Scale-out (``executor``)
+    The same jobs run on any :class:`concurrent.futures.Executor` (a process pool of your own, a
+    ``dask.distributed.Client`` or its scheduler address, ``ibl-ref convolve --scheduler ADDRESS``):
+    jobs and inputs are pickled, each job holds BLAS at one thread on its worker, and the results are
+    bit-for-bit those of a serial run (``tests/test_convolve_executor.py``, a 2-worker Dask
+    ``LocalCluster``).
+
+Resources
+    Jobs whose model cost sums to < :data:`PARALLEL_MIN_SECONDS` run serially (starting a pool would
+    not pay).  Each job's peak memory is estimated (:func:`_job_bytes`; the moment route's by
+    :func:`ibl_ref.groundtruth.moment_convolution.moment_peak_bytes`, which its output-tile chunking bounds) and
+    the worker count is lowered until the largest concurrent jobs fit in :data:`MEMORY_FRACTION` of
+    the available memory (:func:`available_memory_bytes`, or ``memory_limit``).  A worker process
+    that dies anyway (out-of-memory killer) raises :class:`~ibl_ref.errors.IBLError`.
+
+Float64 range
+    Inputs whose largest radiance is outside [2^-64, 2^64] are scaled by a power of two (exact) and the
+    maps scaled back, so ``ones·1e308`` gives finite maps for every method (a literal Eq. 4 sum beyond
+    the float64 range is an IBLError); every bound carries an underflow allowance
+    (:data:`UNDERFLOW_ABS`), so it also holds where exact values are subnormal.
+
+The returned ``error_bound[s]`` is a per-texel bound on ``|approx − exact| / exact`` (max over channels,
+``inf`` where the bound is useless, e.g. a black output texel); ``bound_kind[s]`` says whether it is
+``"rigorous"`` (SH, sparse), ``"estimate"`` (SH for very broad lobes, s ≈ 1, whose rigorous bound
+cannot reach rtol at an affordable band limit: ``|y_L − y_{L/2}|/y_L``, see
+:func:`ibl_ref.groundtruth.sh_convolution.convolve_sh_many`) or ``"rounding"`` (exact).  ``auto`` accepts an
+estimate only when it meets rtol, and only for exponents where the exact gather would cost more.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import multiprocessing
+import os
+import sys
+import threading
+import time
+from concurrent.futures import BrokenExecutor, ProcessPoolExecutor, ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+try:
+    import resource
+except ImportError:  # pragma: no cover - not POSIX (no fork either)
+    resource = None
+
+from ..environment import envmap
+from ..errors import IBLError
+from .convolution_args import check_cube, check_exponents, check_out_size
+
+__all__ = ["ConvolutionResult", "convolve", "default_workers", "METHODS", "WORKERS_ENV"]
+
+METHODS = ("auto", "exact", "sh", "sparse", "moment")
+
+#: ``auto`` runs the exact gather for every exponent when (output texels × source texels × exponents)
+#: is below this (≈ 0.6 s of exact work measured on the shared 2-core machine): the fast methods'
+#: fixed costs (planning, bound tables, KD-tree) do not pay off on tiny maps.
+AUTO_EXACT_PAIRS = 1.5e7
+#: exponents ``auto`` sends to :mod:`ibl_ref.groundtruth.moment_convolution` (exact up to rounding, ≈ 4 s CPU for
+#: s = 1 at 128² faces on the shared machine vs ≈ 47 s for the dense exact gather)
+MOMENT_EXPONENTS = (1.0, 2.0)
+#: ``auto`` uses the moment route from this many (output × source texel) pairs on (below, the other
+#: routes' planning is kept; the moment route's fixed costs make it no faster than exact at ≤ 32²)
+MOMENT_MIN_PAIRS = 1e8
+
+
+#: environment variable read by :func:`convolve` when ``workers`` is not given (a positive integer)
+WORKERS_ENV = "IBL_REF_WORKERS"
+#: parallel back-ends of :func:`convolve` (``auto``: forked processes where possible, else threads)
+BACKENDS = ("auto", "process", "thread")
+#: cost units per (output × source texel) pair of the moment route (both s = 1 and 2 in one call: 3.4 s CPU
+#: at 128² faces, 1 BLAS thread); only used to order the jobs (longest first)
+MOMENT_UNITS_PER_PAIR = 0.45
+#: correction of the sparse cost model for the ordering of the jobs only (1: the model as fitted)
+SPARSE_JOB_ORDER_FACTOR = 1.0
+#: :func:`convolve` rescales the input by a power of two (exact) when its largest radiance is above
+#: 2^SCALE_EXP or below 2^-SCALE_EXP, so that no sum of ≤ 6N² weighted terms overflows (e.g.
+#: ``ones·1e308``) and nothing underflows needlessly; the maps are scaled back at the end
+SCALE_EXP = 64
+#: absolute underflow allowance, relative to the largest (scaled) radiance: every weight that
+#: underflows (a power of a cosine, a product of small factors) is off by < 2^-1022 in absolute terms;
+#: summed over ≤ 6·1024² source texels with Ω_max/Ω_min ≤ 5.2 and divided by a lobe weight ≥ the
+#: largest (=1 after the shift by the maximum) times Ω_min, the error of a lobe average is below
+#: L_max·2^-1022·4π·5.2·6.3e6 < L_max·2^-990.  Added to every bound as ``u/value`` (inf where the value
+#: is 0 and u > 0: an exact value that underflowed cannot be told from 0); it is invisible (≪ 1e-16
+#: relative) wherever the value is above ≈ 1e-280·L_max.
+UNDERFLOW_ABS = 2.0 ** -990
+#: jobs whose model cost sums to less than this many seconds run serially even when ``workers > 1``:
+#: starting a forked pool costs ≈ 0.05–0.1 s (measured: 64², s = 1024, sparse: 0.35 s serial vs
+#: 0.44–0.54 s with 2 processes on the loaded 2-core machine); results are the same either way
+PARALLEL_MIN_SECONDS = 1.0
+#: output faces of each job of the moment and sparse routes.  Fixed (not derived from the worker count),
+#: so that every worker count computes exactly the same pieces: bit-for-bit identical results.
+FACE_PARTS = ((0, 1), (2, 3), (4, 5))
+#: from this output face size on, the moment route runs one job per output face (six jobs balance
+#: better on 2 workers than three: 3 rounds of one face instead of 2 rounds of two); also fixed by
+#: the sizes alone
+MOMENT_SPLIT_MIN_SIZE = 256
+MOMENT_FACE_PARTS_LARGE = tuple((f,) for f in range(6))
+
+
+def default_workers() -> int:
+    """Default thread count of :func:`convolve`: ``$IBL_REF_WORKERS`` if set, else min(2, usable CPUs)."""
+    env = os.environ.get(WORKERS_ENV, "").strip()
+    if env:
+        try:
+            v = int(env)
+        except ValueError:
+            raise IBLError(f"{WORKERS_ENV} must be a positive integer, got {env!r}") from None
+        if v < 1:
+            raise IBLError(f"{WORKERS_ENV} must be a positive integer, got {env!r}")
+        return v
+    try:
+        ncpu = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        ncpu = os.cpu_count() or 1
+    return max(1, min(2, ncpu))
+
+
+def _resolve_workers(workers) -> int:
+    if workers is None:
+        return default_workers()
+    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
+        raise IBLError(f"workers must be a positive integer (1 = serial), got {workers!r}")
+    return int(workers)
+
+
+#: jobs of the running :func:`_run_jobs` call, inherited by forked worker processes (never pickled)
+_FORK_JOBS: list | None = None
+_FORK_LOCK = threading.Lock()
+
+
+def _call_job(key, fn, limit_blas=True):
+    """Run one job, with BLAS held at one thread when ``limit_blas`` (on an executor's worker; local
+    runs are already inside :func:`convolve`'s limit, and threadpoolctl costs ≈ 8 ms per entry);
+    returns ``(key, result, seconds)``."""
+    t0 = time.perf_counter()
+    if limit_blas:
+        with threadpool_limits(limits=1, user_api="blas"):
+            r = fn()
+    else:
+        r = fn()
+    return key, r, time.perf_counter() - t0
+
+
+def _run_job(job):
+    return _call_job(job[1], job[3], limit_blas=False)
+
+
+def _run_forked_job(i):
+    return _run_job(_FORK_JOBS[i])
+
+
+def resolve_executor(executor):
+    """A :class:`concurrent.futures.Executor` from ``executor``: an Executor, or a ``dask.distributed.Client``
+    (its :meth:`get_executor`), or a scheduler address string (``"tcp://host:8786"``; needs the ``dask``
+    extra).  ``None`` stays ``None``.  Returns ``(executor, owned_client)``; close the client when done."""
+    if executor is None:
+        return None, None
+    if isinstance(executor, str):
+        try:
+            from distributed import Client
+        except ImportError:
+            raise IBLError("a scheduler address needs dask.distributed: pip install \".[dask]\"") from None
+        try:
+            client = Client(executor, timeout=30)
+        except (OSError, TimeoutError) as exc:
+            raise IBLError(f"cannot connect to the Dask scheduler at {executor!r}: {exc}") from None
+        return client.get_executor(), client
+    if hasattr(executor, "get_executor") and hasattr(executor, "scheduler_info"):  # dask.distributed.Client
+        return executor.get_executor(), None
+    if not hasattr(executor, "submit"):
+        raise IBLError(f"executor must be a concurrent.futures.Executor, a dask Client or an address, got {executor!r}")
+    return executor, None
+
+
+def _worker_died(exc):
+    return IBLError(
+        "a convolution worker process died before finishing its job (most likely killed by the operating "
+        f"system for lack of memory: {type(exc).__name__}); retry with fewer workers (--workers 1) or a "
+        "smaller --size")
+
+
+def available_memory_bytes() -> float | None:
+    """Memory this process may still use: ``MemAvailable`` of ``/proc/meminfo``, lowered to the cgroup
+    limit minus its usage when one is set (containers); ``None`` where neither can be read."""
+    avail = None
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    avail = float(line.split()[1]) * 1024.0
+                    break
+    except OSError:
+        pass
+    try:
+        with open("/sys/fs/cgroup/memory.max") as fh:
+            lim = fh.read().strip()
+        with open("/sys/fs/cgroup/memory.current") as fh:
+            cur = float(fh.read().strip())
+        if lim != "max":
+            room = float(lim) - cur
+            avail = room if avail is None else min(avail, room)
+    except (OSError, ValueError):
+        pass
+    return avail
+
+
+#: fraction of the available memory the planner lets the concurrent jobs of :func:`convolve` use
+MEMORY_FRACTION = 0.8
+
+
+def plan_memory_workers(workers: int, job_bytes, available) -> int:
+    """Largest worker count ≤ ``workers`` whose concurrent jobs fit in ``MEMORY_FRACTION · available``.
+
+    ``job_bytes``: estimated peak memory of each job; with w workers the w largest may run at once.
+    At least 1 (a single job that does not fit is run anyway, serially; :func:`convolve` records it
+    in ``info["memory_warning"]``).  ``available = None`` (unknown) keeps ``workers``.
+    """
+    if available is None or workers <= 1:
+        return workers
+    big = sorted((float(b) for b in job_bytes), reverse=True)
+    w = workers
+    while w > 1 and sum(big[:w]) > MEMORY_FRACTION * available:
+        w -= 1
+    return w
+
+
+def _job_bytes(stage, n, out_size, C, n_faces, K, need2=True):
+    """Estimated peak memory (bytes) of one job of :func:`convolve` (used by the memory planner only)."""
+    n_src, n_out = 6 * n * n, n_faces * out_size * out_size
+    maps = K * n_out * C * 8.0 * 2  # maps + bounds
+    if stage == "moment":
+        from .moment_convolution import moment_peak_bytes
+
+        return moment_peak_bytes(n, out_size, n_faces, C, need2)
+    if stage == "sh":  # SH matrix cache / chunk (≤ 256 MB + 128 MB) and per-texel work arrays
+        return 4.0e8 + 4 * maps + n_src * (C + 4) * 8.0 * 4
+    if stage == "sparse":  # sources, KD-tree, tile geometry
+        return n_src * (C + 5) * 8.0 * 6 + n_out * 8 * 8.0 * 2 + 2 * maps
+    return n_src * (C + 5) * 8.0 * 2 + 2 * maps + 3.2e7  # exact: chunked weight matrices
+
+
+def _resolve_backend(backend, workers):
+    if backend not in BACKENDS:
+        raise IBLError(f"unknown parallel backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+    if workers <= 1:
+        return "serial"
+    if backend == "auto":
+        # fork only a single-threaded process (a fork copies no other thread; locks they hold would
+        # stay locked in the child), only on Linux (macOS system libraries are not fork-safe), and not
+        # from a daemonic process (multiprocessing forbids it children); otherwise threads
+        fork_ok = (sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
+                   and threading.active_count() == 1 and not multiprocessing.current_process().daemon)
+        return "process" if fork_ok else "thread"
+    if backend == "process" and "fork" not in multiprocessing.get_all_start_methods():
+        raise IBLError("backend 'process' needs the 'fork' start method (POSIX); use 'thread'")
+    if backend == "process" and multiprocessing.current_process().daemon:
+        raise IBLError("backend 'process' cannot start workers from a daemonic process; use 'thread'")
+    return backend
+
+
+def _run_jobs(jobs, workers, backend="thread", executor=None):
+    """Run ``(stage, key, cost, fn)`` jobs, longest model cost first, on ``workers`` threads or processes.
+
+    Returns ``({key: fn()}, {key: seconds}, child CPU seconds)``.  ``"process"``: a pool of forked
+    worker processes that inherit the jobs (inputs are not copied; results come back pickled) —
+    no GIL (``convolve`` of s = 1, 2 at 128², the three moment jobs: 1.69 s serial, 1.49 s with 2
+    processes, 1.51 s with 2 threads; the 8-exponent benchmark gains more, see the module docstring).  ``"thread"``:
+    NumPy releases the GIL inside large array operations, so the jobs overlap partly.
+    """
+    global _FORK_JOBS
+    order = sorted(jobs, key=lambda j: -min(float(j[2]), 1e300))
+    out, busy = {}, {}
+    child_cpu = 0.0
+    if executor is not None:  # any concurrent.futures.Executor (jobs and inputs are pickled)
+        futs = [executor.submit(_call_job, j[1], j[3]) for j in order]
+        try:
+            done = [f.result() for f in futs]
+        except BrokenExecutor as exc:
+            raise _worker_died(exc) from None
+    elif workers <= 1 or len(order) <= 1 or backend == "serial":
+        done = [_run_job(j) for j in order]
+    elif backend == "process":
+        with _FORK_LOCK:  # one forked pool at a time (the job table is a module global)
+            r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            _FORK_JOBS = order
+            try:
+                ctx = multiprocessing.get_context("fork")
+                with ProcessPoolExecutor(max_workers=min(workers, len(order)), mp_context=ctx) as ex:
+                    futs = [ex.submit(_run_forked_job, i) for i in range(len(order))]
+                    try:
+                        done = [f.result() for f in futs]
+                    except BrokenExecutor as exc:
+                        raise _worker_died(exc) from None
+            finally:
+                _FORK_JOBS = None
+            r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        child_cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+    else:
+        with ThreadPoolExecutor(max_workers=min(workers, len(order)), thread_name_prefix="ibl_convolve") as ex:
+            futs = [ex.submit(_run_job, j) for j in order]
+            done = [f.result() for f in futs]
+    for key, r, dt in done:
+        out[key] = r
+        busy[key] = dt
+    return out, busy, child_cpu
+
+
+@dataclass
+class ConvolutionResult:
+    """Result of :func:`convolve`.
+
+    Attributes
+    ----------
+    maps : dict float → ndarray (6, n, n, C)
+        Convolved cube map per exponent.
+    error_bound : dict float → ndarray (6, n, n)
+        Per-texel bound on the relative error ``|approx − exact|/exact`` (max over channels).
+    bound_kind : dict float → str
+        ``"rigorous"``, ``"estimate"`` (SH, broad lobes) or ``"rounding"`` (exact and moment methods).
+    method_used : dict float → str
+        ``"exact"``, ``"sh"``, ``"sparse"`` (after any fallback).
+    timings_s : dict
+        Seconds per stage (keys ``"moment"``, ``"sh"``, ``"sparse"``, ``"exact"``: summed wall time of
+        that stage's jobs, which overlap when ``workers > 1``), ``"jobs_wall"`` (wall time of all
+        jobs), ``"total"`` (wall time of the call) and the process CPU time of the whole call
+        (``"total_cpu"``, all threads; equals the unloaded serial wall time when BLAS runs
+        single-threaded, the recommended setting).
+    info : dict
+        Diagnostics (SH band limit, sun threshold, fallbacks, ``workers`` and the parallel
+        ``backend`` actually used: ``"serial"``, ``"thread"`` or ``"process"``).
+    """
+
+    maps: dict = field(default_factory=dict)
+    error_bound: dict = field(default_factory=dict)
+    bound_kind: dict = field(default_factory=dict)
+    method_used: dict = field(default_factory=dict)
+    timings_s: dict = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        """JSON-friendly per-exponent summary (method, bound max/mean, timings)."""
+        out = {"timings_s": dict(self.timings_s), "info": _jsonable(self.info), "exponents": []}
+        for s in self.maps:
+            b = self.error_bound[s]
+            fin = b[np.isfinite(b)]
+            out["exponents"].append(
+                {
+                    "s": _s_json(s),
+                    "method": self.method_used[s],
+                    "bound_kind": self.bound_kind[s],
+                    "rel_bound_max": float(b.max()) if np.all(np.isfinite(b)) else None,
+                    "rel_bound_mean": float(fin.mean()) if fin.size else None,
+                    "rel_bound_p99": float(np.quantile(fin, 0.99)) if fin.size else None,
+                    "n_texels_unbounded": int(np.count_nonzero(~np.isfinite(b))),
+                }
+            )
+        return out
+
+
+def _s_json(s):
+    return "inf" if not np.isfinite(s) else float(s)
+
+
+def _jsonable(d):
+    if isinstance(d, dict):
+        return {str(k): _jsonable(v) for k, v in d.items()}
+    if isinstance(d, (list, tuple)):
+        return [_jsonable(v) for v in d]
+    if isinstance(d, (np.floating, float)):
+        return float(d) if np.isfinite(d) else str(d)
+    if isinstance(d, np.integer):
+        return int(d)
+    return d
+
+
+def _power_of_two_scaled(a4):
+    """``(a4·2^-k, k)`` with 2^k near the largest radiance when that is outside [2^-SCALE_EXP, 2^SCALE_EXP].
+
+    Multiplying by a power of two is exact (except for texels that would become subnormal: those
+    below 2^(k−1022) of the largest, i.e. 1e-290 of it and less, lose low bits).  k = 0 otherwise.
+    """
+    l_max = float(a4.max()) if a4.size else 0.0
+    if l_max == 0.0 or 2.0 ** -SCALE_EXP <= l_max <= 2.0 ** SCALE_EXP:
+        return a4, 0
+    k = math.frexp(l_max)[1]
+    return np.ldexp(a4, -k), k
+
+
+def _with_underflow(maps, rel, u):
+    """Relative bound ``rel`` (per texel) plus the underflow allowance ``u/value`` (max over channels)."""
+    if u == 0.0:
+        return rel
+    with np.errstate(divide="ignore"):
+        extra = np.where(maps > 0, u / np.where(maps > 0, maps, 1.0), np.inf)
+    extra = extra.max(axis=-1)
+    return np.where(extra > 0, rel + extra, rel)
+
+
+def _rel_from_abs(maps, abs_bound):
+    """Relative bound per texel (max over channels) from an absolute per-channel bound."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.where(maps > abs_bound, abs_bound / np.maximum(maps - abs_bound, 1e-300), np.inf)
+    r = np.where(abs_bound == 0, 0.0, r)
+    return r.max(axis=-1)
+
+
+#: cost units (see :data:`ibl_ref.groundtruth.sh_convolution.SECONDS_PER_UNIT`) per (output texel × source texel ×
+#: exponent) of the exact gather: 17 (≈ 1.35e-8 s CPU, s = 16 at 64²), 6 for s = 1 (no power needed;
+#: 46.7 s CPU at 128²)
+EXACT_UNITS_PER_PAIR = 17.0
+EXACT_UNITS_PER_PAIR_S1 = 6.0
+#: same for the candidate texels of the sparse gather, plus a cost per output texel (tiles, cap
+#: queries).  Checked against measurement (process CPU time, 1 worker, ``method="sparse"``, sky + sun,
+#: rtol 1e-3; shared 2-core machine at load ≈ 12): 32² s = 1024: 0.033 s; 64² s = 64 / 256 / 1024:
+#: 0.45 / 0.23 / 0.15 s; 128² s = 64 / 256 / 1024: 4.8 / 2.5 / 0.98 s — 0.16–0.27× the previous
+#: constants (25, 2.5e4), hence these (×0.25).  The SH model (:func:`ibl_ref.groundtruth.sh_convolution.sh_cost`)
+#: at the same cells: 64² s = 64 / 256: model 0.18 / 0.57 s, measured 0.09 / 0.16 s; 128²: 0.58 / 2.2 s
+#: vs 0.66 / 1.4 s.
+SPARSE_UNITS_PER_PAIR = 6.25
+SPARSE_UNITS_PER_OUTPUT = 6.25e3
+
+
+def _sparse_cost(s, rtol, n_src, n_out):
+    """Cost model of the sparse gather (units of :func:`ibl_ref.groundtruth.sh_convolution.sh_cost`)."""
+    eps = max(rtol * 1e-2, 1e-300)
+    cos_c = math.exp(math.log(eps) / (s + 1.0))
+    frac = min(1.0, (1.0 - cos_c) / 2.0 + 2.0 / math.sqrt(max(n_src / 6.0, 1.0)))
+    if (1.0 - cos_c) / 2.0 > 0.4:  # the sparse gather itself falls back to the dense gather there
+        return math.inf
+    return n_out * n_src * frac * SPARSE_UNITS_PER_PAIR + n_out * SPARSE_UNITS_PER_OUTPUT
+
+
+def convolve(
+    cube,
+    exponents,
+    *,
+    method: str = "auto",
+    rtol: float = 1e-3,
+    out_size: int | None = None,
+    normalized: bool = True,
+    workers: int | None = None,
+    backend: str = "auto",
+    executor=None,
+    memory_limit: float | None = None,
+) -> ConvolutionResult:
+    """Convolve a cube map with Phong lobes ``max(r·ω,0)^s`` for several exponents, with error bounds.
+
+    Parameters
+    ----------
+    cube : array (6, N, N[, C])
+        Non-negative finite radiance (OpenEXR face order, see :mod:`ibl_ref.environment.envmap`).
+    exponents : float or sequence of float
+        Phong exponents ≥ 1 (``np.inf`` = mirror; exact method only).
+    method : {"auto", "exact", "sh", "sparse", "moment"}
+    rtol : float
+        Target per-texel relative error for ``auto`` (and the planning of ``sh``/``sparse``).
+    out_size : int, optional
+        Output face size (default N).
+    normalized : bool
+        Lobe average (default) or literal Eq. 4 (``sparse`` supports only the average; ``auto`` then
+        uses SH or exact).
+    workers : int, optional
+        Threads running the independent jobs (each route's exponents × fixed groups of output faces,
+        :data:`FACE_PARTS`) concurrently; 1 = serial.  Default :func:`default_workers`
+        (``$IBL_REF_WORKERS`` or min(2, usable CPUs)).  The jobs do not depend on this number, so the
+        maps and bounds are bit-for-bit identical for every worker count and back-end.  The
+        BLAS thread pools are limited to 1 thread for the duration of the call (threadpoolctl; restored after).
+    backend : {"auto", "process", "thread"}
+        How ``workers > 1`` jobs run: ``"process"`` — a pool of forked worker processes (POSIX; no
+        GIL: 8 exponents at 128² in 2.0 s vs 2.4 s with threads and 3.0 s serial, best of 3 runs);
+        ``"thread"`` — a thread pool; ``"auto"`` (default) — processes on Linux when the calling process
+        has a single thread (forking a multi-threaded process is unsafe) and is not daemonic, else
+        threads.
+    executor : concurrent.futures.Executor, dask.distributed.Client or str, optional
+        Run the independent jobs on this executor instead (``workers``/``backend`` are then unused):
+        any :class:`concurrent.futures.Executor` (e.g. a ``ProcessPoolExecutor`` of your own), a
+        ``dask.distributed.Client`` (its :meth:`get_executor`) or a Dask scheduler address
+        (``"tcp://host:8786"``; the client is closed after the call).  Jobs and their inputs are
+        pickled; each job holds BLAS at one thread on its worker, so the maps and bounds are
+        bit-for-bit those of a serial run.
+    memory_limit : float, optional
+        Bytes the concurrent jobs may use (default: what the machine has available,
+        :func:`available_memory_bytes`).  The planner estimates each job's peak memory and runs
+        fewer workers when ``workers`` of them would not fit (``info["workers_planned"]``); results
+        do not change.  A worker process that dies anyway (killed for lack of memory) raises
+        :class:`~ibl_ref.errors.IBLError`.
+
+    Returns
+    -------
+    ConvolutionResult
+        ``maps[s]`` has the input's channel layout ((6,n,n) for a 3-d input).
+
+    Raises
+    ------
+    IBLError
+        Bad method, exponent (< 1, NaN), rtol or out_size; ``LayoutError`` / ``RadianceError`` for a
+        wrong shape or NaN/Inf/negative radiance.
+    """
+    t_start = time.perf_counter()
+    c_start = time.process_time()
+    if method not in METHODS:
+        raise IBLError(f"unknown convolution method {method!r}; choose one of {', '.join(METHODS)}")
+    try:
+        rtol = float(rtol)
+    except (TypeError, ValueError):
+        raise IBLError(f"rtol must be a number in (0, 1), got {rtol!r}") from None
+    if not (0.0 < rtol < 1.0):
+        raise IBLError(f"rtol must be in (0, 1), got {rtol!r}")
+    a4, squeeze = check_cube(cube)
+    n = a4.shape[1]
+    a4, scale_k = _power_of_two_scaled(a4)
+    out_size = check_out_size(out_size, n)
+    s_list = check_exponents(exponents)
+    if not normalized and any(not np.isfinite(s) for s in s_list):
+        raise IBLError("the unnormalised Eq. 4 integral vanishes for s = inf; use normalized=True")
+    if method == "sh" and any(not np.isfinite(s) for s in s_list):
+        raise IBLError("method 'sh' cannot represent the mirror (s = inf); use 'exact' or 'auto'")
+    if method == "moment" and any(s not in MOMENT_EXPONENTS for s in s_list):
+        raise IBLError(f"method 'moment' supports Phong exponents {MOMENT_EXPONENTS} only; use 'auto'")
+    if method == "sparse" and not normalized:
+        raise IBLError("method 'sparse' computes the normalised lobe average only; use 'sh' or 'exact'")
+    workers = _resolve_workers(workers)
+    backend = _resolve_backend(backend, workers)
+    if memory_limit is not None:
+        try:
+            memory_limit = float(memory_limit)
+        except (TypeError, ValueError):
+            raise IBLError(f"memory_limit must be a number of bytes, got {memory_limit!r}") from None
+        if not memory_limit > 0:
+            raise IBLError(f"memory_limit must be positive, got {memory_limit!r}")
+    executor, owned_client = resolve_executor(executor)
+    try:
+        return _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, workers, backend,
+                         executor, memory_limit, scale_k, t_start, c_start)
+    finally:
+        if owned_client is not None:
+            owned_client.close()
+
+
+def _route_auto(a4, s_list, rtol, out_size, normalized, info):
+    """Method per exponent for ``method="auto"`` (module docstring): ``(route, SH plan or None, finite)``.
+
+    ``finite``: the finite exponents left to the SH / sparse / exact cost comparison (the SH plan was
+    made for exactly these).  Writes the planning diagnostics into ``info``.
+    """
+    n = a4.shape[1]
+    n_src, n_out = 6 * n * n, 6 * out_size * out_size
+    from . import sh_convolution as shc
+
+    route, plan = {}, None
+    finite = [s for s in s_list if np.isfinite(s)]
+    for s in s_list:
+        if not np.isfinite(s):
+            route[s] = "exact"
+    if finite and n_out * n_src * len(finite) <= AUTO_EXACT_PAIRS:
+        info["auto_tiny_map_exact"] = True
+        for s in finite:
+            route[s] = "exact"
+        finite = []
+    if n_out * n_src >= MOMENT_MIN_PAIRS:
+        for s in finite:
+            if s in MOMENT_EXPONENTS:
+                route[s] = "moment"
+        finite = [s for s in finite if s not in MOMENT_EXPONENTS]
+    if finite:
+        plan = shc.plan_sh(a4, finite, rtol=rtol, out_size=out_size)
+        info["sh_plan_L_per_s"] = {_s_json(s): L for s, L in zip(finite, plan["L_per_s"])}
+        info["sh_plan_L_estimate"] = {_s_json(s): L for s, L in plan["L_est"].items()}
+        Q = a4.shape[-1] + 1
+        L_of = {}
+        other = {}
+        for s, L_s in zip(finite, plan["L_per_s"]):
+            # rigorous band limit (estimate-mode band limit only if estimates were planned)
+            L_s = L_s if L_s is not None else plan["L_est"].get(s)
+            if L_s is not None:
+                L_of[s] = L_s
+            c_sp = _sparse_cost(s, rtol, n_src, n_out) if normalized else np.inf
+            c_ex = n_out * n_src * (EXACT_UNITS_PER_PAIR_S1 if s == 1.0 else EXACT_UNITS_PER_PAIR)
+            other[s] = ("sparse", c_sp) if c_sp < c_ex else ("exact", c_ex)
+        # The SH exponents share one pass whose cost is set by the largest band limit: try every
+        # prefix of the SH-capable exponents sorted by band limit, the rest by sparse/exact.
+        cand = sorted(L_of, key=lambda s: L_of[s])
+        best = None
+        for j in range(len(cand) + 1):
+            grp = cand[:j]
+            cost = sum(other[s][1] for s in finite if s not in grp)
+            if grp:
+                cost += shc.sh_cost(L_of[grp[-1]], n_src, n_out, len(grp), Q) + shc.SH_OVERHEAD_UNITS
+            if best is None or cost < best[0]:
+                best = (cost, grp)
+        info["auto_model_cost_s"] = float(best[0] * shc.SECONDS_PER_UNIT)
+        for s in finite:
+            route[s] = "sh" if s in best[1] else other[s][0]
+    return route, plan, finite
+
+
+def _sparse_rtol_scale(a4):
+    """Pre-scale of the sparse gather's tolerance for ``auto``: its bound at the darkest texels is
+    ≈ rtol·(mean/min) larger than at texels of typical radiance, so rtol is multiplied by min/mean
+    (≥ 1e-6; the mean over the body, the brightest 0.1 % of texels left out), then corrected once."""
+    n = a4.shape[1]
+    lum = a4.max(axis=-1).ravel()
+    w = np.broadcast_to(envmap.cube_solid_angles(n), a4.shape[:3]).ravel()
+    body = lum <= np.quantile(lum, 0.999)
+    l_mean = float(np.sum(lum[body] * w[body]) / np.sum(w[body]))
+    return min(1.0, max(float(a4.min()) / max(l_mean, 1e-300), 1e-6))
+
+
+def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_plan, sparse_batches, parts, ex_set):
+    """The independent jobs ``(stage, key, model cost, callable)`` of one round of :func:`convolve`.
+
+    Every job computes a fixed piece of work (its exponents, its output faces) that does not depend on
+    the number of workers, so the maps and bounds are bit-for-bit the same for any worker count.
+    """
+    from . import phong_convolution as pc
+    from . import sh_convolution as shc
+
+    n = a4.shape[1]
+    n_src, n_out = 6 * n * n, 6 * out_size * out_size
+    pair_units = n_out * n_src
+    jobs = []
+    if mo_set:
+        from . import moment_convolution as mc
+
+        for pi, fc in enumerate(mo_parts):
+            jobs.append(("moment", ("moment", pi), MOMENT_UNITS_PER_PAIR * pair_units * len(fc) / 6,
+                         functools.partial(mc.convolve_moment_many, a4, mo_set, out_size=out_size,
+                                           normalized=normalized, faces=fc)))
+    if sh_set:
+        L_guess = (sh_plan or {}).get("L") or 32
+        jobs.append(("sh", ("sh",), shc.sh_cost(L_guess, n_src, n_out, len(sh_set), a4.shape[-1] + 1),
+                     functools.partial(shc.convolve_sh_many, a4, sh_set, rtol=rtol, out_size=out_size,
+                                       normalized=normalized, plan=sh_plan)))
+    for bi, (sb, sc, _att) in enumerate(sparse_batches):
+        for pi, fc in enumerate(parts):
+            cost = sum(_sparse_cost(x, rtol * sc, n_src, n_out) for x in sb)
+            cost = cost * len(fc) / 6 * SPARSE_JOB_ORDER_FACTOR if np.isfinite(cost) else (
+                pair_units * EXACT_UNITS_PER_PAIR)
+            jobs.append(("sparse", ("sparse", bi, pi), cost,
+                         functools.partial(pc.convolve_sparse_many, a4, list(sb),
+                                           rtol=min(rtol * sc, 0.5), out_size=out_size, faces=fc)))
+    if ex_set:
+        jobs.append(("exact", ("exact",), EXACT_UNITS_PER_PAIR * pair_units * len(ex_set),
+                     functools.partial(pc.convolve_exact_many, a4, ex_set, normalized=normalized,
+                                       out_size=out_size)))
+    return jobs
+
+
+def _round_workers(jobs, a4, out_size, workers, executor, memory_limit, need2):
+    """Workers for one round: the memory planner, and serial when the jobs are too small to pay for a
+    pool (:data:`PARALLEL_MIN_SECONDS`).  Returns ``(workers, memory warning or None)``."""
+    from .sh_convolution import SECONDS_PER_UNIT
+
+    n, C = a4.shape[1], a4.shape[-1]
+    # (a job's callable is a partial of (cube, exponents, ..., faces=...))
+    job_mem = [_job_bytes(j[0], n, out_size, C, len(j[3].keywords.get("faces") or range(6)),
+                          len(j[3].args[1]), need2) for j in jobs]
+    avail = memory_limit if memory_limit is not None else available_memory_bytes()
+    w_plan = plan_memory_workers(workers, job_mem, avail) if executor is None else workers
+    est_s = sum(min(float(j[2]), 1e300) for j in jobs) * SECONDS_PER_UNIT
+    if executor is None and est_s < PARALLEL_MIN_SECONDS:
+        w_plan = 1  # worker start-up would not pay
+    warning = None
+    if avail is not None and max(job_mem) > MEMORY_FRACTION * avail:
+        warning = f"a job needs ≈ {max(job_mem) / 1e9:.1f} GB, {avail / 1e9:.1f} GB available"
+    return w_plan, warning
+
+
+def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, workers, backend, executor,
+              memory_limit, scale_k, t_start, c_start):
+    """Body of :func:`convolve` after the argument checks (routing, jobs, collection)."""
+
+    res = ConvolutionResult()
+    timings = {"sh": 0.0, "sparse": 0.0, "exact": 0.0, "moment": 0.0}
+
+    # ---- route every exponent ----------------------------------------------------------------
+    plan, finite = None, []
+    if method == "auto":
+        route, plan, finite = _route_auto(a4, s_list, rtol, out_size, normalized, res.info)
+    else:
+        route = {s: method for s in s_list}
+
+    # ---- execute: rounds of independent jobs (route × output-face part, :func:`_round_jobs`) --------
+    results = {}
+    parts = FACE_PARTS
+    mo_parts = MOMENT_FACE_PARTS_LARGE if out_size >= MOMENT_SPLIT_MIN_SIZE else FACE_PARTS
+    scale0 = 1.0
+    if method == "auto" and any(route[s] in ("sparse", "sh") for s in s_list):
+        scale0 = _sparse_rtol_scale(a4)
+
+    mo_set = [s for s in s_list if route[s] == "moment"]
+    sh_set = [s for s in s_list if route[s] == "sh"]
+    sparse_batches = [(tuple(s for s in s_list if route[s] == "sparse"), scale0, 0)]
+    sparse_batches = [b for b in sparse_batches if b[0]]
+    ex_set = [s for s in s_list if route[s] == "exact"]
+    fallback_sh, fallback_sparse = [], []
+    stage_busy = {"sh": 0.0, "sparse": 0.0, "exact": 0.0, "moment": 0.0}
+    t_par = 0.0
+    child_cpu = 0.0
+    planned = []
+    # one BLAS thread per worker (no oversubscription) and, serial included, the same BLAS blocking
+    # for every worker count: bit-for-bit identical results (threadpoolctl restores the limits after)
+    with threadpool_limits(limits=1, user_api="blas"):
+        while mo_set or sh_set or sparse_batches or ex_set:
+            sub_plan = None
+            if sh_set and method == "auto":  # re-plan only if the SH subset differs from the planned set
+                sub_plan = plan if len(sh_set) == len(finite) else None
+            jobs = _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sub_plan,
+                               sparse_batches, parts, ex_set)
+            w_plan, warning = _round_workers(jobs, a4, out_size, workers, executor, memory_limit, 2.0 in mo_set)
+            planned.append(w_plan)
+            if warning:
+                res.info["memory_warning"] = warning
+            t0 = time.perf_counter()
+            out, busy, cpu_c = _run_jobs(jobs, w_plan, backend, executor)
+            t_par += time.perf_counter() - t0
+            child_cpu += cpu_c
+            for stage, key, _c, _f in jobs:
+                stage_busy[stage] += busy[key]
+            # ---- collect ----
+            nxt_batches, nxt_exact = [], []
+            if mo_set:
+                maps = np.concatenate([out[("moment", pi)][0] for pi in range(len(mo_parts))], axis=1)
+                rel = np.concatenate([out[("moment", pi)][1] for pi in range(len(mo_parts))], axis=1)
+                for k, s in enumerate(mo_set):
+                    results[s] = (maps[k], rel[k], "moment", "rounding")
+                mo_set = []
+            if sh_set:
+                maps, rel, info = out[("sh",)]
+                res.info["sh"] = {k: v for k, v in info.items()}
+                fb = []
+                for k, s in enumerate(sh_set):
+                    if method == "auto" and not float(rel[k].max()) <= rtol:
+                        fb.append(s)
+                        continue
+                    results[s] = (maps[k], rel[k], "sh", info["bound_kind"][k])
+                if fb:
+                    fallback_sh += fb
+                    if normalized:
+                        nxt_batches.append((tuple(fb), scale0, 0))
+                    else:
+                        nxt_exact += fb
+                sh_set = []
+            for bi, (sb, sc, att) in enumerate(sparse_batches):
+                maps = np.concatenate([out[("sparse", bi, pi)][0] for pi in range(len(parts))], axis=1)
+                abs_b = np.concatenate([out[("sparse", bi, pi)][1] for pi in range(len(parts))], axis=1)
+                worst, fb = 0.0, []
+                for k, s in enumerate(sb):
+                    rel = _rel_from_abs(maps[k], abs_b[k])
+                    if method == "auto" and not float(rel.max()) <= rtol:
+                        fb.append(s)
+                        worst = max(worst, float(rel.max()))
+                        continue
+                    results[s] = (maps[k], rel, "sparse", "rigorous")
+                if fb and att == 0 and np.isfinite(worst):
+                    nxt_batches.append((tuple(fb), sc * 0.8 * rtol / worst, 1))
+                elif fb:
+                    fallback_sparse += fb
+                    nxt_exact += fb
+            if ex_set:
+                maps = out[("exact",)]
+                for k, s in enumerate(ex_set):
+                    # float64 sums over ≤ 6N² terms: relative rounding ≲ 1e-12 (reported, not zero)
+                    results[s] = (maps[k], np.full((6, out_size, out_size), 1e-12), "exact", "rounding")
+            sparse_batches, ex_set = nxt_batches, nxt_exact
+    if fallback_sh:
+        res.info["fallback_from_sh"] = [_s_json(s) for s in fallback_sh]
+    if fallback_sparse:
+        res.info["fallback_from_sparse"] = [_s_json(s) for s in fallback_sparse]
+    timings.update(stage_busy)
+    timings["jobs_wall"] = t_par
+    res.info["workers"] = workers
+    res.info["workers_planned"] = min(planned) if planned else workers
+    res.info["backend"] = "executor" if executor is not None else backend
+
+    u = float(a4.max()) * UNDERFLOW_ABS if a4.size else 0.0
+    for s in s_list:
+        m, b, meth, kind = results[s]
+        b = _with_underflow(m, b, u)
+        if scale_k:
+            with np.errstate(over="ignore"):
+                m = np.ldexp(m, scale_k)
+            if not np.all(np.isfinite(m)):
+                raise IBLError(f"the convolved map for s = {_s_json(s)} exceeds the float64 range "
+                               "(literal Eq. 4 sum of a radiance near 1e308); use normalized=True")
+        res.maps[s] = m[..., 0] if squeeze else m
+        res.error_bound[s] = b
+        res.method_used[s] = meth
+        res.bound_kind[s] = kind
+    timings["total"] = time.perf_counter() - t_start
+    # process CPU time (+ forked workers): robust on a loaded machine
+    timings["total_cpu"] = time.process_time() - c_start + child_cpu
+    res.timings_s = timings
+    return res

@@ -1,0 +1,514 @@
+"""Hierarchical moment convolution of a cube map with broad Phong lobes (Knuth et al. 2014, Sec. 3.2, Eq. 4).
+
+For an integer exponent ``s ∈ {1, 2}`` the kernel ``max(r·ω, 0)^s`` equals the polynomial ``(r·ω)^s``
+wherever ``r·ω ≥ 0``.  So a block ``b`` of source texels lying entirely in the positive hemisphere of
+``r`` contributes EXACTLY (Eq. 4 restricted to the block)
+
+    s = 1:  Σ_{j∈b} L_j Ω_j (r·ω_j)     = r · M_b^(1),           M_b^(1) = Σ L_j Ω_j ω_j
+    s = 2:  Σ_{j∈b} L_j Ω_j (r·ω_j)^2   = r^T M_b^(2) r,         M_b^(2) = Σ L_j Ω_j ω_j ω_j^T
+
+and a block entirely in the negative hemisphere contributes 0.  Blocks are the nodes of a quadtree per
+face (texel-centre bounding cones ``(c_b, α_b)``); output texels are grouped in ``t×t`` tiles with
+cones ``(c_T, β_T)``.  A (tile, block) pair is positive for every ``r`` in the tile when
+``∠(c_T, c_b) + β_T + α_b ≤ π/2`` and negative when ``∠(c_T, c_b) − β_T − α_b ≥ π/2``; otherwise the
+block is split, down to the leaf size ``leaf``.  The straddling leaf blocks (a band around each
+tile's horizon) are handled per output texel:
+
+``leaf = 1`` (default)
+    exact gather of those texels (``max(r·ω_j,0)^s`` at the texel centres; the split stops at blocks
+    of ``gather`` texels, whose texels are all gathered): the result equals the exact lobe average up
+    to float64 rounding.  Measured (2-core machine, 1 BLAS thread): s = 1 and 2 together at 128² faces
+    3.4 s CPU in one call vs ≈ 54 s per exponent for the dense gather (extrapolated in
+    ``ibl-ref experiment speed-accuracy``); max relative difference to
+    :func:`ibl_ref.groundtruth.phong_convolution.convolve_exact_many` 1.9e-14 at 64² (sky + 1e5 sun near a cube
+    corner, ``benchmarks/bench_convolution.py``).  ``leaf > 1`` is no faster at 128² and far less
+    accurate (leaf 2: 29 s, bound 4.7e-4; leaf 8: 3.5 s, bound 2.4e-2), so ``auto`` keeps ``leaf = 1``;
+``leaf > 1``
+    an interval per (r, block, channel) from convexity of ``f(x) = max(x,0)^s`` on the block's range
+    ``x = r·ω ∈ [x_lo, x_hi]`` (from the cone): Jensen's inequality below, the chord above
+    (Edmundson–Madansky), both needing only ``M_b^(0) = Σ L Ω`` and ``M_b^(1)``:
+
+        W f(x̄)  ≤  Σ_j L_j Ω_j f(r·ω_j)  ≤  f(x_hi) (W x̄ − W x_lo) / (x_hi − x_lo),   W x̄ = r·M_b^(1).
+
+    The midpoint is used, the half-width is a rigorous absolute error, propagated to the ratio
+    (numerator per channel, denominator with ``L ≡ 1``).  Texels brighter than ``bright_factor`` × the
+    solid-angle-weighted mean luminance (e.g. a sun) are removed from the blocks and gathered exactly for
+    every output texel, so the intervals only see the smooth remainder.
+
+Memory.  The output tiles are processed in chunks of :func:`moment_tiles_per_chunk` tiles, so that
+one chunk's (tile, texel) band pairs stay below :data:`MOMENT_CHUNK_PAIRS`; the chunks depend only on
+the sizes (never on the worker count).  Peak memory then grows with the source moments and the
+output, not with the band: 512² faces, s = 1 and 2, two output faces in one call: 1.25 GB peak RSS
+(estimate :func:`moment_peak_bytes`: 1.14 GB) and 116 s on the loaded shared machine, where the
+unchunked code needed 12–15 GB per process (``/usr/bin/time`` on a one-job script).  The whole
+``ibl-ref convolve`` of 512² faces with 8 exponents: 2.6 GB peak RSS of the largest process, 333 s CPU.
+
+The per-texel bound returned is ``max(approx − lo, hi − approx)/lo`` on the relative error (max over
+channels) plus :data:`ROUNDING_REL` for float64 rounding of the sums.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from ..environment import envmap
+from ..errors import IBLError
+from .convolution_args import check_cube, check_faces, check_out_size
+
+__all__ = ["convolve_moment_many", "convolve_moment", "SUPPORTED_EXPONENTS", "ROUNDING_REL"]
+
+#: exponents with an exact polynomial moment representation implemented here
+SUPPORTED_EXPONENTS = (1.0, 2.0)
+#: relative allowance added to every bound for float64 rounding of sums over ≤ 6N² non-negative terms
+ROUNDING_REL = 1e-12
+#: angular safety margin (rad) added to every cone half-angle (arccos rounding)
+_ANGLE_EPS = 1e-9
+#: diagnostics of the last call (stage times, number of band pairs)
+LAST_INFO: dict = {}
+
+
+def _cones(dirs, real, b):
+    """Bounding cones of b×b blocks of a padded (6,P,P,3) direction grid; returns (centres, half-angles, valid)."""
+    P = dirs.shape[1]
+    m = P // b
+    d = np.where(real[..., None], dirs, 0.0).reshape(6, m, b, m, b, 3)
+    c = d.sum(axis=(2, 4))
+    nrm = np.linalg.norm(c, axis=-1)
+    valid = real.reshape(6, m, b, m, b).any(axis=(2, 4))
+    c = c / np.where(nrm > 0, nrm, 1.0)[..., None]
+    cb = np.broadcast_to(c[:, :, None, :, None, :], d.shape)
+    dots = np.einsum("...k,...k->...", d, cb)
+    dots = np.where(real.reshape(6, m, b, m, b), dots, 1.0).min(axis=(2, 4))
+    alpha = np.arccos(np.clip(dots, -1.0, 1.0)) + _ANGLE_EPS
+    return c.reshape(-1, 3), alpha.ravel(), valid.ravel()
+
+
+def _block_sums(x, b):
+    """Sum a padded (6,P,P,K) array over b×b blocks → (6·(P/b)², K)."""
+    P = x.shape[1]
+    m = P // b
+    return x.reshape(6, m, b, m, b, x.shape[-1]).sum(axis=(2, 4)).reshape(6 * m * m, x.shape[-1])
+
+
+def _children(blk, m):
+    """Flat child indices (4 per parent) of blocks ``blk`` on a 6×m×m grid → grid 6×2m×2m."""
+    f, rem = np.divmod(blk, m * m)
+    i, j = np.divmod(rem, m)
+    m2 = 2 * m
+    base = f * m2 * m2 + 2 * i * m2 + 2 * j
+    return (base[:, None] + np.array([0, 1, m2, m2 + 1])[None, :]).ravel()
+
+
+def _kernel(x, s):
+    x = np.maximum(x, 0.0)
+    return x if s == 1.0 else x * x
+
+
+#: index pairs of the 6 distinct entries of the symmetric second moment ω ωᵀ
+_IU = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
+#: bound on the (tile, source texel) pairs one chunk of output tiles may hold in the band gather of
+#: ``leaf = 1`` (≈ 10 float64/bool arrays of this length: ≈ 0.3 GB); the chunks are fixed by the sizes
+#: alone, so every worker count computes the same pieces
+MOMENT_CHUNK_PAIRS = 1 << 22
+
+
+def moment_band_pairs_per_tile(n: int, out_size: int, tile: int, stop: int) -> float:
+    """Estimate of the (tile, texel) pairs of one output tile's horizon band at the gather level.
+
+    A tile of ``tile``² output texels (cone half-angle β ≈ tile·Δ_out/√2, Δ = π/(2·size) the texel angle
+    at a face centre) straddles every block of ``stop``² source texels (half-angle α ≈ stop·Δ_src/√2)
+    within β + α of its horizon: a band of solid angle ≈ 2π·2(β + α) holding that / (4π/(6m²)) blocks of
+    ``stop²`` texels (m = n/stop blocks per face side).  Used only to size the chunks (measured: 3–8× the
+    pairs left after the per-texel test at 32²–128²; the ×2 in w covers the non-uniform texel density).
+    """
+    d_out, d_src = math.pi / (2 * out_size), math.pi / (2 * n)
+    w = 2.0 * (tile * d_out + stop * d_src) / math.sqrt(2.0) * 2.0
+    m = max(n / stop, 1.0)
+    return 3.0 * w * m * m * stop * stop
+
+
+def moment_tiles_per_chunk(n: int, out_size: int, tile: int, stop: int) -> int:
+    """Output tiles per chunk of :func:`convolve_moment_many`: the band working set ≤ :data:`MOMENT_CHUNK_PAIRS`."""
+    return max(1, int(MOMENT_CHUNK_PAIRS // max(moment_band_pairs_per_tile(n, out_size, tile, stop), 1.0)))
+
+
+def moment_peak_bytes(n: int, out_size: int, n_faces: int = 6, channels: int = 3, need2: bool = True) -> float:
+    """Estimated peak memory (bytes) of one :func:`convolve_moment_many` call (``leaf = 1``).
+
+    Per-texel moments (6·P²·(3 + 6)·Q float64, P = n rounded up to a power of two) and their block sums
+    (≈ ⅓ more), the output accumulators (2 per exponent, (tiles·t², Q)) and one chunk's band working set
+    (:data:`MOMENT_CHUNK_PAIRS` × ≈ 10 arrays of 8 bytes).
+    """
+    P = 1 << max(int(math.ceil(math.log2(max(n, 1)))), 0)
+    Q = channels + 1
+    nk = 3 * Q + (6 * Q if need2 else 0)
+    src = 6 * P * P * (nk * (1.0 + 1.0 / 3.0) + Q + 3 + 1) * 8.0
+    out = n_faces * out_size * out_size * Q * 8.0 * 2 * (2 if need2 else 1) * 1.5
+    return src + out + MOMENT_CHUNK_PAIRS * 10 * 8.0
+
+
+def _texel_moments(dP, wP, Q, need2):
+    """Per-texel moments (6,P,P,3Q[+6Q]): ω L Ω (and the 6 entries of ω ωᵀ L Ω), channel Q−1 with L ≡ 1."""
+    P = dP.shape[1]
+    F = [(dP[..., :, None] * wP[..., None, :]).reshape(6, P, P, 3 * Q)]
+    if need2:
+        dd = dP[..., _IU[0]] * dP[..., _IU[1]]  # (6,P,P,6)
+        F.append((dd[..., :, None] * wP[..., None, :]).reshape(6, P, P, 6 * Q))
+    return np.concatenate(F, axis=-1)
+
+
+def _block_levels(dP, real, F, P, stop):
+    """Per quadtree level b = P, P/2, …, stop: (b, m, cone centres, half-angles, valid, sin α, cos α, moments)."""
+    levels = []
+    b = P
+    while True:
+        cb, ab, vb = _cones(dP, real, b)
+        levels.append((b, P // b, cb, ab, vb, np.sin(ab), np.cos(ab), _block_sums(F, b)))
+        if b == stop:
+            return levels
+        b //= 2
+
+
+def _classify(levels, cT, betaT, sinB, cosB, nK, stop, leaf, dP, real, F, P, n):
+    """Quadtree classification of (tile, block) pairs for one chunk of output tiles.
+
+    Returns ``(S, tiles, blk)``: per-tile sums of the moments of blocks (or, at the gather level, texels)
+    positive for the whole tile, and the straddling pairs left for the band: (tile, leaf block) for
+    ``leaf > 1``, (tile, source texel) for ``leaf = 1``.
+    """
+    import scipy.sparse as sp  # lazily: ≈ 0.1–0.2 s of start-up that other routes do not need
+
+    T = cT.shape[0]
+    S = np.zeros((T, nK))
+    tiles = np.repeat(np.arange(T), 6)
+    blk = np.tile(np.arange(6), T)
+    for li, (b, m, cb, ab, vb, sinA, cosA, mom) in enumerate(levels):
+        # θ + reach ≤ π/2  ⟺  cos θ ≥ sin(reach);  θ − reach ≥ π/2  ⟺  cos θ ≤ −sin(reach)  (reach < π/2);
+        # sin(β+α) by the addition theorem (no arccos per pair); 1e-15 absorbs the dot's rounding
+        cos_t = np.einsum("pk,pk->p", cT[tiles], cb[blk])
+        sin_r = sinB[tiles] * cosA[blk] + cosB[tiles] * sinA[blk]
+        small = (betaT[tiles] + ab[blk]) < 0.5 * math.pi
+        vbb = vb[blk]
+        pos = vbb & small & (cos_t >= sin_r + 1e-15)
+        neg = ~vbb | (small & (cos_t <= -sin_r - 1e-15))
+        if pos.any():
+            A = sp.csr_matrix((np.ones(int(pos.sum())), (tiles[pos], blk[pos])), shape=(T, 6 * m * m))
+            S += A @ mom
+        strad = ~(pos | neg)
+        tiles, blk = tiles[strad], blk[strad]
+        if li == len(levels) - 1:
+            break
+        tiles = np.repeat(tiles, 4)
+        blk = _children(blk, m)
+    if leaf == 1 and stop > 1:  # straddling blocks of size `stop` → all their texels (exact gather)
+        band_d = dP.reshape(-1, 3)
+        mg = P // stop
+        off = (np.arange(stop)[:, None] * P + np.arange(stop)[None, :]).ravel()
+        allb = np.arange(6 * mg * mg)
+        f, rem = np.divmod(allb, mg * mg)
+        i, j = np.divmod(rem, mg)
+        texel_of = (f * P * P + stop * i * P + stop * j)[:, None] + off[None, :]  # (blocks, stop²)
+        # per-texel test against the tile cone: texels positive for the whole tile
+        # (c_T·ω ≥ sin β_T) join the tile's exact moment sums, negative ones are dropped.
+        # Block-major layout: one contiguous row of stop² texels per (tile, block) pair.
+        cTt = cT[tiles]
+        cdot = band_d[texel_of, 0][blk] * cTt[:, 0:1]
+        cdot += band_d[texel_of, 1][blk] * cTt[:, 1:2]
+        cdot += band_d[texel_of, 2][blk] * cTt[:, 2:3]
+        sb = (sinB[tiles] + 1e-15)[:, None]
+        pos = cdot >= sb
+        keep = ~pos & (cdot > -sb)
+        if P != n:  # padding texels (face size not a power of two) carry no weight
+            ok = real.ravel()[texel_of][blk]
+            pos &= ok
+            keep &= ok
+        tex = texel_of[blk]
+        til = np.broadcast_to(tiles[:, None], tex.shape)
+        if pos.any():
+            A = sp.csr_matrix((np.ones(int(pos.sum())), (til[pos], tex[pos])), shape=(T, 6 * P * P))
+            S += A @ F.reshape(6 * P * P, -1)
+        tiles, blk = til[keep], tex[keep]
+    return S, tiles, blk
+
+
+def _band_exact(Rc, tiles, blk, bdT, bw_pad, s_list, num, chunk_elems):
+    """Exact gather of the straddling texels ``blk`` for their tiles (``leaf = 1``), into ``num``.
+
+    ``bdT`` (3, M+1) and ``bw_pad`` (M+1, Q): source directions and weights with a zero dummy last entry.
+    """
+    for tc, idx in _padded_batches(tiles, blk, Rc.shape[0], Rc.shape[1], chunk_elems, 1):
+        R = Rc[tc]
+        # segments of the band small enough for the cache (the gather is memory-bound)
+        seg = max(64, chunk_elems // (len(tc) * Rc.shape[1]))
+        acc = {s_: 0.0 for s_ in s_list}
+        for m0 in range(0, idx.shape[1], seg):
+            ii = idx[:, m0 : m0 + seg]
+            dzT = np.stack([bdT[k][ii] for k in range(3)], axis=1)  # (tc, 3, m), pads → 0
+            wz = bw_pad[ii]  # (tc, m, Q)
+            X = np.matmul(R, dzT)  # (tc, t², m)
+            np.maximum(X, 0.0, out=X)
+            for s in s_list:
+                if s == 1.0:
+                    acc[s] = acc[s] + np.matmul(X, wz)
+                else:
+                    np.multiply(X, X, out=X)  # s = 2 last (sorted)
+                    acc[s] = acc[s] + np.matmul(X, wz)
+        for s in s_list:
+            num[s][tc] += acc[s]
+
+
+def _band_intervals(Rc, tiles, blk, cb_leaf, ab_leaf, M0, M1, s_list, num, err, chunk_elems):
+    """Convexity intervals (Jensen / Edmundson–Madansky) on the straddling leaf blocks (``leaf > 1``)."""
+    Q = M0.shape[1]
+    for tc, idx in _padded_batches(tiles, blk, Rc.shape[0], Rc.shape[1], chunk_elems, 8 * Q):
+        R = Rc[tc]
+        cz = np.concatenate([cb_leaf, np.array([[0.0, 0.0, 1.0]])])[idx]
+        az = np.concatenate([ab_leaf, [0.0]])[idx]
+        m0 = np.concatenate([M0, np.zeros((1, Q))])[idx]  # (tc, m, Q)
+        m1 = np.concatenate([M1, np.zeros((1, 3, Q))])[idx]  # (tc, m, 3, Q)
+        xc = np.clip(np.matmul(R, cz.transpose(0, 2, 1)), -1.0, 1.0)  # (tc, t², m)
+        th = np.arccos(xc)
+        ca, sa = np.cos(az)[:, None, :], np.sin(az)[:, None, :]
+        sth = np.sin(th)
+        x_hi = np.where(th <= az[:, None, :], 1.0, np.minimum(xc * ca + sth * sa, 1.0))
+        x_lo = np.where(th + az[:, None, :] >= math.pi, -1.0, np.maximum(xc * ca - sth * sa, -1.0))
+        y = np.einsum("cik,cmkq->cimq", R, m1)  # W x̄ per channel
+        W = m0[:, None, :, :]
+        width = (x_hi - x_lo)[..., None]
+        for s in s_list:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                xbar = np.where(W > 0, y / np.where(W > 0, W, 1.0), 0.0)
+                lo = W * _kernel(xbar, s)
+                fhi = _kernel(x_hi, s)[..., None]
+                chord = np.where(width > 1e-9, fhi * np.maximum(y - W * x_lo[..., None], 0.0)
+                                 / np.maximum(width, 1e-9), np.inf)
+                hi = np.minimum(W * fhi, chord)
+            hi = np.maximum(hi, lo)
+            num[s][tc] += 0.5 * (lo + hi).sum(axis=2)
+            err[s][tc] += 0.5 * (hi - lo).sum(axis=2)
+
+
+def _padded_batches(tiles, blk, T, tt, chunk_elems, per_elem):
+    """Yield ``(tile indices, padded index matrix)`` batches of tiles sorted by band size (pads = −1)."""
+    order = np.argsort(tiles, kind="stable")
+    tiles, blk = tiles[order], blk[order]
+    counts = np.bincount(tiles, minlength=T)
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    tord = np.argsort(counts, kind="stable")
+    if not T or int(counts.max()) == 0:
+        return
+    k0 = 0
+    while k0 < T:
+        k1 = k0 + 1
+        # grow the batch while the padded working set fits
+        while k1 < T and (k1 - k0 + 1) * max(int(counts[tord[k1]]), 1) * tt * per_elem <= chunk_elems:
+            k1 += 1
+        tc = tord[k0:k1]
+        mmax = int(counts[tc].max())
+        k0 = k1
+        if mmax == 0:
+            continue
+        ar = np.arange(mmax)
+        okm = ar[None, :] < counts[tc][:, None]
+        pos_ = np.where(okm, starts[tc][:, None] + ar[None, :], 0)
+        yield tc, np.where(okm, blk[pos_], -1)
+
+
+
+def convolve_moment_many(
+    cube,
+    exponents,
+    *,
+    out_size: int | None = None,
+    normalized: bool = True,
+    leaf: int = 1,
+    tile: int | None = None,
+    gather: int | None = None,
+    bright_factor: float = 50.0,
+    chunk_elems: int = 1 << 16,
+    faces=None,
+):
+    """Lobe average (or Eq. 4 sum) for ``s ∈ {1, 2}`` by hierarchical moments, with a rigorous bound.
+
+    Parameters
+    ----------
+    cube : array (6, N, N[, C])
+        Non-negative finite radiance.
+    exponents : sequence of float
+        Each 1 or 2.
+    out_size : int, optional
+        Output face size (default N).
+    normalized : bool
+        Lobe average (default) or the literal Eq. 4 sum.
+    leaf : int
+        Leaf block size (power of two). 1: exact gather of the horizon band (bound = rounding);
+        > 1: convexity intervals on straddling leaf blocks (faster, bound > 0).
+    tile : int
+        Output tile size (texels per side) sharing one classification (default 8 for output faces
+        ≥ 128, else 4: fastest measured at 64² / 128²).
+    gather : int
+        With ``leaf = 1``: straddling blocks of this size (power of two) are gathered texel by texel
+        (exactly) instead of being split further (default 4 for faces ≥ 128, else 2).
+    bright_factor : float
+        With ``leaf > 1``: texels with luminance > bright_factor × mean are gathered exactly.
+    chunk_elems : int
+        Working-set size (elements) of the band gather (512 KB: the gather is memory-bound; at 128²
+        faces 1 << 16 and 1 << 17 measured equal within run-to-run noise, 1.6–2.1 s for s = 1, 2).
+    faces : sequence of int, optional
+        Compute only these output faces (indices 0…5, OpenEXR order; default all six, in order).
+        The output tiles of one face never share work with another face's, so a face subset is the
+        same computation restricted to those tiles (used by :func:`ibl_ref.groundtruth.convolve.convolve` to
+        split the work between workers; results agree with the full call up to float64 rounding of
+        the band sums, whose batching depends on the tile set).
+
+    Returns
+    -------
+    maps : ndarray (K, F, n, n, C) (``(K, F, n, n)`` for a 3-d input), F = number of faces (6)
+    rel_bound : ndarray (K, F, n, n)
+        Rigorous bound on ``|approx − exact|/exact`` (max over channels; inf where exact may be 0).
+    """
+    a4, squeeze = check_cube(cube)
+    n = a4.shape[1]
+    s_in = [float(s) for s in np.atleast_1d(np.asarray(exponents, dtype=float))]
+    s_list = sorted(set(s_in))  # s = 1 before s = 2 (the band gather squares in place)
+    if not s_list or any(s not in SUPPORTED_EXPONENTS for s in s_list):
+        raise IBLError(f"moment convolution supports Phong exponents {SUPPORTED_EXPONENTS}, got {exponents!r}")
+    out_size = check_out_size(out_size, n)
+    if tile is None:
+        tile = 8 if out_size >= 128 else 4
+    if gather is None:
+        gather = 4 if n >= 128 else 2
+    for name, v in (("leaf", leaf), ("tile", tile), ("gather", gather)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1 or (v & (v - 1)):
+            raise IBLError(f"{name} must be a positive power of two, got {v!r}")
+    leaf, tile, gather = int(leaf), int(tile), int(gather)
+    faces = check_faces(faces)
+    nF = len(faces)
+    need2 = 2.0 in s_list
+    C = a4.shape[-1]
+    Q = C + 1  # channel Q-1: L ≡ 1 (denominator)
+
+    # ---- source: padded grid (power of two ≥ N, ≥ leaf), weights L Ω, bright texels ---------------
+    P = 1 << max(int(math.ceil(math.log2(n))), int(math.log2(leaf)), 0)
+    omega = envmap.cube_solid_angles(n)
+    wL = np.concatenate([a4 * omega[..., None], omega[..., None]], axis=-1)  # (6,n,n,Q)
+    dirs = envmap.texel_directions(n)
+    bright_idx = np.zeros(0, dtype=np.int64)
+    if leaf > 1:
+        lum = a4.max(axis=-1)
+        mean = float(np.sum(lum * omega) / np.sum(omega))
+        br = lum > bright_factor * max(mean, 1e-300)
+        if br.any():
+            bright_idx = np.flatnonzero(br.ravel())
+            wL = wL.copy()
+            wL[br, :C] = 0.0  # the denominator (L ≡ 1) stays in the blocks
+    pad = ((0, 0), (0, P - n), (0, P - n), (0, 0))
+    wP = np.pad(wL, pad)
+    dP = np.pad(dirs, pad)
+    real = np.pad(np.ones((6, n, n), bool), pad[:3])
+
+    # ---- output tiles ----------------------------------------------------------------------------
+    t = tile
+    nt = -(-out_size // t)
+    od = envmap.texel_directions(out_size)[list(faces)]
+    od = np.pad(od, ((0, 0), (0, nt * t - out_size), (0, nt * t - out_size), (0, 0)), mode="edge")
+    R = od.reshape(nF, nt, t, nt, t, 3).transpose(0, 1, 3, 2, 4, 5).reshape(nF * nt * nt, t * t, 3)
+    T = R.shape[0]
+    cT = R.sum(axis=1)
+    cT /= np.linalg.norm(cT, axis=-1, keepdims=True)
+    betaT = np.arccos(np.clip(np.einsum("tik,tk->ti", R, cT).min(axis=1), -1.0, 1.0)) + _ANGLE_EPS
+
+    sinB, cosB = np.sin(betaT), np.cos(betaT)
+    nK = 3 * Q + (6 * Q if need2 else 0)
+    F = _texel_moments(dP, wP, Q, need2)
+    stop = leaf if leaf > 1 else min(gather, P)
+    levels = _block_levels(dP, real, F, P, stop)
+    M0 = M1 = None
+    if leaf > 1:
+        M0 = _block_sums(wP, leaf)
+        M1 = _block_sums(F[..., : 3 * Q], leaf).reshape(-1, 3, Q)
+    num = {s_: np.zeros((T, t * t, Q)) for s_ in s_list}
+    err = {s_: np.zeros((T, t * t, Q)) for s_ in s_list}
+    LAST_INFO.update(classify_s=0.0, band_s=0.0, band_pairs=0, tile_chunks=0)
+    if leaf == 1:  # source texels with one zero-weight dummy entry at the end (index −1: the pads)
+        bdT = np.ascontiguousarray(np.concatenate([dP.reshape(-1, 3), np.zeros((1, 3))]).T)
+        bw_pad = np.concatenate([wP.reshape(-1, Q), np.zeros((1, Q))])
+    # ---- output tiles in chunks of bounded working set (independent of the worker count) ------------
+    per_chunk = moment_tiles_per_chunk(n, out_size, t, stop)
+    for c0 in range(0, T, per_chunk):
+        ch = slice(c0, min(T, c0 + per_chunk))
+        nc = ch.stop - ch.start
+        _t0 = time.perf_counter()
+        S, tiles, blk = _classify(levels, cT[ch], betaT[ch], sinB[ch], cosB[ch], nK, stop, leaf, dP, real, F, P, n)
+        LAST_INFO["classify_s"] += time.perf_counter() - _t0
+        LAST_INFO["band_pairs"] += int(tiles.size)
+        LAST_INFO["tile_chunks"] += 1
+        Rc = R[ch]
+        # per output texel: positive-block moments (exact polynomial)
+        S1 = S[:, : 3 * Q].reshape(nc, 3, Q)
+        for s_ in s_list:
+            if s_ == 1.0:
+                num[s_][ch] = np.einsum("tik,tkq->tiq", Rc, S1)
+            else:
+                S2 = S[:, 3 * Q :].reshape(nc, 6, Q)
+                rr = Rc[..., _IU[0]] * Rc[..., _IU[1]] * np.array([1.0, 2.0, 2.0, 1.0, 2.0, 1.0])
+                num[s_][ch] = np.einsum("tik,tkq->tiq", rr, S2)
+        _t0 = time.perf_counter()
+        num_c = {s_: num[s_][ch] for s_ in s_list}  # views
+        err_c = {s_: err[s_][ch] for s_ in s_list}
+        if leaf == 1:
+            _band_exact(Rc, tiles, blk, bdT, bw_pad, s_list, num_c, chunk_elems)
+        else:
+            _band_intervals(Rc, tiles, blk, levels[-1][2], levels[-1][3], M0, M1, s_list, num_c, err_c,
+                            chunk_elems)
+        LAST_INFO["band_s"] += time.perf_counter() - _t0
+
+    # ---- bright texels: exact gather for every output -----------------------------------------------
+    if bright_idx.size:
+        bd = dirs.reshape(-1, 3)[bright_idx]
+        bw = np.zeros((bright_idx.size, Q))
+        bw[:, :C] = (a4.reshape(-1, C) * omega.reshape(-1, 1))[bright_idx]
+        X = np.maximum(np.einsum("tik,jk->tij", R, bd), 0.0)
+        for s in s_list:
+            num[s] += np.matmul(X if s == 1.0 else X * X, bw)
+
+    # ---- assemble, ratio bound ---------------------------------------------------------------------
+    K = len(s_in)
+    maps = np.empty((K, nF, out_size, out_size, C))
+    rel = np.empty((K, nF, out_size, out_size))
+
+    def untile(x):
+        x = x.reshape(nF, nt, nt, t, t, -1).transpose(0, 1, 3, 2, 4, 5).reshape(nF, nt * t, nt * t, -1)
+        return x[:, :out_size, :out_size]
+
+    for k, s in enumerate(s_in):
+        N_, E_ = untile(num[s]), untile(err[s])
+        Nn, En = N_[..., :C], E_[..., :C]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            if normalized:
+                D, ED = N_[..., C:], E_[..., C:]
+                approx = Nn / D
+                lo = np.maximum(Nn - En, 0.0) / (D + ED)
+                hi = (Nn + En) / np.maximum(D - ED, 0.0)
+            else:
+                approx, lo, hi = Nn, np.maximum(Nn - En, 0.0), Nn + En
+            r = np.maximum(approx - lo, hi - approx) / lo
+            exact_here = (En == 0) & (E_[..., C:] == 0) if normalized else (En == 0)
+            r = np.where(exact_here, 0.0, r)
+            r = np.where(np.isfinite(r), r, np.inf)
+        if not np.all(np.isfinite(approx)):
+            raise IBLError("moment convolution: zero lobe weight (cannot happen for a valid cube map)")
+        maps[k] = approx
+        rel[k] = r.max(axis=-1) + ROUNDING_REL
+    if squeeze:
+        maps = maps[..., 0]
+    return maps, rel
+
+
+def convolve_moment(cube, s, **kwargs):
+    """Single-exponent form of :func:`convolve_moment_many`; returns ``(map, rel_bound)``."""
+    maps, rel = convolve_moment_many(cube, [s], **kwargs)
+    return maps[0], rel[0]

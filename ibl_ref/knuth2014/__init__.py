@@ -1,0 +1,1 @@
+"""The paper's method (Knuth et al. 2014): 5×5 filters, the filter pyramid, the glossiness lookup, median cut, partial environment maps, the Sec. 5 lobe analysis, the Fig. 8 memory model, and the exact-lobe chain comparator."""

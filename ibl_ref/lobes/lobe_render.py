@@ -1,0 +1,119 @@
+"""Kautz & McCool (2000) renders of the teapot, one method per call — the library side of ``ibl-ref km00-render``.
+
+:func:`render_single_method` shades the teapot's G-buffer (:func:`teapot_gbuffer`, the camera of
+:func:`ibl_ref.rendering.scenes.default_camera`) with an analytic BRDF (:mod:`ibl_ref.lobes.brdfs`) by one of
+:data:`SINGLE_METHODS`, all from :mod:`ibl_ref.lobes.prefiltered_lobes`: ``reference`` (per-pixel exact filtering
+Σ_j L_j f(ω_j, wo) max(n·ω_j, 0) Ω_j with per-pixel supersampling, :func:`reference_supersample`), ``lobes`` (greedy
+multi-lobe fit in 3D maps, KM2000 Sec. 5.3), ``single`` (one lobe per elevation, Sec. 5.1), ``2d`` (one shared 2D
+lobe × k(θo), Sec. 5.2) and ``pyramid`` (the lobes' Phong fits looked up in the sqrt-cos pyramid of Knuth et al.
+2014).  View elevations θo are sampled in [0°, :data:`THETA_MAX_DEG`]; no visibility (KM2000 has none).  The
+experiment ``ibl-ref experiment km00-render`` (:mod:`ibl_ref.experiments.km00_render`) compares all of them.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+__all__ = ["THETA_MAX_DEG", "SINGLE_METHODS", "teapot_gbuffer", "reference_supersample", "render_single_method"]
+
+#: largest sampled view elevation θo (degrees); pixels beyond use the lobes of θmax
+THETA_MAX_DEG = 80.0
+
+
+def teapot_gbuffer(width: int, height: int | None = None):
+    """G-buffer of the teapot alone under :func:`ibl_ref.rendering.scenes.default_camera` (``width`` px; ``height`` crops)."""
+    import dataclasses
+
+    from ..rendering.raster import rasterize
+    from ..rendering.scenes import default_camera
+    from ..synthetic.synthetic_meshes import make_mesh
+
+    meshes = [(make_mesh("teapot"), 0)]
+    cam = default_camera(meshes, size=int(width))
+    if height is not None and int(height) != int(width):
+        cam = dataclasses.replace(cam, height=int(height))
+    return rasterize(meshes, cam)
+
+
+SINGLE_METHODS = ("reference", "lobes", "single", "2d", "pyramid")
+
+
+def reference_supersample(f, env_size: int, n, wo, samples_per_hwhm: float, max_supersample: int) -> np.ndarray:
+    """Per-sample source supersampling k of the per-pixel reference: the BRDF slice's narrowest half width at the
+    sample's θo (:func:`~ibl_ref.lobes.prefiltered_lobes.brdf_min_hwhm`, tabulated every 0.5°, the smaller of the two
+    bracketing entries) spans ``samples_per_hwhm`` sub-texels (:func:`~ibl_ref.lobes.prefiltered_lobes.auto_supersample`),
+    capped at ``max_supersample``.  Returns (P,) integers."""
+    from . import prefiltered_lobes as pl
+
+    th = np.arccos(np.clip(np.sum(n * wo, axis=1), 0.0, 1.0))
+    th_tab = np.radians(np.arange(0.0, 90.0, 0.5))
+    hw_tab = pl.brdf_min_hwhm(f, th_tab)
+    i = np.clip((th / np.radians(0.5)).astype(int), 0, th_tab.size - 2)
+    hw = np.minimum(hw_tab[i], hw_tab[i + 1])
+    return np.array([pl.auto_supersample(int(env_size), h, float(samples_per_hwhm), int(max_supersample))
+                     for h in hw], dtype=np.intp)
+
+
+def render_single_method(method: str, env: np.ndarray, *, width: int = 256, height: int | None = None,
+                         brdf: str = "ward", brdf_params: dict | None = None, n_lobes: int = 3, n_theta: int = 16,
+                         n_gamma: int = 256, n_phi: int = 64, map_supersample="auto", map_out_size=None,
+                         tail_rtol: float = 1e-6, cos_mode: str = "mirror", energy: str = "phong",
+                         ref_samples_per_hwhm: float = 3.0, ref_max_supersample: int = 16,
+                         rescale_lobes: bool = False, progress: bool = False):
+    """Render the teapot (camera of ``ibl-ref experiment fig6``, :func:`ibl_ref.rendering.scenes.default_camera`) by one method; returns (image (H, W, C),
+    mask (H, W), info dict).  ``method`` ∈ :data:`SINGLE_METHODS` (``lobes``: ``n_lobes`` greedy lobes in 3D maps,
+    ``pyramid``: the same lobes via their Phong fits in the sqrt-cos pyramid; ``rescale_lobes``: the greedy lobes with
+    one energy factor per elevation, :func:`ibl_ref.lobes.kautz_mccool2000.fit_multi_lobe` ``rescale=True``).  θo sampled
+    in [0°, 80°]."""
+    from . import brdfs as B
+    from . import kautz_mccool2000 as km
+    from . import prefiltered_lobes as pl
+    from ..errors import IBLError
+    from ..knuth2014.pyramid import build_pyramid
+
+    if method not in SINGLE_METHODS:
+        raise IBLError(f"method must be one of {', '.join(SINGLE_METHODS)}, got {method!r}")
+    if isinstance(n_theta, bool) or not isinstance(n_theta, (int, np.integer)) or n_theta < 2:
+        raise IBLError(f"n_theta must be an integer >= 2 (elevations from 0 to {THETA_MAX_DEG:g} deg), got {n_theta!r}")
+    f = B.get_brdf(brdf, **(brdf_params or {}))
+    t_all = time.perf_counter()
+    gb = teapot_gbuffer(width, height)
+    m = gb.mask
+    if not m.any():
+        raise IBLError("the teapot covers no pixel at this image size")
+    n, wo = gb.normal[m], gb.view[m]
+    thetas = np.radians(np.linspace(0.0, THETA_MAX_DEG, int(n_theta)))
+    fk = dict(n_gamma=int(n_gamma), n_phi=int(n_phi))
+    ck = dict(supersample=map_supersample, tail_rtol=float(tail_rtol), progress=progress,
+              out_size=int(map_out_size or env.shape[1]))
+    info: dict = dict(method=method, brdf=brdf, brdf_params=dict(brdf_params or {}))
+    if method == "reference":
+        # the cone cut and its bound cover Ward's specular term only: with a diffuse term gather everything
+        cut = pl.ward_cut_angle(f.params.get("alpha", 0.04), 1e-12) if brdf == "ward" and not f.params.get("kd", 0.0) else None
+        kpix = reference_supersample(f, env.shape[1], n, wo, ref_samples_per_hwhm, ref_max_supersample)
+        vals = pl.render_reference(env, n, wo, f, supersample=kpix, cut_angle=cut, progress=progress)
+        info.update(cut_angle_deg=None if cut is None else float(np.degrees(cut)), max_supersample=int(kpix.max()))
+    elif method in ("lobes", "pyramid"):
+        multi = [km.fit_multi_lobe(f, t, int(n_lobes), rescale=bool(rescale_lobes), **fk) for t in thetas]
+        ls = pl.build_lobe_set(multi, km.track_lobes(multi), cube=env if method == "lobes" else None,
+                               **(ck if method == "lobes" else {}))
+        if method == "lobes":
+            vals = pl.shade_lobes(ls, n, wo, cos_mode=cos_mode)
+        else:
+            vals = pl.shade_pyramid(ls, build_pyramid(env, kernel="sqrtcos"), n, wo, energy=energy, cos_mode=cos_mode)
+        info.update(n_tracks=ls.n_tracks, rel_rms_brdf=km.rms_error(multi, int(n_lobes)))
+    elif method == "single":
+        single = [km.fit_single_lobe(f, t, **fk) for t in thetas]
+        vals = pl.shade_lobes(pl.build_lobe_set(single, None, cube=env, **ck), n, wo, cos_mode=cos_mode)
+        info.update(rel_rms_brdf=km.rms_error(single))
+    else:
+        s2d, p_bar, kw = km.fit_single_2d_lobe(f, thetas, **fk)
+        vals = pl.shade_2d(pl.build_2d_lobe(s2d, p_bar, kw, cube=env, **ck), n, wo, cos_mode=cos_mode)
+        info.update(rel_rms_brdf=km.rms_error(s2d))
+    H, W = m.shape
+    img = np.zeros((H * W, vals.shape[-1]))
+    img[m.reshape(-1)] = vals
+    info["time_s"] = round(time.perf_counter() - t_all, 3)
+    return img.reshape(H, W, -1), m, info

@@ -1,0 +1,112 @@
+"""Plain image files of the renderer: radiance images (OpenEXR) and glossiness maps.
+
+Rendered images of Knuth et al. (2014), Eq. 5, are radiance (linear, unbounded) and are stored as plain
+scanline OpenEXR images, channels ``R, G, B`` (or ``Y`` for one channel), 32-bit float, ZIP compression, no
+``envmap`` attribute (they are not environment maps; use :mod:`ibl_ref.environment.exr_io` for those).  Written atomically
+(:func:`ibl_ref.atomic.atomic_path`).
+
+Glossiness maps (the per-texel g of :class:`ibl_ref.rendering.render.Material`) are read from ``.npy`` (a 2D float
+array), ``.exr`` (channel ``Y``, or the mean of ``R, G, B``) or ``.png`` (8/16-bit, values / max → [0, 1];
+the mean of ``R, G, B`` for colour images; alpha ignored).  Row 0 of the file is the *top* of the map (v = 1).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import EnvMapFileError, IBLError
+
+__all__ = ["write_image_exr", "read_image_exr", "read_g_map"]
+
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def write_image_exr(path, img) -> Path:
+    """Write a radiance image (H, W), (H, W, 1) or (H, W, 3) as a float32 OpenEXR file (atomically).
+
+    Raises
+    ------
+    IBLError
+        NaN/Inf, negative values, values beyond float32, or an unsupported shape (checked before writing).
+    EnvMapFileError
+        The OpenEXR library cannot write the file.
+    """
+    from ..atomic import atomic_path
+
+    a = np.asarray(img, dtype=np.float64)
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.ndim != 3 or a.shape[2] not in (1, 3) or a.shape[0] < 1 or a.shape[1] < 1:
+        raise IBLError(f"{path}: image must be (H, W), (H, W, 1) or (H, W, 3), got shape {np.shape(img)}")
+    if not np.all(np.isfinite(a)):
+        raise IBLError(f"{path}: image contains NaN or Inf; refusing to write")
+    if np.any(a < 0):
+        raise IBLError(f"{path}: image contains negative radiance (min {a.min():g})")
+    if np.any(a > _FLOAT32_MAX):
+        raise IBLError(f"{path}: values exceed the float32 range")
+    try:
+        import OpenEXR
+    except ImportError as exc:  # pragma: no cover - declared dependency
+        raise EnvMapFileError("the OpenEXR Python package (>= 3.2) is required to write .exr images") from exc
+    pix = np.ascontiguousarray(a.astype(np.float32))
+    channels = {"RGB": pix} if pix.shape[2] == 3 else {"Y": np.ascontiguousarray(pix[..., 0])}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    path = Path(path)
+    try:
+        with atomic_path(path, suffix=".exr") as tmp:
+            OpenEXR.File(header, channels).write(str(tmp))
+    except IBLError:
+        raise
+    except (OSError, RuntimeError, ValueError, TypeError) as exc:
+        raise EnvMapFileError(f"{path}: cannot write OpenEXR image: {exc}") from exc
+    return path
+
+
+def read_image_exr(path) -> np.ndarray:
+    """Read an OpenEXR image written by :func:`write_image_exr` (or any RGB/Y EXR) → (H, W, C) float64."""
+    from ..environment.exr_io import read_image
+
+    return read_image(path)[0]
+
+
+def read_g_map(path) -> np.ndarray:
+    """A glossiness map (h, w) float64 in [0, 1] from ``.npy``, ``.exr`` or ``.png`` (module docstring).
+
+    Raises
+    ------
+    IBLError
+        Unknown extension, unreadable file, not 2D, or values outside [0, 1].
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise IBLError(f"{path}: g map file not found")
+    ext = path.suffix.lower()
+    if ext == ".npy":
+        try:
+            a = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise IBLError(f"{path}: cannot read .npy g map: {exc}") from exc
+        a = np.asarray(a, dtype=np.float64)
+    elif ext == ".exr":
+        a = read_image_exr(path)
+        a = a[..., 0] if a.shape[2] == 1 else a[..., :3].mean(axis=2)
+    elif ext == ".png":
+        import matplotlib.image as mpimg
+
+        try:
+            a = np.asarray(mpimg.imread(str(path), format="png"), dtype=np.float64)  # floats in [0, 1]
+        except Exception as exc:  # PIL/matplotlib raise many types for bad files
+            raise IBLError(f"{path}: cannot read PNG g map: {exc}") from exc
+        if a.ndim == 3:
+            a = a[..., 0] if a.shape[2] in (1, 2) else a[..., :3].mean(axis=2)
+    else:
+        raise IBLError(f"{path}: g map must be .npy, .exr or .png, got {ext or 'no extension'!r}")
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    if a.ndim != 2 or a.size == 0:
+        raise IBLError(f"{path}: g map must be a 2D image, got shape {a.shape}")
+    if np.any(~np.isfinite(a)) or np.any(a < 0) or np.any(a > 1):
+        raise IBLError(f"{path}: g map values must be in [0, 1] (0 = diffuse, 1 = mirror)")
+    return a

@@ -1,0 +1,647 @@
+"""Final lighting computation of Knuth et al. (2014), Sec. 3.4, Eq. 5: c = Σ_i VIS_i(x, y) · PEM_i(x, y).
+
+Per pixel the G-buffer (:mod:`ibl_ref.rendering.raster`) gives the world position, the normal and the reflection vector
+r = 2(n·v)n − v; "we can use the same sample vector for each PEM" (Sec. 3.4), so every partial environment map
+``PEM_i`` is looked up at (r, g) with the material's glossiness g (``PEMSet.lookup_all`` of
+:mod:`ibl_ref.knuth2014.pem`), and weighted by the visibility ``VIS_i`` of light i (the region's centroid direction):
+
+* ``visibility="vsm"`` — the paper's method: one variance shadow map per light, blurred according to the
+  region's solid angle (:mod:`ibl_ref.rendering.vsm`, Sec. 3.3/4);
+* ``visibility="raycast"`` — exact binary visibility of the same directional lights (:mod:`ibl_ref.rendering.raycast`):
+  ``exact_backend="binned"`` (default, :func:`ibl_ref.rendering.raycast.parallel_visibility`, fast) or ``"trimesh"``
+  (:func:`ibl_ref.rendering.raycast.visibility_to_directions`; slow without Embree).  The difference to "vsm" is the
+  shadow-map error alone;
+* ``visibility="none"`` — VIS_i = 1, the unshadowed image Σ_i PEM_i (= the full map's lookup, by linearity).
+
+**One Eq. 5 path.**  The pieces are public and every renderer of the package uses them: :func:`eq5_lookups`
+(PEM_i(n, 0) and PEM_i(r, g)), :func:`light_visibilities` (VIS_i by any method), :func:`eq5_terms` /
+:func:`shade_eq5` (the sum) and :func:`unshadowed_eq5`; :func:`render_pem` composes them, and so do the
+comparison modes of Fig. 6 (:func:`ibl_ref.rendering.ao_modes.render_modes`), which differ only in the occlusion model.
+
+**Horizon.**  A light below the tangent plane of the receiving triangle is physically blocked by the surface
+itself.  A shadow map does not see this for open surfaces (a ground quad is its own first occluder, so t ≈ μ
+and the light counts as visible), and Eq. 5 as printed has no such term.  ``horizon=False`` (default) keeps the
+paper's semantics for every method (the binned exact route then only counts *other* geometry, like a shadow map
+would); ``horizon=True`` multiplies every VIS_i by [n_face·ω_i > 0] for all methods.  The trimesh route always
+includes the receiver's own surface (its rays start on it).  On the teapot-on-ground scene of
+``benchmarks/bench_raster.py --render`` this term alone changes the image by ~10 % (mean |Δ| / mean).
+
+**Materials (Eq. 5 with a diffuse and a glossy term).**  With ``materials={id: Material(kd, ks, g)}`` every
+pixel is shaded as
+
+    c = Σ_i VIS_i · (kd · PEM_i(n, g = 0) + ks · PEM_i(r, g)),
+
+the diffuse part looked up through the shading normal n at s_Phong = 1 (g = 0, Eq. 3) and the glossy part
+through the reflection vector r with the material's g (the paper's "material system" embedded in the PEMs,
+Sec. 3.2/3.4).  kd and ks are scalars or RGB triples (per-channel weights); with normalised lobes (the filter
+pyramid is a lobe *average*) a constant environment L ≡ c gives exactly (kd + ks)·c.  ``glossiness=`` keeps
+its old meaning, kd = 0 and ks = 1 (pure glossy, the paper's Fig. 6 material).
+
+**Glossiness maps** (the paper's garments with varying yarns): ``Material.g_map`` is a 2D image (h, w) of g
+values indexed by the mesh's texture coordinates (trimesh ``mesh.visual.uv``, one (u, v) per vertex,
+interpolated perspective-correctly with the G-buffer's barycentrics).  Texture convention (OpenGL / trimesh):
+u runs left → right over the image columns, v bottom → top over the rows (v = 0 is the *last* row), texel
+centres at ((j+½)/w, 1 − (i+½)/h); ``g_map_filter`` ``"bilinear"`` (default) or ``"nearest"``;
+``g_map_wrap`` ``"repeat"`` (default, u, v mod 1) or ``"clamp"``.  Meshes **without UVs** (all of
+:mod:`ibl_ref.synthetic.synthetic_meshes`) use ``Material.uv_fallback``: ``"planar_xz"`` (default; u = (x − x_min) /
+(x_max − x_min), v = (z − z_min) / (z_max − z_min) over the mesh's own bounding box, a top-down projection of
+the world position), ``"spherical"`` (u = ½ + atan2(x', z')/2π, v = ½ + asin(y'/|p'|)/π of p' = p − bbox
+centre, computed per pixel so there is no interpolation seam) or ``"error"`` (raise :class:`IBLError`).
+A prepared :class:`ibl_ref.rendering.raster.Scene` carries no UVs, so it always uses the fallback.
+
+Background pixels (no geometry) are flagged in ``RenderResult.mask``; in ``image`` they are 0
+(``background="black"``, default) or the environment seen along the camera ray (``background="env"``: the same
+look-up a mirror reflection of that direction gets, :func:`background_image`).  Normals are used as given by the
+mesh (not flipped toward the viewer).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import IBLError
+
+__all__ = ["RenderResult", "Material", "glossiness_image", "material_images", "surface_uv", "sample_g_map",
+           "render_pem", "resolve_materials", "light_visibilities", "eq5_lookups", "eq5_terms", "shade_eq5",
+           "unshadowed_eq5", "background_image", "apply_background", "VISIBILITY_METHODS", "UV_FALLBACKS",
+           "BACKGROUNDS"]
+
+VISIBILITY_METHODS = ("vsm", "raycast", "none")
+
+
+@dataclass
+class RenderResult:
+    """Output of :func:`render_pem`.
+
+    Attributes
+    ----------
+    image : (H, W, C) float64 — Eq. 5 (0 on background).
+    unshadowed : (H, W, C) float64 — Σ_i PEM_i (VIS ≡ 1); with materials Σ_i (kd·PEM_i(n, 0) + ks·PEM_i(r, g)).
+    visibility : (L, H, W) float64 — VIS_i per light (1 on background).
+    mask : (H, W) bool — pixels covered by geometry.
+    gbuffer : :class:`ibl_ref.rendering.raster.GBuffer`
+    glossiness : (H, W) float64 — g per pixel of the glossy lobe (0 on background).
+    method : str — visibility method.
+    diffuse, specular : (H, W, C) float64 or None — the two terms of Eq. 5 with materials,
+        Σ_i VIS_i·kd·PEM_i(n, 0) and Σ_i VIS_i·ks·PEM_i(r, g) (``image`` is their sum); None when rendered with
+        ``glossiness=`` (then ``image`` is the glossy term alone).
+    materials : {material_id: Material} used, or None.
+    """
+
+    image: np.ndarray
+    unshadowed: np.ndarray
+    visibility: np.ndarray
+    mask: np.ndarray
+    gbuffer: object
+    glossiness: np.ndarray
+    method: str
+    diffuse: np.ndarray | None = None
+    specular: np.ndarray | None = None
+    materials: dict | None = None
+
+
+def glossiness_image(material_id: np.ndarray, glossiness) -> np.ndarray:
+    """Per-pixel g from per-pixel material ids.
+
+    ``glossiness`` is a float (all materials) or a mapping ``{material_id: g}``; every material id present on
+    screen must be in the mapping.  Values must lie in [0, 1] (g = 1: mirror, Eq. 3).
+    """
+    mid = np.asarray(material_id)
+    out = np.zeros(mid.shape, dtype=np.float64)
+    cov = mid >= 0
+    if isinstance(glossiness, dict):
+        present = np.unique(mid[cov])
+        missing = [int(m) for m in present if int(m) not in glossiness]
+        if missing:
+            raise IBLError(f"glossiness: no value for material id(s) {missing}")
+        for m in present:
+            out[mid == m] = float(glossiness[int(m)])
+    else:
+        out[cov] = float(glossiness)
+    if np.any(~np.isfinite(out)) or np.any(out < 0) or np.any(out > 1):
+        raise IBLError(f"glossiness must be in [0, 1], got {glossiness!r}")
+    return out
+
+
+UV_FALLBACKS = ("planar_xz", "spherical", "error")
+G_MAP_FILTERS = ("bilinear", "nearest")
+G_MAP_WRAPS = ("repeat", "clamp")
+
+
+def _weight(x, name: str):
+    """kd / ks: a finite non-negative scalar (float) or RGB triple ((3,) float64)."""
+    try:
+        a = np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise IBLError(f"Material.{name} must be a number or an RGB triple, got {x!r}") from exc
+    if a.ndim == 1 and a.shape == (1,):
+        a = a[0]
+    if a.ndim not in (0, 1) or (a.ndim == 1 and a.shape != (3,)):
+        raise IBLError(f"Material.{name} must be a number or an RGB triple, got shape {a.shape}")
+    if np.any(np.isnan(a)) or np.any(~np.isfinite(a)):
+        raise IBLError(f"Material.{name} must be finite (no NaN/Inf), got {x!r}")
+    if np.any(a < 0):
+        raise IBLError(f"Material.{name} must be >= 0, got {x!r}")
+    return float(a) if a.ndim == 0 else a
+
+
+@dataclass
+class Material:
+    """A material of Eq. 5: diffuse weight ``kd``, glossy weight ``ks``, glossiness ``g`` (Eq. 3), optional g map.
+
+    Parameters
+    ----------
+    kd, ks : float or RGB triple, >= 0
+        Weights of the diffuse lobe (PEM lookup at the normal n with g = 0, s_Phong = 1) and of the glossy lobe
+        (lookup at the reflection vector r with glossiness g).  kd + ks <= 1 conserves energy (not enforced).
+    g : float in [0, 1]
+        Glossiness of the glossy lobe; 0 = diffuse-like (s = 1), 1 = mirror.  Used where there is no g map.
+    g_map : array (h, w) or (h, w, 1) in [0, 1], optional
+        Per-texel glossiness, indexed by texture coordinates (module docstring: UV convention and fallback).
+    g_map_filter : ``"bilinear"`` (default) or ``"nearest"``
+    g_map_wrap : ``"repeat"`` (default) or ``"clamp"``
+    uv_fallback : ``"planar_xz"`` (default), ``"spherical"`` or ``"error"`` — UVs for meshes that have none.
+
+    Raises
+    ------
+    IBLError
+        g outside [0, 1] or NaN, negative / NaN / Inf kd or ks, a g map that is not 2D or has values outside
+        [0, 1], an unknown option.
+    """
+
+    kd: object = 0.0
+    ks: object = 1.0
+    g: float = 0.5
+    g_map: np.ndarray | None = field(default=None, repr=False)
+    g_map_filter: str = "bilinear"
+    g_map_wrap: str = "repeat"
+    uv_fallback: str = "planar_xz"
+
+    def __post_init__(self):
+        self.kd = _weight(self.kd, "kd")
+        self.ks = _weight(self.ks, "ks")
+        try:
+            g = float(self.g)
+        except (TypeError, ValueError) as exc:
+            raise IBLError(f"Material.g must be a number in [0, 1], got {self.g!r}") from exc
+        if not (0.0 <= g <= 1.0):  # also rejects NaN
+            raise IBLError(f"Material.g must be in [0, 1] (0 = diffuse, 1 = mirror), got {self.g!r}")
+        self.g = g
+        if self.g_map is not None:
+            gm = np.asarray(self.g_map, dtype=np.float64)
+            if gm.ndim == 3 and gm.shape[2] == 1:
+                gm = gm[..., 0]
+            if gm.ndim != 2 or gm.size == 0:
+                raise IBLError(f"Material.g_map must be a non-empty 2D image (h, w), got shape {gm.shape}")
+            if np.any(np.isnan(gm)) or np.any(gm < 0) or np.any(gm > 1):
+                bad = gm[np.isnan(gm) | (gm < 0) | (gm > 1)].ravel()[0]
+                raise IBLError(f"Material.g_map values must be in [0, 1], got {bad!r}")
+            self.g_map = gm
+        if self.g_map_filter not in G_MAP_FILTERS:
+            raise IBLError(f"Material.g_map_filter must be one of {G_MAP_FILTERS}, got {self.g_map_filter!r}")
+        if self.g_map_wrap not in G_MAP_WRAPS:
+            raise IBLError(f"Material.g_map_wrap must be one of {G_MAP_WRAPS}, got {self.g_map_wrap!r}")
+        if self.uv_fallback not in UV_FALLBACKS:
+            raise IBLError(f"Material.uv_fallback must be one of {UV_FALLBACKS}, got {self.uv_fallback!r}")
+
+    @property
+    def channels(self) -> int:
+        """1 if kd and ks are scalars, 3 if either is an RGB triple."""
+        return 3 if (np.ndim(self.kd) or np.ndim(self.ks)) else 1
+
+
+def _as_material(m, key) -> Material:
+    if isinstance(m, Material):
+        return m
+    if isinstance(m, dict):
+        return Material(**m)
+    if isinstance(m, (tuple, list)) and len(m) == 3:
+        return Material(*m)
+    raise IBLError(f"materials[{key!r}]: expected a Material, a (kd, ks, g) tuple or a dict, got {m!r}")
+
+
+def resolve_materials(materials) -> dict:
+    """{material_id: Material} from a Material, a (kd, ks, g) tuple (all ids: key None) or a mapping."""
+    if isinstance(materials, (Material, tuple, list)) or (isinstance(materials, dict) and "g" in materials):
+        return {None: _as_material(materials, "*")}
+    if not isinstance(materials, dict):
+        raise IBLError("materials must be a Material or a mapping material id → Material, "
+                       f"got {type(materials).__name__}")
+    out = {}
+    for k, v in materials.items():
+        try:
+            kk = int(k)
+        except (TypeError, ValueError) as exc:
+            raise IBLError(f"materials: keys must be integer material ids, got {k!r}") from exc
+        out[kk] = _as_material(v, k)
+    return out
+
+
+def _wrap_index(i, n, wrap):
+    return np.mod(i, n) if wrap == "repeat" else np.clip(i, 0, n - 1)
+
+
+def sample_g_map(g_map, uv, filter: str = "bilinear", wrap: str = "repeat") -> np.ndarray:
+    """Sample a 2D g map at texture coordinates ``uv`` (..., 2) → (...,).
+
+    Convention (OpenGL / trimesh): u → columns left to right, v → rows bottom to top; texel (i, j) centre at
+    (u, v) = ((j+½)/w, 1 − (i+½)/h).  ``filter`` ``"bilinear"`` or ``"nearest"``; ``wrap`` ``"repeat"`` or
+    ``"clamp"``.  A bilinear blend of values in [0, 1] stays in [0, 1].
+    """
+    gm = np.asarray(g_map, dtype=np.float64)
+    if gm.ndim == 3 and gm.shape[2] == 1:
+        gm = gm[..., 0]
+    if gm.ndim != 2:
+        raise IBLError(f"g map must be 2D, got shape {gm.shape}")
+    h, w = gm.shape
+    uv = np.asarray(uv, dtype=np.float64)
+    x = uv[..., 0] * w - 0.5  # continuous column coordinate (texel centres at integers)
+    y = (1.0 - uv[..., 1]) * h - 0.5  # continuous row coordinate, v = 1 at the top row
+    if filter == "nearest":
+        return gm[_wrap_index(np.floor(y + 0.5).astype(np.int64), h, wrap),
+                  _wrap_index(np.floor(x + 0.5).astype(np.int64), w, wrap)]
+    if filter != "bilinear":
+        raise IBLError(f"g map filter must be one of {G_MAP_FILTERS}, got {filter!r}")
+    x0, y0 = np.floor(x), np.floor(y)
+    tx, ty = x - x0, y - y0
+    j0, i0 = x0.astype(np.int64), y0.astype(np.int64)
+    j0, j1 = _wrap_index(j0, w, wrap), _wrap_index(j0 + 1, w, wrap)
+    i0, i1 = _wrap_index(i0, h, wrap), _wrap_index(i0 + 1, h, wrap)
+    top = gm[i0, j0] * (1 - tx) + gm[i0, j1] * tx
+    bot = gm[i1, j0] * (1 - tx) + gm[i1, j1] * tx
+    return np.clip(top * (1 - ty) + bot * ty, 0.0, 1.0)  # clip: rounding only
+
+
+def _mesh_uv(mesh):
+    """(V, 2) per-vertex UVs of a trimesh mesh, or None."""
+    uv = getattr(getattr(mesh, "visual", None), "uv", None)
+    if uv is None:
+        return None
+    uv = np.asarray(uv, dtype=np.float64)
+    if uv.ndim != 2 or uv.shape != (len(mesh.vertices), 2) or not np.all(np.isfinite(uv)):
+        return None
+    return uv
+
+
+def surface_uv(meshes, scene, gbuffer, pixels, fallback: str = "planar_xz") -> np.ndarray:
+    """Texture coordinates (n, 2) of the covered pixels ``pixels`` (a boolean (H, W) mask inside ``gbuffer.mask``).
+
+    Meshes with UVs (trimesh ``visual.uv``): perspective-correct interpolation of the per-vertex UVs with the
+    G-buffer's barycentrics.  Others: ``fallback`` (module docstring) from the pixel's world position, with the
+    bounding box of the mesh the pixel belongs to; ``"error"`` raises :class:`IBLError`.
+    """
+    from .raster import _normalize_mesh_list
+
+    if fallback not in UV_FALLBACKS:
+        raise IBLError(f"uv fallback must be one of {UV_FALLBACKS}, got {fallback!r}")
+    items = _normalize_mesh_list(meshes)
+    mesh_list = None if hasattr(items, "faces") and hasattr(items, "mesh_index") else [m for m, _ in items]
+    tri = gbuffer.triangle_id[pixels]
+    lam = gbuffer.barycentric[pixels]
+    P = gbuffer.position[pixels]
+    midx = scene.mesh_index[tri]
+    uv = np.full((len(tri), 2), np.nan)
+    for k in np.unique(midx):
+        sel = midx == k
+        mesh = mesh_list[k] if mesh_list is not None else None
+        muv = _mesh_uv(mesh) if mesh is not None else None
+        if muv is not None:
+            fv = np.asarray(mesh.faces)[scene.source_face[tri[sel]]]  # same vertex order as scene.faces
+            uv[sel] = np.einsum("nk,nkc->nc", lam[sel], muv[fv])
+            continue
+        if fallback == "error":
+            raise IBLError(f"mesh {int(k)} has no texture coordinates (mesh.visual.uv) for its g map; "
+                           "give the mesh UVs or choose uv_fallback='planar_xz' or 'spherical'")
+        if mesh is not None:
+            V = np.asarray(mesh.vertices, dtype=np.float64)
+        else:
+            V = scene.vertices[np.unique(scene.faces[scene.mesh_index == k])]
+        lo, hi = V.min(axis=0), V.max(axis=0)
+        p = P[sel]
+        if fallback == "planar_xz":
+            ext = np.where(hi - lo > 0, hi - lo, 1.0)
+            uv[sel, 0] = (p[:, 0] - lo[0]) / ext[0]
+            uv[sel, 1] = (p[:, 2] - lo[2]) / ext[2]
+        else:  # spherical, around the bounding-box centre, per pixel (no interpolation seam)
+            q = p - 0.5 * (lo + hi)
+            rho = np.linalg.norm(q, axis=1)
+            uv[sel, 0] = 0.5 + np.arctan2(q[:, 0], q[:, 2]) / (2 * np.pi)
+            uv[sel, 1] = 0.5 + np.arcsin(np.clip(q[:, 1] / np.where(rho > 0, rho, 1.0), -1, 1)) / np.pi
+    return uv
+
+
+def material_images(meshes, scene, gbuffer, materials: dict):
+    """Per-pixel kd (n, K), ks (n, K) and g (n,) of the covered pixels (K = 1 or 3), in ``gbuffer.mask`` order.
+
+    ``materials`` as returned by :func:`resolve_materials` (key None = every material id).
+    """
+    m = gbuffer.mask
+    mid = gbuffer.material_id[m]
+    n = len(mid)
+    K = max([mat.channels for mat in materials.values()] + [1])
+    kd = np.zeros((n, K))
+    ks = np.zeros((n, K))
+    g = np.zeros(n)
+    present = np.unique(mid)
+    if None not in materials:
+        missing = [int(x) for x in present if int(x) not in materials]
+        if missing:
+            raise IBLError(f"materials: no Material for material id(s) {missing}")
+    for x in present:
+        mat = materials.get(None, materials.get(int(x)))
+        sel = mid == x
+        kd[sel] = mat.kd
+        ks[sel] = mat.ks
+        if mat.g_map is None:
+            g[sel] = mat.g
+        else:
+            pix = np.zeros_like(m)
+            idx = np.flatnonzero(m.ravel())[sel]
+            pix.ravel()[idx] = True
+            uv = surface_uv(meshes, scene, gbuffer, pix, mat.uv_fallback)
+            # pixels of ``pix`` in row-major order == order of ``idx`` (both follow the flattened mask)
+            g[sel] = sample_g_map(mat.g_map, uv, mat.g_map_filter, mat.g_map_wrap)
+    return kd, ks, g
+
+
+BACKGROUNDS = ("black", "env")
+
+
+def light_visibilities(scene, points, face_normals, lights, *, method: str = "vsm", vsm_resolution: int = 256,
+                       vsm_dtype: str = "float32", horizon: bool | None = None, exact_backend: str = "binned",
+                       timings: dict | None = None, progress: bool = False, **vsm_kw) -> np.ndarray:
+    """VIS_i (L, P) of Eq. 5 for every light at surface points: ``"vsm"`` (Sec. 3.3), ``"raycast"`` or ``"none"``.
+
+    Parameters
+    ----------
+    scene : meshes or a prepared :class:`ibl_ref.rendering.raster.Scene`
+    points, face_normals : (P, 3) surface points and the geometric normals of their triangles
+    lights : anything with ``.directions`` (L, 3) and ``.solid_angle`` (L,) (a median-cut ``LightSet``)
+    method : ``"vsm"`` — one variance shadow map per light, blurred from its solid angle
+        (:func:`ibl_ref.rendering.vsm.build_vsm`, ``vsm_resolution``, ``vsm_dtype`` and ``**vsm_kw``: ``occluder_distance``,
+        ``depth_bias``, ``min_variance``, ``bleed_reduction``); ``"raycast"`` — exact binary visibility of the same
+        directional lights (``exact_backend="binned"``: :func:`ibl_ref.rendering.raycast.parallel_visibility`;
+        ``"trimesh"``: :func:`ibl_ref.rendering.raycast.visibility_to_directions`); ``"none"`` — VIS_i = 1.
+    horizon : the receiver's own surface (a light at or below the receiving triangle's plane, n_face·ω_i ≤ 0).
+        ``None`` (default): each method's own behaviour — the exact casters include it (a ray from the surface
+        finds the surface), a shadow map and ``"none"`` do not; ``True``: multiply every VIS_i by
+        [n_face·ω_i > 0] for every method; ``False``: the binned caster counts only *other* geometry, like a
+        shadow map (the trimesh route always includes the receiver: its rays start on it).
+    timings : dict, optional — adds seconds per stage: ``shadow_maps`` (depth rendering), ``blur`` (moments and
+        Gaussian blur), ``visibility`` (look-ups or ray casts)
+    progress : tqdm bar over lights
+    """
+    import time
+
+    if method not in VISIBILITY_METHODS:
+        raise IBLError(f"visibility method must be one of {VISIBILITY_METHODS}, got {method!r}")
+    if exact_backend not in ("binned", "trimesh"):
+        raise IBLError(f"exact_backend must be 'binned' or 'trimesh', got {exact_backend!r}")
+    dirs = np.asarray(lights.directions, dtype=np.float64).reshape(-1, 3)
+    omega = np.asarray(lights.solid_angle, dtype=np.float64).reshape(-1)
+    P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    fn = None if face_normals is None else np.asarray(face_normals, dtype=np.float64).reshape(-1, 3)
+    L = len(dirs)
+    V = np.ones((L, len(P)))
+    if len(P) == 0:
+        return V
+
+    def _tick(key, t0):
+        if timings is not None:
+            timings[key] = timings.get(key, 0.0) + time.perf_counter() - t0
+
+    if method == "raycast":
+        t0 = time.perf_counter()
+        if exact_backend == "trimesh":
+            from .raycast import visibility_to_directions
+
+            V = visibility_to_directions(scene, P, fn, dirs, progress=progress).T
+        else:
+            from .raycast import parallel_visibility
+
+            V = parallel_visibility(scene, P, dirs, normals=None if horizon is False else fn, progress=progress).T
+        _tick("visibility", t0)
+    elif method == "vsm":
+        from . import vsm as _vsm
+        from .raster import prepare_scene
+
+        sc = prepare_scene(scene, warn=False)
+        it = range(L)
+        if progress:
+            from tqdm import tqdm
+
+            it = tqdm(it, desc="shadow maps", unit="light")
+        for i in it:
+            sm = _vsm.build_vsm(sc, dirs[i], omega[i], resolution=vsm_resolution, dtype=vsm_dtype, timings=timings,
+                                **vsm_kw)
+            t0 = time.perf_counter()
+            V[i] = _vsm.visibility(P, sm)
+            _tick("visibility", t0)
+    if horizon:
+        V = V * (fn @ dirs.T > 0).T
+    return V
+
+
+def eq5_lookups(pems, normals, reflect, g, kd, ks):
+    """The PEM look-ups of Eq. 5: ``(PEM_i(n, g=0), PEM_i(r, g))``, each (L, P, C) float64 or None.
+
+    "We can use the same sample vector for each PEM" (Sec. 3.4): the diffuse lobe through the normal n at
+    g = 0 (s_Phong = 1, Eq. 3), the glossy lobe through the reflection vector r at the material's g (scalar or
+    (P,) per pixel).  A term is looked up only where its weight (kd, ks: scalars or (P, K) arrays) is non-zero
+    somewhere; with kd = ks = 0 the glossy one is looked up anyway (black image, but the channel count is kept).
+    """
+    L = len(np.asarray(pems.lights.directions).reshape(-1, 3))
+    n_px = len(np.asarray(reflect).reshape(-1, 3))
+
+    def _lookup(dirs, gg):
+        vals = np.asarray(pems.lookup_all(dirs, gg), dtype=np.float64)  # (L, P, C)
+        if vals.ndim != 3 or vals.shape[:2] != (L, n_px):
+            raise IBLError(f"pems.lookup_all returned shape {vals.shape}, expected ({L}, {n_px}, C)")
+        return vals
+
+    pem_n = _lookup(normals, 0.0) if np.any(np.asarray(kd) > 0) else None
+    pem_r = _lookup(reflect, g) if (np.any(np.asarray(ks) > 0) or pem_n is None) else None
+    return pem_n, pem_r
+
+
+def eq5_terms(vis, pem_n, pem_r, kd, ks):
+    """The two terms of Eq. 5, Σ_i VIS_i·kd·PEM_i(n, 0) and Σ_i VIS_i·ks·PEM_i(r, g), each (P, C) or None.
+
+    vis (L, P); pem_* (L, P, C) or None (term absent); kd, ks scalars or per-pixel (P, K) weights (K = 1 or C).
+    The weights do not depend on the light, so kd·Σ_i VIS_i PEM_i = Σ_i VIS_i kd PEM_i.
+    """
+    diffuse = None if pem_n is None else kd * np.einsum("lp,lpc->pc", vis, pem_n)
+    specular = None if pem_r is None else ks * np.einsum("lp,lpc->pc", vis, pem_r)
+    return diffuse, specular
+
+
+def shade_eq5(vis, pem_n, pem_r, kd, ks) -> np.ndarray:
+    """Eq. 5 with a kd/ks material: c = Σ_i VIS_i · (kd·PEM_i(n, 0) + ks·PEM_i(r, g)) → (P, C).
+
+    vis (L, P), pem_* (L, P, C) (a term whose weight is 0 may be None); kd, ks scalars or (P, K) arrays.
+    The one implementation of Eq. 5: :func:`render_pem` and every mode of :mod:`ibl_ref.rendering.ao_modes` call it.
+    """
+    kd_on = pem_n is not None and np.any(np.asarray(kd) > 0)
+    ks_on = pem_r is not None and np.any(np.asarray(ks) > 0)
+    diffuse, specular = eq5_terms(vis, pem_n if kd_on else None, pem_r if ks_on else None, kd, ks)
+    if diffuse is None and specular is None:
+        ref = pem_r if pem_r is not None else pem_n
+        return np.zeros(ref.shape[1:])
+    return specular if diffuse is None else (diffuse if specular is None else diffuse + specular)
+
+
+def unshadowed_eq5(pem_n, pem_r, kd, ks) -> np.ndarray:
+    """Eq. 5 with VIS ≡ 1: kd·Σ_i PEM_i(n, 0) + ks·Σ_i PEM_i(r, g) (= the full map's look-ups, Sec. 3.1) → (P, C)."""
+    parts = [w * p.sum(axis=0) for w, p in ((kd, pem_n), (ks, pem_r)) if p is not None and np.any(np.asarray(w) > 0)]
+    if not parts:
+        ref = pem_r if pem_r is not None else pem_n
+        return np.zeros(ref.shape[1:])
+    return parts[0] if len(parts) == 1 else parts[0] + parts[1]
+
+
+def background_image(camera, source, shape=None) -> np.ndarray:
+    """The environment seen behind the scene: radiance (H, W, C) along every camera ray.
+
+    ``source`` is a radiance cube (6, N, N, C) (seam-aware bilinear look-up, :func:`ibl_ref.environment.sampling.sample_bilinear`)
+    or a PEM set (Σ_i PEM_i(d, g = 1): the pyramid's mirror look-up, level 0 bilinear, which by linearity is the
+    same look-up of the full map).  Either way it is the look-up a mirror (g = 1) reflection of that direction
+    gets, so a mirror ball reflects exactly the backdrop.
+    """
+    _, d = camera.pixel_rays()
+    H, W = d.shape[:2]
+    d = d.reshape(-1, 3)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    if hasattr(source, "lookup_all"):
+        vals = np.asarray(source.lookup_all(d, 1.0), dtype=np.float64).sum(axis=0)
+    else:
+        from ..environment.sampling import sample_bilinear
+
+        cube = np.asarray(source, dtype=np.float64)
+        if cube.ndim == 3:
+            cube = cube[..., None]
+        vals = sample_bilinear(cube, d)
+    return vals.reshape(H, W, -1)
+
+
+def apply_background(image, mask, camera, source, background: str = "black") -> np.ndarray:
+    """Fill the pixels outside ``mask`` with the backdrop ``background`` (``"black"``: 0, ``"env"``:
+    :func:`background_image` of ``source``); returns ``image`` (changed in place)."""
+    if background not in BACKGROUNDS:
+        raise IBLError(f"background must be one of {BACKGROUNDS}, got {background!r}")
+    if background == "env" and not np.all(mask):
+        bg = background_image(camera, source)
+        if bg.shape[-1] not in (1, image.shape[-1]):
+            raise IBLError(f"background has {bg.shape[-1]} channels, the image {image.shape[-1]}")
+        image[~mask] = np.broadcast_to(bg, image.shape)[~mask]
+    return image
+
+
+def render_pem(
+    meshes,
+    camera,
+    pems,
+    glossiness=None,
+    *,
+    materials=None,
+    visibility: str = "vsm",
+    vsm_resolution: int = 512,
+    vsm_dtype: str = "float32",
+    occluder_distance: float | None = None,
+    depth_bias: float = 1e-3,
+    min_variance: float = 1e-6,
+    bleed_reduction: float = 0.0,
+    smooth_normals: bool = True,
+    exact_backend: str = "binned",
+    horizon: bool = False,
+    background: str = "black",
+    progress: bool = False,
+) -> RenderResult:
+    """Render Eq. 5 for a scene lit by a set of partial environment maps.
+
+    Parameters
+    ----------
+    meshes : see :func:`ibl_ref.rendering.raster.prepare_scene`
+    camera : :class:`ibl_ref.rendering.camera.PerspectiveCamera` (or orthographic)
+    pems : ``ibl_ref.knuth2014.pem.PEMSet`` (anything with ``.lights.directions`` (L, 3), ``.lights.solid_angle`` (L,)
+        and ``.lookup_all(dirs, g) -> (L, ..., C)``)
+    glossiness : float or {material_id: g}, default 0.5
+        Pure glossy material (kd = 0, ks = 1) with this g: c = Σ_i VIS_i · PEM_i(r, g).  Not with ``materials``.
+    materials : Material, (kd, ks, g) tuple, or {material_id: Material}, optional
+        Eq. 5 with a diffuse and a glossy term, c = Σ_i VIS_i · (kd·PEM_i(n, 0) + ks·PEM_i(r, g)), optional
+        per-texel g maps (module docstring).  A single Material applies to every material id.
+    visibility : ``"vsm"`` (paper), ``"raycast"`` (exact, same lights) or ``"none"``
+    vsm_resolution, vsm_dtype, occluder_distance, depth_bias, min_variance, bleed_reduction
+        Passed to :func:`ibl_ref.rendering.vsm.build_vsm` (one map per light, blur from its solid angle).
+    smooth_normals : interpolated vertex normals (True) or face normals
+    exact_backend : ``"binned"`` or ``"trimesh"`` (for ``visibility="raycast"``)
+    horizon : multiply VIS_i by [n_face·ω_i > 0] (see module docstring); default False (paper)
+    background : ``"black"`` (default: 0 outside the geometry) or ``"env"`` — the environment seen along each
+        camera ray (:func:`background_image`: the PEMs' mirror look-up), only in ``image``
+    progress : tqdm bar over lights
+
+    Returns
+    -------
+    RenderResult
+    """
+    from .raster import prepare_scene, rasterize
+
+    if visibility not in VISIBILITY_METHODS:
+        raise IBLError(f"visibility must be one of {VISIBILITY_METHODS}, got {visibility!r}")
+    if exact_backend not in ("binned", "trimesh"):
+        raise IBLError(f"exact_backend must be 'binned' or 'trimesh', got {exact_backend!r}")
+    if background not in BACKGROUNDS:
+        raise IBLError(f"background must be one of {BACKGROUNDS}, got {background!r}")
+    lights = getattr(pems, "lights", None)
+    if lights is None or not hasattr(pems, "lookup_all"):
+        raise IBLError("pems: expected an ibl_ref.knuth2014.pem.PEMSet (with .lights and .lookup_all)")
+    L = len(np.asarray(lights.directions, dtype=np.float64).reshape(-1, 3))
+    scene = prepare_scene(meshes)
+    if materials is not None and glossiness is not None:
+        raise IBLError("give either glossiness= (pure glossy, kd = 0, ks = 1) or materials=, not both")
+    mats = resolve_materials(materials) if materials is not None else None
+    if glossiness is None:
+        glossiness = 0.5
+    g = rasterize(scene, camera, smooth_normals=smooth_normals)
+    H, W = g.mask.shape
+    m = g.mask
+    P = g.position[m]
+    if mats is None:  # pure glossy: kd = 0, ks = 1
+        gl = glossiness_image(g.material_id, glossiness)
+        kd_px, ks_px, g_px = 0.0, 1.0, gl[m]
+    else:
+        kd_px, ks_px, g_px = material_images(meshes, scene, g, mats)
+        gl = np.zeros((H, W))
+        gl[m] = g_px
+    pem_n, pem_r = eq5_lookups(pems, g.normal[m], g.reflect[m], g_px, kd_px, ks_px)
+    C = (pem_r if pem_r is not None else pem_n).shape[2]
+    if np.ndim(kd_px) == 2 and kd_px.shape[1] not in (1, C):
+        raise IBLError(f"RGB material weights need 3-channel PEMs, the PEMs have {C} channel(s)")
+    vsm_kw = dict(occluder_distance=occluder_distance, depth_bias=depth_bias, min_variance=min_variance,
+                  bleed_reduction=bleed_reduction)
+    vis = light_visibilities(scene, P, g.face_normal[m], lights, method=visibility, vsm_resolution=vsm_resolution,
+                             vsm_dtype=vsm_dtype, horizon=bool(horizon), exact_backend=exact_backend,
+                             progress=progress, **vsm_kw)
+    diffuse, specular = eq5_terms(vis, pem_n, pem_r, kd_px, ks_px)  # Eq. 5, term by term
+    c = specular if diffuse is None else (diffuse if specular is None else diffuse + specular)
+    image = np.zeros((H, W, C))
+    image[m] = c
+    unshadowed = np.zeros((H, W, C))
+    unshadowed[m] = unshadowed_eq5(pem_n, pem_r, kd_px, ks_px) if mats is not None else pem_r.sum(axis=0)
+    vis_img = np.ones((L, H, W))
+    vis_img[:, m] = vis
+    if not np.all(np.isfinite(image)):
+        big = max(float(np.max(t[np.isfinite(t)], initial=0.0)) for t in (diffuse, specular) if t is not None)
+        raise IBLError(f"render produced non-finite values: material weight x radiance overflows float64 (largest "
+                       f"finite shaded term {big:g}); use smaller material weights kd, ks (--material) or a dimmer map")
+    parts = {}
+    if mats is not None:
+        for name, vals in (("diffuse", diffuse), ("specular", specular)):
+            img = np.zeros((H, W, C))
+            if vals is not None:
+                img[m] = vals
+            parts[name] = img
+    apply_background(image, m, camera, pems, background)
+    return RenderResult(image=image, unshadowed=unshadowed, visibility=vis_img, mask=m, gbuffer=g,
+                        glossiness=gl, method=visibility, materials=mats, **parts)

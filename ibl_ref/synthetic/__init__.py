@@ -1,0 +1,1 @@
+"""Deterministic synthetic environments and meshes with known answers."""
