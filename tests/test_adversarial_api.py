@@ -436,3 +436,19 @@ def test_fuzzed_files_give_an_iblerror_or_a_valid_cube(fmt, seed, tmp_path, capf
         assert cube.ndim == 4 and cube.shape[0] == 6 and np.all(np.isfinite(cube)) and np.all(cube >= 0)
     out, err = capfd.readouterr()
     assert out + err == ""  # nothing printed by the OpenEXR library either
+
+
+@pytest.mark.parametrize("chans", [("Y",), ("R", "G", "B"), ("R", "G", "B", "A"), ("A", "B", "G", "R", "Z", "u", "v")])
+def test_header_scan_counts_channels_like_the_binding(chans, tmp_path):
+    # the memory check before decoding sizes the data window by the channel count of the chlist attribute;
+    # its binary fields contain NUL bytes, so counting NULs overestimated a 3-channel 16K probe as 63 GiB.
+    # Reference: the channels the OpenEXR binding was asked to write
+    import OpenEXR
+
+    from ibl_ref.environment import exr_io
+
+    p = tmp_path / "c.exr"
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                 {c: np.ones((4, 8), np.float32) for c in chans}).write(str(p))
+    parts = exr_io._scan_headers(p, p.read_bytes())
+    assert parts[0]["n_channels"] == len(chans)

@@ -340,6 +340,20 @@ _EXR_MAGIC = b"\x76\x2f\x31\x01"
 _FLAG_TILED, _FLAG_LONG_NAMES, _FLAG_DEEP, _FLAG_MULTIPART = 0x200, 0x400, 0x800, 0x1000
 
 
+def _chlist_count(val: bytes) -> int:
+    """Number of channels in a ``chlist`` attribute value: per channel a NUL-terminated name followed by 16 bytes
+    (pixel type int32, pLinear uint8, 3 reserved bytes, x/y sampling int32 — which may contain NUL bytes
+    themselves), ended by one NUL byte (OpenEXR file layout)."""
+    n, i = 0, 0
+    while i < len(val) and val[i] != 0:
+        end = val.find(b"\0", i)
+        if end < 0:
+            break
+        n += 1
+        i = end + 1 + 16
+    return n
+
+
 def _scan_headers(path: Path, buf: bytes) -> list:
     """Parse the OpenEXR header(s) ourselves, before the binding allocates anything.
 
@@ -396,7 +410,7 @@ def _scan_headers(path: Path, buf: bytes) -> list:
             elif name == "dataWindow" and typ == "box2i" and size == 16:
                 hdr["dataWindow"] = struct.unpack("<4i", val)
             elif name == "channels" and typ == "chlist":
-                hdr["n_channels"] = max(1, val.count(b"\0") - 1)
+                hdr["n_channels"] = max(1, _chlist_count(val))
             name = cstr()
         parts.append(hdr)
         if not flags & _FLAG_MULTIPART:
