@@ -452,3 +452,14 @@ def test_header_scan_counts_channels_like_the_binding(chans, tmp_path):
                  {c: np.ones((4, 8), np.float32) for c in chans}).write(str(p))
     parts = exr_io._scan_headers(p, p.read_bytes())
     assert parts[0]["n_channels"] == len(chans)
+
+
+def test_median_cut_refuses_a_working_set_beyond_memory(monkeypatch):
+    # the cut needs ~300 bytes per texel (measured, median_cut.WORKING_BYTES_PER_TEXEL): with a 1 MB limit
+    # a 32²-face cube (6144 texels, ~1.8 MB) is refused up front with the size named, a 8² one still runs
+    from ibl_ref.knuth2014 import median_cut as mc
+
+    monkeypatch.setenv("IBL_REF_MAX_BYTES", str(10**6))
+    with pytest.raises(IBLError, match="32x32-face"):
+        mc.median_cut(np.ones((6, 32, 32, 3)), 6)
+    assert len(mc.median_cut(np.ones((6, 8, 8, 3)), 6)) == 6

@@ -400,6 +400,11 @@ def _greedy(tab: _Tables, n_lights: int, variant: str):
     return final
 
 
+#: peak working memory of :func:`median_cut` per cube texel, measured with ``benchmarks/bench_probe_sizes.py``
+#: (about 1.6-1.9 GB at 1024² faces, ~280 bytes per texel); checked against the machine before the cut starts
+WORKING_BYTES_PER_TEXEL = 300
+
+
 def median_cut(cube, n_lights: int, variant: str = "per-face", *, luminance_weights=None) -> LightSet:
     """Partition a cube map into ``n_lights`` regions and make one light per region.
 
@@ -429,6 +434,13 @@ def median_cut(cube, n_lights: int, variant: str = "per-face", *, luminance_weig
     if variant not in VARIANTS:
         raise IBLError(f"unknown median-cut variant {variant!r}; choose one of {VARIANTS}")
     n = check_cube_shape(cube, "median cut input")
+    from ..limits import SizeError, check_allocation
+
+    try:  # the working set (summed-area tables, labels, per-variant copies), before any of it is allocated
+        check_allocation(WORKING_BYTES_PER_TEXEL * 6 * n * n, f"the median cut of a {n}x{n}-face cube map",
+                         "median cut input")
+    except SizeError as exc:
+        raise IBLError(f"{exc}; cut a smaller cube. Resample the map first (e.g. ibl_ref.environment.resample)") from None
     cube = np.asarray(check_radiance(cube, "median cut input"), dtype=np.float64)
     if isinstance(n_lights, bool) or not isinstance(n_lights, (int, np.integer)):
         raise IBLError(f"n_lights must be an integer, got {n_lights!r}")
