@@ -8,7 +8,7 @@ file header) is checked here *before* anything is allocated:
 * :func:`check_allocation` — the bytes an array would take are compared with the machine's physical
   memory (``os.sysconf``; the environment variable ``IBL_REF_MAX_BYTES`` lowers the limit, e.g. for
   tests), so ``--size 1000000000`` fails at once instead of after minutes of swapping;
-* :func:`check_face_size` — both, for one float64 RGB cube map ``(6, N, N, 3)`` (24·6·N² bytes).
+* :func:`check_cube_size` — both, for one float64 RGB cube map ``(6, N, N, 3)`` (24·6·N² bytes).
 
 Errors are :class:`SizeError` (an :class:`~ibl_ref.errors.IBLError`) naming the parameter or flag.
 """
@@ -21,7 +21,7 @@ import os
 
 from .errors import IBLError
 
-__all__ = ["SizeError", "as_size", "memory_limit_bytes", "check_allocation", "check_face_size", "cube_nbytes"]
+__all__ = ["SizeError", "as_size", "memory_limit_bytes", "check_allocation", "check_cube_size", "cube_nbytes"]
 
 
 class SizeError(IBLError):
@@ -79,7 +79,7 @@ def cube_nbytes(n: int, channels: int = 3, itemsize: int = 8) -> int:
     return 6 * int(n) * int(n) * int(channels) * int(itemsize)
 
 
-def check_face_size(value, name: str, channels: int = 3) -> int:
+def check_cube_size(value, name: str, channels: int = 3) -> int:
     """A cube face size: :func:`as_size` and one float64 cube map must fit in memory."""
     n = as_size(value, name)
     check_allocation(cube_nbytes(n, channels), f"a {n}x{n}-face float64 cube map", name)

@@ -73,7 +73,7 @@ def validate_args(parser, args) -> None:
 
     Raises :class:`~ibl_ref.limits.SizeError` naming the flag (``main`` prints it as one line, exit code 1).
     """
-    from ..limits import SizeError, check_face_size
+    from ..limits import SizeError, check_cube_size
 
     sp = _subparser(parser, getattr(args, "command", None))
     while sp is not None:  # nested sub-commands (``synth env``): validate the innermost parser
@@ -99,7 +99,7 @@ def validate_args(parser, args) -> None:
                 elif v < 1:
                     raise SizeError(f"argument {flag}: must be a positive integer, got {v}")
                 if a.dest in SIZE_DESTS:
-                    check_face_size(v, f"argument {flag}")
+                    check_cube_size(v, f"argument {flag}")
 
 
 #: library parameter -> CLI flags that set it, where the names differ (the first flag the command has wins)

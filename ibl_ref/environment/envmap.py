@@ -175,17 +175,17 @@ def face_uv_to_direction(face, u, v, convention: str = "openexr", normalize: boo
     return d
 
 
-def unit_directions(v, name: str = "directions") -> np.ndarray:
-    """``v`` (..., 3) normalised to unit length; IBLError (naming ``name``) for a wrong shape, NaN/Inf or a zero
-    vector."""
+def unit_directions(v, name: str = "directions", min_norm: float = 0.0) -> np.ndarray:
+    """``v`` (..., 3) normalised to unit length; IBLError (naming ``name``) for a wrong shape, NaN/Inf or a vector
+    of length ≤ ``min_norm`` (default: exactly zero)."""
     v = np.asarray(v, dtype=np.float64)
     if v.shape[-1:] != (3,):
         raise IBLError(f"{name} must be (..., 3) directions, got shape {v.shape}")
     if not np.all(np.isfinite(v)):
         raise IBLError(f"{name} contains NaN/Inf")
     ln = np.linalg.norm(v, axis=-1, keepdims=True)
-    if np.any(ln == 0):
-        raise IBLError(f"{name} contains zero vectors")
+    if np.any(ln <= min_norm):
+        raise IBLError(f"{name} contains zero-length vectors" + (f" (length <= {min_norm:g})" if min_norm else ""))
     return v / ln
 
 

@@ -775,9 +775,9 @@ def load_cube(path, size: int | None = None, layout: str | None = None, conventi
     path = Path(path)
     where = str(path)
     if size is not None:
-        from ..limits import check_face_size
+        from ..limits import check_cube_size
 
-        size = check_face_size(size, "size")
+        size = check_cube_size(size, "size")
     if path.suffix.lower() in (".hdr", ".pic", ".rgbe"):
         from .hdr_io import read_hdr
 

@@ -85,15 +85,10 @@ def check_exponent(e, name: str = "exponent", e_max: float = E_MAX) -> np.ndarra
 
 
 def _check_axis(a, name: str = "axis") -> np.ndarray:
-    a = np.asarray(a, dtype=np.float64)
-    if a.shape[-1:] != (3,):
-        raise IBLError(f"{name}: expected a 3-vector (..., 3), got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise IBLError(f"{name}: contains non-finite values")
-    nrm = np.linalg.norm(a, axis=-1, keepdims=True)
-    if np.any(nrm < 1e-12):
-        raise IBLError(f"{name}: zero-length axis cannot define a cosine lobe")
-    return a / nrm
+    """Unit lobe axis (..., 3); an axis shorter than 1e-12 cannot define a cosine lobe."""
+    from ..environment.envmap import unit_directions
+
+    return unit_directions(a, name, min_norm=1e-12)
 
 
 def _check_scale(s, name: str = "scale") -> np.ndarray:

@@ -891,7 +891,7 @@ def converged_shading(scene, points, normals, face_normals, d_lobe, cube, s: flo
         quad_levels.append(dict(n_quad=M, est_rel_l1=q_rel))
         if q_rel <= rtol / 2 or 2 * M > n_quad_max:
             break
-        occ_c, un_c = occ, un
+        un_c = un
     err = q_est + (vis_est if vis_est is not None else 0.0)
     info = dict(n_vis=int(n_vis), n_quad=int(M), n_rays=int(n_rays), visibility_levels=levels,
                 quadrature_levels=quad_levels, weight_cutoff=float(weight_cutoff), rtol=rtol,
