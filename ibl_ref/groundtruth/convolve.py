@@ -90,6 +90,7 @@ except ImportError:  # pragma: no cover - not POSIX (no fork either)
 
 from ..environment import envmap
 from ..errors import IBLError
+from ..executors import resolve_executor, worker_died  # noqa: F401  (resolve_executor re-exported, old name)
 from .convolution_args import check_cube, check_exponents, check_out_size
 
 __all__ = ["ConvolutionResult", "convolve", "default_workers", "METHODS", "WORKERS_ENV"]
@@ -195,36 +196,6 @@ def _run_forked_job(i):
     return _run_job(_FORK_JOBS[i])
 
 
-def resolve_executor(executor):
-    """A :class:`concurrent.futures.Executor` from ``executor``: an Executor, or a ``dask.distributed.Client``
-    (its :meth:`get_executor`), or a scheduler address string (``"tcp://host:8786"``; needs the ``dask``
-    extra).  ``None`` stays ``None``.  Returns ``(executor, owned_client)``; close the client when done."""
-    if executor is None:
-        return None, None
-    if isinstance(executor, str):
-        try:
-            from distributed import Client
-        except ImportError:
-            raise IBLError("a scheduler address needs dask.distributed: pip install \".[dask]\"") from None
-        try:
-            client = Client(executor, timeout=30)
-        except (OSError, TimeoutError) as exc:
-            raise IBLError(f"cannot connect to the Dask scheduler at {executor!r}: {exc}") from None
-        return client.get_executor(), client
-    if hasattr(executor, "get_executor") and hasattr(executor, "scheduler_info"):  # dask.distributed.Client
-        return executor.get_executor(), None
-    if not hasattr(executor, "submit"):
-        raise IBLError(f"executor must be a concurrent.futures.Executor, a dask Client or an address, got {executor!r}")
-    return executor, None
-
-
-def _worker_died(exc):
-    return IBLError(
-        "a convolution worker process died before finishing its job (most likely killed by the operating "
-        f"system for lack of memory: {type(exc).__name__}); retry with fewer workers (--workers 1) or a "
-        "smaller --size")
-
-
 def available_memory_bytes() -> float | None:
     """Memory this process may still use: ``MemAvailable`` of ``/proc/meminfo``, lowered to the cgroup
     limit minus its usage when one is set (containers); ``None`` where neither can be read."""
@@ -322,7 +293,7 @@ def _run_jobs(jobs, workers, backend="thread", executor=None):
         try:
             done = [f.result() for f in futs]
         except BrokenExecutor as exc:
-            raise _worker_died(exc) from None
+            raise worker_died(exc, "convolution worker") from None
     elif workers <= 1 or len(order) <= 1 or backend == "serial":
         done = [_run_job(j) for j in order]
     elif backend == "process":
@@ -336,7 +307,7 @@ def _run_jobs(jobs, workers, backend="thread", executor=None):
                     try:
                         done = [f.result() for f in futs]
                     except BrokenExecutor as exc:
-                        raise _worker_died(exc) from None
+                        raise worker_died(exc, "convolution worker") from None
             finally:
                 _FORK_JOBS = None
             r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
