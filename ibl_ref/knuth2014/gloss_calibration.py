@@ -6,14 +6,16 @@ is the continuous level whose response lobe to one white texel has the volume of
 ``"radial"`` ⅓∫f³ dω).  This module runs that fit over a grid of exponents and turns it into a
 :class:`ibl_ref.knuth2014.gloss_lookup.Calibration` table (monotone envelope: levels never rise with s).
 
-Data flow: this analysis step *writes* the tables (``ibl_ref/data/calibration_*.json``, :func:`build_calibration_tables`);
-the run-time lookup (:mod:`ibl_ref.knuth2014.gloss_lookup`) only *reads* them and never runs the analysis.  For a
-configuration without a shipped table, compute one here (:func:`calibrate`) and pass it to the lookup as
-``calibration=``, or write it into the data folder with :func:`build_calibration_tables`.
+Data flow: this analysis step *writes* the tables (``ibl_ref/data/calibration_*.json``,
+:func:`build_calibration_tables`); the run-time lookup (:mod:`ibl_ref.knuth2014.gloss_lookup`) only *reads* them
+and never runs the analysis.  For a configuration without a shipped table, compute one here (:func:`calibrate`)
+and pass it to the lookup as ``calibration=``, or write it into the data folder with
+:func:`build_calibration_tables`.
 
-Shipped (:data:`SHIPPED`; regenerate all with :func:`build_shipped_tables`): the
-five paper filters (``none, box, gauss, cos, sqrtcos``), order ``shrink_then_filter``, seam ``neighbour``, both
-volume definitions, face sizes 1 … 256 (sqrtcos also 512); and sqrtcos with the solid-angle 2×2 shrink at 1 … 256.
+Shipped (:data:`SHIPPED`; regenerate all with :func:`build_shipped_tables`): the five paper filters (``none, box,
+gauss, cos, sqrtcos``), order ``shrink_then_filter``, seam ``neighbour``, both volume definitions, face sizes
+1 … 256 (sqrtcos also 512); and sqrtcos with the solid-angle 2×2 shrink at 1 … 256.  ``tests/test_gloss_lookup.py``
+checks every shipped table against the closed-form lobe volumes through the run-time lookup.
 """
 
 from __future__ import annotations

@@ -63,7 +63,8 @@ def _clip_planes(near, far, *, near_may_be_zero: bool) -> tuple[float, float]:
     """Checked depth range ``(near, far)``: ``0 < near < far < ∞`` (``0 ≤ near`` where allowed)."""
     n, f = float(near), float(far)
     if not ((0.0 <= n if near_may_be_zero else 0.0 < n) and n < f and np.isfinite(f)):
-        raise CameraError(f"need 0 {'<=' if near_may_be_zero else '<'} near < far < inf, got near={near!r}, far={far!r}")
+        lower = "<=" if near_may_be_zero else "<"
+        raise CameraError(f"need 0 {lower} near < far < inf, got near={near!r}, far={far!r}")
     return n, f
 
 
