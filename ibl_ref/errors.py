@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["IBLError", "LayoutError", "RadianceError", "EnvMapFileError", "MeshError", "check_radiance"]
+__all__ = ["IBLError", "LayoutError", "RadianceError", "EnvMapFileError", "MeshError", "check_radiance",
+           "check_input_file"]
 
 
 class IBLError(ValueError):
@@ -41,3 +42,19 @@ def check_radiance(values, name: str = "radiance", negative: str = "error", nonf
     from .environment.radiance_policy import apply_policy
 
     return apply_policy(values, name, negative=negative, nonfinite=nonfinite)[0]
+
+
+def check_input_file(path, expected: str, error: type = EnvMapFileError):
+    """``path`` as a :class:`pathlib.Path` if it is an existing regular file, else a one-line ``error`` naming what
+    was ``expected`` (e.g. ``"an OpenEXR file"``): missing, a folder, or a device / FIFO / socket (which would block
+    a reader or never end)."""
+    from pathlib import Path
+
+    path = Path(path)
+    if not path.exists():
+        raise error(f"{path}: file not found")
+    if path.is_dir():
+        raise error(f"{path}: is a folder, expected {expected}")
+    if not path.is_file():
+        raise error(f"{path}: not a regular file (device, FIFO or socket), expected {expected}")
+    return path

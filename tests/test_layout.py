@@ -6,6 +6,7 @@ module* (not re-exported from elsewhere), and that the pre-layout short module n
 (``ibl_ref.convolve``, ``ibl_ref.pyramid``, …) are the very same module objects.
 """
 
+import ast
 import importlib
 import re
 import subprocess
@@ -70,13 +71,94 @@ def test_import_ibl_ref_is_cheap():
     assert out.stdout.strip() == ""
 
 
-def test_ground_truth_does_not_import_the_approximation():
-    # dependencies follow the data flow: nothing in groundtruth/ or environment/ imports knuth2014/ or rendering/
+def _imports(path: Path):
+    """Every ``ibl_ref`` module a file imports (module level and inside functions: lazy imports count too), as
+    (absolute module name, enclosing function or ``"<module>"``); relative imports resolved, ``from m import x``
+    reported as both ``m`` and ``m.x``."""
+    rel = path.relative_to(ROOT).with_suffix("")
+    parts = list(rel.parts)
+    pkg = parts[:-1] if parts[-1] != "__init__" else parts[:-1]
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    tree = ast.parse(path.read_text())
+    parent = {c: n for n in ast.walk(tree) for c in ast.iter_child_nodes(n)}
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = ".".join(pkg[:len(pkg) - node.level + 1] + ([node.module] if node.module else [])) \
+                if node.level else node.module
+            names = [base] + [f"{base}.{a.name}" for a in node.names]
+        else:
+            continue
+        fn = node
+        while fn in parent and not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            fn = parent[fn]
+        where = fn.name if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)) else "<module>"
+        out += [(n, where) for n in names if n and (n == "ibl_ref" or n.startswith("ibl_ref."))]
+    return out
+
+
+def _library_files(*subs):
+    return [p for sub in subs for p in sorted((ROOT / "ibl_ref" / sub).glob("*.py"))]
+
+
+def _violations(files, forbidden, allow=()):
     bad = []
-    for sub in ("environment", "groundtruth"):
-        for p in (ROOT / "ibl_ref" / sub).glob("*.py"):
-            src = p.read_text()
-            for other in ("knuth2014", "rendering", "experiments", "cli"):
-                if re.search(rf"from \.\.{other}\b|from \.\.{other} import|ibl_ref\.{other}\b.*import|import ibl_ref\.{other}", src):
-                    bad.append(f"{p.relative_to(ROOT)} -> {other}")
+    for p in files:
+        for name, where in _imports(p):
+            if any(name == f or name.startswith(f + ".") for f in forbidden) and (p.name, where) not in allow:
+                bad.append(f"{p.relative_to(ROOT)} ({where}) -> {name}")
+    return sorted(set(bad))
+
+
+def test_import_scan_sees_lazy_and_relative_imports(tmp_path):
+    # the scanner itself: a function-level relative import is found and resolved
+    f = ROOT / "ibl_ref" / "knuth2014" / "gloss_lookup.py"
+    found = _imports(f)
+    assert ("ibl_ref.conventions.phong_exponent", "<module>") in found
+    assert ("ibl_ref.knuth2014.gloss_calibration", "__getattr__") in found
+
+
+def test_ground_truth_does_not_import_the_approximation():
+    # dependencies follow the data flow: nothing in groundtruth/ or environment/ imports the paper's approximation,
+    # rendering or the lobe papers, and the ray-traced reference renderer (the ground truth of a render) does not
+    # import the approximation either
+    files = _library_files("environment", "groundtruth")
+    bad = _violations(files, ["ibl_ref.knuth2014", "ibl_ref.rendering", "ibl_ref.lobes", "ibl_ref.experiments",
+                              "ibl_ref.cli"])
+    bad += _violations([ROOT / "ibl_ref" / "rendering" / "reference_render.py"], ["ibl_ref.knuth2014"])
     assert not bad, bad
+
+
+def test_library_does_not_import_experiments_or_cli():
+    # experiments and the CLI are thin layers on top: no library module imports them (not even lazily)
+    files = _library_files("environment", "groundtruth", "knuth2014", "rendering", "lobes", "synthetic")
+    files += [p for p in sorted((ROOT / "ibl_ref").glob("*.py")) if p.name not in ("__init__.py", "__main__.py")]
+    assert not _violations(files, ["ibl_ref.experiments", "ibl_ref.cli"])
+
+
+def test_run_time_lookup_does_not_import_the_analysis():
+    # the glossiness lookup reads calibration tables; the Sec. 5 analysis that builds them
+    # (knuth2014.lobe_analysis, knuth2014.gloss_calibration) is imported by no run-time module of the library —
+    # only gloss_lookup's __getattr__ re-exports the builder's old names, when a caller asks for one of them
+    files = _library_files("environment", "groundtruth", "knuth2014", "rendering", "lobes", "synthetic")
+    files = [p for p in files if p.name not in ("lobe_analysis.py", "gloss_calibration.py")]
+    bad = _violations(files, ["ibl_ref.knuth2014.lobe_analysis", "ibl_ref.knuth2014.gloss_calibration"],
+                      allow={("gloss_lookup.py", "__getattr__")})
+    assert not bad, bad
+    # and at run time: PEM lookups, the Eq. 5 lookups and the pyramid lookup leave the analysis unloaded
+    code = ("import sys, numpy as np\n"
+            "from ibl_ref.knuth2014.pyramid import build_pyramid\n"
+            "from ibl_ref.knuth2014.gloss_lookup import lookup\n"
+            "from ibl_ref.knuth2014.median_cut import median_cut\n"
+            "from ibl_ref.knuth2014.pem import build_pems\n"
+            "c = np.random.default_rng(0).random((6, 8, 8, 3)) + 0.1\n"
+            "d = np.array([[0.3, 0.4, 0.8]])\n"
+            "lookup(build_pyramid(c), d, 0.7)\n"
+            "build_pems(c, median_cut(c, 6)).lookup_all(d, 0.7)\n"
+            "print(','.join(m for m in sys.modules if 'lobe_analysis' in m or 'gloss_calibration' in m))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == ""

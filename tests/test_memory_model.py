@@ -53,13 +53,13 @@ def test_text_numbers_of_section5():
     # "512x512 ... 64 regions ... with MIP maps and floating point color values ... roughly 1.5 GB"
     assert paper_pem_bytes(64, 512) / MIB == 1536
     # parabolic maps, 256², 64 regions: "about 70 MB": the same model with one 256² image per map instead of six
-    # cube faces (64 · 256² · RGBA16F · 2 = 67.1e6 bytes)
+    # cube faces, 64 · 256² texels · 8 bytes (RGBA16F) · 2 (Fig. 8's MIP factor) = 67 108 864 bytes exactly,
+    # which the text rounds to the nearest 10 MB
     b = paper_pem_bytes(64, 256) / 6
-    assert 65e6 < b < 75e6
-    # and the saving the text draws from the two ("1.5 GB" → "about 70 MB", ≈ 22x; the model's ratio is exactly
-    # 4 · 6 = 24, within the text's rounding of 10 %)
-    assert paper_pem_bytes(64, 512) / b == pytest.approx(24.0)
-    assert paper_pem_bytes(64, 512) / MIB / 70 == pytest.approx(24.0, rel=0.1)
+    assert b == 64 * 256**2 * 8 * 2
+    assert round(b / 10e6) * 10 == 70
+    # and the saving the text draws from the two ("1.5 GB" → "about 70 MB") is the model's 4 · 6 = 24 exactly
+    assert paper_pem_bytes(64, 512) / b == 24.0
 
 
 def test_library_bytes_match_real_arrays():

@@ -110,7 +110,7 @@ def test_product_fit_residual_vs_brute_force_grid():
 
 @pytest.mark.parametrize("e1,e2,theta", [(0.0, 0.0, 1.0), (0.0, 1e5, 0.3), (1e5, 1e5, 0.5), (1e5, 0.0, 2.5),
                                          (0.0, 0.0, np.pi), (1e5, 1e5, 3.1), (1e-6, 1e5, 1.0)])
-def test_product_extreme_exponents_no_nan(e1, e2, theta):
+def test_product_extreme_exponents_closed_forms(e1, e2, theta):
     f = m.fit_product(e1, e2, theta)
     for v in (f.t, f.e_r, f.p, f.integral_exact, f.integral_fit, f.l2_rel):
         assert np.isfinite(v)
@@ -120,12 +120,21 @@ def test_product_extreme_exponents_no_nan(e1, e2, theta):
     # e = 0 lobes are hemispheres; two of them with axes θ apart overlap in a lune of 2(π − θ) sr
     if e1 == 0.0 and e2 == 0.0:
         assert f.integral_exact == pytest.approx(2 * (np.pi - theta), abs=1e-9)
-    # a 1e5 lobe is a near-delta of weight 2π/(e+1) at its axis: times the other lobe's value there
-    # (1 for a hemisphere containing it, 0 outside; cos(θ)^1e5 ≈ 0 for two narrow lobes θ apart);
-    # relative tolerance 1e-3 from the lobe's width (≈ 0.3°) against the hemisphere's edge or the other lobe
-    if max(e1, e2) == 1e5 and min(e1, e2) == 0.0:
-        inside = theta < np.pi / 2
-        assert f.integral_exact == pytest.approx(2 * np.pi / (1e5 + 1) * inside, rel=1e-3, abs=1e-12)
+    # a 1e5 lobe is a near-delta of weight 2π/(e+1) at its axis: times the other (wide, e ≤ 1e-6) lobe's value
+    # there, max(cos θ, 0)^e (1 for a hemisphere containing it, 0 outside); relative tolerance 1e-3 from the
+    # lobe's width (≈ 0.3°) against the hemisphere's edge or the other lobe's slope.  The product peaks at the
+    # narrow lobe's axis (t = θ or 0) to within that width
+    if max(e1, e2) == 1e5 and min(e1, e2) <= 1e-6:
+        other = min(e1, e2)
+        value = np.maximum(np.cos(theta), 0.0) ** other if theta < np.pi / 2 else 0.0
+        assert f.integral_exact == pytest.approx(2 * np.pi / (1e5 + 1) * value, rel=1e-3, abs=1e-12)
+        if value > 0:
+            assert f.t == pytest.approx(theta if e2 == 1e5 else 0.0, abs=1e-3)
+    # two equal 1e5 lobes θ ≥ 0.5 apart: by symmetry the product peaks on the bisector, t = θ/2, where it is
+    # cos(θ/2)^(2e5) ≤ e^(−6316): the exact integral is 0 in float64
+    if e1 == e2 == 1e5:
+        assert f.t == pytest.approx(theta / 2, rel=1e-6)
+        assert f.integral_exact == 0.0
 
 
 def test_cap_exponent_closed_form_error_matches_quadrature():

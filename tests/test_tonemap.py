@@ -27,8 +27,19 @@ def test_monotone_and_finite_up_to_1e6():
 def test_auto_exposure_maps_percentile_to_key():
     img = np.full((4, 4, 3), 5.0)
     stops = tm.auto_exposure(img, percentile=90, key=0.8)
-    assert 5.0 * 2 ** stops == pytest.approx(0.8)
+    assert 5.0 * 2 ** stops == pytest.approx(0.8, rel=1e-15)
     assert tm.auto_exposure(np.zeros((2, 2, 3))) == 0.0
+    # channel-mean luminances 1 … 100 (channels y/2, y, 3y/2), plus black pixels (ignored) and masked-out bright
+    # ones: the 90th percentile with linear interpolation between order statistics is 1 + 0.9·99 = 90.1
+    y = np.arange(1.0, 101.0)
+    img = np.zeros((11, 11, 3))
+    flat = img.reshape(-1, 3)
+    flat[:100] = y[:, None] * [0.5, 1.0, 1.5]
+    flat[100:110] = 1e6
+    mask = np.ones((11, 11), bool)
+    mask.reshape(-1)[100:110] = False
+    stops = tm.auto_exposure(img, mask=mask, percentile=90, key=0.8)
+    assert 2.0 ** stops == pytest.approx(0.8 / 90.1, rel=1e-14)
 
 
 def test_save_png_roundtrip(tmp_path):

@@ -54,7 +54,7 @@ import numpy as np
 
 from . import envmap
 from ..atomic import atomic_path
-from ..errors import EnvMapFileError, IBLError, LayoutError, RadianceError, check_radiance
+from ..errors import EnvMapFileError, IBLError, LayoutError, RadianceError, check_input_file, check_radiance
 
 __all__ = [
     "HALF_MAX",
@@ -488,12 +488,7 @@ class _NativeOutput:
 
 def _open(path: Path):
     ox = _openexr()
-    if not path.exists():
-        raise EnvMapFileError(f"{path}: file not found")
-    if path.is_dir():
-        raise EnvMapFileError(f"{path}: is a folder, expected an OpenEXR file")
-    if not path.is_file():  # a FIFO or device would block or never end
-        raise EnvMapFileError(f"{path}: not a regular file (device, FIFO or socket), expected an OpenEXR file")
+    check_input_file(path, "an OpenEXR file")
     try:
         with open(path, "rb") as fh:
             head = fh.read(1 << 20)

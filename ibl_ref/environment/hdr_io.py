@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_write
-from ..errors import EnvMapFileError, LayoutError, check_radiance
+from ..errors import EnvMapFileError, LayoutError, check_input_file, check_radiance
 
 __all__ = ["read_hdr", "read_hdr_header", "write_hdr", "rgbe_to_float", "float_to_rgbe"]
 
@@ -137,13 +137,7 @@ def read_hdr_header(path) -> dict:
 
 
 def _open(path: Path):
-    if not path.exists():
-        raise EnvMapFileError(f"{path}: file not found")
-    if path.is_dir():
-        raise EnvMapFileError(f"{path}: is a folder, expected a Radiance .hdr file")
-    if not path.is_file():  # a FIFO or device would block or never end
-        raise EnvMapFileError(f"{path}: not a regular file (device, FIFO or socket), expected a Radiance .hdr file")
-    return open(path, "rb")
+    return open(check_input_file(path, "a Radiance .hdr file"), "rb")
 
 
 def _decode_new_rle(buf: memoryview, pos: int, width: int, path, row: int):

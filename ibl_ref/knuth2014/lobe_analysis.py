@@ -151,7 +151,7 @@ class LobeResponse:
         from .pyramid import build_pyramid
 
         self.n = int(n)
-        self.kernel, self.order, self.seam, self.position = kernel, order, seam, position
+        self.kernel, self.order, self.seam, self.position, self.shrink = kernel, order, seam, position, shrink
         face, row, col = lit_texel(self.n, position)
         cube = np.zeros((6, self.n, self.n, 1))
         cube[face, row, col, 0] = 1.0

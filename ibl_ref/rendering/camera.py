@@ -59,6 +59,36 @@ def _check_size(width, height) -> tuple[int, int]:
     return w, h
 
 
+def _clip_planes(near, far, *, near_may_be_zero: bool) -> tuple[float, float]:
+    """Checked depth range ``(near, far)``: ``0 < near < far < ∞`` (``0 ≤ near`` where allowed)."""
+    n, f = float(near), float(far)
+    if not ((0.0 <= n if near_may_be_zero else 0.0 < n) and n < f and np.isfinite(f)):
+        lower = "<=" if near_may_be_zero else "<"
+        raise CameraError(f"need 0 {lower} near < far < inf, got near={near!r}, far={far!r}")
+    return n, f
+
+
+def _freeze(camera, **values) -> None:
+    """Store validated values on a frozen camera dataclass."""
+    for name, value in values.items():
+        object.__setattr__(camera, name, value)
+
+
+class _CameraFrame:
+    """What both cameras share: the world → camera transform and the pixel-centre grid (module conventions)."""
+
+    def to_camera(self, points) -> np.ndarray:
+        """Camera-space coordinates (right, up, depth) of world points (..., 3)."""
+        p = np.asarray(points, dtype=np.float64)
+        return (p - self.eye) @ self.basis.T
+
+    def _pixel_centres_ndc(self):
+        """Normalised device coordinates of the pixel centres: x (W,) left → right, y (H,) top → bottom, in (−1, 1)."""
+        j = (np.arange(self.width) + 0.5) / self.width
+        i = (np.arange(self.height) + 0.5) / self.height
+        return 2.0 * j - 1.0, 1.0 - 2.0 * i
+
+
 def look_at_basis(forward, up_hint) -> np.ndarray:
     """Orthonormal camera basis ``(right, up, forward)`` as rows of a (3, 3) matrix.
 
@@ -84,7 +114,7 @@ def look_at_basis(forward, up_hint) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class PerspectiveCamera:
+class PerspectiveCamera(_CameraFrame):
     """Pinhole camera from a look-at.
 
     Parameters
@@ -120,18 +150,9 @@ class PerspectiveCamera:
         fov = float(self.fov_y_deg)
         if not (0.0 < fov < 180.0):
             raise CameraError(f"fov_y_deg must be in (0, 180) degrees, got {self.fov_y_deg!r}")
-        near, far = float(self.near), float(self.far)
-        if not (0.0 < near < far) or not np.isfinite(far):
-            raise CameraError(f"need 0 < near < far < inf, got near={self.near!r}, far={self.far!r}")
-        object.__setattr__(self, "eye", eye)
-        object.__setattr__(self, "target", target)
-        object.__setattr__(self, "up", up)
-        object.__setattr__(self, "width", w)
-        object.__setattr__(self, "height", h)
-        object.__setattr__(self, "fov_y_deg", fov)
-        object.__setattr__(self, "near", near)
-        object.__setattr__(self, "far", far)
-        object.__setattr__(self, "basis", look_at_basis(target - eye, up))
+        near, far = _clip_planes(self.near, self.far, near_may_be_zero=False)
+        _freeze(self, eye=eye, target=target, up=up, width=w, height=h, fov_y_deg=fov, near=near, far=far,
+                basis=look_at_basis(target - eye, up))
 
     is_orthographic = False
 
@@ -167,11 +188,6 @@ class PerspectiveCamera:
         p[3, 2] = -1.0
         return p
 
-    def to_camera(self, points) -> np.ndarray:
-        """Camera-space coordinates (right, up, depth) of world points (..., 3)."""
-        p = np.asarray(points, dtype=np.float64)
-        return (p - self.eye) @ self.basis.T
-
     def project(self, points):
         """Continuous pixel coordinates of world points.
 
@@ -195,10 +211,7 @@ class PerspectiveCamera:
         With ``normalize=False`` (default) the direction has unit component along ``forward``, so the ray
         parameter of a hit *is* its depth.  Origins are all ``eye``.
         """
-        j = (np.arange(self.width) + 0.5) / self.width
-        i = (np.arange(self.height) + 0.5) / self.height
-        ndc_x = 2.0 * j - 1.0
-        ndc_y = 1.0 - 2.0 * i
+        ndc_x, ndc_y = self._pixel_centres_ndc()
         t = self.tan_half_fov_y
         cx = ndc_x[None, :] * t * self.aspect
         cy = ndc_y[:, None] * t
@@ -217,7 +230,7 @@ class PerspectiveCamera:
 
 
 @dataclass(frozen=True)
-class OrthographicCamera:
+class OrthographicCamera(_CameraFrame):
     """Parallel projection, e.g. a directional light's shadow-map camera.
 
     Parameters
@@ -257,29 +270,15 @@ class OrthographicCamera:
             raise CameraError(
                 f"half extents must be positive and finite, got {self.half_width!r}, {self.half_height!r}"
             )
-        near, far = float(self.near), float(self.far)
-        if not (0.0 <= near < far) or not np.isfinite(far):
-            raise CameraError(f"need 0 <= near < far < inf, got near={self.near!r}, far={self.far!r}")
+        near, far = _clip_planes(self.near, self.far, near_may_be_zero=True)
         basis = look_at_basis(self.forward, self.up)
-        object.__setattr__(self, "eye", eye)
-        object.__setattr__(self, "forward", basis[2].copy())
-        object.__setattr__(self, "up", _vec3(self.up, "up"))
-        object.__setattr__(self, "half_width", hw)
-        object.__setattr__(self, "half_height", hh)
-        object.__setattr__(self, "width", w)
-        object.__setattr__(self, "height", h)
-        object.__setattr__(self, "near", near)
-        object.__setattr__(self, "far", far)
-        object.__setattr__(self, "basis", basis)
+        _freeze(self, eye=eye, forward=basis[2].copy(), up=_vec3(self.up, "up"), half_width=hw, half_height=hh,
+                width=w, height=h, near=near, far=far, basis=basis)
 
     @property
     def texel_size(self) -> float:
         """World size of one texel (horizontal)."""
         return 2.0 * self.half_width / self.width
-
-    def to_camera(self, points) -> np.ndarray:
-        p = np.asarray(points, dtype=np.float64)
-        return (p - self.eye) @ self.basis.T
 
     def project(self, points):
         """Continuous pixel coordinates ``(x, y, depth, w=1)`` (same pixel mapping as the perspective camera)."""
@@ -291,10 +290,8 @@ class OrthographicCamera:
 
     def pixel_rays(self, normalize: bool = True):
         """Parallel rays from the image plane through every pixel centre: origins (H, W, 3), directions (H, W, 3)."""
-        j = (np.arange(self.width) + 0.5) / self.width
-        i = (np.arange(self.height) + 0.5) / self.height
-        cx = (2.0 * j - 1.0) * self.half_width
-        cy = (1.0 - 2.0 * i) * self.half_height
+        ndc_x, ndc_y = self._pixel_centres_ndc()
+        cx, cy = ndc_x * self.half_width, ndc_y * self.half_height
         r, u, f = self.basis
         o = self.eye + cx[None, :, None] * r + cy[:, None, None] * u
         d = np.broadcast_to(f, o.shape).copy()

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import EnvMapFileError, IBLError
+from ..errors import EnvMapFileError, IBLError, check_input_file, check_radiance
 
 __all__ = ["write_image_exr", "read_image_exr", "read_g_map"]
 
@@ -40,10 +40,7 @@ def write_image_exr(path, img) -> Path:
         a = a[..., None]
     if a.ndim != 3 or a.shape[2] not in (1, 3) or a.shape[0] < 1 or a.shape[1] < 1:
         raise IBLError(f"{path}: image must be (H, W), (H, W, 1) or (H, W, 3), got shape {np.shape(img)}")
-    if not np.all(np.isfinite(a)):
-        raise IBLError(f"{path}: image contains NaN or Inf; refusing to write")
-    if np.any(a < 0):
-        raise IBLError(f"{path}: image contains negative radiance (min {a.min():g})")
+    check_radiance(a, f"{path}: image")  # NaN / Inf / negative radiance: refuse to write
     if np.any(a > _FLOAT32_MAX):
         raise IBLError(f"{path}: values exceed the float32 range")
     try:
@@ -79,9 +76,7 @@ def read_g_map(path) -> np.ndarray:
     IBLError
         Unknown extension, unreadable file, not 2D, or values outside [0, 1].
     """
-    path = Path(path)
-    if not path.is_file():
-        raise IBLError(f"{path}: g map file not found")
+    path = check_input_file(path, "a g map (.npy, .exr or .png)", IBLError)
     ext = path.suffix.lower()
     if ext == ".npy":
         try:
