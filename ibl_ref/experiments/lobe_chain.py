@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..knuth2014.gloss_lookup import LEVEL_STEP, best_constant_level  # noqa: F401  (library home; old names kept)
 from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 from . import params_from_settings, settings_with
@@ -64,28 +65,6 @@ def build(name: str, env):
         return build_pyramid(env, kernel=kernel, shrink=shrink), None
     factor = {"chain-f4": 4.0, "chain-f2": 2.0, "chain-f1.41": float(np.sqrt(2.0))}[name]
     return build_lobe_chain(env, factor=factor)
-
-
-#: step of the level grid searched by :func:`best_constant_level`
-LEVEL_STEP = 0.05
-
-
-def best_constant_level(per_level, exact):
-    """Smallest relative L1 of one trilinear lookup at any constant level ℓ (grid step :data:`LEVEL_STEP`), and ℓ.
-
-    ``per_level[k]``: the bilinear lookups of level k at the test directions; ``exact``: the exact lobe averages
-    there.  The lookup's level depends on s only (not on the direction), so this is the error floor of the
-    prefilter under *any* glossiness calibration — what no choice of ℓ(s) can beat.
-    """
-    b_sum = np.abs(exact).sum()
-    best = (np.inf, 0.0)
-    for k in range(len(per_level)):
-        nxt = per_level[min(k + 1, len(per_level) - 1)]
-        for t in np.arange(0.0, 1.0 if k + 1 < len(per_level) else LEVEL_STEP / 2, LEVEL_STEP):
-            e = float(np.abs(per_level[k] + (nxt - per_level[k]) * t - exact).sum() / b_sum)
-            if e < best[0]:
-                best = (e, k + float(t))
-    return best
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
