@@ -341,13 +341,15 @@ def budget_rows(reference, images, mask) -> list:
     return rows
 
 
-def texel_limit_image(scene, gbuffer, cube, materials, factor: int = 1, chunk: int = 128,
-                      progress: bool = False) -> np.ndarray:
+def texel_limit_image(scene, gbuffer, cube, materials, factor: int = 1, *, pixels=None, chunk: int = 128,
+                      progress: bool = False):
     """Step 1 with one region per texel of the map's nearest-texel copy at face size ``factor``·N → (H, W, C).
 
     The piecewise-constant radiance is the reference's; only the visibility (one exact ray per texel, along its
-    centre) and the lobe quadrature (texel centres) differ, both → exact as ``factor`` grows, so this image
+    centre) and the lobe quadrature (texel centres) differ, and both → exact as ``factor`` grows, so this image
     converges to the reference (the check of step 1 on its own).  Back-facing pixels are black (one-sided).
+    ``materials``: ``{id: (kd, ks, g)}``, or a list of such dicts (then a list of images, sharing the visibility
+    rays); ``pixels``: optional (H, W) bool — shade only these covered pixels (the others are 0).
     """
     from ..knuth2014.median_cut import texel_lights
     from .render import light_visibilities, shade_eq5
@@ -355,24 +357,27 @@ def texel_limit_image(scene, gbuffer, cube, materials, factor: int = 1, chunk: i
     a = np.asarray(cube, dtype=np.float64)
     if a.ndim == 3:
         a = a[..., None]
-    k = int(factor)
-    if k < 1:
+    if isinstance(factor, bool) or not isinstance(factor, (int, np.integer)) or factor < 1:
         raise IBLError(f"factor must be a positive integer, got {factor!r}")
+    k = int(factor)
     a = np.repeat(np.repeat(a, k, axis=1), k, axis=2)
     lights = texel_lights(a)
-    m = gbuffer.mask
+    m = gbuffer.mask if pixels is None else gbuffer.mask & np.asarray(pixels, dtype=bool)
     P, n, fn, r = gbuffer.position[m], gbuffer.normal[m], gbuffer.face_normal[m], gbuffer.reflect[m]
     front = np.sum(n * gbuffer.view[m], axis=1) > 0
-    kd, ks, g = material_weights(gbuffer.material_id[m], materials)
     vis = light_visibilities(scene, P, fn, lights, method="raycast", progress=progress)
-    c = np.zeros((len(P), a.shape[-1]))
-    for i in range(0, len(P), chunk):
-        sl = slice(i, min(i + chunk, len(P)))
-        nn, rr = n[sl], r[sl]
-        pem_n, pem_r = _group_lookups(
-            lambda d, s, sel: region_lobes(a, lights, d, s, nn[sel]), kd[sl], ks[sl], g[sl], nn, rr)
-        c[sl] = shade_eq5(vis[:, sl], pem_n, pem_r, kd[sl], ks[sl])
-    c *= front[:, None]
-    img = np.zeros(m.shape + (a.shape[-1],))
-    img[m] = c
-    return img
+    sets = materials if isinstance(materials, (list, tuple)) else [materials]
+    out = []
+    for mats in sets:
+        kd, ks, g = material_weights(gbuffer.material_id[m], mats)
+        c = np.zeros((len(P), a.shape[-1]))
+        for i in range(0, len(P), chunk):
+            sl = slice(i, min(i + chunk, len(P)))
+            nn, rr = n[sl], r[sl]
+            pem_n, pem_r = _group_lookups(lambda d, s, sel: region_lobes(a, lights, d, s, nn[sel]),
+                                          kd[sl], ks[sl], g[sl], nn, rr)
+            c[sl] = shade_eq5(vis[:, sl], pem_n, pem_r, kd[sl], ks[sl])
+        img = np.zeros(m.shape + (a.shape[-1],))
+        img[m] = c * front[:, None]
+        out.append(img)
+    return out if isinstance(materials, (list, tuple)) else out[0]
