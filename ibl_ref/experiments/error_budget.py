@@ -68,10 +68,10 @@ def settings(quick: bool) -> dict:
     if quick:
         return dict(size=20, env_size=16, envs=list(ENVS), materials=list(MATERIALS), ground="same", regions=[6, 24],
                     vsm_resolution=128, rtol=5e-3, texel_factors=[1], texel_pixels=120, swap=["vsm", "prefilter"],
-                    figure_regions=24, workers=1)
+                    level_dirs=1500, figure_regions=24, workers=1)
     return dict(size=48, env_size=32, envs=list(ENVS), materials=list(MATERIALS), ground="same", regions=[6, 24, 96],
                 vsm_resolution=256, rtol=2e-3, texel_factors=[1, 2], texel_pixels=300, swap=["vsm", "prefilter"],
-                figure_regions=24, workers=1)
+                level_dirs=4000, figure_regions=24, workers=1)
 
 
 PARAMS = params_from_settings(settings, {
@@ -79,7 +79,9 @@ PARAMS = params_from_settings(settings, {
     "regions": "median-cut regions (lights) per walk", "rtol": "reference tolerance (estimated rel. L1)",
     "texel_factors": "face-size multiples of the one-region-per-texel check of step 1",
     "texel_pixels": "covered pixels sampled for that check", "swap": "two steps exchanged in the second walk",
-    "figure_regions": "region count shown in the difference figures", "workers": "local worker processes (1 = serial)"})
+    "figure_regions": "region count shown in the difference figures",
+    "level_dirs": "seeded uniform directions the best pyramid level is fitted on (as lobe-chain's n_dirs)",
+    "workers": "local worker processes (1 = serial)"})
 
 
 def make_budget_env(name: str, n: int) -> np.ndarray:
@@ -128,7 +130,8 @@ def _case(job: dict) -> dict:
     rows, images, levels = [], {}, {}
     for L in job["regions"]:
         lights = median_cut(env, int(L))
-        terms = eb.budget_terms(sc, gb, env, lights, mats, vsm_resolution=job["vsm_resolution"])
+        terms = eb.budget_terms(sc, gb, env, lights, mats, vsm_resolution=job["vsm_resolution"],
+                                level_dirs=job["level_dirs"])
         for label, order in orders.items():
             walk = eb.walk(terms, order)
             for k, q in enumerate(eb.budget_rows(ref.image, [(s, im) for s, _, im in walk], gb.mask)):
@@ -136,7 +139,7 @@ def _case(job: dict) -> dict:
                                  regions=int(L), order=label, step_index=k, **q))
             if label == "default":
                 images[int(L)] = {s: im.astype(np.float32) for s, _, im in walk}
-        levels[str(L)] = dict(best=terms.best_levels, paper_lookup_rel_l1=terms.lookup_rel_l1_paper)
+        levels[str(L)] = dict(fit_directions=terms.best_levels, image_directions=terms.lookup_rel_l1_image)
     return dict(env=job["env"], material=job["material"], rows=rows, images=images, levels=levels,
                 reference=ref.image.astype(np.float32), mask=gb.mask, ref_info=ref.info, ref_time_s=t_ref,
                 time_s=time.perf_counter() - t0)
@@ -185,7 +188,8 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     for m in st["materials"]:
         _materials(m, st["ground"])
     load0, t_start = os.getloadavg(), time.perf_counter()
-    common = {k: st[k] for k in ("size", "env_size", "ground", "rtol", "vsm_resolution", "regions", "swap")}
+    common = {k: st[k] for k in ("size", "env_size", "ground", "rtol", "vsm_resolution", "regions", "swap",
+                                 "level_dirs")}
     jobs = [dict(common, env=e, material=m) for e in st["envs"] for m in st["materials"]]
     cases = map_jobs(_case, jobs, workers=int(st["workers"]), desc="error-budget: cases (reference + walks)")
     rows = [q for c in cases for q in c["rows"]]

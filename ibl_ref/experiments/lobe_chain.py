@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..knuth2014.gloss_lookup import LEVEL_STEP, best_constant_level  # noqa: F401  (library home; old names kept)
+from ..knuth2014.gloss_lookup import LEVEL_STEP, best_constant_level, level_fit_directions  # noqa: F401  (library home)
 from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 from . import params_from_settings, settings_with
@@ -74,9 +74,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 
     out_dir = Path(out_dir)
     st = settings_with(__name__, quick, params)
-    rng = np.random.default_rng(20141)
-    d = rng.normal(size=(st["n_dirs"], 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d = level_fit_directions(st["n_dirs"])
     rows, meta_builds = [], {}
     t_start = time.perf_counter()
     for env_name in track(st["envs"], "lobe-chain: environments", unit="env"):

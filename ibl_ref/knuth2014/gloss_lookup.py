@@ -41,7 +41,7 @@ from ..errors import IBLError
 
 __all__ = ["phong_exponent", "Calibration", "calibrate", "analytic_calibration", "get_calibration",
            "build_calibration_tables", "save_calibration",
-           "level_for_gloss", "lookup", "lookup_at_level", "best_constant_level", "LEVEL_STEP", "DATA_DIR"]
+           "level_for_gloss", "lookup", "lookup_at_level", "best_constant_level", "level_fit_directions", "LEVEL_STEP", "DATA_DIR"]
 
 DATA_DIR = Path(__file__).resolve().parent.parent / "data"
 _MEMORY: dict = {}
@@ -252,6 +252,13 @@ def lookup_at_level(pyramid, dirs, level) -> np.ndarray:
 
 #: step of the level grid searched by :func:`best_constant_level`
 LEVEL_STEP = 0.05
+
+
+def level_fit_directions(n: int, seed: int = 20141) -> np.ndarray:
+    """``n`` seeded unit directions, uniform on the sphere (normalised Gaussian triples): where the ``lobe-chain``
+    experiment and the error budget measure one look-up against the exact lobe average and fit the best level."""
+    d = np.random.default_rng(int(seed)).normal(size=(int(n), 3))
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
 def best_constant_level(per_level, exact, step: float = LEVEL_STEP):

@@ -42,10 +42,13 @@ paper's Eq. 5 (``horizon=False``, the default), in which a shadow map does not s
 (an open ground quad is its own first occluder, t ≈ μ) and lights below the tangent plane count as visible.
 
 **5 — prefilter**: P_i → the paper's filter pyramid of PEM i (2×2 shrink + 5×5 sqrt-cos filter, Sec. 3.2, Fig. 2;
-:func:`ibl_ref.knuth2014.pem.build_pems`) read by one trilinear look-up at the **best constant level** ℓ*(s) for this
-image: the level (grid 0.05) whose unoccluded look-up Σ_i PEM_i has the smallest rel. L1 against the exact lobe
-average at the pixels' look-up directions (:func:`ibl_ref.knuth2014.gloss_lookup.best_constant_level`).  This step is
-the filter shape alone, with the best any glossiness mapping could do.
+:func:`ibl_ref.knuth2014.pem.build_pems`) read by one trilinear look-up at the **best constant level** ℓ*(s) of this
+map: the level (grid 0.05, or the calibrated one if better) whose look-up of the whole map (Σ_i PEM_i) has the
+smallest rel. L1 against the exact lobe average at 4000 seeded directions uniform on the sphere
+(:func:`ibl_ref.knuth2014.gloss_lookup.best_constant_level`; the ``lobe-chain`` experiment's ``rel_l1_best_level``).
+This step is the filter shape alone, at the level the best possible g → level mapping would pick for this map
+(fitting ℓ* to the image's own look-up directions instead would favour images with few distinct directions: every
+ground pixel of the diffuse ground has the same normal).
 
 **6 — gloss_lookup**: ℓ*(s) → the paper's g → level mapping ℓ(s_Phong(g)) (lobe-volume calibration, Sec. 3.2/5,
 :func:`ibl_ref.knuth2014.gloss_lookup.lookup`).  Image = Eq. 5 as :func:`ibl_ref.rendering.render.render_pem` computes
@@ -178,8 +181,13 @@ class BudgetTerms:
     ----------
     mask : (H, W) covered pixels; front : (P,) n·v > 0
     kd, ks : (P, 1); g : (P,) per-pixel material
-    best_levels : {s: {"level": ℓ*, "rel_l1": its unoccluded look-up error}} (step 5)
-    lookup_rel_l1_paper : {s: rel. L1 of the unoccluded look-up at the paper's level ℓ(g)}
+    level_dirs : (K, 3) the directions the best level is fitted on (default 4000 seeded uniform directions,
+        :func:`ibl_ref.knuth2014.gloss_lookup.level_fit_directions`, those of the ``lobe-chain`` experiment)
+    best_levels : {s: {"level": ℓ*, "rel_l1": the whole map's look-up error there, "paper_level": ℓ(g),
+        "paper_rel_l1": its error}} at the fit directions (step 5; = ``lobe-chain``'s ``rel_l1_best_level`` and
+        ``rel_l1`` for the sqrt-cos pyramid)
+    lookup_rel_l1_image : {s: {"best": …, "paper": …}} the same two look-up errors at the image's own look-up
+        directions (unoccluded)
     """
 
     scene: object
@@ -193,8 +201,9 @@ class BudgetTerms:
     vsm_resolution: int = 256
     vsm_kw: dict = field(default_factory=dict)
     level_step: float = 0.05
+    level_dirs: np.ndarray | None = None
     best_levels: dict = field(default_factory=dict)
-    lookup_rel_l1_paper: dict = field(default_factory=dict)
+    lookup_rel_l1_image: dict = field(default_factory=dict)
     _vis: dict = field(default_factory=dict, repr=False)
     _look: dict = field(default_factory=dict, repr=False)
 
@@ -256,25 +265,47 @@ class BudgetTerms:
         return val
 
     def _best_level(self, dirs, s, sel) -> float:
-        """ℓ*(s): the best constant level of the unoccluded look-up at these directions (step 5)."""
+        """ℓ*(s): the best constant level of the whole map's look-up at the fit directions (step 5)."""
         from ..groundtruth.phong_convolution import lobe_average
         from ..knuth2014.gloss_lookup import best_constant_level
 
-        exact = lobe_average(self.cube, dirs, s)
-        per_level = [self.pems.lookup_all_at_level(dirs, k).sum(axis=0) for k in range(self.pems.n_levels)]
-        err, lev = best_constant_level(per_level, exact, self.level_step)
-        paper = self.pems.full_lookup(dirs, 1.0 - 1.0 / s)
-        self.best_levels[float(s)] = dict(level=float(lev), rel_l1=float(err))
-        self.lookup_rel_l1_paper[float(s)] = float(np.abs(paper - exact).sum() / np.abs(exact).sum())
+        key = float(s)
+        if key not in self.best_levels:
+            g = 1.0 - 1.0 / s
+            fit = self.level_dirs
+            exact = lobe_average(self.cube, fit, s)
+            per_level = [self.pems.lookup_all_at_level(fit, k).sum(axis=0) for k in range(self.pems.n_levels)]
+            err, lev = best_constant_level(per_level, exact, self.level_step)
+            paper = self.pems.full_lookup(fit, g)
+            err_paper = float(np.abs(paper - exact).sum() / np.abs(exact).sum())
+            paper_level = float(self.pems.calibration.level_of(s))  # ℓ(s_Phong(g)) of the paper's look-up
+            if err_paper < err:  # the calibrated level is a candidate too (as in the lobe-chain experiment)
+                err, lev = err_paper, paper_level
+            self.best_levels[key] = dict(level=float(lev), rel_l1=float(err), paper_level=paper_level,
+                                         paper_rel_l1=err_paper)
+        lev = self.best_levels[key]["level"]
+        # the same two look-ups at the image's own directions (for the record)
+        ex = lobe_average(self.cube, dirs, s)
+        den = np.abs(ex).sum()
+        self.lookup_rel_l1_image.setdefault(key, dict(
+            best=float(np.abs(self.pems.lookup_all_at_level(dirs, lev).sum(axis=0) - ex).sum() / den),
+            paper=float(np.abs(self.pems.full_lookup(dirs, 1.0 - 1.0 / s) - ex).sum() / den)))
         return float(lev)
 
 
 def budget_terms(scene, gbuffer, cube, lights, materials, *, pems=None, vsm_resolution: int = 256,
-                 level_step: float = 0.05, **vsm_kw) -> BudgetTerms:
+                 level_step: float = 0.05, level_dirs=4000, **vsm_kw) -> BudgetTerms:
     """The :class:`BudgetTerms` of a scene (prepared meshes), its G-buffer, a cube map (6, N, N, C), median-cut
     ``lights`` and ``materials`` ``{material_id: (kd, ks, g)}``.  ``pems``: the PEM set of those lights
-    (default :func:`ibl_ref.knuth2014.pem.build_pems` with the paper's pyramid); ``vsm_kw`` go to the shadow maps."""
+    (default :func:`ibl_ref.knuth2014.pem.build_pems` with the paper's pyramid); ``level_dirs``: the directions
+    (K, 3) the best level ℓ* is fitted on, or their number (seeded uniform directions); ``vsm_kw`` go to the shadow
+    maps."""
+    from ..knuth2014.gloss_lookup import level_fit_directions
     from ..knuth2014.pem import build_pems
+
+    fit = np.asarray(level_fit_directions(level_dirs) if np.ndim(level_dirs) == 0 else level_dirs, dtype=np.float64)
+    if fit.ndim != 2 or fit.shape[1] != 3 or len(fit) < 1:
+        raise IBLError(f"level_dirs must be a number of directions or a (K, 3) array, got shape {fit.shape}")
 
     a = np.asarray(cube, dtype=np.float64)
     if a.ndim == 3:
@@ -283,7 +314,8 @@ def budget_terms(scene, gbuffer, cube, lights, materials, *, pems=None, vsm_reso
         pems = build_pems(a, lights)
     kd, ks, g = material_weights(gbuffer.material_id[gbuffer.mask], materials)
     return BudgetTerms(scene=scene, gbuffer=gbuffer, cube=a, lights=lights, pems=pems, kd=kd, ks=ks, g=g,
-                       vsm_resolution=int(vsm_resolution), vsm_kw=dict(vsm_kw), level_step=float(level_step))
+                       vsm_resolution=int(vsm_resolution), vsm_kw=dict(vsm_kw), level_step=float(level_step),
+                       level_dirs=fit)
 
 
 def budget_image(terms: BudgetTerms, config: dict) -> np.ndarray:
