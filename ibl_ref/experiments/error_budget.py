@@ -48,7 +48,7 @@ DESCRIPTION = "error budget of the paper's method: reference -> Eq. 5 one approx
 PAPER = ("Knuth et al. 2014, Eq. 4-5 and Sec. 3.1-3.4 (regions, VSMs, filter pyramid, glossiness lookup): each "
          "approximation's share of the error against a converged ray-traced reference")
 IN_QUICK_REPRODUCE = False  # the converged references take minutes even at quick size
-RUNTIME = {"quick": "not measured (one env, two materials at 16 px: 6 min at load 10)",
+RUNTIME = {"quick": "5 min serial (load 7-9)",
            "full": "43 min with --workers 2 (load 10-17; 49 min of reference renders in the workers)"}
 OUTPUTS = ("error_budget.csv", "error_budget_texel_limit.csv", "error_budget_meta.json", "error_budget_table.md",
            "error_budget_images.npz", "error_budget_diff/ENV__MATERIAL__LREGIONS__kSTEP.exr",
