@@ -265,10 +265,20 @@ def check_cross_validate(out, summary):
     assert all(c["mitsuba"]["renderer"] == "mitsuba" for c in meta["cases"])
 
 
-CHECKS = {name: globals()[f"check_{name.replace('-', '_')}"] for name in EXPS}
+#: experiments whose quick run, figure layout and headline are tested in a file of their own
+OWN_TEST_FILE = {"error-budget": "tests/test_error_budget.py"}
+CHECKS = {name: globals()[f"check_{name.replace('-', '_')}"] for name in EXPS if name not in OWN_TEST_FILE}
 
 
-@pytest.mark.parametrize("name", sorted(EXPS))
+def test_every_experiment_is_checked_here_or_in_its_own_file():
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    assert set(CHECKS) | set(OWN_TEST_FILE) == set(EXPS)
+    assert all((root / f).is_file() for f in OWN_TEST_FILE.values())
+
+
+@pytest.mark.parametrize("name", sorted(CHECKS))
 def test_experiment_quick_figures_and_headline(name, tmp_path):
     summary, figs, problems = _run(name, tmp_path)
     # every figure the plot step returns exists, was saved through save_figure, and is laid out in its canvas

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["sky_sun_latlong", "write_probe_exr", "COMPRESSIONS"]
+__all__ = ["sky_sun_latlong", "probe_cube", "write_probe_exr", "COMPRESSIONS"]
 
 COMPRESSIONS = ("dwab", "dwaa", "piz", "zip", "zips", "none", "rle", "pxr24", "b44")
 
@@ -76,6 +76,18 @@ def sky_sun_latlong(h: int, a: float = 0.4, b: float = 1.2, g: float = 0.05, sun
     sun_int = float(np.sum(om[in_sun])) * sun * np.asarray(colour)
     exact = (sky_int + ground_int - replaced) + sun_int
     return img.astype(dtype), exact
+
+
+def probe_cube(n: int, h: int | None = None, **kw) -> np.ndarray:
+    """The probe of :func:`sky_sun_latlong` (height ``h``, default 4n: the lat-long texels are finer than the cube's)
+    as a (6, n, n, 3) float64 cube map, resampled with the conservative kernel that keeps ∫L dω
+    (:func:`ibl_ref.environment.resample.latlong_to_cube`) — a probe-like environment with a small bright sun,
+    a textured ground and a black strip, for renders and experiments.  ``kw`` go to :func:`sky_sun_latlong`.
+    """
+    from .resample import latlong_to_cube
+
+    img, _ = sky_sun_latlong(4 * int(n) if h is None else int(h), **kw)
+    return np.asarray(latlong_to_cube(img, int(n)), dtype=np.float64)
 
 
 def _ox_compression(ox, name: str):

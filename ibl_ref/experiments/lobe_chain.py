@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..knuth2014.gloss_lookup import LEVEL_STEP, best_constant_level, level_fit_directions  # noqa: F401  (library home)
 from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 from . import params_from_settings, settings_with
@@ -66,28 +67,6 @@ def build(name: str, env):
     return build_lobe_chain(env, factor=factor)
 
 
-#: step of the level grid searched by :func:`best_constant_level`
-LEVEL_STEP = 0.05
-
-
-def best_constant_level(per_level, exact):
-    """Smallest relative L1 of one trilinear lookup at any constant level ℓ (grid step :data:`LEVEL_STEP`), and ℓ.
-
-    ``per_level[k]``: the bilinear lookups of level k at the test directions; ``exact``: the exact lobe averages
-    there.  The lookup's level depends on s only (not on the direction), so this is the error floor of the
-    prefilter under *any* glossiness calibration — what no choice of ℓ(s) can beat.
-    """
-    b_sum = np.abs(exact).sum()
-    best = (np.inf, 0.0)
-    for k in range(len(per_level)):
-        nxt = per_level[min(k + 1, len(per_level) - 1)]
-        for t in np.arange(0.0, 1.0 if k + 1 < len(per_level) else LEVEL_STEP / 2, LEVEL_STEP):
-            e = float(np.abs(per_level[k] + (nxt - per_level[k]) * t - exact).sum() / b_sum)
-            if e < best[0]:
-                best = (e, k + float(t))
-    return best
-
-
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..knuth2014.gloss_lookup import get_calibration, level_for_gloss, lookup
     from ..rendering.reference_render import lobe_average
@@ -95,9 +74,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 
     out_dir = Path(out_dir)
     st = settings_with(__name__, quick, params)
-    rng = np.random.default_rng(20141)
-    d = rng.normal(size=(st["n_dirs"], 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d = level_fit_directions(st["n_dirs"])
     rows, meta_builds = [], {}
     t_start = time.perf_counter()
     for env_name in track(st["envs"], "lobe-chain: environments", unit="env"):

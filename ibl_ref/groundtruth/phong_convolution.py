@@ -764,7 +764,8 @@ def convolve_sparse(
 # exact Eq. 4 lobe average at arbitrary directions (optionally per region, optionally truncated)
 # ----------------------------------------------------------------------------------------------
 def lobe_average(cube, dirs, s, *, texel_dirs=None, labels=None, n_regions: int | None = None,
-                 weight_eps: float = 0.0, group: int = 64, chunk: int = 2048, return_bound: bool = False):
+                 weight_eps: float = 0.0, group: int = 64, chunk: int = 2048, return_bound: bool = False,
+                 normals=None):
     """Normalised Eq. 4 lobe average Ē_s(d) at arbitrary unit directions ``dirs`` (..., 3) → (..., C).
 
     The one exact lobe average of the package (the formula of :func:`convolve_exact`, at any directions)::
@@ -792,6 +793,9 @@ def lobe_average(cube, dirs, s, *, texel_dirs=None, labels=None, n_regions: int 
     chunk : directions per dense step (memory ≈ chunk × 6N² floats)
     return_bound : also return δ (...,): the neglected weight fraction bound 4π·weight_eps / Σ_included w
         (|error| ≤ δ·max L; 0 where every texel was summed)
+    normals : (..., 3), optional — one normal n per direction: the numerator is clipped to the hemisphere
+        Ω⁺ of n (texels with n·ω_j ≤ 0 left out), the normalisation Σ_j max(d·ω_j, 0)^s Ω_j is not — the lobe of
+        the reference renderer (docs/background.md §8: a lobe cut by the horizon loses energy)
 
     Raises
     ------
@@ -835,6 +839,12 @@ def lobe_average(cube, dirs, s, *, texel_dirs=None, labels=None, n_regions: int 
     if np.any(nd == 0):
         raise IBLError("dirs: zero-length direction")
     d = d / nd
+    nrm = None
+    if normals is not None:
+        nrm = np.asarray(normals, dtype=np.float64)
+        if nrm.shape[-1:] != (3,) or nrm.reshape(-1, 3).shape[0] != len(d) or not np.all(np.isfinite(nrm)):
+            raise IBLError(f"normals must be finite (..., 3) with one normal per direction, got shape {nrm.shape}")
+        nrm = nrm.reshape(-1, 3)
     out = np.zeros((len(d), C) if R is None else (len(d), R, C))
     bound = np.zeros(len(d))
 
@@ -847,6 +857,8 @@ def lobe_average(cube, dirs, s, *, texel_dirs=None, labels=None, n_regions: int 
             raise IBLError("a lobe has zero total weight on this map (lobe narrower than a texel, or weight_eps "
                            "too large): use a finer map")
         L = rad if cand is None else rad[cand]
+        if nrm is not None:  # hemisphere Ω⁺ of n: numerator only
+            w = w * ((nrm[ids] @ (src if cand is None else src[cand]).T) > 0)
         if R is None:
             out[ids] = (w @ L) / ws[:, None]
         else:

@@ -43,7 +43,8 @@ from ..conventions import phong_exponent  # noqa: F401  (Eq. 3; re-exported, old
 from ..errors import IBLError
 
 __all__ = ["phong_exponent", "Calibration", "analytic_calibration", "get_calibration", "calibration_path",
-           "level_for_gloss", "lookup", "DATA_DIR"]
+           "level_for_gloss", "lookup", "lookup_at_level", "best_constant_level", "level_fit_directions", "LEVEL_STEP",
+           "DATA_DIR"]
 
 DATA_DIR = Path(__file__).resolve().parent.parent / "data"
 _MEMORY: dict = {}
@@ -195,10 +196,27 @@ def lookup(pyramid, dirs, g, calibration: Calibration | None = None, volume: str
     dirs = np.asarray(dirs, dtype=np.float64)
     if dirs.shape[-1:] != (3,):
         raise IBLError(f"directions must have a trailing axis of length 3, got shape {dirs.shape}")
+    return lookup_at_level(pyramid, dirs, level_for_gloss(pyramid, g, calibration, volume))
+
+
+def lookup_at_level(pyramid, dirs, level) -> np.ndarray:
+    """The trilinear lookup of :func:`lookup` at a given continuous level ℓ instead of ℓ(s_Phong(g)).
+
+    Seam-aware bilinear lookups in levels ⌊ℓ⌋ and ⌊ℓ⌋+1, blended linearly by ℓ − ⌊ℓ⌋; ``level`` is a scalar
+    or an array broadcastable to ``dirs.shape[:-1]``, clipped to [0, max_level].  :func:`lookup` is this
+    function at the calibrated level; the error budget (``ibl_ref.rendering.error_budget``) also calls it at
+    the best constant level (:func:`best_constant_level`).
+    """
+    dirs = np.asarray(dirs, dtype=np.float64)
+    if dirs.shape[-1:] != (3,):
+        raise IBLError(f"directions must have a trailing axis of length 3, got shape {dirs.shape}")
+    lv = np.asarray(level, dtype=np.float64)
+    if not np.all(np.isfinite(lv)):
+        raise IBLError(f"pyramid level must be finite, got {level!r}")
     shape = dirs.shape[:-1]
-    ell = np.broadcast_to(np.asarray(level_for_gloss(pyramid, g, calibration, volume)), shape).reshape(-1)
-    d = dirs.reshape(-1, 3)
     lmax = pyramid.max_level
+    ell = np.clip(np.broadcast_to(lv, shape).reshape(-1), 0.0, lmax)
+    d = dirs.reshape(-1, 3)
     L0 = np.minimum(np.floor(ell).astype(np.intp), lmax)
     t = ell - L0
     C = pyramid.levels[0].shape[3]
@@ -213,3 +231,36 @@ def lookup(pyramid, dirs, g, calibration: Calibration | None = None, volume: str
             v[blend] = v[blend] + (v1 - v[blend]) * tm[blend, None]
         out[m] = v
     return out.reshape(shape + (C,))
+
+
+#: step of the level grid searched by :func:`best_constant_level`
+LEVEL_STEP = 0.05
+
+
+def level_fit_directions(n: int, seed: int = 20141) -> np.ndarray:
+    """``n`` seeded unit directions, uniform on the sphere (normalised Gaussian triples): where the ``lobe-chain``
+    experiment and the error budget measure one look-up against the exact lobe average and fit the best level."""
+    d = np.random.default_rng(int(seed)).normal(size=(int(n), 3))
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def best_constant_level(per_level, exact, step: float = LEVEL_STEP):
+    """Smallest relative L1 of one trilinear lookup at any constant level ℓ (grid ``step``), and that ℓ.
+
+    ``per_level[k]``: the bilinear lookups of level k at the test directions (..., C); ``exact``: the exact lobe
+    averages there.  The lookup's level depends on s only (not on the direction), so this is the error floor of
+    the prefilter under *any* glossiness calibration — what no choice of ℓ(s) can beat.  Returns
+    ``(rel_l1, level)``.
+    """
+    exact = np.asarray(exact, dtype=np.float64)
+    b_sum = np.abs(exact).sum()
+    if not b_sum > 0:
+        raise IBLError("best_constant_level: the exact lobe averages are all zero")
+    best = (np.inf, 0.0)
+    for k in range(len(per_level)):
+        nxt = per_level[min(k + 1, len(per_level) - 1)]
+        for t in np.arange(0.0, 1.0 if k + 1 < len(per_level) else step / 2, step):
+            e = float(np.abs(per_level[k] + (nxt - per_level[k]) * t - exact).sum() / b_sum)
+            if e < best[0]:
+                best = (e, k + float(t))
+    return best

@@ -180,6 +180,16 @@ class PEMSet:
         out = out.reshape(dirs.shape[:-1] + (self.n_regions, self.channels))
         return np.moveaxis(out, -2, 0)
 
+    def lookup_all_at_level(self, dirs, level) -> np.ndarray:
+        """:meth:`lookup_all` at a given continuous pyramid level instead of the calibrated ℓ(g), (L, ..., C)
+        (:func:`ibl_ref.knuth2014.gloss_lookup.lookup_at_level`; the error budget's best-level step)."""
+        from .gloss_lookup import lookup_at_level
+
+        dirs = np.asarray(dirs, dtype=np.float64)
+        out = lookup_at_level(self._stacked_pyramid(), dirs, level)
+        out = out.reshape(dirs.shape[:-1] + (self.n_regions, self.channels))
+        return np.moveaxis(out, -2, 0)
+
     def full_lookup(self, dirs, g) -> np.ndarray:
         """Σ_i lookup(PEM_i): the unoccluded lighting (by linearity = lookup of the full map's pyramid)."""
         return self.lookup_all(dirs, g).sum(axis=0)

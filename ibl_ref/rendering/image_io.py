@@ -23,8 +23,11 @@ __all__ = ["write_image_exr", "read_image_exr", "read_g_map"]
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
-def write_image_exr(path, img) -> Path:
+def write_image_exr(path, img, *, signed: bool = False) -> Path:
     """Write a radiance image (H, W), (H, W, 1) or (H, W, 3) as a float32 OpenEXR file (atomically).
+
+    ``signed=True`` accepts negative values: difference images (e.g. the error budget's per-step differences,
+    ``ibl_ref.rendering.error_budget``), which are not radiance; read them with any EXR reader that keeps the sign.
 
     Raises
     ------
@@ -40,8 +43,12 @@ def write_image_exr(path, img) -> Path:
         a = a[..., None]
     if a.ndim != 3 or a.shape[2] not in (1, 3) or a.shape[0] < 1 or a.shape[1] < 1:
         raise IBLError(f"{path}: image must be (H, W), (H, W, 1) or (H, W, 3), got shape {np.shape(img)}")
-    check_radiance(a, f"{path}: image")  # NaN / Inf / negative radiance: refuse to write
-    if np.any(a > _FLOAT32_MAX):
+    if signed:  # signed data (difference images): only NaN / Inf are refused
+        if not np.all(np.isfinite(a)):
+            raise IBLError(f"{path}: image contains NaN or Inf; refusing to write")
+    else:
+        check_radiance(a, f"{path}: image")  # NaN / Inf / negative radiance: refuse to write
+    if np.any(np.abs(a) > _FLOAT32_MAX):
         raise IBLError(f"{path}: values exceed the float32 range")
     try:
         import OpenEXR

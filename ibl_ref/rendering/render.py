@@ -64,7 +64,7 @@ import numpy as np
 from ..errors import IBLError
 
 __all__ = ["RenderResult", "Material", "glossiness_image", "material_images", "surface_uv", "sample_g_map",
-           "render_pem", "resolve_materials", "light_visibilities", "eq5_lookups", "eq5_terms", "shade_eq5",
+           "render_pem", "resolve_materials", "light_visibilities", "horizon_term", "eq5_lookups", "eq5_terms", "shade_eq5",
            "unshadowed_eq5", "background_image", "apply_background", "VISIBILITY_METHODS", "UV_FALLBACKS",
            "BACKGROUNDS"]
 
@@ -440,8 +440,16 @@ def light_visibilities(scene, points, face_normals, lights, *, method: str = "vs
             V[i] = _vsm.visibility(P, sm)
             _tick("visibility", t0)
     if horizon:
-        V = V * (fn @ dirs.T > 0).T
+        V = V * horizon_term(fn, dirs)
     return V
+
+
+def horizon_term(face_normals, directions) -> np.ndarray:
+    """[n_face·ω_i > 0] (L, P) float64: 1 where light i is above the receiving triangle's plane (``horizon=True``
+    of :func:`light_visibilities` multiplies every VIS_i by it; module docstring "Horizon")."""
+    fn = np.asarray(face_normals, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    return (fn @ d.T > 0).T.astype(np.float64)
 
 
 def eq5_lookups(pems, normals, reflect, g, kd, ks):
