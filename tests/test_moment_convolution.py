@@ -40,9 +40,10 @@ def test_exact_mode_matches_dense_gather(n, tile, gather):
 
 @pytest.mark.parametrize("n,leaf", [(8, 2), (16, 2), (16, 4), (12, 2)])
 def test_interval_mode_bound_holds_and_is_not_vacuous(n, leaf):
-    # leaf > 1: convexity (Jensen / chord) intervals on straddling blocks; the bound must hold at every
-    # texel, the approximation error must really be > 0 (the bound is exercised), and the bound must
-    # not be absurdly loose (≤ 20× the worst error: the interval half-width ≈ the chord gap, observed ≈ 2–10×)
+    # leaf > 1: linear brackets (chord above, a parallel line / tangent below) on straddling blocks; the
+    # bound must hold at every texel, the approximation error must really be > 0 (the bound is
+    # exercised), and the bound must not be absurdly loose (≤ 30× the worst error: observed 3–26× on
+    # these tiny maps, whose leaf cones are 0.1–0.4 rad wide; 2× at 512², leaf 8)
     cube = _sun_env(n)
     maps, rel = convolve_moment_many(cube, [1.0, 2.0], leaf=leaf)
     ref = pc.convolve_exact_many(cube, [1.0, 2.0])
@@ -50,17 +51,18 @@ def test_interval_mode_bound_holds_and_is_not_vacuous(n, leaf):
         err = _rel_err(maps[k], ref[k])
         assert np.all(err <= rel[k]), (k, (err / rel[k]).max())
         assert err.max() > 1e-6
-        assert rel[k].max() <= 20 * err.max()
+        assert rel[k].max() <= 30 * err.max()
 
 
 def test_bound_is_tight_enough_to_be_falsifiable():
-    # sensitivity: the true error reaches > 1/4 of the reported bound somewhere, so a bound that were
-    # 4× too small (e.g. a wrong half-width) would be violated and the test above would fail
+    # sensitivity: the true error reaches a fixed share of the reported bound somewhere, so a bound
+    # that were that many times too small (e.g. a wrong half-width) would be violated and the test above
+    # would fail.  Observed max err/bound at 16², leaf 4: 0.19 (s = 1), 0.39 (s = 2).
     cube = _sun_env(16)
-    maps, rel = convolve_moment_many(cube, [1.0], leaf=4)
-    ref = pc.convolve_exact_many(cube, [1.0])
-    err = _rel_err(maps[0], ref[0])
-    assert np.any(err > 0.25 * rel[0])  # a bound 4× smaller would be wrong
+    maps, rel = convolve_moment_many(cube, [1.0, 2.0], leaf=4)
+    ref = pc.convolve_exact_many(cube, [1.0, 2.0])
+    assert np.any(_rel_err(maps[0], ref[0]) > 0.15 * rel[0])  # a bound 6.7× smaller would be wrong
+    assert np.any(_rel_err(maps[1], ref[1]) > 0.25 * rel[1])  # a bound 4× smaller would be wrong
 
 
 def test_constant_environment_exactly_constant():

@@ -241,14 +241,14 @@ def plan_memory_workers(workers: int, job_bytes, available) -> int:
     return w
 
 
-def _job_bytes(stage, n, out_size, C, n_faces, K, need2=True):
+def _job_bytes(stage, n, out_size, C, n_faces, K, need2=True, leaf=1):
     """Estimated peak memory (bytes) of one job of :func:`convolve` (used by the memory planner only)."""
     n_src, n_out = 6 * n * n, n_faces * out_size * out_size
     maps = K * n_out * C * 8.0 * 2  # maps + bounds
     if stage == "moment":
         from .moment_convolution import moment_peak_bytes
 
-        return moment_peak_bytes(n, out_size, n_faces, C, need2)
+        return moment_peak_bytes(n, out_size, n_faces, C, need2, leaf)
     if stage == "sh":  # SH matrix cache / chunk (≤ 256 MB + 128 MB) and per-texel work arrays
         return 4.0e8 + 4 * maps + n_src * (C + 4) * 8.0 * 4
     if stage == "sparse":  # sources, KD-tree, tile geometry
@@ -623,7 +623,8 @@ def _sparse_rtol_scale(a4):
     return min(1.0, max(float(a4.min()) / max(l_mean, 1e-300), 1e-6))
 
 
-def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_plan, sparse_batches, parts, ex_set):
+def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_plan, sparse_batches, parts, ex_set,
+                mo_leaf=1):
     """The independent jobs ``(stage, key, model cost, callable)`` of one round of :func:`convolve`.
 
     Every job computes a fixed piece of work (its exponents, its output faces) that does not depend on
@@ -642,7 +643,8 @@ def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_pla
         for pi, fc in enumerate(mo_parts):
             jobs.append(("moment", ("moment", pi), MOMENT_UNITS_PER_PAIR * pair_units * len(fc) / 6,
                          functools.partial(mc.convolve_moment_many, a4, mo_set, out_size=out_size,
-                                           normalized=normalized, faces=fc)))
+                                           normalized=normalized, faces=fc, leaf=mo_leaf,
+                                           rtol=rtol if mo_leaf > 1 else None)))
     if sh_set:
         L_guess = (sh_plan or {}).get("L") or 32
         jobs.append(("sh", ("sh",), shc.sh_cost(L_guess, n_src, n_out, len(sh_set), a4.shape[-1] + 1),
@@ -671,7 +673,7 @@ def _round_workers(jobs, a4, out_size, workers, executor, memory_limit, need2):
     n, C = a4.shape[1], a4.shape[-1]
     # (a job's callable is a partial of (cube, exponents, ..., faces=...))
     job_mem = [_job_bytes(j[0], n, out_size, C, len(j[3].keywords.get("faces") or range(6)),
-                          len(j[3].args[1]), need2) for j in jobs]
+                          len(j[3].args[1]), need2, j[3].keywords.get("leaf", 1)) for j in jobs]
     avail = memory_limit if memory_limit is not None else available_memory_bytes()
     w_plan = plan_memory_workers(workers, job_mem, avail) if executor is None else workers
     est_s = sum(min(float(j[2]), 1e300) for j in jobs) * SECONDS_PER_UNIT
@@ -706,6 +708,13 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
         scale0 = _sparse_rtol_scale(a4)
 
     mo_set = [s for s in s_list if route[s] == "moment"]
+    # auto: the bracket band (rigorous bound, leaf > 1) where it is cheaper; halved while it misses rtol
+    mo_leaf = 1
+    if method == "auto" and mo_set:
+        from .moment_convolution import moment_leaf
+
+        mo_leaf = moment_leaf(n, rtol)
+    res.info["moment_leaf"] = []
     sh_set = [s for s in s_list if route[s] == "sh"]
     sparse_batches = [(tuple(s for s in s_list if route[s] == "sparse"), scale0, 0)]
     sparse_batches = [b for b in sparse_batches if b[0]]
@@ -723,7 +732,7 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
             if sh_set and method == "auto":  # re-plan only if the SH subset differs from the planned set
                 sub_plan = plan if len(sh_set) == len(finite) else None
             jobs = _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sub_plan,
-                               sparse_batches, parts, ex_set)
+                               sparse_batches, parts, ex_set, mo_leaf)
             w_plan, warning = _round_workers(jobs, a4, out_size, workers, executor, memory_limit, 2.0 in mo_set)
             planned.append(w_plan)
             if warning:
@@ -739,9 +748,15 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
             if mo_set:
                 maps = np.concatenate([out[("moment", pi)][0] for pi in range(len(mo_parts))], axis=1)
                 rel = np.concatenate([out[("moment", pi)][1] for pi in range(len(mo_parts))], axis=1)
+                res.info["moment_leaf"].append(mo_leaf)
+                retry = []
                 for k, s in enumerate(mo_set):
-                    results[s] = (maps[k], rel[k], "moment", "rounding")
-                mo_set = []
+                    if mo_leaf > 1 and not float(rel[k].max()) <= rtol:
+                        retry.append(s)
+                        continue
+                    results[s] = (maps[k], rel[k], "moment", "rigorous" if mo_leaf > 1 else "rounding")
+                mo_set = retry
+                mo_leaf = mo_leaf // 2 if mo_leaf // 2 >= 4 else 1
             if sh_set:
                 maps, rel, info = out[("sh",)]
                 res.info["sh"] = {k: v for k, v in info.items()}
