@@ -101,6 +101,8 @@ __all__ = [
 
 #: target size of one chunk's weight matrix, in float64 elements (2 MB: the passes stay in cache)
 _CHUNK_ELEMS = 1 << 18
+#: elements of one column segment of the sparse gather's per-tile weight matrix (1 MB: stays in cache)
+_SEGMENT_ELEMS = 1 << 17
 #: cost model of the sparse gather, in units of one weight-matrix element (≈ 40 ns under load):
 #: per tile ≈ 0.7 ms, per candidate source texel ≈ 1.2 µs (least-squares fit to timings at 64²,
 #: s ∈ {256, 4096}, tiles of 2…16 texels)
@@ -527,6 +529,44 @@ def _bright_set(rad: np.ndarray, omega: np.ndarray, n_bright, bright_factor: flo
     return np.sort(np.argpartition(-key, k - 1)[:k])
 
 
+def _tile_arrays(idx_t, td_t, cen_t, ang_t):
+    """The per-tile lists of :func:`_tile_geometry` as arrays padded to the largest tile (the last texel
+    repeated): ``(IDX (n_t, B), TD (n_t, B, 3), CEN (n_t, 3), ANG (n_t, B), VALID (n_t, B))``."""
+    B = max(len(i) for i in idx_t)
+    n_t = len(idx_t)
+    IDX = np.empty((n_t, B), dtype=np.intp)
+    TD = np.empty((n_t, B, 3))
+    ANG = np.empty((n_t, B))
+    VALID = np.zeros((n_t, B), dtype=bool)
+    for t, (i, d, a) in enumerate(zip(idx_t, td_t, ang_t)):
+        k = len(i)
+        IDX[t, :k], TD[t, :k], ANG[t, :k], VALID[t, :k] = i, d, a, True
+        IDX[t, k:], TD[t, k:], ANG[t, k:] = i[-1], d[-1], a[-1]
+    return IDX, TD, np.array(cen_t), ANG, VALID
+
+
+def _tile_batches(counts, get_lists, B, pad_index, tail):
+    """Batches ``(tile indices, candidate matrix (g, m))`` of tiles with similar candidate counts (sorted by
+    ``counts``, an upper bound of each list's length): each row holds its tile's list (``get_lists(tile
+    indices)``, called per batch so that only one batch's lists exist at a time), pads (``pad_index``) up
+    to the batch's longest list, then ``tail`` (indices gathered for every tile).  Each batch's weight
+    matrix (g·B·m) ≤ :data:`_CHUNK_ELEMS` (at least one tile)."""
+    order = np.argsort(counts, kind="stable")
+    k0 = 0
+    n_t = len(order)
+    while k0 < n_t:
+        g = max(1, _CHUNK_ELEMS // (B * max(int(counts[order[k0]]) + tail.size, 1)))
+        tb = order[k0 : k0 + g]
+        lists = get_lists(tb)
+        m = max((len(x) for x in lists), default=0)
+        ii = np.full((tb.size, m + tail.size), pad_index, dtype=np.intp)
+        for r, x in enumerate(lists):
+            ii[r, : len(x)] = x
+        ii[:, m:] = tail
+        yield tb, ii
+        k0 += tb.size
+
+
 def convolve_sparse_many(
     cube,
     exponents,
@@ -594,6 +634,11 @@ def convolve_sparse_many(
     geometry = {}  # tile size → per-tile output indices, directions, centre, angles
     rad_w = np.concatenate([rad, np.ones((M, 1))], axis=1) * omega[:, None]
     src_dirs_t = np.ascontiguousarray(src_dirs.T)
+    is_bright = np.zeros(M, dtype=bool)
+    is_bright[bright] = True
+    # source directions and weights with one dummy entry (index M: direction 0 → weight 0) for the pads
+    src_dirs_pad = np.concatenate([src_dirs_t, np.zeros((3, 1))], axis=1)
+    rad_w_pad = np.concatenate([rad_w, np.zeros((1, C + 1))])
 
     for k, s in enumerate(s_list):
         if not np.isfinite(s):
@@ -614,78 +659,88 @@ def convolve_sparse_many(
             continue
         # tiles of T×T output texels sharing one candidate list
         T = _tile_size(out_size, th, M, int(bright.size))
-        gathered = 0
-        if nearest is None:
-            # each output texel's containing source texel (always gathered: non-empty, finite max
-            # weight — its centre is within ρ < π/2 of the output direction)
-            fi, ri, ci = envmap.direction_to_texel(dst[list(faces)].reshape(-1, 3), n * supersample)
-            m_src = n * supersample
-            nearest = (np.asarray(fi) * m_src + np.asarray(ri)) * m_src + np.asarray(ci)
+        # the cap reaches at least ρ beyond every texel of its tile, so it holds each output texel's own
+        # source texel (within ρ of it): the largest weight of every row is gathered
+        th_cap = max(th, rho + _ANGLE_MARGIN)
         if T not in geometry:
-            geometry[T] = _tile_geometry(dst, faces, out_size, T)
-        idx_t, td_t, cen_t, ang_t = geometry[T]
+            geometry[T] = _tile_arrays(*_tile_geometry(dst, faces, out_size, T))
+        IDX, TD, CEN, ANG, VALID = geometry[T]
+        n_t, B = IDX.shape
         # Per-texel bound: a tile gathers every source texel within q = θc + t_rad of its centre, so for
         # an output texel at angle a from the centre every neglected texel is farther than
         # θ_eff = q − a ≥ θc.  W_b is tabulated on a grid of angles; a texel uses the largest grid
         # angle ≤ θ_eff (W_b(θ) bounds the weight of ALL texels beyond θ, a superset).
         t_rad_max = 0.75 * T * (np.pi / 2) / out_size * 2.0
-        grid = np.unique(np.concatenate([th + np.linspace(0.0, t_rad_max, 33), [np.pi / 2]]))
+        grid = np.unique(np.concatenate([th + np.linspace(0.0, t_rad_max + th_cap - th, 33), [np.pi / 2]]))
         grid = grid[grid <= np.pi / 2]
         log_wb_grid = np.array([neglected_weight_bound(s, g, rho) for g in grid])
-        q_t = np.array([th + float(a.max()) + _ANGLE_MARGIN for a in ang_t])
+        q_t = th_cap + ANG.max(axis=1) + _ANGLE_MARGIN
         near = q_t < np.pi
-        balls = np.empty(len(q_t), dtype=object)
+        # neglected j: ∠(j, cen) > q ⇒ ∠(j, r) > q − ∠(r, cen); half the margin absorbs round-off
+        theta_eff = q_t[:, None] - 0.5 * _ANGLE_MARGIN - ANG  # ≥ θc + margin/2
+        gi = np.searchsorted(grid, theta_eff, side="right") - 1
+        log_wb_t = np.where(near[:, None], log_wb_grid[np.maximum(gi, 0)], -np.inf)
+        # candidate lists (the bright set is left out: it is gathered for every output texel below)
+        chord = 2.0 * np.sin(np.minimum(q_t, np.pi) / 2.0)
+        every = np.flatnonzero(~is_bright)
         if near.any() and int(near.sum()) * M <= _DOT_QUERY_PAIRS:
             # small maps: the caps by one dot product per (tile, source) pair (cos ∠ ≥ cos q), which
             # spares the start-up of scipy.spatial (≈ 0.1 s) where the whole gather takes less
-            cen_near = np.array(cen_t)[near]
-            cos_q = np.cos(q_t[near])
-            hits = []
-            for i0 in range(0, cen_near.shape[0], 256):
-                dots = cen_near[i0 : i0 + 256] @ src_dirs_t
-                hits += [np.flatnonzero(row >= cq) for row, cq in zip(dots, cos_q[i0 : i0 + 256])]
-            for t_i, hit in zip(np.flatnonzero(near), hits):
-                balls[t_i] = hit
-        elif near.any():  # one vectorised KD-tree query for all tiles
-            if tree is None:
+            counts = np.full(n_t, M, dtype=np.intp)
+
+            def get_lists(tb):
+                dots = CEN[tb] @ src_dirs_t
+                dots[:, bright] = -2.0
+                return [np.flatnonzero(row >= math.cos(q_t[t])) if near[t] else every for row, t in zip(dots, tb)]
+        else:  # a KD-tree: counts first (no lists), each batch's caps when it is gathered
+            if tree is None and near.any():
                 from scipy.spatial import cKDTree
 
                 tree = cKDTree(src_dirs)
-            balls[near] = tree.query_ball_point(np.array(cen_t)[near], 2.0 * np.sin(q_t[near] / 2.0))
-        for t_i, idx in enumerate(idx_t):
-            td, ang, q = td_t[t_i], ang_t[t_i], float(q_t[t_i])
-            if q >= np.pi:
-                cand = np.arange(M)
-                log_wb_t = np.full(td.shape[0], -np.inf)
-            else:
-                # sorted, duplicate-free union: the cap around the tile centre, each texel's nearest
-                # source texel and the bright set
-                cand = np.unique(np.concatenate([np.asarray(balls[t_i], dtype=np.intp), nearest[idx], bright]))
-                # neglected j: ∠(j, cen) > q ⇒ ∠(j, r) > q − ∠(r, cen); half the margin absorbs round-off
-                theta_eff = q - 0.5 * _ANGLE_MARGIN - ang  # ≥ θc + margin/2
-                gi = np.searchsorted(grid, theta_eff, side="right") - 1
-                log_wb_t = log_wb_grid[np.maximum(gi, 0)]
-            c = td @ src_dirs_t[:, cand]  # (B, m) cosines
+            counts = np.full(n_t, M, dtype=np.intp)
+            if near.any():
+                counts[near] = tree.query_ball_point(CEN[near], chord[near], return_length=True)
+
+            def get_lists(tb):
+                out = []
+                for t, hit in zip(tb, tree.query_ball_point(CEN[tb], chord[tb]) if near[tb].any() else [None] * tb.size):
+                    if not near[t]:
+                        out.append(every)
+                        continue
+                    hit = np.asarray(hit, dtype=np.intp)
+                    out.append(hit[~is_bright[hit]] if bright.size else hit)
+                return out
+        gathered = 0
+        # weights relative to 1 (c ≤ 1 ⇒ c^s ≤ 1: no overflow) when no row's largest weight — its own
+        # source texel's, within ρ — can underflow; otherwise relative to each row's largest cosine
+        rowmax = s * math.log(max(math.cos(min(rho, np.pi / 2)), 1e-300)) < -600.0
+        acc = np.zeros((n_t, B, C + 1))
+        logc_max = np.zeros((n_t, B, 1))
+        # (the bright set, never in the cap lists, is gathered for every output texel)
+        for tb, ii in _tile_batches(counts, get_lists, B, M, bright):
+            gathered += ii.size * B
+            c = np.matmul(TD[tb], src_dirs_pad[:, ii].transpose(1, 0, 2))  # (g, B, m) cosines
             np.maximum(c, 0.0, out=c)
             with np.errstate(divide="ignore"):
-                np.log(c, out=c)  # −inf behind the lobe → weight exactly 0
-            logc_max = c.max(axis=1, keepdims=True)
-            c -= logc_max
+                np.log(c, out=c)  # −inf behind the lobe (and at the pads) → weight exactly 0
+            if rowmax:
+                mx = c.max(axis=2, keepdims=True)
+                logc_max[tb] = mx
+                c -= mx
             c *= s
-            np.exp(c, out=c)  # (c / c_max)^s
-            acc = c @ rad_w[cand]  # Ω folded into rad_w: [Σ w L Ω, Σ w Ω]
-            p_avg = acc[:, :C] / acc[:, C:]
-            # log W_in (absolute Σ cos^s Ω over the gathered set)
-            log_win = s * logc_max[:, 0] + np.log(acc[:, C])
-            with np.errstate(invalid="ignore"):
-                f_out = np.where(
-                    np.isneginf(log_wb_t), 0.0, 1.0 / (1.0 + np.exp(np.minimum(log_win - log_wb_t, 700.0)))
-                )  # W_b/(W_in+W_b)
-            dev = np.maximum(np.maximum(l_max_out[None, :] - p_avg, p_avg - l_min_out[None, :]), 0.0)
-            b = f_out[:, None] * dev + 1e-12 * p_avg  # + floating-point allowance
-            maps[k, idx] = p_avg
-            bounds[k, idx] = b
-            gathered += len(cand) * td.shape[0]
+            np.exp(c, out=c)  # (c / c_ref)^s ≤ 1
+            acc[tb] += np.matmul(c, rad_w_pad[ii])  # Ω folded into rad_w: [Σ w L Ω, Σ w Ω]
+        p_avg = acc[..., :C] / acc[..., C:]
+        # log W_in (absolute Σ cos^s Ω over the gathered set)
+        log_win = s * logc_max[..., 0] + np.log(acc[..., C])
+        with np.errstate(invalid="ignore", over="ignore"):
+            f_out = np.where(
+                np.isneginf(log_wb_t), 0.0, 1.0 / (1.0 + np.exp(np.minimum(log_win - log_wb_t, 700.0)))
+            )  # W_b/(W_in+W_b)
+        dev = np.maximum(np.maximum(l_max_out - p_avg, p_avg - l_min_out), 0.0)
+        b_abs = f_out[..., None] * dev + 1e-12 * p_avg  # + floating-point allowance
+        maps[k, IDX[VALID]] = p_avg[VALID]
+        bounds[k, IDX[VALID]] = b_abs[VALID]
         infos.append(SparseInfo(s, th, rho, eps, log_wb, int(bright.size), gathered / (P * M)))
     shape = (K, nF, out_size, out_size) + (() if squeeze else (C,))
     out = (maps.reshape(shape), bounds.reshape(shape))
