@@ -579,6 +579,13 @@ def _route_auto(a4, s_list, rtol, out_size, normalized, info):
             if s in MOMENT_EXPONENTS:
                 route[s] = "moment"
         finite = [s for s in finite if s not in MOMENT_EXPONENTS]
+    if finite and _sh_cannot_pay(finite, rtol, n, n_src, n_out, normalized, a4.shape[-1] + 1):
+        info["sh_plan_skipped"] = True
+        for s in finite:
+            c_sp = _sparse_cost(s, rtol, n_src, n_out) if normalized else np.inf
+            c_ex = n_out * n_src * (EXACT_UNITS_PER_PAIR_S1 if s == 1.0 else EXACT_UNITS_PER_PAIR)
+            route[s] = "sparse" if c_sp < c_ex else "exact"
+        finite = []
     if finite:
         plan = shc.plan_sh(a4, finite, rtol=rtol, out_size=out_size)
         info["sh_plan_L_per_s"] = {_s_json(s): L for s, L in zip(finite, plan["L_per_s"])}
@@ -609,6 +616,26 @@ def _route_auto(a4, s_list, rtol, out_size, normalized, info):
         for s in finite:
             route[s] = "sh" if s in best[1] else other[s][0]
     return route, plan, finite
+
+
+def _sh_cannot_pay(finite, rtol, n, n_src, n_out, normalized, Q):
+    """True when no SH pass can be cheaper than the sparse/exact gathers of ``finite`` together, by a
+    lower bound of its cost: the band limit the planner could choose is never below the one the
+    truncation bound needs at the most lenient target 0.8·rtol (:func:`~ibl_ref.groundtruth.sh_bounds.choose_band_limit`).
+    Spares the planner (an SH projection preview, ≈ 0.1–0.3 s) where narrow lobes go to the sparse gather."""
+    from .sh_bounds import choose_band_limit, texel_max_radius
+    from .sh_convolution import SH_L_MAX, SH_OVERHEAD_UNITS, sh_cost
+
+    rho = texel_max_radius(n)
+    others = 0.0
+    sh_lb = np.inf
+    for s in finite:
+        c_sp = _sparse_cost(s, rtol, n_src, n_out) if normalized else np.inf
+        others += min(c_sp, n_out * n_src * (EXACT_UNITS_PER_PAIR_S1 if s == 1.0 else EXACT_UNITS_PER_PAIR))
+        L = choose_band_limit(s, 0.8 * rtol, rho, SH_L_MAX)
+        if L is not None:
+            sh_lb = min(sh_lb, sh_cost(L, n_src, n_out, 1, Q) + SH_OVERHEAD_UNITS)
+    return others < sh_lb
 
 
 def _sparse_rtol_scale(a4):

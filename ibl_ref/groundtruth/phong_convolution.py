@@ -108,9 +108,6 @@ _SEGMENT_ELEMS = 1 << 17
 #: s ∈ {256, 4096}, tiles of 2…16 texels)
 _TILE_OVERHEAD_ELEMS = 1.7e4
 _CAND_OVERHEAD_ELEMS = 30.0
-#: the sparse gather finds each tile's cap by dot products (instead of a KD-tree) while
-#: tiles × source texels ≤ this (≈ 0.1 s of dot products; 64² faces with 8×8 tiles: 9.4e6)
-_DOT_QUERY_PAIRS = 3e7
 #: angular safety margin (rad) for chord/angle round-off in the cap test of the sparse gather
 _ANGLE_MARGIN = 1e-7
 #: below this argument np.exp returns exactly 0.0 in float64 (smallest subnormal ≈ exp(−744.4))
@@ -529,6 +526,27 @@ def _bright_set(rad: np.ndarray, omega: np.ndarray, n_bright, bright_factor: flo
     return np.sort(np.argpartition(-key, k - 1)[:k])
 
 
+#: side (texels) of the source blocks whose bounding cones :func:`convolve_sparse_many` tests first when it
+#: looks for a tile's cap (then only those blocks' texels): a two-level search in NumPy, no KD-tree
+_CAP_BLOCK = 8
+
+
+def _source_blocks(src_dirs, m, b=_CAP_BLOCK):
+    """Blocks of b×b source texels per face (the last ones partial): unit centres (nb, 3), flat texel
+    indices (nb, b²; −1 = none) and the largest angle between a block's centre and its texel centres
+    (with a 1e-9 rad margin for the arccos)."""
+    nbk = -(-m // b)
+    idx = np.full((6, nbk * b, nbk * b), -1, dtype=np.intp)
+    idx[:, :m, :m] = np.arange(6 * m * m).reshape(6, m, m)
+    tex = idx.reshape(6, nbk, b, nbk, b).transpose(0, 1, 3, 2, 4).reshape(-1, b * b)
+    d = np.where((tex >= 0)[..., None], src_dirs[np.maximum(tex, 0)], 0.0)
+    c = d.sum(axis=1)
+    c /= np.linalg.norm(c, axis=1, keepdims=True)
+    dots = np.where(tex >= 0, np.einsum("bjk,bk->bj", d, c), 1.0)
+    alpha = float(np.arccos(np.clip(dots.min(), -1.0, 1.0))) + 1e-9
+    return c, tex, alpha
+
+
 def _tile_arrays(idx_t, td_t, cen_t, ang_t):
     """The per-tile lists of :func:`_tile_geometry` as arrays padded to the largest tile (the last texel
     repeated): ``(IDX (n_t, B), TD (n_t, B, 3), CEN (n_t, 3), ANG (n_t, B), VALID (n_t, B))``."""
@@ -630,7 +648,7 @@ def convolve_sparse_many(
     rho = _texel_extent(n * supersample)
 
     dst = envmap.texel_directions(out_size)  # (6, n, n, 3)
-    tree = nearest = None
+    blocks = None
     geometry = {}  # tile size → per-tile output indices, directions, centre, angles
     rad_w = np.concatenate([rad, np.ones((M, 1))], axis=1) * omega[:, None]
     src_dirs_t = np.ascontiguousarray(src_dirs.T)
@@ -680,36 +698,28 @@ def convolve_sparse_many(
         theta_eff = q_t[:, None] - 0.5 * _ANGLE_MARGIN - ANG  # ≥ θc + margin/2
         gi = np.searchsorted(grid, theta_eff, side="right") - 1
         log_wb_t = np.where(near[:, None], log_wb_grid[np.maximum(gi, 0)], -np.inf)
-        # candidate lists (the bright set is left out: it is gathered for every output texel below)
-        chord = 2.0 * np.sin(np.minimum(q_t, np.pi) / 2.0)
+        # candidate lists (the bright set is left out: it is gathered for every output texel below):
+        # the source blocks whose cone reaches the cap, then their texels within q of the tile centre
         every = np.flatnonzero(~is_bright)
-        if near.any() and int(near.sum()) * M <= _DOT_QUERY_PAIRS:
-            # small maps: the caps by one dot product per (tile, source) pair (cos ∠ ≥ cos q), which
-            # spares the start-up of scipy.spatial (≈ 0.1 s) where the whole gather takes less
-            counts = np.full(n_t, M, dtype=np.intp)
+        if blocks is None:
+            blocks = _source_blocks(src_dirs, n * supersample)
+        blk_c, blk_tex, blk_alpha = blocks
+        cos_q = np.cos(np.minimum(q_t, np.pi))
+        cos_qb = np.cos(np.minimum(q_t + blk_alpha, np.pi))
+        counts = np.where(near, np.minimum(M, (1.0 - cos_qb) / 2.0 * M + 1).astype(np.intp), M)
 
-            def get_lists(tb):
-                dots = CEN[tb] @ src_dirs_t
-                dots[:, bright] = -2.0
-                return [np.flatnonzero(row >= math.cos(q_t[t])) if near[t] else every for row, t in zip(dots, tb)]
-        else:  # a KD-tree: counts first (no lists), each batch's caps when it is gathered
-            if tree is None and near.any():
-                from scipy.spatial import cKDTree
-
-                tree = cKDTree(src_dirs)
-            counts = np.full(n_t, M, dtype=np.intp)
-            if near.any():
-                counts[near] = tree.query_ball_point(CEN[near], chord[near], return_length=True)
-
-            def get_lists(tb):
-                out = []
-                for t, hit in zip(tb, tree.query_ball_point(CEN[tb], chord[tb]) if near[tb].any() else [None] * tb.size):
-                    if not near[t]:
-                        out.append(every)
-                        continue
-                    hit = np.asarray(hit, dtype=np.intp)
-                    out.append(hit[~is_bright[hit]] if bright.size else hit)
-                return out
+        def get_lists(tb):
+            hit = (CEN[tb] @ blk_c.T) >= cos_qb[tb, None]  # (g, blocks): cones within q + α of the centre
+            out = []
+            for r, t in enumerate(tb):
+                if not near[t]:
+                    out.append(every)
+                    continue
+                tex = blk_tex[hit[r]].ravel()
+                tex = tex[tex >= 0]
+                tex = tex[(CEN[t] @ src_dirs_t[:, tex]) >= cos_q[t]]
+                out.append(np.sort(tex[~is_bright[tex]]) if bright.size else np.sort(tex))
+            return out
         gathered = 0
         # weights relative to 1 (c ≤ 1 ⇒ c^s ≤ 1: no overflow) when no row's largest weight — its own
         # source texel's, within ρ — can underflow; otherwise relative to each row's largest cosine
