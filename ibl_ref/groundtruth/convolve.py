@@ -19,8 +19,11 @@ literal Eq. 4 sum (``normalized=False``) at every output texel ``r``, by one of
     moments (exact polynomial kernel on blocks in the positive hemisphere) plus an exact gather of
     the horizon band; equals the exact gather up to rounding, ≈ 10× faster at 128² faces.
 ``"auto"``
-    per exponent, ``s ∈ {1, 2}`` by the moment route (always within rtol; broad lobes are where the
-    SH bound is loose and the sparse gather degenerates to the dense one), otherwise the cheapest of the above whose bound meets ``rtol``: the SH/hybrid route when its
+    per exponent, ``s ∈ {1, 2}`` by the moment route (broad lobes are where the SH bound is loose and
+    the sparse gather degenerates to the dense one) — from 512² faces (:func:`~ibl_ref.groundtruth.moment_convolution.moment_leaf`)
+    with linear brackets on leaf blocks of the horizon band instead of its exact gather (rigorous
+    bound; the leaf is halved while the bound misses rtol), whose cost grows as N² instead of N³ —
+    otherwise the cheapest of the above whose bound meets ``rtol``: the SH/hybrid route when its
     a-priori band limit is affordable (broad lobes), the sparse gather otherwise (narrow lobes), and the
     exact gather when neither bound meets ``rtol`` (checked a posteriori, per exponent) or for the
     mirror ``s = inf``.  Exponents routed to SH share one SH pass.
@@ -62,7 +65,7 @@ Float64 range
 
 The returned ``error_bound[s]`` is a per-texel bound on ``|approx − exact| / exact`` (max over channels,
 ``inf`` where the bound is useless, e.g. a black output texel); ``bound_kind[s]`` says whether it is
-``"rigorous"`` (SH, sparse), ``"estimate"`` (SH for very broad lobes, s ≈ 1, whose rigorous bound
+``"rigorous"`` (SH, sparse, moment with brackets), ``"estimate"`` (SH for very broad lobes, s ≈ 1, whose rigorous bound
 cannot reach rtol at an affordable band limit: ``|y_L − y_{L/2}|/y_L``, see
 :func:`ibl_ref.groundtruth.sh_convolution.convolve_sh_many`) or ``"rounding"`` (exact).  ``auto`` accepts an
 estimate only when it meets rtol, and only for exponents where the exact gather would cost more.

@@ -21,27 +21,36 @@ tile's horizon) are handled per output texel:
     3.4 s CPU in one call vs ≈ 54 s per exponent for the dense gather (extrapolated in
     ``ibl-ref experiment speed-accuracy``); max relative difference to
     :func:`ibl_ref.groundtruth.phong_convolution.convolve_exact_many` 1.9e-14 at 64² (sky + 1e5 sun near a cube
-    corner, ``benchmarks/bench_convolution.py``).  ``leaf > 1`` is no faster at 128² and far less
-    accurate (leaf 2: 29 s, bound 4.7e-4; leaf 8: 3.5 s, bound 2.4e-2), so ``auto`` keeps ``leaf = 1``;
+    corner, ``benchmarks/bench_convolution.py``).  Its band holds O(N) texels per output texel, so its
+    cost grows as N³ (4.2 s CPU per output face at 256², ≈ 8× that at 512²).
 ``leaf > 1``
-    an interval per (r, block, channel) from convexity of ``f(x) = max(x,0)^s`` on the block's range
-    ``x = r·ω ∈ [x_lo, x_hi]`` (from the cone): Jensen's inequality below, the chord above
-    (Edmundson–Madansky), both needing only ``M_b^(0) = Σ L Ω`` and ``M_b^(1)``:
+    linear brackets of the kernel per (output texel, straddling leaf block), see :func:`_band_brackets`:
+    with ``x = r·ω ∈ [x_lo, x_hi]`` on the block (from its cone) and ``A = x_hi/(x_hi − x_lo)``,
 
-        W f(x̄)  ≤  Σ_j L_j Ω_j f(r·ω_j)  ≤  f(x_hi) (W x̄ − W x_lo) / (x_hi − x_lo),   W x̄ = r·M_b^(1).
+        s = 1:  A x  ≤  max(x,0)   ≤  A x − A x_lo          (a line through 0 below, the chord above)
+        s = 2:  a x − a²/4  ≤  max(x,0)²  ≤  a (x − x_lo),   a = x_hi²/(x_hi − x_lo)   (tangent, chord)
 
-    The midpoint is used, the half-width is a rigorous absolute error, propagated to the ratio
-    (numerator per channel, denominator with ``L ≡ 1``).  Texels brighter than ``bright_factor`` × the
-    solid-angle-weighted mean luminance (e.g. a sun) are removed from the blocks and gathered exactly for
-    every output texel, so the intervals only see the smooth remainder.
+    so the block's contribution lies in an interval whose ends are linear in ``W = Σ L Ω`` and
+    ``r·M_b^(1)``: midpoint and half-width accumulate by matrix products, and a block on the positive
+    side of this texel (``x_lo ≥ 0``) is exact.  The half-width is ≤ ``W sin α / 4`` (s = 1), so the
+    band's error is ≈ 2 L sin² α in total, independent of N for a fixed cone angle α: the leaf grows with
+    N (:func:`moment_leaf`, leaf/N = 1/64 at rtol 1e-3) and the band keeps O(1/α) blocks per output texel
+    instead of O(N) texels.  Texels brighter than ``bright_factor`` × the solid-angle-weighted mean
+    luminance (e.g. a sun) are left out of the leaf blocks' interval moments and gathered exactly where
+    their leaf block straddles (they stay in the exact moments of positive blocks).  With ``rtol``, the
+    output tiles whose bound exceeds it are done again with half the leaf (down to 2).  Measured (one
+    output face, s = 1 and 2, sky + 1e5 sun, shared machine at load 8–10, ``/tmp``-script timings with 1
+    BLAS thread): 256², leaf 4: 2.5 s CPU (exact band 4.2 s), bound ≤ 3.9e-4 on face +X (1.8e-3 on the
+    ground face −Y, whose tiles the refinement redoes); 512², leaf 8: 7.1 s CPU, bound 5.7e-4, max error
+    4.6e-5.  The bound held at every checked texel (tests compare with the exact gather); observed
+    max error / bound 0.2–0.5 (bound 2–26× the worst error, the larger ratios on tiny maps).
 
 Memory.  The output tiles are processed in chunks of :func:`moment_tiles_per_chunk` tiles, so that
 one chunk's (tile, texel) band pairs stay below :data:`MOMENT_CHUNK_PAIRS`; the chunks depend only on
 the sizes (never on the worker count).  Peak memory then grows with the source moments and the
-output, not with the band: 512² faces, s = 1 and 2, two output faces in one call: 1.25 GB peak RSS
-(estimate :func:`moment_peak_bytes`: 1.14 GB) and 116 s on the loaded shared machine, where the
-unchunked code needed 12–15 GB per process (``/usr/bin/time`` on a one-job script).  The whole
-``ibl-ref convolve`` of 512² faces with 8 exponents: 2.6 GB peak RSS of the largest process, 333 s CPU.
+output, not with the band.  With ``leaf > 1`` no per-texel moment arrays are built (the leaf moments
+come from one small matrix product per block, :func:`_leaf_moments`): estimate
+:func:`moment_peak_bytes` 0.69 GB per one-face job at 512², 1.7 GB at 1024².
 
 The per-texel bound returned is ``max(approx − lo, hi − approx)/lo`` on the relative error (max over
 channels) plus :data:`ROUNDING_REL` for float64 rounding of the sums.
