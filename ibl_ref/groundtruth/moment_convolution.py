@@ -180,8 +180,8 @@ def moment_peak_bytes(n: int, out_size: int, n_faces: int = 6, channels: int = 3
     P = 1 << max(int(math.ceil(math.log2(max(n, 1)))), 0)
     Q = channels + 1
     nk = 3 * Q + (6 * Q if need2 else 0)
-    if leaf > 1:
-        src = 6 * P * P * (2 * Q + 9 + 6 + 2.0 * nk / (leaf * leaf)) * 8.0
+    if leaf > 1:  # fitted: 1024², leaf 16, one output face, s = 1 and 2: 3.0 GB peak RSS of a one-job script
+        src = 6 * P * P * (2 * Q + 9 + 6 + 2.0 * nk / (leaf * leaf)) * 8.0 * 2.0
     else:
         src = 6 * P * P * (nk * (1.0 + 1.0 / 3.0) + Q + 3 + 1) * 8.0
     out = n_faces * out_size * out_size * Q * 8.0 * 2 * (2 if need2 else 1) * 1.5
@@ -198,21 +198,27 @@ def _texel_moments(dP, wP, Q, need2):
     return np.concatenate(F, axis=-1)
 
 
-def _leaf_moments(dP, wP, Q, need2, b):
+def _leaf_moments(dP, wP, Q, need2, b, drop=None):
     """Moments of b×b blocks, (6, P/b, P/b, 3Q[+6Q]) like :func:`_block_sums` of :func:`_texel_moments`
-    (same column layout), by one small matrix product per block instead of per-texel arrays."""
+    (same column layout), by one small matrix product per block instead of per-texel arrays; one face
+    at a time (bounded temporaries).  ``drop`` (6,P,P) bool: texels whose radiance channels (not the
+    last, L ≡ 1) are left out."""
     P = dP.shape[1]
     m = P // b
+    C = wP.shape[-1] - 1
 
-    def blocks(x):  # (6,P,P,k) → (6,m,m,b²,k)
-        return x.reshape(6, m, b, m, b, x.shape[-1]).transpose(0, 1, 3, 2, 4, 5).reshape(6, m, m, b * b, -1)
+    def blocks(x):  # (P,P,k) → (m,m,b²,k)
+        return x.reshape(m, b, m, b, x.shape[-1]).transpose(0, 2, 1, 3, 4).reshape(m, m, b * b, -1)
 
-    wB = blocks(wP)
-    F = [np.matmul(blocks(dP).swapaxes(-1, -2), wB).reshape(6, m, m, 3 * Q)]
-    if need2:
-        dd = dP[..., _IU[0]] * dP[..., _IU[1]]
-        F.append(np.matmul(blocks(dd).swapaxes(-1, -2), wB).reshape(6, m, m, 6 * Q))
-    return np.concatenate(F, axis=-1)
+    out = np.empty((6, m, m, 3 * Q + (6 * Q if need2 else 0)))
+    for f in range(6):
+        w = wP[f] if drop is None else np.where(drop[f][..., None] & (np.arange(Q) < C), 0.0, wP[f])
+        wB = blocks(w)
+        out[f, ..., : 3 * Q] = np.matmul(blocks(dP[f]).swapaxes(-1, -2), wB).reshape(m, m, 3 * Q)
+        if need2:
+            dd = dP[f][..., _IU[0]] * dP[f][..., _IU[1]]
+            out[f, ..., 3 * Q :] = np.matmul(blocks(dd).swapaxes(-1, -2), wB).reshape(m, m, 6 * Q)
+    return out
 
 
 def _block_levels(dP, real, F, P, stop):
@@ -576,12 +582,13 @@ def convolve_moment_many(
             F = None
             levels = _block_levels(dP, real, _leaf_moments(dP, wP, Q, need2, lf), P, stop)
             # leaf-block moments without the bright texels (those are gathered exactly)
-            wD = np.where(np.pad(br, pad[:3])[..., None] & (np.arange(Q) < C), 0.0, wP)
-            M0 = _block_sums(wD, lf)
-            FD = _leaf_moments(dP, wD, Q, need2, lf).reshape(M0.shape[0], -1)
+            brp = np.pad(br, pad[:3])
+            M0 = _block_sums(wP, lf)
+            if brP.size:
+                M0 = _block_sums(np.where(brp[..., None] & (np.arange(Q) < C), 0.0, wP), lf)
+            FD = _leaf_moments(dP, wP, Q, need2, lf, drop=brp if brP.size else None).reshape(M0.shape[0], -1)
             M1 = FD[:, : 3 * Q]
             M2 = FD[:, 3 * Q :] if need2 else None
-            del wD
             # bright texels per leaf block (flat padded indices), as a CSR list
             f_, rem_ = np.divmod(brP, P * P)
             i_, j_ = np.divmod(rem_, P)
