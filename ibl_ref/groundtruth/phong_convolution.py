@@ -107,8 +107,6 @@ __all__ = [
 
 #: target size of one chunk's weight matrix, in float64 elements (2 MB: the passes stay in cache)
 _CHUNK_ELEMS = 1 << 18
-#: elements of one column segment of the sparse gather's per-tile weight matrix (1 MB: stays in cache)
-_SEGMENT_ELEMS = 1 << 17
 #: cost model of the sparse gather, in units of one weight-matrix element (≈ 40 ns under load):
 #: per tile ≈ 0.7 ms, per candidate source texel ≈ 1.2 µs (least-squares fit to timings at 64²,
 #: s ∈ {256, 4096}, tiles of 2…16 texels)
