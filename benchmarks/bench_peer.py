@@ -249,6 +249,28 @@ def median_wall(cmd, repeat, timeout, env=None):
     return float(np.median(walls)), walls, float(np.median(cpus))
 
 
+#: start-up floors of a Python process: what any whole-process run of the lab costs at least
+FLOOR_COMMANDS = {
+    "python -S -c pass": [sys.executable, "-S", "-c", "pass"],
+    "python -c 'import numpy'": [sys.executable, "-c", "import numpy"],
+    "python -c 'import numpy, OpenEXR'": [sys.executable, "-c", "import numpy, OpenEXR"],
+    "ibl-ref convolve --help": [sys.executable, "-m", "ibl_ref", "convolve", "--help"],
+}
+
+
+def measure_floor(repeat):
+    """Median wall and CPU seconds of :data:`FLOOR_COMMANDS` (whole processes)."""
+    out = {}
+    for label, cmd in FLOOR_COMMANDS.items():
+        runs = []
+        for _ in range(max(1, repeat)):
+            _, w, c = _timed_run(cmd, None, lab_env())
+            runs.append((w, c))
+        runs.sort()
+        out[label] = runs[len(runs) // 2]
+    return out
+
+
 def main(argv=None):
     from ibl_ref.environment.exr_io import load_cube, write_envmap
     from ibl_ref.experiments.speed_accuracy import environment
@@ -269,6 +291,9 @@ def main(argv=None):
         exps = []
     cmfts = [str(Path(c).resolve()) for c in args.cmft]
     print(f"ibl_ref from {ROOT}; {_load()}; cmft: {', '.join(cmfts) or 'none (lab side only)'}")
+    floor = measure_floor(args.repeat)
+    for label, (w, c) in floor.items():
+        print(f"floor {label:>34s}: {w:.3f} s wall, {c:.3f} s CPU (median of {args.repeat})")
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_peer_") as td:
         tmp = Path(td)

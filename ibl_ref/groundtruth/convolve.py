@@ -19,8 +19,11 @@ literal Eq. 4 sum (``normalized=False``) at every output texel ``r``, by one of
     moments (exact polynomial kernel on blocks in the positive hemisphere) plus an exact gather of
     the horizon band; equals the exact gather up to rounding, ≈ 10× faster at 128² faces.
 ``"auto"``
-    per exponent, ``s ∈ {1, 2}`` by the moment route (always within rtol; broad lobes are where the
-    SH bound is loose and the sparse gather degenerates to the dense one), otherwise the cheapest of the above whose bound meets ``rtol``: the SH/hybrid route when its
+    per exponent, ``s ∈ {1, 2}`` by the moment route (broad lobes are where the SH bound is loose and
+    the sparse gather degenerates to the dense one) — from 512² faces (:func:`~ibl_ref.groundtruth.moment_convolution.moment_leaf`)
+    with linear brackets on leaf blocks of the horizon band instead of its exact gather (rigorous
+    bound; the leaf is halved while the bound misses rtol), whose cost grows as N² instead of N³ —
+    otherwise the cheapest of the above whose bound meets ``rtol``: the SH/hybrid route when its
     a-priori band limit is affordable (broad lobes), the sparse gather otherwise (narrow lobes), and the
     exact gather when neither bound meets ``rtol`` (checked a posteriori, per exponent) or for the
     mirror ``s = inf``.  Exponents routed to SH share one SH pass.
@@ -62,7 +65,7 @@ Float64 range
 
 The returned ``error_bound[s]`` is a per-texel bound on ``|approx − exact| / exact`` (max over channels,
 ``inf`` where the bound is useless, e.g. a black output texel); ``bound_kind[s]`` says whether it is
-``"rigorous"`` (SH, sparse), ``"estimate"`` (SH for very broad lobes, s ≈ 1, whose rigorous bound
+``"rigorous"`` (SH, sparse, moment with brackets), ``"estimate"`` (SH for very broad lobes, s ≈ 1, whose rigorous bound
 cannot reach rtol at an affordable band limit: ``|y_L − y_{L/2}|/y_L``, see
 :func:`ibl_ref.groundtruth.sh_convolution.convolve_sh_many`) or ``"rounding"`` (exact).  ``auto`` accepts an
 estimate only when it meets rtol, and only for exponents where the exact gather would cost more.
@@ -241,14 +244,14 @@ def plan_memory_workers(workers: int, job_bytes, available) -> int:
     return w
 
 
-def _job_bytes(stage, n, out_size, C, n_faces, K, need2=True):
+def _job_bytes(stage, n, out_size, C, n_faces, K, need2=True, leaf=1):
     """Estimated peak memory (bytes) of one job of :func:`convolve` (used by the memory planner only)."""
     n_src, n_out = 6 * n * n, n_faces * out_size * out_size
     maps = K * n_out * C * 8.0 * 2  # maps + bounds
     if stage == "moment":
         from .moment_convolution import moment_peak_bytes
 
-        return moment_peak_bytes(n, out_size, n_faces, C, need2)
+        return moment_peak_bytes(n, out_size, n_faces, C, need2, leaf)
     if stage == "sh":  # SH matrix cache / chunk (≤ 256 MB + 128 MB) and per-texel work arrays
         return 4.0e8 + 4 * maps + n_src * (C + 4) * 8.0 * 4
     if stage == "sparse":  # sources, KD-tree, tile geometry
@@ -579,6 +582,13 @@ def _route_auto(a4, s_list, rtol, out_size, normalized, info):
             if s in MOMENT_EXPONENTS:
                 route[s] = "moment"
         finite = [s for s in finite if s not in MOMENT_EXPONENTS]
+    if finite and _sh_cannot_pay(finite, rtol, n, n_src, n_out, normalized, a4.shape[-1] + 1):
+        info["sh_plan_skipped"] = True
+        for s in finite:
+            c_sp = _sparse_cost(s, rtol, n_src, n_out) if normalized else np.inf
+            c_ex = n_out * n_src * (EXACT_UNITS_PER_PAIR_S1 if s == 1.0 else EXACT_UNITS_PER_PAIR)
+            route[s] = "sparse" if c_sp < c_ex else "exact"
+        finite = []
     if finite:
         plan = shc.plan_sh(a4, finite, rtol=rtol, out_size=out_size)
         info["sh_plan_L_per_s"] = {_s_json(s): L for s, L in zip(finite, plan["L_per_s"])}
@@ -611,6 +621,26 @@ def _route_auto(a4, s_list, rtol, out_size, normalized, info):
     return route, plan, finite
 
 
+def _sh_cannot_pay(finite, rtol, n, n_src, n_out, normalized, Q):
+    """True when no SH pass can be cheaper than the sparse/exact gathers of ``finite`` together, by a
+    lower bound of its cost: the band limit the planner could choose is never below the one the
+    truncation bound needs at the most lenient target 0.8·rtol (:func:`~ibl_ref.groundtruth.sh_bounds.choose_band_limit`).
+    Spares the planner (an SH projection preview, ≈ 0.1–0.3 s) where narrow lobes go to the sparse gather."""
+    from .sh_bounds import choose_band_limit, texel_max_radius
+    from .sh_convolution import SH_L_MAX, SH_OVERHEAD_UNITS, sh_cost
+
+    rho = texel_max_radius(n)
+    others = 0.0
+    sh_lb = np.inf
+    for s in finite:
+        c_sp = _sparse_cost(s, rtol, n_src, n_out) if normalized else np.inf
+        others += min(c_sp, n_out * n_src * (EXACT_UNITS_PER_PAIR_S1 if s == 1.0 else EXACT_UNITS_PER_PAIR))
+        L = choose_band_limit(s, 0.8 * rtol, rho, SH_L_MAX)
+        if L is not None:
+            sh_lb = min(sh_lb, sh_cost(L, n_src, n_out, 1, Q) + SH_OVERHEAD_UNITS)
+    return others < sh_lb
+
+
 def _sparse_rtol_scale(a4):
     """Pre-scale of the sparse gather's tolerance for ``auto``: its bound at the darkest texels is
     ≈ rtol·(mean/min) larger than at texels of typical radiance, so rtol is multiplied by min/mean
@@ -623,7 +653,8 @@ def _sparse_rtol_scale(a4):
     return min(1.0, max(float(a4.min()) / max(l_mean, 1e-300), 1e-6))
 
 
-def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_plan, sparse_batches, parts, ex_set):
+def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_plan, sparse_batches, parts, ex_set,
+                mo_leaf=1):
     """The independent jobs ``(stage, key, model cost, callable)`` of one round of :func:`convolve`.
 
     Every job computes a fixed piece of work (its exponents, its output faces) that does not depend on
@@ -642,7 +673,8 @@ def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_pla
         for pi, fc in enumerate(mo_parts):
             jobs.append(("moment", ("moment", pi), MOMENT_UNITS_PER_PAIR * pair_units * len(fc) / 6,
                          functools.partial(mc.convolve_moment_many, a4, mo_set, out_size=out_size,
-                                           normalized=normalized, faces=fc)))
+                                           normalized=normalized, faces=fc, leaf=mo_leaf,
+                                           rtol=rtol if mo_leaf > 1 else None)))
     if sh_set:
         L_guess = (sh_plan or {}).get("L") or 32
         jobs.append(("sh", ("sh",), shc.sh_cost(L_guess, n_src, n_out, len(sh_set), a4.shape[-1] + 1),
@@ -671,7 +703,7 @@ def _round_workers(jobs, a4, out_size, workers, executor, memory_limit, need2):
     n, C = a4.shape[1], a4.shape[-1]
     # (a job's callable is a partial of (cube, exponents, ..., faces=...))
     job_mem = [_job_bytes(j[0], n, out_size, C, len(j[3].keywords.get("faces") or range(6)),
-                          len(j[3].args[1]), need2) for j in jobs]
+                          len(j[3].args[1]), need2, j[3].keywords.get("leaf", 1)) for j in jobs]
     avail = memory_limit if memory_limit is not None else available_memory_bytes()
     w_plan = plan_memory_workers(workers, job_mem, avail) if executor is None else workers
     est_s = sum(min(float(j[2]), 1e300) for j in jobs) * SECONDS_PER_UNIT
@@ -706,6 +738,13 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
         scale0 = _sparse_rtol_scale(a4)
 
     mo_set = [s for s in s_list if route[s] == "moment"]
+    # auto: the bracket band (rigorous bound, leaf > 1) where it is cheaper; halved while it misses rtol
+    mo_leaf = 1
+    if method == "auto" and mo_set:
+        from .moment_convolution import moment_leaf
+
+        mo_leaf = moment_leaf(n, rtol)
+    res.info["moment_leaf"] = []
     sh_set = [s for s in s_list if route[s] == "sh"]
     sparse_batches = [(tuple(s for s in s_list if route[s] == "sparse"), scale0, 0)]
     sparse_batches = [b for b in sparse_batches if b[0]]
@@ -723,7 +762,7 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
             if sh_set and method == "auto":  # re-plan only if the SH subset differs from the planned set
                 sub_plan = plan if len(sh_set) == len(finite) else None
             jobs = _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sub_plan,
-                               sparse_batches, parts, ex_set)
+                               sparse_batches, parts, ex_set, mo_leaf)
             w_plan, warning = _round_workers(jobs, a4, out_size, workers, executor, memory_limit, 2.0 in mo_set)
             planned.append(w_plan)
             if warning:
@@ -739,9 +778,15 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
             if mo_set:
                 maps = np.concatenate([out[("moment", pi)][0] for pi in range(len(mo_parts))], axis=1)
                 rel = np.concatenate([out[("moment", pi)][1] for pi in range(len(mo_parts))], axis=1)
+                res.info["moment_leaf"].append(mo_leaf)
+                retry = []
                 for k, s in enumerate(mo_set):
-                    results[s] = (maps[k], rel[k], "moment", "rounding")
-                mo_set = []
+                    if mo_leaf > 1 and not float(rel[k].max()) <= rtol:
+                        retry.append(s)
+                        continue
+                    results[s] = (maps[k], rel[k], "moment", "rigorous" if mo_leaf > 1 else "rounding")
+                mo_set = retry
+                mo_leaf = mo_leaf // 2 if mo_leaf // 2 >= 4 else 1
             if sh_set:
                 maps, rel, info = out[("sh",)]
                 res.info["sh"] = {k: v for k, v in info.items()}

@@ -21,27 +21,36 @@ tile's horizon) are handled per output texel:
     3.4 s CPU in one call vs ≈ 54 s per exponent for the dense gather (extrapolated in
     ``ibl-ref experiment speed-accuracy``); max relative difference to
     :func:`ibl_ref.groundtruth.phong_convolution.convolve_exact_many` 1.9e-14 at 64² (sky + 1e5 sun near a cube
-    corner, ``benchmarks/bench_convolution.py``).  ``leaf > 1`` is no faster at 128² and far less
-    accurate (leaf 2: 29 s, bound 4.7e-4; leaf 8: 3.5 s, bound 2.4e-2), so ``auto`` keeps ``leaf = 1``;
+    corner, ``benchmarks/bench_convolution.py``).  Its band holds O(N) texels per output texel, so its
+    cost grows as N³ (4.2 s CPU per output face at 256², ≈ 8× that at 512²).
 ``leaf > 1``
-    an interval per (r, block, channel) from convexity of ``f(x) = max(x,0)^s`` on the block's range
-    ``x = r·ω ∈ [x_lo, x_hi]`` (from the cone): Jensen's inequality below, the chord above
-    (Edmundson–Madansky), both needing only ``M_b^(0) = Σ L Ω`` and ``M_b^(1)``:
+    linear brackets of the kernel per (output texel, straddling leaf block), see :func:`_band_brackets`:
+    with ``x = r·ω ∈ [x_lo, x_hi]`` on the block (from its cone) and ``A = x_hi/(x_hi − x_lo)``,
 
-        W f(x̄)  ≤  Σ_j L_j Ω_j f(r·ω_j)  ≤  f(x_hi) (W x̄ − W x_lo) / (x_hi − x_lo),   W x̄ = r·M_b^(1).
+        s = 1:  A x  ≤  max(x,0)   ≤  A x − A x_lo          (a line through 0 below, the chord above)
+        s = 2:  a x − a²/4  ≤  max(x,0)²  ≤  a (x − x_lo),   a = x_hi²/(x_hi − x_lo)   (tangent, chord)
 
-    The midpoint is used, the half-width is a rigorous absolute error, propagated to the ratio
-    (numerator per channel, denominator with ``L ≡ 1``).  Texels brighter than ``bright_factor`` × the
-    solid-angle-weighted mean luminance (e.g. a sun) are removed from the blocks and gathered exactly for
-    every output texel, so the intervals only see the smooth remainder.
+    so the block's contribution lies in an interval whose ends are linear in ``W = Σ L Ω`` and
+    ``r·M_b^(1)``: midpoint and half-width accumulate by matrix products, and a block on the positive
+    side of this texel (``x_lo ≥ 0``) is exact.  The half-width is ≤ ``W sin α / 4`` (s = 1), so the
+    band's error is ≈ 2 L sin² α in total, independent of N for a fixed cone angle α: the leaf grows with
+    N (:func:`moment_leaf`, leaf/N = 1/64 at rtol 1e-3) and the band keeps O(1/α) blocks per output texel
+    instead of O(N) texels.  Texels brighter than ``bright_factor`` × the solid-angle-weighted mean
+    luminance (e.g. a sun) are left out of the leaf blocks' interval moments and gathered exactly where
+    their leaf block straddles (they stay in the exact moments of positive blocks).  With ``rtol``, the
+    output tiles whose bound exceeds it are done again with half the leaf (down to 2).  Measured (one
+    output face, s = 1 and 2, sky + 1e5 sun, shared machine at load 8–10, ``/tmp``-script timings with 1
+    BLAS thread): 256², leaf 4: 2.5 s CPU (exact band 4.2 s), bound ≤ 3.9e-4 on face +X (1.8e-3 on the
+    ground face −Y, whose tiles the refinement redoes); 512², leaf 8: 7.1 s CPU, bound 5.7e-4, max error
+    4.6e-5.  The bound held at every checked texel (tests compare with the exact gather); observed
+    max error / bound 0.2–0.5 (bound 2–26× the worst error, the larger ratios on tiny maps).
 
 Memory.  The output tiles are processed in chunks of :func:`moment_tiles_per_chunk` tiles, so that
 one chunk's (tile, texel) band pairs stay below :data:`MOMENT_CHUNK_PAIRS`; the chunks depend only on
 the sizes (never on the worker count).  Peak memory then grows with the source moments and the
-output, not with the band: 512² faces, s = 1 and 2, two output faces in one call: 1.25 GB peak RSS
-(estimate :func:`moment_peak_bytes`: 1.14 GB) and 116 s on the loaded shared machine, where the
-unchunked code needed 12–15 GB per process (``/usr/bin/time`` on a one-job script).  The whole
-``ibl-ref convolve`` of 512² faces with 8 exponents: 2.6 GB peak RSS of the largest process, 333 s CPU.
+output, not with the band.  With ``leaf > 1`` no per-texel moment arrays are built (the leaf moments
+come from one small matrix product per block, :func:`_leaf_moments`): estimate
+:func:`moment_peak_bytes` 0.69 GB per one-face job at 512², 1.7 GB at 1024².
 
 The per-texel bound returned is ``max(approx − lo, hi − approx)/lo`` on the relative error (max over
 channels) plus :data:`ROUNDING_REL` for float64 rounding of the sums.
@@ -58,7 +67,7 @@ from ..environment import envmap
 from ..errors import IBLError
 from .convolution_args import check_cube, check_faces, check_out_size
 
-__all__ = ["convolve_moment_many", "convolve_moment", "SUPPORTED_EXPONENTS", "ROUNDING_REL"]
+__all__ = ["convolve_moment_many", "convolve_moment", "moment_leaf", "SUPPORTED_EXPONENTS", "ROUNDING_REL"]
 
 #: exponents with an exact polynomial moment representation implemented here
 SUPPORTED_EXPONENTS = (1.0, 2.0)
@@ -135,17 +144,46 @@ def moment_tiles_per_chunk(n: int, out_size: int, tile: int, stop: int) -> int:
     return max(1, int(MOMENT_CHUNK_PAIRS // max(moment_band_pairs_per_tile(n, out_size, tile, stop), 1.0)))
 
 
-def moment_peak_bytes(n: int, out_size: int, n_faces: int = 6, channels: int = 3, need2: bool = True) -> float:
-    """Estimated peak memory (bytes) of one :func:`convolve_moment_many` call (``leaf = 1``).
+#: the bracket band (``leaf > 1``) is used by :func:`moment_leaf` only from this leaf size on: at leaf 2
+#: it is no faster than the exact band (128², s = 1 and 2: 6.1–7.0 s vs 3.5 s CPU; leaf 4 at 256², one
+#: output face: 2.5 s vs 4.2 s; leaf 8 at 512²: 7.1 s per face)
+MIN_BRACKET_LEAF = 4
+#: leaf-block side / face size of :func:`moment_leaf` at rtol = 1e-3: the bracket half-width sums to
+#: ≈ 2 L sin² α over the horizon band, α ∝ leaf/N; measured max bound on the sky + 1e5 sun (s = 1; s = 2
+#: is 20× tighter) at leaf/N = 1/64: 6.6e-4 (128², leaf 2), 3.9e-4 (256², 4), 5.7e-4 (512², 8)
+LEAF_FRACTION_AT_1E3 = 1.0 / 64.0
 
-    Per-texel moments (6·P²·(3 + 6)·Q float64, P = n rounded up to a power of two) and their block sums
-    (≈ ⅓ more), the output accumulators (2 per exponent, (tiles·t², Q)) and one chunk's band working set
-    (:data:`MOMENT_CHUNK_PAIRS` × ≈ 10 arrays of 8 bytes).
+
+def moment_leaf(n: int, rtol: float) -> int:
+    """Leaf size for :func:`convolve_moment_many` at tolerance ``rtol`` (1: the exact band).
+
+    The largest power of two ≤ ``n · LEAF_FRACTION_AT_1E3 · √(rtol/1e-3)`` (the bound scales as
+    (leaf/N)²), or 1 when that is below :data:`MIN_BRACKET_LEAF`.  A priori only: the returned bound is
+    rigorous whatever the leaf, and :func:`ibl_ref.groundtruth.convolve.convolve` halves the leaf when
+    it misses ``rtol``.
+    """
+    x = n * LEAF_FRACTION_AT_1E3 * math.sqrt(max(rtol, 1e-300) / 1e-3)
+    leaf = 1 << max(int(math.floor(math.log2(x))), 0) if x >= 1 else 1
+    return leaf if leaf >= MIN_BRACKET_LEAF else 1
+
+
+def moment_peak_bytes(n: int, out_size: int, n_faces: int = 6, channels: int = 3, need2: bool = True,
+                      leaf: int = 1) -> float:
+    """Estimated peak memory (bytes) of one :func:`convolve_moment_many` call.
+
+    ``leaf = 1``: per-texel moments (6·P²·(3 + 6)·Q float64, P = n rounded up to a power of two) and
+    their block sums (≈ ⅓ more); ``leaf > 1``: per-texel weights, directions and their padded copies
+    (≈ 6·P²·(2Q + 9) float64) and the leaf-block moments (two sets).  Plus the output accumulators (2 per
+    exponent, (tiles·t², Q)) and one chunk's band working set (:data:`MOMENT_CHUNK_PAIRS` × ≈ 10 arrays
+    of 8 bytes).
     """
     P = 1 << max(int(math.ceil(math.log2(max(n, 1)))), 0)
     Q = channels + 1
     nk = 3 * Q + (6 * Q if need2 else 0)
-    src = 6 * P * P * (nk * (1.0 + 1.0 / 3.0) + Q + 3 + 1) * 8.0
+    if leaf > 1:  # fitted: 1024², leaf 16, one output face, s = 1 and 2: 3.0 GB peak RSS of a one-job script
+        src = 6 * P * P * (2 * Q + 9 + 6 + 2.0 * nk / (leaf * leaf)) * 8.0 * 2.0
+    else:
+        src = 6 * P * P * (nk * (1.0 + 1.0 / 3.0) + Q + 3 + 1) * 8.0
     out = n_faces * out_size * out_size * Q * 8.0 * 2 * (2 if need2 else 1) * 1.5
     return src + out + MOMENT_CHUNK_PAIRS * 10 * 8.0
 
@@ -160,13 +198,40 @@ def _texel_moments(dP, wP, Q, need2):
     return np.concatenate(F, axis=-1)
 
 
+def _leaf_moments(dP, wP, Q, need2, b, drop=None):
+    """Moments of b×b blocks, (6, P/b, P/b, 3Q[+6Q]) like :func:`_block_sums` of :func:`_texel_moments`
+    (same column layout), by one small matrix product per block instead of per-texel arrays; one face
+    at a time (bounded temporaries).  ``drop`` (6,P,P) bool: texels whose radiance channels (not the
+    last, L ≡ 1) are left out."""
+    P = dP.shape[1]
+    m = P // b
+    C = wP.shape[-1] - 1
+
+    def blocks(x):  # (P,P,k) → (m,m,b²,k)
+        return x.reshape(m, b, m, b, x.shape[-1]).transpose(0, 2, 1, 3, 4).reshape(m, m, b * b, -1)
+
+    out = np.empty((6, m, m, 3 * Q + (6 * Q if need2 else 0)))
+    for f in range(6):
+        w = wP[f] if drop is None else np.where(drop[f][..., None] & (np.arange(Q) < C), 0.0, wP[f])
+        wB = blocks(w)
+        out[f, ..., : 3 * Q] = np.matmul(blocks(dP[f]).swapaxes(-1, -2), wB).reshape(m, m, 3 * Q)
+        if need2:
+            dd = dP[f][..., _IU[0]] * dP[f][..., _IU[1]]
+            out[f, ..., 3 * Q :] = np.matmul(blocks(dd).swapaxes(-1, -2), wB).reshape(m, m, 6 * Q)
+    return out
+
+
 def _block_levels(dP, real, F, P, stop):
-    """Per quadtree level b = P, P/2, …, stop: (b, m, cone centres, half-angles, valid, sin α, cos α, moments)."""
+    """Per quadtree level b = P, P/2, …, stop: (b, m, cone centres, half-angles, valid, sin α, cos α, moments).
+
+    ``F``: moments per texel (6,P,P,K) or per block of ``P // F.shape[1]`` texels (:func:`_leaf_moments`).
+    """
     levels = []
     b = P
+    f = P // F.shape[1]
     while True:
         cb, ab, vb = _cones(dP, real, b)
-        levels.append((b, P // b, cb, ab, vb, np.sin(ab), np.cos(ab), _block_sums(F, b)))
+        levels.append((b, P // b, cb, ab, vb, np.sin(ab), np.cos(ab), _block_sums(F, b // f)))
         if b == stop:
             return levels
         b //= 2
@@ -260,35 +325,83 @@ def _band_exact(Rc, tiles, blk, bdT, bw_pad, s_list, num, chunk_elems):
             num[s][tc] += acc[s]
 
 
-def _band_intervals(Rc, tiles, blk, cb_leaf, ab_leaf, M0, M1, s_list, num, err, chunk_elems):
-    """Convexity intervals (Jensen / Edmundson–Madansky) on the straddling leaf blocks (``leaf > 1``)."""
+def _band_brackets(Rc, tiles, blk, cb_leaf, ab_leaf, M0, M1, M2, s_list, num, err, chunk_elems):
+    """Linear brackets of the clamped kernel on the straddling leaf blocks (``leaf > 1``), per output texel.
+
+    For an output texel ``r`` and a leaf block (cone ``(c, α)`` around its texel centres) every
+    ``x = r·ω_j`` lies in ``[x_lo, x_hi] = [cos(θ+α), cos(max(θ−α, 0))]``, θ = ∠(r, c).  With
+    ``x_lo < 0 < x_hi`` and ``A = x_hi/(x_hi − x_lo)``:
+
+    * s = 1:  ``A x ≤ max(x,0) ≤ A x + B``, ``B = −A x_lo`` (a line through 0 below, the chord above);
+    * s = 2:  ``a x − a²/4 ≤ max(x,0)² ≤ a (x − x_lo)``, ``a = x_hi²/(x_hi − x_lo)`` (the tangent of
+      slope a below, the chord above),
+
+    so summed over the block's texels with weights ``L Ω`` the contribution lies in an interval whose
+    ends are linear in the block moments ``W = Σ L Ω`` and ``y = r·Σ L Ω ω``: the midpoint and the
+    half-width accumulate into ``num``/``err`` by matrix products.  Blocks entirely on the positive
+    side of this ``r`` (``x_lo ≥ 0``) are exact (``y``, or ``rᵀ M2 r`` for s = 2), those on the negative
+    side contribute 0.  The half-width is at most ``W sin α / 4`` (s = 1), ``≈ 0.28 W sin² α`` (s = 2).
+    """
     Q = M0.shape[1]
-    for tc, idx in _padded_batches(tiles, blk, Rc.shape[0], Rc.shape[1], chunk_elems, 8 * Q):
+    if ab_leaf.size and float(ab_leaf.max()) >= 0.25 * math.pi:
+        raise IBLError("leaf blocks too large for the bracket band (cone half-angle ≥ π/4); use a smaller leaf")
+    # With α < π/4: θ < α ⇒ x_lo = cos(θ+α) > 0 (exact), θ > π − α ⇒ x_hi < 0 (zero), so
+    # cos(θ ∓ α) = X cos α ± sin θ sin α needs no case split.  ``1e-12`` (in v) covers the rounding
+    # of X, sin θ and the products (≲ 1e-15).
+    cz_all = np.concatenate([cb_leaf, np.array([[0.0, 0.0, 1.0]])])
+    ca_all = np.concatenate([np.cos(ab_leaf), [1.0]])
+    sa_all = np.concatenate([np.sin(ab_leaf), [0.0]])
+    M0z = np.concatenate([M0, np.zeros((1, Q))])
+    M1z = np.concatenate([M1.reshape(-1, 3 * Q), np.zeros((1, 3 * Q))])
+    M2z = None if M2 is None else np.concatenate([M2.reshape(-1, 6 * Q), np.zeros((1, 6 * Q))])
+    wts = np.array([1.0, 2.0, 2.0, 1.0, 2.0, 1.0])
+
+    def rsum(Z, RR, k):  # Σ_k r_k Z_kq per texel: (tc, t², k·Q) → (tc, t², Q)
+        return np.einsum("cik,cikq->ciq", RR, Z.reshape(Z.shape[0], Z.shape[1], k, Q))
+
+    for tc, idx in _padded_batches(tiles, blk, Rc.shape[0], Rc.shape[1], chunk_elems, 4):
         R = Rc[tc]
-        cz = np.concatenate([cb_leaf, np.array([[0.0, 0.0, 1.0]])])[idx]
-        az = np.concatenate([ab_leaf, [0.0]])[idx]
-        m0 = np.concatenate([M0, np.zeros((1, Q))])[idx]  # (tc, m, Q)
-        m1 = np.concatenate([M1, np.zeros((1, 3, Q))])[idx]  # (tc, m, 3, Q)
-        xc = np.clip(np.matmul(R, cz.transpose(0, 2, 1)), -1.0, 1.0)  # (tc, t², m)
-        th = np.arccos(xc)
-        ca, sa = np.cos(az)[:, None, :], np.sin(az)[:, None, :]
-        sth = np.sin(th)
-        x_hi = np.where(th <= az[:, None, :], 1.0, np.minimum(xc * ca + sth * sa, 1.0))
-        x_lo = np.where(th + az[:, None, :] >= math.pi, -1.0, np.maximum(xc * ca - sth * sa, -1.0))
-        y = np.einsum("cik,cmkq->cimq", R, m1)  # W x̄ per channel
-        W = m0[:, None, :, :]
-        width = (x_hi - x_lo)[..., None]
+        X = np.matmul(R, cz_all[idx].transpose(0, 2, 1))  # (tc, t², m): r·c = cos θ
+        ca, sa = ca_all[idx][:, None, :], sa_all[idx][:, None, :]
+        v = np.multiply(X, X)
+        np.subtract(1.0, v, out=v)
+        np.maximum(v, 0.0, out=v)
+        np.sqrt(v, out=v)
+        v *= sa
+        v += 1e-12  # v = sin θ sin α + slack:  x_lo = u − v,  x_hi = u + v
+        X *= ca  # u = X cos α
+        # A = x_hi/(x_hi − x_lo) clipped to [0, 1]: 1 on positive pairs, 0 on negative ones
+        A = np.add(X, v)
+        A /= 2.0 * v
+        np.clip(A, 0.0, 1.0, out=A)
+        nlo = np.subtract(v, X)  # −x_lo
+        W = M0z[idx]  # (tc, m, Q)
+        Y1 = M1z[idx]  # (tc, m, 3Q)
         for s in s_list:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                xbar = np.where(W > 0, y / np.where(W > 0, W, 1.0), 0.0)
-                lo = W * _kernel(xbar, s)
-                fhi = _kernel(x_hi, s)[..., None]
-                chord = np.where(width > 1e-9, fhi * np.maximum(y - W * x_lo[..., None], 0.0)
-                                 / np.maximum(width, 1e-9), np.inf)
-                hi = np.minimum(W * fhi, chord)
-            hi = np.maximum(hi, lo)
-            num[s][tc] += 0.5 * (lo + hi).sum(axis=2)
-            err[s][tc] += 0.5 * (hi - lo).sum(axis=2)
+            if s == 1.0:
+                H = np.maximum(nlo, 0.0)
+                H *= A
+                H *= 0.5  # B/2 = A·(−x_lo)/2 (0 unless straddling)
+                HW = np.matmul(H, W)
+                num[s][tc] += rsum(np.matmul(A, Y1), R, 3) + HW
+                err[s][tc] += HW
+            else:
+                # a = x_hi²/(x_hi − x_lo) = A²·(x_hi − x_lo) = 2v·A² on straddling pairs (0 ≤ A < 1;
+                # A = 0 gives 0), 0 on positive ones (A = 1: exact by rᵀ M2 r)
+                P = A >= 1.0
+                a = np.multiply(A, A)
+                a *= v
+                a *= 2.0
+                a[P] = 0.0
+                av = a * nlo  # a·(−x_lo)
+                a2 = np.multiply(a, a)
+                a2 *= 0.25
+                a2 += av  # 2·half-width = a·(−x_lo) + a²/4;  midpoint = a·(−x_lo) − half-width
+                half_W = 0.5 * np.matmul(a2, W)
+                RR = R[..., _IU[0]] * R[..., _IU[1]] * wts
+                num[s][tc] += (rsum(np.matmul(a, Y1), R, 3) + np.matmul(av, W) - half_W
+                               + rsum(np.matmul(P.astype(float), M2z[idx]), RR, 6))
+                err[s][tc] += half_W
 
 
 def _padded_batches(tiles, blk, T, tt, chunk_elems, per_elem):
@@ -318,6 +431,25 @@ def _padded_batches(tiles, blk, T, tt, chunk_elems, per_elem):
 
 
 
+def _ratio_bound(N_, E_, C, normalized):
+    """Value and per-channel relative bound from sums ``N_`` (…, Q) and their absolute bounds ``E_``
+    (channel Q−1: the denominator, L ≡ 1): ``max(approx − lo, hi − approx)/lo`` (inf where lo = 0)."""
+    Nn, En = N_[..., :C], E_[..., :C]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if normalized:
+            D, ED = N_[..., C:], E_[..., C:]
+            approx = Nn / D
+            lo = np.maximum(Nn - En, 0.0) / (D + ED)
+            hi = (Nn + En) / np.maximum(D - ED, 0.0)
+        else:
+            approx, lo, hi = Nn, np.maximum(Nn - En, 0.0), Nn + En
+        r = np.maximum(approx - lo, hi - approx) / lo
+        exact_here = (En == 0) & (E_[..., C:] == 0) if normalized else (En == 0)
+        r = np.where(exact_here, 0.0, r)
+        r = np.where(np.isfinite(r), r, np.inf)
+    return approx, r
+
+
 def convolve_moment_many(
     cube,
     exponents,
@@ -330,6 +462,7 @@ def convolve_moment_many(
     bright_factor: float = 50.0,
     chunk_elems: int = 1 << 16,
     faces=None,
+    rtol: float | None = None,
 ):
     """Lobe average (or Eq. 4 sum) for ``s ∈ {1, 2}`` by hierarchical moments, with a rigorous bound.
 
@@ -357,6 +490,9 @@ def convolve_moment_many(
     chunk_elems : int
         Working-set size (elements) of the band gather (512 KB: the gather is memory-bound; at 128²
         faces 1 << 16 and 1 << 17 measured equal within run-to-run noise, 1.6–2.1 s for s = 1, 2).
+    rtol : float, optional
+        With ``leaf > 1``: output tiles whose bound exceeds ``rtol`` after a pass are computed again
+        with half the leaf size, down to 2 (the bound returned is rigorous either way; None: one pass).
     faces : sequence of int, optional
         Compute only these output faces (indices 0…5, OpenEXR order; default all six, in order).
         The output tiles of one face never share work with another face's, so a face subset is the
@@ -396,15 +532,11 @@ def convolve_moment_many(
     omega = envmap.cube_solid_angles(n)
     wL = np.concatenate([a4 * omega[..., None], omega[..., None]], axis=-1)  # (6,n,n,Q)
     dirs = envmap.texel_directions(n)
-    bright_idx = np.zeros(0, dtype=np.int64)
-    if leaf > 1:
+    br = None
+    if leaf > 1:  # bright texels (e.g. a sun): gathered exactly where their leaf block straddles
         lum = a4.max(axis=-1)
         mean = float(np.sum(lum * omega) / np.sum(omega))
         br = lum > bright_factor * max(mean, 1e-300)
-        if br.any():
-            bright_idx = np.flatnonzero(br.ravel())
-            wL = wL.copy()
-            wL[br, :C] = 0.0  # the denominator (L ≡ 1) stays in the blocks
     pad = ((0, 0), (0, P - n), (0, P - n), (0, 0))
     wP = np.pad(wL, pad)
     dP = np.pad(dirs, pad)
@@ -423,57 +555,103 @@ def convolve_moment_many(
 
     sinB, cosB = np.sin(betaT), np.cos(betaT)
     nK = 3 * Q + (6 * Q if need2 else 0)
-    F = _texel_moments(dP, wP, Q, need2)
-    stop = leaf if leaf > 1 else min(gather, P)
-    levels = _block_levels(dP, real, F, P, stop)
-    M0 = M1 = None
-    if leaf > 1:
-        M0 = _block_sums(wP, leaf)
-        M1 = _block_sums(F[..., : 3 * Q], leaf).reshape(-1, 3, Q)
     num = {s_: np.zeros((T, t * t, Q)) for s_ in s_list}
     err = {s_: np.zeros((T, t * t, Q)) for s_ in s_list}
-    LAST_INFO.update(classify_s=0.0, band_s=0.0, band_pairs=0, tile_chunks=0)
-    if leaf == 1:  # source texels with one zero-weight dummy entry at the end (index −1: the pads)
+    LAST_INFO.clear()
+    LAST_INFO.update(classify_s=0.0, band_s=0.0, band_pairs=0, tile_chunks=0, leaf_tiles={})
+    brP = np.flatnonzero(np.pad(br, pad[:3]).ravel()) if br is not None else np.zeros(0, np.int64)
+    if brP.size:
+        LAST_INFO["bright_texels"] = int(brP.size)
+    bdT = bw_pad = bw_bright = None
+    if leaf == 1 or brP.size:  # source texels with one zero-weight dummy entry at the end (index −1: the pads)
         bdT = np.ascontiguousarray(np.concatenate([dP.reshape(-1, 3), np.zeros((1, 3))]).T)
         bw_pad = np.concatenate([wP.reshape(-1, Q), np.zeros((1, Q))])
-    # ---- output tiles in chunks of bounded working set (independent of the worker count) ------------
-    per_chunk = moment_tiles_per_chunk(n, out_size, t, stop)
-    for c0 in range(0, T, per_chunk):
-        ch = slice(c0, min(T, c0 + per_chunk))
-        nc = ch.stop - ch.start
-        _t0 = time.perf_counter()
-        S, tiles, blk = _classify(levels, cT[ch], betaT[ch], sinB[ch], cosB[ch], nK, stop, leaf, dP, real, F, P, n)
-        LAST_INFO["classify_s"] += time.perf_counter() - _t0
-        LAST_INFO["band_pairs"] += int(tiles.size)
-        LAST_INFO["tile_chunks"] += 1
-        Rc = R[ch]
-        # per output texel: positive-block moments (exact polynomial)
-        S1 = S[:, : 3 * Q].reshape(nc, 3, Q)
-        for s_ in s_list:
-            if s_ == 1.0:
-                num[s_][ch] = np.einsum("tik,tkq->tiq", Rc, S1)
-            else:
-                S2 = S[:, 3 * Q :].reshape(nc, 6, Q)
-                rr = Rc[..., _IU[0]] * Rc[..., _IU[1]] * np.array([1.0, 2.0, 2.0, 1.0, 2.0, 1.0])
-                num[s_][ch] = np.einsum("tik,tkq->tiq", rr, S2)
-        _t0 = time.perf_counter()
-        num_c = {s_: num[s_][ch] for s_ in s_list}  # views
-        err_c = {s_: err[s_][ch] for s_ in s_list}
-        if leaf == 1:
-            _band_exact(Rc, tiles, blk, bdT, bw_pad, s_list, num_c, chunk_elems)
-        else:
-            _band_intervals(Rc, tiles, blk, levels[-1][2], levels[-1][3], M0, M1, s_list, num_c, err_c,
-                            chunk_elems)
-        LAST_INFO["band_s"] += time.perf_counter() - _t0
+    if brP.size:  # the bright texels' own weights; the denominator (L ≡ 1) stays in the blocks
+        bw_bright = np.zeros_like(bw_pad)
+        bw_bright[brP, :C] = bw_pad[brP, :C]
 
-    # ---- bright texels: exact gather for every output -----------------------------------------------
-    if bright_idx.size:
-        bd = dirs.reshape(-1, 3)[bright_idx]
-        bw = np.zeros((bright_idx.size, Q))
-        bw[:, :C] = (a4.reshape(-1, C) * omega.reshape(-1, 1))[bright_idx]
-        X = np.maximum(np.einsum("tik,jk->tij", R, bd), 0.0)
-        for s in s_list:
-            num[s] += np.matmul(X if s == 1.0 else X * X, bw)
+    def run_pass(lf, tsel):
+        """num/err of the output tiles ``tsel`` with leaf size ``lf`` (1: exact band)."""
+        LAST_INFO["leaf_tiles"][lf] = int(tsel.size)
+        stop = lf if lf > 1 else min(gather, P)
+        M0 = M1 = M2 = None
+        if lf == 1:
+            F = _texel_moments(dP, wP, Q, need2)
+            levels = _block_levels(dP, real, F, P, stop)
+        else:
+            F = None
+            levels = _block_levels(dP, real, _leaf_moments(dP, wP, Q, need2, lf), P, stop)
+            # leaf-block moments without the bright texels (those are gathered exactly)
+            brp = np.pad(br, pad[:3])
+            M0 = _block_sums(wP, lf)
+            if brP.size:
+                M0 = _block_sums(np.where(brp[..., None] & (np.arange(Q) < C), 0.0, wP), lf)
+            FD = _leaf_moments(dP, wP, Q, need2, lf, drop=brp if brP.size else None).reshape(M0.shape[0], -1)
+            M1 = FD[:, : 3 * Q]
+            M2 = FD[:, 3 * Q :] if need2 else None
+            # bright texels per leaf block (flat padded indices), as a CSR list
+            f_, rem_ = np.divmod(brP, P * P)
+            i_, j_ = np.divmod(rem_, P)
+            mg = P // lf
+            blk_of = f_ * mg * mg + (i_ // lf) * mg + (j_ // lf)
+            order_ = np.argsort(blk_of, kind="stable")
+            bright_sorted = brP[order_]
+            bright_start = np.searchsorted(blk_of[order_], np.arange(6 * mg * mg + 1))
+        # output tiles in chunks of bounded working set (independent of the worker count)
+        per_chunk = moment_tiles_per_chunk(n, out_size, t, stop)
+        for c0 in range(0, tsel.size, per_chunk):
+            ch = tsel[c0 : c0 + per_chunk]
+            nc = ch.size
+            _t0 = time.perf_counter()
+            S, tiles, blk = _classify(levels, cT[ch], betaT[ch], sinB[ch], cosB[ch], nK, stop, lf, dP, real, F, P, n)
+            LAST_INFO["classify_s"] += time.perf_counter() - _t0
+            LAST_INFO["band_pairs"] += int(tiles.size)
+            LAST_INFO["tile_chunks"] += 1
+            Rc = R[ch]
+            # per output texel: positive-block moments (exact polynomial)
+            num_c, err_c = {}, {}
+            S1 = S[:, : 3 * Q].reshape(nc, 3, Q)
+            for s_ in s_list:
+                if s_ == 1.0:
+                    num_c[s_] = np.einsum("tik,tkq->tiq", Rc, S1)
+                else:
+                    S2 = S[:, 3 * Q :].reshape(nc, 6, Q)
+                    rr = Rc[..., _IU[0]] * Rc[..., _IU[1]] * np.array([1.0, 2.0, 2.0, 1.0, 2.0, 1.0])
+                    num_c[s_] = np.einsum("tik,tkq->tiq", rr, S2)
+                err_c[s_] = np.zeros_like(num_c[s_])
+            _t0 = time.perf_counter()
+            if lf == 1:
+                _band_exact(Rc, tiles, blk, bdT, bw_pad, s_list, num_c, chunk_elems)
+            else:
+                _band_brackets(Rc, tiles, blk, levels[-1][2], levels[-1][3], M0, M1, M2, s_list, num_c, err_c,
+                               chunk_elems)
+                nb = bright_start[blk + 1] - bright_start[blk]
+                if nb.any():  # bright texels of straddling leaf blocks: exact gather
+                    sel = np.flatnonzero(nb)
+                    bt = np.repeat(tiles[sel], nb[sel])
+                    first = np.repeat(bright_start[blk[sel]], nb[sel])
+                    within = np.arange(bt.size) - np.repeat(np.cumsum(nb[sel]) - nb[sel], nb[sel])
+                    btex = bright_sorted[first + within]
+                    _band_exact(Rc, bt, btex, bdT, bw_bright, s_list, num_c, chunk_elems)
+            for s_ in s_list:
+                num[s_][ch] = num_c[s_]
+                err[s_][ch] = err_c[s_]
+            LAST_INFO["band_s"] += time.perf_counter() - _t0
+
+    todo = np.arange(T)
+    lf = leaf
+    while True:
+        run_pass(lf, todo)
+        if lf == 1 or rtol is None or lf // 2 < 2:
+            break
+        # tiles whose bound misses rtol are done again with half the leaf (down to 2)
+        worst = np.zeros(todo.size)
+        for s_ in s_list:
+            worst = np.maximum(worst, _ratio_bound(num[s_][todo], err[s_][todo], C, normalized)[1].max(axis=(1, 2)))
+        todo = todo[~(worst <= rtol)]
+        if not todo.size:
+            break
+        lf //= 2
 
     # ---- assemble, ratio bound ---------------------------------------------------------------------
     K = len(s_in)
@@ -485,20 +663,7 @@ def convolve_moment_many(
         return x[:, :out_size, :out_size]
 
     for k, s in enumerate(s_in):
-        N_, E_ = untile(num[s]), untile(err[s])
-        Nn, En = N_[..., :C], E_[..., :C]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            if normalized:
-                D, ED = N_[..., C:], E_[..., C:]
-                approx = Nn / D
-                lo = np.maximum(Nn - En, 0.0) / (D + ED)
-                hi = (Nn + En) / np.maximum(D - ED, 0.0)
-            else:
-                approx, lo, hi = Nn, np.maximum(Nn - En, 0.0), Nn + En
-            r = np.maximum(approx - lo, hi - approx) / lo
-            exact_here = (En == 0) & (E_[..., C:] == 0) if normalized else (En == 0)
-            r = np.where(exact_here, 0.0, r)
-            r = np.where(np.isfinite(r), r, np.inf)
+        approx, r = _ratio_bound(untile(num[s]), untile(err[s]), C, normalized)
         if not np.all(np.isfinite(approx)):
             raise IBLError("moment convolution: zero lobe weight (cannot happen for a valid cube map)")
         maps[k] = approx
