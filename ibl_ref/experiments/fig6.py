@@ -55,7 +55,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     env = make_env("sky_sun", n=st["env_size"])
     cam = default_camera(meshes, size=st["size"])
     res = render_modes(meshes, cam, env, ORDER, n_lights=st["n_lights"], kd=0.0, ks=1.0, g=st["g"],
-                       vsm_resolution=st["vsm_resolution"])
+                       vsm_resolution=st["vsm_resolution"], progress=True)  # shown per ibl_ref.progress
     ref = res.images["reference"]
     m = res.mask
     # occlusion model alone: each mode's shadow factor (mode / its unoccluded image) applied to the reference's

@@ -107,13 +107,16 @@ def render_all(st: dict, env: np.ndarray, progress: bool = False) -> dict:
               out_size=int(st.get("map_out_size", env.shape[1])))
 
     t0 = time.perf_counter()
-    multi = [km.fit_multi_lobe(f, t, int(st["n_lobes"]), **fk) for t in thetas]
-    tracks = km.track_lobes(multi)
-    # the same greedy lobes with one energy factor per elevation (fit_multi_lobe rescale=True; not in KM2000)
-    k_rescale = [s.lobes[0].scale if s.lobes else 1.0
-                 for s in (km.fit_multi_lobe(f, t, int(st["n_lobes"]), rescale=True, **fk) for t in thetas)]
-    single = [km.fit_single_lobe(f, t, **fk) for t in thetas]
-    s2d, p_bar, kw = km.fit_single_2d_lobe(f, thetas, **fk)
+    from ..progress import step
+
+    with step(f"km00-render: lobe fits at {len(thetas)} elevations", enabled=progress):
+        multi = [km.fit_multi_lobe(f, t, int(st["n_lobes"]), **fk) for t in thetas]
+        tracks = km.track_lobes(multi)
+        # the same greedy lobes with one energy factor per elevation (fit_multi_lobe rescale=True; not in KM2000)
+        k_rescale = [s.lobes[0].scale if s.lobes else 1.0
+                     for s in (km.fit_multi_lobe(f, t, int(st["n_lobes"]), rescale=True, **fk) for t in thetas)]
+        single = [km.fit_single_lobe(f, t, **fk) for t in thetas]
+        s2d, p_bar, kw = km.fit_single_2d_lobe(f, thetas, **fk)
     T["fit"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -256,7 +259,7 @@ def _constant_env_images(L3, L3r, L1, L2, f, n, wo) -> dict:
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    return run_with(out_dir, settings_with(__name__, quick, params), quick=quick)
+    return run_with(out_dir, settings_with(__name__, quick, params), quick=quick, progress=True)
 
 
 def run_with(out_dir: Path, st: dict, quick: bool = False, progress: bool = False) -> dict:
