@@ -12,8 +12,9 @@ The experiment framework.  Each experiment is a module of this package declaring
     its parameters: name, full-size default, quick value, help.  ``ibl-ref experiment NAME --PARAM VALUE``
     overrides one; :func:`resolve_params` merges defaults, quick values and overrides;
 ``RUNTIME`` (dict)
-    typical wall-clock time of the quick and the full run on the reference machine (2 shared cores; the load
-    average of the measurement in brackets where it was not quiet), ``{"quick": "8 s", "full": "1 min"}``;
+    typical wall-clock time of the quick and the full run on the reference machine (2 cores shared with other
+    work; the load average during the measurement in brackets), ``{"quick": "8 s (load 1)", "full": "1 min
+    (load 3)"}``;
 ``OUTPUTS`` (tuple of str)
     the files ``run`` writes (CSV/JSON/EXR, units in column names or metadata) and ``plot`` writes (PNG);
 ``run(out_dir: Path, quick: bool, **params) -> dict``
@@ -158,8 +159,8 @@ def describe(mod: ModuleType) -> str:
         lines.append(f"Reproduces: {mod.PAPER}")
     rt = getattr(mod, "RUNTIME", {})
     if rt:
-        lines.append(f"Typical run time (reference machine, 2 shared cores; quick: load 0.3): --quick {rt.get('quick', '?')}, "
-                     f"full {rt.get('full', '?')}")
+        lines.append(f"Typical run time on the reference machine (2 cores shared with other work; the load average "
+                     f"during the measurement in brackets): --quick {rt.get('quick', '?')}, full {rt.get('full', '?')}")
     if not getattr(mod, "IN_QUICK_REPRODUCE", True):
         lines.append("Not part of 'ibl-ref reproduce --quick' (too slow); run it on its own.")
     outs = getattr(mod, "OUTPUTS", ())

@@ -66,9 +66,11 @@ def plot(out_dir: Path) -> list[Path]:
     for ax, img, g in zip(axes, imgs, d["gloss"]):
         x = img / max(scale, 1e-12)
         ax.imshow(np.clip(x / (1 + x), 0, 1) ** (1 / 2.2))
-        ax.set_title(f"g={g}", fontsize=8)
+        ax.set_title(f"g = {g}" + (" (mirror)" if g == 1 else " (s = 1)" if g == 0 else f" (s = {1 / (1 - g):.3g})"),
+                     fontsize=8)
         ax.axis("off")
-    fig.suptitle(f"Fig. 3 reproduction ({d['environment']}, sqrtcos pyramid, N={d['face_size']})", fontsize=9)
+    fig.suptitle(f"Fig. 3 reproduction: orthographic spheres, look-up in one sqrtcos pyramid "
+                 f"({d['environment']}, {d['face_size']}² faces); one tone map for all", fontsize=9)
     fig.tight_layout()
     p = Path(out_dir) / "fig3.png"
     save_figure(fig, p, dpi=110)

@@ -128,7 +128,8 @@ def plot(out_dir: Path) -> list:
         for a in ax[:, j]:
             a.set_xticks([])
             a.set_yticks([])
-    fig.colorbar(im, ax=ax[1, :-1].tolist(), shrink=0.8, label="|ΔY| / Y_ref (luminance)")
+    fig.colorbar(im, ax=ax[1, :-1].tolist(), shrink=0.8, extend="max",  # errors above 1 are drawn at 1
+                 label="|ΔY| / Y_ref (luminance; ≥ 1 at the top)")
     fig.suptitle(f"Fig. 6 reproduction: kd = 0, ks = 1, g = {_meta_g(out_dir)}; one exposure for all images; "
                  "background = the environment", fontsize=10)
     p = out_dir / "fig6.png"

@@ -166,8 +166,9 @@ def plot(out_dir: Path) -> list:
         ax.set_xlabel("Phong exponent s (g = 1 − 1/s)")
         ax.set_ylabel("relative L1 of one lookup vs exact lobe average")
         ax.set_title(f"{env_name}: filter pyramid vs exact-lobe chain")
-        ax.axhline(0.05, color="gray", lw=0.8, ls=":")
-    axes[0, -1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+        ax.axhline(0.05, color="gray", lw=0.8, ls=":", label="5 %")
+    axes[0, -1].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0),
+                       title=f"prefilter ({envs[-1]}: build time, memory)", title_fontsize=7)
     p = out_dir / "lobe_chain.png"
     save_figure(fig, p, dpi=100)
     return [p]

@@ -181,7 +181,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 
 
 def plot(out_dir: Path) -> list:
-    from ..figures import pyplot, save_figure
+    from ..figures import plain_log_ticks, pyplot, save_figure
 
     plt = pyplot()
 
@@ -208,6 +208,7 @@ def plot(out_dir: Path) -> list:
         ax1.axhline(RTOL, color="gray", ls=":", lw=1, label="rtol")
         ax0.set(xscale="log", yscale="log", xlabel="CPU time for all exponents (s)", ylabel="relative error",
                 title=f"{n}² faces: time vs error (max over s)")
+        plain_log_ticks(ax0.xaxis)  # 0.2 and 0.5, not 2×10⁻¹ running into 3×10⁻¹
         ax1.set(xscale="log", yscale="log", xlabel="Phong exponent s", ylabel="max relative error",
                 title="per exponent")
         ax0.legend(fontsize=7)
