@@ -2,7 +2,9 @@
 
 Every experiment gets its own sub-parser, built from its declarations (:mod:`ibl_ref.experiments`): its
 ``--help`` shows the description, the paper item, the typical run time, the outputs and one ``--PARAM``
-option per parameter (default and quick value).
+option per parameter (default and quick value).  ``--workers N`` / ``--scheduler ADDRESS`` run the independent
+jobs (an experiment's cases, or ``reproduce``'s experiments) on local processes or a Dask cluster
+(:func:`ibl_ref.executors.map_jobs`); ``reproduce`` is :func:`ibl_ref.experiments.reproduce`.
 """
 
 from __future__ import annotations
