@@ -187,6 +187,12 @@ def test_cli_commands_report_progress_lines(log_mode, tmp_path, capsys):
     assert any(ln.startswith("sqrtcos pyramid of 16² faces: done in") for ln in lines)
     assert main(["mediancut", str(env), "--lights", "6", "--out", str(tmp_path / "m.json")]) == 0
     _lines(capsys.readouterr().err)
+    assert main(["convert", str(env), str(tmp_path / "ll.exr"), "--layout", "latlong"]) == 0
+    lines = _lines(capsys.readouterr().err)
+    assert f"reading {env} …" in lines and "converting to latlong …" in lines
+    assert main(["info", str(env)]) == 0
+    out = capsys.readouterr()
+    assert f"reading {env} …" in _lines(out.err) and "reading" not in out.out  # the report stays on stdout
 
 
 def test_render_no_progress_is_silent(log_mode, tmp_path, capsys):
