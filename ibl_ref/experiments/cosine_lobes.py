@@ -37,7 +37,7 @@ PARAMS = (
     Param("n_theta", 12, 5, "product-table angles theta in [0, pi]"),
     Param("random_checks", 600, 60, "random off-node product-table look-ups checked against quadrature"),
 )
-RUNTIME = {"quick": "7.8 s", "full": "39 min (load 9; 15 min CPU)"}
+RUNTIME = {"quick": "7.8 s (load 0.3)", "full": "39 min (load 9; 15 min CPU)"}
 OUTPUTS = ("integral_check.csv", "integral_table_error.csv", "cap_fit.csv", "product_fit.csv",
            "product_table_interp.csv", "summary.json", "cosine_lobes_tables.png", "cosine_lobes_product.png")
 

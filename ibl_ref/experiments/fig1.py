@@ -23,7 +23,7 @@ NAME = "fig1"
 DESCRIPTION = "Knuth 2014 Fig. 1: diffuse-to-mirror gallery (g = 0 … 1) under sky_sun and studio, our method"
 PAPER = "Knuth et al. 2014, Fig. 1 (materials from diffuse to mirror, our method, Eq. 5)"
 IN_QUICK_REPRODUCE = True
-RUNTIME = {"quick": "1.4 s", "full": "68 s (load 10)"}
+RUNTIME = {"quick": "1.4 s (load 0.3)", "full": "68 s (load 10)"}
 OUTPUTS = ("fig1_images.json", "fig1_meta.json", "fig1.png")
 
 GLOSS = (0.0, 0.5, 0.9, 0.99, 1.0)

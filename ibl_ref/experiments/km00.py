@@ -31,7 +31,7 @@ PARAMS = (
     Param("n_gamma", 256, 192, "BRDF samples in the polar angle"),
     Param("n_phi", 64, 48, "BRDF samples in azimuth"),
 )
-RUNTIME = {"quick": "2.3 s", "full": "58 s (load 10; 19 s CPU)"}
+RUNTIME = {"quick": "2.3 s (load 0.3)", "full": "58 s (load 10; 19 s CPU)"}
 OUTPUTS = ("rms_vs_lobes.csv", "lobes.csv", "profiles.csv", "summary.json", "km00_rms_vs_lobes.png", "km00_lobes.png")
 
 BRDFS = {

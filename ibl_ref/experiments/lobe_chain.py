@@ -36,7 +36,7 @@ DESCRIPTION = "filter pyramid vs exact-lobe chain: lookup error vs s, build time
 PAPER = ("Knuth et al. 2014, Sec. 3.2 / Eq. 3-4: the filter pyramid's lookup vs the exact Phong lobe average, "
          "and the exact-lobe chain (not in the paper)")
 IN_QUICK_REPRODUCE = True
-RUNTIME = {"quick": "9 s", "full": "13 min (load 13; 4 min 21 s CPU)"}
+RUNTIME = {"quick": "9 s (load 0.3)", "full": "13 min (load 13; 4 min 21 s CPU)"}
 OUTPUTS = ("lobe_chain.csv", "lobe_chain_meta.json", "lobe_chain.png")
 
 PREFILTERS = ("pyramid-sqrtcos", "pyramid-box", "pyramid-sqrtcos-solid-angle", "chain-f4", "chain-f2", "chain-f1.41")
