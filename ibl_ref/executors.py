@@ -97,14 +97,20 @@ def _job(fn, x, silent: bool = True):
 
 
 def map_jobs(fn, items, executor=None, workers: int = 1, desc: str | None = None, what: str = "worker",
-             unit: str = "job") -> list:
+             unit: str = "job", cost=None) -> list:
     """``[fn(x) for x in items]`` in order, serially, on ``workers`` local processes, or on ``executor``.
 
     ``executor``: anything :func:`resolve_executor` accepts (it wins over ``workers``).  ``desc``: a progress
     label (:mod:`ibl_ref.progress`, one tick of ``unit`` per finished job).  Jobs run serially report their own
-    progress nested in this one; jobs run elsewhere run silenced (:func:`ibl_ref.progress.quiet`).
+    progress nested in this one; jobs run elsewhere run silenced (:func:`ibl_ref.progress.quiet`).  ``cost``:
+    optional relative cost per item; jobs run elsewhere are then submitted most expensive first (the longest job
+    does not start last), the results still come back in the order of ``items``.
     """
     items = list(items)
+    if cost is not None:
+        cost = [float(c) for c in cost]
+        if len(cost) != len(items):
+            raise IBLError(f"cost has {len(cost)} entries for {len(items)} jobs")
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise IBLError(f"workers must be a positive integer (1 = serial), got {workers!r}")
     ex, owned = resolve_executor(executor)  # after the checks: an address opens a client that must be closed
@@ -117,7 +123,7 @@ def map_jobs(fn, items, executor=None, workers: int = 1, desc: str | None = None
         # BLAS held at one thread from this (calling) thread for the whole map: OpenBLAS does not always honour
         # a limit set from a worker thread once the main thread has set one; jobs in other processes set theirs
         with one_blas_thread():
-            return _run_all(fn, items, ex, workers, prog, what)
+            return _run_all(fn, items, ex, workers, prog, what, cost)
     finally:
         if prog:
             prog.close()
@@ -125,7 +131,7 @@ def map_jobs(fn, items, executor=None, workers: int = 1, desc: str | None = None
             owned.close()
 
 
-def _run_all(fn, items, ex, workers, prog, what) -> list:
+def _run_all(fn, items, ex, workers, prog, what, cost=None) -> list:
     from concurrent.futures import BrokenExecutor, ProcessPoolExecutor
 
     if ex is None and (workers <= 1 or len(items) <= 1):
@@ -142,11 +148,12 @@ def _run_all(fn, items, ex, workers, prog, what) -> list:
         ctx = multiprocessing.get_context("spawn" if "fork" not in multiprocessing.get_all_start_methods()
                                           else "forkserver")
         pool = ex = ProcessPoolExecutor(max_workers=min(workers, len(items)), mp_context=ctx)
+    order = list(range(len(items))) if cost is None else sorted(range(len(items)), key=lambda i: -cost[i])
     try:
-        futs = [ex.submit(_job, fn, x) for x in items]
-        out = []
-        for f in futs:
-            out.append(f.result())
+        futs = {i: ex.submit(_job, fn, items[i]) for i in order}
+        out = [None] * len(items)
+        for i in order:
+            out[i] = futs[i].result()
             if prog:
                 prog()
         return out

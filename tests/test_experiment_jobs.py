@@ -120,3 +120,31 @@ def test_jobs_run_with_one_blas_thread_also_in_threads():
         for dot, threads in map_jobs(_dot_and_blas_threads, range(4), **kw):
             assert dot == one and set(threads) <= {1}, kw
         assert _dot_and_blas_threads()[1] == before
+
+
+def _slow_square(x):
+    import time
+
+    time.sleep(0.05 * x)
+    return x * x
+
+
+def test_costly_jobs_start_first_and_results_keep_their_order():
+    from concurrent.futures import ThreadPoolExecutor
+
+    from ibl_ref.errors import IBLError
+    from ibl_ref.executors import map_jobs
+
+    started = []
+
+    class Recording(ThreadPoolExecutor):
+        def submit(self, fn, *args, **kw):
+            started.append(args[1])  # map_jobs submits _job(fn, item)
+            return super().submit(fn, *args, **kw)
+
+    items = [1, 4, 2, 3]
+    with Recording(2) as ex:
+        assert map_jobs(_slow_square, items, executor=ex, cost=items) == [1, 16, 4, 9]
+    assert started == [4, 3, 2, 1]
+    with pytest.raises(IBLError, match="cost has 2 entries for 4 jobs"):
+        map_jobs(_slow_square, items, cost=[1, 2])
