@@ -148,12 +148,14 @@ def _run_all(fn, items, ex, workers, prog, what, cost=None) -> list:
         ctx = multiprocessing.get_context("spawn" if "fork" not in multiprocessing.get_all_start_methods()
                                           else "forkserver")
         pool = ex = ProcessPoolExecutor(max_workers=min(workers, len(items)), mp_context=ctx)
+    from concurrent.futures import as_completed
+
     order = list(range(len(items))) if cost is None else sorted(range(len(items)), key=lambda i: -cost[i])
     try:
-        futs = {i: ex.submit(_job, fn, items[i]) for i in order}
+        index = {ex.submit(_job, fn, items[i]): i for i in order}
         out = [None] * len(items)
-        for i in order:
-            out[i] = futs[i].result()
+        for f in as_completed(index):  # progress counts jobs as they finish, whatever their order
+            out[index[f]] = f.result()
             if prog:
                 prog()
         return out

@@ -32,7 +32,7 @@ PARAMS = (
     Param("centre_only_sizes", (512,), (128,), "further face sizes with the face-centre position only"),
     Param("exponents", 32, 24, "number of s_Phong values from 1 to the texel limit (log spaced)"),
 )
-RUNTIME = {"quick": "7.9 s (load 0.3)", "full": "21 min 31 s (load 11; 8 min 52 s CPU; 1.0 GB)"}
+RUNTIME = {"quick": "7.9 s (load 0.3)", "full": "4 min 30 s (load 3.3; 4 min 18 s CPU; 1.0 GB)"}
 OUTPUTS = ("fig5_errors.csv", "fig5_meta.json", "fig5_<N>.png", "fig5_<N>_centroid.png")
 
 KERNELS = ("none", "gauss", "cos", "box", "sqrtcos")
