@@ -9,7 +9,6 @@ per-mesh materials).
 from __future__ import annotations
 
 import os
-import sys
 from pathlib import Path
 
 from ..errors import IBLError
@@ -175,7 +174,7 @@ def cmd_render(args) -> int:
                                     or np.ndim(gmat.kd) or np.ndim(gmat.ks)):
             raise IBLError("--mode reference: the ray-traced reference takes scalar kd, ks and one g per "
                            "material; RGB weights and --gmap work with the other modes")
-    progress = sys.stderr.isatty() if args.progress is None else args.progress
+    progress = args.progress
 
     # ---- scene -------------------------------------------------------------------------------------------
     radiance = None
@@ -406,9 +405,11 @@ def register(sub) -> None:
     g.add_argument("--exposure", default="auto", metavar="auto|EV|xK",
                    help="PNG exposure: 'auto' (default: the object's 90th-percentile luminance maps to 0.8), EV "
                    "stops (e.g. -2), or a linear scale (e.g. x0.25)")
-    g.add_argument("--progress", dest="progress", action="store_true", default=None,
-                   help="show progress bars (default: only on a terminal)")
-    g.add_argument("--no-progress", dest="progress", action="store_false", help="never show progress bars")
+    g.add_argument("--progress", dest="progress", action="store_true", default=True,
+                   help="report progress on stderr (default): a bar on a terminal, a status line at most every "
+                   "10 s in a log ($IBL_REF_PROGRESS_INTERVAL)")
+    g.add_argument("--no-progress", dest="progress", action="store_false",
+                   help="no progress reports (also: $IBL_REF_PROGRESS=0)")
     from .radiance_args import add_radiance_args
 
     add_radiance_args(p)

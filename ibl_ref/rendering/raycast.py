@@ -150,12 +150,9 @@ def any_hit(meshes, origins, directions, chunk: int | None = None, progress: boo
     _check_rays_budget(len(o), len(mesh.faces))
     out = np.zeros(len(o), dtype=bool)
     chunk = _chunk_size(mesh, chunk)
-    rng = range(0, len(o), chunk)
-    if progress:
-        from tqdm import tqdm
+    from ..progress import track
 
-        rng = tqdm(rng, desc=f"rays ({backend()})", unit="chunk")
-    for a in rng:
+    for a in track(range(0, len(o), chunk), f"rays ({backend()})", unit="chunk", enabled=progress):
         out[a : a + chunk] = mesh.ray.intersects_any(o[a : a + chunk], d[a : a + chunk])
     return out
 
@@ -279,7 +276,7 @@ def parallel_visibility(meshes, points, direction, normals=None, eps: float | No
     chunk_pairs : bound on (point, candidate triangle) pairs per vectorised step
     mask : (P, D) bool, optional — only these (point, direction) pairs are cast; the others are returned as 1
         (0 where ``normals`` put the light below the receiver's plane)
-    progress : tqdm bar over directions
+    progress : report progress over directions (:mod:`ibl_ref.progress`)
 
     Returns
     -------
@@ -309,11 +306,9 @@ def parallel_visibility(meshes, points, direction, normals=None, eps: float | No
         if mask.shape != (len(p), D):
             raise IBLError(f"mask shape {mask.shape} != ({len(p)}, {D})")
     out = np.ones((len(p), D))
-    it = range(D)
-    if progress:
-        from tqdm import tqdm
+    from ..progress import track
 
-        it = tqdm(it, desc="exact visibility", unit="dir")
+    it = track(range(D), "exact visibility", unit="dir", enabled=progress)
     if nrm is not None:  # the receiver's own surface blocks lights at or below its plane, cast or not
         out[(nrm @ w_all.T) <= 0] = 0.0
     for j in it:

@@ -830,7 +830,9 @@ def converged_shading(scene, points, normals, face_normals, d_lobe, cube, s: flo
         rel = float(est.sum() / max(ref.sum(), 1e-300))
         levels.append(dict(n_vis=n, rays=new_rays, est_rel_l1=rel))
         if progress:
-            print(f"  visibility level {n}: {new_rays} rays, estimated rel. L1 {rel:.2e}")
+            from ..progress import say
+
+            say(f"reference: visibility level {n}: {new_rays} rays, estimated rel. L1 {rel:.2e}")
         if rel <= rtol / 2:
             break
     n_vis = n
