@@ -93,6 +93,11 @@ def say(msg: str, stream=None) -> None:
         print(msg, file=stream, flush=True)
 
 
+def _plural(unit: str, n) -> str:
+    """``light`` → ``lights`` for counts other than 1 (tqdm's short units such as ``it`` stay as they are)."""
+    return unit if n == 1 or len(unit) <= 2 or unit.endswith("s") else unit + "s"
+
+
 def _fmt_time(t: float) -> str:
     return f"{t:.1f} s" if t < 120 else f"{int(t // 60)} min {t % 60:.0f} s"
 
@@ -120,14 +125,14 @@ class Progress:
                 _LINES.append(self)
                 if self._outer:  # nested counters stay silent until the shared periodic line
                     _LAST_LINE[0] = self.t0
-                    size = f" ({total} {unit})" if total else ""
+                    size = f" ({total} {_plural(unit, total)})" if total else ""
                     print(f"{desc}{size} …", file=self.stream, flush=True)
 
     def _state(self, now: float) -> str:
         el = _fmt_time(now - self.t0)
         if self.total:
-            return f"{self.desc}: {self.n}/{self.total} {self.unit} ({100.0 * self.n / self.total:.0f} %), {el}"
-        return f"{self.desc}: {self.n} {self.unit}, {el}"
+            return f"{self.desc}: {self.n}/{self.total} {_plural(self.unit, self.total)} ({100.0 * self.n / self.total:.0f} %), {el}"
+        return f"{self.desc}: {self.n} {_plural(self.unit, self.n)}, {el}"
 
     def update(self, n: int = 1) -> None:
         self.n += n

@@ -203,9 +203,12 @@ def cmd_render(args) -> int:
             "radiance": radiance}
     pems = None
     if mode not in _EXACT_MODES:
+        from ..knuth2014.gloss_calibration import calibration_for
         from ..knuth2014.pem import build_pems
 
-        pems = build_pems(cube, n_lights=args.lights, variant=args.median_cut, progress=progress)
+        # the g → level table of the paper's pyramid (shipped, or computed for sizes without one)
+        cal = None if args.prefilter == "exact-lobe" else calibration_for(cube.shape[1], progress=progress)
+        pems = build_pems(cube, n_lights=args.lights, variant=args.median_cut, calibration=cal, progress=progress)
         if args.prefilter == "exact-lobe":
             from ..knuth2014.lobe_chain import build_lobe_chain_pems
 
