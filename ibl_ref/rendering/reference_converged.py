@@ -79,8 +79,10 @@ SPLIT_GAIN = 1.0 / 8.0
 #: a round aims at this fraction of the visibility budget (fewer rounds, a little more refinement)
 ROUND_AIM = 0.7
 MAX_ROUNDS = 80
-#: share of rtol the quadrature may take (M doubles until the unoccluded M/2 → M change is below it)
+#: share of rtol (and of pixel_rtol) the quadrature may take: M doubles until the M/2 → M change of the average
+#: (with the base cells' visibility) is below it for the image and for all but QUAD_PIXEL_SHARE of the pixels
 QUAD_SHARE = 0.5
+QUAD_PIXEL_SHARE = 0.01
 #: elements of the (pixels, cells, texels) arrays of one quadrature step
 QUAD_CHUNK_ELEMENTS = 1 << 20
 #: per-pixel bound: t = √(2 ln(2/δ)) standard deviations (Hoeffding)
@@ -195,7 +197,7 @@ def _neighbours(f, i, j, n: int):
     return F.reshape(-1, 8), I.reshape(-1, 8), J.reshape(-1, 8)
 
 
-def direction_to_texel_n(d, n):
+def _direction_to_texel_n(d, n):
     """:func:`ibl_ref.environment.envmap.direction_to_texel` with a per-direction face size ``n`` (array)."""
     from ..environment.envmap import direction_to_face_uv
 
@@ -217,10 +219,14 @@ def _rect_solid_angle(u0, u1, v0, v1):
     return A(u1, v1) - A(u0, v1) - A(u1, v0) + A(u0, v0)
 
 
-def _dirs(f, u, v):
-    from ..environment.envmap import face_uv_to_direction
+def _dirs(f, u, v, normalize: bool = True):
+    """Directions through face-plane points (u, v) of faces f (:func:`ibl_ref.environment.envmap.face_uv_to_direction`
+    without its argument checks: f, u, v are the module's own arrays)."""
+    from ..environment.envmap import face_frames
 
-    return face_uv_to_direction(f, u, v)
+    F = face_frames("openexr")[f]
+    d = F[:, 0, :] + u[:, None] * F[:, 1, :] + v[:, None] * F[:, 2, :]
+    return d / np.sqrt(_dot(d, d))[:, None] if normalize else d
 
 
 def _dot(a, b):
@@ -363,16 +369,20 @@ def _child_weights(env, M, d, nrm, s, p, f, lvl, i, j, Wpar):
         k = M // nb
         sel_all = np.flatnonzero(coarse)
         for kc in np.unique(M // n_c[sel_all]):
-            sel = sel_all[(M // n_c[sel_all]) == kc]
-            L_ = cl[sel]
-            cb = (cf[sel] * nb + (ci[sel] >> L_)) * nb + (cj[sel] >> L_)
-            r0 = (ci[sel] & ((1 << L_) - 1)) * kc
-            c0 = (cj[sel] & ((1 << L_) - 1)) * kc
             ar = np.arange(kc)
-            sub = ((r0[:, None, None] + ar[None, :, None]) * k + c0[:, None, None] + ar[None, None, :]).reshape(len(sel), -1)
-            w = dq[cb[:, None], sub]
-            _, fh = _lobe_weights(d[cp[sel]][:, None, :], nrm[cp[sel]][:, None, :], w, oq[cb[:, None], sub], s)
-            W[sel] = np.einsum("kt,ktc->kc", fh, Lq[cb[:, None], sub])
+            sel_k = sel_all[(M // n_c[sel_all]) == kc]
+            step = max(1, QUAD_CHUNK_ELEMENTS // (4 * kc * kc))
+            for a0 in range(0, len(sel_k), step):  # bounded memory
+                sel = sel_k[a0:a0 + step]
+                L_ = cl[sel]
+                cb = (cf[sel] * nb + (ci[sel] >> L_)) * nb + (cj[sel] >> L_)
+                r0 = (ci[sel] & ((1 << L_) - 1)) * kc
+                c0 = (cj[sel] & ((1 << L_) - 1)) * kc
+                sub = ((r0[:, None, None] + ar[None, :, None]) * k + c0[:, None, None]
+                       + ar[None, None, :]).reshape(len(sel), -1)
+                _, fh = _lobe_weights(d[cp[sel]][:, None, :], nrm[cp[sel]][:, None, :], dq[cb[:, None], sub],
+                                      oq[cb[:, None], sub], s)
+                W[sel] = np.einsum("kt,ktc->kc", fh, Lq[cb[:, None], sub])
     fine = np.flatnonzero(~coarse)
     if len(fine):
         u0, u1, v0, v1 = _rect(ci[fine], cj[fine], n_c[fine])
@@ -420,6 +430,14 @@ def _select_pixels(pix, Y, idx, need, S, strict, q, target, P):
     pred = np.minimum(strict[pp] - 0.5 * prev1, T_BOUND * 0.5 * np.sqrt(np.maximum(S[pp] - (1 - SPLIT_GAIN) * prev2,
                                                                                     0.0))) + q[pp]
     return idx[o[pred > target[pp]]]
+
+
+def _match(keys, values, query):
+    """values[keys == query] for sorted ``keys`` (0 where a query key is absent)."""
+    if len(keys) == 0:
+        return np.zeros(len(query))
+    at = np.minimum(np.searchsorted(keys, query), len(keys) - 1)
+    return np.where(keys[at] == query, values[at], 0.0)
 
 
 def _select(pix, Y, S, budget, min_split, kappa=1.0):
@@ -490,33 +508,46 @@ def _converge_block(job: dict) -> dict:
     env = _Env(a, nb)
     caster = ShadowRays(job["scene"], job["backend"], job["eps"])
 
-    # ---- quadrature level: M doubles while the unoccluded average changes by more than rtol/2 from M/2 to M --------
-    M = int(job["M0"])
-    half = _level_weights(env, M // 2, d, nrm, s)
-    while True:
-        Q = _level_weights(env, M, d, nrm, s)
-        dU = np.abs(Q["U"].mean(axis=-1) - half["U"].mean(axis=-1)).sum()
-        if dU <= QUAD_SHARE * rtol * max(Q["U"].mean(axis=-1).sum(), 1e-300) or 2 * M > job["n_quad_max"]:
-            break
-        M, half = 2 * M, Q
-    K = Q["K"]
-    ws = Q["ws"]
-    bp, bc, bW = Q["key"] // K, Q["key"] % K, Q["W"]
-    bY = bW.mean(axis=-1) / ws[bp]
-    # the same cells' weights at M/2 (0 where a cell has no weight there)
-    at = np.minimum(np.searchsorted(half["key"], Q["key"]), max(len(half["key"]) - 1, 0))
-    hit = half["key"][at] == Q["key"] if len(half["key"]) else np.zeros(len(Q["key"]), bool)
-    bYh = np.where(hit, half["W"][at].mean(axis=-1) / half["ws"][bp], 0.0)
-    del half
-    nB = len(bp)
-
-    # ---- base rays: one random point per cell, shared by the block's pixels --------------------------------------
+    # ---- base cells: one random point each, shared by the block's pixels; weights at quadrature level M --------
+    K = 6 * nb * nb
     cells = np.arange(K)
     cf, ci, cj = cells // (nb * nb), (cells // nb) % nb, cells % nb
     su_c, sv_c = env.samples(seed, blk, np.zeros(K, np.int64), cf, ci, cj, np.full(K, nb))
     sdir = _dirs(cf, su_c, sv_c)
-    bV = caster.visibility(P_[bp], fn[bp], sdir[bc], groups=bc).astype(np.int8)
-    n_rays = nB
+    prtol = float(job["pixel_rtol"])
+    M = int(job["M0"])
+    half = _level_weights(env, M // 2, d, nrm, s)
+    Q = _level_weights(env, M, d, nrm, s)
+    vis_key = np.zeros(0, np.int64)  # (pixel·K + cell) pairs cast so far, ascending, and their visibility
+    vis_val = np.zeros(0, np.int8)
+    n_rays = 0
+    while True:
+        ws = Q["ws"]
+        bp, bc, bW = Q["key"] // K, Q["key"] % K, Q["W"]
+        bY = bW.mean(axis=-1) / ws[bp]
+        bYh = _match(half["key"], half["W"].mean(axis=-1), Q["key"]) / half["ws"][bp]  # the same cells at M/2
+        # rays for the pairs not cast yet (a finer M can give weight to a few more cells)
+        known = _match(vis_key, np.ones(len(vis_key)), Q["key"]) > 0
+        new = np.flatnonzero(~known)
+        if len(new):
+            v_new = caster.visibility(P_[bp[new]], fn[bp[new]], sdir[bc[new]], groups=bc[new]).astype(np.int8)
+            n_rays += len(new)
+            vis_key = np.concatenate([vis_key, Q["key"][new]])
+            vis_val = np.concatenate([vis_val, v_new])
+            o = np.argsort(vis_key, kind="stable")
+            vis_key, vis_val = vis_key[o], vis_val[o]
+        bV = _match(vis_key, vis_val.astype(np.float64), Q["key"]).astype(np.int8)
+        # quadrature estimate with the base visibility: image share ≤ QUAD_SHARE·rtol, and ≤ 1 % of the pixels above
+        # QUAD_SHARE·pixel_rtol of their value; else M doubles (the cells and their rays stay)
+        A0 = np.bincount(bp, weights=bY * (bV > 0), minlength=Pn)
+        q0 = np.abs(np.bincount(bp, weights=(bV > 0) * (bY - bYh), minlength=Pn))
+        over = (q0 > QUAD_SHARE * prtol * np.maximum(A0, ERR_FLOOR * A0.mean())).mean() if Pn else 0.0
+        if ((q0.sum() <= QUAD_SHARE * rtol * max(A0.sum(), 1e-300) and over <= QUAD_PIXEL_SHARE)
+                or 2 * M > job["n_quad_max"]):
+            break
+        M, half, Q = 2 * M, Q, _level_weights(env, 2 * M, d, nrm, s)
+    del half, vis_key, vis_val
+    nB = len(bp)
     pidx = np.full((Pn, K), -1, dtype=np.int32)
     pidx[bp, bc] = np.arange(nB)
     Vd = np.full((Pn, K), -1, dtype=np.int8)
@@ -551,7 +582,6 @@ def _converge_block(job: dict) -> dict:
     converged = False
     kap_num = kap_den = 0.0  # Σ W² q̂(1−q̂) n/(n−1) and Σ W²/4 over split cells (→ κ̂)
     n_kap = 0
-    prtol = float(job["pixel_rtol"])
     for rnd in range(MAX_ROUNDS):
         ub, ur, pix, Yu = uncertain()
         S = np.bincount(pix, weights=Yu ** 2, minlength=Pn)
@@ -585,7 +615,10 @@ def _converge_block(job: dict) -> dict:
             k_plan = kap if n_kap >= KAPPA_MIN_SPLITS else KAPPA_PLAN  # planning only; the estimate keeps κ̂ = 1
             chosen = o[:_select(pix[o], Yu[o], S, budget, min_split=64, kappa=k_plan)]
         if len(viol) and len(o):
-            chosen = np.union1d(chosen, _select_pixels(pix[o], Yu[o], o, viol, S, strict, q, target, Pn))
+            pick = np.zeros(len(pix), bool)
+            pick[chosen] = True
+            pick[_select_pixels(pix[o], Yu[o], o, viol, S, strict, q, target, Pn)] = True
+            chosen = np.flatnonzero(pick)
         if len(chosen) == 0:
             converged = est <= rtol
             break
@@ -618,8 +651,10 @@ def _converge_block(job: dict) -> dict:
         relevant = cY > 0
         cast = np.flatnonzero(relevant & ~inherit)
         if len(cast):
-            ck = _keys(np.zeros(len(cast), np.int64), cf2[cast], cl2[cast], ci2[cast], cj2[cast], depth)
-            grp = np.unique(ck, return_inverse=True)[1]
+            grp = None
+            if caster.backend == "exact":  # rays toward one cell share their direction: one projection set-up each
+                ck = _keys(np.zeros(len(cast), np.int64), cf2[cast], cl2[cast], ci2[cast], cj2[cast], depth)
+                grp = np.unique(ck, return_inverse=True)[1]
             cV[cast] = caster.visibility(P_[cp[cast]], fn[cp[cast]], _dirs(cf2[cast], su2[cast], sv2[cast]),
                                          groups=grp)
             n_rays += len(cast)
@@ -792,15 +827,12 @@ def _classify_children_chunk(R, g, ctx):
 
 def _neighbour_of(f, I, J, n):
     """Cells (f, I, J) of face sizes n, with rows/cols one step outside a face mapped onto the adjacent face."""
-    from ..environment.envmap import face_uv_to_direction
-
     out = (I < 0) | (I >= n) | (J < 0) | (J >= n)
     if out.any():
         f, I, J = f.copy(), I.copy(), J.copy()
         nn = n[out].astype(np.float64)
-        d = face_uv_to_direction(f[out], (J[out] + 0.5) / nn * 2.0 - 1.0, (I[out] + 0.5) / nn * 2.0 - 1.0,
-                                 normalize=False)
-        f[out], I[out], J[out] = direction_to_texel_n(d, n[out])
+        d = _dirs(f[out], (J[out] + 0.5) / nn * 2.0 - 1.0, (I[out] + 0.5) / nn * 2.0 - 1.0, normalize=False)
+        f[out], I[out], J[out] = _direction_to_texel_n(d, n[out])
     return f, I, J
 
 
@@ -809,7 +841,7 @@ def _neighbour_of(f, I, J, n):
 # ------------------------------------------------------------------------------------------------
 def converged_shading(scene, points, normals, face_normals, d_lobe, cube, s: float, *, rtol: float = DEFAULT_RTOL,
                       n_vis_start: int = 16, n_vis_max: int = 16384, n_quad_max: int = 256, eps: float | None = None,
-                      backend: str = "auto", seed: int = 0, block_pixels: int = 512, pixel_rtol: float | None = None,
+                      backend: str = "auto", seed: int = 0, block_pixels: int = 256, pixel_rtol: float | None = None,
                       workers: int = 1,
                       executor=None, progress: bool = False):
     """Visibility-weighted lobe averages A_s(d) of (*) converged to ``rtol`` (module docstring).

@@ -310,7 +310,7 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
                      n_env_diffuse: int | None = 8, n_env_glossy: int | None = None, directions: str = "centroid",
                      texels_per_halfwidth: float = 1.0, weight_cutoff: float = 1e-6, backend: str = "project",
                      pixel_rtol: float | None = None, ray_backend: str = "auto", seed: int = 0,
-                     block_pixels: int = 512, workers: int = 1,
+                     block_pixels: int = 256, workers: int = 1,
                      executor=None, smooth_normals: bool = True, gbuffer=None,
                      progress: bool = False) -> ReferenceResult:
     """Ground-truth image c = kd·A_1(n) + ks·A_s(r) of (*) with exact ray-cast visibility.
