@@ -376,9 +376,13 @@ def register(sub) -> None:
     g.add_argument("--ref-rtol", type=float, default=None, metavar="R",
                    help="--mode reference: estimated relative L1 error to converge to (default 2e-3; 0 = the "
                    "fixed coarse quadrature)")
+    g.add_argument("--workers", type=int, default=None, metavar="W",
+                   help="--mode reference: worker processes for its pixel blocks (1 = serial; default "
+                   "$IBL_REF_WORKERS or min(2, CPUs)); the image is bit-for-bit the same for every W")
     g.add_argument("--spp", type=int, default=1024, metavar="N",
                    help="--mode mitsuba: samples per pixel (two halves with seeds S, S+1 estimate the noise)")
-    g.add_argument("--seed", type=int, default=0, metavar="S", help="--mode mitsuba: first seed (default 0)")
+    g.add_argument("--seed", type=int, default=0, metavar="S",
+                   help="--mode mitsuba: first seed; --mode reference: seed of its random ray points (default 0)")
     g = p.add_argument_group("camera (perspective, y is up)")
     g.add_argument("--size", type=int, nargs="+", default=[96, 96], metavar="N",
                    help="image size W H in pixels, or one N for N x N (default 96 96)")

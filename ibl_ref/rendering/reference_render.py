@@ -14,17 +14,20 @@ with ``s = 1/(1−g)`` (Eq. 3), ``r = 2(n·v)n − v``, V_j the exact binary vis
 surface point, and the sums over **all** texels j of an environment level (the normalisation includes occluded
 and below-horizon texels, so V ≡ 1 reproduces :func:`ibl_ref.groundtruth.phong_convolution.convolve_exact`).
 
-Default: converged to a tolerance (``render_reference(..., rtol=2e-3)``, :func:`converged_shading`).  Two
-discretisations are refined separately until each one's estimated share of the image's relative L1 error is
-≤ rtol/2: the radiance × lobe quadrature (the map's exact piecewise-constant radiance summed at texel centres of a
-face size M = N·2^k, compared with M/2 → 2M) and the visibility (one exact ray per direction cell along the cell's
-energy centroid, applied to the exact weight of the whole cell; cells split 2×2 where a shadow edge crosses the
-pixel's lobe, compared level to level; a pixel may leave its dimmest edge cells unrefined within
-``VIS_SKIP_SHARE``·rtol, which is added to its estimate).  Conventions (docs/background.md §8): one-sided shading
-(n·v ≤ 0 → black, ``sided="two"`` flips n), both lobes over the hemisphere Ω⁺ of the shading normal n with the lobe
-normalised over the whole sphere (the normalised Phong BRDF of Kán et al. 2015, Eq. 2), one material per mesh.
-Scattered refinement rays are cast one by one against a two-level bounding-sphere hierarchy (:class:`_LeafBVH`,
-Möller–Trumbore), dense ones with the projection caster below.
+Default: converged to a tolerance (``render_reference(..., rtol=2e-3)``,
+:func:`ibl_ref.rendering.reference_converged.converged_shading`, re-exported here): the radiance × lobe quadrature
+at texel centres of a face size M = N·2^k that the tolerance needs, and a stratified, adaptively refined
+visibility — one shadow ray per direction cell toward a random point of the cell, cells split 2×2 where weight ×
+possible change is largest next to a shadow edge — with an error estimate per image (``info["err_rel_l1"]``,
+a bound on the expected rel. L1) and a per-pixel bound (``ReferenceResult.error``, holding with probability
+≥ 1 − 1e-3 per pixel; its 99th percentile relative to max(pixel value, 10 % of the mean) is
+``info["err_rel_p99"]``); that module's docstring gives the definitions.  Shadow rays: Embree when ``embreex``
+is installed (every hit re-checked in float64), the package's float64 casters otherwise
+(:class:`ibl_ref.rendering.raycast.ShadowRays`).  The pixels run in fixed blocks (``workers=`` / ``executor=``:
+:func:`ibl_ref.executors.map_jobs`), bit-identical wherever they run.  Conventions (docs/background.md §8):
+one-sided shading (n·v ≤ 0 → black, ``sided="two"`` flips n), both lobes over the hemisphere Ω⁺ of the shading
+normal n with the lobe normalised over the whole sphere (the normalised Phong BRDF of Kán et al. 2015, Eq. 2),
+one material per mesh.
 
 Fixed quadrature (``rtol=0``; choices that change numbers, all explicit parameters):
 
@@ -72,6 +75,8 @@ __all__ = [
     "parallel_visibility",
     "reference_shading",
     "render_reference",
+    "converged_shading",
+    "DEFAULT_RTOL",
     "coarse_level_error",
     "estimate_reference_rays",
     "exact_pem_lookup",
@@ -213,9 +218,11 @@ class ReferenceResult:
     mask : (H, W) bool — covered pixels.
     gbuffer : :class:`ibl_ref.rendering.raster.GBuffer`
     info : dict — n_rays, time_s, rays_per_s, sided, n_back_facing, per-lobe levels (``lobes``); converged:
-        rtol, err_rel_l1 (estimated Σ|error|/Σ|image|), err_rel_p99 (99th percentile of the per-pixel relative
-        estimate over lit pixels), converged; fixed quadrature: n_env_diffuse, n_env_glossy, neglected_weight_max
-    error : (H, W) or None — estimated absolute error per pixel (channel mean) of the converged reference
+        rtol, err_rel_l1 (a bound on the expected Σ|error|/Σ|image|, channel means), err_rel_p99 (99th percentile
+        over the shaded pixels of ``error`` / max(pixel value, 10 % of their mean)), converged, ray_backend;
+        fixed quadrature: n_env_diffuse, n_env_glossy, neglected_weight_max
+    error : (H, W) or None — per-pixel bound of the absolute error (channel mean) of the converged reference, holding
+        with probability ≥ 1 − 1e-3 for each pixel (:mod:`ibl_ref.rendering.reference_converged`)
     """
 
     image: np.ndarray
