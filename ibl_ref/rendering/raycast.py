@@ -456,14 +456,15 @@ class LeafBVH:
     """Two-level bounding-sphere hierarchy of a scene's triangles for any-hit tests of scattered rays (float64).
 
     Triangles are split recursively at the median centroid of the longest bounding-box axis into leaves of at
-    most ``leaf`` triangles; each leaf has a bounding sphere, and runs of 16 consecutive leaves (neighbouring
-    subtrees) one more.  A ray is tested against the spheres and against the triangles of the leaves it passes
-    (:func:`_moller_trumbore`: inclusive edges, t > 0).  Exact up to float64 rounding; ≈ 0.15 ms per ray on the
-    16k-triangle teapot (one core), so it serves directions with few rays, where one projection set-up of
-    :func:`parallel_visibility` per direction (≈ 3 ms) costs more.
+    most ``leaf`` triangles; each leaf has a bounding sphere, and runs of ``group`` consecutive leaves
+    (neighbouring subtrees) one more.  A ray is tested against the spheres and against the triangles of the leaves
+    it passes (:func:`_moller_trumbore`: inclusive edges, t > 0).  Exact up to float64 rounding; ≈ 40 µs per ray on
+    the 16k-triangle teapot for rays from the ground toward it (one core; 48-triangle leaves: 90 µs),
+    so it serves directions with few rays, where one projection set-up of :func:`parallel_visibility` per
+    direction (≈ 3–5 ms) costs more.
     """
 
-    def __init__(self, scene, leaf: int = 48):
+    def __init__(self, scene, leaf: int = 16, group: int = 16):
         tri = scene.vertices[scene.faces]
         cen = tri.mean(axis=1)
         groups, stack = [], [np.arange(len(tri))]
@@ -494,7 +495,6 @@ class LeafBVH:
             c = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
             self.centre[k] = c
             self.radius[k] = np.linalg.norm(pts - c, axis=1).max() * (1 + 1e-9) + 1e-12
-        group = 16
         self.group = group
         G = -(-K // group)
         self.top_centre = np.zeros((G, 3))
@@ -624,9 +624,9 @@ class EmbreeCaster:
 
 
 SHADOW_BACKENDS = ("auto", "embree", "exact")
-#: exact backend: directions with fewer rays than this are cast ray by ray (:class:`LeafBVH`, ≈ 0.15 ms per ray on
-#: the 16k-triangle teapot) instead of with one projection set-up per direction (≈ 3 ms per direction)
-BVH_MAX_RAYS_PER_DIRECTION = 20
+#: exact backend: directions with fewer rays than this are cast ray by ray (:class:`LeafBVH`, ≈ 40 µs per ray on
+#: the 16k-triangle teapot) instead of with one projection set-up per direction (≈ 3–5 ms per direction)
+BVH_MAX_RAYS_PER_DIRECTION = 100
 
 
 def resolve_shadow_backend(backend: str = "auto") -> str:
