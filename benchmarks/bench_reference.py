@@ -3,6 +3,7 @@ memory ≤ 1 GB).
 
 Usage: python benchmarks/bench_reference.py [--size 128] [--workers 2] [--cases diffuse g0.9 g0.99 probe]
                                             [--ray-backend auto|embree|exact] [--rtol 2e-3] [--env-size 32]
+                                            [--check-estimate]
 
 Scene: the teapot on its ground quad (``ibl-ref render``'s scene and default camera), object and ground with the
 same material, under ``sky_sun`` (32² faces: a 1e5-bright sun of the real sun's solid angle) — cases ``diffuse``
@@ -11,7 +12,8 @@ same material, under ``sky_sun`` (32² faces: a 1e5-bright sun of the real sun's
 line per case: wall time, CPU time (this process + the blocks' processes), the peak resident memory of this process
 and of the largest worker (the total is about this process + workers × that), rays, cells, levels, the estimated
 rel. L1 and 99th percentile, converged.  Timings depend on the machine and its load (quote ``uptime``); CPU times
-are the fairer comparison.
+are the fairer comparison.  ``--check-estimate`` also renders each case 10× finer (rtol/10, pixel_rtol/5, another
+seed) and prints the actual rel. L1 and 99th percentile of the default run against it, next to its estimates.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ def main():
     ap.add_argument("--ray-backend", default="auto", choices=("auto", "embree", "exact"))
     ap.add_argument("--rtol", type=float, default=2e-3, help="tolerance (default 2e-3, the renderer's default)")
     ap.add_argument("--env-size", type=int, default=32, help="environment face size (default 32, the CLI's)")
+    ap.add_argument("--check-estimate", action="store_true", help="compare with a 10x finer run (slow)")
     args = ap.parse_args()
 
     from ibl_ref.rendering.reference_render import render_reference
@@ -68,6 +71,21 @@ def main():
               f"cells {sum(lb['n_cells'] for lb in lobes) / 1e6:5.1f} M  base {lobes[0]['n_vis_base']} finest "
               f"{lobes[0]['n_vis_finest']} quad {lobes[0]['n_quad']}  est {r.info['err_rel_l1']:.2e}  "
               f"p99 {r.info['err_rel_p99']:.3f}  converged {r.info['converged']}  load {os.getloadavg()[0]:.1f}")
+        if args.check_estimate:
+            import numpy as np
+
+            from ibl_ref.rendering.reference_converged import ERR_FLOOR, PIXEL_RTOL_FACTOR
+
+            f = render_reference(meshes, cam, env, materials={0: (kd, ks, g), 1: (kd, ks, g)}, rtol=args.rtol / 10,
+                                 pixel_rtol=PIXEL_RTOL_FACTOR * args.rtol / 5, seed=1, workers=args.workers,
+                                 ray_backend=args.ray_backend)
+            m = r.mask & (r.image.mean(axis=-1) > 0)
+            ya, yb = r.image[m].mean(axis=-1), f.image[m].mean(axis=-1)
+            den = np.maximum(ya, ERR_FLOOR * ya.mean())
+            print(f"{'':8s} vs 10x finer run: rel. L1 estimated {r.info['err_rel_l1']:.2e} actual "
+                  f"{np.abs(ya - yb).sum() / np.abs(yb).sum():.2e} (finer run's estimate {f.info['err_rel_l1']:.1e}); "
+                  f"p99 estimated {r.info['err_rel_p99']:.4f} actual {np.percentile(np.abs(ya - yb) / den, 99):.4f}; "
+                  f"pixels above their bound {(np.abs(ya - yb) > r.error[m] + 1e-9 * den).mean():.4f}")
 
 
 if __name__ == "__main__":

@@ -8,14 +8,18 @@ one, ``s = 1/(1−g)``, Eq. 3), :mod:`ibl_ref.rendering.reference_render` define
 (the lobe average of Eq. 4 with exact visibility V; docs/background.md §8 for the conventions: the hemisphere
 Ω⁺ of n clips the numerator only, as the normalised Phong BRDF of Kán et al. 2015, Eq. 2).  L is the map's
 piecewise-constant radiance (each texel constant over its exact solid angle).  :func:`converged_shading`
-computes (*) to a requested estimated relative L1 error ``rtol`` of the image, with two discretisations:
+computes (*) to a requested estimated relative L1 error ``rtol`` of the image (and, per pixel, to ``pixel_rtol``
+where the visibility limits it), with two discretisations:
 
 **Quadrature** (radiance × lobe).  The integrand without V is summed at the texel centres of a face size M
-(a power-of-two multiple of the visibility base level, ≥ the map's N, ≥ 4 texels across the lobe's half width):
-``w_q = L_q max(d·ω_q,0)^s [n·ω_q>0] Ω_q`` (the midpoint rule inside the map's texels).  Estimate: the change
-from M/2 to M of the visibility-weighted average, per pixel (for a smooth lobe the error of M is ≈ ⅓ of that
-change; where the horizon cuts the lobe it is about that change).  M doubles while the block's unoccluded
-estimate exceeds rtol/4 (up to ``n_quad_max``).
+(a power-of-two multiple of the visibility base level and of the map's N, ≥ 4 texels across the lobe's half
+width): ``w_q = L_q max(d·ω_q,0)^s [n·ω_q>0] Ω_q`` (the midpoint rule inside the map's texels; the normalisation
+Σ_q max(d·ω_q,0)^s Ω_q is the same sum over the whole sphere, so L ≡ 1 without occluders gives exactly the share
+of the lobe above the horizon).  Estimate per pixel: |Σ_c V̄_c (W_c(M) − W_c(M/2))| over the base cells c with
+their visible fractions V̄_c — the change from M/2 to M of the visibility-weighted average (for a smooth lobe the
+error of M is ≈ ⅓ of it; where the horizon or a cell edge cuts the lobe, about it).  M doubles (the cells and
+their rays stay) while this change, with the base cells' rays, exceeds :data:`QUAD_SHARE` of rtol for the block
+or of ``pixel_rtol`` for more than :data:`QUAD_PIXEL_SHARE` of its pixels (up to ``n_quad_max``).
 
 **Visibility** (stratified, adaptive).  The sphere is cut into cells: the six faces at a base size n_b
 (≥ ``n_vis_start`` and ≥ 2 cells across the lobe's half width), each cell splittable 2×2 down to face size
@@ -27,29 +31,41 @@ A cell whose ray differs from the ray of a neighbouring cell (the 8 cells around
 face borders; a shadow edge passes near it) is an *edge* cell: its visible fraction q_c is unknown, its ray is
 an unbiased one-sample estimate of it, with error e_c = W_c (V_c − q_c), |e_c| ≤ W_c and variance
 W_c² q_c (1 − q_c) ≤ W_c²/4.  The errors of different cells are independent (independent points), so per pixel
+(weights relative to Σ w, channel means)
 
-    E|e| ≤ σ = ½ √(Σ_edge W_c²) / Σ w        (Jensen)
-    P(|e| > t σ) ≤ 2 exp(−t²/2)                (Hoeffding: each e_c lies in an interval of length W_c)
+    E|e| ≤ √(Σ_edge W_c² q_c(1 − q_c)) ≤ σ = ½ √(Σ_edge W_c²)      (Jensen)
+    P(|e| > t σ) ≤ 2 exp(−t²/2)                                      (Hoeffding: e_c lies in an interval of length W_c)
 
-The refinement splits edge cells where weight × possible change is largest: each round it picks the fewest
-largest-W edge cells whose split is predicted (a split cell's W² shrinks ≈ 8×: four children of W/4, about half
-of them edges) to bring the block's Σσ below rtol·ΣA minus the quadrature share, splits them, casts the new rays
-(the child that holds its parent's point keeps the parent's ray) and re-classifies edges.  Cells that agree with
-all neighbours are taken as fully lit / fully shadowed (a feature thinner than the cells between two agreeing rays
-is missed: the reason for the base level's ≥ 2 cells per lobe half width and n_vis_start).
+Cells that agree with all neighbours are taken as fully lit / fully shadowed: a feature thinner than the cells
+between two agreeing rays is missed, which the model does not count (hence the base level's ≥ 2 cells per lobe
+half width and ``n_vis_start``; the tests measure it against finer runs).
 
-**Reported error.**  Per pixel: ``err_mean`` = σ + quadrature estimate (a bound on the expected absolute error,
-used for the image's rel. L1 ``err_rel_l1`` = Σ err_mean / Σ A) and ``err_bound`` = min(Σ_edge W_c, t σ) +
-quadrature estimate with t = √(2 ln(2/δ)), δ = :data:`BOUND_DELTA` (a per-pixel bound that holds with
-probability ≥ 1 − δ; its percentiles bound the percentiles of the actual error up to a δ share of the pixels).
-Both hold for the visibility and quadrature model above; ``tests/test_reference_render.py`` checks them against
-much finer runs.
+**Refinement** (where weight × possible change is largest).  Each round splits the edge cells with the largest
+weights: for the image, the fewest whose split is predicted (a split cell's W² shrinks ≈ 8×: four children of
+W/4, about half of them edges) to bring the block's Σ E|e| below rtol·ΣA minus the quadrature estimate; for every
+pixel whose bound (below) exceeds ``pixel_rtol`` × max(A, :data:`ERR_FLOOR` × mean A), its largest edge cells until
+its predicted bound fits (not where the quadrature estimate alone exceeds it: that is M's job).  The child that
+holds its parent's point keeps the parent's ray (it is a uniform point of the child too); the others get their
+own.  New children are compared with their siblings and with the 12 cells around their 2×2 block (a neighbour
+that differs from a child becomes an edge too; edge flags of older cells only grow).  The estimate falls from
+round to round (up to the re-measured κ̂ below), and the loop stops when both targets are met (``converged``) or
+no edge cell can be split any more (the finest level ``n_vis_max``: not converged, reported).
+
+**Reported error.**  Per pixel: ``err_mean`` = √(κ̂ Σ_edge W_c²/4) + quadrature estimate, the estimate of E|e| used
+for the image's rel. L1 ``err_rel_l1`` = Σ err_mean / Σ A.  κ̂ ≤ 1 is the share of the worst-case variance the edge
+cells actually carry, measured in the block on the cells split so far (each split gives an estimate of its
+q(1−q) from its four children, biased high: q̂(1−q̂)·n/(n−1) of stratified points); 1 until
+:data:`KAPPA_MIN_SPLITS` cells were split.  ``err_bound`` = min(Σ_edge W_c, t σ) + quadrature estimate with the
+worst case σ and t = √(2 ln(2/δ)), δ = :data:`BOUND_DELTA`: a per-pixel bound that holds with probability ≥ 1 − δ,
+so its 99th percentile bounds the actual error's up to a δ share of the pixels.  ``tests/test_reference_render.py``
+checks both against closed forms, brute force and much finer runs.
 
 **Blocks and determinism.**  Pixels are dealt to blocks round-robin (block b holds pixels b, b + B, b + 2B, …, so
 every block is a sample of the whole image and meets the image's tolerance on its own); blocks run independently
 (:func:`ibl_ref.executors.map_jobs`: serially, on local processes or any executor) and each block's random points
 come from a counter-based hash of (seed, block, cell), so the image is bit-identical wherever the blocks ran.
-Every array is O(block pixels × cells in the lobe), never (all pixels × all cells).
+Memory is O(block pixels × cells), never (all pixels × all cells); the refined cells are kept as leaves of a
+quadtree per pixel, sorted by Morton key for the neighbour look-ups.
 
 Shadow rays: :class:`ibl_ref.rendering.raycast.ShadowRays` (Embree with a float64 check of every hit when
 ``embreex`` is installed, the package's float64 casters otherwise).
