@@ -79,6 +79,18 @@ def test_unoccluded_diffuse_on_plane_constant_env_is_exact():
     np.testing.assert_allclose(res.image[res.mask], 0.7, rtol=1e-12)
 
 
+def _direct_lobe_average(cube, d, s, n_env):
+    """(*) with V ≡ 1 written out from its definition (independent of reference_render and phong_convolution):
+    area-average the map onto n_env² faces, sum L_j max(d·ω_j,0)^s Ω_j / Σ max(d·ω_j,0)^s Ω_j over texel centres."""
+    N = cube.shape[1]
+    k = N // n_env
+    om = cube_solid_angles(N)
+    L = (cube * om[..., None]).reshape(6, n_env, k, n_env, k, -1).sum(axis=(2, 4))
+    L = L / om.reshape(6, n_env, k, n_env, k).sum(axis=(2, 4))[..., None]
+    w = np.maximum(d @ texel_directions(n_env).reshape(-1, 3).T, 0.0) ** s * cube_solid_angles(n_env).reshape(-1)
+    return (w @ L.reshape(-1, L.shape[-1])) / w.sum(axis=1, keepdims=True)
+
+
 def test_reference_unoccluded_is_exact_lobe_average():
     from ibl_ref.synthetic.synthetic_envs import make_env
 
@@ -88,8 +100,8 @@ def test_reference_unoccluded_is_exact_lobe_average():
                               n_env_glossy=8, rtol=0)
     m = res.mask
     n, r = res.gbuffer.normal[m], res.gbuffer.reflect[m]
-    want = 0.3 * rr.lobe_average(env, n, 1.0, n_env=8) + 0.7 * rr.lobe_average(env, r, 2.0, n_env=8)
-    np.testing.assert_allclose(res.unoccluded[m], want, rtol=1e-10)
+    want = 0.3 * _direct_lobe_average(env, n, 1.0, 8) + 0.7 * _direct_lobe_average(env, r, 2.0, 8)
+    np.testing.assert_allclose(res.unoccluded[m], want, rtol=1e-10)  # same sums in another order
     # occlusion only removes light
     assert np.all(res.image[m] <= res.unoccluded[m] * (1 + 1e-12))
     assert (res.image[m] < res.unoccluded[m] * 0.99).any()  # the sphere shadows the plane somewhere
@@ -115,11 +127,17 @@ def test_env_size_for_exponent_and_limit():
     np.testing.assert_allclose(rr.lobe_half_angle(1.0), np.pi / 3)  # cos θ = 1/2
 
 
-def test_coarse_level_error_zero_at_full_resolution():
+def test_coarse_level_error_against_direct_sums():
+    # rel. L1 of the coarse (4²) against the full (8²) quadrature, both written out from the definition
     rng = np.random.default_rng(5)
     env = rng.uniform(0.1, 1.0, size=(6, 8, 8, 3))
-    e = rr.coarse_level_error(env, rng.normal(size=(20, 3)), 3.0, 8, directions="centre")
-    assert e["rel_l1"] < 1e-14
+    d = rng.normal(size=(20, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    e = rr.coarse_level_error(env, d, 3.0, 4, directions="centre")
+    a, b = _direct_lobe_average(env, d, 3.0, 4), _direct_lobe_average(env, d, 3.0, 8)
+    np.testing.assert_allclose(e["rel_l1"], np.abs(a - b).sum() / np.abs(b).sum(), rtol=1e-10)
+    assert e["rel_l1"] > 1e-3  # the coarse level does differ
+    assert rr.coarse_level_error(env, d, 3.0, 8, directions="centre")["rel_l1"] < 1e-14
 
 
 def test_bad_inputs():
@@ -148,7 +166,12 @@ def test_exact_pem_lookup_sums_to_lobe_average():
     d = np.random.default_rng(6).normal(size=(30, 3))
     pem = rr.exact_pem_lookup(env, lights.labels, d, 4.0, len(lights))
     assert pem.shape == (12, 30, 3) and pem.min() >= 0
-    np.testing.assert_allclose(pem.sum(axis=0), rr.lobe_average(env, d, 4.0), rtol=1e-12)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    np.testing.assert_allclose(pem.sum(axis=0), _direct_lobe_average(env, d, 4.0, 8), rtol=1e-12)
+    # each region alone: the same direct sum with the radiance of the other regions set to 0
+    for i in (0, 5, 11):
+        part = np.where((lights.labels == i)[..., None], env, 0.0)
+        np.testing.assert_allclose(pem[i], _direct_lobe_average(part, d, 4.0, 8), rtol=1e-10, atol=1e-300)
 
 
 # ------------------------------------------------------------------------------------------------
