@@ -36,6 +36,14 @@ reference at n_env = 8 (half each way, all at grazing incidence or at contacts).
 :func:`visibility_to_directions` (trimesh) keeps the origin offset (default ``eps = 1e-4 × scene radius``, along the
 surface normal and along the ray), because trimesh's fallback intersector accepts hits up to 1e-6 *behind* the
 origin.  Occluders closer than ``eps`` to the surface are missed there; this is the usual ray-tracing bias.
+
+Shadow rays in any directions (the converged reference, :mod:`ibl_ref.rendering.reference_converged`):
+:class:`ShadowRays` casts (point, direction) pairs from ``p + eps·n_f + eps·ω`` with eps = 1e-6 R — with Embree
+(:class:`EmbreeCaster`, ``embreex``: the scene in float32, centred and scaled to unit radius, and every hit Embree
+reports re-tested in float64, so that a float32 artefact can only make a ray free, never blocked), or with the
+float64 casters above (:func:`parallel_visibility` for directions shared by many rays, :class:`LeafBVH` ray by ray).
+On the teapot scene the two agree on every ray tested (``tests/test_raycast.py``); with Embree the converged
+reference at 128² takes 41 s CPU instead of 545 s (README, "Reference renderer").
 """
 
 from __future__ import annotations

@@ -30,8 +30,10 @@ several map texels, so that a sun inside a coarse cell is aimed at).  The pixel'
 A cell whose ray differs from the ray of a neighbouring cell (the 8 cells around it at its own level, across
 face borders; a shadow edge passes near it) is an *edge* cell: its visible fraction q_c is unknown, its ray is
 an unbiased one-sample estimate of it, with error e_c = W_c (V_c − q_c), |e_c| ≤ W_c and variance
-W_c² q_c (1 − q_c) ≤ W_c²/4.  The errors of different cells are independent (independent points), so per pixel
-(weights relative to Σ w, channel means)
+W_c² q_c (1 − q_c) ≤ W_c²/4 (q_c measured with the density the point is drawn from, not with the lobe's weight
+inside the cell: a second-order difference that shrinks as edge cells are split).  The errors of different cells
+are independent (independent points), so per pixel, taking the final cells as given (weights relative to Σ w,
+channel means)
 
     E|e| ≤ √(Σ_edge W_c² q_c(1 − q_c)) ≤ σ = ½ √(Σ_edge W_c²)      (Jensen)
     P(|e| > t σ) ≤ 2 exp(−t²/2)                                      (Hoeffding: e_c lies in an interval of length W_c)
