@@ -301,7 +301,9 @@ modes:
                 shadows of the same lights, --visibility none no shadows
   no-occlusion  VIS_i = 1 (Fig. 6a)
   ao, ao-color  ambient-occlusion comparisons of Fig. 6b/6c (ibl_ref.rendering.ao_modes)
-  reference     exact lobes and ray-cast visibility, converged to --ref-rtol (ibl_ref.rendering.reference_render; slow)
+  reference     exact lobes and ray-cast visibility, converged to --ref-rtol with an error estimate
+                (ibl_ref.rendering.reference_render; --workers, --seed; ~20-60 s at 128² on 2 cores with
+                embreex, pip install ".[fast]"; ~13× the CPU without)
   mitsuba       the same scene rendered by Mitsuba 3 (pip install ".[mitsuba]"; --spp, --seed)
   every mode shades the mesh with --material and the ground with --ground-material
   (reference, mitsuba: scalar kd, ks and no --gmap).

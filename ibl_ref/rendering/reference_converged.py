@@ -50,8 +50,9 @@ its predicted bound fits (not where the quadrature estimate alone exceeds it: th
 holds its parent's point keeps the parent's ray (it is a uniform point of the child too); the others get their
 own.  New children are compared with their siblings and with the 12 cells around their 2×2 block (a neighbour
 that differs from a child becomes an edge too; edge flags of older cells only grow).  The estimate falls from
-round to round (up to the re-measured κ̂ below), and the loop stops when both targets are met (``converged``) or
-no edge cell can be split any more (the finest level ``n_vis_max``: not converged, reported).
+round to round (up to the re-measured κ̂ below), and the loop stops when both targets are met or no wanted edge
+cell can be split any more (the finest level ``n_vis_max``).  ``converged`` says whether the image target was met;
+the per-pixel target is best effort (its outcome is ``err_rel_p99``).
 
 **Reported error.**  Per pixel: ``err_mean`` = √(κ̂ Σ_edge W_c²/4) + quadrature estimate, the estimate of E|e| used
 for the image's rel. L1 ``err_rel_l1`` = Σ err_mean / Σ A.  κ̂ ≤ 1 is the share of the worst-case variance the edge
