@@ -455,10 +455,10 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
         y = occ.mean(axis=-1)
         tot = float(np.abs(y).sum())
         info["err_rel_l1"] = float(err.sum() / tot) if tot > 0 else 0.0
-        from .reference_converged import ERR_FLOOR
-
-        den = np.maximum(y[shade], ERR_FLOOR * max(float(np.abs(y[shade]).mean()), 1e-300)) if shade.any() else y[shade]
-        info["err_rel_p99"] = float(np.percentile(bound[shade] / den, 99)) if shade.any() else 0.0
+        info["err_rel_p99"] = 0.0
+        if shade.any():  # relative to max(pixel value, ERR_FLOOR × mean): absolute in deep shadow
+            den = np.maximum(y[shade], ERR_FLOOR * max(float(np.abs(y[shade]).mean()), 1e-300))
+            info["err_rel_p99"] = float(np.percentile(bound[shade] / den, 99))
         info["converged"] = bool(info["err_rel_l1"] <= rtol and all(lb.get("converged", True) for lb in per_lobe))
         info["ray_backend"] = per_lobe[0].get("backend") if per_lobe else None
     H, W = m.shape
@@ -512,7 +512,7 @@ def exact_pem_lookup(cube, labels, dirs, s: float, n_regions: int | None = None,
 # ------------------------------------------------------------------------------------------------
 # converged reference (:mod:`ibl_ref.rendering.reference_converged`) and the radiance levels it samples
 # ------------------------------------------------------------------------------------------------
-from .reference_converged import DEFAULT_RTOL, LOBE_TAIL_CUT, converged_shading  # noqa: E402,F401  (re-exported)
+from .reference_converged import DEFAULT_RTOL, ERR_FLOOR, LOBE_TAIL_CUT, converged_shading  # noqa: E402,F401
 
 
 def _radiance_at(a: np.ndarray, n: int) -> np.ndarray:
