@@ -303,7 +303,9 @@ modes:
                 shadows of the same lights, --visibility none no shadows
   no-occlusion  VIS_i = 1 (Fig. 6a)
   ao, ao-color  ambient-occlusion comparisons of Fig. 6b/6c (ibl_ref.rendering.ao_modes)
-  reference     exact lobes and ray-cast visibility, converged to --ref-rtol (ibl_ref.rendering.reference_render; slow)
+  reference     exact lobes and ray-cast visibility, converged to --ref-rtol with an error estimate
+                (ibl_ref.rendering.reference_render; --workers, --seed; ~20-60 s at 128² on 2 cores with
+                embreex, pip install ".[fast]"; ~13× the CPU without)
   mitsuba       the same scene rendered by Mitsuba 3 (pip install ".[mitsuba]"; --spp, --seed)
   every mode shades the mesh with --material and the ground with --ground-material
   (reference, mitsuba: scalar kd, ks and no --gmap).
@@ -378,9 +380,13 @@ def register(sub) -> None:
     g.add_argument("--ref-rtol", type=float, default=None, metavar="R",
                    help="--mode reference: estimated relative L1 error to converge to (default 2e-3; 0 = the "
                    "fixed coarse quadrature)")
+    g.add_argument("--workers", type=int, default=None, metavar="W",
+                   help="--mode reference: worker processes for its pixel blocks (1 = serial; default "
+                   "$IBL_REF_WORKERS or min(2, CPUs)); the image is bit-for-bit the same for every W")
     g.add_argument("--spp", type=int, default=1024, metavar="N",
                    help="--mode mitsuba: samples per pixel (two halves with seeds S, S+1 estimate the noise)")
-    g.add_argument("--seed", type=int, default=0, metavar="S", help="--mode mitsuba: first seed (default 0)")
+    g.add_argument("--seed", type=int, default=0, metavar="S",
+                   help="--mode mitsuba: first seed; --mode reference: seed of its random ray points (default 0)")
     g = p.add_argument_group("camera (perspective, y is up)")
     g.add_argument("--size", type=int, nargs="+", default=[96, 96], metavar="N",
                    help="image size W H in pixels, or one N for N x N (default 96 96)")
