@@ -47,9 +47,9 @@ NAME = "error-budget"
 DESCRIPTION = "error budget of the paper's method: reference -> Eq. 5 one approximation at a time, share per step"
 PAPER = ("Knuth et al. 2014, Eq. 4-5 and Sec. 3.1-3.4 (regions, VSMs, filter pyramid, glossiness lookup): each "
          "approximation's share of the error against a converged ray-traced reference")
-IN_QUICK_REPRODUCE = False  # the converged references take minutes even at quick size
-RUNTIME = {"quick": "5 min serial (load 7-9)",
-           "full": "43 min with --workers 2 (load 10-17; 49 min of reference renders in the workers)"}
+IN_QUICK_REPRODUCE = False  # 38 s at quick size, most of it in the one-region-per-texel check: run on its own
+RUNTIME = {"quick": "38 s serial (load 3.6)",
+           "full": "8 min 35 s with --workers 2 (load 1.5-4.2; 95 s cases, 7 min one-region-per-texel check)"}
 OUTPUTS = ("error_budget.csv", "error_budget_texel_limit.csv", "error_budget_meta.json", "error_budget_table.md",
            "error_budget_images.npz", "error_budget_diff/ENV__MATERIAL__LREGIONS__kSTEP.exr",
            "error_budget_diff_ENV.png", "error_budget_shares.png")
