@@ -17,7 +17,7 @@ Fig. 8: 42 published numbers, rows, MIP factor 2           tests/test_memory_mod
 sparse PEMs 10.8× … 64.5× at 128²                          :func:`test_sparse_pem_storage_at_128`
 lights alone: 0.017 at s = 1, 0.80 at s = 1000             :func:`test_point_lights_fail_for_glossy_lobes` (quick size)
 render-error: 153 MiB chain vs 36 MiB PEMs                 :func:`test_exact_lobe_chain_memory`
-render-error percentages (full run, 9.6 min)               quick analogue, ordering only: ``check_render_error``
+render-error percentages (full run, 2.2 min)               quick analogue, ordering only: ``check_render_error``
 lobe-chain: best level 28.9 % / 20.0 % at s = 1, ranges,   :func:`test_pyramid_floor_at_s1`,
 4.3× (7.7×) memory                                         :func:`test_exact_lobe_chain_memory`
 lobe-chain: chain ≤ 3.1 % / ≤ 1.9 %                        quick analogue ``check_lobe_chain`` (test_experiments_quick)

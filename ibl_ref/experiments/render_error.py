@@ -38,7 +38,7 @@ NAME = "render-error"
 DESCRIPTION = "Eq. 5 renderer error vs lights and VSM resolution against a ray-traced reference (5 % target at s = 1)"
 PAPER = "Knuth et al. 2014, Eq. 5 and Sec. 4 (renderer accuracy vs lights and VSM resolution against a ray-traced reference)"
 IN_QUICK_REPRODUCE = False  # quick run 22 s at load 2.6 (reference ray casting): left out of the quick reproduce
-RUNTIME = {"quick": "22 s (load 2.6)", "full": "17 min (load 12-18)"}
+RUNTIME = {"quick": "22 s (load 2.6)", "full": "2 min 11 s (load 3.7; 2 min 22 s CPU)"}
 OUTPUTS = ("render_error.csv", "render_error_meta.json", "render_error.png")
 
 MATERIALS = {"diffuse": (1.0, 0.0, 0.0), "g0.9": (0.0, 1.0, 0.9), "g0.99": (0.0, 1.0, 0.99)}
