@@ -59,7 +59,7 @@ def test_delta_by_direction_lights_the_containing_texel():
 
 
 # ------------------------------------------------------------------------------ gradient
-def test_private_area_primitive_matches_envmap_solid_angles():
+def test_subcell_solid_angles_match_envmap_solid_angles():
     # sub-cells of every texel of a 4-face at k=3 must sum to envmap's exact texel solid angle
     n, k = 4, 3
     r, c = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")

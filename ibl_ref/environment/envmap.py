@@ -294,16 +294,23 @@ def direction_to_texel(d, n: int, convention: str = "openexr"):
 # ----------------------------------------------------------------------------------------------
 # exact solid angles
 # ----------------------------------------------------------------------------------------------
-def _area_primitive(x, y):
-    """A(x, y) = atan2(x·y, √(x² + y² + 1)): solid angle of [0,x]×[0,y] on the plane at distance 1."""
+def area_primitive(x, y):
+    """A(x, y) = atan2(x·y, √(x² + y² + 1)): solid angle (sr) of the rectangle [0,x]×[0,y] of the plane at
+    distance 1 seen from the origin (signed: odd in x and in y).  Every exact solid angle of the package is a
+    sum of four of these (:func:`rect_solid_angle`)."""
     return np.arctan2(x * y, np.sqrt(x * x + y * y + 1.0))
+
+
+def rect_solid_angle(u0, u1, v0, v1):
+    """Exact solid angle (sr) of the face-plane rectangle [u0, u1] × [v0, v1] (any face; arrays broadcast)."""
+    return area_primitive(u1, v1) - area_primitive(u0, v1) - area_primitive(u1, v0) + area_primitive(u0, v0)
 
 
 @functools.lru_cache(maxsize=32)
 def _texel_solid_angles_cached(n: int) -> np.ndarray:
     e = np.linspace(-1.0, 1.0, n + 1)  # texel edges in the face plane
     # exact edges: linspace gives ±1 exactly at the ends and symmetric interior points
-    a = _area_primitive(e[None, :], e[:, None])  # [row_edge, col_edge]
+    a = area_primitive(e[None, :], e[:, None])  # [row_edge, col_edge]
     omega = a[1:, 1:] - a[1:, :-1] - a[:-1, 1:] + a[:-1, :-1]
     omega.setflags(write=False)
     return omega

@@ -232,12 +232,6 @@ def _rect(i, j, n):
     return j * h - 1.0, (j + 1) * h - 1.0, i * h - 1.0, (i + 1) * h - 1.0
 
 
-def _rect_solid_angle(u0, u1, v0, v1):
-    from ..environment.envmap import _area_primitive as A
-
-    return A(u1, v1) - A(u0, v1) - A(u1, v0) + A(u0, v0)
-
-
 def _dirs(f, u, v, normalize: bool = True):
     """Directions through face-plane points (u, v) of faces f (:func:`ibl_ref.environment.envmap.face_uv_to_direction`
     without its argument checks: f, u, v are the module's own arrays)."""
@@ -404,8 +398,10 @@ def _child_weights(env, M, d, nrm, s, p, f, lvl, i, j, Wpar):
                 W[sel] = np.einsum("kt,ktc->kc", fh, Lq[cb[:, None], sub])
     fine = np.flatnonzero(~coarse)
     if len(fine):
+        from ..environment.envmap import rect_solid_angle
+
         u0, u1, v0, v1 = _rect(ci[fine], cj[fine], n_c[fine])
-        om = _rect_solid_angle(u0, u1, v0, v1)
+        om = rect_solid_angle(u0, u1, v0, v1)
         w = _dirs(cf[fine], 0.5 * (u0 + u1), 0.5 * (v0 + v1))
         _, g = _lobe_weights(d[cp[fine]], nrm[cp[fine]], w, om, s)
         g4 = np.zeros(4 * K)

@@ -159,15 +159,6 @@ def _fill(n: int, rgb: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 # exact geometry helpers
 # ----------------------------------------------------------------------------------------------
-def _area_primitive(x, y):
-    """A(x, y) = atan2(x·y, √(x²+y²+1)), solid angle of [0,x]×[0,y] at distance 1 (docs/background.md §2).
-
-    Private copy of the primitive behind :func:`ibl_ref.environment.envmap.texel_solid_angles`, needed for
-    sub-cell grids that envmap does not expose; a test checks both agree.
-    """
-    return np.arctan2(x * y, np.sqrt(x * x + y * y + 1.0))
-
-
 def _subcell_solid_angles(x0, y0, x1, y1, k: int):
     """Exact solid angles and centre (x, y) of the k×k sub-cells of face-plane rectangles.
 
@@ -177,7 +168,7 @@ def _subcell_solid_angles(x0, y0, x1, y1, k: int):
     t = np.linspace(0.0, 1.0, k + 1)
     xe = x0[:, None] + (x1 - x0)[:, None] * t[None, :]  # (T, k+1)
     ye = y0[:, None] + (y1 - y0)[:, None] * t[None, :]
-    a = _area_primitive(xe[:, None, :], ye[:, :, None])  # (T, k+1 [y], k+1 [x])
+    a = envmap.area_primitive(xe[:, None, :], ye[:, :, None])  # (T, k+1 [y], k+1 [x])
     omega = a[:, 1:, 1:] - a[:, 1:, :-1] - a[:, :-1, 1:] + a[:, :-1, :-1]
     xc = 0.5 * (xe[:, 1:] + xe[:, :-1])
     yc = 0.5 * (ye[:, 1:] + ye[:, :-1])
@@ -489,7 +480,7 @@ def _rect_frame(direction):
 def rect_light_solid_angle(width_deg: float, height_deg: float) -> float:
     """Exact solid angle of a gnomonic rectangle: 4·A(tan(w/2), tan(h/2)), A(x,y)=atan2(xy, √(x²+y²+1))."""
     tw, th = np.tan(np.radians(width_deg) / 2), np.tan(np.radians(height_deg) / 2)
-    return float(4.0 * _area_primitive(tw, th))
+    return float(4.0 * envmap.area_primitive(tw, th))
 
 
 def _rect_light_params(light: dict):
