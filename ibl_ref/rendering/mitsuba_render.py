@@ -163,10 +163,10 @@ def envmap_directions(height: int) -> np.ndarray:
 
 def mitsuba_envmap(cube, height: int = 1024) -> np.ndarray:
     """(H, 2H, 3) float32 bitmap whose Mitsuba ``envmap`` reproduces the cube's nearest-texel radiance."""
-    from .reference_render import _check_env
+    from .reference_render import check_environment
     from ..environment.sampling import sample_nearest
 
-    a = _check_env(cube)
+    a = check_environment(cube)
     if a.shape[-1] == 1:
         a = np.repeat(a, 3, axis=-1)
     if a.shape[-1] != 3:

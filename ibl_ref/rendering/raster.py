@@ -54,6 +54,7 @@ from ..errors import MeshError
 
 __all__ = [
     "Scene",
+    "mesh_list",
     "GBuffer",
     "prepare_scene",
     "rasterize",
@@ -109,7 +110,7 @@ class Scene:
         return trimesh.Trimesh(self.vertices, self.faces, process=False, validate=False)
 
 
-def _normalize_mesh_list(meshes):
+def mesh_list(meshes):
     """Accept a mesh, a list of meshes, or a list of (mesh, material_id) pairs."""
     if isinstance(meshes, Scene):
         return meshes
@@ -156,7 +157,7 @@ def prepare_scene(meshes, warn: bool = True) -> Scene:
     MeshError
         Empty mesh (no faces), non-finite vertices, out-of-range face indices, or all triangles degenerate.
     """
-    items = _normalize_mesh_list(meshes)
+    items = mesh_list(meshes)
     if isinstance(items, Scene):
         return items
     verts, faces, vnorm, mats, mesh_idx, src = [], [], [], [], [], []

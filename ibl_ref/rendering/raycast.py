@@ -58,6 +58,7 @@ from .raster import Scene, prepare_scene
 
 __all__ = [
     "backend",
+    "warn_rays_budget",
     "estimate_time_s",
     "FALLBACK_RAYS_PER_S",
     "FALLBACK_TESTS_PER_S",
@@ -109,7 +110,8 @@ def estimate_time_s(n_rays: int, n_faces: int = 1, rays_per_s: float | None = No
     return float(n_rays) / rays_per_s
 
 
-def _check_rays_budget(n: int, n_faces: int):
+def warn_rays_budget(n: int, n_faces: int):
+    """Warn when ``n`` rays are about to be cast at ``n_faces`` triangles without Embree (the fallback is slow)."""
     if backend() != "embree" and n > WARN_RAYS:
         warnings.warn(
             f"casting {n} rays at {n_faces} triangles without Embree (pip install embreex): trimesh's fallback "
@@ -161,7 +163,7 @@ def any_hit(meshes, origins, directions, chunk: int | None = None, progress: boo
     d = _points(directions, "directions").reshape(-1, 3)
     if len(o) != len(d):
         raise IBLError(f"origins ({len(o)}) and directions ({len(d)}) differ in length")
-    _check_rays_budget(len(o), len(mesh.faces))
+    warn_rays_budget(len(o), len(mesh.faces))
     out = np.zeros(len(o), dtype=bool)
     chunk = _chunk_size(mesh, chunk)
     from ..progress import track
@@ -221,7 +223,7 @@ def primary_rays(meshes, camera):
     o, d = camera.pixel_rays()
     o = o.reshape(-1, 3)
     d = d.reshape(-1, 3)
-    _check_rays_budget(len(o), len(mesh.faces))
+    warn_rays_budget(len(o), len(mesh.faces))
     chunk = _chunk_size(mesh, None)
     parts = []
     for a in range(0, len(o), chunk):

@@ -268,7 +268,7 @@ class _Env:
         """Cell-major arrays of level M: directions (K_b, k², 3), solid angles (K_b, k²), radiance (K_b, k², C)."""
         if M not in self._q:
             from ..environment.envmap import texel_directions, texel_solid_angles
-            from .reference_render import _radiance_at
+            from .reference_render import radiance_at_face_size
 
             nb, k = self.nb, M // self.nb
 
@@ -279,7 +279,7 @@ class _Env:
 
             d = cm(np.asarray(texel_directions(M)))
             o = cm(np.broadcast_to(texel_solid_angles(M), (6, M, M)))
-            L = cm(_radiance_at(self.a, M))
+            L = cm(radiance_at_face_size(self.a, M))
             self._q[M] = (d, o, L)
         return self._q[M]
 
@@ -883,9 +883,9 @@ def converged_shading(scene, points, normals, face_normals, d_lobe, cube, s: flo
     from ..executors import map_jobs
     from .raster import prepare_scene
     from .raycast import resolve_shadow_backend
-    from .reference_render import _check_env
+    from .reference_render import check_environment
 
-    a = _check_env(cube)
+    a = check_environment(cube)
     N = a.shape[1]
     P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     nrm = np.asarray(normals, dtype=np.float64).reshape(-1, 3)

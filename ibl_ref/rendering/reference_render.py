@@ -67,6 +67,8 @@ from ..errors import IBLError, LayoutError, check_radiance
 
 __all__ = [
     "ReferenceResult",
+    "check_environment",
+    "radiance_at_face_size",
     "coarse_env",
     "coarse_directions",
     "lobe_half_angle",
@@ -89,7 +91,10 @@ BACKENDS = ("project", "trimesh")
 # ------------------------------------------------------------------------------------------------
 # environment quadrature
 # ------------------------------------------------------------------------------------------------
-def _check_env(cube) -> np.ndarray:
+def check_environment(cube) -> np.ndarray:
+    """The environment of a render as validated float64 radiance (6, N, N, C): layout checked, NaN/Inf/negative
+    radiance refused with a clear :class:`ibl_ref.errors.RadianceError` (:func:`ibl_ref.errors.check_radiance`);
+    a (6, N, N) map gets one channel."""
     from ..environment.envmap import check_cube_shape
 
     check_cube_shape(cube, "environment")
@@ -107,7 +112,7 @@ def coarse_env(cube, n_env: int) -> np.ndarray:
     """
     from ..environment.envmap import cube_solid_angles
 
-    a = _check_env(cube)
+    a = check_environment(cube)
     N = a.shape[1]
     n_env = int(n_env)
     if n_env < 1 or N % n_env:
@@ -131,7 +136,7 @@ def coarse_directions(cube, n_env: int, mode: str = "centroid") -> np.ndarray:
         raise IBLError(f"directions must be one of {DIRECTION_MODES}, got {mode!r}")
     if mode == "centre":
         return np.array(texel_directions(int(n_env)))
-    a = _check_env(cube)
+    a = check_environment(cube)
     N = a.shape[1]
     k = N // int(n_env)
     if N % int(n_env):
@@ -180,7 +185,7 @@ def lobe_average(cube, dirs, s, *, n_env: int | None = None, directions: str = "
     """
     from ..groundtruth.phong_convolution import lobe_average as _lobe_average
 
-    a = _check_env(cube)
+    a = check_environment(cube)
     n_env = a.shape[1] if n_env is None else int(n_env)
     return _lobe_average(coarse_env(a, n_env), dirs, s, texel_dirs=coarse_directions(a, n_env, directions),
                          chunk=chunk)
@@ -249,7 +254,7 @@ def reference_shading(meshes, points, face_normals, d_lobe, cube, s, *, n_env: i
 
     if backend not in BACKENDS:
         raise IBLError(f"backend must be one of {BACKENDS}, got {backend!r}")
-    a = _check_env(cube)
+    a = check_environment(cube)
     P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     d = np.asarray(d_lobe, dtype=np.float64).reshape(-1, 3)
     d = d / np.linalg.norm(d, axis=1, keepdims=True)
@@ -366,7 +371,7 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
     rtol = float(rtol)
     if not (rtol >= 0 and np.isfinite(rtol)):
         raise IBLError(f"rtol must be finite and >= 0, got {rtol}")
-    a = _check_env(cube)
+    a = check_environment(cube)
     N = a.shape[1]
     scene = prepare_scene(meshes, warn=False)
     ids = sorted(int(x) for x in np.unique(scene.material_id))
@@ -434,9 +439,9 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
                 warnings.warn(f"{name} lobe s={s:g} is narrower than {texels_per_halfwidth} texels of the {N}² map: "
                               "the reference is limited by the map's resolution", UserWarning, stacklevel=2)
             if backend == "trimesh":
-                from .raycast import _check_rays_budget
+                from .raycast import warn_rays_budget
 
-                _check_rays_budget(estimate_reference_rays(int(sel.sum()), ne), len(scene.faces))
+                warn_rays_budget(estimate_reference_rays(int(sel.sum()), ne), len(scene.faces))
             o, u, inf = reference_shading(scene, P[sel], fn[sel], dl[sel], a, s, n_env=ne, directions=directions,
                                           weight_cutoff=weight_cutoff, backend=backend, progress=progress)
             info[f"n_env_{name}"] = inf["n_env"]
@@ -480,7 +485,7 @@ def coarse_level_error(cube, dirs, s: float, n_env: int, directions: str = "cent
     (the formula of :func:`ibl_ref.groundtruth.phong_convolution.convolve_exact`, evaluated at ``dirs``).  Returns
     ``rel_l1`` (Σ|a−b|/Σ|b| over all pixels and channels) and ``rel_max`` (max |a−b|/b over pixel luminance).
     """
-    a = _check_env(cube)
+    a = check_environment(cube)
     coarse = lobe_average(a, dirs, s, n_env=n_env, directions=directions)
     exact = lobe_average(a, dirs, s, n_env=a.shape[1], directions="centre")
     err = np.abs(coarse - exact)
@@ -499,7 +504,7 @@ def exact_pem_lookup(cube, labels, dirs, s: float, n_regions: int | None = None,
     """
     from ..groundtruth.phong_convolution import lobe_average as _lobe_average
 
-    a = _check_env(cube)
+    a = check_environment(cube)
     N = a.shape[1]
     lab = np.asarray(labels).reshape(-1)
     if lab.shape[0] != 6 * N * N:
@@ -515,7 +520,7 @@ def exact_pem_lookup(cube, labels, dirs, s: float, n_regions: int | None = None,
 from .reference_converged import DEFAULT_RTOL, ERR_FLOOR, LOBE_TAIL_CUT, converged_shading  # noqa: E402,F401
 
 
-def _radiance_at(a: np.ndarray, n: int) -> np.ndarray:
+def radiance_at_face_size(a: np.ndarray, n: int) -> np.ndarray:
     """The map's piecewise-constant radiance as exact area averages on face size n (any n ≥ 1)."""
     import math
 

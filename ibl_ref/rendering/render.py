@@ -292,11 +292,11 @@ def surface_uv(meshes, scene, gbuffer, pixels, fallback: str = "planar_xz") -> n
     G-buffer's barycentrics.  Others: ``fallback`` (module docstring) from the pixel's world position, with the
     bounding box of the mesh the pixel belongs to; ``"error"`` raises :class:`IBLError`.
     """
-    from .raster import _normalize_mesh_list
+    from .raster import mesh_list
 
     if fallback not in UV_FALLBACKS:
         raise IBLError(f"uv fallback must be one of {UV_FALLBACKS}, got {fallback!r}")
-    items = _normalize_mesh_list(meshes)
+    items = mesh_list(meshes)
     mesh_list = None if hasattr(items, "faces") and hasattr(items, "mesh_index") else [m for m, _ in items]
     tri = gbuffer.triangle_id[pixels]
     lam = gbuffer.barycentric[pixels]
