@@ -26,6 +26,7 @@ from ibl_ref.atomic import read_csv
 from ibl_ref.errors import IBLError
 from ibl_ref.experiments import error_budget as exp
 from ibl_ref.rendering import error_budget as eb
+from ibl_ref.synthetic.synthetic_envs import scene_environment
 
 SMALL = dict(size=12, env_size=16, envs=("sky_sun",), materials=("diffuse", "g0.9"), regions=(6, 24),
              vsm_resolution=64, texel_factors=(1,), texel_pixels=60, level_dirs=1500, figure_regions=24)
@@ -75,7 +76,7 @@ def test_final_image_is_render_pem_and_its_error_is_render_errors_ours(budget):
     rows = read_csv(out / "error_budget.csv")
     with np.load(out / "error_budget_images.npz") as z:
         arr = {k: z[k] for k in z.files}
-    env = exp.make_budget_env("sky_sun", SMALL["env_size"])
+    env = scene_environment("sky_sun", SMALL["env_size"])
     meshes = teapot_on_ground()
     cam = default_camera(meshes[:1], size=SMALL["size"])
     pems = build_pems(env, median_cut(env, 24))

@@ -50,7 +50,8 @@ def settings(quick: bool) -> dict:
     if quick:
         return dict(size=20, env_size=16, spp=1024, envmap_height=512, rtol=4e-3,
                     cases=[("sphere_on_plane", "sky_sun", m) for m in MATERIALS])
-    cases = [(sc, "sky_sun", m) for sc in SCENES for m in MATERIALS] + [("teapot", "studio", "diffuse")]
+    cases = ([(sc, "sky_sun", m) for sc in SCENES for m in MATERIALS] + [("teapot", "studio", "diffuse")]
+             + [("teapot", "probe", m) for m in ("diffuse", "g0.99")])
     return dict(size=32, env_size=32, spp=4096, envmap_height=1024, rtol=2e-3, cases=cases)
 
 
@@ -92,10 +93,10 @@ def case_job(job) -> tuple:
     from ..rendering.mitsuba_render import render_mitsuba
     from ..rendering.reference_render import render_reference
     from ..rendering.scenes import default_camera
-    from ..synthetic.synthetic_envs import make_env
+    from ..synthetic.synthetic_envs import scene_environment
 
     k, (scene, env_name, mat), st = job
-    env = make_env(env_name, n=st["env_size"])
+    env = scene_environment(env_name, st["env_size"])
     mesh, meshes = scene_meshes(scene)
     cam = default_camera([(mesh, 0)], size=st["size"])
     kd, ks, g = MATERIALS[mat]

@@ -84,17 +84,6 @@ PARAMS = params_from_settings(settings, {
     "level_dirs": "seeded uniform directions the best pyramid level is fitted on (as lobe-chain's n_dirs)"})
 
 
-def make_budget_env(name: str, n: int) -> np.ndarray:
-    """The environment of a case: a synthetic ``make_env`` map or ``"probe"`` (:func:`probe_cube`)."""
-    if name == "probe":
-        from ..environment.probe_files import probe_cube
-
-        return probe_cube(n)
-    from ..synthetic.synthetic_envs import make_env
-
-    return make_env(name, n=n)
-
-
 def _scene(size: int):
     from ..rendering.raster import prepare_scene, rasterize
     from ..rendering.scenes import default_camera, teapot_on_ground
@@ -119,10 +108,11 @@ def _case(job: dict) -> dict:
     from ..knuth2014.median_cut import median_cut
     from ..rendering import error_budget as eb
     from ..rendering.reference_render import render_reference
+    from ..synthetic.synthetic_envs import scene_environment
 
     t0 = time.perf_counter()
     meshes, sc, cam, gb = _scene(job["size"])
-    env = make_budget_env(job["env"], job["env_size"])
+    env = scene_environment(job["env"], job["env_size"])
     mats = _materials(job["material"], job["ground"])
     ref = render_reference(sc, cam, env, rtol=job["rtol"], materials=mats, gbuffer=gb)
     t_ref = time.perf_counter() - t0
@@ -148,10 +138,11 @@ def _case(job: dict) -> dict:
 def _texel_case(job: dict) -> list:
     """One (environment, factor) of the step-1 check: texel regions, all materials sharing the visibility rays."""
     from ..rendering import error_budget as eb
+    from ..synthetic.synthetic_envs import scene_environment
 
     t0 = time.perf_counter()
     meshes, sc, cam, gb = _scene(job["size"])
-    env = make_budget_env(job["env"], job["env_size"])
+    env = scene_environment(job["env"], job["env_size"])
     pix = np.zeros(gb.mask.shape, dtype=bool)
     idx = np.flatnonzero(gb.mask)
     rng = np.random.default_rng(20140)

@@ -45,6 +45,8 @@ from ..errors import IBLError, check_radiance
 
 __all__ = [
     "ENV_NAMES",
+    "SCENE_ENV_NAMES",
+    "scene_environment",
     "GENERATOR_VERSION",
     "DEFAULT_SUN_DIRECTION",
     "SUN_NEAR_CORNER",
@@ -660,6 +662,23 @@ def make_env(name: str, n: int = 64, **params) -> np.ndarray:
     assert cube.shape == (6, n, n, 3)
     check_radiance(cube, f"synthetic environment {name!r}")
     return cube
+
+
+#: environments of the renders and experiments: the synthetic generators plus ``"probe"``
+SCENE_ENV_NAMES = ENV_NAMES + ("probe",)
+
+
+def scene_environment(name: str, n: int) -> np.ndarray:
+    """The (6, n, n, 3) environment of a render case: a :func:`make_env` map, or ``"probe"`` — the probe-like
+    lat-long map of :func:`ibl_ref.environment.probe_files.probe_cube` (sky gradient, textured ground with a
+    black strip, a 1.5° sun of 3e4) resampled to the cube with the integral-preserving kernel."""
+    if name == "probe":
+        from ..environment.probe_files import probe_cube
+
+        return probe_cube(n)
+    if name not in ENV_NAMES:
+        raise IBLError(f"unknown environment {name!r}; choose from {', '.join(SCENE_ENV_NAMES)}")
+    return make_env(name, n=n)
 
 
 def generator_help(name: str | None = None) -> str:
