@@ -733,9 +733,9 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
     results = {}
     parts = FACE_PARTS
     mo_parts = MOMENT_FACE_PARTS_LARGE if out_size >= MOMENT_SPLIT_MIN_SIZE else FACE_PARTS
+    # the sparse gather aims at rtol at every texel by itself (its local bound and per-tile caps);
+    # a batch whose bound still misses rtol somewhere is retried once with a tighter target, then exact
     scale0 = 1.0
-    if method == "auto" and any(route[s] in ("sparse", "sh") for s in s_list):
-        scale0 = _sparse_rtol_scale(a4)
 
     mo_set = [s for s in s_list if route[s] == "moment"]
     # auto: the bracket band (rigorous bound, leaf > 1) where it is cheaper; halved while it misses rtol
