@@ -11,7 +11,10 @@ face groups, the reference renderer's pixel blocks, the cases of an experiment s
     ``[fn(item) for item in items]`` in input order: serially (``workers=1``, no executor), on ``workers``
     local processes, or on ``executor``.  ``fn`` and the items must be picklable for the last two (module-level
     functions).  Results do not depend on where or in which order the jobs ran, so a job that is itself
-    deterministic gives bit-for-bit the serial result.  A worker that dies (e.g. killed for lack of memory) is
+    deterministic gives bit-for-bit the serial result (every job, serial ones included, runs with BLAS held at
+    one thread: multi-threaded BLAS sums in an order that depends on its thread count, which differs between
+    the caller, local worker processes and Dask workers).  Jobs run elsewhere report no progress of their own
+    (:func:`ibl_ref.progress.quiet`); ``desc`` counts finished jobs.  A worker that dies (e.g. killed for lack of memory) is
     an :class:`ibl_ref.errors.IBLError` naming the likely cause, never a ``BrokenProcessPool`` traceback.
 
 Dask workers should run one thread each (``dask worker ADDRESS --nthreads 1``): the jobs are NumPy-bound.
@@ -19,9 +22,12 @@ Dask workers should run one thread each (``dask worker ADDRESS --nthreads 1``): 
 
 from __future__ import annotations
 
+import contextlib
+import threading
+
 from .errors import IBLError
 
-__all__ = ["resolve_executor", "map_jobs", "worker_died"]
+__all__ = ["resolve_executor", "map_jobs", "worker_died", "one_blas_thread"]
 
 
 def resolve_executor(executor):
@@ -52,53 +58,109 @@ def worker_died(exc, what: str = "worker") -> IBLError:
         f"of memory: {type(exc).__name__}); retry with fewer workers (--workers 1) or a smaller size")
 
 
-def map_jobs(fn, items, executor=None, workers: int = 1, desc: str | None = None, what: str = "worker") -> list:
+_BLAS_LOCK = threading.Lock()
+_BLAS_HOLD = {"users": 0, "limiter": None}
+
+
+@contextlib.contextmanager
+def one_blas_thread():
+    """Hold BLAS at one thread inside the block (threadpoolctl).  Reference-counted: jobs that overlap in threads
+    of one process keep the limit until the last of them ends, which then restores the original thread count
+    (a plain ``threadpool_limits`` per job would let the first job to end lift the limit under the others)."""
+    from threadpoolctl import threadpool_limits
+
+    with _BLAS_LOCK:
+        if _BLAS_HOLD["users"] == 0:
+            _BLAS_HOLD["limiter"] = threadpool_limits(limits=1, user_api="blas")
+        _BLAS_HOLD["users"] += 1
+    try:
+        yield
+    finally:
+        with _BLAS_LOCK:
+            _BLAS_HOLD["users"] -= 1
+            if _BLAS_HOLD["users"] == 0:
+                _BLAS_HOLD["limiter"].restore_original_limits()
+                _BLAS_HOLD["limiter"] = None
+
+
+def _job(fn, x, silent: bool = True):
+    """``fn(x)`` with BLAS held at one thread (``silent``: and its progress reports silenced, as on a worker).
+
+    Multi-threaded BLAS splits sums between threads, so a job's last digits would depend on how many BLAS
+    threads the process it lands on has (a Dask worker sets one, a local process the machine's count); held
+    at one everywhere, the job gives the same bits serially, on local processes and on a cluster.
+    """
+    from .progress import quiet
+
+    with one_blas_thread(), (quiet() if silent else contextlib.nullcontext()):
+        return fn(x)
+
+
+def map_jobs(fn, items, executor=None, workers: int = 1, desc: str | None = None, what: str = "worker",
+             unit: str = "job", cost=None) -> list:
     """``[fn(x) for x in items]`` in order, serially, on ``workers`` local processes, or on ``executor``.
 
     ``executor``: anything :func:`resolve_executor` accepts (it wins over ``workers``).  ``desc``: a progress
-    label (:mod:`ibl_ref.progress`, one tick per finished job).
+    label (:mod:`ibl_ref.progress`, one tick of ``unit`` per finished job).  Jobs run serially report their own
+    progress nested in this one; jobs run elsewhere run silenced (:func:`ibl_ref.progress.quiet`).  ``cost``:
+    optional relative cost per item; jobs run elsewhere are then submitted most expensive first (the longest job
+    does not start last), the results still come back in the order of ``items``.
     """
-    from concurrent.futures import BrokenExecutor, ProcessPoolExecutor
-
     items = list(items)
-    ex, owned = resolve_executor(executor)
+    if cost is not None:
+        cost = [float(c) for c in cost]
+        if len(cost) != len(items):
+            raise IBLError(f"cost has {len(cost)} entries for {len(items)} jobs")
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise IBLError(f"workers must be a positive integer (1 = serial), got {workers!r}")
+    ex, owned = resolve_executor(executor)  # after the checks: an address opens a client that must be closed
     prog = None
     if desc:
         from .progress import callback
 
-        prog = callback(desc, total=len(items), unit="job")
+        prog = callback(desc, total=len(items), unit=unit)
     try:
-        if ex is None and (workers <= 1 or len(items) <= 1):
-            out = []
-            for x in items:
-                out.append(fn(x))
-                if prog:
-                    prog()
-            return out
-        pool = None
-        if ex is None:
-            import multiprocessing
-
-            ctx = multiprocessing.get_context("spawn" if "fork" not in multiprocessing.get_all_start_methods()
-                                              else "forkserver")
-            pool = ex = ProcessPoolExecutor(max_workers=min(workers, len(items)), mp_context=ctx)
-        try:
-            futs = [ex.submit(fn, x) for x in items]
-            out = []
-            for f in futs:
-                out.append(f.result())
-                if prog:
-                    prog()
-            return out
-        except BrokenExecutor as exc:
-            raise worker_died(exc, what) from None
-        finally:
-            if pool is not None:
-                pool.shutdown(wait=True, cancel_futures=True)
+        # BLAS held at one thread from this (calling) thread for the whole map: OpenBLAS does not always honour
+        # a limit set from a worker thread once the main thread has set one; jobs in other processes set theirs
+        with one_blas_thread():
+            return _run_all(fn, items, ex, workers, prog, what, cost)
     finally:
         if prog:
             prog.close()
         if owned is not None:
             owned.close()
+
+
+def _run_all(fn, items, ex, workers, prog, what, cost=None) -> list:
+    from concurrent.futures import BrokenExecutor, ProcessPoolExecutor
+
+    if ex is None and (workers <= 1 or len(items) <= 1):
+        out = []
+        for x in items:
+            out.append(_job(fn, x, silent=False))
+            if prog:
+                prog()
+        return out
+    pool = None
+    if ex is None:
+        import multiprocessing
+
+        ctx = multiprocessing.get_context("spawn" if "fork" not in multiprocessing.get_all_start_methods()
+                                          else "forkserver")
+        pool = ex = ProcessPoolExecutor(max_workers=min(workers, len(items)), mp_context=ctx)
+    from concurrent.futures import as_completed
+
+    order = list(range(len(items))) if cost is None else sorted(range(len(items)), key=lambda i: -cost[i])
+    try:
+        index = {ex.submit(_job, fn, items[i]): i for i in order}
+        out = [None] * len(items)
+        for f in as_completed(index):  # progress counts jobs as they finish, whatever their order
+            out[index[f]] = f.result()
+            if prog:
+                prog()
+        return out
+    except BrokenExecutor as exc:
+        raise worker_died(exc, what) from None
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)

@@ -10,17 +10,19 @@ environment (``tests/conftest.py``).
   ``bbox_inches="tight"`` with a small pad, figure closed afterwards.  Hooks registered with
   :func:`add_save_hook` see every figure just before it is written (the tests use one to run
   :func:`layout_problems` over every figure of every experiment).
-* :func:`layout_problems` — text drawn outside the figure canvas, table-cell text wider than its cell, and
-  titles overlapping text of another axes; measured with the renderer's text extents
-  (``Artist.get_window_extent``), in display pixels.
-* :func:`integer_ticks` — integer-only tick locator for count axes (lights, lobes).
+* :func:`layout_problems` — text drawn outside the figure canvas, table-cell text wider than its cell,
+  titles overlapping text of another axes, legends over data and colliding tick labels; measured with the
+  renderer's text extents (``Artist.get_window_extent``), in display pixels.
+* :func:`integer_ticks` — integer-only tick locator for count axes (lights, lobes); :func:`count_ticks` — ticks
+  at given counts, labels thinned where they would collide; :func:`plain_log_ticks` — plain numbers on log axes.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["pyplot", "save_figure", "add_save_hook", "remove_save_hook", "layout_problems", "integer_ticks"]
+__all__ = ["pyplot", "save_figure", "add_save_hook", "remove_save_hook", "layout_problems", "integer_ticks",
+           "count_ticks", "plain_log_ticks"]
 
 _SAVE_HOOKS: list = []
 
@@ -63,6 +65,45 @@ def integer_ticks(axis) -> None:
     axis.set_major_locator(MaxNLocator(integer=True))
 
 
+def plain_log_ticks(axis, minor=(2, 5)) -> None:
+    """Plain-number labels on a log ``axis`` (``0.3`` and ``2``, not ``3×10⁻¹`` and ``2×10⁰``); between decades
+    only the minor ticks whose leading digit is in ``minor`` are labelled (room for the labels)."""
+    import math
+
+    from matplotlib.ticker import FuncFormatter
+
+    def lead(v):
+        return round(v / 10 ** math.floor(math.log10(v))) if v > 0 else 0
+
+    axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    axis.set_minor_formatter(FuncFormatter(lambda v, _: f"{v:g}" if lead(v) in minor else ""))
+
+
+def count_ticks(ax, counts, axis: str = "x", pad_px: float = 3.0) -> None:
+    """Ticks at the integer ``counts`` (lights, lobes: no 7.5), each labelled, except a label that would run
+    into the one before it on a linear axis (6 and 12 beside 192): that tick stays, unlabelled.  The labels
+    are measured as drawn at the figure's current size (lay the figure out first: ``layout="constrained"``)."""
+    counts = sorted({int(c) for c in counts})
+    setter = ax.set_xticks if axis == "x" else ax.set_yticks
+    labels = [str(c) for c in counts]
+    setter(counts, labels)
+    fig = ax.figure
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    drawn = {t.label1.get_text(): t.label1.get_window_extent(renderer)
+             for t in (ax.xaxis if axis == "x" else ax.yaxis)._update_ticks()}
+    last = None
+    for i, lab in enumerate(labels):
+        bb = drawn.get(lab)
+        if bb is None:
+            continue
+        if last is not None and (bb.x0 < last.x1 + pad_px if axis == "x" else bb.y0 < last.y1 + pad_px):
+            labels[i] = ""
+        else:
+            last = bb
+    setter(counts, labels)
+
+
 def _texts(fig):
     """Visible, non-empty texts that are actually drawn (tick labels only of ticks inside the view)."""
     from matplotlib.text import Text
@@ -98,7 +139,8 @@ def layout_problems(fig, tol_px: float = 1.0) -> list[str]:
        bounding box — shift everything else);
     2. a table cell whose text is wider or taller than the cell (matplotlib does not clip or wrap it);
     3. an axes title (or the figure's suptitle) overlapping a text that belongs to a different axes;
-    4. a legend drawn over data points of its own axes (line vertices and markers inside the legend box).
+    4. a legend drawn over data points of its own axes (line vertices and markers inside the legend box);
+    5. tick labels of one axis running into each other (``6`` and ``12`` drawn as ``612``).
 
     The figure is checked at its own size: :func:`save_figure` saves with a tight bounding box, which would
     silently grow the canvas around text that does not fit, so plot code lays its figures out
@@ -160,4 +202,31 @@ def layout_problems(fig, tol_px: float = 1.0) -> list[str]:
             covered += int(np.sum((d[:, 0] > lb.x0) & (d[:, 0] < lb.x1) & (d[:, 1] > lb.y0) & (d[:, 1] < lb.y1)))
         if covered:
             problems.append(f"legend of axes {ax.get_title()[:30]!r} covers {covered} data point(s)")
+    for ax in fig.axes:
+        problems += _tick_collisions(ax, renderer, tol_px)
     return problems
+
+
+def _tick_collisions(ax, renderer, tol_px: float) -> list[str]:
+    """Drawn tick labels of one axis of ``ax`` whose text extents overlap (see :func:`layout_problems`)."""
+    out = []
+    if not ax.axison or not ax.get_visible():
+        return out
+    for name, axis in getattr(ax, "_axis_map", {"x": ax.xaxis, "y": ax.yaxis}).items():
+        if not axis.get_visible():
+            continue
+        for side in ("label1", "label2"):
+            boxes = []
+            for tick in axis._update_ticks():  # the ticks inside the view interval: the ones drawn
+                lab = getattr(tick, side)
+                if lab.get_visible() and lab.get_text().strip():
+                    boxes.append((lab.get_window_extent(renderer), lab.get_text()))
+            for i in range(len(boxes)):
+                for j in range(i + 1, len(boxes)):
+                    a, b = boxes[i][0], boxes[j][0]
+                    ix = min(a.x1, b.x1) - max(a.x0, b.x0)
+                    iy = min(a.y1, b.y1) - max(a.y0, b.y0)
+                    if ix > tol_px and iy > tol_px:
+                        out.append(f"{name} tick labels {boxes[i][1]!r} and {boxes[j][1]!r} of axes "
+                                   f"{ax.get_title()[:30]!r} overlap")
+    return out

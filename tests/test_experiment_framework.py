@@ -163,8 +163,8 @@ def test_progress_in_a_log_is_lines_without_carriage_returns(monkeypatch):
     text = s.getvalue()
     assert "\r" not in text
     lines = text.splitlines()
-    assert lines[0] == "work (3 item) …"
-    assert lines[1].startswith("work: 1/3 item (33 %)") and lines[-3].startswith("work: 3/3 item (100 %)")
+    assert lines[0] == "work (3 items) …"
+    assert lines[1].startswith("work: 1/3 items (33 %)") and lines[-3].startswith("work: 3/3 items (100 %)")
     assert lines[-2] == "block …" and re.fullmatch(r"block: done in \d+\.\d s", lines[-1])
 
 

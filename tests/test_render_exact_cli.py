@@ -44,3 +44,21 @@ def test_bad_flags(tmp_path, capsys):
     assert "--spp" in capsys.readouterr().err
     assert main(["render", "--mode", "reference", "--ref-rtol", "-1", "--size", "4", "--out", out]) != 0
     assert "--ref-rtol" in capsys.readouterr().err
+    assert main(["render", "--mode", "reference", "--workers", "0", "--size", "4", "--out", out]) != 0
+    assert "--workers" in capsys.readouterr().err
+
+
+def test_reference_workers_and_seed_flags(tmp_path):
+    # --workers only changes where the pixel blocks run (the image is bit-identical); --seed picks other random ray
+    # points (another image within the tolerance); both are recorded in the JSON sidecar
+    common = ["render", "--mesh", "sphere_on_plane", "--no-ground", "--synthetic", "sky_sun", "--env-size", "8",
+              "--size", "12", "--material", "1,0,0", "--no-progress", "--mode", "reference", "--ref-rtol", "1e-2"]
+    outs = {}
+    for tag, extra in (("w1", ["--workers", "1"]), ("w2", ["--workers", "2"]), ("s5", ["--workers", "1", "--seed", "5"])):
+        outs[tag] = tmp_path / f"{tag}.npz"
+        assert main(common + extra + ["--out", str(outs[tag])]) == 0
+    a, b, c = (np.load(outs[k])["image"] for k in ("w1", "w2", "s5"))
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, c)
+    info = json.loads((tmp_path / "w2.json").read_text())["reference"]
+    assert info["workers"] == 2 and info["converged"] and info["ray_backend"] in ("embree", "exact")

@@ -45,10 +45,13 @@ def cmd_convolve(args) -> int:
     side = Path(args.output).with_suffix(".json")
     refuse_overwriting_inputs({"IN": args.input}, [("OUT", side)] + [("OUT", exponent_path(args.output, s)) for s in exps])
     cube, radiance = load_env(args, args.input, args.input_size)
-    res = convolve(
-        cube, exps, method=args.method, rtol=args.rtol, out_size=args.size, normalized=not args.unnormalized,
-        workers=args.workers, backend=args.parallel, executor=args.scheduler,
-    )
+    from ..progress import step
+
+    with step(f"convolving {cube.shape[1]}² faces with {len(exps)} exponent(s), method {args.method}"):
+        res = convolve(
+            cube, exps, method=args.method, rtol=args.rtol, out_size=args.size, normalized=not args.unnormalized,
+            workers=args.workers, backend=args.parallel, executor=args.scheduler,
+        )
     written = []
     outs = OutputSet(side, owned_key="outputs", keep=[args.input])  # all files or none; stale _s* removed
     with outs:
@@ -87,8 +90,11 @@ def cmd_irradiance(args) -> int:
     from ..atomic import refuse_overwriting_inputs
 
     refuse_overwriting_inputs({"IN": args.input}, {"OUT": args.output})
+    from ..progress import step
+
     cube, _ = load_env(args, args.input, args.input_size)
-    ed = irradiance_map(cube, quadrature=args.quadrature, out_size=args.size)
+    with step(f"irradiance of {cube.shape[1]}² faces"):
+        ed = irradiance_map(cube, quadrature=args.quadrature, out_size=args.size)
     write_envmap(args.output, ed, layout="cube")
     print(f"wrote {args.output} (Kán et al. 2015 Ed map, {ed.shape[1]}² faces)")
     return 0

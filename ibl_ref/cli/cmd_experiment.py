@@ -2,7 +2,9 @@
 
 Every experiment gets its own sub-parser, built from its declarations (:mod:`ibl_ref.experiments`): its
 ``--help`` shows the description, the paper item, the typical run time, the outputs and one ``--PARAM``
-option per parameter (default and quick value).
+option per parameter (default and quick value).  ``--workers N`` / ``--scheduler ADDRESS`` run the independent
+jobs (an experiment's cases, or ``reproduce``'s experiments) on local processes or a Dask cluster
+(:func:`ibl_ref.executors.map_jobs`); ``reproduce`` is :func:`ibl_ref.experiments.reproduce`.
 """
 
 from __future__ import annotations
@@ -14,11 +16,33 @@ from pathlib import Path
 from .. import experiments
 
 
-def _run_one(mod, out: Path, quick: bool, overrides: dict | None = None) -> dict:
+def _run_one(mod, out: Path, quick: bool, overrides: dict | None = None, **jobs) -> dict:
     from ..atomic import ensure_output_dir
 
     ensure_output_dir(out, "--out folder")  # under a file / read-only: one-line error, no traceback
-    return experiments.run_experiment(mod, out, quick, overrides)
+    return experiments.run_experiment(mod, out, quick, overrides, **jobs)
+
+
+def _jobs(args) -> dict:
+    """``executor=`` / ``workers=`` of :func:`ibl_ref.executors.map_jobs` from ``--scheduler`` / ``--workers``."""
+    from ..errors import IBLError
+
+    workers = getattr(args, "workers", None)
+    scheduler = getattr(args, "scheduler", None)
+    if workers is not None and scheduler is not None:
+        raise IBLError("--workers and --scheduler exclude each other (a scheduler's workers are set where it runs)")
+    if workers is not None and workers < 1:
+        raise IBLError(f"--workers: must be a positive integer, got {workers}")
+    return dict(executor=scheduler, workers=workers or 1)
+
+
+def _add_job_options(p, d=None, note=None) -> None:
+    d = d or {}
+    note = note or ""
+    p.add_argument("--workers", type=int, default=d.get("workers"), metavar="N",
+                   help=f"run the independent jobs on N local processes (default: serially){note}")
+    p.add_argument("--scheduler", default=d.get("scheduler"), metavar="ADDRESS",
+                   help=f"run the independent jobs on a Dask cluster (e.g. tcp://host:8786; pip install '.[dask]'){note}")
 
 
 def experiment_parser(mod, defaults=None) -> argparse.ArgumentParser:
@@ -31,6 +55,8 @@ def experiment_parser(mod, defaults=None) -> argparse.ArgumentParser:
                    help="quick sizes (the parameters' quick values) for a fast run")
     e.add_argument("--no-subdir", dest="subdir", action="store_false", default=d.get("subdir", True),
                    help="write directly into --out instead of --out/NAME")
+    _add_job_options(e, d, None if experiments.takes_jobs(mod) else
+                     " (not for this experiment: it does not split into independent jobs)")
     g = e.add_argument_group("parameters of this experiment (default = full run; quick = with --quick)")
     for prm in getattr(mod, "PARAMS", ()):
         q = "" if prm.quick is None else f"; quick: {experiments._fmt(prm.quick)}"
@@ -56,7 +82,7 @@ def cmd_experiment(args) -> int:
     mod = experiments.get(args.name)
     args = experiment_parser(mod, vars(args)).parse_args(args.rest)
     out = Path(args.out) / mod.NAME if args.subdir else Path(args.out)
-    res = _run_one(mod, out, args.quick, _overrides(mod, args))
+    res = _run_one(mod, out, args.quick, _overrides(mod, args), **_jobs(args))
     print(json.dumps({k: v for k, v in res.items() if k != "summary"}, indent=1))
     print(f"results in {out}")
     return 0
@@ -80,26 +106,23 @@ def _copy_gallery(results, folder: Path) -> list:
 
 
 def cmd_reproduce(args) -> int:
-    from ..atomic import write_json
+    from ..atomic import ensure_output_dir
 
     out = Path(args.out)
+    ensure_output_dir(out, "--out folder")
+    jobs = _jobs(args)
     exps = experiments.available()
-    chosen = [m for m in exps.values() if not args.quick or getattr(m, "IN_QUICK_REPRODUCE", True)]
-    print(f"ibl-ref reproduce: {len(chosen)} experiment(s) into {out} ({'quick' if args.quick else 'full'} sizes)")
-    results = []
-    for i, mod in enumerate(chosen, 1):
-        print(f"[{i}/{len(chosen)}] {mod.NAME}: {getattr(mod, 'DESCRIPTION', '')}", flush=True)
-        res = _run_one(mod, out / mod.NAME, args.quick)
-        print(f"    {mod.NAME} done in {res['compute_time_s'] + res['plot_time_s']:.1f} s; "
-              f"figures: {', '.join(res['figures']) or '-'}", flush=True)
-        results.append(res)
-    skipped = sorted(set(exps) - {m.NAME for m in chosen})
-    write_json(out / "reproduce_summary.json", {"quick": args.quick, "runs": results, "skipped_in_quick": skipped})
+    n = sum(1 for m in exps.values() if not args.quick or getattr(m, "IN_QUICK_REPRODUCE", True))
+    where = ("" if jobs["executor"] is None and jobs["workers"] == 1 else
+             f"; {jobs['workers']} at a time" if jobs["executor"] is None else f"; on {jobs['executor']}")
+    print(f"ibl-ref reproduce: {n} experiment(s) into {out} ({'quick' if args.quick else 'full'} sizes{where})",
+          flush=True)
+    summary = experiments.reproduce(out, args.quick, **jobs)
     if args.gallery:
-        gallery = _copy_gallery(results, Path(args.gallery))
+        gallery = _copy_gallery(summary["runs"], Path(args.gallery))
         print(f"gallery: {len(gallery)} figure(s) in {args.gallery}")
-    if skipped:
-        print(f"not run at quick size (run 'ibl-ref experiment NAME'): {', '.join(skipped)}")
+    if summary["skipped_in_quick"]:
+        print(f"not run at quick size (run 'ibl-ref experiment NAME'): {', '.join(summary['skipped_in_quick'])}")
     print(f"summary: {out / 'reproduce_summary.json'}")
     return 0
 
@@ -119,16 +142,21 @@ def register(sub) -> None:
     p.add_argument("--list", action="store_true", help="list the experiments and exit")
     p.add_argument("--no-subdir", dest="subdir", action="store_false",
                    help="write directly into --out instead of --out/NAME")
+    _add_job_options(p, note=" (experiments whose cases are independent jobs: see 'NAME --help')")
     p.set_defaults(func=cmd_experiment)
 
     r = sub.add_parser(
         "reproduce",
         help="run every experiment (the paper's figures) into one folder",
-        description="Run all experiments one after another, each into OUT/NAME, and write "
-        "OUT/reproduce_summary.json with timings and figure paths.",
+        description="Run every experiment (with --quick: every one that has a quick version), each into "
+        "OUT/NAME, and write OUT/reproduce_summary.json with timings and figure paths. The experiments are "
+        "independent jobs: one after another by default, N at a time with --workers N, or on a Dask cluster "
+        "with --scheduler ADDRESS (OUT must then be on a file system the workers share). The data files are "
+        "the same as in a serial run (timing columns aside).",
     )
     r.add_argument("--out", default="results", help="output folder (default: results)")
     r.add_argument("--quick", action="store_true", help="quick sizes (the README's first command)")
     r.add_argument("--gallery", metavar="DIR",
                    help="also copy every PNG figure to DIR as EXPERIMENT__FIGURE.png (the README gallery: docs/gallery)")
+    _add_job_options(r)
     r.set_defaults(func=cmd_reproduce)

@@ -155,8 +155,11 @@ def _layout_reason(path: Path, h: int, w: int, header: dict):
 def cmd_info(args) -> int:
     from ..environment.radiance_policy import assess, decide, pixel_solid_angles
 
+    from ..progress import step
+
     path = Path(args.file)
-    img, chans, nc, ptype, fmt, extra, header, n_parts = _info_read(path)
+    with step(f"reading {path}"):  # a 16K probe takes seconds
+        img, chans, nc, ptype, fmt, extra, header, n_parts = _info_read(path)
     h, w = img.shape[:2]
     layout, why = _layout_reason(path, h, w, header)
     bad_convention = None
@@ -240,22 +243,26 @@ def cmd_convert(args) -> int:
         raise IBLError("--clamp-half only applies with --half")
     if args.size is not None and args.size < 1:
         raise IBLError(f"--size must be a positive integer, got {args.size}")
-    data, layout, chans, _, _, _, rep = _load_any(src, args.negative, args.nonfinite)
+    from ..progress import step
     from .radiance_args import tell
 
+    with step(f"reading {src}"):  # a 16K probe takes seconds
+        data, layout, chans, _, _, _, rep = _load_any(src, args.negative, args.nonfinite)
     tell(rep)
-    if data.ndim == 4:  # cube
-        src_int = resample.integral_cube(data)
-        if args.layout == "cube":
-            out = data if args.size is None or args.size == data.shape[1] else resample.cube_to_cube(data, args.size)
+    with step(f"converting to {args.layout}" + (f" (size {args.size})" if args.size else "")):  # 16K → 2048²: ~20 s
+        if data.ndim == 4:  # cube
+            src_int = resample.integral_cube(data)
+            if args.layout == "cube":
+                out = data if args.size is None or args.size == data.shape[1] else resample.cube_to_cube(data, args.size)
+            else:
+                out = resample.cube_to_latlong(data, args.size or 2 * data.shape[1], method=args.method)
         else:
-            out = resample.cube_to_latlong(data, args.size or 2 * data.shape[1], method=args.method)
-    else:
-        src_int = resample.integral_latlong(data)
-        if args.layout == "cube":
-            out = resample.latlong_to_cube(data, args.size or max(1, data.shape[0] // 2), method=args.method)
-        else:
-            out = data if args.size is None or args.size == data.shape[0] else resample.latlong_to_latlong(data, args.size)
+            src_int = resample.integral_latlong(data)
+            if args.layout == "cube":
+                out = resample.latlong_to_cube(data, args.size or max(1, data.shape[0] // 2), method=args.method)
+            else:
+                out = (data if args.size is None or args.size == data.shape[0]
+                       else resample.latlong_to_latlong(data, args.size))
     dst_int = resample.integral_cube(out) if out.ndim == 4 else resample.integral_latlong(out)
     if (data.ndim == 4) != (out.ndim == 4) and args.method == "conservative":  # lat-long <-> cube: report the kernel's per-texel bound
         h, n = (out.shape[0], data.shape[1]) if out.ndim == 3 else (data.shape[0], out.shape[1])

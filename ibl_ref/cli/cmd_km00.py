@@ -88,7 +88,7 @@ def register(sub) -> None:
     p.add_argument("--png", action="store_true", help="also write a tone-mapped PNG next to it")
     p.add_argument("--exposure", default="auto", metavar="auto|EV|xK",
                    help="PNG exposure: 'auto' (default), EV stops (e.g. -2) or a linear scale (e.g. x0.25)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars / messages")
+    p.add_argument("--quiet", action="store_true", help="no progress reports (bar or status lines) and no summary line")
     from .radiance_args import add_radiance_args
 
     add_radiance_args(p)

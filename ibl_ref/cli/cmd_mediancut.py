@@ -6,7 +6,6 @@ Thin layer over :func:`ibl_ref.knuth2014.median_cut.median_cut`, :func:`ibl_ref.
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 from ..errors import IBLError
@@ -30,11 +29,13 @@ def _load(path, size, args):
 def cmd_mediancut(args) -> int:
     from ..atomic import refuse_overwriting_inputs, resolve_output, write_json
     from ..knuth2014.median_cut import check_partition, energy_spread, median_cut
+    from ..progress import step
 
     refuse_overwriting_inputs({"IN": args.input}, {"--out": args.out})
     resolve_output(args.out)  # a folder / device / FIFO as --out: refuse before the work
     cube, radiance = _load(args.input, args.size, args)
-    ls = median_cut(cube, args.lights, args.variant)
+    with step(f"median cut of {cube.shape[1]}² faces into {args.lights} regions"):
+        ls = median_cut(cube, args.lights, args.variant)
     chk = check_partition(ls, cube)
     data = {
         "source": str(args.input),
@@ -64,6 +65,7 @@ def cmd_pem(args) -> int:
     from ..knuth2014.filters import kernel_taps
     from ..knuth2014.median_cut import median_cut
     from ..knuth2014.pem import build_pems
+    from ..progress import step, track
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -73,10 +75,11 @@ def cmd_pem(args) -> int:
     except IBLError as exc:
         raise IBLError(f"--kernel: {exc}") from None
     cube, radiance = _load(args.input, args.size, args)
-    ls = median_cut(cube, args.lights, args.variant)
-    progress = sys.stderr.isatty()  # progress bars only for a terminal: errors stay one line in logs
+    with step(f"median cut of {cube.shape[1]}² faces into {args.lights} regions"):
+        ls = median_cut(cube, args.lights, args.variant)
+    # progress on stderr (ibl_ref.progress): a bar on a terminal, a status line at most every 10 s in a log
     pems = build_pems(cube, ls, kernel=args.kernel, order=args.order, seam=args.seam, dtype=np.float32,
-                      progress=progress)
+                      progress=True)
     if args.pixel_type == "half":  # refuse before writing anything (pem has no clamping option)
         vmax = max(float(lev.max()) for lev in pems.levels)
         if vmax > HALF_MAX:
@@ -84,13 +87,7 @@ def cmd_pem(args) -> int:
                            f"({HALF_MAX:g}); use --pixel-type float")
     ensure_output_dir(out, "--out folder")
     files = []
-    rng = range(len(pems))
-    try:
-        from tqdm import tqdm
-
-        rng = tqdm(rng, desc="writing PEMs", unit="file", disable=not progress)
-    except ImportError:  # pragma: no cover
-        pass
+    rng = track(range(len(pems)), "writing PEMs", unit="file")
     outs = OutputSet(out / "pems.json", owned_key="files", keep=[args.input])  # all or nothing; stale PEMs removed
     with outs:
         for i in rng:

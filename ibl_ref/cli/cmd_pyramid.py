@@ -11,6 +11,7 @@ def cmd_pyramid(args) -> int:
     from ..environment.exr_io import write_pyramid
     from ..knuth2014.filters import kernel_taps
     from ..knuth2014.pyramid import build_pyramid, pyramid_energy
+    from ..progress import step
     from .radiance_args import load_env
 
     refuse_overwriting_inputs({"IN": args.input}, {"OUT": args.output})
@@ -20,7 +21,8 @@ def cmd_pyramid(args) -> int:
     except IBLError as exc:
         raise IBLError(f"--kernel: {exc}") from None
     cube, radiance = load_env(args, args.input, args.size)
-    pyr = build_pyramid(cube, kernel=args.kernel, order=args.order, seam=args.seam)
+    with step(f"{args.kernel} pyramid of {cube.shape[1]}² faces"):
+        pyr = build_pyramid(cube, kernel=args.kernel, order=args.order, seam=args.seam)
     write_pyramid(args.output, pyr.levels, pixel_type=args.pixel_type, clamp_half=args.clamp_half)
     drift = [max(abs(x) for x in r["rel_drift"]) for r in pyramid_energy(pyr)]
     print(json.dumps({"output": str(args.output), "levels": pyr.n_levels, "base_size": pyr.base_size,

@@ -19,6 +19,8 @@ def check_args(args) -> None:
     if args.mode == "reference" and args.ref_rtol is not None:
         if not (np.isfinite(args.ref_rtol) and args.ref_rtol >= 0):
             raise IBLError(f"--ref-rtol must be a finite number >= 0, got {args.ref_rtol}")
+    if getattr(args, "workers", None) is not None and args.workers < 1:
+        raise IBLError(f"--workers must be a positive integer (1 = serial), got {args.workers}")
     if args.mode == "mitsuba" and (args.spp < 2 or args.spp % 2):
         raise IBLError(f"--spp must be an even number >= 2, got {args.spp}")
 
@@ -31,10 +33,16 @@ def render_exact(mode, meshes, camera, cube, mat, ground_mat, args, progress=Fal
     if mode == "reference":
         from ..rendering.reference_render import DEFAULT_RTOL, render_reference
 
+        from ..groundtruth.convolve import default_workers
+
         rtol = DEFAULT_RTOL if args.ref_rtol is None else float(args.ref_rtol)
-        res = render_reference(meshes, camera, cube, materials=materials, rtol=rtol, progress=progress)
+        workers = default_workers() if args.workers is None else int(args.workers)
+        res = render_reference(meshes, camera, cube, materials=materials, rtol=rtol, seed=args.seed,
+                               workers=workers, progress=progress)
         keep = ("rtol", "err_rel_l1", "err_rel_p99", "converged", "n_rays", "time_s", "sided", "n_back_facing",
-                "quadrature", "lobes")
+                "quadrature", "ray_backend", "lobes")
+        res.info["workers"] = workers
+        keep = keep + ("workers",)
         return res.image, res.mask, {"reference": {k: res.info[k] for k in keep if k in res.info}}
     from ..rendering.mitsuba_render import render_mitsuba
 

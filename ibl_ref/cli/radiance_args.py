@@ -40,6 +40,8 @@ def tell(rep) -> dict | None:
 def load_env(args, path, size=None):
     """:func:`ibl_ref.environment.exr_io.load_cube` under the command's policy → ``(cube, report dict)``; reports on stderr."""
     from ..environment.exr_io import load_cube
+    from ..progress import step
 
-    cube, rep = load_cube(path, size=size, return_report=True, **policy(args))
+    with step(f"reading {path}" + (f" (to {size}² faces)" if size else "")):  # 16K probes take many seconds
+        cube, rep = load_cube(path, size=size, return_report=True, **policy(args))
     return cube, tell(rep)

@@ -12,8 +12,9 @@ The experiment framework.  Each experiment is a module of this package declaring
     its parameters: name, full-size default, quick value, help.  ``ibl-ref experiment NAME --PARAM VALUE``
     overrides one; :func:`resolve_params` merges defaults, quick values and overrides;
 ``RUNTIME`` (dict)
-    typical wall-clock time of the quick and the full run on the reference machine (2 shared cores; the load
-    average of the measurement in brackets where it was not quiet), ``{"quick": "8 s", "full": "1 min"}``;
+    typical wall-clock time of the quick and the full run on the reference machine (2 cores shared with other
+    work; the load average during the measurement in brackets), ``{"quick": "8 s (load 1)", "full": "1 min
+    (load 3)"}``;
 ``OUTPUTS`` (tuple of str)
     the files ``run`` writes (CSV/JSON/EXR, units in column names or metadata) and ``plot`` writes (PNG);
 ``run(out_dir: Path, quick: bool, **params) -> dict``
@@ -22,6 +23,13 @@ The experiment framework.  Each experiment is a module of this package declaring
     the plot step: reads only those files and writes the figures (via :func:`ibl_ref.figures.save_figure`);
 ``IN_QUICK_REPRODUCE`` (bool, default True)
     whether ``ibl-ref reproduce --quick`` (the README's first command) runs it.
+
+An experiment whose cases are independent jobs (``fig5``, ``cross-validate``) also takes ``executor=None,
+workers=1`` in ``run`` and runs its cases through :func:`ibl_ref.executors.map_jobs`: on ``workers`` local
+processes, any :class:`concurrent.futures.Executor`, a ``dask.distributed.Client`` or a Dask scheduler address
+(``ibl-ref experiment NAME --workers N | --scheduler ADDRESS``); its data files are bit-for-bit those of a serial
+run.  :func:`reproduce` runs whole experiments as such jobs (``ibl-ref reproduce --workers N | --scheduler
+ADDRESS``).
 
 Data flows one way: ``run`` never plots and ``plot`` never computes.  Shared scenes and environments come
 from the library (:func:`ibl_ref.synthetic.synthetic_envs.make_env`, :mod:`ibl_ref.synthetic.synthetic_meshes`,
@@ -40,7 +48,7 @@ from types import ModuleType
 from typing import Any
 
 __all__ = ["available", "get", "Param", "resolve_params", "run_experiment", "describe", "show", "images_to_json",
-           "images_from_json"]
+           "images_from_json", "takes_jobs", "reproduce"]
 
 
 @dataclass(frozen=True)
@@ -151,14 +159,24 @@ def describe(mod: ModuleType) -> str:
         lines.append(f"Reproduces: {mod.PAPER}")
     rt = getattr(mod, "RUNTIME", {})
     if rt:
-        lines.append(f"Typical run time (reference machine, 2 shared cores; quick: load 0.3): --quick {rt.get('quick', '?')}, "
-                     f"full {rt.get('full', '?')}")
+        lines.append(f"Typical run time on the reference machine (2 cores shared with other work; the load average "
+                     f"during the measurement in brackets): --quick {rt.get('quick', '?')}, full {rt.get('full', '?')}")
     if not getattr(mod, "IN_QUICK_REPRODUCE", True):
         lines.append("Not part of 'ibl-ref reproduce --quick' (too slow); run it on its own.")
     outs = getattr(mod, "OUTPUTS", ())
     if outs:
         lines.append("Outputs (in OUT/NAME): " + ", ".join(outs))
+    if takes_jobs(mod):
+        lines.append("Its cases are independent jobs: --workers N runs them on N local processes, --scheduler "
+                     "ADDRESS on a Dask cluster (the data files are bit-for-bit those of a serial run).")
     return "\n".join(lines)
+
+
+def takes_jobs(mod: ModuleType) -> bool:
+    """Whether ``mod.run`` runs its cases through :func:`ibl_ref.executors.map_jobs` (takes ``executor=``)."""
+    import inspect
+
+    return "executor" in inspect.signature(mod.run).parameters
 
 
 def available() -> dict[str, ModuleType]:
@@ -183,16 +201,30 @@ def get(name: str) -> ModuleType:
     return exps[name]
 
 
-def run_experiment(mod: ModuleType, out: Path, quick: bool, overrides: dict | None = None) -> dict:
-    """Compute step then plot step of ``mod`` into ``out``, with a status line per step and timings."""
+def run_experiment(mod: ModuleType, out: Path, quick: bool, overrides: dict | None = None, *, executor=None,
+                   workers: int = 1) -> dict:
+    """Compute step then plot step of ``mod`` into ``out``, with a status line per step and timings.
+
+    ``executor`` / ``workers``: where the experiment's independent cases run (:func:`ibl_ref.executors.map_jobs`);
+    only for experiments that split into jobs (:func:`takes_jobs`), an error otherwise.
+    """
     from .. import progress
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     params = resolve_params(mod, quick, overrides)
+    jobs = {}
+    if executor is not None or workers != 1:
+        if not takes_jobs(mod):
+            from ..errors import IBLError
+
+            names = ", ".join(n for n, m in available().items() if takes_jobs(m))
+            raise IBLError(f"experiment {mod.NAME} does not split into independent jobs (--workers / --scheduler "
+                           f"apply to {names}; 'ibl-ref reproduce --workers N' runs whole experiments in parallel)")
+        jobs = dict(executor=executor, workers=workers)
+    out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     with progress.step(f"{mod.NAME}: compute", announce=False):
-        summary = mod.run(out, quick=quick, **params) or {}
+        summary = mod.run(out, quick=quick, **params, **jobs) or {}
     t1 = time.perf_counter()
     with progress.step(f"{mod.NAME}: plot", announce=False):
         figs = mod.plot(out) or []
@@ -204,6 +236,55 @@ def run_experiment(mod: ModuleType, out: Path, quick: bool, overrides: dict | No
 
 def _jsonable(v):
     return list(v) if isinstance(v, tuple) else v
+
+
+def _reproduce_job(job) -> dict:
+    """One experiment of :func:`reproduce` (a job of :func:`ibl_ref.executors.map_jobs`): both steps, with its
+    status lines (printed where the job runs)."""
+    name, out, quick, i, n = job
+    mod = get(name)
+    print(f"[{i}/{n}] {name}: {getattr(mod, 'DESCRIPTION', '')}", flush=True)
+    res = run_experiment(mod, Path(out) / name, quick)
+    print(f"    {name} done in {res['compute_time_s'] + res['plot_time_s']:.1f} s; "
+          f"figures: {', '.join(res['figures']) or '-'}", flush=True)
+    return res
+
+
+def reproduce(out, quick: bool = False, names=None, *, executor=None, workers: int = 1) -> dict:
+    """Run experiments (default: all; with ``quick`` those with ``IN_QUICK_REPRODUCE``) into ``out/NAME`` and
+    write ``out/reproduce_summary.json``; returns that summary.
+
+    The experiments are independent jobs of :func:`ibl_ref.executors.map_jobs`: serially (default), on
+    ``workers`` local processes, or on ``executor`` (any :class:`concurrent.futures.Executor`, a
+    ``dask.distributed.Client`` or a scheduler address).  Each writes its own files, so on a cluster ``out`` must
+    be a folder that every worker and this process see (a shared file system); a run whose files are missing
+    here is an error.  Every data file is the same as in a serial run (timing columns aside).
+    """
+    from ..atomic import write_json
+    from ..errors import IBLError
+    from ..executors import map_jobs
+
+    out = Path(out)
+    exps = available()
+    if names is None:
+        chosen = [n for n, m in exps.items() if not quick or getattr(m, "IN_QUICK_REPRODUCE", True)]
+    else:
+        chosen = [get(n).NAME for n in names]
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = [(n, str(out.resolve()), bool(quick), i, len(chosen)) for i, n in enumerate(chosen, 1)]
+    where = ("serial" if executor is None and workers <= 1 else
+             f"{workers} local processes" if executor is None else f"executor {executor!r}")
+    results = map_jobs(_reproduce_job, jobs, executor=executor, workers=workers,
+                       desc=None if executor is None and workers <= 1 else "reproduce", unit="experiment",
+                       what="reproduce worker")
+    missing = [f for r in results for f in r["figures"] if not Path(f).exists()]
+    if missing:
+        raise IBLError(f"{len(missing)} figure(s) written by the workers are not visible here (first: {missing[0]}); "
+                       "the output folder must be on a file system every worker shares")
+    skipped = sorted(set(exps) - set(chosen))
+    summary = {"quick": bool(quick), "ran_on": where, "runs": results, "skipped_in_quick": skipped}
+    write_json(out / "reproduce_summary.json", summary)
+    return summary
 
 
 def show(figures) -> list:

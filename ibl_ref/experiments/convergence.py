@@ -33,7 +33,7 @@ NAME = "convergence"
 DESCRIPTION = "exact Phong convolution vs source resolution and supersampling (closed-form targets)"
 PAPER = "Knuth et al. 2014, Eq. 4 (the exact Phong lobe average the lab uses as ground truth): convergence"
 IN_QUICK_REPRODUCE = True
-RUNTIME = {"quick": "2.1 s", "full": "5 min 13 s (load 7-10)"}
+RUNTIME = {"quick": "2.1 s (load 0.3)", "full": "5 min 13 s (load 7-10)"}
 OUTPUTS = ("convergence_resolution.csv", "convergence_supersample.csv", "convergence_summary.json",
            "convergence_resolution.png", "convergence_supersample.png")
 

@@ -69,10 +69,10 @@ def settings(quick: bool) -> dict:
     if quick:
         return dict(size=20, env_size=16, envs=list(ENVS), materials=list(MATERIALS), ground="same", regions=[6, 24],
                     vsm_resolution=128, rtol=5e-3, texel_factors=[1], texel_pixels=120, swap=["vsm", "prefilter"],
-                    level_dirs=1500, figure_regions=24, workers=1)
+                    level_dirs=1500, figure_regions=24)
     return dict(size=48, env_size=32, envs=list(ENVS), materials=list(MATERIALS), ground="same", regions=[6, 24, 96],
                 vsm_resolution=256, rtol=2e-3, texel_factors=[1, 2], texel_pixels=300, swap=["vsm", "prefilter"],
-                level_dirs=4000, figure_regions=24, workers=1)
+                level_dirs=4000, figure_regions=24)
 
 
 PARAMS = params_from_settings(settings, {
@@ -81,8 +81,7 @@ PARAMS = params_from_settings(settings, {
     "texel_factors": "face-size multiples of the one-region-per-texel check of step 1",
     "texel_pixels": "covered pixels sampled for that check", "swap": "two steps exchanged in the second walk",
     "figure_regions": "region count shown in the difference figures",
-    "level_dirs": "seeded uniform directions the best pyramid level is fitted on (as lobe-chain's n_dirs)",
-    "workers": "local worker processes (1 = serial)"})
+    "level_dirs": "seeded uniform directions the best pyramid level is fitted on (as lobe-chain's n_dirs)"})
 
 
 def make_budget_env(name: str, n: int) -> np.ndarray:
@@ -173,7 +172,7 @@ def _texel_case(job: dict) -> list:
     return out
 
 
-def run(out_dir: Path, quick: bool = False, **params) -> dict:
+def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **params) -> dict:
     from ..errors import IBLError
     from ..executors import map_jobs
     from ..rendering import error_budget as eb
@@ -192,7 +191,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     common = {k: st[k] for k in ("size", "env_size", "ground", "rtol", "vsm_resolution", "regions", "swap",
                                  "level_dirs")}
     jobs = [dict(common, env=e, material=m) for e in st["envs"] for m in st["materials"]]
-    cases = map_jobs(_case, jobs, workers=int(st["workers"]), desc="error-budget: cases (reference + walks)")
+    cases = map_jobs(_case, jobs, executor=executor, workers=workers, desc="error-budget: cases (reference + walks)")
     rows = [q for c in cases for q in c["rows"]]
     write_csv(out_dir / "error_budget.csv", rows, COLUMNS,
               comment=f"teapot + ground, {st['size']}^2 px, env faces {st['env_size']}^2, VSM {st['vsm_resolution']}^2; "
@@ -203,7 +202,7 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
                   references={c["material"]: c["reference"] for c in cases if c["env"] == e},
                   ref_err={c["material"]: c["ref_info"].get("err_rel_l1", float("nan")) for c in cases if c["env"] == e})
              for e in st["envs"] for f in st["texel_factors"]]
-    texel = [q for part in map_jobs(_texel_case, tjobs, workers=int(st["workers"]),
+    texel = [q for part in map_jobs(_texel_case, tjobs, executor=executor, workers=workers,
                                     desc="error-budget: step-1 check (one region per texel)") for q in part]
     write_csv(out_dir / "error_budget_texel_limit.csv", texel, TEXEL_COLUMNS,
               comment="step 1 (exact visibility per region) with one region per texel of the map copied at "

@@ -23,7 +23,7 @@ NAME = "fig1"
 DESCRIPTION = "Knuth 2014 Fig. 1: diffuse-to-mirror gallery (g = 0 … 1) under sky_sun and studio, our method"
 PAPER = "Knuth et al. 2014, Fig. 1 (materials from diffuse to mirror, our method, Eq. 5)"
 IN_QUICK_REPRODUCE = True
-RUNTIME = {"quick": "1.4 s", "full": "68 s (load 10)"}
+RUNTIME = {"quick": "1.4 s (load 0.3)", "full": "68 s (load 10)"}
 OUTPUTS = ("fig1_images.json", "fig1_meta.json", "fig1.png")
 
 GLOSS = (0.0, 0.5, 0.9, 0.99, 1.0)
@@ -84,9 +84,12 @@ def plot(out_dir: Path) -> list:
 
     from ..rendering.tonemap import auto_exposure, exposure_srgb, with_backdrop
 
+    import json
+
     out_dir = Path(out_dir)
     imgs, mask = images_from_json(out_dir / "fig1_images.json")
-    fig, ax = plt.subplots(len(ENVS), len(GLOSS), figsize=(2.6 * len(GLOSS), 2.8 * len(ENVS)))
+    st = json.loads((out_dir / "fig1_meta.json").read_text())["settings"]
+    fig, ax = plt.subplots(len(ENVS), len(GLOSS), figsize=(2.6 * len(GLOSS), 2.8 * len(ENVS) + 0.4))
     for i, e in enumerate(ENVS):
         stops = auto_exposure(imgs[f"{e}|0.0"], mask)
         for j, g in enumerate(GLOSS):
@@ -94,9 +97,13 @@ def plot(out_dir: Path) -> list:
             if f"{e}|background" in imgs:
                 img = with_backdrop(img, mask, imgs[f"{e}|background"])
             ax[i, j].imshow(exposure_srgb(img, stops))
-            ax[i, j].set_title(f"{e}, g = {g}" + (" (diffuse)" if g == 0 else ""), fontsize=8)
+            kind = " (diffuse)" if g == 0 else " (mirror)" if g == 1 else f" (s = {1 / (1 - g):g})"
+            ax[i, j].set_title(f"{e}, g = {g}{kind}", fontsize=8)
             ax[i, j].set_xticks([])
             ax[i, j].set_yticks([])
+    fig.suptitle(f"Fig. 1 reproduction: sphere on a plane (same material), Eq. 5 with {st['n_lights']} median-cut "
+                 f"lights and {st['vsm_resolution']}² VSMs, {st['env_size']}² faces; one exposure per row "
+                 "(its diffuse image's)", fontsize=9)
     fig.tight_layout()
     p = out_dir / "fig1.png"
     save_figure(fig, p, dpi=100)

@@ -31,7 +31,7 @@ PARAMS = (
     Param("gloss", (1.0, 0.995, 0.98, 0.95, 0.9, 0.75, 0.5, 0.0), None, "glossiness values g, mirror (1) to diffuse (0)"),
     Param("environment", "studio", None, "synthetic environment (ibl_ref.synthetic.synthetic_envs.make_env name)"),
 )
-RUNTIME = {"quick": "0.4 s", "full": "5 s (load 3.4)"}
+RUNTIME = {"quick": "0.4 s (load 0.3)", "full": "5 s (load 3.4)"}
 OUTPUTS = ("fig3_spheres.json", "fig3.png")
 
 GLOSS = PARAMS[2].default
@@ -66,9 +66,11 @@ def plot(out_dir: Path) -> list[Path]:
     for ax, img, g in zip(axes, imgs, d["gloss"]):
         x = img / max(scale, 1e-12)
         ax.imshow(np.clip(x / (1 + x), 0, 1) ** (1 / 2.2))
-        ax.set_title(f"g={g}", fontsize=8)
+        ax.set_title(f"g = {g}" + (" (mirror)" if g == 1 else " (s = 1)" if g == 0 else f" (s = {1 / (1 - g):.3g})"),
+                     fontsize=8)
         ax.axis("off")
-    fig.suptitle(f"Fig. 3 reproduction ({d['environment']}, sqrtcos pyramid, N={d['face_size']})", fontsize=9)
+    fig.suptitle(f"Fig. 3 reproduction: orthographic spheres, look-up in one sqrtcos pyramid "
+                 f"({d['environment']}, {d['face_size']}² faces); one tone map for all", fontsize=9)
     fig.tight_layout()
     p = Path(out_dir) / "fig3.png"
     save_figure(fig, p, dpi=110)

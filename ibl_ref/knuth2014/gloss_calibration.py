@@ -27,7 +27,7 @@ import numpy as np
 from .gloss_lookup import Calibration, calibration_path
 from .lobe_analysis import LobeResponse, s_grid
 
-__all__ = ["calibrate", "build_calibration_tables", "build_shipped_tables", "save_calibration", "table_from_response",
+__all__ = ["calibrate", "calibration_for", "build_calibration_tables", "build_shipped_tables", "save_calibration", "table_from_response",
            "SHIPPED"]
 
 #: face sizes, kernels and shrinks of the shipped tables (see the module docstring)
@@ -65,6 +65,26 @@ def calibrate(face_size: int, kernel="sqrtcos", order="shrink_then_filter", seam
         resp = LobeResponse(int(face_size), kernel, order, seam, position, shrink=shrink)
         _MEMORY[key] = table_from_response(resp, volume, s_values)
     return _MEMORY[key]
+
+
+def calibration_for(face_size: int, kernel="sqrtcos", order="shrink_then_filter", seam="neighbour",
+                    volume="integral", shrink="mean", progress: bool = False) -> Calibration:
+    """The shipped table of a configuration, or (none shipped, e.g. faces of 1024² and more) one computed here.
+
+    For the commands that build the paper's pyramids from a user's size (``ibl-ref render --env-size N``): the
+    run-time lookup only reads tables, so the command resolves the table first and passes it on as
+    ``calibration=``.  Computing one costs a lobe analysis at that face size (measured 33 s at 512² on the
+    loaded 2-core machine) and is reported as a progress step.
+    """
+    from ..progress import step
+    from .gloss_lookup import shipped_calibration
+
+    cal = shipped_calibration(face_size, kernel, order, seam, volume, shrink)
+    if cal is None:
+        with step(f"glossiness calibration for {face_size}² faces (no shipped table; lobe analysis)",
+                  enabled=progress):
+            cal = calibrate(face_size, kernel, order, seam, volume, shrink=shrink)
+    return cal
 
 
 def save_calibration(cal: Calibration, data_dir: Path | None = None) -> Path:

@@ -42,7 +42,7 @@ import numpy as np
 from ..conventions import phong_exponent  # noqa: F401  (Eq. 3; re-exported, old name)
 from ..errors import IBLError
 
-__all__ = ["phong_exponent", "Calibration", "analytic_calibration", "get_calibration", "calibration_path",
+__all__ = ["phong_exponent", "Calibration", "analytic_calibration", "get_calibration", "shipped_calibration", "calibration_path",
            "level_for_gloss", "lookup", "lookup_at_level", "best_constant_level", "level_fit_directions", "LEVEL_STEP",
            "DATA_DIR"]
 
@@ -147,11 +147,9 @@ def get_calibration(pyramid, volume: str = "integral", source: str = "auto") -> 
     if source == "analytic":
         return analytic_calibration(*args)
     shrink = getattr(pyramid, "shrink", "mean")
-    key = args + (shrink,)
-    if key in _MEMORY:
-        return _MEMORY[key]
-    p = calibration_path(*key)
-    if pyramid.kernel == "custom" or not p.exists():
+    cal = None if pyramid.kernel == "custom" else shipped_calibration(*args, shrink=shrink)
+    if cal is None:
+        p = calibration_path(*args, shrink)
         what = "explicit filter taps" if pyramid.kernel == "custom" else \
             f"kernel {pyramid.kernel}, order {pyramid.order}, seam {pyramid.seam}, face size {pyramid.base_size}, " \
             f"volume {volume}, shrink {shrink}"
@@ -160,9 +158,19 @@ def get_calibration(pyramid, volume: str = "integral", source: str = "auto") -> 
                        f"ibl_ref.knuth2014.gloss_calibration.calibrate({pyramid.base_size}, {kernel}, "
                        f"{pyramid.order!r}, {pyramid.seam!r}, {volume!r}, shrink={shrink!r}) and pass it as "
                        "calibration=, or use the closed form (source='analytic')")
-    cal = Calibration.from_dict(json.loads(p.read_text()), source=p.name)
-    _MEMORY[key] = cal
     return cal
+
+
+def shipped_calibration(face_size: int, kernel="sqrtcos", order="shrink_then_filter", seam="neighbour",
+                        volume="integral", shrink="mean") -> Calibration | None:
+    """The table shipped in ``ibl_ref/data`` for one configuration (memory-cached), or None if there is none."""
+    key = (int(face_size), kernel, order, seam, volume, shrink)
+    if key not in _MEMORY:
+        p = calibration_path(*key)
+        if not p.exists():
+            return None
+        _MEMORY[key] = Calibration.from_dict(json.loads(p.read_text()), source=p.name)
+    return _MEMORY[key]
 
 
 def level_for_gloss(pyramid, g, calibration: Calibration | None = None, volume: str = "integral"):

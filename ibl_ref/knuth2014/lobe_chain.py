@@ -172,12 +172,10 @@ def lobe_average_regions(cube, labels, n_regions: int, s: float, out_size: int, 
 def _chain_levels(a, labels, R, spec, weight_eps, tile, progress):
     levels = [None]
     bounds = []
-    it = list(zip(spec.s_phong, spec.face_sizes[1:]))
-    if progress:
-        from tqdm import tqdm
+    from ..progress import track
 
-        it = tqdm(it, desc="exact-lobe chain", unit="level")
-    for s, n in it:
+    for s, n in track(list(zip(spec.s_phong, spec.face_sizes[1:])), "exact-lobe chain", unit="level",
+                      enabled=progress):
         lev, b = lobe_average_regions(a, labels, R, s, n, weight_eps=weight_eps, tile=tile)
         levels.append(lev)
         bounds.append(float(b.max()))

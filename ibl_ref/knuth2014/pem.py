@@ -53,12 +53,9 @@ def iter_pem_chunks(cube, labels, n_regions, *, kernel="sqrtcos", order="shrink_
         cube = cube[..., None]
     n, C = cube.shape[1], cube.shape[3]
     chunk = default_chunk(n_regions, C) if chunk is None else int(chunk)
-    starts = range(0, n_regions, chunk)
-    if progress:
-        from tqdm import tqdm
+    from ..progress import track
 
-        starts = tqdm(starts, desc="PEM pyramids", unit="chunk")
-    for a in starts:
+    for a in track(range(0, n_regions, chunk), "PEM pyramids", unit="chunk", enabled=progress):
         b = min(a + chunk, n_regions)
         k = b - a
         mask = labels[..., None] == np.arange(a, b)[None, None, None, :]  # (6, N, N, k)
@@ -236,7 +233,7 @@ def build_pems(cube, lights: LightSet | None = None, *, n_lights: int | None = N
     lookup_fn : callable(pyramid, dirs, g, calibration=) → (..., C), optional
         Default :func:`ibl_ref.knuth2014.gloss_lookup.lookup`.
     chunk : regions per pyramid call (default: ≤ 48 stacked channels).
-    progress : show a tqdm bar.
+    progress : report progress over the pyramid calls (:mod:`ibl_ref.progress`: a bar on a terminal, status lines in a log).
     """
     n, cube, lights = prepare_pem_input(cube, lights, n_lights, variant, "build_pems")
     dt = np.dtype(dtype)

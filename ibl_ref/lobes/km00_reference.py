@@ -92,6 +92,8 @@ def render_reference(cube, n, wo, brdf, *, supersample: int = 1, cut_angle: floa
         buckets share a candidate list); that only adds exact terms.
     bucket_size : int
         Samples are bucketed by the cube texel (face size ``bucket_size``) of r to share candidate lists.
+    progress : bool
+        Report progress over the pixels (:mod:`ibl_ref.progress`).
     """
     from scipy.spatial import cKDTree
 
@@ -111,6 +113,9 @@ def render_reference(cube, n, wo, brdf, *, supersample: int = 1, cut_angle: floa
     r = 2.0 * cdot[:, None] * nn - vv
     out = np.zeros((nn.shape[0], C))
     f, row, col = envmap.direction_to_texel(r, nb)
+    from ..progress import Progress
+
+    prog = Progress("exact Ward reference", int((cdot > 0).sum()), "pixel") if progress else None
     for k in np.unique(ks):
         m = a.shape[1] * int(k)
         src = a if k == 1 else np.repeat(np.repeat(a, int(k), axis=1), int(k), axis=2)
@@ -125,12 +130,9 @@ def render_reference(cube, n, wo, brdf, *, supersample: int = 1, cut_angle: floa
         starts = np.flatnonzero(np.r_[True, ks_sorted[1:] != ks_sorted[:-1]])
         ends = np.r_[starts[1:], ks_sorted.size]
         groups = [order[s0:e0] for s0, e0 in zip(starts, ends) if ks_sorted[s0] >= 0]
-        it = groups
-        if progress:
-            from tqdm import tqdm
-
-            it = tqdm(groups, desc=f"reference x{k}", unit="bucket", leave=False)
-        for idx in it:
+        for idx in groups:
+            if prog is not None:
+                prog.update(idx.size)
             if tree is None:
                 cand = np.arange(sd.shape[0])
             else:
@@ -151,6 +153,8 @@ def render_reference(cube, n, wo, brdf, *, supersample: int = 1, cut_angle: floa
                 fv = brdf(wi[None, :, :], vv[ib][:, None, :], nn[ib][:, None, :])
                 ci = np.maximum(nn[ib] @ wi.T, 0.0)
                 out[ib] = (fv * ci) @ rwc
+    if prog is not None:
+        prog.close()
     if not np.all(np.isfinite(out)):
         raise IBLError("reference render produced NaN/Inf (check the BRDF parameters)")
     return out[:, 0] if squeeze else out

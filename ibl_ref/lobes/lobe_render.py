@@ -72,6 +72,7 @@ def render_single_method(method: str, env: np.ndarray, *, width: int = 256, heig
     from . import prefiltered_lobes as pl
     from ..errors import IBLError
     from ..knuth2014.pyramid import build_pyramid
+    from ..progress import step
 
     if method not in SINGLE_METHODS:
         raise IBLError(f"method must be one of {', '.join(SINGLE_METHODS)}, got {method!r}")
@@ -96,7 +97,8 @@ def render_single_method(method: str, env: np.ndarray, *, width: int = 256, heig
         vals = pl.render_reference(env, n, wo, f, supersample=kpix, cut_angle=cut, progress=progress)
         info.update(cut_angle_deg=None if cut is None else float(np.degrees(cut)), max_supersample=int(kpix.max()))
     elif method in ("lobes", "pyramid"):
-        multi = [km.fit_multi_lobe(f, t, int(n_lobes), rescale=bool(rescale_lobes), **fk) for t in thetas]
+        with step(f"{n_lobes}-lobe fits at {len(thetas)} elevations", enabled=progress):
+            multi = [km.fit_multi_lobe(f, t, int(n_lobes), rescale=bool(rescale_lobes), **fk) for t in thetas]
         ls = pl.build_lobe_set(multi, km.track_lobes(multi), cube=env if method == "lobes" else None,
                                **(ck if method == "lobes" else {}))
         if method == "lobes":

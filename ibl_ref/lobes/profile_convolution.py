@@ -169,8 +169,9 @@ def auto_supersample(n: int, hwhm: float, samples_per_hwhm: float = 1.5, max_sup
     return int(np.clip(math.ceil(samples_per_hwhm * (2.0 / n) / hwhm - 1e-12), 1, int(max_supersample)))
 
 
-def _convolve_group(a, g, p, gc, out_size, k, tile, progress, out):
-    """Core of :func:`convolve_profiles` for profiles sharing one supersampling factor k (writes ``out``)."""
+def _convolve_group(a, g, p, gc, out_size, k, tiles, prog, out):
+    """Core of :func:`convolve_profiles` for profiles sharing one supersampling factor k (writes ``out``);
+    ``tiles``: :func:`_tile_geometry` of the output; ``prog``: a :class:`ibl_ref.progress.Progress` or None."""
     from scipy.spatial import cKDTree
 
     n = a.shape[1]
@@ -182,17 +183,15 @@ def _convolve_group(a, g, p, gc, out_size, k, tile, progress, out):
     del src
     live = np.flatnonzero(gc > 0)
     if live.size == 0:
+        if prog is not None:
+            prog.update(len(tiles))
         return
     tree = cKDTree(src_dirs)
     dst = envmap.texel_directions(out_size).reshape(-1, 3)
-    tiles = _tile_geometry(out_size, tile)
-    it = tiles
-    if progress:
-        from tqdm import tqdm
-
-        it = tqdm(tiles, desc=f"prefilter x{k}", unit="tile", leave=False)
     gc_max = float(gc[live].max())
-    for idx, cen, trad in it:
+    for idx, cen, trad in tiles:
+        if prog is not None:
+            prog.update(1)
         cap = min(gc_max + trad + 1e-9, np.pi)
         chord = 2.0 * math.sin(cap / 2.0) * (1.0 + 1e-12) + 1e-12
         cand = np.asarray(tree.query_ball_point(cen, chord), dtype=np.intp)
@@ -252,7 +251,7 @@ def convolve_profiles(cube, gamma, profiles, *, out_size: int | None = None, sup
     samples_per_hwhm, max_supersample : float, int
         Parameters of ``supersample="auto"``.
     progress : bool
-        tqdm progress bar over tiles.
+        report progress over tiles (:mod:`ibl_ref.progress`).
     return_info : bool
         Also return ``dict(cut_angle (P,), tail_fraction (P,), supersample (P,))``.
 
@@ -282,11 +281,19 @@ def convolve_profiles(cube, gamma, profiles, *, out_size: int | None = None, sup
     gc = np.array([c[0] for c in cuts])
     tails = np.array([c[1] for c in cuts])
     out = np.zeros((P, 6 * out_size * out_size, C))
-    for k in np.unique(ks):
+    tiles = _tile_geometry(out_size, tile)
+    groups = np.unique(ks)
+    from ..progress import Progress
+
+    prog = Progress(f"prefilter of {P} profile(s), supersampling {', '.join(str(int(k)) for k in groups)}",
+                    len(groups) * len(tiles), "tile") if progress else None
+    for k in groups:
         sel = np.flatnonzero(ks == k)
         sub = np.zeros((sel.size,) + out.shape[1:])
-        _convolve_group(a, g, p[sel], gc[sel], out_size, int(k), tile, progress, sub)
+        _convolve_group(a, g, p[sel], gc[sel], out_size, int(k), tiles, prog, sub)
         out[sel] = sub
+    if prog is not None:
+        prog.close()
     res = out.reshape((P, 6, out_size, out_size, C))
     if squeeze:
         res = res[..., 0]

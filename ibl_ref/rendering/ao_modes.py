@@ -199,16 +199,18 @@ def render_modes(meshes, camera, env, modes=MODES, *, pems=None, n_lights: int =
             img[m] = v
             images[k] = img
     if "reference" in modes:
+        from ..progress import step
         from .reference_render import render_reference
 
         t0 = time.perf_counter()
-        if mats is None:
-            ref = render_reference(sc, camera, env, kd=kd, ks=ks, g=g, gbuffer=gb, progress=progress,
-                                   **(reference_kw or {}))
-            ref_img, ref_un, info["reference"] = ref.image, ref.unoccluded, ref.info
-        else:
-            ref_img, ref_un, info["reference"] = _reference_per_material(sc, camera, env, gb, mats, progress,
-                                                                         reference_kw or {})
+        with step(f"converged reference of {int(m.sum())} pixels", enabled=progress):
+            if mats is None:
+                ref = render_reference(sc, camera, env, kd=kd, ks=ks, g=g, gbuffer=gb, progress=progress,
+                                       **(reference_kw or {}))
+                ref_img, ref_un, info["reference"] = ref.image, ref.unoccluded, ref.info
+            else:
+                ref_img, ref_un, info["reference"] = _reference_per_material(sc, camera, env, gb, mats, progress,
+                                                                             reference_kw or {})
         T["reference"] = time.perf_counter() - t0
         images["reference"] = ref_img
     extras = {}

@@ -391,7 +391,7 @@ def light_visibilities(scene, points, face_normals, lights, *, method: str = "vs
         shadow map (the trimesh route always includes the receiver: its rays start on it).
     timings : dict, optional — adds seconds per stage: ``shadow_maps`` (depth rendering), ``blur`` (moments and
         Gaussian blur), ``visibility`` (look-ups or ray casts)
-    progress : tqdm bar over lights
+    progress : report progress over lights (:mod:`ibl_ref.progress`)
     """
     import time
 
@@ -428,12 +428,9 @@ def light_visibilities(scene, points, face_normals, lights, *, method: str = "vs
         from .raster import prepare_scene
 
         sc = prepare_scene(scene, warn=False)
-        it = range(L)
-        if progress:
-            from tqdm import tqdm
+        from ..progress import track
 
-            it = tqdm(it, desc="shadow maps", unit="light")
-        for i in it:
+        for i in track(range(L), "shadow maps", unit="light", enabled=progress):
             sm = _vsm.build_vsm(sc, dirs[i], omega[i], resolution=vsm_resolution, dtype=vsm_dtype, timings=timings,
                                 **vsm_kw)
             t0 = time.perf_counter()
@@ -587,7 +584,7 @@ def render_pem(
     horizon : multiply VIS_i by [n_face·ω_i > 0] (see module docstring); default False (paper)
     background : ``"black"`` (default: 0 outside the geometry) or ``"env"`` — the environment seen along each
         camera ray (:func:`background_image`: the PEMs' mirror look-up), only in ``image``
-    progress : tqdm bar over lights
+    progress : report progress over lights (:mod:`ibl_ref.progress`)
 
     Returns
     -------
