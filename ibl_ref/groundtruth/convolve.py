@@ -641,18 +641,6 @@ def _sh_cannot_pay(finite, rtol, n, n_src, n_out, normalized, Q):
     return others < sh_lb
 
 
-def _sparse_rtol_scale(a4):
-    """Pre-scale of the sparse gather's tolerance for ``auto``: its bound at the darkest texels is
-    ≈ rtol·(mean/min) larger than at texels of typical radiance, so rtol is multiplied by min/mean
-    (≥ 1e-6; the mean over the body, the brightest 0.1 % of texels left out), then corrected once."""
-    n = a4.shape[1]
-    lum = a4.max(axis=-1).ravel()
-    w = np.broadcast_to(envmap.cube_solid_angles(n), a4.shape[:3]).ravel()
-    body = lum <= np.quantile(lum, 0.999)
-    l_mean = float(np.sum(lum[body] * w[body]) / np.sum(w[body]))
-    return min(1.0, max(float(a4.min()) / max(l_mean, 1e-300), 1e-6))
-
-
 def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_plan, sparse_batches, parts, ex_set,
                 mo_leaf=1):
     """The independent jobs ``(stage, key, model cost, callable)`` of one round of :func:`convolve`.
