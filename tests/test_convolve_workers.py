@@ -209,3 +209,15 @@ def _daemon_probe():
     except IBLError as exc:
         err = str(exc)
     return res.info["backend"], err
+
+
+def test_sparse_float32_kernel_identical_for_any_worker_count():
+    # at 128², s = 256 the sparse route runs the float32 kernel (kernel="auto"): its jobs (fixed face groups) give
+    # the same maps and bounds bit for bit with 1 and 2 workers
+    cube = _sun_env(128)
+    _, _, info = pc.convolve_sparse_many(cube, [256.0], faces=(0,), return_info=True)
+    assert info[0].kernel == "float32"
+    r1 = convolve(cube, [256.0], method="sparse", workers=1)
+    r2 = convolve(cube, [256.0], method="sparse", workers=2)
+    assert np.array_equal(r1.maps[256.0], r2.maps[256.0])
+    assert np.array_equal(r1.error_bound[256.0], r2.error_bound[256.0])

@@ -641,18 +641,6 @@ def _sh_cannot_pay(finite, rtol, n, n_src, n_out, normalized, Q):
     return others < sh_lb
 
 
-def _sparse_rtol_scale(a4):
-    """Pre-scale of the sparse gather's tolerance for ``auto``: its bound at the darkest texels is
-    ≈ rtol·(mean/min) larger than at texels of typical radiance, so rtol is multiplied by min/mean
-    (≥ 1e-6; the mean over the body, the brightest 0.1 % of texels left out), then corrected once."""
-    n = a4.shape[1]
-    lum = a4.max(axis=-1).ravel()
-    w = np.broadcast_to(envmap.cube_solid_angles(n), a4.shape[:3]).ravel()
-    body = lum <= np.quantile(lum, 0.999)
-    l_mean = float(np.sum(lum[body] * w[body]) / np.sum(w[body]))
-    return min(1.0, max(float(a4.min()) / max(l_mean, 1e-300), 1e-6))
-
-
 def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_plan, sparse_batches, parts, ex_set,
                 mo_leaf=1):
     """The independent jobs ``(stage, key, model cost, callable)`` of one round of :func:`convolve`.
@@ -733,9 +721,9 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
     results = {}
     parts = FACE_PARTS
     mo_parts = MOMENT_FACE_PARTS_LARGE if out_size >= MOMENT_SPLIT_MIN_SIZE else FACE_PARTS
+    # the sparse gather aims at rtol at every texel by itself (its local bound and per-tile caps);
+    # a batch whose bound still misses rtol somewhere is retried once with a tighter target, then exact
     scale0 = 1.0
-    if method == "auto" and any(route[s] in ("sparse", "sh") for s in s_list):
-        scale0 = _sparse_rtol_scale(a4)
 
     mo_set = [s for s in s_list if route[s] == "moment"]
     # auto: the bracket band (rigorous bound, leaf > 1) where it is cheaper; halved while it misses rtol

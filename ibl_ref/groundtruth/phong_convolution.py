@@ -74,6 +74,34 @@ import alone costs ≈ 0.4 s CPU), and tiles with similar candidate counts are g
 batched matrix products (padded lists), which removes the per-tile Python overhead that dominated
 narrow lobes (measured CPU of the gather, load 9–11: 128², s = 4096: 1.15 → 0.43 s; s = 1024: 1.6 →
 0.87 s; 256², s = 1000, two output faces: 4.8 → 2.7 s).
+**Local bound and per-tile caps** (default ``local=True``).  The neglected texels of an output texel r at angle
+a from its tile's centre lie beyond q − a (q: the tile's cap around its centre).  They are split at a far cap
+q_far = θ_far + (largest a) + margin, θ_far the cap whose W_b is ≤ ε_far·2π/(s+1) with
+``ε_far = 0.1·τ·L_lo/(L_max,out − L_lo)`` (``L_lo = max(L_min,out, dark_floor·L_mean)``, τ = rtol/(1+rtol)):
+texels between q and q_far from the centre have radiance within the *local* extremes
+``L_max,loc``/``L_min,loc`` (per channel, of the non-bright texels of the 8×8 source blocks whose cone reaches
+the far cap: a superset), those beyond q_far within the global ones.  With W₁ = W_b(q − a), W₂ = W_b(q_far − a)
+(the near weight is ≤ W₁ − W_far, the far weight W_far ≤ min(W₁, W₂)) the bound is::
+
+    |E − P| ≤ [min(W₁, W₂)·max(L_max,out − P, P − L_min,out) + max(W₁ − W₂, 0)·max(L_max,loc − P, P − L_min,loc)] / W_in
+
+(plus the kernel's rounding, below).  Each tile's first cap aims at a neglected fraction 0.8·(0.9·τ − the float32
+share)/κ, κ = (L_max,loc − L_min,loc)/L_min,loc its local contrast; a tile whose bound still misses rtol at some texel is gathered again with a
+cap for κ ≥ 1, then with q = θ_far (per tile: only the tiles that miss).  So the cap follows the map: wide next
+to a contrast, narrow in smooth regions, and no global tightening of rtol by the map's darkest/mean radiance
+is needed.  ``local=False`` (or ``theta_c``) is the single global cap above.
+
+**Float32 kernel** (``kernel="auto"``: where its rounding bound takes ≤ 20 % of τ; ``"float32"`` forces it,
+``"float64"`` never).  Sources are gathered in 4×4 slabs (contiguous copies), x = 1 − r·ω is computed in
+float32 from the offsets to the tile centre, a = r − t, b = ω − t, as one 5-term dot product
+``[a, |a|²/2, 1]·[−b, 1, |b|²/2]`` (small cancellation), ``log(1 − x)`` by its K-term series (Horner), the weight
+by float32 ``exp``, sums of 64 candidates in float32 and over the chunks in float64.  Its relative error η
+(:func:`_kernel32_eta`: rounding of x, of the series and its remainder, float32 exp within 2^-20, rounding of
+L·Ω and the partial sums, γ_n = nu/(1 − nu), u = 2^-24) and the absolute error of weights below 2^-126 are
+propagated into the bound (W_in lowered by 1 + η, the average widened by 2η/(1 − η)).  The kernel is used only
+where x ≤ 0.3, K ≤ 12 and the largest weight of every row is ≥ e^-40; it is checked against float64 sums on a
+dense sample of (texel, candidate) pairs in the tests (observed errors 1–2 % of η).
+
 The bound is worst-case: for smooth environments the actual error is typically 15–500× smaller
 (the neglected radiance is not all at L_max).  Measured at 64² (sky + 1e5 sun, rtol = 1e-3, CPU):
 s = 16: 3.5× faster than exact, max rel err 4.8e-5, max rel bound 6.6e-4; s = 256: 19.5×, 1.8e-5,
@@ -344,6 +372,12 @@ class SparseInfo:
         Number of brightest source texels gathered exactly for every output texel.
     gathered_fraction : float
         Mean fraction of source texels gathered per output texel (cost relative to the exact method).
+    theta_c_min : float
+        Smallest per-tile cap (``theta_c`` is the largest) with the local bound.
+    retried_tiles : int
+        Tiles gathered again with a wider cap because their bound missed ``rtol``.
+    kernel : str
+        ``"float32"`` or ``"float64"``: the weight kernel used.
     """
 
     s: float
@@ -353,6 +387,9 @@ class SparseInfo:
     log_weight_bound: float
     n_bright: int
     gathered_fraction: float
+    theta_c_min: float = float("nan")
+    retried_tiles: int = 0
+    kernel: str = "float64"
 
 
 def _texel_extent(m: int) -> float:
@@ -531,8 +568,37 @@ def _bright_set(rad: np.ndarray, omega: np.ndarray, n_bright, bright_factor: flo
 
 
 #: side (texels) of the source blocks whose bounding cones :func:`convolve_sparse_many` tests first when it
-#: looks for a tile's cap (then only those blocks' texels): a two-level search in NumPy, no KD-tree
+#: looks for a tile's cap (then only those blocks' texels): a two-level search in NumPy, no KD-tree.  The
+#: same blocks carry the per-channel radiance extremes of the local bound.
 _CAP_BLOCK = 8
+#: share of ``rtol`` left to the far-field term of the local bound (texels beyond the far cap θ_far, bounded
+#: with the global radiance extremes); the rest goes to the near annulus and to the float32 kernel's rounding
+_FAR_SHARE = 0.1
+#: the first cap of a tile aims at this fraction of its share of ``rtol`` (the a-priori estimate of the
+#: gathered weight and average can be off; a tile whose bound misses ``rtol`` is gathered again, wider)
+_CAP_MARGIN = 0.8
+#: float32 lobe kernel (:func:`_kernel32`): unit roundoff, relative error allowed for one float32 ``np.exp`` —
+#: NumPy's SIMD float32 exp states a largest relative error of 2.13e-7 measured over every float32 input
+#: (``numpy/_core/src/umath/loops_exponent_log.dispatch.c.src``), a libm ``expf`` is within one ulp
+#: (1.2e-7); 2^-20 = 9.5e-7 is 4.5× that (checked on a dense sample in the tests)
+_U32 = 2.0 ** -24
+_EXP32_REL = 2.0 ** -20
+#: candidates per float32 partial sum of the float32 kernel (relative error ≤ γ_kc each; summed in float64)
+_KC = 64
+#: the float32 kernel is used only where every pair has x = 1 − cos θ ≤ this (the series of −log(1 − x) is
+#: then short), where the series needs at most :data:`_SERIES_MAX` terms for a relative weight error
+#: ≤ :data:`_SERIES_TOL`, and where no output texel's largest weight is below e^:data:`_OWN_LOG_MIN`
+_X32_MAX = 0.3
+_SERIES_MAX = 12
+_SERIES_TOL = 2.0 ** -15
+_OWN_LOG_MIN = -40.0
+#: float32 kernel: elements of one batch's weight array (4 MB)
+_CHUNK32 = 1 << 20
+
+
+def _gamma(n: int, u: float) -> float:
+    """γ_n = n·u/(1 − n·u): relative error bound of a sum or dot product of n terms in any order."""
+    return n * u / (1.0 - n * u)
 
 
 def _source_blocks(src_dirs, m, b=_CAP_BLOCK):
@@ -567,25 +633,242 @@ def _tile_arrays(idx_t, td_t, cen_t, ang_t):
     return IDX, TD, np.array(cen_t), ANG, VALID
 
 
-def _tile_batches(counts, get_lists, B, pad_index, tail):
-    """Batches ``(tile indices, candidate matrix (g, m))`` of tiles with similar candidate counts (sorted by
-    ``counts``, an upper bound of each list's length): each row holds its tile's list (``get_lists(tile
-    indices)``, called per batch so that only one batch's lists exist at a time), pads (``pad_index``) up
-    to the batch's longest list, then ``tail`` (indices gathered for every tile).  Each batch's weight
-    matrix (g·B·m) ≤ :data:`_CHUNK_ELEMS` (at least one tile)."""
-    order = np.argsort(counts, kind="stable")
+class _Sources:
+    """Source texels of one :func:`convolve_sparse_many` call, arranged for the cap searches.
+
+    ``blk_dirs`` (nb, b², 3): directions of the texels of every block (NaN for the block's missing texels and
+    for the bright set, so that no cap test selects them); ``blk_max``/``blk_min`` (nb, C): per-channel
+    radiance extremes of the block's texels outside the bright set (−inf/+inf when there are none).
+    """
+
+    def __init__(self, src_dirs, rad, is_bright, m):
+        self.dirs = src_dirs
+        self.cen, self.tex, self.alpha = _source_blocks(src_dirs, m)
+        ok = (self.tex >= 0) & ~is_bright[np.maximum(self.tex, 0)]
+        self.blk_dirs = np.where(ok[..., None], src_dirs[np.maximum(self.tex, 0)], np.nan)
+        r = rad[np.maximum(self.tex, 0)]  # (nb, b², C)
+        self.blk_max = np.where(ok[..., None], r, -np.inf).max(axis=1)
+        self.blk_min = np.where(ok[..., None], r, np.inf).min(axis=1)
+
+    def hits(self, cen, q):
+        """(tile, block) index pairs, tile-major: blocks whose cone reaches the cap of radius q[i] around
+        cen[i] (the block's centre within q + α)."""
+        cos_qb = np.cos(np.minimum(q + self.alpha, np.pi))
+        return np.nonzero((cen @ self.cen.T) >= cos_qb[:, None])
+
+    def local_extremes(self, cen, q, rows=256):
+        """Per-channel max and min of the non-bright radiance over the blocks that reach the caps (cen[i],
+        q[i]): a superset of the texels within q[i] of cen[i]."""
+        n_t = len(q)
+        C = self.blk_max.shape[1]
+        lmax, lmin = np.empty((n_t, C)), np.empty((n_t, C))
+        for i0 in range(0, n_t, rows):
+            ti, bi = self.hits(cen[i0 : i0 + rows], q[i0 : i0 + rows])
+            starts = np.flatnonzero(np.r_[True, ti[1:] != ti[:-1]])
+            # every cap holds the block of its own centre (q ≥ 0, α > 0): no tile is without hits
+            lmax[i0 : i0 + rows] = np.maximum.reduceat(self.blk_max[bi], starts, axis=0)
+            lmin[i0 : i0 + rows] = np.minimum.reduceat(self.blk_min[bi], starts, axis=0)
+        return lmax, lmin
+
+    def cap_lists(self, cen, q, pad, multiple=1):
+        """Non-bright source texels within q[i] of cen[i] for every tile i (block order), as a padded index
+        matrix (g, m) (m a multiple of ``multiple``; pads = ``pad``) and the counts (g,)."""
+        ti, bi = self.hits(cen, q)
+        dots = np.einsum("hkj,hj->hk", self.blk_dirs[bi], cen[ti])  # NaN (missing, bright) compares False
+        sel = dots >= np.cos(np.minimum(q, np.pi))[ti, None]
+        tex = self.tex[bi][sel]
+        tile = np.repeat(ti, sel.sum(axis=1))
+        counts = np.bincount(tile, minlength=len(q))
+        m = int(counts.max()) if counts.size else 0
+        m = max(multiple, -(-m // multiple) * multiple)
+        ii = np.full((len(q), m), pad, dtype=np.intp)
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        ii[tile, np.arange(tex.size) - starts[tile]] = tex
+        return ii, counts
+
+
+#: the float32 kernel gathers whole slabs of b×b source texels (contiguous copies, no per-texel indexing),
+#: found by a two-level cone search (super-blocks of :data:`_SLAB_SUPER` × :data:`_SLAB_SUPER` slabs)
+_SLAB = 4
+_SLAB_SUPER = 4
+
+
+class _Slabs:
+    """Source texels in slabs of b×b (b = :data:`_SLAB`) for the float32 kernel.
+
+    ``dirs`` (ns + 1, b², 3) float64 directions and ``rw`` (ns + 1, b², Q) float32 rows [L·Ω, Ω] per slab, zero
+    for missing texels (partial slabs), for the bright set (gathered separately) and for the padding slab ns;
+    slab centres ``cen`` and the largest centre-to-texel angle ``alpha``; super-blocks of slabs (``sup_cen``,
+    ``sup_alpha``, member slabs ``sup_mem`` (nsup, k²), −1 = none).
+    """
+
+    def __init__(self, src_dirs, rad_w, is_bright, m, b=_SLAB, k=_SLAB_SUPER):
+        self.cen, tex, self.alpha = _source_blocks(src_dirs, m, b)
+        ok = (tex >= 0) & ~is_bright[np.maximum(tex, 0)]
+        ns = len(self.cen)
+        self.pad = ns
+        self.dirs = np.zeros((ns + 1, b * b, 3))
+        self.dirs[:ns] = np.where((tex >= 0)[..., None], src_dirs[np.maximum(tex, 0)], 0.0)
+        self.rw = np.zeros((ns + 1, b * b, rad_w.shape[1]), dtype=np.float32)
+        self.rw[:ns] = np.where(ok[..., None], rad_w[np.maximum(tex, 0)], 0.0)
+        nb = -(-m // b)  # slabs per face side
+        nk = -(-nb // k)
+        mem = np.full((6, nk * k, nk * k), -1, dtype=np.intp)
+        mem[:, :nb, :nb] = np.arange(ns).reshape(6, nb, nb)
+        self.sup_mem = mem.reshape(6, nk, k, nk, k).transpose(0, 1, 3, 2, 4).reshape(-1, k * k)
+        # super-block centre: normalised mean of its slab centres; radius: farthest texel of its slabs
+        valid = self.sup_mem >= 0
+        c = np.where(valid[..., None], self.cen[np.maximum(self.sup_mem, 0)], 0.0).sum(axis=1)
+        self.sup_cen = c / np.linalg.norm(c, axis=1, keepdims=True)
+        dots = np.where(valid, np.einsum("skj,sj->sk", self.cen[np.maximum(self.sup_mem, 0)], self.sup_cen), 1.0)
+        self.sup_alpha = float(np.arccos(np.clip(dots.min(), -1.0, 1.0))) + self.alpha + 1e-9
+
+    def cap_slabs(self, cen, q):
+        """Slabs whose centre lies within q[i] + α of cen[i] (so every texel within q[i] is in one) for every
+        tile i, in super-block then member order: ``(slabs of all tiles (concatenated), counts (g,))``."""
+        ti, si = np.nonzero((cen @ self.sup_cen.T) >= np.cos(np.minimum(q + self.sup_alpha, np.pi))[:, None])
+        mem = self.sup_mem[si]  # (h, k²)
+        d = np.einsum("hkj,hj->hk", self.cen[np.maximum(mem, 0)], cen[ti])
+        sel = (mem >= 0) & (d >= np.cos(np.minimum(q + self.alpha, np.pi))[ti, None])
+        return mem[sel], np.bincount(np.repeat(ti, sel.sum(axis=1)), minlength=len(q))
+
+
+def _padded(flat, counts, rows, width, pad):
+    """Rows ``rows`` of a ragged list (``flat`` concatenated, ``counts`` per row) as a (len(rows), width) matrix
+    filled with ``pad``."""
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    c = counts[rows]
+    out = np.full((rows.size, width), pad, dtype=flat.dtype)
+    r = np.repeat(np.arange(rows.size), c)
+    j = np.arange(r.size) - np.repeat(np.cumsum(c) - c, c)
+    out[r, j] = flat[np.repeat(starts[rows], c) + j]
+    return out
+
+
+def _series_terms(s, x_max):
+    """Terms K of the series −log(1 − x) = Σ_k x^k/k whose remainder bound s·x^{K+1}/((K+1)(1 − x)) is
+    ≤ :data:`_SERIES_TOL` for x ≤ x_max (array; 0 where more than :data:`_SERIES_MAX` terms or x_max ≥ 1)."""
+    x = np.minimum(np.asarray(x_max, dtype=np.float64), 0.999)
+    out = np.zeros(x.shape, dtype=np.intp)
+    for K in range(_SERIES_MAX, 1, -1):
+        ok = (s * x ** (K + 1) / ((K + 1) * (1.0 - x)) <= _SERIES_TOL) & (np.asarray(x_max) < 1.0)
+        out = np.where(ok, K, out)
+    return out
+
+
+def _kernel32_eta(s, K, r_a, r_b, ang_max):
+    """Relative error bound η of the float32 kernel's sums Σ w_j L_j Ω_j and Σ w_j Ω_j (arrays broadcast).
+
+    x = 1 − r·ω = |a|²/2 + |b|²/2 − a·b with a = r − t, b = ω − t (t the tile centre: |a| ≤ r_a, |b| ≤ r_b,
+    angles bounding chords), every pair within the angle ang_max.
+    Error sources (u = 2^-24, γ_n = nu/(1 − nu)):
+
+    * x in float32 from float32-rounded a, b, |a|²/2, |b|²/2 by one 5-term dot product:
+      |x̂ − x| ≤ γ_8·(|a| + |b|)²/2 =: Δx;
+    * u = −s·p(x̂), p the K-term series of −log(1 − x), by Horner in float32: |û + s·p(x̂)| ≤ γ_{2K+1}·s·p(X)
+      with X = 1 − cos(ang_max) + Δx ≥ |x̂|; |p(x̂) − p(x)| ≤ Δx/(1 − X); the series remainder
+      0 ≤ −log(1 − x) − p(x) ≤ X^{K+1}/((K+1)(1 − X));
+    * float32 exp: relative :data:`_EXP32_REL` (weights ≥ 2^-126; smaller ones: the absolute term of
+      :func:`_kernel32_underflow`);
+    * L·Ω and Ω rounded to float32 (u), partial sums of :data:`_KC` non-negative terms (γ_kc), their float64
+      sum (≤ 1e-12).
+    """
+    dx = _gamma(8, _U32) * (r_a + r_b) ** 2 / 2.0
+    X = 1.0 - np.cos(np.minimum(ang_max, np.pi)) + dx
+    p = -np.log1p(-np.minimum(X, 0.999))
+    # first Horner stage c_K·x + c_{K−1} from its own 5-term product (|c_k| = s/k), propagated by x^{K−1}
+    e1 = (_gamma(7, _U32) * (s / K * (r_a + r_b) ** 2 / 2.0 + s / (K - 1)) + s / K * dx) * X ** (K - 1)
+    du = s * (_gamma(2 * K + 1, _U32) * p + dx / (1.0 - X) + X ** (K + 1) / ((K + 1) * (1.0 - X))) + e1
+    delta = np.expm1(du) * (1.0 + _EXP32_REL) + _EXP32_REL
+    return (1.0 + delta) * (1.0 + _U32) * (1.0 + _gamma(_KC, _U32)) * (1.0 + 1e-12) - 1.0
+
+
+def _kernel32_underflow(m, own_log, omega_ratio):
+    """Absolute error of the float32 kernel's average from weights below 2^-126 (float32 exp returns them
+    as subnormals or 0: each off by < 2^-125), relative to the largest neglected-or-gathered radiance:
+    m·2^-125 / (smallest own weight e^{own_log} · Ω_min/Ω_max)."""
+    return m * 2.0 ** -125 * math.exp(-own_log) * omega_ratio
+
+
+def _gather_batch32(cen, TD, si, slabs, coef):
+    """Float32 kernel for tiles with centres ``cen`` (g, 3), rows ``TD`` (g, B, 3) and slab matrix ``si``
+    (g, ms) (:meth:`_Slabs.cap_slabs`, ms·b² a multiple of :data:`_KC`).
+
+    With a = r − t, b = ω − t (t the tile centre): x = 1 − r·ω = [a, |a|²/2, 1]·[−b, 1, |b|²/2] in float32,
+    u = x·(c_1 + x·(c_2 + …)) by Horner (``coef`` = −s/k, the series of s·log(1 − x)), w = exp(u); sums of
+    :data:`_KC` candidates in float32 (matrix products over chunks), added over the chunks in float64.
+    Zero rows (missing texels, the bright set, pads) add exactly 0.  Returns the sums (g, B, Q) float64
+    (:func:`_kernel32_eta` bounds their relative error)."""
+    g = si.shape[0]
+    a = TD - cen[:, None, :]  # (g, B, 3)
+    B = a.shape[1]
+    ha = 0.5 * np.einsum("gbk,gbk->gb", a, a)
+    # rows 0…B−1 give x, rows B…2B−1 the first Horner stage c_K·x + c_{K−1} directly
+    cK, cK1 = float(coef[-1]), float(coef[-2])
+    TA = np.empty((g, 1, 2 * B, 5), dtype=np.float32)
+    TA[:, 0, :B, :3] = a
+    TA[:, 0, :B, 3] = ha
+    TA[:, 0, :B, 4] = 1.0
+    TA[:, 0, B:, :3] = cK * a
+    TA[:, 0, B:, 3] = cK * ha + cK1
+    TA[:, 0, B:, 4] = cK
+    b = slabs.dirs[si].reshape(g, -1, 3) - cen[:, None, :]  # (g, m, 3)
+    m = b.shape[1]
+    nch = m // _KC
+    DB = np.empty((g, nch, 5, _KC), dtype=np.float32)
+    DB[:, :, :3] = -b.reshape(g, nch, _KC, 3).transpose(0, 1, 3, 2)
+    DB[:, :, 3] = 1.0
+    DB[:, :, 4] = (0.5 * np.einsum("gmk,gmk->gm", b, b)).reshape(g, nch, _KC)
+    xu = np.matmul(TA, DB)  # (g, nch, 2B, kc)
+    x, u = xu[:, :, :B], xu[:, :, B:]
+    u *= x
+    for c in coef[-3::-1]:
+        u += c
+        u *= x
+    np.exp(u, out=u)
+    part = np.matmul(u, slabs.rw[si].reshape(g, nch, _KC, -1))  # (g, nch, B, Q) float32 partial sums
+    return np.add.reduce(part.astype(np.float64), axis=1)
+
+
+def _gather_batch64(tb, ii, TD, src_dirs_pad, rad_w_pad, s, rowmax):
+    """Float64 kernel (log/exp of the cosines) for the tiles ``tb`` with candidates ``ii`` (g, m): returns
+    the sums (g, B, Q) and the per-row log of the reference cosine (0 unless ``rowmax``)."""
+    c = np.matmul(TD[tb], src_dirs_pad[:, ii].transpose(1, 0, 2))  # (g, B, m) cosines
+    np.maximum(c, 0.0, out=c)
+    with np.errstate(divide="ignore"):
+        np.log(c, out=c)  # −inf behind the lobe (and at the pads) → weight exactly 0
+    if rowmax:
+        mx = c.max(axis=2, keepdims=True)
+        c -= mx
+    else:
+        mx = np.zeros(c.shape[:2] + (1,))
+    c *= s
+    np.exp(c, out=c)  # (c / c_ref)^s ≤ 1
+    return np.matmul(c, rad_w_pad[ii]), mx  # Ω folded into rad_w: [Σ w L Ω, Σ w Ω]
+
+
+def _bright_sums(TD_tb, bright_dirs_t, rad_w_bright, s):
+    """Exact float64 sums of the bright set for the rows TD_tb (g, B, 3): (g, B, Q), weights relative to 1."""
+    c = np.matmul(TD_tb, bright_dirs_t)
+    np.maximum(c, 0.0, out=c)
+    with np.errstate(divide="ignore"):
+        np.log(c, out=c)
+    c *= s
+    np.exp(c, out=c)
+    return np.matmul(c, rad_w_bright)
+
+
+def _tile_batches(order, counts, B, chunk, key):
+    """Batches of tile indices (consecutive in ``order``, with equal ``key``; ``counts`` an estimate of each
+    tile's candidate count) whose weight arrays (g·B·m) stay within ``chunk`` elements (at least one tile)."""
     k0 = 0
-    n_t = len(order)
-    while k0 < n_t:
-        g = max(1, _CHUNK_ELEMS // (B * max(int(counts[order[k0]]) + tail.size, 1)))
+    while k0 < len(order):
+        g = max(1, chunk // (B * max(int(counts[order[k0]]), 1)))
         tb = order[k0 : k0 + g]
-        lists = get_lists(tb)
-        m = max((len(x) for x in lists), default=0)
-        ii = np.full((tb.size, m + tail.size), pad_index, dtype=np.intp)
-        for r, x in enumerate(lists):
-            ii[r, : len(x)] = x
-        ii[:, m:] = tail
-        yield tb, ii
+        tb = tb[key[tb] == key[tb[0]]]  # (order is sorted by key: a prefix)
+        while tb.size > 1 and tb.size * B * int(counts[tb].max()) > chunk:
+            tb = tb[: max(1, tb.size // 2)]
+        yield tb
         k0 += tb.size
 
 
@@ -602,6 +885,9 @@ def convolve_sparse_many(
     theta_c: float | None = None,
     return_info: bool = False,
     faces=None,
+    local: bool = True,
+    kernel: str = "auto",
+    dark_floor: float = 1e-6,
 ):
     """Truncated-support gather of the normalised Eq. 4 lobe average, several exponents.
 
@@ -623,6 +909,14 @@ def convolve_sparse_many(
         raise IBLError(f"rtol must be a positive number, got {rtol!r}") from None
     if not (0.0 < rtol < 1.0):
         raise IBLError(f"rtol must be in (0, 1), got {rtol!r}")
+    if kernel not in ("auto", "float32", "float64"):
+        raise IBLError(f"kernel must be 'auto', 'float32' or 'float64', got {kernel!r}")
+    try:
+        dark_floor = float(dark_floor)
+    except (TypeError, ValueError):
+        raise IBLError(f"dark_floor must be a number in [0, 1], got {dark_floor!r}") from None
+    if not (0.0 <= dark_floor <= 1.0):
+        raise IBLError(f"dark_floor must be in [0, 1], got {dark_floor!r}")
     C = a.shape[-1]
     K = len(s_list)
     faces = check_faces(faces)
@@ -646,32 +940,43 @@ def convolve_sparse_many(
     else:
         l_max_out = l_min_out = np.zeros(C)
         l_ref = l_top = 0.0
-    # ε such that ε·L_max,out ≈ rtol·(typical radiance): relative error ≈ rtol where P ≈ mean radiance
+    # the single-cap rule (local=False, or theta_c given): ε·L_max,out ≈ rtol·(typical radiance), i.e. relative
+    # error ≈ rtol where P ≈ mean radiance; also the typical cap that sets the tile size
     eps = rtol * (min(1.0, l_ref / l_top) if l_top > 0 else 1.0)
     eps = max(eps, 1e-300)
     rho = _texel_extent(n * supersample)
+    tau = rtol / (1.0 + rtol)  # abs ≤ τ·P ⇔ abs/(P − abs) ≤ rtol (the relative bound of convolve())
+    floor = dark_floor * l_ref
+    lo = np.maximum(l_min_out, floor)
+    span = l_max_out - lo
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(span > 0, lo / np.where(span > 0, span, 1.0), np.inf)
+    eps_far = max(_FAR_SHARE * tau * float(ratio.min()) if np.isfinite(ratio.min()) else 1.0, 1e-300)
 
     dst = envmap.texel_directions(out_size)  # (6, n, n, 3)
-    blocks = None
     geometry = {}  # tile size → per-tile output indices, directions, centre, angles
     rad_w = np.concatenate([rad, np.ones((M, 1))], axis=1) * omega[:, None]
-    src_dirs_t = np.ascontiguousarray(src_dirs.T)
     is_bright = np.zeros(M, dtype=bool)
     is_bright[bright] = True
+    sources = slabs = None
     # source directions and weights with one dummy entry (index M: direction 0 → weight 0) for the pads
-    src_dirs_pad = np.concatenate([src_dirs_t, np.zeros((3, 1))], axis=1)
+    src_dirs_pad = np.concatenate([src_dirs, np.zeros((1, 3))])
+    src_dirs_pad_t = np.ascontiguousarray(src_dirs_pad.T)
     rad_w_pad = np.concatenate([rad_w, np.zeros((1, C + 1))])
+    bright_dirs_t = np.ascontiguousarray(src_dirs[bright].T)
+    rad_w_bright = rad_w[bright]
+    omega_ratio = float(omega.max() / omega.min())
 
     for k, s in enumerate(s_list):
         if not np.isfinite(s):
             maps[k] = _mirror(a, out_size)[list(faces)].reshape(-1, C)
             infos.append(SparseInfo(s, 0.0, rho, 0.0, -np.inf, 0, 1.0 / M))
             continue
+        single = theta_c is not None or not local
         if theta_c is None:
             th = cutoff_angle(s, eps, rho)
         else:
             th = float(min(max(theta_c, 0.0), np.pi / 2))
-        log_wb = neglected_weight_bound(s, th, rho)
         if (1.0 - math.cos(min(th, np.pi))) / 2.0 > 0.4:
             # the cap covers most of the lobe's hemisphere: the dense exact gather is cheaper
             ex = convolve_exact_many(a, [s], supersample=supersample, out_size=out_size)[0][list(faces)].reshape(-1, C)
@@ -681,81 +986,171 @@ def convolve_sparse_many(
             continue
         # tiles of T×T output texels sharing one candidate list
         T = _tile_size(out_size, th, M, int(bright.size))
-        # the cap reaches at least ρ beyond every texel of its tile, so it holds each output texel's own
-        # source texel (within ρ of it): the largest weight of every row is gathered
-        th_cap = max(th, rho + _ANGLE_MARGIN)
         if T not in geometry:
             geometry[T] = _tile_arrays(*_tile_geometry(dst, faces, out_size, T))
         IDX, TD, CEN, ANG, VALID = geometry[T]
         n_t, B = IDX.shape
-        # Per-texel bound: a tile gathers every source texel within q = θc + t_rad of its centre, so for
-        # an output texel at angle a from the centre every neglected texel is farther than
-        # θ_eff = q − a ≥ θc.  W_b is tabulated on a grid of angles; a texel uses the largest grid
-        # angle ≤ θ_eff (W_b(θ) bounds the weight of ALL texels beyond θ, a superset).
-        t_rad_max = 0.75 * T * (np.pi / 2) / out_size * 2.0
-        grid = np.unique(np.concatenate([th + np.linspace(0.0, t_rad_max + th_cap - th, 33), [np.pi / 2]]))
-        grid = grid[grid <= np.pi / 2]
-        log_wb_grid = np.array([neglected_weight_bound(s, g, rho) for g in grid])
-        q_t = th_cap + ANG.max(axis=1) + _ANGLE_MARGIN
-        near = q_t < np.pi
-        # neglected j: ∠(j, cen) > q ⇒ ∠(j, r) > q − ∠(r, cen); half the margin absorbs round-off
-        theta_eff = q_t[:, None] - 0.5 * _ANGLE_MARGIN - ANG  # ≥ θc + margin/2
-        gi = np.searchsorted(grid, theta_eff, side="right") - 1
-        log_wb_t = np.where(near[:, None], log_wb_grid[np.maximum(gi, 0)], -np.inf)
-        # candidate lists (the bright set is left out: it is gathered for every output texel below):
-        # the source blocks whose cone reaches the cap, then their texels within q of the tile centre
-        every = np.flatnonzero(~is_bright)
-        if blocks is None:
-            blocks = _source_blocks(src_dirs, n * supersample)
-        blk_c, blk_tex, blk_alpha = blocks
-        cos_q = np.cos(np.minimum(q_t, np.pi))
-        cos_qb = np.cos(np.minimum(q_t + blk_alpha, np.pi))
-        counts = np.where(near, np.minimum(M, (1.0 - cos_qb) / 2.0 * M + 1).astype(np.intp), M)
+        a_max = ANG.max(axis=1)
+        if ("t_rad", T) not in geometry:  # the largest tile radius, from face 0 whatever the face subset (all
+            # faces have the same tiles): the kernel choice below is the same for every subset
+            geometry[("t_rad", T)] = max(float(np.max(x)) for x in _tile_geometry(dst, (0,), out_size, T)[3])
+        t_rad = geometry[("t_rad", T)] * (1.0 + 1e-9)
+        # every cap reaches ρ beyond its tile's texels: each row's own source texel (within ρ) is gathered
+        cap_min = rho + _ANGLE_MARGIN
+        th_far = max(th if single else cutoff_angle(s, eps_far, rho), cap_min)
+        log_lobe = math.log(2.0 * np.pi / (s + 1.0))
+        # W_b tabulated from cap_min to beyond every θ a bound looks up (step ρ/4), made non-increasing by a
+        # running minimum (W_b(θ') bounds every texel beyond θ ≥ θ': valid); a texel uses the grid angle ≤ its θ
+        top = min(th_far + t_rad + 2.0 * _ANGLE_MARGIN, np.pi / 2)
+        grid = np.append(np.arange(cap_min, top, max(rho / 4.0, 1e-5)), np.pi / 2)
+        log_wb_grid = np.minimum.accumulate([neglected_weight_bound(s, g, rho) for g in grid])
 
-        def get_lists(tb):
-            hit = (CEN[tb] @ blk_c.T) >= cos_qb[tb, None]  # (g, blocks): cones within q + α of the centre
-            out = []
-            for r, t in enumerate(tb):
-                if not near[t]:
-                    out.append(every)
-                    continue
-                tex = blk_tex[hit[r]].ravel()
-                tex = tex[tex >= 0]
-                tex = tex[(CEN[t] @ src_dirs_t[:, tex]) >= cos_q[t]]
-                out.append(np.sort(tex[~is_bright[tex]]) if bright.size else np.sort(tex))
-            return out
-        gathered = 0
-        # weights relative to 1 (c ≤ 1 ⇒ c^s ≤ 1: no overflow) when no row's largest weight — its own
-        # source texel's, within ρ — can underflow; otherwise relative to each row's largest cosine
-        rowmax = s * math.log(max(math.cos(min(rho, np.pi / 2)), 1e-300)) < -600.0
-        acc = np.zeros((n_t, B, C + 1))
-        logc_max = np.zeros((n_t, B, 1))
-        # (the bright set, never in the cap lists, is gathered for every output texel)
-        for tb, ii in _tile_batches(counts, get_lists, B, M, bright):
-            gathered += ii.size * B
-            c = np.matmul(TD[tb], src_dirs_pad[:, ii].transpose(1, 0, 2))  # (g, B, m) cosines
-            np.maximum(c, 0.0, out=c)
+        def cap_for(eps_t):
+            i = np.searchsorted(-log_wb_grid, -(np.log(eps_t) + log_lobe), side="left")
+            return np.minimum(grid[np.minimum(i, grid.size - 1)], th_far)
+
+        def log_wb_at(theta):
+            gi = np.searchsorted(grid, theta, side="right") - 1
+            return np.where(gi >= 0, log_wb_grid[np.maximum(gi, 0)], 0.0 * theta + np.inf)
+
+        if sources is None:
+            sources = _Sources(src_dirs, rad, is_bright, n * supersample)
+        # kernel: float32 where its rounding bound is small (decided from bounds valid for every face subset):
+        # a row and a candidate are within a + q, q ≤ θ_far + t_rad
+        # (slab texels lie within the slab's plane diagonal (b−1)·√2·2/m of each other: the gnomonic map from
+        # the face plane to the sphere shortens distances)
+        al_slab = (_SLAB - 1) * math.sqrt(2.0) * 2.0 / (n * supersample)
+        q_top = th_far + t_rad + _ANGLE_MARGIN + 2.0 * al_slab
+        x_glob = 1.0 - math.cos(min(q_top + t_rad, np.pi))
+        own_log = s * math.log(max(math.cos(min(rho, np.pi / 2)), 1e-300))
+        n_terms = int(_series_terms(s, x_glob + _gamma(8, _U32) * (q_top + t_rad) ** 2))
+        use32 = kernel != "float64" and n_terms > 0 and x_glob <= _X32_MAX and own_log >= _OWN_LOG_MIN
+        if use32:  # its rounding bound at the typical cap (first attempt) takes ≤ 20 % of rtol
+            q_typ = th + t_rad + _ANGLE_MARGIN + 2.0 * al_slab
+            eta_typ = float(_kernel32_eta(s, n_terms, t_rad, q_typ, t_rad + q_typ))
+            use32 = kernel == "float32" or 2.2 * eta_typ <= 0.2 * tau
+        if kernel == "float32" and not use32:
+            raise IBLError(f"the float32 kernel cannot bound s = {s:g} on this grid (cap too wide or lobe narrower "
+                           "than a texel); use kernel='auto'")
+        fp_share = 2.2 * eta_typ if use32 else 0.0
+        if use32 and slabs is None:
+            slabs = _Slabs(src_dirs, rad_w, is_bright, n * supersample)
+        rowmax = (not use32) and own_log < -600.0
+
+        # caps per attempt: local (radiance extremes within the far cap), then local with κ ≥ 1 (an average
+        # above the local maximum, e.g. next to the bright set), then the far cap
+        q_far = th_far + a_max + _ANGLE_MARGIN
+        if single:
+            lmax2, lmin2 = np.broadcast_to(l_max_out, (n_t, C)), np.broadcast_to(l_min_out, (n_t, C))
+            attempts = [np.full(n_t, th_far)]
+        else:
+            lmax2, lmin2 = sources.local_extremes(CEN, q_far)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                kap = np.where(lmax2 > lmin2, (lmax2 - lmin2) / np.maximum(lmin2, max(floor, 1e-300)), 0.0).max(axis=1)
+            tau_near = max(tau * (1.0 - _FAR_SHARE) - fp_share, 1e-3 * tau)
             with np.errstate(divide="ignore"):
-                np.log(c, out=c)  # −inf behind the lobe (and at the pads) → weight exactly 0
-            if rowmax:
-                mx = c.max(axis=2, keepdims=True)
-                logc_max[tb] = mx
-                c -= mx
-            c *= s
-            np.exp(c, out=c)  # (c / c_ref)^s ≤ 1
-            acc[tb] += np.matmul(c, rad_w_pad[ii])  # Ω folded into rad_w: [Σ w L Ω, Σ w Ω]
-        p_avg = acc[..., :C] / acc[..., C:]
-        # log W_in (absolute Σ cos^s Ω over the gathered set)
-        log_win = s * logc_max[..., 0] + np.log(acc[..., C])
-        with np.errstate(invalid="ignore", over="ignore"):
-            f_out = np.where(
-                np.isneginf(log_wb_t), 0.0, 1.0 / (1.0 + np.exp(np.minimum(log_win - log_wb_t, 700.0)))
-            )  # W_b/(W_in+W_b)
-        dev = np.maximum(np.maximum(l_max_out - p_avg, p_avg - l_min_out), 0.0)
-        b_abs = f_out[..., None] * dev + 1e-12 * p_avg  # + floating-point allowance
-        maps[k, IDX[VALID]] = p_avg[VALID]
-        bounds[k, IDX[VALID]] = b_abs[VALID]
-        infos.append(SparseInfo(s, th, rho, eps, log_wb, int(bright.size), gathered / (P * M)))
+                eps1 = np.minimum(_CAP_MARGIN * tau_near / np.maximum(kap, 1e-12), 0.5)
+                eps2 = np.minimum(_CAP_MARGIN * tau_near / np.maximum(kap, 1.0), 0.5)
+            attempts = [cap_for(eps1), cap_for(eps2), np.full(n_t, th_far)]
+        todo = np.arange(n_t)
+        prev = np.full(n_t, -1.0)
+        gathered = 0
+        retried = 0
+        caps_used = np.zeros(n_t)
+        for att, caps in enumerate(attempts):
+            todo = todo[caps[todo] > prev[todo]]
+            if todo.size == 0:
+                break
+            if att > 0:
+                retried += todo.size
+            prev[todo] = caps[todo]
+            caps_used[todo] = caps[todo]
+            q_t = caps + a_max + _ANGLE_MARGIN
+            acc = np.empty((todo.size, B, C + 1))
+            log_mx = np.zeros((todo.size, B))
+            eta = np.full(todo.size, 1e-12)
+            und = np.zeros(todo.size)
+            pos = np.empty(n_t, dtype=np.intp)
+            pos[todo] = np.arange(todo.size)
+            est = np.minimum(M, (1.0 - np.cos(np.minimum(q_t + sources.alpha, np.pi))) / 2.0 * M * 1.5 + _KC)
+            if use32:
+                # series terms per tile (from the tile's own largest x: the same in every face subset); a batch
+                # holds tiles with the same number of terms
+                r_all = a_max + q_t + 2.0 * slabs.alpha
+                terms = _series_terms(s, 1.0 - np.cos(np.minimum(r_all, np.pi)) + _gamma(8, _U32) * r_all**2)
+            else:
+                terms = np.zeros(n_t, dtype=np.intp)
+            order = todo[np.lexsort((est[todo], terms[todo]))]
+            if use32:
+                # groups of tiles with the same number of series terms: their slab lists, then batches of tiles
+                # with similar list lengths (the batch pads to its longest list)
+                per = _KC // _SLAB**2
+                for grp in _tile_batches(order, est, 1, 512 * int(est.max()), terms):
+                    flat, cnt = slabs.cap_slabs(CEN[grp], q_t[grp])
+                    width = -(-cnt // per) * per
+                    srt = np.argsort(width, kind="stable")
+                    kt = int(terms[grp[0]])
+                    coef = (-s / np.arange(1, kt + 1)).astype(np.float32)
+                    i0 = 0
+                    while i0 < grp.size:
+                        w = int(width[srt[i0]])
+                        g = max(1, _CHUNK32 // (B * w * _SLAB**2))
+                        sel = srt[i0 : i0 + g]
+                        wmax = int(width[sel].max())
+                        while sel.size > 1 and sel.size * B * wmax * _SLAB**2 > _CHUNK32:
+                            sel = sel[: sel.size // 2]
+                            wmax = int(width[sel].max())
+                        tb = grp[sel]
+                        r = pos[tb]
+                        si = _padded(flat, cnt, sel, wmax, slabs.pad)
+                        acc[r] = _gather_batch32(CEN[tb], TD[tb], si, slabs, coef)
+                        r_b = q_t[tb] + 2.0 * slabs.alpha
+                        eta[r] = _kernel32_eta(s, kt, a_max[tb], r_b, a_max[tb] + r_b)
+                        und[r] = _kernel32_underflow(wmax * _SLAB**2 + bright.size, own_log, omega_ratio)
+                        if bright.size:
+                            acc[r] += _bright_sums(TD[tb], bright_dirs_t, rad_w_bright, s)
+                        gathered += si.size * _SLAB**2 * B
+                        i0 += sel.size
+            else:
+                # (batches sized by the texels within q at the mean density: the lists are built per batch)
+                est64 = np.maximum((1.0 - np.cos(np.minimum(q_t, np.pi))) / 2.0 * M, 1.0)
+                for tb in _tile_batches(order, est64, B, _CHUNK_ELEMS, terms):
+                    r = pos[tb]
+                    ii, _cnt = sources.cap_lists(CEN[tb], q_t[tb], M)
+                    if rowmax and bright.size:  # the row maxima include the bright set
+                        ii = np.concatenate([ii, np.broadcast_to(bright, (tb.size, bright.size))], axis=1)
+                    acc[r], mx = _gather_batch64(tb, ii, TD, src_dirs_pad_t, rad_w_pad, s, rowmax)
+                    log_mx[r] = s * mx[..., 0]
+                    if bright.size and not rowmax:
+                        acc[r] += _bright_sums(TD[tb], bright_dirs_t, rad_w_bright, s)
+                    gathered += ii.size * B
+            # per-texel bounds of the attempt's tiles; tiles whose bound misses rtol go to the next attempt
+            tt = todo
+            p_avg = acc[..., :C] / acc[..., C:]
+            # log W_in (absolute Σ cos^s Ω over the gathered set), lowered by the kernel's error bound
+            log_win = log_mx + np.log(acc[..., C]) - np.log1p(eta + und)[:, None]
+            e_fp = (2.0 * eta / (1.0 - eta))[:, None, None] * p_avg + und[:, None, None] * (lmax2[tt][:, None, :] + p_avg)
+            # neglected texels of a row at angle a from the centre: beyond q − a (the near annulus up to
+            # q_far − a: local extremes) and beyond q_far − a (global extremes)
+            ang = ANG[tt]
+            lw1 = log_wb_at(q_t[tt][:, None] - 0.5 * _ANGLE_MARGIN - ang)
+            lw2 = log_wb_at(q_far[tt][:, None] - 0.5 * _ANGLE_MARGIN - ang)
+            with np.errstate(over="ignore", invalid="ignore"):
+                f1 = np.where(np.isneginf(lw1), 0.0, np.exp(np.minimum(lw1 - log_win, 700.0)))
+                f2 = np.where(np.isneginf(lw2), 0.0, np.exp(np.minimum(lw2 - log_win, 700.0)))
+            d_loc = np.maximum(np.maximum(lmax2[tt][:, None, :] - p_avg, p_avg - lmin2[tt][:, None, :]), 0.0) + e_fp
+            d_glob = np.maximum(np.maximum(l_max_out - p_avg, p_avg - l_min_out), 0.0) + e_fp
+            b_abs = (np.minimum(f1, f2)[..., None] * d_glob + np.maximum(f1 - f2, 0.0)[..., None] * d_loc
+                     + e_fp + 1e-12 * p_avg)
+            vt = VALID[tt]
+            maps[k, IDX[tt][vt]] = p_avg[vt]
+            bounds[k, IDX[tt][vt]] = b_abs[vt]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                worst = np.where(vt[..., None], b_abs / p_avg, 0.0).reshape(tt.size, -1).max(axis=1)
+            todo = np.sort(tt[~(worst <= tau)])
+        infos.append(SparseInfo(s, float(caps_used.max()), rho, eps_far if not single else eps,
+                                float(neglected_weight_bound(s, float(caps_used.max()), rho)), int(bright.size),
+                                gathered / (P * M), float(caps_used.min()), int(retried), "float32" if use32 else "float64"))
     shape = (K, nF, out_size, out_size) + (() if squeeze else (C,))
     out = (maps.reshape(shape), bounds.reshape(shape))
     return out + (infos,) if return_info else out
@@ -773,17 +1168,22 @@ def convolve_sparse(
     max_bright: int = 2048,
     theta_c: float | None = None,
     return_info: bool = False,
+    local: bool = True,
+    kernel: str = "auto",
+    dark_floor: float = 1e-6,
 ):
     """Truncated-support gather of the normalised Phong-lobe average, with a rigorous error bound.
 
-    Every output texel gathers the source texels within the cut-off angle θc of its direction (found
-    with a :class:`scipy.spatial.cKDTree` on unit texel directions, chord 2 sin(θc/2), per tile of
-    output texels, so slightly more than the cap is gathered) plus the ``n_bright`` brightest source
-    texels, which are always gathered exactly.  θc is the smallest angle for which the rigorous
-    neglected-weight bound W_b(θc) (module docstring) is ≤ ε·2π/(s+1), with
-    ``ε = rtol · min(1, L_mean,rest / L_max,rest)`` (rest = all but the bright set), so that the
-    relative error is ≈ rtol where the result is of the order of the mean radiance.  The *reported*
-    bound is what counts; it is exact mathematics, not an estimate.  When the cap would cover more
+    Every output texel gathers the source texels within a cap around its tile of output texels (found by
+    a two-level cone search, so slightly more than the cap is gathered) plus the ``n_bright`` brightest
+    source texels, which are always gathered exactly.  With ``local=True`` (default) every tile chooses
+    its cap from the radiance extremes around it and is gathered again, wider, where its bound misses
+    ``rtol`` (module docstring, "Local bound and per-tile caps"); with ``local=False`` or ``theta_c`` one
+    cap θc serves every tile: the smallest angle for which the rigorous neglected-weight bound W_b(θc) is
+    ≤ ε·2π/(s+1), ``ε = rtol · min(1, L_mean,rest / L_max,rest)`` (rest = all but the bright set).  The
+    *reported* bound is what counts; it is exact mathematics (including the float32 kernel's rounding),
+    not an estimate; it may exceed ``rtol`` where no cap reaches it (black texels, lobes narrower than a
+    texel), which :func:`ibl_ref.groundtruth.convolve.convolve` then handles.  When the cap would cover more
     than 40% of the sphere (wide lobes: small s or tight rtol) the dense exact gather is used instead
     (bound = the rounding allowance only).
 
@@ -802,14 +1202,22 @@ def convolve_sparse(
         Force the cut-off angle (rad).
     return_info : bool
         Also return a :class:`SparseInfo`.
+    local : bool
+        Per-tile caps from local radiance extremes (default) or one global cap.
+    kernel : {"auto", "float32", "float64"}
+        Weight kernel: float32 (rounding propagated into the bound) where its bound is small, or forced;
+        ``"float32"`` raises :class:`IBLError` where its rounding cannot be bounded.
+    dark_floor : float in [0, 1]
+        Radiance floor (× the mean) for the far cap's contrast: texels darker than that (e.g. black ones)
+        do not widen the far cap of the whole map; their relative bound may then exceed ``rtol``.
 
     Returns
     -------
     maps : ndarray (6, n, n, C)
         Approximate lobe average P.
     error_bound : ndarray (6, n, n, C)
-        Per texel and channel: ``|P − convolve_exact(cube, s, ...)| ≤ error_bound`` (absolute), equal to
-        ``W_b/(W_in+W_b) · max(L_max,out − P, P − L_min,out) + 1e-12·P``.  The relative bound is
+        Per texel and channel: ``|P − convolve_exact(cube, s, ...)| ≤ error_bound`` (absolute; the module
+        docstring gives its terms).  The relative bound is
         ``error_bound / maps`` where ``maps > 0``.
     """
     res = convolve_sparse_many(
@@ -823,6 +1231,9 @@ def convolve_sparse(
         max_bright=max_bright,
         theta_c=theta_c,
         return_info=return_info,
+        local=local,
+        kernel=kernel,
+        dark_floor=dark_floor,
     )
     if return_info:
         return res[0][0], res[1][0], res[2][0]
