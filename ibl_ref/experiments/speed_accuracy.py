@@ -43,7 +43,7 @@ NAME = "speed-accuracy"
 DESCRIPTION = "time vs max/mean relative error of exact / SH-hybrid / sparse / auto Phong convolution"
 PAPER = "Knuth et al. 2014, Eq. 4 (exact Phong convolution) and Kan et al. 2015 (fast prefiltering): speed vs accuracy"
 IN_QUICK_REPRODUCE = True
-RUNTIME = {"quick": "9 s (load 0.3)", "full": "3 min 41 s (load 10; 75 s CPU)"}
+RUNTIME = {"quick": "9 s (load 0.3)", "full": "50 s (load 0.2; 71 s CPU)"}
 OUTPUTS = ("speed_accuracy.csv", "speed_accuracy.json", "speed_accuracy_n<N>.png")
 
 EXPONENTS = (1.0, 4.0, 16.0, 64.0, 256.0, 1024.0, 4096.0)
