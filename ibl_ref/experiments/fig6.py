@@ -25,7 +25,7 @@ NAME = "fig6"
 DESCRIPTION = "Knuth 2014 Fig. 6: no occlusion / AO / AO+color / ours / ray-traced reference on a glossy teapot"
 PAPER = "Knuth et al. 2014, Fig. 6 (no occlusion / AO / AO with colour / our method) plus a ray-traced reference"
 IN_QUICK_REPRODUCE = True
-RUNTIME = {"quick": "9 s (load 3)", "full": "28 s (load 3)"}
+RUNTIME = {"quick": "9 s with embreex (load 3), 47 s without (load 0.9)", "full": "28 s with embreex (load 3)"}
 OUTPUTS = ("fig6_metrics.csv", "fig6_images.json", "fig6_meta.json", "fig6.png")
 
 ORDER = ("no-occlusion", "ao", "ao-color", "ours", "reference")
