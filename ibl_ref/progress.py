@@ -12,7 +12,8 @@ builds, the Kautz–McCool prefilter, the command-line tools; library functions 
     iterable untouched.
 ``step(desc)``
     context manager for one block of work: prints ``desc …`` when it starts and ``desc: done in 3.2 s`` on
-    its own line when it ends (``.update(done, total)`` inside reports intermediate progress).
+    its own line when it ends (``.update(done, total)`` inside reports intermediate progress; a block that
+    reports nothing for an interval gets a line ``desc: running, 1 min 10 s`` per interval).
 ``callback(desc, total, unit)``
     a plain function ``cb(n=1)`` advancing a counter, plus ``cb.close()`` — the form a library function can
     accept as ``progress=`` without importing this module's classes.
@@ -222,11 +223,45 @@ def step(desc: str, stream=None, announce: bool = True, enabled: bool = True):
     if announce:
         say(f"{desc} …", s.stream)
     _LAST_LINE[0] = s.t0
+    beat = _Heartbeat(s) if mode(s.stream) != "off" and _interval() >= HEARTBEAT_MIN_INTERVAL else None
     try:
         yield s
     finally:
         s.elapsed = time.perf_counter() - s.t0
+        if beat is not None:
+            beat.stop()
     say(f"{desc}: done in {_fmt_time(s.elapsed)}", s.stream)
+
+
+#: a :func:`step` longer than the interval reports ``desc: running, 1 min 10 s`` once per interval when nothing
+#: else printed in that interval (work without a counter, e.g. one long convolution job), if the interval is at
+#: least this many seconds (``IBL_REF_PROGRESS_INTERVAL=0``, every update printed, has no heartbeat)
+HEARTBEAT_MIN_INTERVAL = 1.0
+
+
+class _Heartbeat:
+    """Daemon thread printing the elapsed time of a :class:`_Step` while no other line was printed."""
+
+    def __init__(self, s: _Step):
+        self.s = s
+        self.done = threading.Event()
+        self.thread = threading.Thread(target=self._run, name="ibl_ref-progress-heartbeat", daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        period = _interval()
+        while not self.done.wait(period):
+            with _LOCK:
+                now = time.perf_counter()
+                if self.done.is_set() or now - _LAST_LINE[0] < period:
+                    continue
+                _LAST_LINE[0] = now
+                say(f"{self.s.desc}: running, {_fmt_time(now - self.s.t0)}", self.s.stream)
+
+    def stop(self) -> None:
+        with _LOCK:
+            self.done.set()
+        self.thread.join()
 
 
 def callback(desc: str, total: int | None = None, unit: str = "it", stream=None):

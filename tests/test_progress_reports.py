@@ -199,3 +199,28 @@ def test_render_no_progress_is_silent(log_mode, tmp_path, capsys):
     assert main(["render", "--size", "12", "--lights", "6", "--vsm-res", "16", "--no-progress",
                  "--out", str(tmp_path / "r.exr")]) == 0
     assert capsys.readouterr().err == ""
+
+
+def test_a_long_step_without_a_counter_reports_a_heartbeat(monkeypatch):
+    # one long job with nothing to count (e.g. a 1024² convolution job): at least one "running" line per interval
+    # in between the start and the end line, each on its own line; none when the interval is below the minimum
+    import time
+
+    monkeypatch.delenv("IBL_REF_PROGRESS", raising=False)
+    monkeypatch.setenv("IBL_REF_PROGRESS_INTERVAL", "1")
+    s = _Stream()
+    with progress.step("long job", stream=s):
+        time.sleep(3.5)  # ≥ 2 full intervals: at least one beat even on a loaded machine
+    lines = _lines(s.getvalue())
+    assert lines[0] == "long job …" and lines[-1].startswith("long job: done in")
+    beats = lines[1:-1]
+    assert beats and all(re.fullmatch(r"long job: running, [\d.]+ s", b) for b in beats), lines
+    # after the step ends, its heartbeat thread is gone (nothing printed later)
+    n = len(s.getvalue())
+    time.sleep(1.5)
+    assert len(s.getvalue()) == n
+    monkeypatch.setenv("IBL_REF_PROGRESS_INTERVAL", "0")
+    s = _Stream()
+    with progress.step("short interval", stream=s):
+        time.sleep(0.3)
+    assert not any("running" in ln for ln in _lines(s.getvalue()))
