@@ -5,8 +5,10 @@ independent programs.
 
 Matrix: scenes {teapot on a ground quad, sphere on a plane, torus on a ground quad} × materials {diffuse
 (kd = 1), glossy g = 0.9 (s = 10), glossy g = 0.99 (s = 100)} under ``sky_sun`` (a probe-like sky with a small,
-1e5-bright sun of the real sun's solid angle), plus the teapot under ``studio`` (several area lights).  The ground
-has the same material as the object.
+1e5-bright sun of the real sun's solid angle), plus the teapot under ``studio`` (several area lights) and under
+``probe`` (diffuse and g = 0.99; :func:`ibl_ref.environment.probe_files.probe_cube`: a probe-like lat-long map with a
+1.5° sun of 3e4, textured ground and a black strip, resampled to the cube).  The ground has the same material as
+the object.
 
 Per case: ``rel_l1`` = Σ|ref − mi| / Σ|mi| and ``rmse`` over the pixels both cover (channels pooled), the signed
 ``bias`` = Σ(ref − mi)/Σ mi (noise averages out of it), Mitsuba's own noise (``noise_rel_l1``, ``noise_rmse``: the
