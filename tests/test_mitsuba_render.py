@@ -201,3 +201,21 @@ def test_bad_arguments():
         mr.render_mitsuba([(plane, 0)], cam, cube, g=1.0, spp=2)
     with pytest.raises(IBLError, match="material id"):
         mr.render_mitsuba([(plane, 3)], cam, cube, materials={0: (1, 0, 0)}, spp=2)
+
+
+def test_envmap_too_coarse_for_the_cube_is_refused_not_silently_dark():
+    # a 64² cube on a 128-row bitmap: many texels get no pixel, and "texel" mode would drop their energy; the
+    # error names a height that works, and with it every texel's energy is there (trapezoid sum = Σ L Ω)
+    from ibl_ref.environment.envmap import cube_solid_angles
+
+    cube = np.random.default_rng(2).uniform(0.1, 2.0, size=(6, 64, 64, 3))
+    with pytest.raises(IBLError, match="too coarse .* use a height of at least 512"):
+        mr.mitsuba_envmap(cube, 128)
+    _, info = mr.mitsuba_envmap(cube, 128, energy="none", return_info=True)  # plain samples: reported only
+    assert info["texels_without_pixel"] > 0 and info["energy_lost_frac"] > 0
+    for n, h in ((1, 64), (64, 512)):
+        c = cube[:, :n, :n]
+        bm, info = mr.mitsuba_envmap(c, h, return_info=True)
+        assert info["texels_without_pixel"] == 0
+        got = (bm.astype(np.float64) * mr.envmap_grid_weights(h)[:, None, None]).sum(axis=(0, 1))
+        np.testing.assert_allclose(got, (c * cube_solid_angles(n)[..., None]).sum(axis=(0, 1, 2)), rtol=1e-6)

@@ -65,6 +65,7 @@ __all__ = [
     "mitsuba_envmap",
     "envmap_grid_weights",
     "ENVMAP_ENERGY_MODES",
+    "ENVMAP_MAX_LOST_FRAC",
     "envmap_radiance",
     "render_mitsuba",
 ]
@@ -167,6 +168,8 @@ def envmap_directions(height: int) -> np.ndarray:
 
 #: what :func:`mitsuba_envmap` preserves: ``"texel"`` (each cube texel's exact energy L·Ω) or ``"none"``
 ENVMAP_ENERGY_MODES = ("texel", "none")
+#: ``energy="texel"`` refuses a bitmap that leaves more than this share of the energy in texels without a pixel
+ENVMAP_MAX_LOST_FRAC = 1e-6
 
 
 def envmap_grid_weights(height: int) -> np.ndarray:
@@ -194,8 +197,10 @@ def mitsuba_envmap(cube, height: int = 1024, energy: str = "texel", return_info:
     angle: for a small bright sun (a few texels of 3e4, 16 pixels across) that is off by 2 %.  ``energy="texel"``
     (default) scales every texel's pixels by Ω_t / Σ_(pixels in t) w so that Mitsuba integrates exactly each texel's
     L·Ω (the radiance inside a texel changes by that staircase ratio, the direction of its energy by at most a
-    pixel).  With ``return_info`` also a dict: ``texels_without_pixel`` and ``energy_lost_frac`` (texels too small
-    for the bitmap: choose a larger ``height``).
+    pixel).  With ``return_info`` also a dict: ``texels_without_pixel`` and ``energy_lost_frac``.  A bitmap too
+    coarse for the cube (texels that no pixel falls into, holding more than :data:`ENVMAP_MAX_LOST_FRAC` of the
+    energy) is refused with an :class:`IBLError` naming a height that works, in ``"texel"`` mode; ``"none"``
+    reports it in the info only.
     """
     from ..environment.envmap import cube_solid_angles, direction_to_texel
     from .reference_render import check_environment
@@ -216,16 +221,19 @@ def mitsuba_envmap(cube, height: int = 1024, energy: str = "texel", return_info:
     w_pix = np.broadcast_to(envmap_grid_weights(height)[:, None], t.shape)
     w_tex = np.bincount(t.reshape(-1), weights=w_pix.reshape(-1), minlength=6 * N * N)
     empty = w_tex <= 0
+    e_tex = (a.reshape(-1, 3) * omega[:, None]).sum(axis=-1)
+    tot = float(e_tex.sum())
+    lost = float(e_tex[empty].sum() / tot) if tot > 0 else 0.0
+    if energy == "texel" and lost > ENVMAP_MAX_LOST_FRAC:
+        raise IBLError(f"envmap height {int(height)} is too coarse for a {N}² cube: {int(empty.sum())} texels get no "
+                       f"bitmap pixel ({lost:.2%} of the energy); use a height of at least {max(8 * N, 64)}")
     if energy == "texel":
         scale = np.where(empty, 0.0, omega / np.where(empty, 1.0, w_tex))
         bm = bm * scale[t][..., None]
     out = np.ascontiguousarray(bm, dtype=np.float32)
     if not return_info:
         return out
-    e_tex = (a.reshape(-1, 3) * omega[:, None]).sum(axis=-1)
-    tot = float(e_tex.sum())
-    return out, dict(energy=energy, texels_without_pixel=int(empty.sum()),
-                     energy_lost_frac=float(e_tex[empty].sum() / tot) if tot > 0 else 0.0)
+    return out, dict(energy=energy, texels_without_pixel=int(empty.sum()), energy_lost_frac=lost)
 
 
 def envmap_radiance(cube, dirs, height: int = 1024, variant: str = "auto", energy: str = "texel") -> np.ndarray:
@@ -415,7 +423,7 @@ def _render_half(mi, mscene, o, dirs, spp, seed, lanes):
 
 
 def render_mitsuba(meshes, camera, cube, *, materials=None, kd: float = 0.0, ks: float = 1.0, g: float = 0.9,
-                   spp: int = 256, seed: int = 0, envmap_height: int = 1024, envmap_energy: str = "texel",
+                   spp: int = 256, seed: int = 0, envmap_height: int | None = None, envmap_energy: str = "texel",
                    lanes: int = 1 << 21, variant: str = "auto") -> MitsubaResult:
     """Render (*) with Mitsuba 3's ``direct`` integrator through the lab's pixel centres.
 
@@ -426,7 +434,8 @@ def render_mitsuba(meshes, camera, cube, *, materials=None, kd: float = 0.0, ks:
     cube : (6, N, N, C) environment (the radiance function: nearest texel, see module docstring)
     materials : {material_id: (kd, ks, g)}; default: every id gets (kd, ks, g)
     spp : samples per pixel in total (two halves of spp/2 with seeds ``seed``, ``seed + 1``; even, ≥ 2)
-    envmap_height : lat-long bitmap height handed to Mitsuba (width 2H)
+    envmap_height : lat-long bitmap height handed to Mitsuba (width 2H); default max(1024, 8·N) for an N² cube
+        (every texel then holds at least one pixel)
     envmap_energy : :func:`mitsuba_envmap`'s ``energy`` (default ``"texel"``: every texel's exact energy)
     lanes : wavefront lanes per pass (memory ≈ 1 kB per lane in ``llvm_ad_rgb``)
     variant : ``auto`` / ``llvm`` / ``scalar`` (see :func:`select_variant`)
@@ -443,6 +452,9 @@ def render_mitsuba(meshes, camera, cube, *, materials=None, kd: float = 0.0, ks:
     scene = prepare_scene(meshes, warn=False)
     ids = sorted(int(x) for x in np.unique(scene.material_id))
     mats = _material_table({i: (kd, ks, g) for i in ids} if materials is None else materials, ids)
+    if envmap_height is None:
+        shape = np.shape(cube)  # the layout itself is checked by mitsuba_envmap
+        envmap_height = max(1024, 8 * int(shape[1])) if len(shape) >= 2 else 1024
     bitmap, env_info = mitsuba_envmap(cube, envmap_height, energy=envmap_energy, return_info=True)
     mscene = _build_scene(mi, scene, mats, bitmap)
     o, d = camera.pixel_rays(normalize=True)
