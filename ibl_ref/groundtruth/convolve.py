@@ -429,23 +429,25 @@ def _rel_from_abs(maps, abs_bound):
 #: 46.7 s CPU at 128²)
 EXACT_UNITS_PER_PAIR = 17.0
 EXACT_UNITS_PER_PAIR_S1 = 6.0
-#: same for the candidate texels of the sparse gather, plus a cost per output texel (tiles, cap
-#: queries).  Checked against measurement (process CPU time, 1 worker, ``method="sparse"``, sky + sun,
-#: rtol 1e-3; shared 2-core machine at load ≈ 12): 32² s = 1024: 0.033 s; 64² s = 64 / 256 / 1024:
-#: 0.45 / 0.23 / 0.15 s; 128² s = 64 / 256 / 1024: 4.8 / 2.5 / 0.98 s — 0.16–0.27× the previous
-#: constants (25, 2.5e4), hence these (×0.25).  The SH model (:func:`ibl_ref.groundtruth.sh_convolution.sh_cost`)
-#: at the same cells: 64² s = 64 / 256: model 0.18 / 0.57 s, measured 0.09 / 0.16 s; 128²: 0.58 / 2.2 s
-#: vs 0.66 / 1.4 s.
-SPARSE_UNITS_PER_PAIR = 6.25
-SPARSE_UNITS_PER_OUTPUT = 6.25e3
+#: same for the candidate texels of the sparse gather (source texels within the lobe's cap at 1e-2·rtol of
+#: its weight), plus a cost per output texel (tiles, cap searches, the tile halo).  Refitted (non-negative
+#: least squares, relative residuals) to 12 measured cells: process CPU time of ``convolve(method="sparse",
+#: workers=1)``, the sky + 1e5 sun of ``benchmarks/bench_peer.py``, rtol 1e-3, 64² / 128² / 256² faces ×
+#: s = 64 / 256 / 1024 / 4096 (0.43 / 0.18 / 0.18 / 0.17 s; 6.2 / 1.41 / 0.78 / 0.55 s; 90 / 17.6 / 4.5 /
+#: 3.4 s, load < 1).  The model is within 0.69–1.39× of every cell; a halo term ∝ 1/N (the previous model,
+#: 2/N of the sphere per output) got no weight in the fit, and without it the model no longer
+#: over-estimates narrow lobes 2–3× (256², s = 4096: 9.1 s modelled before) — which had sent 128², s = 256 to
+#: the SH route at 1.8 s instead of the sparse gather's 1.4 s.
+SPARSE_UNITS_PER_PAIR = 6.0
+SPARSE_UNITS_PER_OUTPUT = 6.8e3
 
 
 def _sparse_cost(s, rtol, n_src, n_out):
     """Cost model of the sparse gather (units of :func:`ibl_ref.groundtruth.sh_convolution.sh_cost`)."""
     eps = max(rtol * 1e-2, 1e-300)
     cos_c = math.exp(math.log(eps) / (s + 1.0))
-    frac = min(1.0, (1.0 - cos_c) / 2.0 + 2.0 / math.sqrt(max(n_src / 6.0, 1.0)))
-    if (1.0 - cos_c) / 2.0 > 0.4:  # the sparse gather itself falls back to the dense gather there
+    frac = (1.0 - cos_c) / 2.0
+    if frac > 0.4:  # the sparse gather itself falls back to the dense gather there
         return math.inf
     return n_out * n_src * frac * SPARSE_UNITS_PER_PAIR + n_out * SPARSE_UNITS_PER_OUTPUT
 
