@@ -10,7 +10,7 @@ What it runs, per cell (face size N, exponent s):
 
 * **the lab** — ``python -m ibl_ref convolve IN.exr OUT.exr -s S --rtol 1e-3`` (method ``auto``, default
   workers) as a separate process, timed from start to exit (start-up, file reading and writing
-  included);
+  included), with the package byte-compiled first, as ``pip install`` leaves it;
 * **each cmft binary** given by ``--cmft`` — one radiance filter at full resolution::
 
       cmft --input IN.dds --filter radiance --srcFaceSize 0 --dstFaceSize 0 --excludeBase false
@@ -171,9 +171,20 @@ def lab_cmd(inp, out, exps):
 
 
 def lab_env():
+    """Environment of the lab's processes: this checkout first on the path, with byte-code caching on
+    (``PYTHONDONTWRITEBYTECODE`` removed; :func:`compile_lab` writes the caches first), as in an installed
+    package, whose modules pip compiles at install time.  Without the caches every run compiles the
+    package's sources again (≈ 0.1 s of each whole-process run, measured on the 2-core machine)."""
     env = dict(os.environ)
     env["PYTHONPATH"] = str(ROOT) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    env.pop("PYTHONDONTWRITEBYTECODE", None)
     return env
+
+
+def compile_lab():
+    """Byte-compile the package once, before any timing (what ``pip install`` does)."""
+    subprocess.run([sys.executable, "-m", "compileall", "-q", str(ROOT / "ibl_ref")], check=True,
+                   stdout=subprocess.DEVNULL, env=lab_env())
 
 
 def nearest_pow2(s):
@@ -291,6 +302,7 @@ def main(argv=None):
         exps = []
     cmfts = [str(Path(c).resolve()) for c in args.cmft]
     print(f"ibl_ref from {ROOT}; {_load()}; cmft: {', '.join(cmfts) or 'none (lab side only)'}")
+    compile_lab()
     floor = measure_floor(args.repeat)
     for label, (w, c) in floor.items():
         print(f"floor {label:>34s}: {w:.3f} s wall, {c:.3f} s CPU (median of {args.repeat})")

@@ -30,7 +30,10 @@ literal Eq. 4 sum (``normalized=False``) at every output texel ``r``, by one of
 
 Concurrency (``workers``)
     The work is cut into independent jobs — the moment and sparse routes per fixed group of output
-    faces (:data:`FACE_PARTS`), the shared SH pass, the exact gather — that run on a pool of
+    faces (:data:`FACE_PARTS`), the shared SH pass (a big one, :data:`SH_SPLIT_MIN_SECONDS`, as
+    :data:`SH_PARTS` projection jobs over fixed ranges of source directions, whose partial coefficient sums
+    are added in order, and then as many evaluation jobs over ranges of output directions:
+    :func:`ibl_ref.groundtruth.sh_convolution.sh_project_part` / ``sh_evaluate_part``), the exact gather — that run on a pool of
     ``workers`` forked processes (``backend="process"``, the default on Linux when the caller is
     single-threaded and not a daemonic process) or threads (``backend="thread"``; NumPy releases the GIL in its array
     kernels, but the many small array calls of the gathers still contend for it).  Default
@@ -145,6 +148,13 @@ FACE_PARTS = ((0, 1), (2, 3), (4, 5))
 #: the sizes alone
 MOMENT_SPLIT_MIN_SIZE = 256
 MOMENT_FACE_PARTS_LARGE = tuple((f,) for f in range(6))
+#: an SH pass whose model cost (:func:`ibl_ref.groundtruth.sh_convolution.sh_cost`) is at least this many seconds
+#: runs as :data:`SH_PARTS` projection jobs and then :data:`SH_PARTS` evaluation jobs (two rounds) instead of
+#: one job, so that two workers share it (1024², the 8-exponent set: one 425 s SH job had left the second
+#: worker idle).  Decided from the sizes and the band limit only, never from the worker count: every
+#: worker count computes the same pieces.
+SH_SPLIT_MIN_SECONDS = 20.0
+SH_PARTS = 4
 
 
 def default_workers() -> int:
@@ -643,8 +653,30 @@ def _sh_cannot_pay(finite, rtol, n, n_src, n_out, normalized, Q):
     return others < sh_lb
 
 
+def _sh_split_state(a4, sh_set, sh_plan, rtol, out_size, normalized):
+    """``("project", setup)`` when the SH pass of ``sh_set`` is big enough to split
+    (:data:`SH_SPLIT_MIN_SECONDS`, decided from the sizes and the band limit), else None.  Without a plan the
+    band limit is planned here (as the single job would)."""
+    from . import sh_convolution as shc
+
+    n = a4.shape[1]
+    n_src, n_out = 6 * n * n, 6 * out_size * out_size
+    Q = a4.shape[-1] + 1
+    # cheap test first: even the smallest band limit (the planned one, else L = 32) would not pay
+    L_min = (sh_plan or {}).get("L") or 32
+    if shc.sh_cost(L_min, n_src, n_out, len(sh_set), Q) * shc.SECONDS_PER_UNIT < SH_SPLIT_MIN_SECONDS:
+        return None
+    t0 = time.perf_counter()
+    setup = shc.sh_setup(a4, sh_set, rtol=rtol, out_size=out_size, normalized=normalized, plan=sh_plan)
+    if shc.sh_cost(setup.L, n_src, n_out, len(sh_set), Q) * shc.SECONDS_PER_UNIT < SH_SPLIT_MIN_SECONDS:
+        return None
+    shc.sh_split(setup, SH_PARTS)
+    setup.time_setup_s = time.perf_counter() - t0
+    return ("project", setup)
+
+
 def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_plan, sparse_batches, parts, ex_set,
-                mo_leaf=1):
+                mo_leaf=1, sh_state=None):
     """The independent jobs ``(stage, key, model cost, callable)`` of one round of :func:`convolve`.
 
     Every job computes a fixed piece of work (its exponents, its output faces) that does not depend on
@@ -665,7 +697,17 @@ def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_pla
                          functools.partial(mc.convolve_moment_many, a4, mo_set, out_size=out_size,
                                            normalized=normalized, faces=fc, leaf=mo_leaf,
                                            rtol=rtol if mo_leaf > 1 else None)))
-    if sh_set:
+    if sh_set and sh_state is not None:  # a split SH pass (:data:`SH_SPLIT_MIN_SECONDS`): one phase per round
+        setup = sh_state[1]
+        n_parts = setup.sym_src.n_parts
+        cost = shc.sh_cost(setup.L, n_src, n_out, len(sh_set), a4.shape[-1] + 1) / (2 * n_parts)
+        for i in range(n_parts):
+            if sh_state[0] == "project":
+                fn = functools.partial(shc.sh_project_part, setup, i)
+            else:
+                fn = functools.partial(shc.sh_evaluate_part, setup, sh_state[2], sh_state[3], i)
+            jobs.append(("sh", ("sh", sh_state[0], i), cost, fn))
+    elif sh_set:
         L_guess = (sh_plan or {}).get("L") or 32
         jobs.append(("sh", ("sh",), shc.sh_cost(L_guess, n_src, n_out, len(sh_set), a4.shape[-1] + 1),
                      functools.partial(shc.convolve_sh_many, a4, sh_set, rtol=rtol, out_size=out_size,
@@ -685,15 +727,23 @@ def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_pla
     return jobs
 
 
+def _job_faces_exponents(fn):
+    """(output faces, exponents) of a job's callable: a partial of ``(cube, exponents, ..., faces=...)``, or of
+    ``(setup, ...)`` for the parts of a split SH pass (the setup's exponents; each part holds 1/parts of the
+    outputs, counted as that share of the six faces)."""
+    if fn.args and hasattr(fn.args[0], "s_list"):
+        return 6 / fn.args[0].sym_src.n_parts, len(fn.args[0].s_list)
+    return len(fn.keywords.get("faces") or range(6)), len(fn.args[1])
+
+
 def _round_workers(jobs, a4, out_size, workers, executor, memory_limit, need2):
     """Workers for one round: the memory planner, and serial when the jobs are too small to pay for a
     pool (:data:`PARALLEL_MIN_SECONDS`).  Returns ``(workers, memory warning or None)``."""
     from .sh_convolution import SECONDS_PER_UNIT
 
     n, C = a4.shape[1], a4.shape[-1]
-    # (a job's callable is a partial of (cube, exponents, ..., faces=...))
-    job_mem = [_job_bytes(j[0], n, out_size, C, len(j[3].keywords.get("faces") or range(6)),
-                          len(j[3].args[1]), need2, j[3].keywords.get("leaf", 1)) for j in jobs]
+    job_mem = [_job_bytes(j[0], n, out_size, C, *_job_faces_exponents(j[3]), need2, j[3].keywords.get("leaf", 1))
+               for j in jobs]
     avail = memory_limit if memory_limit is not None else available_memory_bytes()
     w_plan = plan_memory_workers(workers, job_mem, avail) if executor is None else workers
     est_s = sum(min(float(j[2]), 1e300) for j in jobs) * SECONDS_PER_UNIT
@@ -746,13 +796,17 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
     planned = []
     # one BLAS thread per worker (no oversubscription) and, serial included, the same BLAS blocking
     # for every worker count: bit-for-bit identical results (threadpoolctl restores the limits after)
+    sh_state = None  # a split SH pass: ("project", setup) then ("evaluate", setup, Be, Bo)
+    sh_busy_parts = 0.0
     with threadpool_limits(limits=1, user_api="blas"):
         while mo_set or sh_set or sparse_batches or ex_set:
             sub_plan = None
             if sh_set and method == "auto":  # re-plan only if the SH subset differs from the planned set
                 sub_plan = plan if len(sh_set) == len(finite) else None
+            if sh_set and sh_state is None:
+                sh_state = _sh_split_state(a4, sh_set, sub_plan, rtol, out_size, normalized)
             jobs = _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sub_plan,
-                               sparse_batches, parts, ex_set, mo_leaf)
+                               sparse_batches, parts, ex_set, mo_leaf, sh_state)
             w_plan, warning = _round_workers(jobs, a4, out_size, workers, executor, memory_limit, 2.0 in mo_set)
             planned.append(w_plan)
             if warning:
@@ -777,8 +831,27 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
                     results[s] = (maps[k], rel[k], "moment", "rigorous" if mo_leaf > 1 else "rounding")
                 mo_set = retry
                 mo_leaf = mo_leaf // 2 if mo_leaf // 2 >= 4 else 1
-            if sh_set:
-                maps, rel, info = out[("sh",)]
+            if sh_set and sh_state is not None and sh_state[0] == "project":
+                from .sh_convolution import sh_coefficients
+
+                setup = sh_state[1]
+                n_sp = setup.sym_src.n_parts
+                sh_busy_parts += sum(busy[("sh", "project", i)] for i in range(n_sp))
+                Be, Bo = sh_coefficients(setup, [out[("sh", "project", i)] for i in range(n_sp)])
+                sh_state = ("evaluate", setup, Be, Bo)
+            elif sh_set:
+                if sh_state is not None:  # the evaluation round of a split pass
+                    from .sh_convolution import sh_assemble
+
+                    setup = sh_state[1]
+                    n_sp = setup.sym_src.n_parts
+                    sh_busy_parts += sum(busy[("sh", "evaluate", i)] for i in range(n_sp))
+                    maps, rel, info = sh_assemble(setup, [out[("sh", "evaluate", i)] for i in range(n_sp)],
+                                                  {"time_plan_s": setup.time_setup_s,
+                                                   "time_parts_s": sh_busy_parts, "parts": n_sp})
+                    sh_state = None
+                else:
+                    maps, rel, info = out[("sh",)]
                 res.info["sh"] = {k: v for k, v in info.items()}
                 fb = []
                 for k, s in enumerate(sh_set):

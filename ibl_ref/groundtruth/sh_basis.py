@@ -241,8 +241,9 @@ def _project_octant(dirs, W, L, orb, chunks=None):
     return acc[0], acc[1]
 
 
-def _evaluate_octant(dirs, Be, Bo, L, orb, chunks=None):
-    """:func:`_evaluate` for an octant-symmetric set: ``f(σ_g r) = Σ_κ χ_κ(g) Y_κ(r)ᵀ B_κ``."""
+def _evaluate_octant_values(dirs, Be, Bo, L, orb, chunks=None):
+    """Values of :func:`_evaluate_octant` at the directions of the orbits ``orb`` only: ``(idx, vals)`` with
+    ``vals[i]`` the value at ``dirs[idx[i]]`` (``idx = orb.T.ravel()``)."""
     cls = _octant_row_classes(L)
     n_oct = orb.shape[0]
     V = np.zeros((8, n_oct, Be.shape[1]))
@@ -253,8 +254,14 @@ def _evaluate_octant(dirs, Be, Bo, L, orb, chunks=None):
             if rows.size:
                 V[kappa, i0:i1] = Yk[kappa].T @ (Be if kappa < 4 else Bo)[rows]
     vals = np.einsum("kg,kop->gop", _walsh8(), V)  # (8, n_oct, P)
+    return orb.T.reshape(-1), vals.reshape(-1, Be.shape[1])
+
+
+def _evaluate_octant(dirs, Be, Bo, L, orb, chunks=None):
+    """:func:`_evaluate` for an octant-symmetric set: ``f(σ_g r) = Σ_κ χ_κ(g) Y_κ(r)ᵀ B_κ``."""
+    idx, vals = _evaluate_octant_values(dirs, Be, Bo, L, orb, chunks)
     out = np.empty((dirs.shape[0], Be.shape[1]))
-    out[orb.T.reshape(-1)] = vals.reshape(-1, Be.shape[1])
+    out[idx] = vals
     return out
 
 
@@ -410,3 +417,89 @@ def sh_lobe_convolve(src_dirs, weights, out_dirs, kernel_coeffs) -> np.ndarray:
     else:
         out = _evaluate(dst, Be, Bo, L)
     return out.reshape(-1, K, Q).transpose(1, 0, 2)
+
+
+# ----------------------------------------------------------------------------------------------
+# the same passes in independent parts (for parallel jobs)
+# ----------------------------------------------------------------------------------------------
+class SymmetryPlan:
+    """The symmetry used for one direction set and its split into ``n_parts`` fixed pieces of work.
+
+    ``kind`` is ``"octant"`` (orbits ``orb`` (M/8, 8) of :func:`_octant_orbits`) or ``"mirror"`` (``h``,
+    ``mir`` of :func:`_mirror_pairs`, or every direction in ``h`` when the set is not z-symmetric).  Part
+    ``i`` holds a contiguous range of orbit representatives (or of ``h``), cut at multiples of the SH chunk
+    (:func:`_chunk`), so every part evaluates whole chunks of the serial pass.  The split depends only on
+    the directions, L and ``n_parts`` (never on a worker count).
+    """
+
+    def __init__(self, dirs, L: int, n_parts: int):
+        if n_parts < 1:
+            raise ValueError(f"n_parts must be >= 1, got {n_parts}")
+        self.L = int(L)
+        self.n_parts = int(n_parts)
+        self.orb = _octant_orbits(dirs)
+        if self.orb is not None:
+            self.kind = "octant"
+            n_units = self.orb.shape[0]
+        else:
+            self.kind = "mirror"
+            pairs = _mirror_pairs(dirs)
+            if pairs is None:
+                self.h, self.mir = np.arange(dirs.shape[0]), np.zeros(0, dtype=np.intp)
+            else:
+                self.h, self.mir = pairs
+            n_units = self.h.size
+        ch = _chunk(self.L)
+        n_chunks = -(-n_units // ch)
+        cuts = [min(n_units, ch * ((n_chunks * i) // self.n_parts)) for i in range(self.n_parts + 1)]
+        self.ranges = [(cuts[i], cuts[i + 1]) for i in range(self.n_parts)]
+
+
+def project_part(dirs, W, sym: SymmetryPlan, part: int):
+    """Part ``part`` of the projection ``a = Σ_j W_j Y(ω_j)`` (:func:`_project`): ``(a_even, a_odd)``
+    summed over that part's directions only.  The parts of a :class:`SymmetryPlan` add up to the whole
+    projection (up to the order of the float64 sums)."""
+    L = sym.L
+    u0, u1 = sym.ranges[part]
+    if sym.kind == "octant":
+        return _project_octant(dirs, W, L, sym.orb[u0:u1])
+    ev_l, od_l = _row_layout(L)
+    ae = np.zeros((ev_l.size, W.shape[1]))
+    ao = np.zeros((od_l.size, W.shape[1]))
+    h, mir = sym.h, sym.mir
+    ch = _chunk(L)
+    for i0 in range(u0, u1, ch):
+        i1 = min(u1, i0 + ch)
+        idx = h[i0:i1]
+        Wm = np.zeros((idx.size, W.shape[1]))
+        k = max(0, min(mir.size - i0, idx.size))  # the first k of this chunk have mirrors
+        Wm[:k] = W[mir[i0 : i0 + k]]
+        Ye, Yo = _real_sh_parity(dirs[idx], L)
+        ae += Ye @ (W[idx] + Wm)
+        ao += Yo @ (W[idx] - Wm)
+    return ae, ao
+
+
+def evaluate_part(dirs, Be, Bo, sym: SymmetryPlan, part: int):
+    """Part ``part`` of the evaluation (:func:`_evaluate`): ``(idx, vals)``, the values at ``dirs[idx]``."""
+    L = sym.L
+    u0, u1 = sym.ranges[part]
+    if sym.kind == "octant":
+        return _evaluate_octant_values(dirs, Be, Bo, L, sym.orb[u0:u1])
+    h, mir = sym.h, sym.mir
+    ch = _chunk(L)
+    idx_all, val_all = [], []
+    for i0 in range(u0, u1, ch):
+        idx = h[i0 : min(u1, i0 + ch)]
+        Ye, Yo = _real_sh_parity(dirs[idx], L)
+        ve = Ye.T @ Be
+        vo = Yo.T @ Bo
+        idx_all.append(idx)
+        val_all.append(ve + vo)
+        k = max(0, min(mir.size - i0, idx.size))
+        if k:
+            idx_all.append(mir[i0 : i0 + k])
+            val_all.append(ve[:k] - vo[:k])
+    if not idx_all:
+        return np.zeros(0, dtype=np.intp), np.zeros((0, Be.shape[1]))
+    return np.concatenate(idx_all), np.concatenate(val_all)

@@ -305,6 +305,30 @@ def convolve_sh_many(
         bound is useless, e.g. zero output); rigorous unless ``info["bound_kind"][k] == "estimate"``
     info : dict (L, tau, n_bright, bound_kind list, timings)
     """
+    setup = sh_setup(cube, exponents, rtol=rtol, L=L, hybrid=hybrid, tau=tau, out_size=out_size,
+                     normalized=normalized, L_max=L_max, estimate=estimate, plan=plan)
+    t_plan = time.perf_counter()
+    shq = sh_lobe_convolve(setup.src, setup.Wq, setup.out_dirs, setup.kcoef)  # (K, P, C+1)
+    t_sh = time.perf_counter()
+    nb = _bright_gather(setup.out_dirs, setup.b_dirs, setup.b_w, setup.s_list)  # exact part
+    t_gather = time.perf_counter()
+    return sh_finish(setup, shq, nb, {"time_plan_s": t_plan - setup.t0, "time_sh_s": t_sh - t_plan,
+                                      "time_bright_s": t_gather - t_sh})
+
+
+class ShSetup:
+    """Everything one SH convolution needs after planning (:func:`sh_setup`): the split of the radiance into
+    the SH remainder and the exactly gathered bright excess, the band limit and the zonal kernels.  Plain
+    arrays and numbers (picklable), so the parts of a split pass can run on any executor."""
+
+    def __init__(self, **kw):
+        self.__dict__.update(kw)
+
+
+def sh_setup(cube, exponents, *, rtol: float = 1e-3, L: int | None = None, hybrid: bool = True,
+             tau: float | None = None, out_size: int | None = None, normalized: bool = True,
+             L_max: int = SH_L_MAX, estimate: bool = False, plan: dict | None = None) -> ShSetup:
+    """Checks, plan (band limit, sun threshold) and the split of :func:`convolve_sh_many` (same parameters)."""
     t0 = time.perf_counter()
     a, squeeze = check_cube(cube)
     n = a.shape[1]
@@ -340,9 +364,8 @@ def convolve_sh_many(
         else:
             tau_use = _threshold_candidates(rad.max(axis=1))[-1][1]
         est_idx = list(range(len(s_list))) if estimate else []
-    t_plan = time.perf_counter()
 
-    # --- split and convolve -----------------------------------------------------------------
+    # --- split: SH remainder (clamped at τ) + exact excess of the bright texels ---------------
     bright = rad.max(axis=1) > tau_use
     rem = np.minimum(rad, tau_use)
     excess = rad[bright] - rem[bright]
@@ -352,19 +375,94 @@ def convolve_sh_many(
         half[:, L_use // 2 + 1 :] = 0.0
         kcoef = np.concatenate([kcoef, half])
     Wq = np.concatenate([rem, np.ones((rem.shape[0], 1))], axis=1) * omega[:, None]
-    shq = sh_lobe_convolve(src, Wq, out_dirs, kcoef)  # (K, P, C+1)
-    t_sh = time.perf_counter()
-    nb = _bright_gather(out_dirs, src[bright], excess * omega[bright][:, None], s_list)  # exact part
-    t_gather = time.perf_counter()
+    return ShSetup(t0=t0, squeeze=squeeze, out_size=out_size, C=C, s_list=s_list, src=src, out_dirs=out_dirs,
+                   rho=rho, L=int(L_use), tau=float(tau_use), est_idx=est_idx, n_bright=int(np.count_nonzero(bright)),
+                   b_dirs=src[bright], b_w=excess * omega[bright][:, None], kcoef=kcoef, Wq=Wq,
+                   m_rem=float(rem.min()), tau_eff=float(rem.max()), normalized=normalized, rtol=rtol,
+                   sym_src=None, sym_out=None)
 
-    # --- bound --------------------------------------------------------------------------------
+
+def sh_split(setup: ShSetup, n_parts: int) -> ShSetup:
+    """Prepare ``setup`` for a pass in ``n_parts`` independent pieces (:func:`sh_project_part`, then
+    :func:`sh_evaluate_part`): the symmetry plans of the source and output directions (computed once here,
+    not in every part).  Returns ``setup``."""
+    from .sh_basis import SymmetryPlan
+
+    setup.sym_src = SymmetryPlan(setup.src, setup.L, n_parts)
+    setup.sym_out = setup.sym_src if setup.out_dirs is setup.src else SymmetryPlan(setup.out_dirs, setup.L, n_parts)
+    return setup
+
+
+def sh_project_part(setup: ShSetup, part: int):
+    """Projection of the remainder (all kernels share it) over part ``part`` of the source directions:
+    ``(a_even, a_odd)``; :func:`sh_coefficients` adds the parts in order."""
+    from .sh_basis import project_part
+
+    return project_part(setup.src, setup.Wq, setup.sym_src, part)
+
+
+def sh_coefficients(setup: ShSetup, parts):
+    """Sum of the projection parts (in the given order) times the Funk–Hecke eigenvalues: ``(Be, Bo)``."""
+    from .sh_basis import _row_layout
+
+    ae = parts[0][0].copy()
+    ao = parts[0][1].copy()
+    for pe, po in parts[1:]:
+        ae += pe
+        ao += po
+    K = setup.kcoef.shape[0]
+    Q = setup.Wq.shape[1]
+    ev_l, od_l = _row_layout(setup.L)
+    Be = (setup.kcoef[:, ev_l, None] * ae[None]).transpose(1, 0, 2).reshape(-1, K * Q)  # c_l a_lm
+    Bo = (setup.kcoef[:, od_l, None] * ao[None]).transpose(1, 0, 2).reshape(-1, K * Q)
+    return Be, Bo
+
+
+def sh_evaluate_part(setup: ShSetup, Be, Bo, part: int):
+    """Evaluation at part ``part`` of the output directions, the exact gather of the bright excess there and
+    the per-texel values and bounds: ``(idx, maps (K, p, C), rel (K, p), rel_estimate (K, p) or None)``
+    for the outputs ``idx`` (:func:`sh_assemble` puts the parts together)."""
+    from .sh_basis import evaluate_part
+
+    idx, vals = evaluate_part(setup.out_dirs, Be, Bo, setup.sym_out, part)
+    K = setup.kcoef.shape[0]
+    shq = vals.reshape(-1, K, setup.Wq.shape[1]).transpose(1, 0, 2)
+    nb = _bright_gather(setup.out_dirs[idx], setup.b_dirs, setup.b_w, setup.s_list)
+    return (idx,) + _values_and_bounds(setup, shq, nb)
+
+
+def sh_assemble(setup: ShSetup, parts, times: dict):
+    """The parts ``[(idx, maps, rel, rel_estimate), …]`` of :func:`sh_evaluate_part` as the return value of
+    :func:`convolve_sh_many`."""
+    K, P = len(setup.s_list), setup.out_dirs.shape[0]
+    maps = np.empty((K, P, setup.C))
+    rel = np.empty((K, P))
+    est = np.empty((K, P)) if setup.est_idx else None
+    for idx, m, r, e in parts:
+        maps[:, idx] = m
+        rel[:, idx] = r
+        if est is not None:
+            est[:, idx] = e
+    return _finish(setup, maps, rel, est, times)
+
+
+def sh_finish(setup: ShSetup, shq, nb, times: dict):
+    """Maps and rigorous bounds (module docstring) from the SH sums ``shq`` (K', P, C+1) and the bright gather
+    ``nb`` (K, P, C) at every output texel: the return value of :func:`convolve_sh_many`."""
+    return _finish(setup, *_values_and_bounds(setup, shq, nb), times)
+
+
+def _values_and_bounds(setup: ShSetup, shq, nb):
+    """Lobe averages (or Eq. 4 sums) and their rigorous relative bounds at the outputs of ``shq``/``nb`` (any
+    subset: every texel's bound uses only global constants): ``(maps (K, p, C), rel (K, p), rel_estimate)``,
+    the last (the |y_L − y_{L/2}| estimate of the exponents in ``setup.est_idx``) None without estimates."""
+    C, s_list, normalized, rho, L_use = setup.C, setup.s_list, setup.normalized, setup.rho, setup.L
+    est_idx, m_rem, tau_eff = setup.est_idx, setup.m_rem, setup.tau_eff
     K = len(s_list)
-    P = out_dirs.shape[0]
+    P = shq.shape[1]
     maps = np.empty((K, P, C))
     rel = np.empty((K, P))
-    kinds = []
-    m_rem = float(rem.min())
-    tau_eff = float(rem.max())
+    rel_est = np.full((K, P), np.inf) if est_idx else None
     for k, s in enumerate(s_list):
         E_L = legendre_series_truncation_envelope(s, L_use, rho)
         E_L += _FOUR_PI * np.finfo(float).eps * (L_use + 1) ** 2  # rounding of the O(L²) SH sums
@@ -386,30 +484,40 @@ def convolve_sh_many(
             r = np.where(y > A, A / np.maximum(y - A, 1e-300), np.inf)
         maps[k] = y
         rel[k] = r.max(axis=1)
-        kinds.append("rigorous")
-        if k in est_idx and not float(rel[k].max()) <= rtol:
+        if k in est_idx:
             j = K + est_idx.index(k)
             y_half = (shq[j, :, :C] + nb[k]) / (shq[j, :, C:] if normalized else 1.0)
             with np.errstate(invalid="ignore", divide="ignore"):
                 est = np.abs(y - y_half) + 1e-12 * np.abs(y)
                 est = np.where(y > est, est / np.maximum(y - est, 1e-300), np.inf)
-            rel[k] = est.max(axis=1)
+            rel_est[k] = est.max(axis=1)
+    return maps, rel, rel_est
+
+
+def _finish(setup: ShSetup, maps, rel, rel_est, times: dict):
+    """Bound kinds (an estimate replaces the rigorous bound of an exponent in ``est_idx`` only where the
+    rigorous one misses rtol somewhere), shapes and the info dict."""
+    K = len(setup.s_list)
+    kinds = []
+    for k in range(K):
+        kinds.append("rigorous")
+        if k in setup.est_idx and not float(rel[k].max()) <= setup.rtol:
+            rel[k] = rel_est[k]
             kinds[-1] = "estimate"
-    maps = maps.reshape((K, 6, out_size, out_size, C))
-    if squeeze:
+    n = setup.out_size
+    maps = maps.reshape((K, 6, n, n, setup.C))
+    if setup.squeeze:
         maps = maps[..., 0]
     info = {
-        "L": int(L_use),
-        "tau": float(tau_use),
-        "n_bright": int(np.count_nonzero(bright)),
-        "texel_radius_rad": rho,
+        "L": int(setup.L),
+        "tau": setup.tau,
+        "n_bright": setup.n_bright,
+        "texel_radius_rad": setup.rho,
         "bound_kind": kinds,
-        "time_plan_s": t_plan - t0,
-        "time_sh_s": t_sh - t_plan,
-        "time_bright_s": t_gather - t_sh,
-        "time_total_s": time.perf_counter() - t0,
+        **times,
+        "time_total_s": time.perf_counter() - setup.t0,
     }
-    return maps, rel.reshape((K, 6, out_size, out_size)), info
+    return maps, rel.reshape((K, 6, n, n)), info
 
 
 def convolve_sh(cube, s, **kwargs):
