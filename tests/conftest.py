@@ -1,8 +1,25 @@
 """Test-session settings: figures are written, never shown (a non-interactive matplotlib backend chosen
 through the environment, as the library itself never switches backends); progress lines silenced unless a
-test asks for them."""
+test asks for them; the ``mitsuba_llvm`` fixture for tests that run Mitsuba."""
 
 import os
 
+import pytest
+
 os.environ.setdefault("MPLBACKEND", "Agg")
 os.environ.setdefault("IBL_REF_PROGRESS", "0")
+
+
+@pytest.fixture
+def mitsuba_llvm():
+    """Mitsuba's llvm_ad_rgb variant, the only one the lab's Mitsuba code runs on (it needs libLLVM >= 17).
+    Where it cannot run, the test is skipped with the reason, or fails when ``IBL_REF_REQUIRE_MITSUBA=1``
+    (set by ``.ci/run``, so that CI cross-validates with Mitsuba for real and never skips silently)."""
+    from ibl_ref.rendering import mitsuba_render as mr
+
+    try:
+        return mr.select_variant()
+    except mr.MitsubaUnavailable as exc:
+        if os.environ.get("IBL_REF_REQUIRE_MITSUBA") == "1":
+            pytest.fail(f"IBL_REF_REQUIRE_MITSUBA=1, but: {exc}")
+        pytest.skip(str(exc))

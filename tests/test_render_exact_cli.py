@@ -3,9 +3,12 @@
 import json
 
 import numpy as np
+import pytest
+
 from ibl_ref.cli import main
 
 
+@pytest.mark.usefixtures("mitsuba_llvm")
 def test_reference_and_mitsuba_modes_agree_on_constant_env(tmp_path):
     # sphere on a plane (one mesh, one diffuse material) under L ≡ 1: the sphere shadows the plane, so there is no
     # closed form; the two independent renderers must agree (Mitsuba within its noise, the reference within rtol)

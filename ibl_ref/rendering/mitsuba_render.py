@@ -39,8 +39,10 @@ each).  For each pixel E|mean − truth| ≈ E|a − b|/2 (a, b the halves; Gaus
 Variant: ``llvm_ad_rgb`` (vectorised, 3–70× faster) needs libLLVM ≥ 17; with libLLVM 15/16 Dr.Jit aborts the whole
 process at the first kernel compile (uncatchable), and it finds no library named ``libLLVM-N.so`` by itself.
 :func:`select_variant` therefore looks for a libLLVM ≥ 17 file, points ``DRJIT_LIBLLVM_PATH`` at it and only then
-selects ``llvm_ad_rgb``; otherwise ``scalar_rgb`` (about 70× slower with a Python BSDF).  Install with
-``pip install ".[mitsuba]"`` and, on Debian, ``apt-get install libllvm19``.
+selects ``llvm_ad_rgb``.  Without one, :class:`MitsubaUnavailable` says so: the scalar variants cannot run this
+module (its emitter queries, meshes and BSDF pass whole NumPy arrays to Mitsuba, which only the vectorised variants
+accept; a scalar fallback failed with ``TypeError`` deep inside Mitsuba).  Install with ``pip install ".[mitsuba]"``
+and, on Debian, ``apt-get install libllvm19``.
 """
 
 from __future__ import annotations
@@ -106,29 +108,30 @@ def find_libllvm(min_major: int = MIN_LLVM_MAJOR) -> str | None:
 
 
 def select_variant(prefer: str = "auto") -> str:
-    """Import Mitsuba and select a variant once per process: ``llvm_ad_rgb`` if a libLLVM ≥ 17 exists, else
-    ``scalar_rgb`` (``prefer`` = ``"auto"``, ``"llvm"`` or ``"scalar"``; Mitsuba keeps the first choice)."""
+    """Import Mitsuba and select its ``llvm_ad_rgb`` variant once per process (``prefer``: ``"auto"`` or
+    ``"llvm"``, the same thing).  Raises :class:`MitsubaUnavailable` when Mitsuba is not installed or no
+    libLLVM ≥ 17 exists (module docstring: the scalar variants cannot run this module's array code)."""
+    if prefer not in ("auto", "llvm"):
+        raise IBLError(f"variant preference must be auto or llvm, got {prefer!r} (the scalar variants cannot "
+                       "run the lab's array-based Mitsuba code)")
     if "variant" in _STATE:
         return _STATE["variant"]
-    if prefer not in ("auto", "llvm", "scalar"):
-        raise IBLError(f"variant preference must be auto, llvm or scalar, got {prefer!r}")
-    lib = find_libllvm() if prefer != "scalar" else None
-    if prefer == "llvm" and lib is None:
-        raise MitsubaUnavailable(f"no libLLVM >= {MIN_LLVM_MAJOR} found (Debian: apt-get install libllvm19)")
-    if lib is not None:
-        os.environ["DRJIT_LIBLLVM_PATH"] = lib
+    lib = find_libllvm()
+    if lib is None:
+        raise MitsubaUnavailable(
+            f"Mitsuba's llvm_ad_rgb variant needs libLLVM >= {MIN_LLVM_MAJOR} and none was found (Debian: "
+            "apt-get install libllvm19; or set DRJIT_LIBLLVM_PATH to a libLLVM-17+ file); the scalar variants "
+            "cannot run the lab's array-based Mitsuba code")
+    os.environ["DRJIT_LIBLLVM_PATH"] = lib
     try:
         import mitsuba as mi
     except ImportError as exc:
         raise MitsubaUnavailable('Mitsuba 3 is not installed: pip install ".[mitsuba]"') from exc
-    variant = "llvm_ad_rgb" if lib is not None else "scalar_rgb"
+    variant = "llvm_ad_rgb"
     try:
         mi.set_variant(variant)
-    except (ImportError, AttributeError, RuntimeError):
-        if variant == "scalar_rgb":
-            raise MitsubaUnavailable("Mitsuba 3 could not select scalar_rgb") from None
-        variant = "scalar_rgb"
-        mi.set_variant(variant)
+    except (ImportError, AttributeError, RuntimeError) as exc:
+        raise MitsubaUnavailable(f"Mitsuba 3 could not select {variant} with {lib}: {exc}") from None
     mi.set_log_level(mi.LogLevel.Error)  # e.g. multijitter's "sample count rounded up" (recorded in info["spp"])
     _register_bsdf(mi)
     _STATE["variant"] = variant
@@ -137,7 +140,7 @@ def select_variant(prefer: str = "auto") -> str:
 
 
 def mitsuba_available() -> bool:
-    """True if Mitsuba 3 imports and a variant can be selected."""
+    """True if Mitsuba 3 imports and its llvm_ad_rgb variant can be selected (:func:`select_variant`)."""
     try:
         select_variant()
     except MitsubaUnavailable:
@@ -438,16 +441,13 @@ def render_mitsuba(meshes, camera, cube, *, materials=None, kd: float = 0.0, ks:
         (every texel then holds at least one pixel)
     envmap_energy : :func:`mitsuba_envmap`'s ``energy`` (default ``"texel"``: every texel's exact energy)
     lanes : wavefront lanes per pass (memory ≈ 1 kB per lane in ``llvm_ad_rgb``)
-    variant : ``auto`` / ``llvm`` / ``scalar`` (see :func:`select_variant`)
+    variant : ``auto`` / ``llvm`` (see :func:`select_variant`)
     """
     from .raster import prepare_scene
 
     spp = int(spp)
     if spp < 2 or spp % 2:
         raise IBLError(f"spp must be an even number >= 2, got {spp}")
-    v = select_variant(variant)
-    import mitsuba as mi
-
     t0 = time.perf_counter()
     scene = prepare_scene(meshes, warn=False)
     ids = sorted(int(x) for x in np.unique(scene.material_id))
@@ -456,6 +456,9 @@ def render_mitsuba(meshes, camera, cube, *, materials=None, kd: float = 0.0, ks:
         shape = np.shape(cube)  # the layout itself is checked by mitsuba_envmap
         envmap_height = max(1024, 8 * int(shape[1])) if len(shape) >= 2 else 1024
     bitmap, env_info = mitsuba_envmap(cube, envmap_height, energy=envmap_energy, return_info=True)
+    v = select_variant(variant)  # after the argument checks: a bad argument is reported even without Mitsuba
+    import mitsuba as mi
+
     mscene = _build_scene(mi, scene, mats, bitmap)
     o, d = camera.pixel_rays(normalize=True)
     H, W = o.shape[:2]
