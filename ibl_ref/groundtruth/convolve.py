@@ -662,7 +662,8 @@ def _sh_split_state(a4, sh_set, sh_plan, rtol, out_size, normalized):
     n = a4.shape[1]
     n_src, n_out = 6 * n * n, 6 * out_size * out_size
     Q = a4.shape[-1] + 1
-    # cheap test first: even the smallest band limit (the planned one, else L = 32) would not pay
+    # cheap test first, with the planned band limit (without a plan, L = 32; then checked again with the band
+    # limit planned here: a pass that ends up below the threshold runs as one job, which plans once more)
     L_min = (sh_plan or {}).get("L") or 32
     if shc.sh_cost(L_min, n_src, n_out, len(sh_set), Q) * shc.SECONDS_PER_UNIT < SH_SPLIT_MIN_SECONDS:
         return None

@@ -369,6 +369,17 @@ def sh_evaluate(coeffs, dirs) -> np.ndarray:
     return _evaluate(d.reshape(-1, 3), be, bo, L).reshape(d.shape[:-1] + (coeffs.shape[1],))
 
 
+def funk_hecke(kernel_coeffs, ae, ao):
+    """``c_l a_lm`` for every kernel (Funk–Hecke), the (even, odd) coefficients ``ae``, ``ao`` (rows, Q) of a
+    projection: ``(Be, Bo)`` (rows, K·Q), kernel-major columns, ready for one evaluation pass."""
+    kc = np.atleast_2d(kernel_coeffs)
+    K, Q = kc.shape[0], ae.shape[1]
+    ev_l, od_l = _row_layout(kc.shape[1] - 1)
+    Be = (kc[:, ev_l, None] * ae[None]).transpose(1, 0, 2).reshape(-1, K * Q)
+    Bo = (kc[:, od_l, None] * ao[None]).transpose(1, 0, 2).reshape(-1, K * Q)
+    return Be, Bo
+
+
 def sh_lobe_convolve(src_dirs, weights, out_dirs, kernel_coeffs) -> np.ndarray:
     """``Σ_l k_l Σ_m a_lm Y_lm(r)`` with ``a_lm = Σ_j weights_j Y_lm(ω_j)``, for several kernels at once.
 
@@ -409,9 +420,7 @@ def sh_lobe_convolve(src_dirs, weights, out_dirs, kernel_coeffs) -> np.ndarray:
         ae, ao = _project_octant(src, W, L, orb, chunks)
     else:
         ae, ao = _project(src, W, L)
-    ev_l, od_l = _row_layout(L)
-    Be = (kc[:, ev_l, None] * ae[None]).transpose(1, 0, 2).reshape(-1, K * Q)  # Funk–Hecke: c_l a_lm
-    Bo = (kc[:, od_l, None] * ao[None]).transpose(1, 0, 2).reshape(-1, K * Q)
+    Be, Bo = funk_hecke(kc, ae, ao)
     if chunks is not None:
         out = _evaluate_octant(dst, Be, Bo, L, orb, chunks)
     else:

@@ -403,19 +403,14 @@ def sh_project_part(setup: ShSetup, part: int):
 
 def sh_coefficients(setup: ShSetup, parts):
     """Sum of the projection parts (in the given order) times the Funk–Hecke eigenvalues: ``(Be, Bo)``."""
-    from .sh_basis import _row_layout
+    from .sh_basis import funk_hecke
 
     ae = parts[0][0].copy()
     ao = parts[0][1].copy()
     for pe, po in parts[1:]:
         ae += pe
         ao += po
-    K = setup.kcoef.shape[0]
-    Q = setup.Wq.shape[1]
-    ev_l, od_l = _row_layout(setup.L)
-    Be = (setup.kcoef[:, ev_l, None] * ae[None]).transpose(1, 0, 2).reshape(-1, K * Q)  # c_l a_lm
-    Bo = (setup.kcoef[:, od_l, None] * ao[None]).transpose(1, 0, 2).reshape(-1, K * Q)
-    return Be, Bo
+    return funk_hecke(setup.kcoef, ae, ao)
 
 
 def sh_evaluate_part(setup: ShSetup, Be, Bo, part: int):
