@@ -266,49 +266,15 @@ def _evaluate_octant(dirs, Be, Bo, L, orb, chunks=None):
 
 
 def _project(dirs, W, L):
-    """a = Σ_j W_j Y(ω_j) in :func:`_row_layout` order: (a_even, a_odd)."""
-    orb = _octant_orbits(dirs)
-    if orb is not None:
-        return _project_octant(dirs, W, L, orb)
-    ev_l, od_l = _row_layout(L)
-    ae = np.zeros((ev_l.size, W.shape[1]))
-    ao = np.zeros((od_l.size, W.shape[1]))
-    pairs = _mirror_pairs(dirs)
-    if pairs is None:
-        h, mir = np.arange(dirs.shape[0]), np.zeros(0, dtype=int)
-    else:
-        h, mir = pairs
-    Wm = np.zeros((h.size, W.shape[1]))
-    Wm[: mir.size] = W[mir]
-    We, Wo = W[h] + Wm, W[h] - Wm
-    ch = _chunk(L)
-    for i0 in range(0, h.size, ch):
-        Ye, Yo = _real_sh_parity(dirs[h[i0 : i0 + ch]], L)
-        ae += Ye @ We[i0 : i0 + ch]
-        ao += Yo @ Wo[i0 : i0 + ch]
-    return ae, ao
+    """a = Σ_j W_j Y(ω_j) in :func:`_row_layout` order: (a_even, a_odd) (octant orbits, else z-mirror pairs:
+    :class:`SymmetryPlan` with one part)."""
+    return project_part(dirs, W, SymmetryPlan(dirs, L, 1), 0)
 
 
 def _evaluate(dirs, Be, Bo, L):
-    orb = _octant_orbits(dirs)
-    if orb is not None:
-        return _evaluate_octant(dirs, Be, Bo, L, orb)
+    idx, vals = evaluate_part(dirs, Be, Bo, SymmetryPlan(dirs, L, 1), 0)
     out = np.empty((dirs.shape[0], Be.shape[1]))
-    pairs = _mirror_pairs(dirs)
-    if pairs is None:
-        h, mir = np.arange(dirs.shape[0]), np.zeros(0, dtype=int)
-    else:
-        h, mir = pairs
-    ch = _chunk(L)
-    for i0 in range(0, h.size, ch):
-        idx = h[i0 : i0 + ch]
-        Ye, Yo = _real_sh_parity(dirs[idx], L)
-        ve = Ye.T @ Be
-        vo = Yo.T @ Bo
-        out[idx] = ve + vo
-        k = max(0, min(mir.size - i0, idx.size))  # the first k of this chunk have mirrors
-        if k:
-            out[mir[i0 : i0 + k]] = ve[:k] - vo[:k]
+    out[idx] = vals
     return out
 
 
