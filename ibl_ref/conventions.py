@@ -4,6 +4,10 @@
   diffuse-like s = 1 lobe, g = 1 the mirror (s = ∞).
 * Width of the clamped cosine lobe max(cos θ, 0)^s of Eq. 4: half-width at half maximum
   θ½ = arccos(2^(−1/s)) (≈ 1.18/√s for large s).
+* GGX roughness → microfacet α (Karis 2013, "Real Shading in Unreal Engine 4", Sec. "Specular BRDF"; Burley 2012;
+  Filament's documentation): the user-facing *perceptual roughness* r ∈ (0, 1] is squared, ``α = r²``; α is the
+  Trowbridge–Reitz (GGX) width of :func:`ibl_ref.lobes.brdfs.ggx`.  r = 0 (a perfect mirror) is refused: the GGX
+  NDF degenerates to a delta.
 
 They live here so that the exact reference (:mod:`ibl_ref.rendering.reference_render`), the prefilters
 (:mod:`ibl_ref.knuth2014.lobe_chain`, :mod:`ibl_ref.knuth2014.pyramid`) and the run-time look-up (:mod:`ibl_ref.knuth2014.gloss_lookup`) can all use
@@ -16,7 +20,7 @@ import numpy as np
 
 from .errors import IBLError
 
-__all__ = ["phong_exponent", "lobe_half_angle"]
+__all__ = ["phong_exponent", "lobe_half_angle", "ggx_alpha"]
 
 
 def phong_exponent(g):
@@ -47,3 +51,25 @@ def lobe_half_angle(s) -> np.ndarray:
     """Half-width at half maximum of max(cos θ, 0)^s: θ½ = arccos(2^(−1/s)) (≈ 1.18/√s for large s)."""
     s = np.asarray(s, dtype=np.float64)
     return np.arccos(np.power(2.0, -1.0 / s))
+
+
+def ggx_alpha(roughness):
+    """GGX width ``α = roughness²`` (Karis 2013; the one place this convention is defined).
+
+    Parameters
+    ----------
+    roughness : float or array in (0, 1] (perceptual roughness)
+
+    Raises
+    ------
+    IBLError
+        If any roughness is NaN, infinite or outside (0, 1].
+    """
+    r = np.asarray(roughness, dtype=np.float64)
+    if r.size == 0:
+        raise IBLError("roughness is empty; roughness must be in (0, 1]")
+    bad = ~np.isfinite(r) | (r <= 0) | (r > 1)
+    if np.any(bad):
+        raise IBLError(f"GGX roughness must be in (0, 1] (0 would be a perfect mirror), got {r[bad].ravel()[0]!r}")
+    a = r * r
+    return float(a) if a.ndim == 0 else a

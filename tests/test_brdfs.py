@@ -8,7 +8,8 @@ from ibl_ref.errors import IBLError
 
 ALL = [("lambert", dict(kd=0.5)), ("phong", dict(ks=0.7, s=30, kd=0.1)), ("phong_classic", dict(ks=0.5, s=20)),
        ("blinn_phong", dict(ks=0.6, s=50)), ("ward", dict(ks=0.8, alpha=0.1, kd=0.05)),
-       ("cook_torrance", dict(alpha=0.3, f0=0.5)), ("cook_torrance", dict(alpha=0.3, distribution="beckmann"))]
+       ("cook_torrance", dict(alpha=0.3, f0=0.5)), ("cook_torrance", dict(alpha=0.3, distribution="beckmann")),
+       ("cook_torrance", dict(alpha=0.3, f0=0.5, smith="height_correlated")), ("ggx", dict(roughness=0.6, f0=0.04, kd=0.2))]
 
 
 def _rand_dirs(rng, n):
@@ -89,3 +90,54 @@ def test_bad_inputs():
         b.view_direction(np.pi / 2)
     with pytest.raises(IBLError):
         b.lambert(np.zeros((3, 2)), np.zeros(3))
+
+
+def test_ggx_alpha_is_roughness_squared_and_refuses_outside_unit_interval():
+    from ibl_ref.conventions import ggx_alpha
+
+    assert ggx_alpha(0.5) == 0.25 and ggx_alpha(1.0) == 1.0
+    np.testing.assert_array_equal(ggx_alpha(np.array([0.1, 0.3])), np.array([0.1, 0.3]) ** 2)
+    for bad in (0.0, -0.1, 1.0 + 1e-12, np.nan, np.inf):
+        with pytest.raises(IBLError, match=r"roughness must be in \(0, 1\]"):
+            ggx_alpha(bad)
+    with pytest.raises(IBLError, match="roughness must be in"):
+        b.get_brdf("ggx", roughness=0.0)
+    with pytest.raises(IBLError, match=r"f0 must be in \[0, 1\]"):
+        b.get_brdf("ggx", roughness=0.5, f0=1.5)
+    with pytest.raises(IBLError, match="smith must be one of"):
+        b.get_brdf("ggx", roughness=0.5, smith="uncorrelated")
+
+
+@pytest.mark.parametrize("alpha", [0.01, 0.09, 0.36, 1.0])
+def test_height_correlated_smith_against_the_lambda_closed_form(alpha):
+    # GGX Λ(θ) = (−1 + √(1 + α² tan²θ))/2 (Heitz 2014 Eq. 72), written out independently of smith_g1;
+    # correlated G = 1/(1 + Λi + Λo) (Eq. 99) is never below the separable product (1−G1i)(1−G1o) ≥ 0
+    c = np.linspace(0.02, 1.0, 50)
+    ci, co = np.meshgrid(c, c, indexing="ij")
+
+    def lam(x):
+        return 0.5 * (-1.0 + np.sqrt(1.0 + alpha**2 * (1.0 - x * x) / (x * x)))
+
+    hc = b.smith_g2(ci, co, alpha, smith="height_correlated")
+    np.testing.assert_allclose(hc, 1.0 / (1.0 + lam(ci) + lam(co)), rtol=1e-12)
+    np.testing.assert_allclose(b.smith_g2(ci, co, alpha, smith="separable"),
+                               1.0 / ((1.0 + lam(ci)) * (1.0 + lam(co))), rtol=1e-12)
+    assert np.all(hc >= b.smith_g2(ci, co, alpha, smith="separable") * (1 - 1e-14))
+
+
+def test_ggx_is_cook_torrance_with_alpha_roughness_squared():
+    rng = np.random.default_rng(3)
+    wi, wo = _rand_dirs(rng, 200), _rand_dirs(rng, 200)
+    a = b.ggx(wi, wo, roughness=0.4, f0=0.9, kd=0.1, smith="separable")
+    c = b.cook_torrance(wi, wo, alpha=0.4 ** 2, f0=0.9, kd=0.1, distribution="ggx")
+    np.testing.assert_array_equal(a, c)
+
+
+def test_ggx_height_correlated_white_furnace_below_one_and_mirror_limit():
+    # F = 1: the directional albedo is the fraction of light not lost to masking: ≤ 1 (energy conservation),
+    # → 1 as roughness → 0 at normal view (the loss is O(α²))
+    for r in (0.05, 0.3, 0.7, 1.0):
+        for tho in (0.0, 0.8, 1.3):
+            a = b.albedo(b.get_brdf("ggx", roughness=r, f0=1.0), tho, width=min(0.02, r * r / 4))
+            assert 0.0 < a <= 1.0 + 1e-6
+    assert b.albedo(b.get_brdf("ggx", roughness=0.1, f0=1.0), 0.0, width=0.002) > 0.998

@@ -23,8 +23,15 @@ direction of ``wo``, ``cos α = max(r·wi, 0)``, ``h = (wi+wo)/|wi+wo|``, ``cos 
     √(α² + (1−α²) cos²θ))``;
   - ``distribution="beckmann"``: ``D = exp(−tan²θh/α²) / (π α² cos⁴θh)``; Smith ``G1 = 1/(1+Λ)``,
     ``Λ(a) = (erf(a) − 1)/2 + exp(−a²)/(2a√π)``, ``a = 1/(α tan θ)`` (exact, not the rational approximation);
-  - separable Smith ``G = G1(wi)·G1(wo)``;
+  - Smith masking–shadowing, ``smith="separable"`` (default of ``cook_torrance``; what Mitsuba 3's microfacet
+    plugins use): ``G = G1(wi)·G1(wo)``; ``smith="height_correlated"`` (Heitz 2014, "Understanding the
+    Masking-Shadowing Function in Microfacet-Based BRDFs", Eq. 99; what Filament and UE4 ship):
+    ``G = 1 / (1 + Λ(wi) + Λ(wo))`` with ``G1 = 1/(1 + Λ)``, i.e. ``G = 1 / (1/G1(wi) + 1/G1(wo) − 1)``;
   - Schlick Fresnel ``F = F0 + (1−F0)(1 − h·wi)⁵``.
+* ``ggx`` (Trowbridge–Reitz microfacet material of the method comparisons): ``cook_torrance`` with
+  ``distribution="ggx"``, ``α = roughness²`` (:func:`ibl_ref.conventions.ggx_alpha`, Karis 2013), Schlick F0 and
+  height-correlated Smith by default, plus the Lambertian ``kd/π``.  F0 = 1 makes F ≡ 1 (a conductor with
+  Mitsuba's ``material='none'``).
 
 :func:`albedo` integrates ``∫ f(wi, wo) cos θi dωi`` over the hemisphere with a tensor Gauss–Legendre rule in
 (θi, φi) graded around the mirror direction.
@@ -37,9 +44,11 @@ import functools
 import numpy as np
 from scipy import special
 
+from ..conventions import ggx_alpha
 from ..errors import IBLError
 
-__all__ = ["lambert", "phong", "phong_classic", "blinn_phong", "ward", "cook_torrance", "ndf", "smith_g1", "get_brdf",
+__all__ = ["lambert", "phong", "phong_classic", "blinn_phong", "ward", "cook_torrance", "ggx", "ndf", "smith_g1", "smith_g2",
+           "SMITH_FORMS", "get_brdf",
            "BRDF_NAMES", "albedo", "hemisphere_rule", "direction_from_angles", "view_direction"]
 
 _Z = np.array([0.0, 0.0, 1.0])
@@ -165,22 +174,48 @@ def smith_g1(cos_theta, alpha, distribution="ggx"):
     raise IBLError(f"distribution must be 'ggx' or 'beckmann', got {distribution!r}")
 
 
-def cook_torrance(wi, wo, n=None, *, alpha=0.2, f0=0.04, kd=0.0, distribution="ggx"):
-    """Cook–Torrance microfacet BRDF with GGX or Beckmann D, separable Smith G, Schlick F (module doc)."""
+#: Smith masking–shadowing forms of :func:`smith_g2` (module doc)
+SMITH_FORMS = ("separable", "height_correlated")
+
+
+def smith_g2(cos_i, cos_o, alpha, distribution="ggx", smith="height_correlated"):
+    """Smith masking–shadowing ``G(wi, wo)`` from ``cos θi``, ``cos θo`` (module doc: both forms)."""
+    if smith not in SMITH_FORMS:
+        raise IBLError(f"smith must be one of {', '.join(SMITH_FORMS)}, got {smith!r}")
+    g1_i = smith_g1(cos_i, alpha, distribution)
+    g1_o = smith_g1(cos_o, alpha, distribution)
+    if smith == "separable":
+        return g1_i * g1_o
+    with np.errstate(divide="ignore"):
+        return 1.0 / (1.0 / g1_i + 1.0 / g1_o - 1.0)  # Heitz 2014 Eq. 99: 1/(1 + Λi + Λo), 1/G1 = 1 + Λ
+
+
+def cook_torrance(wi, wo, n=None, *, alpha=0.2, f0=0.04, kd=0.0, distribution="ggx", smith="separable"):
+    """Cook–Torrance microfacet BRDF with GGX or Beckmann D, Smith G (separable or height-correlated), Schlick F
+    (module doc)."""
     alpha = _pos("alpha", alpha, allow_zero=False)
     kd = _pos("kd", kd)
     f0 = _pos("f0", f0)
+    if f0 > 1:
+        raise IBLError(f"f0 must be in [0, 1], got {f0!r}")
     if distribution not in ("ggx", "beckmann"):
         raise IBLError(f"distribution must be 'ggx' or 'beckmann', got {distribution!r}")
+    if smith not in SMITH_FORMS:
+        raise IBLError(f"smith must be one of {', '.join(SMITH_FORMS)}, got {smith!r}")
     wi, wo, n, ci, co, valid = _prep(wi, wo, n)
     h, ch = _cos_h(wi, wo, n)
     ch = np.where(valid & (ch > 0), ch, 1.0)
     cis = np.where(valid, ci, 1.0)
     cos_ = np.where(valid, co, 1.0)
     D = ndf(ch, alpha, distribution)
-    G = smith_g1(cis, alpha, distribution) * smith_g1(cos_, alpha, distribution)
+    G = smith_g2(cis, cos_, alpha, distribution, smith)
     F = f0 + (1 - f0) * (1 - np.clip(_dot(h, wi), 0.0, 1.0)) ** 5
     return np.where(valid, kd / np.pi + D * G * F / (4 * cis * cos_), 0.0)
+
+
+def ggx(wi, wo, n=None, *, roughness=0.5, f0=0.04, kd=0.0, smith="height_correlated"):
+    """GGX material: ``kd/π + D·G·F / (4 cos θi cos θo)`` with ``α = roughness²`` (module doc)."""
+    return cook_torrance(wi, wo, n, alpha=ggx_alpha(roughness), f0=f0, kd=kd, distribution="ggx", smith=smith)
 
 
 _REGISTRY = {
@@ -190,6 +225,7 @@ _REGISTRY = {
     "blinn_phong": blinn_phong,
     "ward": ward,
     "cook_torrance": cook_torrance,
+    "ggx": ggx,
 }
 BRDF_NAMES = tuple(_REGISTRY)
 
