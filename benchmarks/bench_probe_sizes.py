@@ -18,7 +18,7 @@ are timed one by one:
 ``cpu_s`` (to-cube) is the CPU time of the process, which depends less on the load than the wall time.
 Peak RSS is sampled every 5 ms by a thread reading ``/proc/self/statm`` (the whole process, input
 included); ``rel_int_change`` is the relative change of ∫L dω from the float32 input to the cube (max
-over channels).  Goals (issue 13): 4K → face 1024 in ≤ 10 s and ≤ 1.5 GB; 16K → face 2048 in ≤ 120 s
+over channels).  Goals: 4K → face 1024 in ≤ 10 s and ≤ 1.5 GB; 16K → face 2048 in ≤ 120 s
 and ≤ 3× the decoded input.  Timings depend on the load of the machine: the script prints ``uptime``.
 """
 

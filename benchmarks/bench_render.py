@@ -1,4 +1,4 @@
-"""Benchmark of the Eq. 5 renderer (issue target: teapot 256², 24 lights, 256² VSMs ≤ 30 s wall on 2 cores).
+"""Benchmark of the Eq. 5 renderer (goal: teapot 256², 24 lights, 256² VSMs ≤ 30 s wall on 2 cores).
 
 Usage: python benchmarks/bench_render.py [--size 256] [--vsm 256] [--lights 6 12 24 48 96] [--repeat 2]
 

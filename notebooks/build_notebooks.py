@@ -68,7 +68,8 @@ TOUR = [
                       "layout, texel centres, exact solid angles)."),
     new_code_cell(SETUP),
     new_code_cell("""\
-from ibl_ref import envmap, resample, tonemap
+from ibl_ref.environment import envmap, resample
+from ibl_ref.rendering import tonemap
 from ibl_ref.synthetic.synthetic_envs import make_env, SUN_NEAR_CORNER
 
 n = 32
@@ -86,7 +87,8 @@ plt.show()"""),
     new_markdown_cell("## The filter pyramid (Fig. 2) and the glossiness lookup (Eq. 3)"),
     new_code_cell("""\
 from ibl_ref.knuth2014.pyramid import build_pyramid, pyramid_energy
-from ibl_ref.knuth2014.gloss_lookup import lookup, phong_exponent
+from ibl_ref.conventions import phong_exponent
+from ibl_ref.knuth2014.gloss_lookup import lookup
 
 pyr = build_pyramid(env, kernel="sqrtcos")
 print("levels:", [lv.shape[1] for lv in pyr.levels])
@@ -153,7 +155,7 @@ BYOP = [
 PROBE = None   # e.g. "my_probe.hdr" or "my_probe.exr"
 MESH = None    # e.g. "my_mesh.obj"
 
-from ibl_ref import resample
+from ibl_ref.environment import resample
 from ibl_ref.environment.hdr_io import write_hdr
 from ibl_ref.synthetic.synthetic_envs import make_env
 from ibl_ref.synthetic.synthetic_meshes import make_mesh
@@ -177,8 +179,8 @@ print(lights.to_records()[:3])"""),
 from ibl_ref.knuth2014.pem import build_pems
 from ibl_ref.synthetic.synthetic_meshes import load_mesh
 from ibl_ref.rendering.render import render_pem, Material
-from ibl_ref.rendering.ao_modes import default_camera
-from ibl_ref import tonemap
+from ibl_ref.rendering.scenes import default_camera
+from ibl_ref.rendering import tonemap
 
 pems = build_pems(cube, lights)          # one filtered partial environment map per median-cut region
 print(f"{pems.n_regions} PEMs, {pems.nbytes / 2**20:.1f} MiB")

@@ -93,8 +93,9 @@ def test_face_lookup_matches_openexr_face_and_pixel_position():
         assert abs(ex - x[k]) < 1e-9 and abs(ey - y[k]) < 1e-9
 
 
-def test_opengl_convention_matches_field_notes_table():
-    # (u→, v↓) = +X:(−z,−y), −X:(+z,−y), +Y:(+x,+z), −Y:(+x,−z), +Z:(+x,−y), −Z:(−x,−y)
+def test_opengl_convention_matches_the_opengl_d3d_face_table():
+    # the OpenGL cube-map face selection (OpenGL 4.6 core spec, Sec. 8.13, Table 8.19; the same layout in D3D, cmft,
+    # CubeMapGen, py360convert), written as each face's (u→, v↓) axes: = +X:(−z,−y), −X:(+z,−y), +Y:(+x,+z), −Y:(+x,−z), +Z:(+x,−y), −Z:(−x,−y)
     table = {0: ((0, 0, -1), (0, -1, 0)), 1: ((0, 0, 1), (0, -1, 0)), 2: ((1, 0, 0), (0, 0, 1)),
              3: ((1, 0, 0), (0, 0, -1)), 4: ((1, 0, 0), (0, -1, 0)), 5: ((-1, 0, 0), (0, -1, 0))}
     axes = [(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)]

@@ -1,4 +1,4 @@
-"""Experiment sweeps on any Executor (issue 18, item 3): the independent cases of fig5 and cross-validate, and the
+"""Experiment sweeps on any Executor: the independent cases of fig5 and cross-validate, and the
 experiments of ``reproduce``, run through ibl_ref.executors.map_jobs; the data files of a run on local processes or
 on a local 2-worker Dask cluster are bit-for-bit those of a serial run (timing columns aside)."""
 
@@ -42,8 +42,7 @@ def _rows_without_times(path):
     return [{k: v for k, v in r.items() if not k.endswith("time_s")} for r in csv.DictReader(io.StringIO(text))]
 
 
-def test_cross_validate_cases_on_dask_match_serial(tmp_path, dask_client):
-    pytest.importorskip("mitsuba")
+def test_cross_validate_cases_on_dask_match_serial(tmp_path, dask_client, mitsuba_llvm):
     mod = experiments.get("cross-validate")
     mod.run(tmp_path / "serial", quick=True, **CROSS_TINY)
     mod.run(tmp_path / "dask", quick=True, executor=dask_client, **CROSS_TINY)

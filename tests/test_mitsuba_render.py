@@ -199,7 +199,7 @@ def test_phong_lobe_is_normalised():
     np.testing.assert_allclose(v.mean(), 1.0, atol=5 * res.info["noise_rmse"] / np.sqrt(v.size) + 1e-3)
 
 
-def test_bad_arguments():
+def test_bad_arguments():  # runs without Mitsuba: argument checks come before the variant is selected
     plane = trimesh.Trimesh([[-1, 0, -1], [1, 0, -1], [1, 0, 1]], [[0, 2, 1]], process=False)
     cam = PerspectiveCamera(eye=[0, 2, 0.5], target=[0, 0, 0], up=[0, 1, 0], fov_y_deg=30, width=4, height=4)
     cube = np.ones((6, 4, 4, 3))
@@ -211,7 +211,7 @@ def test_bad_arguments():
         mr.render_mitsuba([(plane, 3)], cam, cube, materials={0: (1, 0, 0)}, spp=2)
 
 
-def test_envmap_too_coarse_for_the_cube_is_refused_not_silently_dark():
+def test_envmap_too_coarse_for_the_cube_is_refused_not_silently_dark():  # runs without Mitsuba (the bitmap only)
     # a 64² cube on a 128-row bitmap: many texels get no pixel, and "texel" mode would drop their energy; the
     # error names a height that works, and with it every texel's energy is there (trapezoid sum = Σ L Ω)
     from ibl_ref.environment.envmap import cube_solid_angles
@@ -229,7 +229,7 @@ def test_envmap_too_coarse_for_the_cube_is_refused_not_silently_dark():
         np.testing.assert_allclose(got, (c * cube_solid_angles(n)[..., None]).sum(axis=(0, 1, 2)), rtol=1e-6)
 
 
-def test_without_a_new_libllvm_mitsuba_is_a_clear_error_not_a_typeerror(tmp_path):
+def test_without_a_new_libllvm_mitsuba_is_a_clear_error_not_a_typeerror(tmp_path):  # runs without Mitsuba
     # the scalar variants take single values, not arrays: before, a missing libLLVM >= 17 silently selected
     # scalar_rgb and every render died with "TypeError: mitsuba.Point3f.__init__(): Item assignment failed".
     # A fresh process (the variant is chosen once per process) with DRJIT_LIBLLVM_PATH at an old library name

@@ -40,7 +40,7 @@ def test_ground_material_is_honoured(tmp_path):
     assert v.max() <= 0.5 + 1e-9 and (v > 0.4).any() and ((v > 0) & (v <= 0.3 + 1e-9)).any()
 
 
-def test_bad_flags(tmp_path, capsys):
+def test_bad_flags(tmp_path, capsys):  # runs without Mitsuba: the flags are checked before any rendering
     # one-line errors naming the flag, before any rendering
     out = str(tmp_path / "never.exr")
     assert main(["render", "--mode", "mitsuba", "--spp", "3", "--size", "4", "--out", out]) != 0
