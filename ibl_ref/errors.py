@@ -1,15 +1,16 @@
 """Exception types of ibl_ref.
 
 Every error a user can trigger with bad input derives from :class:`IBLError` (itself a ``ValueError``),
-and its message names the file or argument and the problem.
+and its message names the file or argument and the problem.  This module imports nothing of the package (every
+module may import it); the radiance check of arrays, :func:`ibl_ref.environment.radiance_policy.check_radiance`,
+lives with the radiance policy it applies.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["IBLError", "LayoutError", "RadianceError", "EnvMapFileError", "MeshError", "check_radiance",
-           "check_input_file"]
+__all__ = ["IBLError", "LayoutError", "RadianceError", "EnvMapFileError", "MeshError", "check_input_file"]
 
 
 class IBLError(ValueError):
@@ -30,18 +31,6 @@ class EnvMapFileError(IBLError):
 
 class MeshError(IBLError):
     """A mesh is empty, degenerate or contains non-finite vertices."""
-
-
-def check_radiance(values, name: str = "radiance", negative: str = "error", nonfinite: str = "error") -> np.ndarray:
-    """Return ``values`` as an array after checking it is finite and non-negative.
-
-    Raises :class:`RadianceError` naming ``name``, the count of offending values and the first index;
-    complex, integer and boolean arrays are refused too.  ``negative`` / ``nonfinite`` select another
-    policy of :mod:`ibl_ref.environment.radiance_policy` (then a repaired copy may be returned).
-    """
-    from .environment.radiance_policy import apply_policy
-
-    return apply_policy(values, name, negative=negative, nonfinite=nonfinite)[0]
 
 
 def check_input_file(path, expected: str, error: type = EnvMapFileError):

@@ -193,7 +193,7 @@ def test_convolve_1e308_is_finite_or_an_error(method):
 @pytest.mark.parametrize("entry", ["check_radiance", "median_cut", "convolve", "write_envmap"])
 def test_complex_input_is_refused(entry, tmp_path):
     from ibl_ref.groundtruth.convolve import convolve
-    from ibl_ref.errors import check_radiance
+    from ibl_ref.environment.radiance_policy import check_radiance
 
     z = np.ones((6, 4, 4, 3), dtype=complex) * (1 + 1e-3j)
     call = {"check_radiance": lambda: check_radiance(z), "median_cut": lambda: median_cut(z, 6),

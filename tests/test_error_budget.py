@@ -195,7 +195,7 @@ def test_step_orders():
     assert eb.configuration(["regions"]) == {"hemisphere": True, "visibility": "exact", "horizon": True,
                                              "prefilter": "exact", "level": "best", "back_faces": "black"}
     assert eb.configuration(eb.STEPS) == {"hemisphere": False, "visibility": "vsm", "horizon": False,
-                                          "prefilter": "pyramid", "level": "paper", "back_faces": "shaded"}
+                                          "prefilter": "prefiltered", "level": "paper", "back_faces": "shaded"}
 
 
 def test_lobe_average_hemisphere_clip_against_brute_force():

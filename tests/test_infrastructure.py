@@ -11,7 +11,8 @@ import pytest
 
 from ibl_ref import atomic
 from ibl_ref.cli import build_parser, main
-from ibl_ref.errors import RadianceError, check_radiance
+from ibl_ref.environment.radiance_policy import check_radiance
+from ibl_ref.errors import RadianceError
 
 
 def test_atomic_write_replaces_only_on_success(tmp_path):

@@ -72,11 +72,11 @@ def test_import_ibl_ref_is_cheap():
     assert out.stdout.strip() == ""
 
 
-def _imports(path: Path):
+def _imports(path: Path, root: Path = ROOT):
     """Every ``ibl_ref`` module a file imports (module level and inside functions: lazy imports count too), as
     (absolute module name, enclosing function or ``"<module>"``); relative imports resolved, ``from m import x``
-    reported as both ``m`` and ``m.x``."""
-    rel = path.relative_to(ROOT).with_suffix("")
+    reported as both ``m`` and ``m.x`` (as ``m.x`` only when every x is a sub-module of package m)."""
+    rel = path.relative_to(root).with_suffix("")
     parts = list(rel.parts)
     pkg = parts[:-1] if parts[-1] != "__init__" else parts[:-1]
     if parts[-1] == "__init__":
@@ -90,7 +90,12 @@ def _imports(path: Path):
         elif isinstance(node, ast.ImportFrom):
             base = ".".join(pkg[:len(pkg) - node.level + 1] + ([node.module] if node.module else [])) \
                 if node.level else node.module
-            names = [base] + [f"{base}.{a.name}" for a in node.names]
+            subs = [f"{base}.{a.name}" for a in node.names]
+            # ``from p import m, n`` of sub-modules imports m and n (p's __init__ runs first, as for every import of
+            # a sub-module, ``from p.m import x`` too: not an import of p); otherwise p and p.x are both reported
+            mods = all((root.joinpath(*s.split(".")).with_suffix(".py")).is_file()
+                       or (root.joinpath(*s.split(".")) / "__init__.py").is_file() for s in subs)
+            names = subs if mods else [base] + subs
         else:
             continue
         fn = node
@@ -116,10 +121,10 @@ def _violations(files, forbidden, allow=()):
 
 def test_import_scan_sees_lazy_and_relative_imports(tmp_path):
     # the scanner itself: a function-level relative import is found and resolved
-    f = ROOT / "ibl_ref" / "knuth2014" / "gloss_lookup.py"
+    f = ROOT / "ibl_ref" / "knuth2014" / "pem.py"
     found = _imports(f)
-    assert ("ibl_ref.conventions.phong_exponent", "<module>") in found
-    assert ("ibl_ref.knuth2014.gloss_calibration", "__getattr__") in found
+    assert ("ibl_ref.environment.envmap.check_cube_shape", "<module>") in found
+    assert ("ibl_ref.knuth2014.pyramid", "iter_pem_chunks") in found
 
 
 def test_ground_truth_does_not_import_the_approximation():
@@ -127,27 +132,27 @@ def test_ground_truth_does_not_import_the_approximation():
     # rendering or the lobe papers, and the ray-traced reference renderer (the ground truth of a render) does not
     # import the approximation either
     files = _library_files("environment", "groundtruth")
-    bad = _violations(files, ["ibl_ref.knuth2014", "ibl_ref.rendering", "ibl_ref.lobes", "ibl_ref.experiments",
-                              "ibl_ref.cli"])
-    bad += _violations([ROOT / "ibl_ref" / "rendering" / "reference_render.py"], ["ibl_ref.knuth2014"])
+    bad = _violations(files, ["ibl_ref.knuth2014", "ibl_ref.prefilter", "ibl_ref.rendering", "ibl_ref.lobes",
+                              "ibl_ref.experiments", "ibl_ref.cli"])
+    bad += _violations([ROOT / "ibl_ref" / "rendering" / "reference_render.py"],
+                       ["ibl_ref.knuth2014", "ibl_ref.prefilter"])
     assert not bad, bad
 
 
 def test_library_does_not_import_experiments_or_cli():
     # experiments and the CLI are thin layers on top: no library module imports them (not even lazily)
-    files = _library_files("environment", "groundtruth", "knuth2014", "rendering", "lobes", "synthetic")
+    files = _library_files("environment", "groundtruth", "knuth2014", "prefilter", "rendering", "lobes", "synthetic")
     files += [p for p in sorted((ROOT / "ibl_ref").glob("*.py")) if p.name not in ("__init__.py", "__main__.py")]
     assert not _violations(files, ["ibl_ref.experiments", "ibl_ref.cli"])
 
 
 def test_run_time_lookup_does_not_import_the_analysis():
     # the glossiness lookup reads calibration tables; the Sec. 5 analysis that builds them
-    # (knuth2014.lobe_analysis, knuth2014.gloss_calibration) is imported by no run-time module of the library —
-    # only gloss_lookup's __getattr__ re-exports the builder's old names, when a caller asks for one of them
-    files = _library_files("environment", "groundtruth", "knuth2014", "rendering", "lobes", "synthetic")
+    # (knuth2014.lobe_analysis, knuth2014.gloss_calibration) is imported by no run-time module of the library, not
+    # even lazily
+    files = _library_files("environment", "groundtruth", "knuth2014", "prefilter", "rendering", "lobes", "synthetic")
     files = [p for p in files if p.name not in ("lobe_analysis.py", "gloss_calibration.py")]
-    bad = _violations(files, ["ibl_ref.knuth2014.lobe_analysis", "ibl_ref.knuth2014.gloss_calibration"],
-                      allow={("gloss_lookup.py", "__getattr__")})
+    bad = _violations(files, ["ibl_ref.knuth2014.lobe_analysis", "ibl_ref.knuth2014.gloss_calibration"])
     assert not bad, bad
     # and at run time: PEM lookups, the Eq. 5 lookups and the pyramid lookup leave the analysis unloaded
     code = ("import sys, numpy as np\n"
@@ -159,7 +164,119 @@ def test_run_time_lookup_does_not_import_the_analysis():
             "d = np.array([[0.3, 0.4, 0.8]])\n"
             "lookup(build_pyramid(c), d, 0.7)\n"
             "build_pems(c, median_cut(c, 6)).lookup_all(d, 0.7)\n"
+            "from ibl_ref.prefilter import build_prefilter\n"
+            "build_prefilter(c, 'pyramid').lookup(d, 3.0)\n"
             "print(','.join(m for m in sys.modules if 'lobe_analysis' in m or 'gloss_calibration' in m))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == ""
+
+
+# ---- the import graph: no cycles between files, none between sub-packages -------------------------------------------
+
+#: file cycles that are known and being removed (each pair: both directions of one cycle).  The reference renderer
+#: and its converged integrator import each other while the two reference integrators are merged into one.
+ALLOWED_FILE_CYCLES = {frozenset({"ibl_ref.rendering.reference_render", "ibl_ref.rendering.reference_converged"})}
+
+
+def _module_name(path: Path, root: Path) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _import_graph(root: Path = ROOT) -> dict:
+    """module → set of the package's modules it imports (lazy imports too), from the source with ``ast``."""
+    files = {_module_name(p, root): p for p in sorted((root / "ibl_ref").rglob("*.py"))}
+    return {m: {n for n, _ in _imports(p, root) if n in files and n not in (m, "ibl_ref")} for m, p in files.items()}
+
+
+def _cycles(graph: dict) -> list:
+    """The strongly connected components with more than one node (Tarjan, iterative), each sorted."""
+    index, low, on, stack, out, counter = {}, {}, set(), [], [], [0]
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = counter[0]
+        counter[0] += 1
+        stack.append(root)
+        on.add(root)
+        while work:
+            v, it = work[-1]
+            w = next(it, None)
+            if w is not None:
+                if w not in index:
+                    index[w] = low[w] = counter[0]
+                    counter[0] += 1
+                    stack.append(w)
+                    on.add(w)
+                    work.append((w, iter(sorted(graph.get(w, ())))))
+                elif w in on:
+                    low[v] = min(low[v], index[w])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[v])
+            if low[v] == index[v]:
+                comp = []
+                while True:
+                    w = stack.pop()
+                    on.discard(w)
+                    comp.append(w)
+                    if w == v:
+                        break
+                if len(comp) > 1:
+                    out.append(sorted(comp))
+    return sorted(out)
+
+
+def _unit(module: str) -> str:
+    """The sub-package of a module (``ibl_ref.knuth2014.pem`` → ``ibl_ref.knuth2014``); a top-level module is its
+    own unit (``ibl_ref.errors``)."""
+    parts = module.split(".")
+    return module if len(parts) <= 2 and not (ROOT / "ibl_ref" / parts[-1]).is_dir() else ".".join(parts[:2])
+
+
+def test_cycle_finder_finds_a_lazy_cycle(tmp_path):
+    # the graph machinery itself: a cycle through a function-level relative import is found, a chain is not
+    pkg = tmp_path / "ibl_ref" / "sub"
+    pkg.mkdir(parents=True)
+    (tmp_path / "ibl_ref" / "__init__.py").write_text("")
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("from .b import x\n")
+    (pkg / "b.py").write_text("def x():\n    from . import a\n")
+    (pkg / "c.py").write_text("from ibl_ref.sub.a import x\n")
+    graph = _import_graph(tmp_path)
+    assert graph["ibl_ref.sub.b"] == {"ibl_ref.sub.a"}
+    assert _cycles(graph) == [["ibl_ref.sub.a", "ibl_ref.sub.b"]]
+    assert _cycles({"p": {"q"}, "q": {"r"}, "r": set()}) == []
+
+
+def test_no_import_cycles_between_files():
+    # every module can be read (and imported) without its importers: no file imports one of its own importers,
+    # not even lazily inside a function (known cycles being removed: ALLOWED_FILE_CYCLES)
+    cycles = [c for c in _cycles(_import_graph()) if frozenset(c) not in ALLOWED_FILE_CYCLES]
+    assert not cycles, cycles
+
+
+def test_no_import_cycles_between_sub_packages():
+    # the sub-packages form layers (environment → ground truth → lobe papers → the paper's approximation →
+    # prefilter methods → rendering → experiments, CLI); a top-level module (errors, conventions, …) counts as a
+    # unit of its own
+    units = {}
+    for m, deps in _import_graph().items():
+        units.setdefault(_unit(m), set()).update(_unit(d) for d in deps if _unit(d) != _unit(m))
+    assert "ibl_ref.prefilter" in units and "ibl_ref.errors" in units
+    assert not _cycles(units), _cycles(units)
+
+
+def test_lobe_papers_do_not_import_the_approximation_or_rendering():
+    # the lobe papers (BRDFs, Kautz & McCool fits and maps, Meunier's algebra) sit below the paper's approximation,
+    # the prefilter methods and the renderers, which all use them (the renderers use lobes.brdfs)
+    bad = _violations(_library_files("lobes"), ["ibl_ref.knuth2014", "ibl_ref.prefilter", "ibl_ref.rendering"])
+    assert not bad, bad
+
+
+def test_errors_module_imports_nothing_of_the_package():
+    # every module raises IBLError: errors.py is the bottom of the graph
+    assert _import_graph()["ibl_ref.errors"] == set()

@@ -19,6 +19,7 @@ from ibl_ref.lobes import prefiltered_lobes as pl
 from ibl_ref.synthetic import synthetic_envs as se
 from ibl_ref.errors import IBLError, LayoutError
 from ibl_ref.knuth2014.pyramid import build_pyramid
+from ibl_ref.prefilter import build_prefilter
 
 
 def _cos_profile(g, s):
@@ -259,7 +260,7 @@ def test_phong_brdf_chain_agrees():
     wo = np.cos(tho)[:, None] * n + np.sin(tho)[:, None] * tmp
     ref = kref.render_reference(env, n, wo, f, supersample=2, cut_angle=np.arccos(1e-12 ** (1 / s)))
     lobes = pl.shade_lobes(ls, n, wo)
-    pyr = pl.shade_pyramid(ls, build_pyramid(env), n, wo)
+    pyr = pl.shade_pyramid(ls, build_prefilter(env, "pyramid"), n, wo)
     # Phong: the fitted lobe is the BRDF; what remains is the KM2000 cosine approximation n·l ≈ n·r, whose
     # relative effect on ∫cos^s(γ)(n·l) is (s+2)/(s+1) − 1 = 0.5 % (Meunier closed forms 2π/(s+1), 2π/(s+2)),
     # the energy rescale/Phong fit on 128 γ nodes (≤ 0.3 %), horizon clipping (θo ≤ 60°, lobe ≈ 4°: none) and
@@ -329,7 +330,9 @@ def test_bad_input_raises_clear_errors(ward_lobes):
     with pytest.raises(IBLError):
         pl.shade_lobes(ls, d, wo, cos_mode="normal")
     with pytest.raises(IBLError):
-        pl.shade_pyramid(ls, build_pyramid(env), d, wo, energy="volume")
+        pl.shade_pyramid(ls, build_prefilter(env, "pyramid"), d, wo, energy="volume")
+    with pytest.raises(IBLError, match="Phong prefilter"):  # a bare pyramid has no look-up of its own
+        pl.shade_pyramid(ls, build_pyramid(env), d, wo)
     assert issubclass(pl.ProfileError, IBLError) and issubclass(pl.ElevationRangeError, IBLError)
 
 

@@ -172,9 +172,13 @@ def test_cli_commands_report_progress_lines(log_mode, tmp_path, capsys):
     assert main(["render", "--size", "16", "--lights", "6", "--vsm-res", "16", "--env", str(env), "--env-size", "16",
                  "--prefilter", "exact-lobe", "--out", str(tmp_path / "r.exr")]) == 0
     lines = _lines(capsys.readouterr().err)
-    for start in (f"reading {env} (to 16² faces) …", "PEM pyramids (1 chunk) …", "shadow maps (6 lights) …"):
+    for start in (f"reading {env} (to 16² faces) …", "shadow maps (6 lights) …"):
         assert start in lines, (start, lines)
     assert any(re.fullmatch(r"exact-lobe chain \(\d+ levels?\) …", ln) for ln in lines)
+    assert "PEM pyramids (1 chunk) …" not in lines  # the chain's PEMs only: no filter pyramid built on the side
+    assert main(["render", "--size", "16", "--lights", "6", "--vsm-res", "16", "--env", str(env), "--env-size", "16",
+                 "--out", str(tmp_path / "r2.exr")]) == 0
+    assert "PEM pyramids (1 chunk) …" in _lines(capsys.readouterr().err)  # the paper's pyramid (default)
     assert main(["pem", str(env), "--lights", "6", "--out", str(tmp_path / "pems")]) == 0
     lines = _lines(capsys.readouterr().err)
     assert "median cut of 16² faces into 6 regions …" in lines and "writing PEMs (6 files) …" in lines

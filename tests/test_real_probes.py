@@ -15,9 +15,9 @@ import pytest
 
 from ibl_ref.environment import exr_io, hdr_io, resample
 from ibl_ref.cli import main
-from ibl_ref.errors import RadianceError, check_radiance
+from ibl_ref.errors import RadianceError
 from ibl_ref.environment.probe_files import sky_sun_latlong, write_probe_exr
-from ibl_ref.environment.radiance_policy import AUTO_MAX_REMOVED_FRACTION, apply_policy, assess
+from ibl_ref.environment.radiance_policy import AUTO_MAX_REMOVED_FRACTION, apply_policy, assess, check_radiance
 
 H = 64
 # Codec error of ∫L dω (decoded file vs the closed form), the tolerance of each file kind:

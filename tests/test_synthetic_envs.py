@@ -5,7 +5,8 @@ import pytest
 
 from ibl_ref.environment import envmap
 from ibl_ref.synthetic import synthetic_envs as se
-from ibl_ref.errors import IBLError, check_radiance
+from ibl_ref.environment.radiance_policy import check_radiance
+from ibl_ref.errors import IBLError
 
 
 def integral(cube):

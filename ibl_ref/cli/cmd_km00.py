@@ -1,6 +1,6 @@
 """``ibl-ref km00-render``: the glossy teapot by Kautz & McCool (2000) fitted lobes, or by the exact reference.
 
-Thin layer over :func:`ibl_ref.lobes.lobe_render.render_single_method` (library:
+Thin layer over :func:`ibl_ref.rendering.km00_render.render_single_method` (library:
 :mod:`ibl_ref.lobes.prefiltered_lobes`).  No visibility (KM2000 has none).
 """
 
@@ -29,7 +29,7 @@ def _env(text: str, size: int, args=None):
 
 
 def run(args) -> int:
-    from ..lobes.lobe_render import render_single_method
+    from ..rendering.km00_render import render_single_method
     from ..rendering.image_io import write_image_exr
 
     from .cmd_render import _check_output, _size, parse_exposure

@@ -203,16 +203,17 @@ def cmd_render(args) -> int:
             "radiance": radiance}
     pems = None
     if mode not in _EXACT_MODES:
-        from ..knuth2014.gloss_calibration import calibration_for
-        from ..knuth2014.pem import build_pems
+        from ..prefilter.registry import build_region_prefilters, region_params
 
-        # the g → level table of the paper's pyramid (shipped, or computed for sizes without one)
-        cal = None if args.prefilter == "exact-lobe" else calibration_for(cube.shape[1], progress=progress)
-        pems = build_pems(cube, n_lights=args.lights, variant=args.median_cut, calibration=cal, progress=progress)
-        if args.prefilter == "exact-lobe":
-            from ..knuth2014.lobe_chain import build_lobe_chain_pems
+        accepted = region_params(args.prefilter)
+        params = {"progress": progress} if "progress" in accepted else {}
+        if "calibration" in accepted:
+            from ..knuth2014.gloss_calibration import calibration_for
 
-            pems = build_lobe_chain_pems(cube, pems.lights, progress=progress)
+            # the g → level table of the paper's pyramid (shipped, or computed for sizes without one)
+            params["calibration"] = calibration_for(cube.shape[1], progress=progress)
+        pems = build_region_prefilters(cube, method=args.prefilter, n_lights=args.lights, variant=args.median_cut,
+                                       **params)
         info["lights"] = len(pems.lights.directions)
         info["median_cut"] = args.median_cut
         info["prefilter"] = args.prefilter
@@ -364,10 +365,13 @@ def register(sub) -> None:
     g.add_argument("--median-cut", choices=("per-face", "global", "variance"), default="per-face",
                    help="region split: per cube face (paper, default), global over the whole map, or "
                    "variance-minimising (Viriyothai & Debevec 2009); the last two allow any --lights")
-    g.add_argument("--prefilter", choices=("pyramid", "exact-lobe"), default="pyramid",
-                   help="how each PEM is prefiltered: 'pyramid' = the paper's 2x2-shrink + 5x5-filter MIP pyramid "
-                        "(default); 'exact-lobe' = the same lookup on levels holding exact Phong lobe averages "
-                        "(ibl_ref.knuth2014.lobe_chain; slower to build, no filter-shape error)")
+    from ..prefilter.registry import prefilter_methods
+
+    phong = prefilter_methods("phong")
+    g.add_argument("--prefilter", choices=[m.name for m in phong], default="pyramid",
+                   help="how each PEM is prefiltered (ibl_ref.prefilter): "
+                        + "; ".join(f"'{m.name}' = {m.summary} ({m.paper})" for m in phong)
+                        + ". Default: pyramid (the paper's method)")
     g.add_argument("--visibility", choices=("vsm", "raycast", "none"), default=None,
                    help="VIS_i for --mode ours: variance shadow maps (default), exact ray casting, none")
     g.add_argument("--exact-backend", choices=("binned", "trimesh"), default="binned",

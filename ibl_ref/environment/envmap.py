@@ -88,10 +88,20 @@ __all__ = [
     "latlong_solid_angles",
     "direction_to_latlong",
     "check_cube_shape",
+    "CROSS_LAYOUTS",
 ]
 
 FACE_NAMES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
 CONVENTIONS = ("openexr", "opengl")
+
+#: cross images (:func:`ibl_ref.environment.resample.cross_to_cube`): grid cells (rows, columns) and, per face in
+#: FACE_NAMES order, (cell row, cell column, rotate by 180°), OpenGL orientation
+CROSS_LAYOUTS = {
+    "hcross": {"cells": (3, 4), "faces": ((1, 2, False), (1, 0, False), (0, 1, False), (2, 1, False),
+                                           (1, 1, False), (1, 3, False))},
+    "vcross": {"cells": (4, 3), "faces": ((1, 2, False), (1, 0, False), (0, 1, False), (2, 1, False),
+                                           (1, 1, False), (3, 1, True))},
+}
 
 # Face frames: direction = major * axis + u * u_axis + v * v_axis  (unnormalised, on the cube |major| = 1).
 # Rows are faces in FACE_NAMES order; columns: (axis, u_axis, v_axis).

@@ -27,7 +27,7 @@ File layouts (OpenEXR ``ImfEnvmap.h``; see ``docs/background.md`` §2 and :mod:`
 
 Validation
 ----------
-Writers check the data first (:func:`ibl_ref.errors.check_radiance`: NaN, ±Inf, negative radiance →
+Writers check the data first (:func:`ibl_ref.environment.radiance_policy.check_radiance`: NaN, ±Inf, negative radiance →
 :class:`~ibl_ref.errors.RadianceError`) and never let a value overflow silently: in ``half`` a value
 above 65504 raises :class:`~ibl_ref.errors.IBLError` naming the file, the count and the maximum, unless
 ``clamp_half=True``, which clamps to 65504, warns and reports the clamping in the returned
@@ -54,7 +54,8 @@ import numpy as np
 
 from . import envmap
 from ..atomic import atomic_path
-from ..errors import EnvMapFileError, IBLError, LayoutError, RadianceError, check_input_file, check_radiance
+from ..errors import EnvMapFileError, IBLError, LayoutError, RadianceError, check_input_file
+from .radiance_policy import check_radiance
 
 __all__ = [
     "HALF_MAX",

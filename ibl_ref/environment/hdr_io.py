@@ -33,7 +33,8 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_write
-from ..errors import EnvMapFileError, LayoutError, check_input_file, check_radiance
+from ..errors import EnvMapFileError, LayoutError, check_input_file
+from .radiance_policy import check_radiance
 
 __all__ = ["read_hdr", "read_hdr_header", "write_hdr", "rgbe_to_float", "float_to_rgbe"]
 

@@ -4,7 +4,8 @@ Not a paper concept: the front door every tool needs before Knuth et al. 2014's 
 every radiance formula, assumes L ≥ 0 and finite).  This module is the **one place** where that
 policy lives; every reader (:func:`ibl_ref.environment.exr_io.read_image`, :func:`~ibl_ref.environment.exr_io.read_envmap`,
 :func:`~ibl_ref.environment.exr_io.load_cube`, :func:`ibl_ref.environment.hdr_io.read_hdr`), every CLI command that reads an
-environment (flags ``--negative`` and ``--nonfinite``) and :func:`ibl_ref.errors.check_radiance` use it.
+environment (flags ``--negative`` and ``--nonfinite``) and :func:`check_radiance` (the check of every library
+function that takes radiance arrays) use it.
 
 Why negatives appear: published probes are often stored with OpenEXR's lossy **DWAB** compression,
 whose quantisation leaves a few to thousands of tiny negative values in dark areas (measured on
@@ -26,7 +27,7 @@ fraction* is
   compression.
 * ``negative="clamp"``: clamp every negative value to 0 (reported).
 * ``negative="error"``: any negative value is an error (the default of the library functions that take
-  arrays, via :func:`~ibl_ref.errors.check_radiance`).
+  arrays, via :func:`check_radiance`).
 * ``nonfinite="error"`` (default everywhere): NaN or ±Inf is an error naming the count, the first index
   and ``--nonfinite zero``.  ``nonfinite="zero"``: replace them by 0 (reported).  There is no automatic
   mode: a NaN or Inf carries no radiance value to keep.
@@ -56,6 +57,7 @@ __all__ = [
     "decide",
     "apply_policy",
     "pixel_solid_angles",
+    "check_radiance",
 ]
 
 NEGATIVE_MODES = ("auto", "clamp", "error")
@@ -154,15 +156,13 @@ def pixel_solid_angles(h: int, w: int, layout: str | None):
     if layout == "cube" and h == 6 * w:
         return np.tile(envmap.texel_solid_angles(w), (6, 1))
     if layout in ("hcross", "vcross"):
-        from .resample import CROSS_LAYOUTS
-
-        rows, cols = CROSS_LAYOUTS[layout]["cells"]
+        rows, cols = envmap.CROSS_LAYOUTS[layout]["cells"]
         n = h // rows
         if n * rows != h or n * cols != w:
             return None
         out = np.zeros((h, w))
         om = envmap.texel_solid_angles(n)
-        for r, c, _ in CROSS_LAYOUTS[layout]["faces"]:
+        for r, c, _ in envmap.CROSS_LAYOUTS[layout]["faces"]:
             out[r * n : (r + 1) * n, c * n : (c + 1) * n] = om
         return out
     return None
@@ -288,3 +288,13 @@ def apply_policy(values, name: str = "radiance", negative: str = "auto", nonfini
                    if rep.negative_policy == "auto" else "--negative clamp")
             rep.action.append(f"clamped {rep.n_negative} negative value(s) to 0 ({why})")
     return a, rep
+
+
+def check_radiance(values, name: str = "radiance", negative: str = "error", nonfinite: str = "error") -> np.ndarray:
+    """Return ``values`` as an array after checking it is finite and non-negative.
+
+    Raises :class:`~ibl_ref.errors.RadianceError` naming ``name``, the count of offending values and the first
+    index; complex, integer and boolean arrays are refused too.  ``negative`` / ``nonfinite`` select another
+    policy (module docstring; then a repaired copy may be returned).
+    """
+    return apply_policy(values, name, negative=negative, nonfinite=nonfinite)[0]

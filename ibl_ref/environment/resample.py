@@ -76,7 +76,9 @@ import math
 import numpy as np
 
 from . import envmap
-from ..errors import LayoutError, check_radiance
+from .envmap import CROSS_LAYOUTS  # noqa: F401  (defined with the other layout conventions)
+from ..errors import LayoutError
+from .radiance_policy import check_radiance
 
 __all__ = [
     "supersample_factor",
@@ -826,13 +828,6 @@ def latlong_to_latlong(img, h: int, *, k: int | None = None, interpolation: str 
 # ----------------------------------------------------------------------------------------------
 # crosses and face lists
 # ----------------------------------------------------------------------------------------------
-# (cell row, cell column, rotate by 180°) of each face, faces in FACE_NAMES order, OpenGL orientation
-CROSS_LAYOUTS = {
-    "hcross": {"cells": (3, 4), "faces": ((1, 2, False), (1, 0, False), (0, 1, False), (2, 1, False),
-                                           (1, 1, False), (1, 3, False))},
-    "vcross": {"cells": (4, 3), "faces": ((1, 2, False), (1, 0, False), (0, 1, False), (2, 1, False),
-                                           (1, 1, False), (3, 1, True))},
-}
 
 
 def _cross_spec(layout):

@@ -14,7 +14,9 @@ is walked — reference → regions → lobe_hemisphere → vsm → horizon → 
 module's docstring defines every intermediate image: quantity, equation, what changes) — and again with the two
 steps ``swap`` exchanged.  The last image is exactly :func:`ibl_ref.rendering.render.render_pem` (Eq. 5, VSMs,
 the paper's pyramid and g → level mapping, ``horizon=False``), so the cumulative error of the last step is the
-paper's error against the reference (what ``render-error`` reports as ``ours``).
+paper's error against the reference (what ``render-error`` reports as ``ours``).  ``prefilter`` (default
+``pyramid``) walks the same chain with another level-chain method of the prefilter registry
+(:mod:`ibl_ref.prefilter.registry`) in steps 5–7.
 
 Shares: the increment δ_k = I_k − I_{k−1} of each step, its rel. L1 Σ|δ_k|/Σ|I_ref| over the covered pixels, and its
 share = that rel. L1 / the sum over all steps (errors do not add; the signed biases do).  Step 1 is checked on its
@@ -69,10 +71,10 @@ def settings(quick: bool) -> dict:
     if quick:
         return dict(size=20, env_size=16, envs=list(ENVS), materials=list(MATERIALS), ground="same", regions=[6, 24],
                     vsm_resolution=128, rtol=5e-3, texel_factors=[1], texel_pixels=120, swap=["vsm", "prefilter"],
-                    level_dirs=1500, figure_regions=24)
+                    level_dirs=1500, figure_regions=24, prefilter="pyramid")
     return dict(size=48, env_size=32, envs=list(ENVS), materials=list(MATERIALS), ground="same", regions=[6, 24, 96],
                 vsm_resolution=256, rtol=2e-3, texel_factors=[1, 2], texel_pixels=300, swap=["vsm", "prefilter"],
-                level_dirs=4000, figure_regions=24)
+                level_dirs=4000, figure_regions=24, prefilter="pyramid")
 
 
 PARAMS = params_from_settings(settings, {
@@ -81,7 +83,9 @@ PARAMS = params_from_settings(settings, {
     "texel_factors": "face-size multiples of the one-region-per-texel check of step 1",
     "texel_pixels": "covered pixels sampled for that check", "swap": "two steps exchanged in the second walk",
     "figure_regions": "region count shown in the difference figures",
-    "level_dirs": "seeded uniform directions the best pyramid level is fitted on (as lobe-chain's n_dirs)"})
+    "level_dirs": "seeded uniform directions the best pyramid level is fitted on (as lobe-chain's n_dirs)",
+    "prefilter": "how the PEMs are prefiltered: a level-chain method of the prefilter registry (pyramid = the "
+                 "paper's; exact-lobe, km00-lobes, kan2015)"})
 
 
 def _scene(size: int):
@@ -120,8 +124,8 @@ def _case(job: dict) -> dict:
     rows, images, levels = [], {}, {}
     for L in job["regions"]:
         lights = median_cut(env, int(L))
-        terms = eb.budget_terms(sc, gb, env, lights, mats, vsm_resolution=job["vsm_resolution"],
-                                level_dirs=job["level_dirs"])
+        terms = eb.budget_terms(sc, gb, env, lights, mats, prefilter=job["prefilter"],
+                                vsm_resolution=job["vsm_resolution"], level_dirs=job["level_dirs"])
         for label, order in orders.items():
             walk = eb.walk(terms, order)
             for k, q in enumerate(eb.budget_rows(ref.image, [(s, im) for s, _, im in walk], gb.mask)):
@@ -166,6 +170,7 @@ def _texel_case(job: dict) -> list:
 def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **params) -> dict:
     from ..errors import IBLError
     from ..executors import map_jobs
+    from ..prefilter.registry import get_method
     from ..rendering import error_budget as eb
     from ..rendering.image_io import write_image_exr
 
@@ -173,6 +178,7 @@ def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **p
     out_dir.mkdir(parents=True, exist_ok=True)
     st = settings_with(__name__, quick, params)
     eb.swapped_order(*st["swap"])  # a bad pair fails before any work
+    get_method(st["prefilter"])  # so does an unknown prefilter
     for e in st["envs"]:
         if e not in ENVS:
             raise IBLError(f"unknown environment {e!r}; choose from {', '.join(ENVS)}")
@@ -180,7 +186,7 @@ def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **p
         _materials(m, st["ground"])
     load0, t_start = os.getloadavg(), time.perf_counter()
     common = {k: st[k] for k in ("size", "env_size", "ground", "rtol", "vsm_resolution", "regions", "swap",
-                                 "level_dirs")}
+                                 "level_dirs", "prefilter")}
     jobs = [dict(common, env=e, material=m) for e in st["envs"] for m in st["materials"]]
     cases = map_jobs(_case, jobs, executor=executor, workers=workers, desc="error-budget: cases (reference + walks)")
     rows = [q for c in cases for q in c["rows"]]

@@ -47,8 +47,9 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import read_csv, write_csv, write_json
-from ..lobes.lobe_render import SINGLE_METHODS, THETA_MAX_DEG, reference_supersample, render_single_method  # noqa: F401
-from ..lobes.lobe_render import teapot_gbuffer as _gbuffer
+from ..lobes.lobe_render import SINGLE_METHODS, THETA_MAX_DEG, reference_supersample  # noqa: F401
+from ..rendering.km00_render import render_single_method  # noqa: F401
+from ..rendering.km00_render import teapot_gbuffer as _gbuffer
 from . import params_from_settings, settings_with
 
 NAME = "km00-render"
@@ -95,7 +96,7 @@ def render_all(st: dict, env: np.ndarray, progress: bool = False) -> dict:
     from ..lobes import brdfs as B
     from ..lobes import kautz_mccool2000 as km
     from ..lobes import prefiltered_lobes as pl
-    from ..knuth2014.pyramid import build_pyramid
+    from ..prefilter.registry import build_prefilter
 
     T: dict = {}
     t0 = time.perf_counter()
@@ -132,7 +133,7 @@ def render_all(st: dict, env: np.ndarray, progress: bool = False) -> dict:
     L2 = pl.build_2d_lobe(s2d, p_bar, kw, cube=env, **ck)
     T["maps_single2d"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    pyr = build_pyramid(env, kernel="sqrtcos")
+    pyr = build_prefilter(env, "pyramid", kernel="sqrtcos")
     T["pyramid_build"] = time.perf_counter() - t0
 
     vals: dict = {}
@@ -234,7 +235,7 @@ def _constant_env_images(L3, L3r, L1, L2, f, n, wo) -> dict:
 
     from ..lobes import brdfs as B
     from ..lobes import prefiltered_lobes as pl
-    from ..knuth2014.pyramid import build_pyramid
+    from ..prefilter.registry import build_prefilter
 
     def const_maps(ls):
         K, J = ls.integral.shape
@@ -254,7 +255,7 @@ def _constant_env_images(L3, L3r, L1, L2, f, n, wo) -> dict:
     c2 = dataclasses.replace(L2, map=np.full((6, 2, 2, 1), float(pl.profile_integral(L2.gamma, L2.p_bar))),
                              _sampler=None)
     out["single2d"] = pl.shade_2d(c2, n, wo)
-    pyr1 = build_pyramid(np.ones((6, 16, 16, 1)))
+    pyr1 = build_prefilter(np.ones((6, 16, 16, 1)), "pyramid")
     out["pyramid3"] = pl.shade_pyramid(L3, pyr1, n, wo, energy="phong")
     out["pyramid3_profile"] = pl.shade_pyramid(L3, pyr1, n, wo, energy="profile")
     out["pyramid1"] = pl.shade_pyramid(L1, pyr1, n, wo, energy="phong")

@@ -4,11 +4,14 @@ Knuth et al. (2014, Sec. 3.2) approximate the Phong lobe average of Eq. 4 by one
 MIP pyramid.  :mod:`ibl_ref.knuth2014.lobe_chain` keeps that lookup but fills the levels with exact lobe averages.  This
 experiment measures, per environment and Phong exponent s (g = 1 − 1/s, Eq. 3), the error of one lookup against the
 exact lobe average (:func:`ibl_ref.rendering.reference_render.lobe_average`: dense sum over every texel with exact solid
-angles) at random directions, for
+angles) at random directions, for these configurations of the prefilter registry (:data:`PREFILTERS`: label →
+method of :data:`ibl_ref.prefilter.registry.PREFILTER_METHODS` and its parameters; any level-chain method,
+:class:`ibl_ref.prefilter.level_chain.LevelChainPrefilter`, can be added there):
 
-* ``pyramid-sqrtcos`` / ``pyramid-box``: the paper's pyramid (2×2 mean + filter, default calibration);
+* ``pyramid-sqrtcos`` / ``pyramid-box``: the paper's pyramid (``pyramid``: 2×2 mean + filter, default calibration);
 * ``pyramid-sqrtcos-solid-angle``: the same with the energy-exact solid-angle 2×2 shrink;
-* ``chain-f4`` / ``chain-f2`` / ``chain-f1.41``: the exact-lobe chain with exponent ratio 4, 2, √2 per level.
+* ``chain-f4`` / ``chain-f2`` / ``chain-f1.41``: the exact-lobe chain (``exact-lobe``) with exponent ratio 4, 2, √2
+  per level.
 
 Metrics: relative L1 Σ|a − b| / Σ|b| over directions and channels (``rel_l1``), the largest per-direction relative
 error of the luminance-like channel mean (``rel_max``), the energy ratio Σa/Σb, the relative L1 at the best constant
@@ -40,7 +43,15 @@ IN_QUICK_REPRODUCE = True
 RUNTIME = {"quick": "9 s (load 0.3)", "full": "13 min (load 13; 4 min 21 s CPU)"}
 OUTPUTS = ("lobe_chain.csv", "lobe_chain_meta.json", "lobe_chain.png")
 
-PREFILTERS = ("pyramid-sqrtcos", "pyramid-box", "pyramid-sqrtcos-solid-angle", "chain-f4", "chain-f2", "chain-f1.41")
+#: label → (prefilter method, its parameters)
+PREFILTERS = {
+    "pyramid-sqrtcos": ("pyramid", dict(kernel="sqrtcos")),
+    "pyramid-box": ("pyramid", dict(kernel="box")),
+    "pyramid-sqrtcos-solid-angle": ("pyramid", dict(kernel="sqrtcos", shrink="solid_angle")),
+    "chain-f4": ("exact-lobe", dict(factor=4.0)),
+    "chain-f2": ("exact-lobe", dict(factor=2.0)),
+    "chain-f1.41": ("exact-lobe", dict(factor=float(np.sqrt(2.0)))),
+}
 
 
 def settings(quick: bool) -> dict:
@@ -55,20 +66,15 @@ PARAMS = params_from_settings(settings, {"envs": "synthetic environments", "n_di
 
 
 def build(name: str, env):
-    """(pyramid, calibration or None) of one prefilter."""
-    from ..knuth2014.lobe_chain import build_lobe_chain
-    from ..knuth2014.pyramid import build_pyramid
+    """The prefilter of one :data:`PREFILTERS` label (a level chain: ``.pyramid``, ``.level_of``, ``.lookup``)."""
+    from ..prefilter.registry import build_prefilter
 
-    if name.startswith("pyramid-"):
-        kernel = name.split("-")[1]
-        shrink = "solid_angle" if name.endswith("solid-angle") else "mean"
-        return build_pyramid(env, kernel=kernel, shrink=shrink), None
-    factor = {"chain-f4": 4.0, "chain-f2": 2.0, "chain-f1.41": float(np.sqrt(2.0))}[name]
-    return build_lobe_chain(env, factor=factor)
+    method, params = PREFILTERS[name]
+    return build_prefilter(env, method, **params)
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..knuth2014.gloss_lookup import get_calibration, level_for_gloss, lookup
+    from ..conventions import phong_exponent
     from ..rendering.reference_render import lobe_average
     from ..synthetic.synthetic_envs import make_env
 
@@ -82,22 +88,22 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
         exact = {s: lobe_average(env, d, float(s)) for s in st["s_values"]}
         for pf in PREFILTERS:
             t0 = time.perf_counter()
-            pyr, cal = build(pf, env)
-            if cal is None:
-                cal = get_calibration(pyr)  # shipped table or lobe analysis (not timed as part of the build)
+            prefilter = build(pf, env)  # the pyramid's calibration: the shipped table
             t_build = time.perf_counter() - t0
+            pyr = prefilter.pyramid
             mib = sum(int(np.prod(lev.shape[:3])) * 3 * 4 for lev in pyr.levels) / 2**20
             meta_builds[f"{env_name}/{pf}"] = dict(build_time_s=t_build, memory_MiB=mib,
                                                    face_sizes=[int(lev.shape[1]) for lev in pyr.levels])
             per_level = [pyr.sampler(k).bilinear(d) for k in range(pyr.max_level + 1)]
             for s in st["s_values"]:
-                a = lookup(pyr, d, 1.0 - 1.0 / float(s), calibration=cal)
+                s_g = phong_exponent(1.0 - 1.0 / float(s))  # the look-up at the table's g (Eq. 3)
+                a = prefilter.lookup(d, s_g)
                 b = exact[s]
                 per = np.abs(a - b).mean(axis=1) / np.maximum(b.mean(axis=1), 1e-300)
                 rel_l1 = float(np.abs(a - b).sum() / np.abs(b).sum())
                 best, best_level = best_constant_level(per_level, b)
                 if rel_l1 < best:  # the calibrated level itself is a candidate too
-                    best, best_level = rel_l1, float(np.mean(level_for_gloss(pyr, 1.0 - 1.0 / float(s), cal)))
+                    best, best_level = rel_l1, float(np.mean(prefilter.level_of(s_g)))
                 rows.append(dict(env=env_name, prefilter=pf, s_phong=float(s), g=1.0 - 1.0 / float(s),
                                  rel_l1=rel_l1, rel_max=float(per.max()),
                                  energy_ratio=float(a.sum() / b.sum()), rel_l1_best_level=best,

@@ -2,7 +2,9 @@
 and VSM resolution, with the targets it is judged by (5 % rel. L1 at s = 1, 96 lights).
 
 Scene: teapot under ``sky_sun``.  Materials: diffuse (kd = 1, ks = 0: s = 1 around n), glossy g = 0.9 and
-g = 0.99 (kd = 0, ks = 1).  For every (lights, VSM resolution) configuration the relative L1 (Σ|a−b|/Σ|b| over
+g = 0.99 (kd = 0, ks = 1).  Both PEM sets are built by the prefilter registry
+(:func:`ibl_ref.prefilter.registry.build_region_prefilters`, methods ``pyramid`` and ``exact-lobe``) on the same
+median-cut regions.  For every (lights, VSM resolution) configuration the relative L1 (Σ|a−b|/Σ|b| over
 covered pixels) of these images against the reference (:mod:`ibl_ref.rendering.reference_render`) is reported:
 
 * ``ours``: Eq. 5, VSM visibilities (the paper's method);
@@ -59,8 +61,7 @@ PARAMS = params_from_settings(settings)
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
     from ..rendering.ao_modes import default_camera, light_visibilities, shade_eq5
     from ..rendering.image_metrics import rel_l1, rel_max
-    from ..knuth2014.lobe_chain import build_lobe_chain_pems
-    from ..knuth2014.pem import build_pems
+    from ..prefilter.registry import build_region_prefilters
     from ..progress import track
     from ..rendering.raster import prepare_scene, rasterize
     from ..rendering.reference_render import coarse_level_error, exact_pem_lookup, render_reference
@@ -93,9 +94,9 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     pem_cache = {}
     for L, res in track(configs, "render-error: configurations (lights, VSM)", unit="config"):
         if L not in pem_cache:
-            pems = build_pems(env, n_lights=L)
+            pems = build_region_prefilters(env, method="pyramid", n_lights=L)
             t0 = time.perf_counter()
-            chain = build_lobe_chain_pems(env, pems.lights, factor=st["chain_factor"])
+            chain = build_region_prefilters(env, pems.lights, method="exact-lobe", factor=st["chain_factor"])
             t_chain = time.perf_counter() - t0
             vis_rc = light_visibilities(sc, P, fn, pems.lights, method="raycast")
             look, exact, look_chain = {}, {}, {}

@@ -7,7 +7,7 @@ naming the argument.
 
 * Phong exponent ``s = s_Phong = 1/(1−g)`` (Eq. 3, g ∈ [0, 1]): a number ≥ 1, or ``inf`` (mirror, g = 1).
 * Cube map: shape ``(6, N, N[, C])`` (:func:`ibl_ref.environment.envmap.check_cube_shape`), finite non-negative
-  radiance (:func:`ibl_ref.errors.check_radiance`), at least one channel.
+  radiance (:func:`ibl_ref.environment.radiance_policy.check_radiance`), at least one channel.
 * Output face subsets ``faces``: distinct indices 0…5 in OpenEXR face order.
 """
 
@@ -18,7 +18,8 @@ import math
 import numpy as np
 
 from ..environment import envmap
-from ..errors import IBLError, LayoutError, check_radiance
+from ..environment.radiance_policy import check_radiance
+from ..errors import IBLError, LayoutError
 
 __all__ = ["check_exponent", "check_exponents", "check_cube", "check_faces", "check_out_size"]
 

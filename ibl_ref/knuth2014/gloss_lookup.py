@@ -49,20 +49,6 @@ __all__ = ["phong_exponent", "Calibration", "analytic_calibration", "get_calibra
 DATA_DIR = Path(__file__).resolve().parent.parent / "data"
 _MEMORY: dict = {}
 
-#: the table builder's names, importable from here as before: they live in the Sec. 5 analysis step
-#: (:mod:`ibl_ref.knuth2014.gloss_calibration`), which this module imports only when one of them is asked for;
-#: the lookup itself never calls them
-_BUILDER_NAMES = ("calibrate", "build_calibration_tables", "save_calibration")
-
-
-def __getattr__(name):
-    if name in _BUILDER_NAMES:
-        from . import gloss_calibration
-
-        return getattr(gloss_calibration, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
 @dataclass
 class Calibration:
     """Monotone table s_Phong → continuous pyramid level.

@@ -47,11 +47,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..environment.envmap import check_cube_shape, texel_directions
-from ..errors import IBLError, LayoutError, check_radiance
+from ..environment.radiance_policy import check_radiance
+from ..errors import IBLError, LayoutError
 from ..conventions import lobe_half_angle
 
 __all__ = ["ChainSpec", "chain_spec", "lobe_half_angle", "build_lobe_chain", "build_lobe_chain_pems",
-           "chain_calibration", "lobe_average_regions"]
+           "chain_calibration", "exponent_calibration", "lobe_average_regions"]
 
 KERNEL_NAME = "exact-lobe"
 
@@ -107,12 +108,19 @@ def chain_spec(base_size: int, *, s_min: float = 1.0, factor: float = 4.0, texel
 
 def chain_calibration(spec: ChainSpec):
     """The g → level table of a chain: s_k ↔ level k (log-linear between, 1/s-linear to the mirror)."""
+    return exponent_calibration(spec.s_phong, spec.base_size)
+
+
+def exponent_calibration(s_phong, base_size: int, kernel: str = KERNEL_NAME):
+    """The s → level table of levels 1..K holding lobes at the decreasing exponents ``s_phong`` = (s_1, …, s_K)
+    over level 0 = the input (face size ``base_size``): level k at s_k, linear in log s between them, linear in 1/s
+    from s_1 to the mirror (level 0 at s = ∞), level K for s ≤ s_K (:meth:`~ibl_ref.knuth2014.gloss_lookup.Calibration.level_of`)."""
     from .gloss_lookup import Calibration
 
-    K = len(spec.s_phong)
-    s = np.asarray(spec.s_phong[::-1], dtype=np.float64)  # increasing: s_K .. s_1
+    K = len(s_phong)
+    s = np.asarray(tuple(s_phong)[::-1], dtype=np.float64)  # increasing: s_K .. s_1
     lev = np.arange(K, 0, -1, dtype=np.float64)  # K .. 1
-    return Calibration(s, lev, KERNEL_NAME, "exact", "exact", spec.base_size, "exact", "lobe_chain", K)
+    return Calibration(s, lev, kernel, "exact", "exact", int(base_size), "exact", "lobe_chain", K)
 
 
 def _prepare(cube):
@@ -211,7 +219,7 @@ def build_lobe_chain_pems(cube, lights=None, *, n_lights: int | None = None, var
     Drop-in for :func:`ibl_ref.knuth2014.pem.build_pems` (same regions, same ``lookup_all``, ``kernel = "exact-lobe"``),
     so every renderer and experiment can swap the paper's filter pyramid for the exact chain.
     """
-    from .pem import PEMSet, prepare_pem_input
+    from .pem import PEMSet, partial_maps, prepare_pem_input
 
     N, a, lights = prepare_pem_input(cube, lights, n_lights, variant, "build_lobe_chain_pems")
     dt = np.dtype(dtype)
@@ -220,9 +228,7 @@ def build_lobe_chain_pems(cube, lights=None, *, n_lights: int | None = None, var
     spec = chain_spec(N, s_min=s_min, factor=factor, texels_per_halfwidth=texels_per_halfwidth, n_min=n_min)
     R = len(lights)
     levels, bounds = _chain_levels(a, lights.labels, R, spec, weight_eps, 8, progress)
-    lab = np.asarray(lights.labels)
-    mask = lab[..., None] == np.arange(R)  # level 0: the masked copies themselves (mirror)
-    levels[0] = a[:, :, :, None, :] * mask[..., None]
+    levels[0] = partial_maps(a, lights.labels, 0, R)  # level 0: the masked copies themselves (mirror)
     for lev in levels:
         if dt.itemsize < 8 and np.any(np.abs(lev) > np.finfo(dt).max):
             raise IBLError(f"PEM values exceed the range of {dt}; use a wider dtype")

@@ -66,7 +66,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..environment.envmap import check_cube_shape, texel_directions, texel_solid_angles, FACE_NAMES
-from ..errors import IBLError, LayoutError, check_radiance
+from ..environment.radiance_policy import check_radiance
+from ..errors import IBLError, LayoutError
 
 __all__ = [
     "REC709",

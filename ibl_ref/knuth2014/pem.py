@@ -28,15 +28,26 @@ from typing import Callable
 import numpy as np
 
 from ..environment.envmap import check_cube_shape
-from ..errors import IBLError, LayoutError, check_radiance
+from ..environment.radiance_policy import check_radiance
+from ..errors import IBLError, LayoutError
 from .median_cut import LightSet, median_cut
 
-__all__ = ["PEMSet", "build_pems", "iter_pem_chunks", "default_chunk"]
+__all__ = ["PEMSet", "build_pems", "iter_pem_chunks", "default_chunk", "partial_maps"]
 
 
 def default_chunk(n_regions: int, channels: int, max_channels: int = 48) -> int:
     """Regions built per pyramid call: at most ``max_channels`` stacked channels (memory bound)."""
     return max(1, min(n_regions, max_channels // max(channels, 1)))
+
+
+def partial_maps(cube, labels, a: int, b: int) -> np.ndarray:
+    """The partial environment maps of regions a..b−1, stacked: (6, N, N, b−a, C) (Sec. 4: "a plain copy of the
+    original environment map" with "all texels that do not belong to the current PEM" blackened).
+
+    ``cube``: (6, N, N, C); ``labels``: (6, N, N) region index per texel (:attr:`LightSet.labels`).
+    """
+    mask = np.asarray(labels)[..., None] == np.arange(a, b)[None, None, None, :]  # (6, N, N, k)
+    return cube[:, :, :, None, :] * mask[..., None]
 
 
 def iter_pem_chunks(cube, labels, n_regions, *, kernel="sqrtcos", order="shrink_then_filter", seam="neighbour",
@@ -58,8 +69,7 @@ def iter_pem_chunks(cube, labels, n_regions, *, kernel="sqrtcos", order="shrink_
     for a in track(range(0, n_regions, chunk), "PEM pyramids", unit="chunk", enabled=progress):
         b = min(a + chunk, n_regions)
         k = b - a
-        mask = labels[..., None] == np.arange(a, b)[None, None, None, :]  # (6, N, N, k)
-        masked = (cube[:, :, :, None, :] * mask[..., None]).reshape(6, n, n, k * C)  # Sec. 4: blacken others
+        masked = partial_maps(cube, labels, a, b).reshape(6, n, n, k * C)
         pyr = pyramid_builder(masked, kernel=kernel, order=order, seam=seam)
         yield a, b, [np.asarray(lev, dtype=np.float64).reshape(lev.shape[:3] + (k, C)) for lev in pyr.levels]
 
@@ -68,7 +78,8 @@ class PEMSet:
     """Partial environment maps of one environment map, one per median-cut region.
 
     Build with :func:`build_pems`.  Renderers use ``lights`` (for the shadow maps) and
-    :meth:`lookup_all` (for Eq. 5, c = Σ_i VIS_i · PEM_i).
+    :meth:`lookup_all` (for Eq. 5, c = Σ_i VIS_i · PEM_i): the region-set interface
+    :class:`ibl_ref.prefilter.interface.RegionPrefilters` (Phong lobes, looked up by glossiness g; no error bound).
 
     Attributes
     ----------
@@ -78,6 +89,10 @@ class PEMSet:
     base_size : int
     dtype : numpy dtype of the stored levels (float32 by default)
     """
+
+    lobe = "phong"
+    #: no proven bound of a look-up against the exact lobe average (the region-set interface's ``error_bound``)
+    error_bound = None
 
     def __init__(self, lights: LightSet, levels: list, kernel, order, seam, calibration=None, lookup_fn=None):
         self.lights = lights

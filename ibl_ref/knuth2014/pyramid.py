@@ -33,7 +33,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..environment.envmap import check_cube_shape, texel_solid_angles
-from ..errors import IBLError, LayoutError, check_radiance
+from ..environment.radiance_policy import check_radiance
+from ..errors import IBLError, LayoutError
 from .filters import check_seam, filter_cube, kernel_taps
 
 __all__ = ["ORDERS", "SHRINKS", "Pyramid", "shrink_2x2", "shrink_2x2_solid_angle", "build_pyramid", "build_mip_chain", "pyramid_energy"]

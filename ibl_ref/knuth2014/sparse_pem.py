@@ -117,7 +117,8 @@ def levels_touched(g_values, base_size: int, lookup_fn: Callable | None = None, 
 
 
 class SparsePEMSet:
-    """Sparse PEMs: same interface as :class:`ibl_ref.knuth2014.pem.PEMSet` for ``lights``, ``lookup``, ``lookup_all``.
+    """Sparse PEMs: same interface as :class:`ibl_ref.knuth2014.pem.PEMSet` for ``lights``, ``lookup``, ``lookup_all``
+    (the region-set interface :class:`ibl_ref.prefilter.interface.RegionPrefilters`).
 
     Attributes
     ----------
@@ -125,6 +126,10 @@ class SparsePEMSet:
     stored_levels : tuple of int
     rtol : float
     """
+
+    lobe = "phong"
+    #: no proven bound of a look-up against the exact lobe average (``rtol`` bounds the change from the dense PEMs)
+    error_bound = None
 
     def __init__(self, lights: LightSet, tiles: list, level_sizes: list, channels: int, dtype, stored_levels,
                  rtol: float, kernel, order, seam, calibration=None, lookup_fn=None, g_values=None):

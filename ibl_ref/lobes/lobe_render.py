@@ -1,41 +1,24 @@
-"""Kautz & McCool (2000) renders of the teapot, one method per call — the library side of ``ibl-ref km00-render``.
+"""Kautz & McCool (2000) shading by one method per call — the lobe side of ``ibl-ref km00-render``.
 
-:func:`render_single_method` shades the teapot's G-buffer (:func:`teapot_gbuffer`, the camera of
-:func:`ibl_ref.rendering.scenes.default_camera`) with an analytic BRDF (:mod:`ibl_ref.lobes.brdfs`) by one of
-:data:`SINGLE_METHODS`, all from :mod:`ibl_ref.lobes.prefiltered_lobes`: ``reference`` (per-pixel exact filtering
-Σ_j L_j f(ω_j, wo) max(n·ω_j, 0) Ω_j with per-pixel supersampling, :func:`reference_supersample`), ``lobes`` (greedy
-multi-lobe fit in 3D maps, KM2000 Sec. 5.3), ``single`` (one lobe per elevation, Sec. 5.1), ``2d`` (one shared 2D
-lobe × k(θo), Sec. 5.2) and ``pyramid`` (the lobes' Phong fits looked up in the sqrt-cos pyramid of Knuth et al.
-2014).  View elevations θo are sampled in [0°, :data:`THETA_MAX_DEG`]; no visibility (KM2000 has none).  The
-experiment ``ibl-ref experiment km00-render`` (:mod:`ibl_ref.experiments.km00_render`) compares all of them.
+:func:`shade_single_method` shades given normals and view vectors with an analytic BRDF (:mod:`ibl_ref.lobes.brdfs`)
+by one of :data:`SINGLE_METHODS`, all from :mod:`ibl_ref.lobes.prefiltered_lobes`: ``reference`` (per-pixel exact
+filtering Σ_j L_j f(ω_j, wo) max(n·ω_j, 0) Ω_j with per-pixel supersampling, :func:`reference_supersample`),
+``lobes`` (greedy multi-lobe fit in 3D maps, KM2000 Sec. 5.3), ``single`` (one lobe per elevation, Sec. 5.1),
+``2d`` (one shared 2D lobe × k(θo), Sec. 5.2) and ``pyramid`` (the lobes' Phong fits looked up in a Phong
+prefilter, the sqrt-cos pyramid of Knuth et al. 2014, given by the caller).  View elevations θo are sampled in
+[0°, :data:`THETA_MAX_DEG`]; no visibility (KM2000 has none).  The teapot render around it is
+:func:`ibl_ref.rendering.km00_render.render_single_method`; the experiment ``ibl-ref experiment km00-render``
+(:mod:`ibl_ref.experiments.km00_render`) compares all of them.
 """
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
-__all__ = ["THETA_MAX_DEG", "SINGLE_METHODS", "teapot_gbuffer", "reference_supersample", "render_single_method"]
+__all__ = ["THETA_MAX_DEG", "SINGLE_METHODS", "reference_supersample", "check_single_method", "shade_single_method"]
 
 #: largest sampled view elevation θo (degrees); pixels beyond use the lobes of θmax
 THETA_MAX_DEG = 80.0
-
-
-def teapot_gbuffer(width: int, height: int | None = None):
-    """G-buffer of the teapot alone under :func:`ibl_ref.rendering.scenes.default_camera` (``width`` px; ``height`` crops)."""
-    import dataclasses
-
-    from ..rendering.raster import rasterize
-    from ..rendering.scenes import default_camera
-    from ..synthetic.synthetic_meshes import make_mesh
-
-    meshes = [(make_mesh("teapot"), 0)]
-    cam = default_camera(meshes, size=int(width))
-    if height is not None and int(height) != int(width):
-        cam = dataclasses.replace(cam, height=int(height))
-    return rasterize(meshes, cam)
-
 
 SINGLE_METHODS = ("reference", "lobes", "single", "2d", "pyramid")
 
@@ -56,35 +39,38 @@ def reference_supersample(f, env_size: int, n, wo, samples_per_hwhm: float, max_
                      for h in hw], dtype=np.intp)
 
 
-def render_single_method(method: str, env: np.ndarray, *, width: int = 256, height: int | None = None,
-                         brdf: str = "ward", brdf_params: dict | None = None, n_lobes: int = 3, n_theta: int = 16,
-                         n_gamma: int = 256, n_phi: int = 64, map_supersample="auto", map_out_size=None,
-                         tail_rtol: float = 1e-6, cos_mode: str = "mirror", energy: str = "phong",
-                         ref_samples_per_hwhm: float = 3.0, ref_max_supersample: int = 16,
-                         rescale_lobes: bool = False, progress: bool = False):
-    """Render the teapot (camera of ``ibl-ref experiment fig6``, :func:`ibl_ref.rendering.scenes.default_camera`) by one method; returns (image (H, W, C),
-    mask (H, W), info dict).  ``method`` ∈ :data:`SINGLE_METHODS` (``lobes``: ``n_lobes`` greedy lobes in 3D maps,
-    ``pyramid``: the same lobes via their Phong fits in the sqrt-cos pyramid; ``rescale_lobes``: the greedy lobes with
-    one energy factor per elevation, :func:`ibl_ref.lobes.kautz_mccool2000.fit_multi_lobe` ``rescale=True``).  θo sampled
-    in [0°, 80°]."""
-    from . import brdfs as B
-    from . import kautz_mccool2000 as km
-    from . import prefiltered_lobes as pl
+def check_single_method(method: str, n_theta) -> None:
+    """One-line :class:`~ibl_ref.errors.IBLError` for an unknown method or a bad number of elevations."""
     from ..errors import IBLError
-    from ..knuth2014.pyramid import build_pyramid
-    from ..progress import step
 
     if method not in SINGLE_METHODS:
         raise IBLError(f"method must be one of {', '.join(SINGLE_METHODS)}, got {method!r}")
     if isinstance(n_theta, bool) or not isinstance(n_theta, (int, np.integer)) or n_theta < 2:
         raise IBLError(f"n_theta must be an integer >= 2 (elevations from 0 to {THETA_MAX_DEG:g} deg), got {n_theta!r}")
+
+
+def shade_single_method(method: str, env: np.ndarray, n, wo, *, brdf: str = "ward", brdf_params: dict | None = None,
+                        n_lobes: int = 3, n_theta: int = 16, n_gamma: int = 256, n_phi: int = 64,
+                        map_supersample="auto", map_out_size=None, tail_rtol: float = 1e-6, cos_mode: str = "mirror",
+                        energy: str = "phong", ref_samples_per_hwhm: float = 3.0, ref_max_supersample: int = 16,
+                        rescale_lobes: bool = False, prefilter=None, progress: bool = False):
+    """Outgoing radiance (P, C) at unit normals ``n`` (P, 3) and view vectors ``wo`` (P, 3) by one method, and an
+    info dict.  ``method`` ∈ :data:`SINGLE_METHODS` (``lobes``: ``n_lobes`` greedy lobes in 3D maps, ``pyramid``:
+    the same lobes via their Phong fits in ``prefilter``, a Phong prefilter of ``env``
+    (:class:`ibl_ref.prefilter.interface.Prefilter`); ``rescale_lobes``: the greedy lobes with one energy factor
+    per elevation, :func:`ibl_ref.lobes.kautz_mccool2000.fit_multi_lobe` ``rescale=True``).  θo sampled in
+    [0°, 80°]."""
+    from . import brdfs as B
+    from . import kautz_mccool2000 as km
+    from . import prefiltered_lobes as pl
+    from ..errors import IBLError
+    from ..progress import step
+
+    check_single_method(method, n_theta)
+    if method == "pyramid" and prefilter is None:
+        raise IBLError("method 'pyramid' looks the lobes up in a Phong prefilter of env: pass prefilter= "
+                       "(e.g. ibl_ref.prefilter.build_prefilter(env, 'pyramid', kernel='sqrtcos'))")
     f = B.get_brdf(brdf, **(brdf_params or {}))
-    t_all = time.perf_counter()
-    gb = teapot_gbuffer(width, height)
-    m = gb.mask
-    if not m.any():
-        raise IBLError("the teapot covers no pixel at this image size")
-    n, wo = gb.normal[m], gb.view[m]
     thetas = np.radians(np.linspace(0.0, THETA_MAX_DEG, int(n_theta)))
     fk = dict(n_gamma=int(n_gamma), n_phi=int(n_phi))
     ck = dict(supersample=map_supersample, tail_rtol=float(tail_rtol), progress=progress,
@@ -104,7 +90,7 @@ def render_single_method(method: str, env: np.ndarray, *, width: int = 256, heig
         if method == "lobes":
             vals = pl.shade_lobes(ls, n, wo, cos_mode=cos_mode)
         else:
-            vals = pl.shade_pyramid(ls, build_pyramid(env, kernel="sqrtcos"), n, wo, energy=energy, cos_mode=cos_mode)
+            vals = pl.shade_pyramid(ls, prefilter, n, wo, energy=energy, cos_mode=cos_mode)
         info.update(n_tracks=ls.n_tracks, rel_rms_brdf=km.rms_error(multi, int(n_lobes)))
     elif method == "single":
         single = [km.fit_single_lobe(f, t, **fk) for t in thetas]
@@ -114,8 +100,4 @@ def render_single_method(method: str, env: np.ndarray, *, width: int = 256, heig
         s2d, p_bar, kw = km.fit_single_2d_lobe(f, thetas, **fk)
         vals = pl.shade_2d(pl.build_2d_lobe(s2d, p_bar, kw, cube=env, **ck), n, wo, cos_mode=cos_mode)
         info.update(rel_rms_brdf=km.rms_error(s2d))
-    H, W = m.shape
-    img = np.zeros((H * W, vals.shape[-1]))
-    img[m.reshape(-1)] = vals
-    info["time_s"] = round(time.perf_counter() - t_all, 3)
-    return img.reshape(H, W, -1), m, info
+    return vals, info

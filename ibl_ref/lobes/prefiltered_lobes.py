@@ -30,9 +30,9 @@ from here).
     θo + θ_off ≠ 0 depend on it.  Single 2-D lobe (Sec. 3.2 / Eq. 3): ``Lo ≈ c · k(θo) · E2D(peak)`` with one map of
     the shared unit-peak profile p̄.
 (d) :func:`shade_pyramid` — the Knuth extension: lobe j ≈ ``P_j cos^{s_j} γ`` (its Phong fit), and
-    ``∫ L P cos^s dω = P · (2π/(s+1)) · avg_s(L)`` where ``avg_s`` is the lobe *average* that
-    :func:`ibl_ref.knuth2014.gloss_lookup.lookup` returns at ``g = 1 − 1/s`` (Eq. 3).  So each lobe contributes
-    ``c_j · W_j · lookup(pyramid, peak_j, g_j)`` with the weight ``W_j = P_j · 2π/(s_j+1)`` (``energy="phong"``: the
+    ``∫ L P cos^s dω = P · (2π/(s+1)) · avg_s(L)`` where ``avg_s`` is the lobe *average* that a Phong prefilter
+    (:mod:`ibl_ref.prefilter`; the paper's: the sqrt-cos filter pyramid) returns at s (g = 1 − 1/s, Eq. 3).  So
+    each lobe contributes ``c_j · W_j · prefilter.lookup(peak_j, s_j)`` with the weight ``W_j = P_j · 2π/(s_j+1)`` (``energy="phong"``: the
     integral of the fitted Phong lobe, Meunier 2009 closed form) or ``W_j = ∫ p_j dω`` (``energy="profile"``: keeps
     the fitted profile's exact energy, i.e. KM2000's albedo rescale, and uses the Phong fit only for the shape).
     A fit with s < 1 is looked up at g = 0 (s = 1); W then still uses the fitted s.
@@ -453,15 +453,21 @@ def shade_2d(lobe2d: Lobe2D, n, wo, *, cos_mode: str = "mirror", clamp_theta: bo
     return np.where(valid[..., None], out, 0.0)
 
 
-def shade_pyramid(lobes: LobeSet, pyramid, n, wo, *, energy: str = "phong", cos_mode: str = "mirror",
-                  clamp_theta: bool = True, calibration=None, tracks=None) -> np.ndarray:
-    """Knuth 2014 extension: ``Lo ≈ Σ_j c_j W_j(θo) · lookup(pyramid, peak_j, g_j(θo))``; (P, C).
+def shade_pyramid(lobes: LobeSet, prefilter, n, wo, *, energy: str = "phong", cos_mode: str = "mirror",
+                  clamp_theta: bool = True, tracks=None) -> np.ndarray:
+    """Knuth 2014 extension: ``Lo ≈ Σ_j c_j W_j(θo) · prefilter.lookup(peak_j, s_j(θo))``; (P, C).
 
-    ``g_j = 1 − 1/s_j`` (Eq. 3; s < 1 → g = 0) and ``W_j = P_j 2π/(s_j+1)`` (``energy="phong"``) or ``∫ p_j dω``
+    ``prefilter``: any Phong prefilter of the environment (:class:`ibl_ref.prefilter.interface.Prefilter`, e.g.
+    the paper's sqrt-cos pyramid ``build_prefilter(cube, "pyramid")`` of :mod:`ibl_ref.prefilter.registry`), looked
+    up at the lobe's Phong exponent through its glossiness, s_j = 1/(1 − g_j) with ``g_j = 1 − 1/s_j`` clipped to
+    [0, 1] (Eq. 3; s < 1 → g = 0, i.e. s = 1); ``W_j = P_j 2π/(s_j+1)`` (``energy="phong"``) or ``∫ p_j dω``
     (``energy="profile"``), both interpolated linearly in θo (module docstring (d)).
     """
-    from ..knuth2014.gloss_lookup import lookup as gloss_lookup
+    from ..conventions import phong_exponent
 
+    if getattr(prefilter, "lobe", None) != "phong" or not hasattr(prefilter, "lookup"):
+        raise IBLError("shade_pyramid needs a Phong prefilter (an ibl_ref.prefilter method with lobe 'phong', e.g. "
+                       "ibl_ref.prefilter.build_prefilter(cube, 'pyramid'))")
     if energy not in ENERGY_MODES:
         raise IBLError(f"energy must be one of {ENERGY_MODES}, got {energy!r}")
     if cos_mode not in COS_MODES:
@@ -471,8 +477,7 @@ def shade_pyramid(lobes: LobeSet, pyramid, n, wo, *, energy: str = "phong", cos_
         W_all = np.where(lobes.phong_P > 0, lobes.phong_P * 2 * np.pi / (lobes.phong_s + 1.0), 0.0)
     else:
         W_all = lobes.integral
-    C = pyramid.levels[0].shape[-1]
-    out = np.zeros(th.shape + (C,))
+    out = None
     for j in (range(lobes.n_tracks) if tracks is None else tracks):
         W, g = lobes.interp(W_all, j, th_l), lobes.interp("glossiness", j, th_l)
         to, po = lobes.offsets(j, th_l)
@@ -480,7 +485,11 @@ def shade_pyramid(lobes: LobeSet, pyramid, n, wo, *, energy: str = "phong", cos_
         c = _cos_factor(cos_mode, frame[2], th, d)
         live = (W > 0) & valid
         if np.any(live):
-            v = np.asarray(gloss_lookup(pyramid, d[live], np.clip(g[live], 0.0, 1.0), calibration),
-                           dtype=np.float64)
+            v = np.asarray(prefilter.lookup(d[live], phong_exponent(np.clip(g[live], 0.0, 1.0))), dtype=np.float64)
+            if out is None:
+                out = np.zeros(th.shape + (v.shape[-1],))
             out[live] += (c[live] * W[live])[:, None] * v
+    if out is None:  # nothing looked up: the channel count from one look-up
+        C = np.asarray(prefilter.lookup(np.array([[0.0, 0.0, 1.0]]), 1.0)).shape[-1]
+        out = np.zeros(th.shape + (C,))
     return np.where(valid[..., None], out, 0.0)

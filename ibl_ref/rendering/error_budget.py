@@ -42,7 +42,8 @@ paper's Eq. 5 (``horizon=False``, the default), in which a shadow map does not s
 (an open ground quad is its own first occluder, t ≈ μ) and lights below the tangent plane count as visible.
 
 **5 — prefilter**: P_i → the paper's filter pyramid of PEM i (2×2 shrink + 5×5 sqrt-cos filter, Sec. 3.2, Fig. 2;
-:func:`ibl_ref.knuth2014.pem.build_pems`) read by one trilinear look-up at the **best constant level** ℓ*(s) of this
+:func:`ibl_ref.knuth2014.pem.build_pems`; any other level-chain method of the prefilter registry with
+``budget_terms(..., prefilter=NAME)``) read by one trilinear look-up at the **best constant level** ℓ*(s) of this
 map: the level (grid 0.05, or the calibrated one if better) whose look-up of the whole map (Σ_i PEM_i) has the
 smallest rel. L1 against the exact lobe average at 4000 seeded directions uniform on the sphere
 (:func:`ibl_ref.knuth2014.gloss_lookup.best_constant_level`; the ``lobe-chain`` experiment's ``rel_l1_best_level``).
@@ -89,7 +90,7 @@ STEPS = ("regions", "lobe_hemisphere", "vsm", "horizon", "prefilter", "gloss_loo
 DEFAULT_ORDER = STEPS
 #: step → (switch, value after step 1 "regions", value in the paper's method)
 SWITCHES = {"lobe_hemisphere": ("hemisphere", True, False), "vsm": ("visibility", "exact", "vsm"),
-            "horizon": ("horizon", True, False), "prefilter": ("prefilter", "exact", "pyramid"),
+            "horizon": ("horizon", True, False), "prefilter": ("prefilter", "exact", "prefiltered"),
             "gloss_lookup": ("level", "best", "paper"), "back_faces": ("back_faces", "black", "shaded")}
 
 
@@ -242,10 +243,11 @@ class BudgetTerms:
         return self._vis[key]
 
     def lookups(self, prefilter: str, hemisphere: bool, level: str):
-        """(pem_n, pem_r) of Eq. 5 for a prefilter configuration (module docstring, steps 1, 2, 5, 6)."""
+        """(pem_n, pem_r) of Eq. 5 for a prefilter configuration (module docstring, steps 1, 2, 5, 6):
+        ``prefilter`` ``"exact"`` (per-region lobe averages) or ``"prefiltered"`` (the PEMs ``pems``)."""
         from .render import eq5_lookups
 
-        key = ("exact", bool(hemisphere)) if prefilter == "exact" else ("pyramid", level)
+        key = ("exact", bool(hemisphere)) if prefilter == "exact" else ("prefiltered", level)
         if key in self._look:
             return self._look[key]
         n, r = self._px("normal"), self._px("reflect")
@@ -254,9 +256,9 @@ class BudgetTerms:
             val = _group_lookups(lambda d, s, sel: region_lobes(self.cube, self.lights, d, s,
                                                                 None if nrm is None else nrm[sel]),
                                  self.kd, self.ks, self.g, n, r)
-        elif prefilter == "pyramid" and level == "paper":
+        elif prefilter == "prefiltered" and level == "paper":
             val = eq5_lookups(self.pems, n, r, self.g, self.kd, self.ks)
-        elif prefilter == "pyramid" and level == "best":
+        elif prefilter == "prefiltered" and level == "best":
             val = _group_lookups(lambda d, s, sel: self.pems.lookup_all_at_level(d, self._best_level(d, s, sel)),
                                  self.kd, self.ks, self.g, n, r)
         else:
@@ -293,15 +295,17 @@ class BudgetTerms:
         return float(lev)
 
 
-def budget_terms(scene, gbuffer, cube, lights, materials, *, pems=None, vsm_resolution: int = 256,
-                 level_step: float = 0.05, level_dirs=4000, **vsm_kw) -> BudgetTerms:
+def budget_terms(scene, gbuffer, cube, lights, materials, *, pems=None, prefilter: str = "pyramid",
+                 prefilter_params: dict | None = None, vsm_resolution: int = 256, level_step: float = 0.05,
+                 level_dirs=4000, **vsm_kw) -> BudgetTerms:
     """The :class:`BudgetTerms` of a scene (prepared meshes), its G-buffer, a cube map (6, N, N, C), median-cut
-    ``lights`` and ``materials`` ``{material_id: (kd, ks, g)}``.  ``pems``: the PEM set of those lights
-    (default :func:`ibl_ref.knuth2014.pem.build_pems` with the paper's pyramid); ``level_dirs``: the directions
-    (K, 3) the best level ℓ* is fitted on, or their number (seeded uniform directions); ``vsm_kw`` go to the shadow
-    maps."""
+    ``lights`` and ``materials`` ``{material_id: (kd, ks, g)}``.  ``pems``: the PEM set of those lights (default:
+    :func:`ibl_ref.prefilter.registry.build_region_prefilters` with method ``prefilter`` and ``prefilter_params``,
+    the paper's pyramid, :func:`ibl_ref.knuth2014.pem.build_pems`; step 5 needs a level chain: the look-ups at a
+    given level); ``level_dirs``: the directions (K, 3) the best level ℓ* is fitted on, or their number (seeded
+    uniform directions); ``vsm_kw`` go to the shadow maps."""
     from ..knuth2014.gloss_lookup import level_fit_directions
-    from ..knuth2014.pem import build_pems
+    from ..prefilter.registry import build_region_prefilters
 
     fit = np.asarray(level_fit_directions(level_dirs) if np.ndim(level_dirs) == 0 else level_dirs, dtype=np.float64)
     if fit.ndim != 2 or fit.shape[1] != 3 or len(fit) < 1:
@@ -311,7 +315,10 @@ def budget_terms(scene, gbuffer, cube, lights, materials, *, pems=None, vsm_reso
     if a.ndim == 3:
         a = a[..., None]
     if pems is None:
-        pems = build_pems(a, lights)
+        pems = build_region_prefilters(a, lights, method=prefilter, **(prefilter_params or {}))
+    if not hasattr(pems, "lookup_all_at_level"):
+        raise IBLError(f"error budget: the PEMs of prefilter {prefilter!r} are not a level chain (step 5 reads "
+                       "them at the best constant level); choose a level-chain method")
     kd, ks, g = material_weights(gbuffer.material_id[gbuffer.mask], materials)
     return BudgetTerms(scene=scene, gbuffer=gbuffer, cube=a, lights=lights, pems=pems, kd=kd, ks=ks, g=g,
                        vsm_resolution=int(vsm_resolution), vsm_kw=dict(vsm_kw), level_step=float(level_step),

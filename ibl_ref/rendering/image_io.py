@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import EnvMapFileError, IBLError, check_input_file, check_radiance
+from ..environment.radiance_policy import check_radiance
+from ..errors import EnvMapFileError, IBLError, check_input_file
 
 __all__ = ["write_image_exr", "read_image_exr", "read_g_map"]
 

@@ -63,7 +63,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..conventions import lobe_half_angle, phong_exponent  # noqa: F401  (re-exported, old names)
-from ..errors import IBLError, LayoutError, check_radiance
+from ..environment.radiance_policy import check_radiance
+from ..errors import IBLError, LayoutError
 
 __all__ = [
     "ReferenceResult",
@@ -93,7 +94,7 @@ BACKENDS = ("project", "trimesh")
 # ------------------------------------------------------------------------------------------------
 def check_environment(cube) -> np.ndarray:
     """The environment of a render as validated float64 radiance (6, N, N, C): layout checked, NaN/Inf/negative
-    radiance refused with a clear :class:`ibl_ref.errors.RadianceError` (:func:`ibl_ref.errors.check_radiance`);
+    radiance refused with a clear :class:`ibl_ref.errors.RadianceError` (:func:`ibl_ref.environment.radiance_policy.check_radiance`);
     a (6, N, N) map gets one channel."""
     from ..environment.envmap import check_cube_shape
 

@@ -2,8 +2,10 @@
 
 Per pixel the G-buffer (:mod:`ibl_ref.rendering.raster`) gives the world position, the normal and the reflection vector
 r = 2(n·v)n − v; "we can use the same sample vector for each PEM" (Sec. 3.4), so every partial environment map
-``PEM_i`` is looked up at (r, g) with the material's glossiness g (``PEMSet.lookup_all`` of
-:mod:`ibl_ref.knuth2014.pem`), and weighted by the visibility ``VIS_i`` of light i (the region's centroid direction):
+``PEM_i`` is looked up at (r, g) with the material's glossiness g (``lookup_all`` of a region set,
+:class:`ibl_ref.prefilter.interface.RegionPrefilters`: the paper's :class:`ibl_ref.knuth2014.pem.PEMSet` or the PEMs
+of any Phong prefilter, :func:`ibl_ref.prefilter.registry.build_region_prefilters`), and weighted by the visibility
+``VIS_i`` of light i (the region's centroid direction):
 
 * ``visibility="vsm"`` — the paper's method: one variance shadow map per light, blurred according to the
   region's solid angle (:mod:`ibl_ref.rendering.vsm`, Sec. 3.3/4);
@@ -569,8 +571,10 @@ def render_pem(
     ----------
     meshes : see :func:`ibl_ref.rendering.raster.prepare_scene`
     camera : :class:`ibl_ref.rendering.camera.PerspectiveCamera` (or orthographic)
-    pems : ``ibl_ref.knuth2014.pem.PEMSet`` (anything with ``.lights.directions`` (L, 3), ``.lights.solid_angle`` (L,)
-        and ``.lookup_all(dirs, g) -> (L, ..., C)``)
+    pems : a region set (:class:`ibl_ref.prefilter.interface.RegionPrefilters`: ``.lights`` with ``directions``
+        (L, 3) and ``solid_angle`` (L,), ``.lookup_all(dirs, g) -> (L, ..., C)``), e.g.
+        ``build_region_prefilters(cube, method="pyramid", n_lights=24)`` (:mod:`ibl_ref.prefilter.registry`;
+        the paper's PEMs) or any other ``--prefilter`` method
     glossiness : float or {material_id: g}, default 0.5
         Pure glossy material (kd = 0, ks = 1) with this g: c = Σ_i VIS_i · PEM_i(r, g).  Not with ``materials``.
     materials : Material, (kd, ks, g) tuple, or {material_id: Material}, optional
@@ -600,7 +604,9 @@ def render_pem(
         raise IBLError(f"background must be one of {BACKGROUNDS}, got {background!r}")
     lights = getattr(pems, "lights", None)
     if lights is None or not hasattr(pems, "lookup_all"):
-        raise IBLError("pems: expected an ibl_ref.knuth2014.pem.PEMSet (with .lights and .lookup_all)")
+        raise IBLError("pems: expected partial environment maps, an ibl_ref.knuth2014.pem.PEMSet or any region set "
+                       "of ibl_ref.prefilter (RegionPrefilters: .lights and .lookup_all), e.g. "
+                       "ibl_ref.prefilter.build_region_prefilters(cube, n_lights=24)")
     L = len(np.asarray(lights.directions, dtype=np.float64).reshape(-1, 3))
     scene = prepare_scene(meshes)
     if materials is not None and glossiness is not None:

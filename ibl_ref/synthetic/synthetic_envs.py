@@ -41,7 +41,8 @@ from pathlib import Path
 import numpy as np
 
 from ..environment import envmap
-from ..errors import IBLError, check_radiance
+from ..environment.radiance_policy import check_radiance
+from ..errors import IBLError
 
 __all__ = [
     "ENV_NAMES",

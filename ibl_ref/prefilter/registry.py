@@ -1,0 +1,102 @@
+"""The prefilter methods by name, and the one dispatcher that builds them.
+
+:data:`PREFILTER_METHODS` maps a method name to its class (:class:`~ibl_ref.prefilter.interface.Prefilter`);
+:func:`build_prefilter` builds one from a cube map, :func:`build_region_prefilters` builds one per median-cut
+region (the PEMs of Eq. 5), :func:`prefilter_methods` lists them (lobe family, paper, parameters) for ``--help``
+and experiments.  Adding a method: its module in this package and one line here (package docstring).
+"""
+
+from __future__ import annotations
+
+import inspect
+from typing import NamedTuple
+
+from ..errors import IBLError
+from .exact_lobe_chain import ExactLobeChain
+from .kan2015_maps import Kan2015Maps
+from .kautz_mccool2000_lobes import KautzMcCool2000Lobes
+from .knuth2014_pyramid import Knuth2014Pyramid
+
+__all__ = ["PREFILTER_METHODS", "PrefilterMethod", "prefilter_methods", "get_method", "region_params",
+           "build_prefilter", "build_region_prefilters"]
+
+#: method name → prefilter class
+PREFILTER_METHODS = {
+    "pyramid": Knuth2014Pyramid,
+    "exact-lobe": ExactLobeChain,
+    "km00-lobes": KautzMcCool2000Lobes,
+    "kan2015": Kan2015Maps,
+}
+
+
+class PrefilterMethod(NamedTuple):
+    """One registered method: name, lobe family, paper, one-line summary, its parameters (name → default)."""
+
+    name: str
+    lobe: str
+    paper: str
+    summary: str
+    params: dict
+
+
+def get_method(method: str):
+    """The class registered as ``method``, or a one-line :class:`IBLError` naming the choices."""
+    try:
+        return PREFILTER_METHODS[method]
+    except (KeyError, TypeError):
+        raise IBLError(f"unknown prefilter method {method!r}; choose one of {', '.join(PREFILTER_METHODS)}") from None
+
+
+def _params(fn) -> dict:
+    return {p.name: p.default for p in inspect.signature(fn).parameters.values() if p.kind is p.KEYWORD_ONLY}
+
+
+def prefilter_methods(lobe: str | None = None) -> list:
+    """The registered methods (optionally of one lobe family) as :class:`PrefilterMethod` rows, in registry order.
+
+    ``params`` are the keyword parameters of the full-map build (``Method(cube, **params)``).
+    """
+    rows = []
+    for name, cls in PREFILTER_METHODS.items():
+        if lobe is None or cls.lobe == lobe:
+            summary = (cls.__doc__ or "").strip().splitlines()[0] if cls.__doc__ else ""
+            rows.append(PrefilterMethod(name, cls.lobe, cls.paper, summary, _params(cls.__init__)))
+    return rows
+
+
+def region_params(method: str) -> dict:
+    """Keyword parameters (name → default) of a method's region build (its ``build_regions``, else its own)."""
+    cls = get_method(method)
+    return _params(getattr(cls, "build_regions", cls.__init__))
+
+
+def build_prefilter(cube, method: str = "pyramid", **params):
+    """``PREFILTER_METHODS[method](cube, **params)``: the prefilter of a cube map (6, N, N, C)."""
+    return get_method(method)(cube, **params)
+
+
+def build_region_prefilters(cube, lights=None, method: str = "pyramid", *, n_lights: int | None = None,
+                            variant: str = "per-face", **params):
+    """One prefiltered map per median-cut region (the PEMs of Eq. 5) → a region set
+    (:class:`~ibl_ref.prefilter.interface.RegionPrefilters`).
+
+    ``lights``: the regions (:func:`ibl_ref.knuth2014.median_cut.median_cut` of the same map), or ``n_lights``
+    and ``variant`` to cut them here.  The method's ``build_regions`` if it has one (a joint build), else
+    :meth:`ibl_ref.prefilter.regions.RegionSet.build` (the method on every partial map).
+    """
+    cls = get_method(method)
+    if cls.lobe != "phong":
+        raise IBLError(f"prefilter {method!r} serves {cls.lobe} lobes; partial environment maps (Eq. 5) are looked "
+                       "up by glossiness g and need a Phong prefilter")
+    if lights is None:
+        if n_lights is None:
+            raise IBLError("build_region_prefilters: give either lights (a LightSet) or n_lights")
+        from ..knuth2014.median_cut import median_cut
+
+        lights = median_cut(cube, n_lights, variant)
+    build = getattr(cls, "build_regions", None)
+    if build is not None:
+        return build(cube, lights, **params)
+    from .regions import RegionSet
+
+    return RegionSet.build(cls, cube, lights, **params)
