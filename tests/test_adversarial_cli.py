@@ -258,7 +258,7 @@ OUT_COMMANDS = {  # command -> (argv builder, relative name of the output the ar
     "pyramid": (lambda f, o: ["pyramid", f, o], "x.exr"),
     "mediancut": (lambda f, o: ["mediancut", f, "--lights", "6", "--out", o], "x.json"),
     "synth-env": (lambda f, o: ["synth", "env", "sky_sun", o, "--size", "4"], "x.exr"),
-    "km00-render": (lambda f, o: ["km00-render", "--env", f, "--out", o, "--size", "8", "--env-size", "4",
+    "km00-render": (lambda f, o: ["km00-render", "--env", f, "--out", o, "--size", "8", "--env-size", "8",
                                   "--quiet", "--method", "single", "--n-theta", "2"], "x.exr"),
     "render": (lambda f, o: ["render", "--env", f, "--mesh", "torus", "--out", o, "--size", "8", "--lights", "6"],
                "x.exr"),

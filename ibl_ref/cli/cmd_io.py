@@ -14,53 +14,27 @@ OUT_SUFFIXES = (".exr", ".hdr", ".pic")  #: file types ``convert`` writes
 
 
 def _load_any(path: Path, negative: str = "auto", nonfinite: str = "error"):
-    """(data, layout, channels, pixel_type, file_format, extra, radiance report) of any supported file.
+    """:func:`ibl_ref.environment.exr_io.read_map` of any supported file (no resampling), EXR pixels as float32
+    (exact for half and float files); the radiance policy is applied to the colour channels."""
+    import warnings
 
-    No resampling; the radiance policy (:mod:`ibl_ref.environment.radiance_policy`) is applied to the colour channels.
-    """
     from ..environment import exr_io
-    from ..environment.hdr_io import read_hdr
+    from ..errors import RadianceWarning
 
-    if path.suffix.lower() in (".hdr", ".pic", ".rgbe"):
-        img, rep = read_hdr(path, negative=negative, nonfinite=nonfinite, return_report=True)
-        img, layout, chans, ptype, fmt, extra, header = _hdr_meta(path, img)
-    else:
-        img, chans, ptype, header, where = exr_io._read_raw(path, dtype=np.float32)  # exact for half/float
-        layout = exr_io.infer_layout(img.shape[0], img.shape[1], exr_io._declared(header, str(path)), str(path))
-        rep = exr_io._radiance(img, chans, where, layout, negative, nonfinite)
-        fmt, extra = "OpenEXR", _exr_extra(header)
-    return _as_layout(img, layout, header, str(path)) + (chans, ptype, fmt, extra, rep)
+    with warnings.catch_warnings():  # the report is printed by the command (radiance_args.tell)
+        warnings.simplefilter("ignore", RadianceWarning)
+        return exr_io.read_map(path, negative=negative, nonfinite=nonfinite, dtype=np.float32)
 
 
-def _hdr_meta(path: Path, img):
-    from ..environment import exr_io
+def _hdr_extra(path: Path) -> dict:
     from ..environment.hdr_io import read_hdr_header
 
     hdr = read_hdr_header(path)
-    layout = exr_io.infer_layout(img.shape[0], img.shape[1], None, str(path))
-    extra = {"exposure_product": hdr["exposure"], "orientation": f"{hdr['major']} {hdr['minor']}"}
-    return img, layout, ("R", "G", "B"), "rgbe", "Radiance RGBE", extra, {}
+    return {"exposure_product": hdr["exposure"], "orientation": f"{hdr['major']} {hdr['minor']}"}
 
 
 def _exr_extra(header: dict) -> dict:
     return {"envmap_attribute": header.get("envmap", "-"), "convention": header.get("iblref_convention", "-")}
-
-
-def _as_layout(img, layout: str, header: dict, where: str):
-    """(data, layout): cube strips reshaped (and re-oriented to OpenEXR), crosses cut, lat-long as is."""
-    from ..environment import envmap, exr_io, resample
-
-    if layout == "cube":
-        n = img.shape[1]
-        data = img.reshape(6, n, n, img.shape[-1])
-        conv = exr_io._convention(header, None, where)  # a bad iblref_convention attribute: LayoutError
-        if conv != "openexr":
-            data = envmap.convert_convention(data, conv, "openexr")
-    elif layout in ("hcross", "vcross"):
-        data = resample.cross_to_cube(img, layout)
-    else:
-        data = img
-    return data, layout
 
 
 _LAYOUT_RULES = "N wide x 6N high = cube strip, 2H x H = lat-long, 4N x 3N = horizontal cross, 3N x 4N = vertical cross"
@@ -76,29 +50,12 @@ def _info_read(path: Path):
     from ..environment.hdr_io import read_hdr
 
     if path.suffix.lower() in (".hdr", ".pic", ".rgbe"):
-        img, _, chans, ptype, fmt, extra, header = _hdr_meta(path, read_hdr(path, negative="clamp", nonfinite="zero"))
-        return img, chans, 3, ptype, fmt, extra, header, 1
-    _, parts = exr_io._open(path)
-    part = parts[0]
-    names = sorted(part.channels)
-    colour = [c for c in ("R", "G", "B") if c in names] if {"R", "G", "B"} <= set(names) else (
-        ["Y"] if "Y" in names else [])
-    order = colour + [c for c in names if c not in colour]
-    arrs = [part.channels[c].pixels for c in order]
-    if len({a.shape for a in arrs}) != 1 or arrs[0].ndim != 2:
-        raise IBLError(f"{path}: channels have different sizes {sorted({a.shape for a in arrs})} "
-                       "(subsampled channels unsupported)")
-    types = {exr_io._simple(part.channels[c].type()) for c in order}
-    img = np.empty(arrs[0].shape + (len(arrs),), np.float32)  # float32 holds half/float exactly
-    del arrs
-    for i, c in enumerate(order):
-        img[..., i] = part.channels[c].pixels
-        part.channels[c].pixels = np.empty((0, 0), np.float32)  # release the binding's copy
-    ptype = {"HALF": "half", "FLOAT": "float", "UINT": "uint"}.get(types.pop(), "mixed") if len(types) == 1 else "mixed"
-    header = exr_io.header_dict(part, str(path))
-    extra = _exr_extra(header)
-    extra["compression"] = header.get("compression", "-")
-    return img, tuple(order), len(colour), ptype, "OpenEXR", extra, header, len(parts)
+        img = read_hdr(path, negative="clamp", nonfinite="zero")
+        return img, ("R", "G", "B"), 3, "rgbe", "Radiance RGBE", _hdr_extra(path), {}, 1
+    ex = exr_io.read_exr(path, dtype=np.float32, channels="all")  # float32 holds half/float exactly
+    extra = _exr_extra(ex.header)
+    extra["compression"] = ex.header.get("compression", "-")
+    return ex.pixels, ex.channels, ex.n_colour, ex.pixel_type, "OpenEXR", extra, ex.header, ex.n_parts
 
 
 def _channel_stats(img: np.ndarray, weights) -> dict:
@@ -138,7 +95,7 @@ def _layout_reason(path: Path, h: int, w: int, header: dict):
     from ..environment import exr_io
 
     try:
-        declared = exr_io._declared(header, str(path))
+        declared = exr_io.declared_layout(header, str(path))
     except IBLError as exc:
         return None, str(exc)
     try:
@@ -167,7 +124,7 @@ def cmd_info(args) -> int:
         from ..environment import exr_io
 
         try:
-            exr_io._convention(header, None, str(path))
+            exr_io.cube_convention(header, None, str(path))
         except IBLError as exc:
             bad_convention = str(exc)
     print(f"file:       {path}")
@@ -247,8 +204,9 @@ def cmd_convert(args) -> int:
     from .radiance_args import tell
 
     with step(f"reading {src}"):  # a 16K probe takes seconds
-        data, layout, chans, _, _, _, rep = _load_any(src, args.negative, args.nonfinite)
-    tell(rep)
+        m = _load_any(src, args.negative, args.nonfinite)
+    data = m.data
+    tell(m.radiance)
     with step(f"converting to {args.layout}" + (f" (size {args.size})" if args.size else "")):  # 16K → 2048²: ~20 s
         if data.ndim == 4:  # cube
             src_int = resample.integral_cube(data)
