@@ -199,14 +199,19 @@ def ensure_output_dir(folder, what: str = "output folder", created: list | None 
 
 
 @contextlib.contextmanager
-def output_folder(folder, what: str = "output folder"):
+def output_folder(folder, what: str = "output folder", remove_tree: bool = False):
     """Create ``folder`` for the block (:func:`ensure_output_dir`); if the block fails (an error, Ctrl-C), the
-    folders created here are removed again when they are empty: a failed run leaves no empty folder."""
+    folders created here are removed again when they are empty: a failed run leaves no empty folder.
+
+    ``remove_tree=True`` (an experiment's own folder): a folder this block created is removed with everything in
+    it — it did not exist before the run, so all it holds is the failed run's partial output."""
     created: list = []
     folder = ensure_output_dir(folder, what, created)
     try:
         yield folder
     except BaseException:
+        if remove_tree and created:
+            shutil.rmtree(created[-1], ignore_errors=True)  # the outermost folder this block made
         _remove_empty(created)
         raise
 

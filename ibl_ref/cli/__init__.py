@@ -126,7 +126,7 @@ def validate_args(parser, args) -> None:
 
 #: library parameter -> CLI flags that set it, where the names differ (the first flag the command has wins)
 PARAM_FLAGS = {"n_lights": ("--lights",), "variant": ("--variant", "--median-cut"), "n_lobes": ("--lobes",),
-               "out_size": ("--size",), "vsm_resolution": ("--vsm-res",)}
+               "out_size": ("--size",), "vsm_resolution": ("--vsm-res",), "uv_fallback": ("--gmap-fallback",)}
 
 
 def _flag_hints(message: str, sp) -> str:
@@ -178,11 +178,19 @@ def main(argv=None) -> int:
     from .interrupts import handling
 
     words = sys.argv[1:] if argv is None else [str(a) for a in argv]
-    with handling():  # Ctrl-C from here on: one line, exit code 130 (ibl_ref.cli.interrupts)
-        try:
-            return _main(argv)
-        except KeyboardInterrupt:
-            pass
+    try:
+        with handling():  # Ctrl-C from here on: one line, exit code 130 (ibl_ref.cli.interrupts)
+            try:
+                rc = _main(argv)
+            except KeyboardInterrupt:
+                rc = None
+    finally:
+        if argv is None:  # the program itself: what follows is the interpreter's shutdown, the work is done
+            import signal
+
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if rc is not None:
+        return rc
     command = words[0] if words and not words[0].startswith("-") else ""
     print(f"ibl-ref{' ' + command if command else ''}: interrupted", file=sys.stderr)
     return 130

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import warnings
 from pathlib import Path
 
@@ -61,11 +62,12 @@ def _info_read(path: Path):
 def _channel_stats(img: np.ndarray, weights) -> dict:
     """Per channel: min / max / mean of the finite values, NaN / Inf / negative counts and ∫ dω (NaN/Inf as 0).
 
-    Works in row chunks (``weights``: per-pixel solid angles broadcastable to (H, W), or None).
+    ``mean`` is the solid-angle weighted mean ∫L dω / ∫dω over the finite values when ``weights`` (per-pixel
+    solid angles broadcastable to (H, W)) are given, the per-pixel mean otherwise.  Works in row chunks.
     """
     c = img.shape[-1]
     st = {"min": np.full(c, np.inf), "max": np.full(c, -np.inf), "sum": np.zeros(c), "n": np.zeros(c, np.int64),
-          "nan": [0] * c, "inf": [0] * c, "neg": [0] * c, "integral": np.zeros(c)}
+          "nan": [0] * c, "inf": [0] * c, "neg": [0] * c, "integral": np.zeros(c), "omega": np.zeros(c)}
     wts = None if weights is None else np.broadcast_to(weights, img.shape[:2])
     step = max(1, (1 << 22) // max(1, img.shape[1] * c))
     for r0 in range(0, img.shape[0], step):
@@ -84,7 +86,11 @@ def _channel_stats(img: np.ndarray, weights) -> dict:
                 st["neg"][i] += int((v < 0).sum())
             if wts is not None:
                 st["integral"][i] += float(np.sum(np.where(f, b, 0.0) * wts[r0 : r0 + step]))
-    st["mean"] = np.where(st["n"] > 0, st["sum"] / np.maximum(st["n"], 1), np.nan)
+                st["omega"][i] += float(np.sum(np.where(f, wts[r0 : r0 + step], 0.0)))
+    if wts is not None:
+        st["mean"] = np.where(st["omega"] > 0, st["integral"] / np.where(st["omega"] > 0, st["omega"], 1.0), np.nan)
+    else:
+        st["mean"] = np.where(st["n"] > 0, st["sum"] / np.maximum(st["n"], 1), np.nan)
     st["min"] = np.where(st["n"] > 0, st["min"], np.nan)
     st["max"] = np.where(st["n"] > 0, st["max"], np.nan)
     return st
@@ -140,13 +146,16 @@ def cmd_info(args) -> int:
     if nc:  # before anything is zeroed
         rep = assess(img[..., :nc], f"{path}: radiance", weights, args.negative, args.nonfinite)
     st = _channel_stats(img, weights)
-    print("channel     min           max           mean          integral_L_domega_(sr)  NaN      Inf      negative")
+    mean_kind = "mean_per_sr" if weights is not None else "pixel_mean"  # solid-angle weighted, or not inferable
+    print(f"channel     min           max           {mean_kind:13s} integral_L_domega_(sr)  NaN      Inf      negative")
     for i, c in enumerate(chans):
         integ = st["integral"][i] if layout is not None else np.nan
         print(f"{c:11s} {st['min'][i]:<13.6g} {st['max'][i]:<13.6g} {st['mean'][i]:<13.6g} {integ:<23.9g} "
               f"{st['nan'][i]:<8d} {st['inf'][i]:<8d} {st['neg'][i]}")
     other_nonfinite = any(st["nan"][i] + st["inf"][i] for i in range(nc, len(chans)))
     other_negative = {chans[i]: st["neg"][i] for i in range(nc, len(chans)) if st["neg"][i]}
+    print("(mean_per_sr: the solid-angle weighted mean, integral / 4 pi for a full sphere)" if weights is not None
+          else "(pixel_mean: the layout is unknown, so the mean is over pixels, not weighted by solid angle)")
     if any(st["nan"]) or any(st["inf"]):
         print("(statistics and integrals over the finite values; NaN/Inf counted as 0)")
     if nc:
@@ -173,7 +182,10 @@ def cmd_info(args) -> int:
                 verdict += ("; NaN/Inf in the other channels: " + ("replaced by 0" if args.nonfinite == "zero"
                             else "refused (--nonfinite zero replaces them by 0)"))
         except IBLError as exc:
+            import re
+
             verdict = f"refuse the file: {str(exc).split(': radiance: ', 1)[-1]}"
+            verdict = re.sub(r"\s*\(Python: [^()]*\)", "", verdict)  # the flags are named already
         if layout is None:
             verdict = "refuse the file: its layout cannot be inferred"
         elif bad_convention:
@@ -207,6 +219,16 @@ def cmd_convert(args) -> int:
         m = _load_any(src, args.negative, args.nonfinite)
     data = m.data
     tell(m.radiance)
+    if data.ndim == 3 and args.layout == "cube" and args.method == "conservative":  # say what it costs first
+        from ..limits import check_allocation
+
+        n_out = args.size or max(1, data.shape[0] // 2)
+        cost = resample.latlong_to_cube_cost(data.shape[0], n_out)
+        if cost["seconds"] > 10 or cost["bytes"] > 2**30:
+            print(f"converting a {data.shape[0]}-row lat-long map to {n_out}² cube faces: expect about "
+                  f"{cost['seconds']:.0f} s and {cost['bytes'] / 2**30:.1f} GiB of memory (2-core machine; "
+                  "--size sets a smaller cube)", file=sys.stderr, flush=True)
+        check_allocation(cost["bytes"], f"converting to {n_out}² cube faces", "--size")
     with step(f"converting to {args.layout}" + (f" (size {args.size})" if args.size else "")):  # 16K → 2048²: ~20 s
         if data.ndim == 4:  # cube
             src_int = resample.integral_cube(data)
@@ -277,8 +299,8 @@ def register(sub) -> None:
     i = sub.add_parser(
         "info",
         help="print layout, size, channels and radiance statistics of an environment map",
-        description="Print layout, size, channels, pixel type, min/max/mean radiance and the integral of "
-        "L dω per channel (exact texel solid angles) of an OpenEXR or Radiance .hdr environment map, "
+        description="Print layout, size, channels, pixel type, min/max radiance, its solid-angle weighted mean "
+        "and the integral of L dω per channel (exact texel solid angles) of an OpenEXR or Radiance .hdr environment map, "
         "the counts of NaN, Inf and negative values in every channel, where the layout came from (envmap "
         "attribute or aspect ratio) and what the other commands would do with the file under --negative / "
         "--nonfinite. Never refuses a file it can decode.",

@@ -77,7 +77,7 @@ def cmd_mediancut(args) -> int:
 def cmd_pem(args) -> int:
     import numpy as np
 
-    from ..atomic import OutputSet, ensure_output_dir
+    from ..atomic import OutputSet, output_folder
     from ..environment.exr_io import HALF_MAX, write_pyramid
     from ..knuth2014.filters import kernel_taps
     from ..knuth2014.median_cut import median_cut
@@ -103,11 +103,10 @@ def cmd_pem(args) -> int:
         if vmax > HALF_MAX:
             raise IBLError(f"--pixel-type half: PEM values up to {vmax:g} exceed the largest half float "
                            f"({HALF_MAX:g}); use --pixel-type float")
-    ensure_output_dir(out, "--out folder")
     files = []
     rng = track(range(len(pems)), "writing PEMs", unit="file")
-    outs = OutputSet(out / "pems.json", owned_key="files", keep=[args.input])  # all or nothing; stale PEMs removed
-    with outs:
+    # all or nothing; stale PEMs removed; a folder created for a failed run is removed again
+    with output_folder(out, "--out folder"), OutputSet(out / "pems.json", owned_key="files", keep=[args.input]) as outs:
         for i in rng:
             p = out / f"pem_{i:03d}.exr"
             write_pyramid(outs.path(p), [lev[:, :, :, i, :] for lev in pems.levels], pixel_type=args.pixel_type)

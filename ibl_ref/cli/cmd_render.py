@@ -186,7 +186,13 @@ def cmd_render(args) -> int:
                            "material; RGB weights and --gmap work with the other modes")
     progress = args.progress
 
-    # ---- scene -------------------------------------------------------------------------------------------
+    # ---- scene (the mesh first: it is cheaper to check than a big environment map) -------------------------
+    meshes = teapot_on_ground(args.mesh, ground=args.ground)
+    if mat.g_map is not None:  # NaN/Inf UVs of a mesh file: refused before any rendering
+        from ..rendering.render import mesh_uv
+
+        mesh_uv(meshes[0][0], f"--mesh {args.mesh}")
+    cam = _camera(args, meshes[:1])
     radiance = None
     if args.env is not None:
         from .radiance_args import load_env
@@ -201,8 +207,6 @@ def cmd_render(args) -> int:
     if wmax * float(np.max(cube)) * (args.lights + 1) > np.finfo(np.float64).max:
         raise IBLError(f"--material / --ground-material: weights up to {wmax:g} times radiance up to "
                        f"{float(np.max(cube)):g} overflow float64 in the shading sum; use smaller weights")
-    meshes = teapot_on_ground(args.mesh, ground=args.ground)
-    cam = _camera(args, meshes[:1])
 
     t0 = time.perf_counter()
     info = {"out": str(out), "mode": mode, "size": [w, h], "fov_y_deg": args.fov,

@@ -256,9 +256,9 @@ def to_pixel_type(strip: np.ndarray, pixel_type: str, clamp_half: bool, where: s
     if not np.all(np.isfinite(out)):  # defensive: must be impossible after the checks above
         raise IBLError(f"{where}: conversion to {pixel_type} produced non-finite values")
     nc = 3 if strip.shape[-1] >= 3 else 1  # colour channels (alpha is not radiance)
-    remedy = ("scale the map up, or write pixel_type='float' / drop --half" if pixel_type == "half"
+    remedy = ("scale the map up, or write float pixels: pixel_type='float', no --half" if pixel_type == "half"
               else "scale the map up")
-    check_format_range(strip[..., :nc], out[..., :nc], where, pixel_type,
+    check_format_range(strip[..., :nc], out[..., :nc], where, f"the smallest normal {pixel_type}",
                        HALF_MIN_NORMAL if pixel_type == "half" else FLOAT_MIN_NORMAL, weights, remedy)
     return out, count, (vmax if count else 0.0)
 

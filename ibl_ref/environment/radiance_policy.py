@@ -273,7 +273,7 @@ def decide(rep: RadianceReport) -> tuple:
             raise RadianceError(
                 f"{name}: {rep.n_negative} negative radiance value(s) (min {rep.negative_min:g}, "
                 f"{rep.removed_fraction:.2e} of the integral of |L| domega); pass --negative auto or clamp "
-                f"(Python: negative='auto'/'clamp') to clamp them to 0")
+                f"(Python: negative='auto' or negative='clamp') to clamp them to 0")
         if rep.negative_policy == "auto" and rep.removed_fraction > AUTO_MAX_REMOVED_FRACTION:
             raise RadianceError(
                 f"{name}: {rep.n_negative} negative radiance value(s) (min {rep.negative_min:g}) carry "
@@ -306,10 +306,10 @@ def apply_policy(values, name: str = "radiance", negative: str = "auto", nonfini
             if clamp:
                 np.maximum(blk, 0, out=blk)
         if zero_nf:
-            rep.action.append(f"replaced {rep.n_nonfinite} NaN/Inf value(s) by 0 (--nonfinite zero)")
+            rep.action.append(f"replaced {rep.n_nonfinite} NaN/Inf value(s) by 0 (policy nonfinite=zero)")
         if clamp:
-            why = (f"--negative auto: {rep.removed_fraction:.2e} <= {AUTO_MAX_REMOVED_FRACTION:g} of the integral"
-                   if rep.negative_policy == "auto" else "--negative clamp")
+            why = (f"policy negative=auto: {rep.removed_fraction:.2e} <= {AUTO_MAX_REMOVED_FRACTION:g} of the integral"
+                   if rep.negative_policy == "auto" else "policy negative=clamp")
             rep.action.append(f"clamped {rep.n_negative} negative value(s) to 0 ({why})")
     return a, rep
 
@@ -356,13 +356,13 @@ def check_format_range(values, stored, where: str, fmt: str, min_normal: float, 
                        remedy: str = "") -> float:
     """Refuse or warn about values below a format's range (module docstring); returns f_range.
 
-    ``fmt`` names the format in the message (e.g. ``"half"``), ``remedy`` says what to do instead.
+    ``fmt`` names the limit in the message (e.g. ``"the smallest normal half"``), ``remedy`` says what to do instead.
     """
     f, n_below, n_zero = range_loss(values, stored, min_normal, weights)
     if f <= RANGE_WARN_FRACTION:
         return f
     share = "of the integral of L domega" if weights is not None else "of the image's sum"
-    what = (f"{n_below} value(s) below the smallest normal {fmt} ({min_normal:.3g}), {n_zero} of them stored as 0, "
+    what = (f"{n_below} value(s) below {fmt} ({min_normal:.3g}), {n_zero} of them stored as 0, "
             f"change {f:.2e} {share}")
     if f > AUTO_MAX_REMOVED_FRACTION:
         raise RadianceError(f"{where}: {what}, more than {AUTO_MAX_REMOVED_FRACTION:g}; the file would not hold "
