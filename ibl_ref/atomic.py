@@ -210,9 +210,10 @@ def output_folder(folder, what: str = "output folder", remove_tree: bool = False
     try:
         yield folder
     except BaseException:
-        if remove_tree and created:
-            shutil.rmtree(created[-1], ignore_errors=True)  # the outermost folder this block made
-        _remove_empty(created)
+        with critical_section():  # a repeated Ctrl-C waits for the clean-up
+            if remove_tree and created:
+                shutil.rmtree(created[-1], ignore_errors=True)  # the outermost folder this block made
+            _remove_empty(created)
         raise
 
 
@@ -315,10 +316,10 @@ def atomic_path(path, suffix: str | None = None):
             os.replace(tmp, real)
         _fsync_path(parent, directory=True)
     except BaseException as exc:
-        with contextlib.suppress(OSError):
+        with critical_section(), contextlib.suppress(OSError):  # a repeated Ctrl-C waits for the clean-up
             os.unlink(tmp)
-        if not real.exists():
-            _remove_empty(created)
+            if not real.exists():
+                _remove_empty(created)
         if isinstance(exc, OSError) and not isinstance(exc, IBLError):
             raise OutputError(f"{path}: cannot write: {_reason(exc)}") from exc
         raise
@@ -495,9 +496,10 @@ class OutputSet:
             for staged, given in self._staged.values():
                 msg = msg.replace(str(staged), str(given))
             exc.args = (msg,) + exc.args[1:]
-        self._cleanup()
-        if not self.committed:
-            _remove_empty(self._created)
+        with critical_section():  # a repeated Ctrl-C waits for the clean-up
+            self._cleanup()
+            if not self.committed:
+                _remove_empty(self._created)
         return False
 
     def _cleanup(self):

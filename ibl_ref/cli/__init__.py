@@ -35,6 +35,7 @@ import re
 import sys
 
 from ..errors import IBLError, IBLWarning
+from .interrupts import handling  # stdlib only: installed first thing in main()
 
 __all__ = ["main", "build_parser", "validate_args"]
 
@@ -175,23 +176,22 @@ def _one_line_warnings(prog: str):
 
 
 def main(argv=None) -> int:
-    from .interrupts import handling
-
-    words = sys.argv[1:] if argv is None else [str(a) for a in argv]
-    try:
-        with handling():  # Ctrl-C from here on: one line, exit code 130 (ibl_ref.cli.interrupts)
-            try:
+    rc = None
+    try:  # a Ctrl-C before the handler is installed lands here too (Python's default handler raises)
+        try:
+            with handling():  # Ctrl-C from here on: one line, exit code 130 (ibl_ref.cli.interrupts)
                 rc = _main(argv)
-            except KeyboardInterrupt:
-                rc = None
-    finally:
-        if argv is None:  # the program itself: what follows is the interpreter's shutdown, the work is done
-            import signal
+        finally:
+            if argv is None:  # the program itself: what follows is the interpreter's shutdown, the work is done
+                import signal
 
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except KeyboardInterrupt:
+        rc = None
     if rc is not None:
         return rc
-    command = words[0] if words and not words[0].startswith("-") else ""
+    words = sys.argv[1:] if argv is None else [str(a) for a in argv]
+    command = words[0] if words and not str(words[0]).startswith("-") else ""
     print(f"ibl-ref{' ' + command if command else ''}: interrupted", file=sys.stderr)
     return 130
 
@@ -210,6 +210,9 @@ def _main(argv=None) -> int:
         parser.print_help()
         return 2
     prog = f"ibl-ref {args.command}"
+    import logging
+
+    logging.getLogger("trimesh").setLevel(logging.ERROR)  # its fallback notices are internals (with tracebacks)
     with warnings.catch_warnings():
         warnings.showwarning = _one_line_warnings(prog)
         try:

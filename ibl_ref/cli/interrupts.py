@@ -10,6 +10,10 @@ command; inside it, SIGINT is handled by :func:`_on_sigint`:
   signal and re-delivers it every 20 ms until no import is running; only then is ``KeyboardInterrupt`` raised.
 * **Deferred inside the commit of outputs** (:func:`ibl_ref.atomic.critical_section`): the files of one output
   set are all moved into place or none.
+* **Delivered again if swallowed**: trimesh also guards some numerical fallbacks with ``except BaseException``
+  (``weighted_vertex_normals``).  Once raised, the interrupt is re-sent every :data:`_RESEND_S` s until the command
+  has ended, so no library can make the command carry on; ibl_ref's own clean-up (removing temporary files and
+  staging folders) runs in :func:`ibl_ref.atomic.critical_section`, where a repeated interrupt waits.
 * **Worker processes stop with the command**: forked workers (``convolve``) and pool workers
   (:func:`ibl_ref.executors.map_jobs`) ignore SIGINT themselves (no traceback of theirs on the terminal); when
   the interrupt is raised the handler terminates every live :mod:`multiprocessing` child, so that the command
@@ -30,6 +34,7 @@ import threading
 __all__ = ["handling", "interrupted", "in_import"]
 
 _RETRY_S = 0.02  #: re-delivery interval of a deferred SIGINT
+_RESEND_S = 0.25  #: interval at which a raised interrupt is sent again while the command still runs
 _STATE = {"active": False, "received": False, "pending": False}
 _FORK_HOOK = {"registered": False}
 
@@ -76,6 +81,11 @@ def _on_sigint(signum, frame) -> None:
             t.start()
         return
     _stop_children()
+    if not _STATE["pending"]:  # in case a library swallows the KeyboardInterrupt: send it again
+        _STATE["pending"] = True
+        t = threading.Timer(_RESEND_S, _redeliver)
+        t.daemon = True
+        t.start()
     raise KeyboardInterrupt
 
 
