@@ -239,7 +239,7 @@ def test_usage_errors_are_one_line(argv, fragment, good, tmp_path, capfd, monkey
     argv = [str(good) if a == "IN" else a for a in argv]
     expect = 1 if fragment == "--exponent" and "abc" in argv else 2
     if argv[0] == "nosuchcommand":
-        with pytest.raises(SystemExit) as ei:
+        with pytest.raises(SystemExit, match=r"^2$") as ei:
             main(argv)
         rc = ei.value.code
         _, err = capfd.readouterr()
