@@ -41,8 +41,9 @@ class RadianceWarning(IBLWarning):
     """A reader repaired the radiance of a file (negatives clamped, NaN/Inf replaced) under its policy."""
 
 
-class FormatRangeWarning(IBLWarning):
-    """Values below a file format's range were rounded to 0 or lost precision while writing."""
+class FormatRangeWarning(IBLWarning, RuntimeWarning):
+    """Values outside a file format's range were clamped (``clamp_half``) or, below it, rounded to 0 or lost
+    precision while writing (also a ``RuntimeWarning``, the category of the clamping warning before)."""
 
 
 def as_path(path, what: str = "path"):

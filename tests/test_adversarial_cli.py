@@ -586,6 +586,15 @@ def test_info_negative_alpha_is_not_reported_as_clean(tmp_path, capfd):
     (["render", "--mesh", "torus", "--lights", "5", "--out", "OUT/r.exr", "--size", "8"], "--lights"),
     (["render", "--mesh", "torus", "--lights", "7", "--out", "OUT/r.exr", "--size", "8"], "--median-cut global"),
     (["pem", "IN", "--lights", "7", "--out", "OUT/p"], "--variant global"),
+    (["render", "--mesh", "torus", "--distance", "1e308", "--out", "OUT/r.exr", "--size", "8"], "--distance 1e+308"),
+    (["render", "--mesh", "torus", "--camera-eye", "1e308", "1", "1", "--out", "OUT/r.exr", "--size", "8"],
+     "--camera-eye: coordinates up to 1e+308"),
+    (["render", "--mesh", "torus", "--camera-target", "1e200", "0", "0", "--out", "OUT/r.exr", "--size", "8"],
+     "--camera-target: coordinates up to 1e+200"),
+    (["render", "--mesh", "torus", "--camera-up", "1e300", "0", "0", "--out", "OUT/r.exr", "--size", "8"],
+     "--camera-up"),
+    (["render", "--mesh", "torus", "--material", "1e300,0,0.5", "--out", "OUT/r.exr", "--size", "8", "--lights", "6",
+      "--env-size", "8"], "--material / --ground-material"),
 ])
 def test_bad_values_name_the_cli_flag(argv, fragment, good, tmp_path, capfd):
     out = tmp_path / "out"

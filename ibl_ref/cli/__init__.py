@@ -165,11 +165,15 @@ def _one_line_warnings(prog: str):
     def show(message, category, filename, lineno, file=None, line=None):
         text = " ".join(str(message).split())
         mod = filename.replace(os.sep, "/")
-        ours = issubclass(category, IBLWarning) or "/ibl_ref/" in mod
+        # ibl_ref's own: IBLWarning, or a UserWarning it issues; anything else (numpy's RuntimeWarnings, wherever
+        # the arithmetic is) is a case the checks did not foresee
+        ours = issubclass(category, IBLWarning) or (category is UserWarning and "/ibl_ref/" in mod)
         if not ours:
-            pkg = next((p for p in ("numpy", "scipy", "trimesh", "matplotlib", "OpenEXR", "mitsuba", "drjit")
-                        if f"/{p}/" in mod), "a library")
-            text = f"{category.__name__} from {pkg}: {text} (unexpected; please report the command)"
+            where = ("ibl_ref." + mod.rsplit("/ibl_ref/", 1)[1].removesuffix(".py").replace("/", ".")
+                     if "/ibl_ref/" in mod else next((p for p in ("numpy", "scipy", "trimesh", "matplotlib",
+                                                                  "OpenEXR", "mitsuba", "drjit") if f"/{p}/" in mod),
+                                                     "a library"))
+            text = f"{category.__name__} in {where}: {text} (unexpected; please report the command)"
         print(f"{prog}: warning: {text}", file=sys.stderr if file is None else file)
 
     return show

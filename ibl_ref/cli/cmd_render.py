@@ -128,8 +128,18 @@ def _camera(args, meshes):
     v = np.asarray(args.view_dir, float)
     if not np.all(np.isfinite(v)) or np.linalg.norm(v) == 0:
         raise IBLError("--view-dir must be a finite non-zero vector")
-    return default_camera(meshes, view_dir=v, fov_y_deg=args.fov, distance=dist, width=w, height=h,
-                          eye=args.camera_eye, target=args.camera_target, up=args.camera_up)
+    from ..rendering.camera import CameraError
+
+    try:
+        return default_camera(meshes, view_dir=v, fov_y_deg=args.fov, distance=dist, width=w, height=h,
+                              eye=args.camera_eye, target=args.camera_target, up=args.camera_up)
+    except CameraError as exc:  # name the flag that set the vector
+        flag = next((f for k, f in (("eye", "--camera-eye"), ("target", "--camera-target"), ("up", "--camera-up"))
+                     if str(exc).startswith(k)), None)
+        msg = str(exc)
+        if flag:
+            msg = f"{flag}:" + (msg.split(":", 1)[1] if msg.split(" ", 1)[0].endswith(":") else f" {msg}")
+        raise CameraError(msg) from None
 
 
 def _ao_render_mode():
@@ -264,6 +274,10 @@ def cmd_render(args) -> int:
     t2 = time.perf_counter()
     if image.shape[:2] != (h, w):
         raise IBLError(f"renderer returned an image of shape {image.shape}, expected ({h}, {w}, C)")
+    top = float(np.max(image)) if image.size else 0.0
+    if out.suffix.lower() == ".exr" and top > float(np.finfo(np.float32).max):  # name the flags, not the file format
+        raise IBLError(f"--out {out}: the image reaches {top:.3g}, beyond float32 (3.4e+38) of an .exr; use smaller "
+                       "--material / --ground-material weights or write .npz (float64)")
 
     # ---- outputs (image, --png and the JSON sidecar committed together, the JSON last) -----------------------
     info["outputs"] = [out.name]  # marks OUT.json as this output's manifest (ibl_ref.atomic.check_side_files)

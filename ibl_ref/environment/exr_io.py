@@ -67,7 +67,8 @@ import numpy as np
 
 from . import envmap
 from ..atomic import atomic_path
-from ..errors import EnvMapFileError, IBLError, LayoutError, RadianceError, as_path, check_input_file, check_radiance
+from ..errors import (EnvMapFileError, FormatRangeWarning, IBLError, LayoutError, RadianceError, as_path,
+                      check_input_file, check_radiance)
 
 __all__ = [
     "HALF_MAX",
@@ -248,7 +249,7 @@ def to_pixel_type(strip: np.ndarray, pixel_type: str, clamp_half: bool, where: s
         warnings.warn(
             f"{where}: clamped {count} value(s) above {HALF_MAX:g} to {HALF_MAX:g} for half output "
             f"(max original value {vmax:g})",
-            RuntimeWarning,
+            FormatRangeWarning,
             stacklevel=3,
         )
         strip = np.minimum(strip, HALF_MAX)

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_write
-from ..errors import EnvMapFileError, LayoutError, check_input_file, check_radiance
+from ..errors import EnvMapFileError, LayoutError, as_path, check_input_file, check_radiance
 
 __all__ = ["read_hdr", "read_hdr_header", "write_hdr", "rgbe_to_float", "float_to_rgbe"]
 
@@ -131,7 +131,7 @@ def _check_claimed_size(n_major: int, n_minor: int, n_data: int, path, res: byte
 
 def read_hdr_header(path) -> dict:
     """Header of a Radiance file: ``format``, ``exposure`` (product), ``lines``, orientation and size."""
-    path = Path(path)
+    path = as_path(path, "Radiance file")
     with _open(path) as fh:
         buf = fh.read(65536)
         complete = not fh.read(1)
@@ -237,7 +237,7 @@ def read_hdr(path, apply_exposure: bool = False, negative: str = "auto", nonfini
         Of the result; RGBE values (8-bit mantissas) are exact in float32.  Decoding runs in row blocks,
         so a big probe needs the file, its (H, W, 4) bytes and the result only.
     """
-    path = Path(path)
+    path = as_path(path, "Radiance file")
     with _open(path) as fh:
         buf = fh.read()
     info, pos = _parse_header(buf, path)
@@ -330,7 +330,7 @@ def write_hdr(path, img, rle: bool = True, exposure: float | None = None) -> Pat
     :data:`RGBE_MIN` (stored as 0) are measured as a share of ∫L dω and refused above 1e-4 or reported
     (:func:`ibl_ref.environment.radiance_policy.check_format_range`; lat-long solid angles for W = 2H images).
     """
-    path = Path(path)
+    path = as_path(path, "Radiance file")
     a = np.asarray(img, dtype=np.float64)
     if a.ndim == 2:
         a = np.repeat(a[..., None], 3, axis=-1)

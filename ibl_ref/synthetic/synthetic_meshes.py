@@ -577,7 +577,9 @@ def load_mesh(path_or_name, **params) -> trimesh.Trimesh:
         return make_mesh(path_or_name, **params)
     if params:
         raise IBLError(f"load_mesh: parameters {sorted(params)} only apply to generated meshes {MESH_NAMES}")
-    path = Path(path_or_name)
+    from ..errors import as_path
+
+    path = as_path(path_or_name, "mesh file")
     if not path.is_file():
         raise MeshError(f"{path}: no such mesh file (and not a generated mesh name: {', '.join(MESH_NAMES)})")
     _sniff_mesh_file(path)
