@@ -84,7 +84,7 @@ def test_job_options_on_the_command_line(tmp_path, capsys):
     assert main(["experiment", "fig5", "--out", out, "--quick", "--face-sizes", "16", "--centre-only-sizes", "32",
                  "--exponents", "4", "--workers", "2"]) == 0
     assert (tmp_path / "fig5" / "fig5_errors.csv").exists()
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit, match=r"^0$"):
         main(["experiment", "fig5", "--help"])
     assert "independent jobs" in capsys.readouterr().out
 

@@ -138,15 +138,15 @@ def test_neglected_fraction_closed_form_and_weight_bound_dominates_continuum():
 
 def test_sparse_bad_input():
     cube = np.ones((6, 4, 4, 3))
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"Phong exponent s must be >="):
         convolve_sparse(cube, 0.0)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"rtol must be in \(0, 1"):
         convolve_sparse(cube, 4.0, rtol=0.0)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"n_bright must be 'auto' or a"):
         convolve_sparse(cube, 4.0, n_bright=-1)
     bad = cube.copy()
     bad[0, 0, 0, 0] = np.inf
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"environment cube map: 1 non\-finite value\(s"):
         convolve_sparse(bad, 4.0)
 
 

@@ -142,17 +142,17 @@ def test_coarse_level_error_against_direct_sums():
 
 def test_bad_inputs():
     env = np.ones((6, 8, 8, 3))
-    with pytest.raises(LayoutError):
+    with pytest.raises(LayoutError, match=r"n_env=3 must divide the face size"):
         rr.coarse_env(env, 3)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"g must be in \[0, 1\]"):
         rr.render_reference([(_quad(), 0)], CAM, env, g=1.5)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"kd, ks must be finite and"):
         rr.render_reference([(_quad(), 0)], CAM, env, kd=-1)
     bad = env.copy()
     bad[0, 0, 0, 0] = np.nan
-    with pytest.raises(RadianceError):
+    with pytest.raises(RadianceError, match=r"environment: 1 non\-finite value\(s\) \(first: NaN"):
         rr.render_reference([(_quad(), 0)], CAM, bad)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"direction: zero vector"):
         rr.parallel_visibility(_quad(), np.zeros((2, 3)), None, np.zeros((1, 3)))
 
 

@@ -49,15 +49,11 @@ def _check_output(path: Path, exts=None, option: str = "--out") -> Path:
     if path.is_dir():
         raise IBLError(f"{option} {path}: is a folder, expected a file path")
     parent = path.resolve().parent
-    if parent.exists() and not parent.is_dir():
-        raise IBLError(f"{option} {path}: output folder {parent} is not a folder")
-    if not parent.exists():
-        try:
-            parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise IBLError(f"{option} {path}: cannot create output folder {parent}: {exc.strerror}") from exc
-    if not os.access(parent, os.W_OK):
-        raise IBLError(f"{option} {path}: output folder {parent} is not writable")
+    anc = next(a for a in [parent, *parent.parents] if a.exists() or a.is_symlink())  # "/" always exists
+    if not anc.is_dir():
+        raise IBLError(f"{option} {path}: output folder {parent} cannot be created: {anc} is not a folder")
+    if not os.access(anc, os.W_OK | os.X_OK):  # created only when the outputs are written (none if the run fails)
+        raise IBLError(f"{option} {path}: output folder {anc} is not writable")
     from ..atomic import resolve_output
 
     try:  # a device, FIFO or socket (also behind a symlink) is refused here, before rendering
@@ -79,8 +75,15 @@ def _size(values):
     return int(w), int(h)
 
 
+#: largest |EV| accepted by --exposure: 2^1024 leaves float64 (every radiance would be white or black)
+MAX_EXPOSURE_STOPS = 1024.0
+
+
 def parse_exposure(text, option: str = "--exposure"):
-    """``auto`` → None (auto exposure), a number → EV stops, ``xK`` or ``Kx`` → a linear scale K (stops = log2 K)."""
+    """``auto`` → None (auto exposure), a number → EV stops, ``xK`` or ``Kx`` → a linear scale K (stops = log2 K).
+
+    |stops| ≤ :data:`MAX_EXPOSURE_STOPS`; beyond, the scale leaves float64 and the preview would be one colour.
+    """
     import math
 
     t = str(text).strip().lower()
@@ -91,14 +94,18 @@ def parse_exposure(text, option: str = "--exposure"):
             k = float(t.strip("x"))
             if not (math.isfinite(k) and k > 0):
                 raise ValueError
-            return math.log2(k)
-        v = float(t)
-        if not math.isfinite(v):
-            raise ValueError
-        return v
+            v = math.log2(k)
+        else:
+            v = float(t)
+            if not math.isfinite(v):
+                raise ValueError
     except ValueError:
         raise IBLError(f"{option}: expected 'auto', EV stops (e.g. -2 or 1.5) or a linear scale (e.g. x0.25), "
                        f"got {text!r}") from None
+    if abs(v) > MAX_EXPOSURE_STOPS:
+        raise IBLError(f"{option} {text}: {v:g} stops scales radiance by 2^{v:g}, beyond float64 (at most "
+                       f"{MAX_EXPOSURE_STOPS:g} stops either way; a preview needs a few)")
+    return v
 
 
 def _camera(args, meshes):
@@ -121,8 +128,18 @@ def _camera(args, meshes):
     v = np.asarray(args.view_dir, float)
     if not np.all(np.isfinite(v)) or np.linalg.norm(v) == 0:
         raise IBLError("--view-dir must be a finite non-zero vector")
-    return default_camera(meshes, view_dir=v, fov_y_deg=args.fov, distance=dist, width=w, height=h,
-                          eye=args.camera_eye, target=args.camera_target, up=args.camera_up)
+    from ..rendering.camera import CameraError
+
+    try:
+        return default_camera(meshes, view_dir=v, fov_y_deg=args.fov, distance=dist, width=w, height=h,
+                              eye=args.camera_eye, target=args.camera_target, up=args.camera_up)
+    except CameraError as exc:  # name the flag that set the vector
+        flag = next((f for k, f in (("eye", "--camera-eye"), ("target", "--camera-target"), ("up", "--camera-up"))
+                     if str(exc).startswith(k)), None)
+        msg = str(exc)
+        if flag:
+            msg = f"{flag}:" + (msg.split(":", 1)[1] if msg.split(" ", 1)[0].endswith(":") else f" {msg}")
+        raise CameraError(msg) from None
 
 
 def _ao_render_mode():
@@ -142,16 +159,20 @@ def cmd_render(args) -> int:
     from ..rendering.scenes import teapot_on_ground
 
     # ---- validate everything cheap before the expensive parts ----------------------------------------------
-    from ..atomic import OutputSet, refuse_overwriting_inputs
+    from ..atomic import OutputSet, check_side_files, refuse_overwriting_inputs
 
     out = _check_output(Path(args.out), OUT_EXTS, "--out")
     png = _check_output(Path(args.png), (".png",), "--png") if args.png else None
     refuse_overwriting_inputs({"--env": args.env, "--mesh": args.mesh, "--gmap": args.gmap},
                               {"--out": out, "--png": png, "--out (.json sidecar)": out.with_suffix(".json")})
+    check_side_files(out.with_suffix(".json"), (), "outputs", "--out")  # never replace a file the user did not name
     w, h = _size(args.size)
     stops = parse_exposure(args.exposure)
-    if args.lights < 1:
-        raise IBLError(f"--lights must be >= 1, got {args.lights}")
+    mode = args.mode
+    if mode not in _EXACT_MODES:  # the median cut's light count, before the environment is read
+        from .cmd_mediancut import check_lights
+
+        check_lights(args.lights, args.median_cut)
     mat = parse_material(args.material) if args.material else Material(kd=0.0, ks=1.0, g=args.gloss)
     gmat = (parse_material(args.ground_material, "--ground-material") if args.ground_material
             else Material(kd=0.0, ks=1.0, g=args.ground_gloss))
@@ -159,7 +180,6 @@ def cmd_render(args) -> int:
         from ..rendering.image_io import read_g_map
 
         mat = Material(kd=mat.kd, ks=mat.ks, g=mat.g, g_map=read_g_map(args.gmap), uv_fallback=args.gmap_fallback)
-    mode = args.mode
     if mode in _EXACT_MODES:
         from .exact_modes import check_args
 
@@ -176,7 +196,13 @@ def cmd_render(args) -> int:
                            "material; RGB weights and --gmap work with the other modes")
     progress = args.progress
 
-    # ---- scene -------------------------------------------------------------------------------------------
+    # ---- scene (the mesh first: it is cheaper to check than a big environment map) -------------------------
+    meshes = teapot_on_ground(args.mesh, ground=args.ground)
+    if mat.g_map is not None:  # NaN/Inf UVs of a mesh file: refused before any rendering
+        from ..rendering.render import mesh_uv
+
+        mesh_uv(meshes[0][0], f"--mesh {args.mesh}")
+    cam = _camera(args, meshes[:1])
     radiance = None
     if args.env is not None:
         from .radiance_args import load_env
@@ -191,8 +217,6 @@ def cmd_render(args) -> int:
     if wmax * float(np.max(cube)) * (args.lights + 1) > np.finfo(np.float64).max:
         raise IBLError(f"--material / --ground-material: weights up to {wmax:g} times radiance up to "
                        f"{float(np.max(cube)):g} overflow float64 in the shading sum; use smaller weights")
-    meshes = teapot_on_ground(args.mesh, ground=args.ground)
-    cam = _camera(args, meshes[:1])
 
     t0 = time.perf_counter()
     info = {"out": str(out), "mode": mode, "size": [w, h], "fov_y_deg": args.fov,
@@ -251,9 +275,14 @@ def cmd_render(args) -> int:
     t2 = time.perf_counter()
     if image.shape[:2] != (h, w):
         raise IBLError(f"renderer returned an image of shape {image.shape}, expected ({h}, {w}, C)")
+    top = float(np.max(image)) if image.size else 0.0
+    if out.suffix.lower() == ".exr" and top > float(np.finfo(np.float32).max):  # name the flags, not the file format
+        raise IBLError(f"--out {out}: the image reaches {top:.3g}, beyond float32 (3.4e+38) of an .exr; use smaller "
+                       "--material / --ground-material weights or write .npz (float64)")
 
     # ---- outputs (image, --png and the JSON sidecar committed together, the JSON last) -----------------------
-    with OutputSet(out.with_suffix(".json"), owned_key="outputs") as outs:
+    info["outputs"] = [out.name]  # marks OUT.json as this output's manifest (ibl_ref.atomic.check_side_files)
+    with OutputSet(out.with_suffix(".json"), owned_key="outputs", remove_stale=False) as outs:
         if out.suffix.lower() == ".exr":
             from ..rendering.image_io import write_image_exr
 
@@ -360,11 +389,12 @@ def register(sub) -> None:
     g = p.add_argument_group("method")
     g.add_argument("--mode", choices=MODES, default="ours", help="what to render (see below; default ours)")
     g.add_argument("--lights", type=int, default=24, metavar="N",
-                   help="number of median-cut lights / PEMs: a multiple of 6, N/6 per cube face as in the paper "
-                   "(default 24)")
+                   help="number of median-cut lights / PEMs, >= 6: a multiple of 6 (N/6 per cube face as in the "
+                   "paper) for --median-cut per-face (default 24)")
     g.add_argument("--median-cut", choices=("per-face", "global", "variance"), default="per-face",
                    help="region split: per cube face (paper, default), global over the whole map, or "
-                   "variance-minimising (Viriyothai & Debevec 2009); the last two allow any --lights")
+                   "variance-minimising (Viriyothai & Debevec 2009); the last two allow any --lights >= 6, not only "
+                   "multiples of 6")
     from ..prefilter.registry import prefilter_methods
 
     phong = prefilter_methods("phong")
