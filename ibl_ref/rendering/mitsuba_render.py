@@ -179,9 +179,14 @@ def envmap_directions(height: int) -> np.ndarray:
     H = int(height)
     if H < 2:
         raise IBLError(f"envmap height must be >= 2, got {height}")
+    return _envmap_rows(H, 0, H)
+
+
+def _envmap_rows(H: int, j0: int, j1: int) -> np.ndarray:
+    """Rows j0 … j1−1 of :func:`envmap_directions` (H)."""
     W = 2 * H
     u = (np.arange(W) + 0.5) / W
-    v = np.arange(H) / (H - 1)
+    v = np.arange(j0, j1) / (H - 1)
     phi = 2 * np.pi * u[None, :]
     theta = np.pi * v[:, None]
     st = np.sin(theta)
@@ -236,13 +241,22 @@ def mitsuba_envmap(cube, height: int = 1024, energy: str = "texel", return_info:
     if a.shape[-1] != 3:
         raise IBLError(f"environment must have 1 or 3 channels for Mitsuba, got {a.shape[-1]}")
     N = a.shape[1]
-    d = envmap_directions(height)
-    f, r, c = direction_to_texel(d, N)
-    t = (np.asarray(f) * N + np.asarray(r)) * N + np.asarray(c)  # (H, W) texel of every pixel
-    bm = a.reshape(-1, 3)[t]
+    H = int(height)
+    if H < 2:
+        raise IBLError(f"envmap height must be >= 2, got {height}")
+    t = np.empty((H, 2 * H), dtype=np.int32 if 6 * N * N < 2 ** 31 else np.int64)  # texel of every pixel
+    rows = max(1, (1 << 21) // (2 * H))  # rows per step: bounded memory at any height
+    for j0 in range(0, H, rows):
+        d = _envmap_rows(H, j0, min(H, j0 + rows))
+        f, r, c = direction_to_texel(d, N)
+        t[j0:j0 + rows] = (np.asarray(f) * N + np.asarray(r)) * N + np.asarray(c)
     omega = np.asarray(cube_solid_angles(N), dtype=np.float64).reshape(-1)
-    w_pix = np.broadcast_to(envmap_grid_weights(height)[:, None], t.shape)
-    w_tex = np.bincount(t.reshape(-1), weights=w_pix.reshape(-1), minlength=6 * N * N)
+    w_row = envmap_grid_weights(H)
+    w_tex = np.zeros(6 * N * N)
+    for j0 in range(0, H, rows):
+        tt = t[j0:j0 + rows]
+        w_tex += np.bincount(tt.reshape(-1), weights=np.broadcast_to(w_row[j0:j0 + rows, None], tt.shape).reshape(-1),
+                             minlength=6 * N * N)
     empty = w_tex <= 0
     e_tex = (a.reshape(-1, 3) * omega[:, None]).sum(axis=-1)
     tot = float(e_tex.sum())
@@ -250,10 +264,12 @@ def mitsuba_envmap(cube, height: int = 1024, energy: str = "texel", return_info:
     if energy == "texel" and lost > ENVMAP_MAX_LOST_FRAC:
         raise IBLError(f"envmap height {int(height)} is too coarse for a {N}² cube: {int(empty.sum())} texels get no "
                        f"bitmap pixel ({lost:.2%} of the energy); use a height of at least {max(8 * N, 64)}")
+    lut = a.reshape(-1, 3)
     if energy == "texel":
-        scale = np.where(empty, 0.0, omega / np.where(empty, 1.0, w_tex))
-        bm = bm * scale[t][..., None]
-    out = np.ascontiguousarray(bm, dtype=np.float32)
+        lut = lut * np.where(empty, 0.0, omega / np.where(empty, 1.0, w_tex))[:, None]
+    out = np.empty((H, 2 * H, 3), dtype=np.float32)
+    for j0 in range(0, H, rows):
+        out[j0:j0 + rows] = lut[t[j0:j0 + rows]]
     if not return_info:
         return out
     return out, dict(energy=energy, texels_without_pixel=int(empty.sum()), energy_lost_frac=lost)
