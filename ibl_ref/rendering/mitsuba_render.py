@@ -299,46 +299,24 @@ def envmap_radiance(cube, dirs, height: int = 1024, variant: str = "auto", energ
 def _register_bsdf(mi):
     import drjit as dr
 
-    class LabPhongBSDF(mi.BSDF):
-        """f·(n·ω) = kd/π·(n·ω) + ks·(s+1)/(2π)·max(r·ω,0)^s on n·v > 0, n·ω > 0 (shading frame); else 0."""
+    class _LabBSDF(mi.BSDF):
+        """A cosine lobe (probability ``p_diffuse``) and a glossy lobe (:meth:`_glossy_direction`), one-sided; the
+        subclasses give the value f·(n·ω) and the mixture pdf (:meth:`_value_pdf`)."""
 
-        def __init__(self, props):
-            mi.BSDF.__init__(self, props)
-            self.kd = float(props.get("kd", 0.0))
-            self.ks = float(props.get("ks", 1.0))
-            self.s = float(props.get("s", 1.0))
-            tot = self.kd + self.ks
-            self.p_diffuse = self.kd / tot if tot > 0 else 1.0
+        def _flags(self, diffuse: bool, glossy: bool):
             flags = mi.BSDFFlags.FrontSide
-            if self.kd > 0:
+            if diffuse:
                 flags = flags | mi.BSDFFlags.DiffuseReflection
-            if self.ks > 0:
+            if glossy:
                 flags = flags | mi.BSDFFlags.GlossyReflection
             self.m_components = [flags]
             self.m_flags = flags
 
-        def _value_pdf(self, si, wo):
-            cos_i = mi.Frame3f.cos_theta(si.wi)
-            cos_o = mi.Frame3f.cos_theta(wo)
-            r = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)  # mirror direction of wi about the shading normal
-            lobe = dr.power(dr.maximum(dr.dot(r, wo), 0.0), self.s) * ((self.s + 1.0) / (2.0 * dr.pi))
-            diff = dr.maximum(cos_o, 0.0) * dr.inv_pi
-            ok = (cos_i > 0) & (cos_o > 0)
-            value = dr.select(ok, self.kd * diff + self.ks * lobe, 0.0)
-            pdf = dr.select(ok, self.p_diffuse * diff + (1.0 - self.p_diffuse) * lobe, 0.0)
-            return value, pdf
-
         def sample(self, ctx, si, sample1, sample2, active=True):
             cos_i = mi.Frame3f.cos_theta(si.wi)
-            r = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
-            # Phong lobe around r: cos α = ξ^(1/(s+1)), pdf (s+1)/(2π) cos^s α
-            ca = dr.power(sample2.x, 1.0 / (self.s + 1.0))
-            sa = dr.safe_sqrt(1.0 - ca * ca)
-            phi = 2.0 * dr.pi * sample2.y
-            w_lobe = mi.Frame3f(r).to_world(mi.Vector3f(sa * dr.cos(phi), sa * dr.sin(phi), ca))
             w_diff = mi.warp.square_to_cosine_hemisphere(sample2)
             pick_diffuse = sample1 < self.p_diffuse
-            wo = dr.select(pick_diffuse, w_diff, w_lobe)
+            wo = dr.select(pick_diffuse, w_diff, self._glossy_direction(si, sample2))
             value, pdf = self._value_pdf(si, wo)
             bs = mi.BSDFSample3f()
             bs.wo = wo
@@ -363,15 +341,47 @@ def _register_bsdf(mi):
             value, pdf = self._value_pdf(si, wo)
             return mi.Color3f(dr.select(active, value, 0.0)), dr.select(active, pdf, 0.0)
 
+    class LabPhongBSDF(_LabBSDF):
+        """f·(n·ω) = kd/π·(n·ω) + ks·(s+1)/(2π)·max(r·ω,0)^s on n·v > 0, n·ω > 0 (shading frame); else 0."""
+
+        def __init__(self, props):
+            mi.BSDF.__init__(self, props)
+            self.kd = float(props.get("kd", 0.0))
+            self.ks = float(props.get("ks", 1.0))
+            self.s = float(props.get("s", 1.0))
+            tot = self.kd + self.ks
+            self.p_diffuse = self.kd / tot if tot > 0 else 1.0
+            self._flags(self.kd > 0, self.ks > 0)
+
+        def _value_pdf(self, si, wo):
+            cos_i = mi.Frame3f.cos_theta(si.wi)
+            cos_o = mi.Frame3f.cos_theta(wo)
+            r = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)  # mirror direction of wi about the shading normal
+            lobe = dr.power(dr.maximum(dr.dot(r, wo), 0.0), self.s) * ((self.s + 1.0) / (2.0 * dr.pi))
+            diff = dr.maximum(cos_o, 0.0) * dr.inv_pi
+            ok = (cos_i > 0) & (cos_o > 0)
+            value = dr.select(ok, self.kd * diff + self.ks * lobe, 0.0)
+            pdf = dr.select(ok, self.p_diffuse * diff + (1.0 - self.p_diffuse) * lobe, 0.0)
+            return value, pdf
+
+        def _glossy_direction(self, si, sample2):
+            r = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
+            # Phong lobe around r: cos α = ξ^(1/(s+1)), pdf (s+1)/(2π) cos^s α
+            ca = dr.power(sample2.x, 1.0 / (self.s + 1.0))
+            sa = dr.safe_sqrt(1.0 - ca * ca)
+            phi = 2.0 * dr.pi * sample2.y
+            return mi.Frame3f(r).to_world(mi.Vector3f(sa * dr.cos(phi), sa * dr.sin(phi), ca))
+
         def to_string(self):
             return f"LabPhongBSDF[kd={self.kd}, ks={self.ks}, s={self.s}]"
 
     mi.register_bsdf("lab_phong", lambda props: LabPhongBSDF(props))
 
-    class LabGGXBSDF(mi.BSDF):
+    class LabGGXBSDF(_LabBSDF):
         """f·(n·ω) = kd/π·(n·ω) + D·G·F/(4 n·v) on n·v > 0, n·ω > 0 (shading frame; :func:`ibl_ref.lobes.brdfs.ggx`:
         D = α²/(π(cos²θh(α²−1)+1)²), G1(c) = 2c/(c + √(α² + (1−α²)c²)), G = G1·G1 or 1/(1/G1 + 1/G1 − 1),
-        F = F0 + (1−F0)(1 − h·ω)⁵); else 0."""
+        F = F0 + (1−F0)(1 − h·ω)⁵); else 0.  Sampling: the cosine lobe with probability kd/(kd+1), else h from
+        D(h)·cos θh (tan²θh = α² ξ/(1 − ξ)) reflected about h."""
 
         def __init__(self, props):
             mi.BSDF.__init__(self, props)
@@ -380,11 +390,7 @@ def _register_bsdf(mi):
             self.f0 = float(props.get("f0", 0.04))
             self.height_correlated = bool(props.get("height_correlated", True))
             self.p_diffuse = self.kd / (self.kd + 1.0)
-            flags = mi.BSDFFlags.FrontSide | mi.BSDFFlags.GlossyReflection
-            if self.kd > 0:
-                flags = flags | mi.BSDFFlags.DiffuseReflection
-            self.m_components = [flags]
-            self.m_flags = flags
+            self._flags(self.kd > 0, True)
 
         def _g1(self, c):
             a2 = self.alpha * self.alpha
@@ -411,9 +417,7 @@ def _register_bsdf(mi):
             pdf = dr.select(ok, self.p_diffuse * diff + (1.0 - self.p_diffuse) * pdf_spec, 0.0)
             return value, pdf
 
-        def sample(self, ctx, si, sample1, sample2, active=True):
-            cos_i = mi.Frame3f.cos_theta(si.wi)
-            # microfacet normal from D(h)·cos θh: tan²θh = α² ξ/(1 − ξ), φ = 2π ξ'
+        def _glossy_direction(self, si, sample2):
             a2 = self.alpha * self.alpha
             xi = dr.minimum(sample2.x, 1.0 - 1e-7)
             tan2 = a2 * xi / (1.0 - xi)
@@ -421,33 +425,7 @@ def _register_bsdf(mi):
             st = dr.safe_sqrt(1.0 - ct * ct)
             phi = 2.0 * dr.pi * sample2.y
             h = mi.Vector3f(st * dr.cos(phi), st * dr.sin(phi), ct)
-            w_spec = 2.0 * dr.dot(si.wi, h) * h - si.wi
-            w_diff = mi.warp.square_to_cosine_hemisphere(sample2)
-            pick_diffuse = sample1 < self.p_diffuse
-            wo = dr.select(pick_diffuse, w_diff, w_spec)
-            value, pdf = self._value_pdf(si, wo)
-            bs = mi.BSDFSample3f()
-            bs.wo = wo
-            bs.pdf = pdf
-            bs.eta = 1.0
-            bs.sampled_component = mi.UInt32(0)
-            bs.sampled_type = dr.select(pick_diffuse, mi.UInt32(+mi.BSDFFlags.DiffuseReflection),
-                                        mi.UInt32(+mi.BSDFFlags.GlossyReflection))
-            ok = active & (cos_i > 0) & (pdf > 0)
-            weight = dr.select(ok, value / dr.select(pdf > 0, pdf, 1.0), 0.0)
-            return bs, mi.Color3f(weight)
-
-        def eval(self, ctx, si, wo, active=True):
-            value, _ = self._value_pdf(si, wo)
-            return mi.Color3f(dr.select(active, value, 0.0))
-
-        def pdf(self, ctx, si, wo, active=True):
-            _, pdf = self._value_pdf(si, wo)
-            return dr.select(active, pdf, 0.0)
-
-        def eval_pdf(self, ctx, si, wo, active=True):
-            value, pdf = self._value_pdf(si, wo)
-            return mi.Color3f(dr.select(active, value, 0.0)), dr.select(active, pdf, 0.0)
+            return 2.0 * dr.dot(si.wi, h) * h - si.wi
 
         def to_string(self):
             return (f"LabGGXBSDF[kd={self.kd}, alpha={self.alpha}, f0={self.f0}, "

@@ -107,7 +107,8 @@ import numpy as np
 from ..errors import IBLError, LayoutError, check_radiance
 
 __all__ = ["converged_shading", "check_environment", "radiance_at_face_size", "coarse_env", "DEFAULT_RTOL",
-           "BOUND_DELTA", "ERR_FLOOR", "PIXEL_RTOL_FACTOR", "MAX_BLOCK_CELLS", "base_level", "quadrature_start"]
+           "BOUND_DELTA", "ERR_FLOOR", "PIXEL_RTOL_FACTOR", "MAX_BLOCK_CELLS", "memory_bound_mb", "base_level",
+           "quadrature_start"]
 
 #: default tolerance of :func:`ibl_ref.rendering.reference_render.render_reference` (relative L1 of the image,
 #: estimated)
@@ -139,9 +140,14 @@ KAPPA_MIN_SPLITS = 200
 KAPPA_FLOOR = 0.1
 #: κ used to plan the first split, before κ̂ can be measured (the estimate itself uses 1 until then)
 KAPPA_PLAN = 0.3
-#: default ``max_cells``: cells (base pairs + refined leaves) of one block; with ~100 B per cell and the split
-#: chunks this bounds a worker's refinement memory (docs/background.md §8 gives the measured totals)
-MAX_BLOCK_CELLS = 1_500_000
+#: default ``max_cells``: cells (base pairs + refined leaves) of one block; with ~100 B per cell kept and ~240 B at
+#: the peak of a round (split chunks), this bounds a worker's memory (docs/background.md §8: measured at the cap)
+MAX_BLOCK_CELLS = 1_000_000
+#: memory model of a process running blocks (measured, docs/background.md §8): Python, NumPy, trimesh, Embree and
+#: the scene, the peak bytes per cell of a block, and the environment's copies (its radiance and energy per texel)
+MEM_BASE_MB = 120.0
+MEM_PER_CELL_B = 240.0
+MEM_ENV_COPIES = 6.0
 #: parents split per step (bounds the temporary arrays of a round)
 SPLIT_CHUNK = 1 << 16
 #: draws of a cell's random point until one lies above the pixel's shading horizon
@@ -444,6 +450,21 @@ class _Env:
             moved[g] = True
             bad = bad[~ok]
         return su, sv, w, moved
+
+
+def _cut_by_horizon(f, i, j, n, nrm):
+    """Cells (f, i, j) of face sizes n that the shading horizon n·ω = 0 of their pixel (``nrm`` per cell) cuts: corners
+    on both sides (a cell is convex on the sphere, so its corners decide).  Such a cell is an edge whatever its ray
+    says: the surface and what stands on it (contact, concave parts) often occlude its low directions, and its ray,
+    drawn above the horizon, cannot tell."""
+    u0, u1, v0, v1 = _rect(i, j, n)
+    pos = np.zeros(len(f), bool)
+    neg = np.zeros(len(f), bool)
+    for u, v in ((u0, v0), (u0, v1), (u1, v0), (u1, v1)):
+        c = _dot(_dirs(f, u, v, normalize=False), nrm)
+        pos |= c > 0
+        neg |= c < 0
+    return pos & neg
 
 
 def _cell_geometry(nb):
@@ -757,7 +778,7 @@ def _converge_block(job: dict) -> dict:
 
     pin = find(np.repeat(bp, 8), nbr[bc].reshape(-1)).reshape(-1, 8)
     Vn = np.where(pin >= 0, bV[np.maximum(pin, 0)], -1)
-    bedge = ((Vn >= 0) & (Vn != bV[:, None])).any(axis=1)
+    bedge = ((Vn >= 0) & (Vn != bV[:, None])).any(axis=1) | _cut_by_horizon(cf[bc], ci[bc], cj[bc], nb, nrm[bp])
     del Vn, pin
     bsplit = np.zeros(nB, dtype=bool)
     R = _Cells(C)
@@ -809,6 +830,7 @@ def _converge_block(job: dict) -> dict:
                    sv=np.concatenate([bsv[bsel], R["sv"][rsel]]),
                    bi=np.concatenate([bsel, R["bi"][rsel]]).astype(np.int64))
         Wpar = np.concatenate([bW[bsel], R.W[rsel]])
+        pedge = np.concatenate([bedge[bsel], R["edge"][rsel]])  # κ̂ is measured on split edge cells only
         bsplit[bsel] = True
         cp, cf2, cl2, ci2, cj2, cW = _child_weights(env, lobe, g, par["p"], par["f"], par["l"], par["i"],
                                                     par["j"], Wpar, bM[par["bi"]])
@@ -839,7 +861,7 @@ def _converge_block(job: dict) -> dict:
         # siblings: a child differing from one of its three siblings is an edge
         v4 = cV.reshape(-1, 4)
         nrel = (v4 >= 0).sum(axis=1)
-        ok = nrel >= 2
+        ok = (nrel >= 2) & pedge  # a pre-split cell that agreed with its neighbours would dilute κ̂
         if ok.any():
             qh = (v4 > 0).sum(axis=1)[ok] / nrel[ok]
             wp = (Wpar.mean(axis=-1) / ws[par["p"]])[ok] ** 2
@@ -849,6 +871,7 @@ def _converge_block(job: dict) -> dict:
         has1 = ((v4 == 1).any(axis=1))[:, None]
         has0 = ((v4 == 0).any(axis=1))[:, None]
         sib = ((v4 == 1) & has0) | ((v4 == 0) & has1)
+        sib |= (_cut_by_horizon(cf2, ci2, cj2, nc, nrm[cp]) & (cV >= 0)).reshape(-1, 4)
         keep_ = np.ones(len(R), dtype=bool)
         keep_[rsel] = False
         new_ = dict(p=cp, f=cf2, l=cl2, i=ci2, j=cj2, Y=cY, V=cV, edge=sib.reshape(-1), su=su2, sv=sv2,
@@ -1179,7 +1202,7 @@ def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *
 
         res = map_jobs(_converge_block, jobs[:1], workers=1)
         prediction = _predict(res[0], nblk, workers if executor is None else None, len(jobs[0]["points"]), nP,
-                              time.perf_counter() - t0, int(max_cells))
+                              time.perf_counter() - t0, int(max_cells), memory_bound_mb(int(max_cells), a))
         say(f"reference {label}: {prediction['text']}")
         jobs = jobs[1:]
     res = res + map_jobs(_converge_block, jobs, executor=executor, workers=workers,
@@ -1207,9 +1230,11 @@ def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *
                 rounds_max=int(max(len(r["rounds"]) for r in res)),
                 block_rounds=[r["rounds"] for r in res[:1]], time_s=time.perf_counter() - t0,
                 block_time_s=float(sum(r["time_s"] for r in res)), block_cpu_s=float(sum(r["cpu_s"] for r in res)),
-                worker_peak_rss_mb=float(max(r["peak_rss_mb"] for r in res)))
-    if prediction is not None:
+                worker_peak_rss_mb=float(max(r["peak_rss_mb"] for r in res[1 if prediction is not None and
+                                                                                 len(res) > 1 else 0:])))
+    if prediction is not None:  # block 1 ran in this process (its CPU time is this process's, not a worker's)
         info["predicted"] = {k: vv for k, vv in prediction.items() if k != "text"}
+        info["pilot_cpu_s"] = float(res[0]["cpu_s"])
     return occ, un, em, eb, info
 
 
@@ -1219,7 +1244,14 @@ def _label(lobe) -> str:
     return f"GGX roughness {lobe.roughness:g}"
 
 
-def _predict(r0: dict, nblk: int, workers, n0: int, nP: int, elapsed: float, max_cells: int) -> dict:
+def memory_bound_mb(max_cells: int, env) -> float:
+    """Predicted peak memory (MB) of a process running blocks of at most ``max_cells`` cells on ``env`` (the
+    measured model of :data:`MEM_BASE_MB`, :data:`MEM_PER_CELL_B`, :data:`MEM_ENV_COPIES`; the scene's own size
+    aside)."""
+    return float(MEM_BASE_MB + MEM_PER_CELL_B * max_cells / 2 ** 20 + MEM_ENV_COPIES * np.asarray(env).nbytes / 2 ** 20)
+
+
+def _predict(r0: dict, nblk: int, workers, n0: int, nP: int, elapsed: float, max_cells: int, mem_mb: float) -> dict:
     """Predicted cost of all blocks from the first one (a round-robin sample of the pixels)."""
     scale = nP / max(n0, 1)
     rays = r0["n_rays"] * scale
@@ -1229,5 +1261,6 @@ def _predict(r0: dict, nblk: int, workers, n0: int, nP: int, elapsed: float, max
     mem = r0["peak_rss_mb"]
     text = (f"predicted from block 1 of {nblk}: {rays / 1e6:.1f} M rays, {cpu:.0f} s CPU, ~{wall:.0f} s wall with "
             f"{par} worker{'s' if par > 1 else ''}; memory: block 1 held {r0['n_cells'] / 1e6:.2f} M cells and peaked at "
-            f"{mem:.0f} MB, every block stops at {max_cells / 1e6:.2f} M cells")
-    return dict(rays=int(rays), cpu_s=float(cpu), wall_s=float(wall), block_peak_rss_mb=float(mem), text=text)
+            f"{mem:.0f} MB; every block stops at {max_cells / 1e6:.2f} M cells: <= ~{mem_mb:.0f} MB per process)")
+    return dict(rays=int(rays), cpu_s=float(cpu), wall_s=float(wall), block_peak_rss_mb=float(mem),
+                memory_bound_mb=mem_mb, text=text)
