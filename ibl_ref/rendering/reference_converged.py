@@ -42,7 +42,9 @@ random point of the cell (drawn uniformly in the cell, or in proportion to the m
 spans several map texels, so that a sun inside a coarse cell is aimed at) — and above the pixel's shading horizon
 n·ω > 0, where the weight is: a point drawn below it in a cell that the horizon cuts is drawn again (up to
 :data:`HORIZON_TRIES` times, from the same density restricted to n·ω > 0), since a ray below the receiving plane is
-occluded by definition and would count the cell's lit weight as shadowed.  For a GGX lobe, cells that hold more
+occluded by definition and would count the cell's lit weight as shadowed; such a cell is an edge cell whatever its
+ray says (the surface and what stands on it — a contact, a concave part — often occlude its lowest directions,
+which a ray drawn above the horizon cannot tell).  For a GGX lobe, cells that hold more
 than :data:`PRESPLIT_SHARE` of the pixel's value and are wider than half the lobe's core are split before the
 search for shadow edges (the base level is set by the tails; this gives the core the ≥ 2 cells per half width that
 the base level gives a Phong lobe).  The pixel's value is Σ_c W_c V_c (/ Σ w for a Phong lobe).  A cell whose ray
