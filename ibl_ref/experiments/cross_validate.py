@@ -49,7 +49,8 @@ DESCRIPTION = "reference renderer vs Mitsuba 3 (same scene, rays, radiance, BRDF
 PAPER = ("Knuth et al. 2014 Eq. 4-5 with exact lobes and visibility (the lab's reference) against an independent "
          "renderer, Mitsuba 3 direct illumination")
 IN_QUICK_REPRODUCE = False  # needs Mitsuba 3 (extra `mitsuba`)
-RUNTIME = {"quick": "6 s (load 3, Dr.Jit kernels cached)", "full": "61 s serial (load 2.1; 68 s CPU, 12 cases)"}
+RUNTIME = {"quick": "20 s (load 2, Dr.Jit kernels cached; 6 cases)",
+           "full": "4 min 48 s serial (load 5-8; 146 s CPU, 16 cases, 24 rows)"}
 OUTPUTS = ("cross_validate.csv", "cross_validate_meta.json", "cross_validate_images.npz", "cross_validate.png")
 
 MATERIALS = {"diffuse": (1.0, 0.0, 0.0), "g0.9": (0.0, 1.0, 0.9), "g0.99": (0.0, 1.0, 0.99),
