@@ -20,17 +20,25 @@ OUT_EXTS = (".exr", ".npz")
 
 
 def parse_material(text: str, option: str = "--material"):
-    """``"kd,ks,g"`` (3 numbers) or ``"kdR,kdG,kdB,ksR,ksG,ksB,g"`` (7 numbers) → :class:`ibl_ref.rendering.render.Material`."""
+    """``"kd,ks,g"`` (3 numbers) or ``"kdR,kdG,kdB,ksR,ksG,ksB,g"`` (7 numbers) → :class:`ibl_ref.rendering.render.Material`;
+    ``"ggx:…"`` / ``"phong:…"`` → :func:`ibl_ref.rendering.materials.parse_material` (a GGX material is rendered by
+    ``--mode reference`` and ``--mode mitsuba``)."""
     from ..rendering.render import Material
 
+    if ":" in str(text):
+        from ..rendering.materials import parse_material as parse_kind
+
+        m = parse_kind(text, option)
+        return m if m.kind == "ggx" else Material(kd=m.kd, ks=m.ks, g=m.g)
     parts = [p.strip() for p in str(text).split(",")]
     try:
         vals = [float(p) for p in parts]
     except ValueError:
         vals = None
     if vals is None or len(vals) not in (3, 7):
-        raise IBLError(f"{option}: expected 'kd,ks,g' (3 numbers, e.g. 0.2,0.8,0.9) or "
-                       f"'kdR,kdG,kdB,ksR,ksG,ksB,g' (7 numbers), got {text!r}")
+        raise IBLError(f"{option}: expected 'kd,ks,g' (3 numbers, e.g. 0.2,0.8,0.9), "
+                       f"'kdR,kdG,kdB,ksR,ksG,ksB,g' (7 numbers) or 'ggx:ROUGHNESS' (e.g. ggx:0.3, "
+                       f"ggx:roughness=0.3,f0=1,kd=0.5), got {text!r}")
     if len(vals) == 3:
         kd, ks, g = vals
     else:
@@ -39,6 +47,23 @@ def parse_material(text: str, option: str = "--material"):
         return Material(kd=kd, ks=ks, g=g)
     except IBLError as exc:
         raise IBLError(f"{option} {text!r}: {exc}") from exc
+
+
+def _is_ggx(m) -> bool:
+    return getattr(m, "kind", None) == "ggx"
+
+
+def _weight_max(m) -> float:
+    """Largest weight of a material's terms (a GGX term is at most 1: Fresnel ≤ 1)."""
+    import numpy as np
+
+    return max(float(np.max(m.kd)), 1.0 if _is_ggx(m) else float(np.max(m.ks)))
+
+
+def _material_info(m, gmap=None) -> dict:
+    if _is_ggx(m):
+        return m.describe()
+    return {"kd": m.kd, "ks": m.ks, "g": m.g, **({"g_map": gmap} if gmap is not None else {})}
 
 
 def _check_output(path: Path, exts=None, option: str = "--out") -> Path:
@@ -176,6 +201,11 @@ def cmd_render(args) -> int:
     mat = parse_material(args.material) if args.material else Material(kd=0.0, ks=1.0, g=args.gloss)
     gmat = (parse_material(args.ground_material, "--ground-material") if args.ground_material
             else Material(kd=0.0, ks=1.0, g=args.ground_gloss))
+    if (_is_ggx(mat) or _is_ggx(gmat)) and args.mode not in _EXACT_MODES:
+        raise IBLError("GGX materials (ggx:...) are rendered by --mode reference and --mode mitsuba; the other modes "
+                       "take kd,ks,g")
+    if args.gmap and _is_ggx(mat):
+        raise IBLError("--gmap replaces the glossiness g of a kd,ks,g material; a GGX material has none")
     if args.gmap:
         from ..rendering.image_io import read_g_map
 
@@ -213,7 +243,7 @@ def cmd_render(args) -> int:
 
         cube = make_env(args.synthetic, n=args.env_size)
     # Eq. 5 sums L+1 terms, each at most weight x max radiance: refuse weights that overflow float64
-    wmax = max(float(np.max(x)) for x in (mat.kd, mat.ks, gmat.kd, gmat.ks))
+    wmax = max(_weight_max(mat), _weight_max(gmat))
     if wmax * float(np.max(cube)) * (args.lights + 1) > np.finfo(np.float64).max:
         raise IBLError(f"--material / --ground-material: weights up to {wmax:g} times radiance up to "
                        f"{float(np.max(cube)):g} overflow float64 in the shading sum; use smaller weights")
@@ -222,8 +252,8 @@ def cmd_render(args) -> int:
     info = {"out": str(out), "mode": mode, "size": [w, h], "fov_y_deg": args.fov,
             "camera_eye": cam.eye.tolist(), "camera_target": cam.target.tolist(),
             "background": args.background, "exposure_stops": stops,
-            "material": {"kd": mat.kd, "ks": mat.ks, "g": mat.g, "g_map": args.gmap},
-            "ground_material": ({"kd": gmat.kd, "ks": gmat.ks, "g": gmat.g} if args.ground else None),
+            "material": _material_info(mat, args.gmap),
+            "ground_material": (_material_info(gmat) if args.ground else None),
             "radiance": radiance}
     pems = None
     if mode not in _EXACT_MODES:
@@ -338,11 +368,12 @@ modes:
                 embreex, pip install ".[fast]"; ~13× the CPU without)
   mitsuba       the same scene rendered by Mitsuba 3 (pip install ".[mitsuba]"; --spp, --seed)
   every mode shades the mesh with --material and the ground with --ground-material
-  (reference, mitsuba: scalar kd, ks and no --gmap).
+  (reference, mitsuba: scalar kd, ks and no --gmap; they also take GGX materials, ggx:ROUGHNESS).
 
 examples:
   ibl-ref render --out x.exr
   ibl-ref render --mesh sphere_on_plane --no-ground --material 0.3,0.7,0.9 --out s.exr --png s.png
+  ibl-ref render --mode reference --material ggx:roughness=0.3,f0=1 --ground-material ggx:0.6 --out g.exr
   ibl-ref render --env studio.exr --mesh bunny.obj --size 320 240 --lights 48 --out b.exr
   ibl-ref render --mesh cloth --gmap yarns.png --gmap-fallback spherical --out c.exr
   ibl-ref render --camera-eye 3 2 4 --camera-target 0 0.5 0 --fov 30 --out v.exr
@@ -372,13 +403,17 @@ def register(sub) -> None:
                      help="synthetic environment: sky_sun (default), constant, gradient, studio, checker, delta")
     g.add_argument("--env-size", type=int, default=32, metavar="N",
                    help="cube face size the PEMs are built at (power of two; default 32)")
-    g = p.add_argument_group("material (kd, ks >= 0; g in [0, 1], 0 = diffuse, 1 = mirror)")
-    g.add_argument("--material", metavar="kd,ks,g",
-                   help="mesh material, e.g. 0.2,0.8,0.9; RGB weights as kdR,kdG,kdB,ksR,ksG,ksB,g "
-                   "(default: pure glossy 0,1,--gloss)")
+    g = p.add_argument_group("material (kd,ks,g: kd, ks >= 0, g in [0, 1], 0 = diffuse, 1 = mirror; or ggx:...)")
+    g.add_argument("--material", metavar="SPEC",
+                   help="mesh material: kd,ks,g (Phong lobes of Eq. 5, e.g. 0.2,0.8,0.9; RGB weights as "
+                   "kdR,kdG,kdB,ksR,ksG,ksB,g), or for --mode reference/mitsuba a GGX microfacet material "
+                   "ggx:ROUGHNESS or ggx:roughness=R,f0=F,kd=K,smith=S (roughness in (0, 1], alpha = roughness^2; "
+                   "f0 in [0, 1], default 0.04; kd >= 0 Lambertian, default 0; smith: height-correlated (default) "
+                   "or separable), e.g. ggx:0.3 or ggx:roughness=0.3,f0=1 (default: pure glossy 0,1,--gloss)")
     g.add_argument("--gloss", type=float, default=0.8, metavar="G",
                    help="shortcut for --material 0,1,G (default 0.8)")
-    g.add_argument("--ground-material", metavar="kd,ks,g", help="ground material (default 0,1,--ground-gloss)")
+    g.add_argument("--ground-material", metavar="SPEC",
+                   help="ground material, same forms as --material (default 0,1,--ground-gloss)")
     g.add_argument("--ground-gloss", type=float, default=0.2, metavar="G", help="ground glossiness (default 0.2)")
     g.add_argument("--gmap", metavar="FILE",
                    help="per-texel glossiness map for the mesh (.png, .exr or .npy, values in [0, 1]; row 0 = top, "
@@ -412,13 +447,18 @@ def register(sub) -> None:
     g.add_argument("--vsm-dtype", choices=("float16", "float32", "float64"), default="float32",
                    help="shadow-map moment storage (float16 = the paper's RG16F; default float32)")
     g.add_argument("--ref-rtol", type=float, default=None, metavar="R",
-                   help="--mode reference: estimated relative L1 error to converge to (default 2e-3; 0 = the "
-                   "fixed coarse quadrature)")
+                   help="--mode reference: estimated relative L1 error to converge to (default 2e-3; > 0, "
+                   "e.g. 1e-2 for a quick look)")
     g.add_argument("--workers", type=int, default=None, metavar="W",
                    help="--mode reference: worker processes for its pixel blocks (1 = serial; default "
                    "$IBL_REF_WORKERS or min(2, CPUs)); the image is bit-for-bit the same for every W")
     g.add_argument("--spp", type=int, default=1024, metavar="N",
                    help="--mode mitsuba: samples per pixel (two halves with seeds S, S+1 estimate the noise)")
+    g.add_argument("--mitsuba-ggx", choices=("lab", "builtin", "both"), default="both",
+                   help="--mode mitsuba with a GGX material: the lab's GGX formula as a Python BSDF (lab), Mitsuba's "
+                   "own roughconductor (builtin: separable Smith and Fresnel 1, so it needs smith=separable and "
+                   "f0=1), or both (default): the image is the lab's, the JSON records the built-in's difference "
+                   "(the built-in is skipped, with a note, where it does not apply)")
     g.add_argument("--seed", type=int, default=0, metavar="S",
                    help="--mode mitsuba: first seed; --mode reference: seed of its random ray points (default 0)")
     g = p.add_argument_group("camera (perspective, y is up)")
