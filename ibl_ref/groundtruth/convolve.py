@@ -450,16 +450,42 @@ EXACT_UNITS_PER_PAIR_S1 = 6.0
 #: the SH route at 1.8 s instead of the sparse gather's 1.4 s.
 SPARSE_UNITS_PER_PAIR = 6.0
 SPARSE_UNITS_PER_OUTPUT = 6.8e3
+#: the same constants for ``kernel="compiled"`` (:mod:`ibl_ref.groundtruth.compiled_kernels`; fitted by
+#: ``benchmarks/bench_cost_models.py``, see there); ``SH_FACTOR_*`` scales :func:`~ibl_ref.groundtruth.sh_convolution.sh_cost`
+EXACT_UNITS_PER_PAIR_COMPILED = 17.0
+EXACT_UNITS_PER_PAIR_S1_COMPILED = 6.0
+SPARSE_UNITS_PER_PAIR_COMPILED = 1.5
+SPARSE_UNITS_PER_OUTPUT_COMPILED = 1.5e3
+MOMENT_UNITS_PER_PAIR_COMPILED = 0.2
+SH_FACTOR = 1.0
+SH_FACTOR_COMPILED = 1.0
 
 
-def _sparse_cost(s, rtol, n_src, n_out):
+def _unit(name, impl):
+    """The cost-model constant ``name`` of the kernel ``impl`` (read at call time)."""
+    return globals()[name + ("_COMPILED" if impl == "compiled" else "")]
+
+
+def _seconds_per_unit():
+    from .sh_convolution import SECONDS_PER_UNIT
+
+    return SECONDS_PER_UNIT
+
+
+def _exact_cost(s, n_src, n_out, impl="numpy"):
+    """Cost model of the dense exact gather of one exponent (units of :func:`_seconds_per_unit`)."""
+    return n_out * n_src * _unit("EXACT_UNITS_PER_PAIR_S1" if s == 1.0 else "EXACT_UNITS_PER_PAIR", impl)
+
+
+def _sparse_cost(s, rtol, n_src, n_out, impl="numpy"):
     """Cost model of the sparse gather (units of :func:`ibl_ref.groundtruth.sh_convolution.sh_cost`)."""
     eps = max(rtol * 1e-2, 1e-300)
     cos_c = math.exp(math.log(eps) / (s + 1.0))
     frac = (1.0 - cos_c) / 2.0
     if frac > 0.4:  # the sparse gather itself falls back to the dense gather there
         return math.inf
-    return n_out * n_src * frac * SPARSE_UNITS_PER_PAIR + n_out * SPARSE_UNITS_PER_OUTPUT
+    return (n_out * n_src * frac * _unit("SPARSE_UNITS_PER_PAIR", impl)
+            + n_out * _unit("SPARSE_UNITS_PER_OUTPUT", impl))
 
 
 def convolve(
@@ -474,6 +500,7 @@ def convolve(
     backend: str = "auto",
     executor=None,
     memory_limit: float | None = None,
+    kernel: str | None = None,
 ) -> ConvolutionResult:
     """Convolve a cube map with Phong lobes ``max(r·ω,0)^s`` for several exponents, with error bounds.
 
@@ -516,6 +543,11 @@ def convolve(
         fewer workers when ``workers`` of them would not fit (``info["workers_planned"]``); results
         do not change.  A worker process that dies anyway (killed for lack of memory) raises
         :class:`~ibl_ref.errors.IBLError`.
+    kernel : {"auto", "numpy", "compiled"}, optional
+        Implementation of the inner loops (:mod:`ibl_ref.groundtruth.kernel_choice`): the NumPy reference or
+        the numba-compiled kernels (extra ``fast``).  Default ``$IBL_REF_KERNEL`` or ``"auto"``.  Both give
+        rigorous bounds; their maps agree within the sum of the two bounds.  ``info["kernel"]`` records the one
+        used.
 
     Returns
     -------
@@ -553,6 +585,9 @@ def convolve(
         raise IBLError("method 'sparse' computes the normalised lobe average only; use 'sh' or 'exact'")
     workers = _resolve_workers(workers)
     backend = _resolve_backend(backend, workers)
+    from .kernel_choice import resolve_kernel
+
+    impl = resolve_kernel(kernel)
     if memory_limit is not None:
         try:
             memory_limit = float(memory_limit)
@@ -563,7 +598,7 @@ def convolve(
     executor, owned_client = resolve_executor(executor)
     try:
         return _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, workers, backend,
-                         executor, memory_limit, scale_k, t_start, c_start)
+                         executor, memory_limit, scale_k, t_start, c_start, impl)
     finally:
         if owned_client is not None:
             owned_client.close()
@@ -653,7 +688,7 @@ def _sh_cannot_pay(finite, rtol, n, n_src, n_out, normalized, Q):
     return others < sh_lb
 
 
-def _sh_split_state(a4, sh_set, sh_plan, rtol, out_size, normalized):
+def _sh_split_state(a4, sh_set, sh_plan, rtol, out_size, normalized, impl="numpy"):
     """``("project", setup)`` when the SH pass of ``sh_set`` is big enough to split
     (:data:`SH_SPLIT_MIN_SECONDS`, decided from the sizes and the band limit), else None.  Without a plan the
     band limit is planned here (as the single job would)."""
@@ -668,7 +703,7 @@ def _sh_split_state(a4, sh_set, sh_plan, rtol, out_size, normalized):
     if shc.sh_cost(L_min, n_src, n_out, len(sh_set), Q) * shc.SECONDS_PER_UNIT < SH_SPLIT_MIN_SECONDS:
         return None
     t0 = time.perf_counter()
-    setup = shc.sh_setup(a4, sh_set, rtol=rtol, out_size=out_size, normalized=normalized, plan=sh_plan)
+    setup = shc.sh_setup(a4, sh_set, rtol=rtol, out_size=out_size, normalized=normalized, plan=sh_plan, impl=impl)
     if shc.sh_cost(setup.L, n_src, n_out, len(sh_set), Q) * shc.SECONDS_PER_UNIT < SH_SPLIT_MIN_SECONDS:
         return None
     shc.sh_split(setup, SH_PARTS)
@@ -677,7 +712,7 @@ def _sh_split_state(a4, sh_set, sh_plan, rtol, out_size, normalized):
 
 
 def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_plan, sparse_batches, parts, ex_set,
-                mo_leaf=1, sh_state=None):
+                mo_leaf=1, sh_state=None, impl="numpy"):
     """The independent jobs ``(stage, key, model cost, callable)`` of one round of :func:`convolve`.
 
     Every job computes a fixed piece of work (its exponents, its output faces) that does not depend on
@@ -697,7 +732,7 @@ def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_pla
             jobs.append(("moment", ("moment", pi), MOMENT_UNITS_PER_PAIR * pair_units * len(fc) / 6,
                          functools.partial(mc.convolve_moment_many, a4, mo_set, out_size=out_size,
                                            normalized=normalized, faces=fc, leaf=mo_leaf,
-                                           rtol=rtol if mo_leaf > 1 else None)))
+                                           rtol=rtol if mo_leaf > 1 else None, impl=impl)))
     if sh_set and sh_state is not None:  # a split SH pass (:data:`SH_SPLIT_MIN_SECONDS`): one phase per round
         setup = sh_state[1]
         n_parts = setup.sym_src.n_parts
@@ -712,15 +747,15 @@ def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_pla
         L_guess = (sh_plan or {}).get("L") or 32
         jobs.append(("sh", ("sh",), shc.sh_cost(L_guess, n_src, n_out, len(sh_set), a4.shape[-1] + 1),
                      functools.partial(shc.convolve_sh_many, a4, sh_set, rtol=rtol, out_size=out_size,
-                                       normalized=normalized, plan=sh_plan)))
+                                       normalized=normalized, plan=sh_plan, impl=impl)))
     for bi, (sb, sc, _att) in enumerate(sparse_batches):
         for pi, fc in enumerate(parts):
-            cost = sum(_sparse_cost(x, rtol * sc, n_src, n_out) for x in sb)
+            cost = sum(_sparse_cost(x, rtol * sc, n_src, n_out, impl) for x in sb)
             cost = cost * len(fc) / 6 * SPARSE_JOB_ORDER_FACTOR if np.isfinite(cost) else (
                 pair_units * EXACT_UNITS_PER_PAIR)
             jobs.append(("sparse", ("sparse", bi, pi), cost,
                          functools.partial(pc.convolve_sparse_many, a4, list(sb),
-                                           rtol=min(rtol * sc, 0.5), out_size=out_size, faces=fc)))
+                                           rtol=min(rtol * sc, 0.5), out_size=out_size, faces=fc, impl=impl)))
     if ex_set:
         jobs.append(("exact", ("exact",), EXACT_UNITS_PER_PAIR * pair_units * len(ex_set),
                      functools.partial(pc.convolve_exact_many, a4, ex_set, normalized=normalized,
@@ -757,7 +792,7 @@ def _round_workers(jobs, a4, out_size, workers, executor, memory_limit, need2):
 
 
 def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, workers, backend, executor,
-              memory_limit, scale_k, t_start, c_start):
+              memory_limit, scale_k, t_start, c_start, impl="numpy"):
     """Body of :func:`convolve` after the argument checks (routing, jobs, collection)."""
 
     res = ConvolutionResult()
@@ -789,6 +824,13 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
     sh_set = [s for s in s_list if route[s] == "sh"]
     sparse_batches = [(tuple(s for s in s_list if route[s] == "sparse"), scale0, 0)]
     sparse_batches = [b for b in sparse_batches if b[0]]
+    if sparse_batches and normalized:
+        # a sparse gather too small to pay for a pool runs as one job over all faces (each face's result is the
+        # same whatever the face subset, so this changes no number)
+        n_src, n_out = 6 * n * n, 6 * out_size * out_size
+        sp_cost = sum(_sparse_cost(s, rtol, n_src, n_out, impl) for s in sparse_batches[0][0])
+        if sp_cost * _seconds_per_unit() < PARALLEL_MIN_SECONDS:
+            parts = (tuple(range(6)),)
     ex_set = [s for s in s_list if route[s] == "exact"]
     fallback_sh, fallback_sparse = [], []
     stage_busy = {"sh": 0.0, "sparse": 0.0, "exact": 0.0, "moment": 0.0}
@@ -805,9 +847,9 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
             if sh_set and method == "auto":  # re-plan only if the SH subset differs from the planned set
                 sub_plan = plan if len(sh_set) == len(finite) else None
             if sh_set and sh_state is None:
-                sh_state = _sh_split_state(a4, sh_set, sub_plan, rtol, out_size, normalized)
+                sh_state = _sh_split_state(a4, sh_set, sub_plan, rtol, out_size, normalized, impl)
             jobs = _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sub_plan,
-                               sparse_batches, parts, ex_set, mo_leaf, sh_state)
+                               sparse_batches, parts, ex_set, mo_leaf, sh_state, impl)
             w_plan, warning = _round_workers(jobs, a4, out_size, workers, executor, memory_limit, 2.0 in mo_set)
             planned.append(w_plan)
             if warning:
@@ -896,6 +938,7 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
     timings.update(stage_busy)
     timings["jobs_wall"] = t_par
     res.info["workers"] = workers
+    res.info["kernel"] = impl
     res.info["workers_planned"] = min(planned) if planned else workers
     res.info["backend"] = "executor" if executor is not None else backend
 

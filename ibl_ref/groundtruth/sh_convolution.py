@@ -128,14 +128,28 @@ from .sh_bounds import (
 # ----------------------------------------------------------------------------------------------
 # hybrid SH convolution with bound
 # ----------------------------------------------------------------------------------------------
-def _bright_gather(out_dirs, b_dirs, b_w, s_list, chunk_elems=1 << 22):
-    """Exact Σ_b w_b max(r·ω_b, 0)^s for every r (K, P, C)."""
+def _bright_gather(out_dirs, b_dirs, b_w, s_list, chunk_elems=1 << 22, impl="numpy"):
+    """Exact Σ_b w_b max(r·ω_b, 0)^s for every r (K, P, C) (``impl="compiled"``:
+    :func:`ibl_ref.groundtruth.compiled_kernels.point_gather`)."""
     P = out_dirs.shape[0]
     K = len(s_list)
     C = b_w.shape[1]
     res = np.zeros((K, P, C))
     nb = b_dirs.shape[0]
     if nb == 0:
+        return res
+    if impl == "compiled":
+        from . import compiled_kernels as ck
+
+        s_int = np.array([int(s) if float(s).is_integer() and s <= ck.POWI_MAX else 0 for s in s_list], dtype=np.int64)
+        for c0 in range(0, C, 4):
+            c1 = min(C, c0 + 4)
+            bw4 = np.zeros((nb, 4))
+            bw4[:, : c1 - c0] = b_w[:, c0:c1]
+            acc = np.zeros((K, 4, P))
+            ck.point_gather(np.ascontiguousarray(out_dirs), np.ascontiguousarray(b_dirs), bw4,
+                            np.array(s_list, dtype=np.float64), s_int, acc)
+            res[:, :, c0:c1] = acc[:, : c1 - c0].transpose(0, 2, 1)
         return res
     chunk = max(1, chunk_elems // nb)
     for i0 in range(0, P, chunk):
@@ -266,6 +280,7 @@ def convolve_sh_many(
     L_max: int = SH_L_MAX,
     estimate: bool = False,
     plan: dict | None = None,
+    impl: str = "numpy",
 ):
     """SH (optionally hybrid) convolution for several exponents sharing one SH pass.
 
@@ -297,6 +312,9 @@ def convolve_sh_many(
         never relies on it.
     plan : dict, optional
         Result of :func:`plan_sh` for the same cube/exponents/rtol (avoids planning twice).
+    impl : {"numpy", "compiled"}
+        ``"compiled"``: the SH passes without an SH matrix and the bright gather by
+        :mod:`ibl_ref.groundtruth.compiled_kernels` (the gather's rounding bound is added to the bound).
 
     Returns
     -------
@@ -306,11 +324,11 @@ def convolve_sh_many(
     info : dict (L, tau, n_bright, bound_kind list, timings)
     """
     setup = sh_setup(cube, exponents, rtol=rtol, L=L, hybrid=hybrid, tau=tau, out_size=out_size,
-                     normalized=normalized, L_max=L_max, estimate=estimate, plan=plan)
+                     normalized=normalized, L_max=L_max, estimate=estimate, plan=plan, impl=impl)
     t_plan = time.perf_counter()
-    shq = sh_lobe_convolve(setup.src, setup.Wq, setup.out_dirs, setup.kcoef)  # (K, P, C+1)
+    shq = sh_lobe_convolve(setup.src, setup.Wq, setup.out_dirs, setup.kcoef, impl=impl)  # (K, P, C+1)
     t_sh = time.perf_counter()
-    nb = _bright_gather(setup.out_dirs, setup.b_dirs, setup.b_w, setup.s_list)  # exact part
+    nb = _bright_gather(setup.out_dirs, setup.b_dirs, setup.b_w, setup.s_list, impl=impl)  # exact part
     t_gather = time.perf_counter()
     return sh_finish(setup, shq, nb, {"time_plan_s": t_plan - setup.t0, "time_sh_s": t_sh - t_plan,
                                       "time_bright_s": t_gather - t_sh})
@@ -327,7 +345,8 @@ class ShSetup:
 
 def sh_setup(cube, exponents, *, rtol: float = 1e-3, L: int | None = None, hybrid: bool = True,
              tau: float | None = None, out_size: int | None = None, normalized: bool = True,
-             L_max: int = SH_L_MAX, estimate: bool = False, plan: dict | None = None) -> ShSetup:
+             L_max: int = SH_L_MAX, estimate: bool = False, plan: dict | None = None,
+             impl: str = "numpy") -> ShSetup:
     """Checks, plan (band limit, sun threshold) and the split of :func:`convolve_sh_many` (same parameters)."""
     t0 = time.perf_counter()
     a, squeeze = check_cube(cube)
@@ -379,7 +398,7 @@ def sh_setup(cube, exponents, *, rtol: float = 1e-3, L: int | None = None, hybri
                    rho=rho, L=int(L_use), tau=float(tau_use), est_idx=est_idx, n_bright=int(np.count_nonzero(bright)),
                    b_dirs=src[bright], b_w=excess * omega[bright][:, None], kcoef=kcoef, Wq=Wq,
                    m_rem=float(rem.min()), tau_eff=float(rem.max()), normalized=normalized, rtol=rtol,
-                   sym_src=None, sym_out=None)
+                   sym_src=None, sym_out=None, impl=impl)
 
 
 def sh_split(setup: ShSetup, n_parts: int) -> ShSetup:
@@ -398,7 +417,7 @@ def sh_project_part(setup: ShSetup, part: int):
     ``(a_even, a_odd)``; :func:`sh_coefficients` adds the parts in order."""
     from .sh_basis import project_part
 
-    return project_part(setup.src, setup.Wq, setup.sym_src, part)
+    return project_part(setup.src, setup.Wq, setup.sym_src, part, getattr(setup, "impl", "numpy"))
 
 
 def sh_coefficients(setup: ShSetup, parts):
@@ -419,10 +438,11 @@ def sh_evaluate_part(setup: ShSetup, Be, Bo, part: int):
     for the outputs ``idx`` (:func:`sh_assemble` puts the parts together)."""
     from .sh_basis import evaluate_part
 
-    idx, vals = evaluate_part(setup.out_dirs, Be, Bo, setup.sym_out, part)
+    impl = getattr(setup, "impl", "numpy")
+    idx, vals = evaluate_part(setup.out_dirs, Be, Bo, setup.sym_out, part, impl)
     K = setup.kcoef.shape[0]
     shq = vals.reshape(-1, K, setup.Wq.shape[1]).transpose(1, 0, 2)
-    nb = _bright_gather(setup.out_dirs[idx], setup.b_dirs, setup.b_w, setup.s_list)
+    nb = _bright_gather(setup.out_dirs[idx], setup.b_dirs, setup.b_w, setup.s_list, impl=impl)
     return (idx,) + _values_and_bounds(setup, shq, nb)
 
 
@@ -475,6 +495,14 @@ def _values_and_bounds(setup: ShSetup, shq, nb):
         else:
             y = num
             A = np.full_like(y, tau_eff * E_L)
+        if getattr(setup, "impl", "numpy") == "compiled" and setup.b_w.shape[0]:
+            # rounding of the compiled bright gather (relative η for r·ω ≥ C0, absolute ε per weight below)
+            from . import compiled_kernels as ck
+
+            e_r, e_a = ck.weight_error(s, float(s).is_integer() and s <= ck.POWI_MAX)
+            d_nb = e_r * nb[k] + e_a * np.abs(setup.b_w).sum(axis=0)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                A = A + (np.where(den > 0, d_nb / np.where(den > 0, den, 1.0), np.inf) if normalized else d_nb)
         with np.errstate(invalid="ignore", divide="ignore"):
             r = np.where(y > A, A / np.maximum(y - A, 1e-300), np.inf)
         maps[k] = y

@@ -1,0 +1,66 @@
+"""Which implementation runs the inner loops of the Phong-lobe convolution (Knuth et al. 2014, Sec. 3.2, Eq. 4).
+
+Two implementations of the same quadratures:
+
+``"numpy"``
+    the reference: array expressions in NumPy/SciPy (every test, every bound and every number of the
+    routes was first established on it);
+``"compiled"``
+    :mod:`ibl_ref.groundtruth.compiled_kernels` — the gathers, the moment route's horizon band, the SH
+    passes and the bright-texel gathers as loops compiled by numba (optional extra ``fast``:
+    ``pip install "ibl_ref[fast]"``).  Same quadratures, same rigorous bounds (each kernel's rounding is
+    part of its bound); results agree with the NumPy path within the sum of the two bounds, not bit for bit.
+
+The switch: the ``kernel=`` argument of :func:`ibl_ref.groundtruth.convolve.convolve`, ``ibl-ref convolve
+--kernel``, or the environment variable :data:`KERNEL_ENV` (``IBL_REF_KERNEL``) when the argument is not
+given.  ``"auto"`` (the default) is ``"compiled"`` when numba can be imported, else ``"numpy"``; asking for
+``"compiled"`` without numba is a one-line :class:`~ibl_ref.errors.IBLError`.  :func:`resolve_kernel` only
+looks numba up (``importlib.util.find_spec``); importing it (≈ 0.15 s) and loading the compiled code from
+the cache happen on first use (:func:`compiled`).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+
+from ..errors import IBLError
+
+__all__ = ["KERNELS", "KERNEL_ENV", "resolve_kernel", "numba_available", "compiled"]
+
+#: accepted values of the ``kernel`` switch
+KERNELS = ("auto", "numpy", "compiled")
+#: environment variable read when ``kernel`` is not given
+KERNEL_ENV = "IBL_REF_KERNEL"
+
+
+def numba_available() -> bool:
+    """True when numba can be found on the path (not imported here)."""
+    try:
+        return importlib.util.find_spec("numba") is not None
+    except (ImportError, ValueError):  # a broken or blocked installation counts as absent
+        return False
+
+
+def resolve_kernel(kernel=None) -> str:
+    """``"numpy"`` or ``"compiled"`` for the switch value ``kernel`` (None: ``$IBL_REF_KERNEL`` or ``"auto"``)."""
+    source = "kernel"
+    if kernel is None:
+        kernel = os.environ.get(KERNEL_ENV, "").strip().lower() or "auto"
+        source = f"${KERNEL_ENV}"
+    if kernel not in KERNELS:
+        raise IBLError(f"{source} must be one of {', '.join(KERNELS)}, got {kernel!r}")
+    if kernel == "auto":
+        return "compiled" if numba_available() else "numpy"
+    if kernel == "compiled" and not numba_available():
+        raise IBLError(f"{source} = 'compiled' needs numba, which is not installed: "
+                       "pip install 'ibl_ref[fast]', or use kernel 'numpy'")
+    return kernel
+
+
+def compiled():
+    """The module of compiled kernels (imports numba; compiles or loads the cached code on first use of each
+    kernel)."""
+    from . import compiled_kernels
+
+    return compiled_kernels
