@@ -119,9 +119,6 @@ MOMENT_MIN_PAIRS = 1e8
 WORKERS_ENV = "IBL_REF_WORKERS"
 #: parallel back-ends of :func:`convolve` (``auto``: forked processes where possible, else threads)
 BACKENDS = ("auto", "process", "thread")
-#: cost units per (output × source texel) pair of the moment route (both s = 1 and 2 in one call: 3.4 s CPU
-#: at 128² faces, 1 BLAS thread); only used to order the jobs (longest first)
-MOMENT_UNITS_PER_PAIR = 0.45
 #: correction of the sparse cost model for the ordering of the jobs only (1: the model as fitted)
 SPARSE_JOB_ORDER_FACTOR = 1.0
 #: :func:`convolve` rescales the input by a power of two (exact) when its largest radiance is above
@@ -450,15 +447,19 @@ EXACT_UNITS_PER_PAIR_S1 = 6.0
 #: the SH route at 1.8 s instead of the sparse gather's 1.4 s.
 SPARSE_UNITS_PER_PAIR = 6.0
 SPARSE_UNITS_PER_OUTPUT = 6.8e3
-#: the same constants for ``kernel="compiled"`` (:mod:`ibl_ref.groundtruth.compiled_kernels`; fitted by
-#: ``benchmarks/bench_cost_models.py``, see there); ``SH_FACTOR_*`` scales :func:`~ibl_ref.groundtruth.sh_convolution.sh_cost`
+#: the same constants for ``kernel="compiled"`` (:mod:`ibl_ref.groundtruth.compiled_kernels`; the exact gather has
+#: no compiled kernel); ``SH_FACTOR*`` and ``SH_BRIGHT_FACTOR*`` scale
+#: :func:`~ibl_ref.groundtruth.sh_convolution.sh_cost` and ``bright_cost``, ``MOMENT_UNITS*`` :func:`_moment_cost`:
+#: medians of measured / model of ``benchmarks/bench_cost_models.py`` (2026-12-02, load 0.3–1.0, sky + sun 64²–256²;
+#: the moment route 64²–512²: measured / model 0.63–1.23 NumPy, 0.39–1.28 compiled)
 EXACT_UNITS_PER_PAIR_COMPILED = 17.0
 EXACT_UNITS_PER_PAIR_S1_COMPILED = 6.0
-SPARSE_UNITS_PER_PAIR_COMPILED = 1.5
-SPARSE_UNITS_PER_OUTPUT_COMPILED = 1.5e3
-MOMENT_UNITS_PER_PAIR_COMPILED = 0.2
-SH_FACTOR = 1.0
-SH_FACTOR_COMPILED = 1.0
+SPARSE_UNITS_PER_PAIR_COMPILED = 1.33
+SPARSE_UNITS_PER_OUTPUT_COMPILED = 2.2e3
+SH_FACTOR = 0.37
+SH_FACTOR_COMPILED = 0.19
+SH_BRIGHT_FACTOR = 0.43
+SH_BRIGHT_FACTOR_COMPILED = 0.23
 
 
 def _unit(name, impl):
@@ -475,6 +476,37 @@ def _seconds_per_unit():
 def _exact_cost(s, n_src, n_out, impl="numpy"):
     """Cost model of the dense exact gather of one exponent (units of :func:`_seconds_per_unit`)."""
     return n_out * n_src * _unit("EXACT_UNITS_PER_PAIR_S1" if s == 1.0 else "EXACT_UNITS_PER_PAIR", impl)
+
+
+#: cost units of the moment route (s = 1 and 2 in one call) per (output texel × 6N/leaf): the horizon band holds
+#: O(N) source texels per output texel with the exact band (leaf 1), O(N/leaf) leaf blocks with brackets
+MOMENT_UNITS = 56.0
+MOMENT_UNITS_COMPILED = 34.0
+
+
+def _moment_cost(n, out_size, leaf, impl="numpy"):
+    """Cost model of :func:`ibl_ref.groundtruth.moment_convolution.convolve_moment_many` for s = 1 and 2 (units of
+    :func:`_seconds_per_unit`)."""
+    return _unit("MOMENT_UNITS", impl) * 6.0 * out_size * out_size * 6.0 * n / max(leaf, 1)
+
+
+#: sparse cost per (output texel × candidate source texel per output) and per output texel, with the candidates of
+#: :func:`ibl_ref.groundtruth.phong_convolution.estimate_candidates` (its first caps on a sample of tiles), per
+#: kernel; fitted by ``benchmarks/bench_cost_models.py --only sparse --probe …/courtyard.exr`` (2026-12-02, load
+#: 1.9–2.9; sky + sun 64²–256² × s = 64…4096 and the courtyard probe at 256², s = 256…4096: measured / model
+#: 0.78–1.57 NumPy, 0.78–1.77 compiled)
+SPARSE_UNITS_PER_CAND = 5.04
+SPARSE_UNITS_PER_CAND_OUTPUT = 992.0
+SPARSE_UNITS_PER_CAND_COMPILED = 1.03
+SPARSE_UNITS_PER_CAND_OUTPUT_COMPILED = 1.01e3
+#: the planner estimates the sparse candidates (≈ 0.05–0.5 s) only for exponents whose sparse cost by the static
+#: model is at least this many seconds (below, the choice matters little)
+SPARSE_ESTIMATE_MIN_SECONDS = 0.3
+
+
+def _sparse_cost_estimated(cand, n_out, impl="numpy"):
+    """Sparse cost from the estimated candidates per output texel (units of :func:`_seconds_per_unit`)."""
+    return n_out * (cand * _unit("SPARSE_UNITS_PER_CAND", impl) + _unit("SPARSE_UNITS_PER_CAND_OUTPUT", impl))
 
 
 def _sparse_cost(s, rtol, n_src, n_out, impl="numpy"):
@@ -604,16 +636,39 @@ def convolve(
             owned_client.close()
 
 
-def _route_auto(a4, s_list, rtol, out_size, normalized, info):
-    """Method per exponent for ``method="auto"`` (module docstring): ``(route, SH plan or None, finite)``.
+#: an exponent the SH plan cannot promise (band limit > L_max at the estimated output floor) but that is within
+#: reach (:data:`ibl_ref.groundtruth.sh_convolution.FLOOR_REACH`) joins the SH pass at L_max only if that is cheaper
+#: than its other route even when the attempt is charged this share of the other route (the cost of a failed
+#: attempt: the bound is checked after the pass and a miss goes to the sparse gather)
+SH_RISK_SHARE = 0.25
 
-    ``finite``: the finite exponents left to the SH / sparse / exact cost comparison (the SH plan was
-    made for exactly these).  Writes the planning diagnostics into ``info``.
-    """
-    n = a4.shape[1]
-    n_src, n_out = 6 * n * n, 6 * out_size * out_size
+
+def _sh_pass_cost(L, n_bright, n_src, n_out, K, Q, impl):
+    """Model cost of one SH pass (its passes, the bright gather and the fixed part; units of
+    :func:`_seconds_per_unit`)."""
     from . import sh_convolution as shc
 
+    return (_unit("SH_FACTOR", impl) * shc.sh_cost(L, n_src, n_out, K, Q)
+            + _unit("SH_BRIGHT_FACTOR", impl) * shc.bright_cost(n_bright, n_out, K) + shc.SH_OVERHEAD_UNITS)
+
+
+def _route_auto(a4, s_list, rtol, out_size, normalized, info, impl="numpy"):
+    """Method per exponent for ``method="auto"`` (module docstring): ``(route, SH plan or None, SH set)``.
+
+    Every finite exponent gets the cheapest of its routes by the cost models of the kernel ``impl``: the exact
+    gather, the sparse gather (normalised only), the moment route (s = 1, 2 from :data:`MOMENT_MIN_PAIRS`; one call
+    for both) and the shared SH pass, whose cost is set by the largest band limit of its exponents: every prefix
+    of the exponents sorted by their planned band limit (:func:`ibl_ref.groundtruth.sh_convolution.plan_sh`) is
+    tried, exponents within reach of L_max last (charged :data:`SH_RISK_SHARE`).  Returns the SH plan made for
+    exactly the chosen SH set.  Writes the planning diagnostics and the model costs of the chosen plan and of every
+    single forced method into ``info`` (``route_model_costs_s``)."""
+    n = a4.shape[1]
+    n_src, n_out = 6 * n * n, 6 * out_size * out_size
+    Q = a4.shape[-1] + 1
+    from . import sh_convolution as shc
+    from .moment_convolution import moment_leaf
+
+    unit = _seconds_per_unit()
     route, plan = {}, None
     finite = [s for s in s_list if np.isfinite(s)]
     for s in s_list:
@@ -623,68 +678,104 @@ def _route_auto(a4, s_list, rtol, out_size, normalized, info):
         info["auto_tiny_map_exact"] = True
         for s in finite:
             route[s] = "exact"
-        finite = []
-    if n_out * n_src >= MOMENT_MIN_PAIRS:
-        for s in finite:
-            if s in MOMENT_EXPONENTS:
-                route[s] = "moment"
-        finite = [s for s in finite if s not in MOMENT_EXPONENTS]
-    if finite and _sh_cannot_pay(finite, rtol, n, n_src, n_out, normalized, a4.shape[-1] + 1):
+        return route, None, []
+    if not finite:
+        return route, None, []
+    c_sp = {s: (_sparse_cost(s, rtol, n_src, n_out, impl) if normalized else np.inf) for s in finite}
+    big = [s for s in finite if np.isfinite(c_sp[s]) and c_sp[s] * unit >= SPARSE_ESTIMATE_MIN_SECONDS]
+    if big:  # the real caps of this map (its contrast sets them), on a sample of tiles
+        from .phong_convolution import estimate_candidates
+
+        cand = estimate_candidates(a4, big, rtol=rtol, out_size=out_size, impl=impl)
+        info["sparse_candidates_per_output"] = {_s_json(s): float(c) for s, c in zip(big, cand)}
+        for s, c in zip(big, cand):
+            c_sp[s] = _sparse_cost_estimated(c, n_out, impl)
+    other = {}
+    for s in finite:
+        c_ex = _exact_cost(s, n_src, n_out, impl)
+        other[s] = ("sparse", c_sp[s]) if c_sp[s] < c_ex else ("exact", c_ex)
+    mo_cand = [s for s in finite if s in MOMENT_EXPONENTS] if n_out * n_src >= MOMENT_MIN_PAIRS else []
+    c_mo = _moment_cost(n, out_size, moment_leaf(n, rtol), impl) if mo_cand else np.inf
+    costs = {"exact": sum(_exact_cost(s, n_src, n_out, impl) for s in finite)}
+    if normalized:
+        costs["sparse"] = sum(min(c_sp[s], _exact_cost(s, n_src, n_out, impl)) for s in finite)
+    L_of, risky = {}, set()
+    rest = [s for s in finite if s not in mo_cand]
+    if not rest or _sh_cannot_pay(rest, sum(other[s][1] for s in rest), n, n_src, n_out, Q, impl, rtol):
         info["sh_plan_skipped"] = True
-        for s in finite:
-            c_sp = _sparse_cost(s, rtol, n_src, n_out) if normalized else np.inf
-            c_ex = n_out * n_src * (EXACT_UNITS_PER_PAIR_S1 if s == 1.0 else EXACT_UNITS_PER_PAIR)
-            route[s] = "sparse" if c_sp < c_ex else "exact"
-        finite = []
-    if finite:
+    else:
         plan = shc.plan_sh(a4, finite, rtol=rtol, out_size=out_size)
         info["sh_plan_L_per_s"] = {_s_json(s): L for s, L in zip(finite, plan["L_per_s"])}
-        info["sh_plan_L_estimate"] = {_s_json(s): L for s, L in plan["L_est"].items()}
-        Q = a4.shape[-1] + 1
-        L_of = {}
-        other = {}
-        for s, L_s in zip(finite, plan["L_per_s"]):
-            # rigorous band limit (estimate-mode band limit only if estimates were planned)
-            L_s = L_s if L_s is not None else plan["L_est"].get(s)
+        info["sh_plan_floor"] = {_s_json(s): y for s, y in zip(finite, plan["floor"])}
+        for s, L_s, r in zip(finite, plan["L_per_s"], plan["reach"]):
             if L_s is not None:
                 L_of[s] = L_s
-            c_sp = _sparse_cost(s, rtol, n_src, n_out) if normalized else np.inf
-            c_ex = n_out * n_src * (EXACT_UNITS_PER_PAIR_S1 if s == 1.0 else EXACT_UNITS_PER_PAIR)
-            other[s] = ("sparse", c_sp) if c_sp < c_ex else ("exact", c_ex)
-        # The SH exponents share one pass whose cost is set by the largest band limit: try every
-        # prefix of the SH-capable exponents sorted by band limit, the rest by sparse/exact.
-        cand = sorted(L_of, key=lambda s: L_of[s])
-        best = None
-        for j in range(len(cand) + 1):
-            grp = cand[:j]
-            cost = sum(other[s][1] for s in finite if s not in grp)
-            if grp:
-                cost += shc.sh_cost(L_of[grp[-1]], n_src, n_out, len(grp), Q) + shc.SH_OVERHEAD_UNITS
-            if best is None or cost < best[0]:
-                best = (cost, grp)
-        info["auto_model_cost_s"] = float(best[0] * shc.SECONDS_PER_UNIT)
-        for s in finite:
-            route[s] = "sh" if s in best[1] else other[s][0]
-    return route, plan, finite
+            elif r and s not in MOMENT_EXPONENTS:
+                L_of[s] = shc.SH_L_MAX
+                risky.add(s)
+        if L_of:
+            costs["sh"] = _sh_pass_cost(max(L_of.values()), plan["n_bright"], n_src, n_out, len(finite), Q, impl)
+    # SH group: a prefix of the candidates by band limit (risky ones last); the rest by moment / sparse / exact
+    cand = sorted(L_of, key=lambda s: (s in risky, L_of[s]))
+    nb = plan["n_bright"] if plan else 0
+    best = None
+    for j in range(len(cand) + 1):
+        grp = cand[:j]
+        rest = [s for s in finite if s not in grp]
+        mo = [s for s in rest if s in mo_cand and c_mo < sum(other[x][1] for x in rest if x in mo_cand)]
+        mo = [s for s in rest if s in mo_cand] if mo else []
+        cost = (c_mo if mo else 0.0) + sum(other[s][1] for s in rest if s not in mo)
+        if grp:
+            cost += _sh_pass_cost(L_of[grp[-1]], nb, n_src, n_out, len(grp), Q, impl)
+            cost += SH_RISK_SHARE * sum(other[s][1] for s in grp if s in risky)
+        if best is None or cost < best[0]:
+            best = (cost, grp, mo)
+    cost, grp, mo = best
+    grp = [s for s in finite if s in grp]  # in the order of the exponents
+    for s in finite:
+        route[s] = "sh" if s in grp else ("moment" if s in mo else other[s][0])
+    if risky & set(grp):
+        info["sh_within_reach"] = [_s_json(s) for s in grp if s in risky]
+    info["auto_model_cost_s"] = float(cost * unit)
+    costs["auto"] = cost
+    info["route_model_costs_s"] = {k: float(v * unit) for k, v in costs.items()}
+    if grp and plan is not None and len(grp) != len(finite):
+        plan = shc.plan_sh(a4, grp, rtol=rtol, out_size=out_size)  # the plan of exactly the SH set
+    return route, (plan if grp else None), grp
 
 
-def _sh_cannot_pay(finite, rtol, n, n_src, n_out, normalized, Q):
-    """True when no SH pass can be cheaper than the sparse/exact gathers of ``finite`` together, by a
-    lower bound of its cost: the band limit the planner could choose is never below the one the
-    truncation bound needs at the most lenient target 0.8·rtol (:func:`~ibl_ref.groundtruth.sh_bounds.choose_band_limit`).
-    Spares the planner (an SH projection preview, ≈ 0.1–0.3 s) where narrow lobes go to the sparse gather."""
+def plan_routes(cube, exponents, *, rtol: float = 1e-3, out_size: int | None = None, normalized: bool = True,
+                kernel: str | None = None) -> dict:
+    """The routes :func:`convolve` with ``method="auto"`` would take, without running them: ``{"route": {s: method},
+    "model_costs_s": {"auto": …, "exact": …, "sparse": …, "sh": …}}`` (model seconds of the chosen plan and of
+    each method forced for every finite exponent; "sh" only when some exponent can be planned), ``"kernel"`` and
+    the planning diagnostics of ``info``."""
+    from .kernel_choice import resolve_kernel
+
+    a4, _ = check_cube(cube)
+    a4, _k = _power_of_two_scaled(a4)
+    s_list = check_exponents(exponents)
+    out_size = check_out_size(out_size, a4.shape[1])
+    impl = resolve_kernel(kernel)
+    info = {}
+    route, _plan, _grp = _route_auto(a4, s_list, float(rtol), out_size, normalized, info, impl)
+    return {"route": route, "model_costs_s": info.pop("route_model_costs_s", {}), "kernel": impl, "info": info}
+
+
+def _sh_cannot_pay(finite, others, n, n_src, n_out, Q, impl="numpy", rtol=1e-3):
+    """True when no SH pass can be cheaper than the other routes of ``finite`` together (model cost ``others``), by
+    a lower bound of its cost: the band limit the planner could choose is never below the one the truncation
+    bound needs at the most lenient target 0.8·rtol (:func:`~ibl_ref.groundtruth.sh_bounds.choose_band_limit`).
+    Spares the planner (its coarse lobe averages and bound tables) where narrow lobes go to the sparse gather."""
     from .sh_bounds import choose_band_limit, texel_max_radius
-    from .sh_convolution import SH_L_MAX, SH_OVERHEAD_UNITS, sh_cost
+    from .sh_convolution import SH_L_MAX
 
     rho = texel_max_radius(n)
-    others = 0.0
     sh_lb = np.inf
     for s in finite:
-        c_sp = _sparse_cost(s, rtol, n_src, n_out) if normalized else np.inf
-        others += min(c_sp, n_out * n_src * (EXACT_UNITS_PER_PAIR_S1 if s == 1.0 else EXACT_UNITS_PER_PAIR))
         L = choose_band_limit(s, 0.8 * rtol, rho, SH_L_MAX)
         if L is not None:
-            sh_lb = min(sh_lb, sh_cost(L, n_src, n_out, 1, Q) + SH_OVERHEAD_UNITS)
+            sh_lb = min(sh_lb, _sh_pass_cost(L, 0, n_src, n_out, 1, Q, impl))
     return others < sh_lb
 
 
@@ -729,7 +820,7 @@ def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_pla
         from . import moment_convolution as mc
 
         for pi, fc in enumerate(mo_parts):
-            jobs.append(("moment", ("moment", pi), MOMENT_UNITS_PER_PAIR * pair_units * len(fc) / 6,
+            jobs.append(("moment", ("moment", pi), _moment_cost(n, out_size, mo_leaf, impl) * len(fc) / 6,
                          functools.partial(mc.convolve_moment_many, a4, mo_set, out_size=out_size,
                                            normalized=normalized, faces=fc, leaf=mo_leaf,
                                            rtol=rtol if mo_leaf > 1 else None, impl=impl)))
@@ -752,12 +843,12 @@ def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_pla
         for pi, fc in enumerate(parts):
             cost = sum(_sparse_cost(x, rtol * sc, n_src, n_out, impl) for x in sb)
             cost = cost * len(fc) / 6 * SPARSE_JOB_ORDER_FACTOR if np.isfinite(cost) else (
-                pair_units * EXACT_UNITS_PER_PAIR)
+                pair_units * _unit("EXACT_UNITS_PER_PAIR", impl))
             jobs.append(("sparse", ("sparse", bi, pi), cost,
                          functools.partial(pc.convolve_sparse_many, a4, list(sb),
                                            rtol=min(rtol * sc, 0.5), out_size=out_size, faces=fc, impl=impl)))
     if ex_set:
-        jobs.append(("exact", ("exact",), EXACT_UNITS_PER_PAIR * pair_units * len(ex_set),
+        jobs.append(("exact", ("exact",), _unit("EXACT_UNITS_PER_PAIR", impl) * pair_units * len(ex_set),
                      functools.partial(pc.convolve_exact_many, a4, ex_set, normalized=normalized,
                                        out_size=out_size)))
     return jobs
@@ -801,7 +892,7 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
     # ---- route every exponent ----------------------------------------------------------------
     plan, finite = None, []
     if method == "auto":
-        route, plan, finite = _route_auto(a4, s_list, rtol, out_size, normalized, res.info)
+        route, plan, finite = _route_auto(a4, s_list, rtol, out_size, normalized, res.info, impl)
     else:
         route = {s: method for s in s_list}
 
@@ -845,7 +936,7 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
         while mo_set or sh_set or sparse_batches or ex_set:
             sub_plan = None
             if sh_set and method == "auto":  # re-plan only if the SH subset differs from the planned set
-                sub_plan = plan if len(sh_set) == len(finite) else None
+                sub_plan = plan if list(sh_set) == list(finite) else None
             if sh_set and sh_state is None:
                 sh_state = _sh_split_state(a4, sh_set, sub_plan, rtol, out_size, normalized, impl)
             jobs = _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sub_plan,

@@ -434,19 +434,26 @@ def _band_exact_compiled(ck, Rc, tiles, blk, D, W4, s_list, num):
             num[s] += acc[..., :Q]
 
 
-def _band_brackets_compiled(ck, Rc, tiles, blk, cb_leaf, ab_leaf, M0, M1, M2, s_list, num, err):
-    """:func:`_band_brackets` by :func:`ibl_ref.groundtruth.compiled_kernels.band_brackets`."""
+def _brackets_prep(cb_leaf, ab_leaf, M0, M1, M2):
+    """The leaf blocks' cones and moments as :func:`ibl_ref.groundtruth.compiled_kernels.band_brackets` takes them
+    (once per pass, not per chunk of tiles)."""
     Q = M0.shape[1]
     if ab_leaf.size and float(ab_leaf.max()) >= 0.25 * math.pi:
         raise IBLError("leaf blocks too large for the bracket band (cone half-angle ≥ π/4); use a smaller leaf")
-    T, B = Rc.shape[0], Rc.shape[1]
     nbk = M0.shape[0]
-    starts, items = _csr(tiles, blk, T)
     m1 = _pad4(M1.reshape(nbk, 3, Q), Q)
     m2 = _pad4(M2.reshape(nbk, 6, Q), Q) if M2 is not None else np.zeros((nbk, 6, 4))
+    return (np.ascontiguousarray(cb_leaf), np.cos(ab_leaf), np.sin(ab_leaf), _pad4(M0, Q), m1, m2, Q)
+
+
+def _band_brackets_compiled(ck, Rc, tiles, blk, prep, s_list, num, err):
+    """:func:`_band_brackets` by :func:`ibl_ref.groundtruth.compiled_kernels.band_brackets` (``prep``:
+    :func:`_brackets_prep`)."""
+    T, B = Rc.shape[0], Rc.shape[1]
+    Q = prep[-1]
+    starts, items = _csr(tiles, blk, T)
     acc = [np.zeros((T, B, 4)) for _ in range(4)]
-    ck.band_brackets(np.ascontiguousarray(Rc), starts, items, np.ascontiguousarray(cb_leaf), np.cos(ab_leaf),
-                     np.sin(ab_leaf), _pad4(M0, Q), m1, m2, 1.0 in s_list, 2.0 in s_list, *acc)
+    ck.band_brackets(np.ascontiguousarray(Rc), starts, items, *prep[:-1], 1.0 in s_list, 2.0 in s_list, *acc)
     for s, (nn, ee) in ((1.0, acc[:2]), (2.0, acc[2:])):
         if s in num:
             num[s] += nn[..., :Q]
@@ -637,7 +644,7 @@ def convolve_moment_many(
         """num/err of the output tiles ``tsel`` with leaf size ``lf`` (1: exact band)."""
         LAST_INFO["leaf_tiles"][lf] = int(tsel.size)
         stop = lf if lf > 1 else min(gather, P)
-        M0 = M1 = M2 = None
+        M0 = M1 = M2 = prep = None
         if lf == 1:
             F = _texel_moments(dP, wP, Q, need2)
             levels = _block_levels(dP, real, F, P, stop)
@@ -689,8 +696,9 @@ def convolve_moment_many(
                 _band_exact(Rc, tiles, blk, bdT, bw_pad, s_list, num_c, chunk_elems)
             else:
                 if ck is not None:
-                    _band_brackets_compiled(ck, Rc, tiles, blk, levels[-1][2], levels[-1][3], M0, M1, M2, s_list,
-                                            num_c, err_c)
+                    if prep is None:
+                        prep = _brackets_prep(levels[-1][2], levels[-1][3], M0, M1, M2)
+                    _band_brackets_compiled(ck, Rc, tiles, blk, prep, s_list, num_c, err_c)
                 else:
                     _band_brackets(Rc, tiles, blk, levels[-1][2], levels[-1][3], M0, M1, M2, s_list, num_c, err_c,
                                    chunk_elems)

@@ -131,6 +131,7 @@ __all__ = [
     "cutoff_angle",
     "SparseInfo",
     "lobe_average",
+    "estimate_candidates",
 ]
 
 #: target size of one chunk's weight matrix, in float64 elements (2 MB: the passes stay in cache)
@@ -485,6 +486,17 @@ def neglected_weight_bound(s: float, theta_c: float, rho: float) -> float:
     if theta_c >= 2.0 * rho:
         b = min(b, _log_bound_integral(s, theta_c, rho))
     return b
+
+
+@functools.lru_cache(maxsize=64)
+def _wb_grid(s: float, rho: float, cap_min: float, top: float):
+    """θ from cap_min to top in steps of ρ/4 (and π/2), and the running minimum of log W_b(s, θ, ρ) there
+    (:func:`convolve_sparse_many`); cached per arguments (read-only arrays)."""
+    grid = np.append(np.arange(cap_min, top, max(rho / 4.0, 1e-5)), np.pi / 2)
+    log_wb_grid = np.minimum.accumulate([neglected_weight_bound(s, g, rho) for g in grid])
+    grid.flags.writeable = False
+    log_wb_grid.flags.writeable = False
+    return grid, log_wb_grid
 
 
 @functools.lru_cache(maxsize=1024)
@@ -957,6 +969,7 @@ def convolve_sparse_many(
     kernel: str = "auto",
     dark_floor: float = 1e-6,
     impl: str = "numpy",
+    _sample: int = 0,
 ):
     """Truncated-support gather of the normalised Eq. 4 lobe average, several exponents.
 
@@ -970,6 +983,10 @@ def convolve_sparse_many(
     weights, the bright set) in :func:`ibl_ref.groundtruth.compiled_kernels.tile_gather` (float64; its rounding
     bound, :func:`~ibl_ref.groundtruth.compiled_kernels.weight_error`, replaces the float32 kernel's in the
     bound); tiles, caps, attempts and the bound are the same code as for ``impl="numpy"``.
+
+    ``_sample > 0`` (used by the planner of :func:`ibl_ref.groundtruth.convolve.convolve`, see
+    :func:`estimate_candidates`): no gather; the first attempt's caps of that many evenly spaced tiles only,
+    returned as the mean number of source texels per output texel, one per exponent.
     """
     a, squeeze = check_cube(cube)
     n = a.shape[1]
@@ -1050,6 +1067,9 @@ def convolve_sparse_many(
 
     for k, s in enumerate(s_list):
         if not np.isfinite(s):
+            if _sample:
+                infos.append(1.0)
+                continue
             maps[k] = _mirror(a, out_size)[list(faces)].reshape(-1, C)
             infos.append(SparseInfo(s, 0.0, rho, 0.0, -np.inf, 0, 1.0 / M))
             continue
@@ -1060,6 +1080,9 @@ def convolve_sparse_many(
             th = float(min(max(theta_c, 0.0), np.pi / 2))
         if (1.0 - math.cos(min(th, np.pi))) / 2.0 > 0.4:
             # the cap covers most of the lobe's hemisphere: the dense exact gather is cheaper
+            if _sample:
+                infos.append(float(M))
+                continue
             ex = convolve_exact_many(a, [s], supersample=supersample, out_size=out_size)[0][list(faces)].reshape(-1, C)
             maps[k] = ex
             bounds[k] = 1e-12 * ex
@@ -1069,6 +1092,9 @@ def convolve_sparse_many(
         T = (_tile_size(out_size, th, M, int(bright.size), _TILE_OVERHEAD_COMPILED, _CAND_OVERHEAD_COMPILED)
              if compiled else _tile_size(out_size, th, M, int(bright.size)))
         IDX, TD, CEN, ANG, VALID, t_rad0 = _tile_layout(out_size, tuple(faces), T)
+        if _sample:
+            pick = np.unique(np.linspace(0, len(CEN) - 1, min(_sample, len(CEN))).astype(np.intp))
+            IDX, TD, CEN, ANG, VALID = IDX[pick], TD[pick], CEN[pick], ANG[pick], VALID[pick]
         n_t, B = IDX.shape
         a_max = ANG.max(axis=1)
         # the largest tile radius, from face 0 whatever the face subset (all faces have the same tiles): the kernel
@@ -1081,8 +1107,7 @@ def convolve_sparse_many(
         # W_b tabulated from cap_min to beyond every θ a bound looks up (step ρ/4), made non-increasing by a
         # running minimum (W_b(θ') bounds every texel beyond θ ≥ θ': valid); a texel uses the grid angle ≤ its θ
         top = min(th_far + t_rad + 2.0 * _ANGLE_MARGIN, np.pi / 2)
-        grid = np.append(np.arange(cap_min, top, max(rho / 4.0, 1e-5)), np.pi / 2)
-        log_wb_grid = np.minimum.accumulate([neglected_weight_bound(s, g, rho) for g in grid])
+        grid, log_wb_grid = _wb_grid(float(s), float(rho), float(cap_min), float(top))
 
         def cap_for(eps_t):
             i = np.searchsorted(-log_wb_grid, -(np.log(eps_t) + log_lobe), side="left")
@@ -1141,6 +1166,10 @@ def convolve_sparse_many(
                 eps1 = np.minimum(_CAP_MARGIN * tau_near / np.maximum(kap, 1e-12), 0.5)
                 eps2 = np.minimum(_CAP_MARGIN * tau_near / np.maximum(kap, 1.0), 0.5)
             attempts = [cap_for(eps1), cap_for(eps2), np.full(n_t, th_far)]
+        if _sample:
+            q0 = attempts[0] + a_max + _ANGLE_MARGIN
+            infos.append(float(np.mean((1.0 - np.cos(np.minimum(q0, np.pi))) / 2.0 * M)) + bright.size)
+            continue
         todo = np.arange(n_t)
         prev = np.full(n_t, -1.0)
         gathered = 0
@@ -1260,9 +1289,19 @@ def convolve_sparse_many(
                                 float(neglected_weight_bound(s, float(caps_used.max()), rho)), int(bright.size),
                                 gathered / (P * M), float(caps_used.min()), int(retried),
                                 "compiled" if compiled else ("float32" if use32 else "float64")))
+    if _sample:
+        return infos
     shape = (K, nF, out_size, out_size) + (() if squeeze else (C,))
     out = (maps.reshape(shape), bounds.reshape(shape))
     return out + (infos,) if return_info else out
+
+
+def estimate_candidates(cube, exponents, *, rtol: float = 1e-3, out_size: int | None = None, impl: str = "numpy",
+                        sample: int = 256) -> list:
+    """Per exponent, the mean number of source texels per output texel the sparse gather collects in its first
+    attempt (its own cap rule — local radiance extremes, per-tile caps — on ``sample`` evenly spaced tiles of every
+    face): what its cost grows with, for the planner.  Retries (tiles whose bound misses rtol) are not included."""
+    return convolve_sparse_many(cube, exponents, rtol=rtol, out_size=out_size, impl=impl, _sample=sample)
 
 
 def convolve_sparse(

@@ -85,6 +85,7 @@ only underflow to 0 near the poles, where they are negligible).
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -173,12 +174,45 @@ def _threshold_candidates(lum):
     return cands
 
 
+#: face size of the coarse map whose exact lobe averages estimate the darkest output texel (:func:`_output_floor`)
+FLOOR_FACE = 16
+#: the planner takes this share of that estimate as the output floor (minima narrower than a coarse texel)
+FLOOR_SAFETY = 0.5
+#: an exponent whose band limit would fit L_max with a floor this many times higher is "within reach": the
+#: planner of :func:`ibl_ref.groundtruth.convolve.convolve` may try it at L_max (the bound is checked after)
+FLOOR_REACH = 10.0
+
+
+def _output_floor(rad, s_list):
+    """Per exponent, an estimate of the smallest lobe average of the output (over texels and channels):
+    :data:`FLOOR_SAFETY` × the minimum of the exact lobe averages of a coarse copy of the map (face size
+    :data:`FLOOR_FACE`, each coarse texel the solid-angle-weighted mean of the texels whose face position falls in
+    it).  On the CC0 probes at 256² it is within 0.86–1.0 of the darkest output texel of the SH route at L = 160
+    (s = 16, 256), where the band-4 SH preview used before rang below zero (probes with a dark ground)."""
+    from .phong_convolution import convolve_exact_many
+
+    M, C = rad.shape
+    n = int(round(math.sqrt(M / 6)))
+    nc = min(n, FLOOR_FACE)
+    om = envmap.cube_solid_angles(n)
+    idx = (np.arange(n) * nc) // n
+    flat = (np.arange(6)[:, None, None] * nc * nc + (idx[:, None] * nc + idx[None, :])[None]).ravel()
+    oc = np.bincount(flat, om.ravel(), 6 * nc * nc)
+    a = rad.reshape(6, n, n, C)
+    coarse = np.stack([np.bincount(flat, (a[..., c] * om).ravel(), 6 * nc * nc) for c in range(C)], axis=-1)
+    coarse = (coarse / oc[:, None]).reshape(6, nc, nc, C)
+    ys = convolve_exact_many(coarse, list(s_list))
+    return FLOOR_SAFETY * ys.reshape(len(s_list), -1).min(axis=1)
+
+
 def _plan(rad, omega, src, n_out, s_list, rtol, rho, hybrid, tau, L_max, estimate=False):
     """Choose the sun threshold τ and band limit L from the a-priori bound and a cost model.
 
     Returns dict with ``L`` (joint band limit; None if no candidate meets rtol within L_max and
     ``estimate`` is False), ``tau``, ``L_per_s`` (band limit each exponent needs for the rigorous bound,
-    None if > L_max), ``L_est`` (exponent → band limit used in estimate mode) and ``cost``.
+    None if > L_max), ``L_est`` (exponent → band limit used in estimate mode), ``reach`` (per exponent: would
+    fit L_max with a :data:`FLOOR_REACH` times higher output floor), ``n_bright`` and ``cost``.  The output floor of
+    each exponent is :func:`_output_floor`.
     """
     C = rad.shape[1]
     lum = rad.max(axis=1)
@@ -189,18 +223,16 @@ def _plan(rad, omega, src, n_out, s_list, rtol, rho, hybrid, tau, L_max, estimat
         cands = [(int(np.count_nonzero(lum > tau)), float(tau))]
     else:
         cands = _threshold_candidates(lum)
-    # a-priori lower estimate of the output: a cheap low-order preview of the clipped remainder
-    tau_p = cands[-1][1]
-    rem = np.minimum(rad, tau_p)
-    sub = slice(None, None, max(1, src.shape[0] // 2000))
-    prev = sh_lobe_convolve(src, np.concatenate([rem, np.ones((rem.shape[0], 1))], 1) * omega[:, None],
-                            src[sub], zonal_coefficients(float(np.median(s_list)), 4)[None])[0]
-    y_lo = max(m_min, 0.8 * float(np.min(prev[:, :C] / np.maximum(prev[:, C:], 1e-300))), 1e-300)
+    # a-priori estimate of the darkest output texel, per exponent
+    y_lo = np.maximum(np.maximum(_output_floor(rad, s_list), m_min), 1e-300)
     best = None
     K = len(s_list)
+    reach = [False] * K
     for nb, tau_k in cands:
-        eta_t = 0.8 * rtol * min(1.0, y_lo / max(tau_k - m_min, 1e-300))
-        Ls = [choose_band_limit(s, eta_t, rho, L_max) for s in s_list]
+        eta_t = [0.8 * rtol * min(1.0, y / max(tau_k - m_min, 1e-300)) for y in y_lo]
+        Ls = [choose_band_limit(s, e, rho, L_max) for s, e in zip(s_list, eta_t)]
+        reach = [r or choose_band_limit(s, min(FLOOR_REACH * e, 0.8 * rtol), rho, L_max) is not None
+                 for r, s, e in zip(reach, s_list, eta_t)]
         L_est = {s: _estimate_band_limit(s, rtol, rho) for s, x in zip(s_list, Ls) if x is None} if estimate else {}
         feas = [x for x in Ls if x is not None] + list(L_est.values())
         if not feas:
@@ -211,8 +243,10 @@ def _plan(rad, omega, src, n_out, s_list, rtol, rho, hybrid, tau, L_max, estimat
         if best is None or key < best[0]:
             best = (key, Lk, nb, tau_k, Ls, L_est)
     if best is None:
-        return {"L": None, "tau": cands[-1][1], "L_per_s": [None] * K, "L_est": {}, "cost": np.inf}
-    return {"L": best[1], "tau": best[3], "L_per_s": best[4], "L_est": best[5], "cost": best[0][1]}
+        return {"L": None, "tau": cands[-1][1], "L_per_s": [None] * K, "L_est": {}, "cost": np.inf, "reach": reach,
+                "n_bright": cands[-1][0], "floor": [float(y) for y in y_lo]}
+    return {"L": best[1], "tau": best[3], "L_per_s": best[4], "L_est": best[5], "cost": best[0][1], "reach": reach,
+            "n_bright": best[2], "floor": [float(y) for y in y_lo]}
 
 
 #: largest band limit used for exponents whose rigorous bound cannot meet rtol (estimate mode)
