@@ -967,10 +967,18 @@ def sh_evaluate(reps, Be, Bo, L, row_of, cls_of, a_tab, b_tab, V):
                             out[c0 + d] += y[d] * bc
 
 
+#: True once :func:`warm_up` ran in this process
+WARM = False
+
+
 def warm_up():
-    """Compile (or load from the cache) every kernel on a tiny input; returns the seconds it took."""
+    """Compile (or load from the cache) every kernel on a tiny input, once per process (before workers are
+    forked, so that they inherit the machine code); returns the seconds it took (0 when done already)."""
+    global WARM
     import time
 
+    if WARM:
+        return 0.0
     t0 = time.perf_counter()
     from ..environment import envmap
 
@@ -1007,4 +1015,5 @@ def warm_up():
     sh_matrix(d[:3].copy(), 2, tabs[0], tabs[1], dest, np.zeros((ne + no, 3)))
     point_gather(d[:3].copy(), d[:2].copy(), np.ones((2, 4)), np.array([2.0, 2.5]), np.array([2, 0], dtype=np.int64),
                  np.zeros((2, 4, 3)))
+    WARM = True
     return time.perf_counter() - t0

@@ -620,6 +620,9 @@ def convolve(
     from .kernel_choice import resolve_kernel
 
     impl = resolve_kernel(kernel)
+    from .kernel_choice import KERNEL_ENV
+
+    kernel_auto = (kernel if kernel is not None else os.environ.get(KERNEL_ENV, "").strip().lower() or "auto") == "auto"
     if memory_limit is not None:
         try:
             memory_limit = float(memory_limit)
@@ -627,10 +630,14 @@ def convolve(
             raise IBLError(f"memory_limit must be a number of bytes, got {memory_limit!r}") from None
         if not memory_limit > 0:
             raise IBLError(f"memory_limit must be positive, got {memory_limit!r}")
+    kernel_note = None
+    if impl == "compiled" and kernel_auto:
+        with threadpool_limits(limits=1, user_api="blas"):
+            impl, kernel_note = _auto_kernel(a4, s_list, method, rtol, out_size, normalized)
     executor, owned_client = resolve_executor(executor)
     try:
         return _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, workers, backend,
-                         executor, memory_limit, scale_k, t_start, c_start, impl)
+                         executor, memory_limit, scale_k, t_start, c_start, impl, kernel_note)
     finally:
         if owned_client is not None:
             owned_client.close()
@@ -652,7 +659,7 @@ def _sh_pass_cost(L, n_bright, n_src, n_out, K, Q, impl):
             + _unit("SH_BRIGHT_FACTOR", impl) * shc.bright_cost(n_bright, n_out, K) + shc.SH_OVERHEAD_UNITS)
 
 
-def _route_auto(a4, s_list, rtol, out_size, normalized, info, impl="numpy"):
+def _route_auto(a4, s_list, rtol, out_size, normalized, info, impl="numpy", estimate=True):
     """Method per exponent for ``method="auto"`` (module docstring): ``(route, SH plan or None, SH set)``.
 
     Every finite exponent gets the cheapest of its routes by the cost models of the kernel ``impl``: the exact
@@ -682,7 +689,7 @@ def _route_auto(a4, s_list, rtol, out_size, normalized, info, impl="numpy"):
     if not finite:
         return route, None, []
     c_sp = {s: (_sparse_cost(s, rtol, n_src, n_out, impl) if normalized else np.inf) for s in finite}
-    big = [s for s in finite if np.isfinite(c_sp[s]) and c_sp[s] * unit >= SPARSE_ESTIMATE_MIN_SECONDS]
+    big = [s for s in finite if estimate and np.isfinite(c_sp[s]) and c_sp[s] * unit >= SPARSE_ESTIMATE_MIN_SECONDS]
     if big:  # the real caps of this map (its contrast sets them), on a sample of tiles
         from .phong_convolution import estimate_candidates
 
@@ -742,6 +749,32 @@ def _route_auto(a4, s_list, rtol, out_size, normalized, info, impl="numpy"):
     if grp and plan is not None and len(grp) != len(finite):
         plan = shc.plan_sh(a4, grp, rtol=rtol, out_size=out_size)  # the plan of exactly the SH set
     return route, (plan if grp else None), grp
+
+
+#: work (output × source texels × exponents) from which ``kernel="auto"`` takes the compiled kernels without
+#: comparing the models (their load time is then a small part)
+AUTO_COMPILED_PAIRS = 2e11
+
+
+def _auto_kernel(a4, s_list, method, rtol, out_size, normalized):
+    """``kernel="auto"`` with numba installed: ``("compiled", None)`` when the compiled kernels are loaded in this
+    process already or the work is large, else the kernel whose model cost plus load time
+    (:data:`~ibl_ref.groundtruth.kernel_choice.COMPILED_LOAD_SECONDS`) is smaller, with a note why."""
+    from .kernel_choice import COMPILED_LOAD_SECONDS, compiled_loaded
+
+    n = a4.shape[1]
+    if compiled_loaded() or 36 * n * n * out_size * out_size * len(s_list) >= AUTO_COMPILED_PAIRS:
+        return "compiled", None
+    cost = {}
+    for impl in ("numpy", "compiled"):
+        info = {}
+        _route_auto(a4, s_list, rtol, out_size, normalized, info, impl, estimate=False)
+        costs = info.get("route_model_costs_s", {})
+        cost[impl] = costs.get("auto" if method == "auto" else method, costs.get("auto", 0.0))
+    if cost["numpy"] <= cost["compiled"] + COMPILED_LOAD_SECONDS:
+        return "numpy", (f"numpy: model {cost['numpy']:.2f} s vs compiled {cost['compiled']:.2f} s + "
+                         f"{COMPILED_LOAD_SECONDS:.2f} s to load it")
+    return "compiled", None
 
 
 def plan_routes(cube, exponents, *, rtol: float = 1e-3, out_size: int | None = None, normalized: bool = True,
@@ -883,16 +916,23 @@ def _round_workers(jobs, a4, out_size, workers, executor, memory_limit, need2):
 
 
 def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, workers, backend, executor,
-              memory_limit, scale_k, t_start, c_start, impl="numpy"):
+              memory_limit, scale_k, t_start, c_start, impl="numpy", kernel_note=None):
     """Body of :func:`convolve` after the argument checks (routing, jobs, collection)."""
 
     res = ConvolutionResult()
+    if kernel_note:
+        res.info["kernel_auto"] = kernel_note
+    if impl == "compiled":
+        from .kernel_choice import compiled
+
+        res.info["kernel_load_s"] = compiled().warm_up()
     timings = {"sh": 0.0, "sparse": 0.0, "exact": 0.0, "moment": 0.0}
 
     # ---- route every exponent ----------------------------------------------------------------
     plan, finite = None, []
     if method == "auto":
-        route, plan, finite = _route_auto(a4, s_list, rtol, out_size, normalized, res.info, impl)
+        with threadpool_limits(limits=1, user_api="blas"):
+            route, plan, finite = _route_auto(a4, s_list, rtol, out_size, normalized, res.info, impl)
     else:
         route = {s: method for s in s_list}
 

@@ -13,8 +13,11 @@ Two implementations of the same quadratures:
 
 The switch: the ``kernel=`` argument of :func:`ibl_ref.groundtruth.convolve.convolve`, ``ibl-ref convolve
 --kernel``, or the environment variable :data:`KERNEL_ENV` (``IBL_REF_KERNEL``) when the argument is not
-given.  ``"auto"`` (the default) is ``"compiled"`` when numba can be imported, else ``"numpy"``; asking for
-``"compiled"`` without numba is a one-line :class:`~ibl_ref.errors.IBLError`.  :func:`resolve_kernel` only
+given.  ``"auto"`` (the default) is ``"compiled"`` when numba can be imported, else ``"numpy"`` — except that
+:func:`ibl_ref.groundtruth.convolve.convolve` keeps the NumPy kernels for a call whose model cost with them is
+below the compiled one plus :data:`COMPILED_LOAD_SECONDS` in a process that has not loaded the compiled kernels yet
+(a small map in a fresh process: loading them would cost more than they save; ``info["kernel_auto"]`` says so);
+asking for ``"compiled"`` without numba is a one-line :class:`~ibl_ref.errors.IBLError`.  :func:`resolve_kernel` only
 looks numba up (``importlib.util.find_spec``); importing it (≈ 0.15 s) and loading the compiled code from
 the cache happen on first use (:func:`compiled`).
 """
@@ -26,12 +29,16 @@ import os
 
 from ..errors import IBLError
 
-__all__ = ["KERNELS", "KERNEL_ENV", "resolve_kernel", "numba_available", "compiled"]
+__all__ = ["KERNELS", "KERNEL_ENV", "COMPILED_LOAD_SECONDS", "resolve_kernel", "numba_available", "compiled",
+           "compiled_loaded"]
 
 #: accepted values of the ``kernel`` switch
 KERNELS = ("auto", "numpy", "compiled")
 #: environment variable read when ``kernel`` is not given
 KERNEL_ENV = "IBL_REF_KERNEL"
+#: seconds a process pays once to use the compiled kernels: ``import numba`` (≈ 0.3 s) and loading every kernel
+#: from the cache (≈ 0.55 s; measured 0.80–0.92 s in fresh processes, 2-core machine, load ≈ 2.5)
+COMPILED_LOAD_SECONDS = 0.85
 
 
 def numba_available() -> bool:
@@ -56,6 +63,14 @@ def resolve_kernel(kernel=None) -> str:
         raise IBLError(f"{source} = 'compiled' needs numba, which is not installed: "
                        "pip install 'ibl_ref[fast]', or use kernel 'numpy'")
     return kernel
+
+
+def compiled_loaded() -> bool:
+    """True when this process has loaded the compiled kernels already (:func:`compiled` and their warm-up)."""
+    import sys
+
+    mod = sys.modules.get("ibl_ref.groundtruth.compiled_kernels")
+    return bool(mod is not None and getattr(mod, "WARM", False))
 
 
 def compiled():

@@ -192,6 +192,9 @@ def _output_floor(rad, s_list):
     from .phong_convolution import convolve_exact_many
 
     M, C = rad.shape
+    key = (rad.shape, float(rad.sum()), float(rad[:: max(1, M // 997)].sum()), float(rad.max()), tuple(s_list))
+    if key in _FLOOR_CACHE:  # the same map planned again in one call (kernel choice, then routing)
+        return _FLOOR_CACHE[key]
     n = int(round(math.sqrt(M / 6)))
     nc = min(n, FLOOR_FACE)
     om = envmap.cube_solid_angles(n)
@@ -202,7 +205,15 @@ def _output_floor(rad, s_list):
     coarse = np.stack([np.bincount(flat, (a[..., c] * om).ravel(), 6 * nc * nc) for c in range(C)], axis=-1)
     coarse = (coarse / oc[:, None]).reshape(6, nc, nc, C)
     ys = convolve_exact_many(coarse, list(s_list))
-    return FLOOR_SAFETY * ys.reshape(len(s_list), -1).min(axis=1)
+    out = FLOOR_SAFETY * ys.reshape(len(s_list), -1).min(axis=1)
+    if len(_FLOOR_CACHE) > 16:
+        _FLOOR_CACHE.clear()
+    _FLOOR_CACHE[key] = out
+    return out
+
+
+#: the last floors of :func:`_output_floor`, keyed by a fingerprint of the map and the exponents (planning only)
+_FLOOR_CACHE: dict = {}
 
 
 def _plan(rad, omega, src, n_out, s_list, rtol, rho, hybrid, tau, L_max, estimate=False):
