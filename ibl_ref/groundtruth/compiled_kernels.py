@@ -40,8 +40,8 @@ from numba import types
 from numba.extending import intrinsic
 
 __all__ = ["EXP_REL", "LOG_ABS", "LOG_REL", "POWI_MAX", "C0", "CACHE_NOTE", "tile_gather", "cap_count", "cone_extremes", "band_exact",
-           "band_brackets", "sh_project", "sh_evaluate", "sh_matrix", "SH_BLOCK",
-           "point_gather",
+           "band_brackets", "sh_project", "sh_matrix", "SH_BLOCK",
+           "point_gather", "sh_values_bounds",
            "weight_error", "sum_error", "warm_up"]
 
 #: relative error bound of :func:`exp_` for results ≥ 2^-1021 (Taylor remainder 4.5e-18/e^-0.347, Horner
@@ -724,46 +724,97 @@ def band_brackets(R, starts, blocks, cb, ca, sa, M0, M1, M2, do1, do2, num1, err
 @_jit(fastmath={"contract"})
 def point_gather(out_dirs, b_dirs, b_w, s_arr, s_int, res):
     """Exact ``res[k, q, p] += Σ_b b_w[b, q]·max(r_p·ω_b, 0)^{s_k}`` (absolute weights: ``c^s`` by :func:`powi_` where
-    ``s_int[k] > 0``, else ``exp(s·log c)``) — the SH route's gather from its few bright texels.  Relative error
-    of every term ≤ :func:`weight_error` (η for c ≥ :data:`C0`, ε absolute below)."""
+    ``s_int[k] > 0``, else ``exp(s·log c)``) — the SH route's gather from its few bright texels; blocks of 256
+    outputs, their sums in the cache.  Relative error of every term ≤ :func:`weight_error` (η for c ≥ :data:`C0`,
+    ε absolute below)."""
     P = out_dirs.shape[0]
     nb = b_dirs.shape[0]
     K = s_arr.shape[0]
-    X = np.ascontiguousarray(out_dirs[:, 0])
-    Y = np.ascontiguousarray(out_dirs[:, 1])
-    Z = np.ascontiguousarray(out_dirs[:, 2])
-    for k in range(K):
-        s = s_arr[k]
-        si = s_int[k]
-        r0 = res[k, 0]
-        r1 = res[k, 1]
-        r2 = res[k, 2]
-        r3 = res[k, 3]
+    BL = 256
+    X = np.empty(BL)
+    Y = np.empty(BL)
+    Z = np.empty(BL)
+    c = np.empty(BL)
+    acc = np.zeros((K, 4, BL))
+    for p0 in range(0, P, BL):
+        m = min(BL, P - p0)
+        for i in range(m):
+            X[i] = out_dirs[p0 + i, 0]
+            Y[i] = out_dirs[p0 + i, 1]
+            Z[i] = out_dirs[p0 + i, 2]
+        acc[:] = 0.0
         for b in range(nb):
             bx = b_dirs[b, 0]
             by = b_dirs[b, 1]
             bz = b_dirs[b, 2]
-            w0 = b_w[b, 0]
-            w1 = b_w[b, 1]
-            w2 = b_w[b, 2]
-            w3 = b_w[b, 3]
-            if si > 0:
-                for p in range(P):
-                    c = max(X[p] * bx + Y[p] * by + Z[p] * bz, 0.0)
-                    w = powi_(c, si)
-                    r0[p] += w * w0
-                    r1[p] += w * w1
-                    r2[p] += w * w2
-                    r3[p] += w * w3
-            else:
-                for p in range(P):
-                    c = X[p] * bx + Y[p] * by + Z[p] * bz
-                    w = exp_(s * log_(max(c, 1e-300)))
-                    w = w if c > 0.0 else 0.0
-                    r0[p] += w * w0
-                    r1[p] += w * w1
-                    r2[p] += w * w2
-                    r3[p] += w * w3
+            for i in range(m):
+                c[i] = X[i] * bx + Y[i] * by + Z[i] * bz
+            for k in range(K):
+                s = s_arr[k]
+                si = s_int[k]
+                w0 = b_w[b, 0]
+                w1 = b_w[b, 1]
+                w2 = b_w[b, 2]
+                w3 = b_w[b, 3]
+                a0 = acc[k, 0]
+                a1 = acc[k, 1]
+                a2 = acc[k, 2]
+                a3 = acc[k, 3]
+                if si > 0:
+                    for i in range(m):
+                        w = powi_(max(c[i], 0.0), si)
+                        a0[i] += w * w0
+                        a1[i] += w * w1
+                        a2[i] += w * w2
+                        a3[i] += w * w3
+                else:
+                    for i in range(m):
+                        w = exp_(s * log_(max(c[i], 1e-300)))
+                        w = w if c[i] > 0.0 else 0.0
+                        a0[i] += w * w0
+                        a1[i] += w * w1
+                        a2[i] += w * w2
+                        a3[i] += w * w3
+        for k in range(K):
+            for q in range(4):
+                for i in range(m):
+                    res[k, q, p0 + i] += acc[k, q, i]
+
+
+@_jit(fastmath={"contract"})
+def sh_values_bounds(shq, nb, E, d_nb, tau_eff, m_rem, normalized, maps, rel):
+    """The lobe averages and rigorous relative bounds of the SH route per texel (the formulas of
+    :func:`ibl_ref.groundtruth.sh_convolution._values_and_bounds`, in one pass): ``shq`` (K', p, C+1) the SH sums
+    (the last column the weight), ``nb`` (K, p, C) the bright gather, ``E`` (K,) the truncation envelopes with the
+    rounding allowance, ``d_nb`` (K, p, C) the bright gather's own error bound (absolute)."""
+    K = nb.shape[0]
+    P = nb.shape[1]
+    C = nb.shape[2]
+    for k in range(K):
+        EL = E[k]
+        for p in range(P):
+            den = shq[k, p, C]
+            worst = 0.0
+            for c in range(C):
+                num = shq[k, p, c] + nb[k, p, c]
+                if normalized:
+                    y = num / den if den > 0.0 else 0.0
+                    if den > EL and den > 0.0:
+                        eta = EL / den
+                        if eta < 1.0:
+                            A = max((tau_eff - m_rem) * eta, max(y - m_rem, 0.0) * eta / max(1.0 - eta, 1e-300))
+                        else:
+                            A = np.inf
+                    else:
+                        A = np.inf
+                    A = A + (d_nb[k, p, c] / den if den > 0.0 else np.inf)
+                else:
+                    y = num
+                    A = tau_eff * EL + d_nb[k, p, c]
+                r = A / max(y - A, 1e-300) if y > A else np.inf
+                worst = max(worst, r)
+                maps[k, p, c] = y
+            rel[k, p] = worst
 
 
 # ----------------------------------------------------------------------------------------------
@@ -927,93 +978,59 @@ def sh_matrix(reps, L, row_of, cls_of, dest, out):
                             o[c0 + d] = pc[m, d] * sm[m, d]
 
 
-@_jit(fastmath={"contract"})
-def sh_evaluate(reps, Be, Bo, L, row_of, cls_of, a_tab, b_tab, V):
-    """``V[κ(row), c, d] += Y_row(reps[d]) · B[row, c]`` over every real SH row of band ≤ L (``Be``/``Bo`` the
-    even/odd coefficient rows, (rows, KQ); ``V`` (8, KQ, n)), block by block of :data:`SH_BLOCK` directions
-    without an SH matrix; every V entry is accumulated in the fixed row order."""
-    n = reps.shape[0]
-    KQ = Be.shape[1]
-    B = SH_BLOCK
-    x = np.empty(B)
-    st = np.empty(B)
-    cm = np.empty((L + 1, B))
-    sm = np.empty((L + 1, B))
-    P = np.zeros((3, L + 1, B))
-    y = np.empty(B)
-    for c0 in range(0, n, B):
-        ch = min(B, n - c0)
-        _sh_block_setup(reps, c0, ch, L, x, st, cm, sm)
-        for ell in range(L + 1):
-            pc = P[ell % 3]
-            _legendre_band(ell, x, st, ch, P[(ell + 2) % 3], P[(ell + 1) % 3], pc, a_tab, b_tab)
-            for m in range(ell + 1):
-                for kind in range(2):
-                    if kind == 1 and m == 0:
-                        continue
-                    row = row_of[ell, m, kind]
-                    k = cls_of[ell, m, kind]
-                    if kind == 0:
-                        for d in range(ch):
-                            y[d] = pc[m, d] * cm[m, d]
-                    else:
-                        for d in range(ch):
-                            y[d] = pc[m, d] * sm[m, d]
-                    Brow = Be[row] if (ell + m) % 2 == 0 else Bo[row]
-                    for c in range(KQ):
-                        bc = Brow[c]
-                        out = V[k, c]
-                        for d in range(ch):
-                            out[c0 + d] += y[d] * bc
+#: the kernel groups :func:`warm_up` has loaded in this process
+WARM: set = set()
+#: kernel groups per route of :func:`ibl_ref.groundtruth.convolve.convolve`
+STAGES = ("sparse", "moment", "sh")
 
 
-#: True once :func:`warm_up` ran in this process
-WARM = False
-
-
-def warm_up():
-    """Compile (or load from the cache) every kernel on a tiny input, once per process (before workers are
-    forked, so that they inherit the machine code); returns the seconds it took (0 when done already)."""
-    global WARM
+def warm_up(stages=STAGES):
+    """Compile (or load from the cache) the kernels of ``stages`` on tiny inputs, once per process (before workers
+    are forked, so that they inherit the machine code); returns the seconds it took (0 when done already)."""
     import time
 
-    if WARM:
+    todo = [st for st in stages if st in STAGES and st not in WARM]
+    if not todo:
         return 0.0
     t0 = time.perf_counter()
     from ..environment import envmap
 
     n = 2
     d = envmap.texel_directions(n).reshape(-1, 3)
-    X, Y, Z = (np.ascontiguousarray(d[:, i]) for i in range(3))
-    RW = np.ones((4, d.shape[0]))
-    fr = envmap.face_frames("openexr")
-    cen = d[:2].copy()
-    rows = d[:2].reshape(2, 1, 3).copy()
-    for s_int, rowmax in ((2, False), (0, True)):
-        tile_gather(cen, rows, np.full(2, 0.5), fr, n, X, Y, Z, RW, np.zeros((0, 3)), np.zeros((0, 4)), 2.0, s_int,
-                    rowmax, 1e-300, np.zeros((2, 1, 4)), np.zeros((2, 1)), np.zeros(2, dtype=np.int64))
-    cap_count(cen[0], 0.5, fr, n)
-    mem = np.array([[0, 1, -1, -1]])
-    cone_extremes(cen, np.full(2, 0.5), d[:2].copy(), 0.1, np.ones((2, 3)), np.ones((2, 3)), d[:1].copy(), 0.3, mem,
-                  np.zeros((2, 3)), np.zeros((2, 3)))
-    R = d[:2].reshape(2, 1, 3).copy()
-    st = np.array([0, 1, 2], dtype=np.int64)
-    tx = np.array([0, 1], dtype=np.int64)
-    band_exact(R, st, tx, d, np.ones((d.shape[0], 4)), True, True, np.zeros((2, 1, 4)), np.zeros((2, 1, 4)))
-    z = [np.zeros((2, 1, 4)) for _ in range(4)]
-    band_brackets(R, st, tx, d, np.ones(d.shape[0]), np.zeros(d.shape[0]), np.ones((d.shape[0], 4)),
-                  np.ones((d.shape[0], 3, 4)), np.ones((d.shape[0], 6, 4)), True, True, *z)
-    from .sh_basis import _row_layout, compiled_tables
+    if "sparse" in todo:
+        X, Y, Z = (np.ascontiguousarray(d[:, i]) for i in range(3))
+        RW = np.ones((4, d.shape[0]))
+        fr = envmap.face_frames("openexr")
+        cen = d[:2].copy()
+        rows = d[:2].reshape(2, 1, 3).copy()
+        for s_int, rowmax in ((2, False), (0, True)):
+            tile_gather(cen, rows, np.full(2, 0.5), fr, n, X, Y, Z, RW, np.zeros((0, 3)), np.zeros((0, 4)), 2.0,
+                        s_int, rowmax, 1e-300, np.zeros((2, 1, 4)), np.zeros((2, 1)), np.zeros(2, dtype=np.int64))
+        cap_count(cen[0], 0.5, fr, n)
+        mem = np.array([[0, 1, -1, -1]])
+        cone_extremes(cen, np.full(2, 0.5), d[:2].copy(), 0.1, np.ones((2, 3)), np.ones((2, 3)), d[:1].copy(), 0.3,
+                      mem, np.zeros((2, 3)), np.zeros((2, 3)))
+    if "moment" in todo:
+        R = d[:2].reshape(2, 1, 3).copy()
+        st = np.array([0, 1, 2], dtype=np.int64)
+        tx = np.array([0, 1], dtype=np.int64)
+        band_exact(R, st, tx, d, np.ones((d.shape[0], 4)), True, True, np.zeros((2, 1, 4)), np.zeros((2, 1, 4)))
+        z = [np.zeros((2, 1, 4)) for _ in range(4)]
+        band_brackets(R, st, tx, d, np.ones(d.shape[0]), np.zeros(d.shape[0]), np.ones((d.shape[0], 4)),
+                      np.ones((d.shape[0], 3, 4)), np.ones((d.shape[0], 6, 4)), True, True, *z)
+    if "sh" in todo:
+        from .sh_basis import _row_layout, compiled_tables
 
-    tabs = compiled_tables(2)
-    ne, no = (r.size for r in _row_layout(2))
-    sh_project(d[:3].copy(), np.ones((8, 4, 3)), 2, *tabs, np.zeros((ne, 4)), np.zeros((no, 4)))
-    sh_evaluate(d[:3].copy(), np.ones((ne, 4)), np.ones((no, 4)), 2, *tabs, np.zeros((8, 4, 3)))
-    dest = np.zeros((2, ne), dtype=np.int64)
-    dest[0] = np.arange(ne)
-    dest[1, :no] = ne + np.arange(no)
-    sh_matrix(d[:3].copy(), 2, tabs[0], tabs[1], dest, np.zeros((ne + no, 3)))
-    point_gather(d[:3].copy(), d[:2].copy(), np.ones((2, 4)), np.array([2.0, 2.5]), np.array([2, 0], dtype=np.int64),
-                 np.zeros((2, 4, 3)))
-    WARM = True
+        tabs = compiled_tables(2)
+        ne, no = (r.size for r in _row_layout(2))
+        sh_project(d[:3].copy(), np.ones((8, 4, 3)), 2, *tabs, np.zeros((ne, 4)), np.zeros((no, 4)))
+        dest = np.zeros((2, ne), dtype=np.int64)
+        dest[0] = np.arange(ne)
+        dest[1, :no] = ne + np.arange(no)
+        sh_matrix(d[:3].copy(), 2, tabs[0], tabs[1], dest, np.zeros((ne + no, 3)))
+        point_gather(d[:3].copy(), d[:2].copy(), np.ones((2, 4)), np.array([2.0, 2.5]),
+                     np.array([2, 0], dtype=np.int64), np.zeros((2, 4, 3)))
+        sh_values_bounds(np.ones((1, 2, 4)), np.ones((1, 2, 3)), np.ones(1), np.zeros((1, 2, 3)), 1.0, 0.0, True,
+                         np.zeros((1, 2, 3)), np.zeros((1, 2)))
+    WARM.update(todo)
     return time.perf_counter() - t0

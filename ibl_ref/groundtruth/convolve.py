@@ -499,9 +499,11 @@ SPARSE_UNITS_PER_CAND = 5.04
 SPARSE_UNITS_PER_CAND_OUTPUT = 992.0
 SPARSE_UNITS_PER_CAND_COMPILED = 1.03
 SPARSE_UNITS_PER_CAND_OUTPUT_COMPILED = 1.01e3
-#: the planner estimates the sparse candidates (≈ 0.05–0.5 s) only for exponents whose sparse cost by the static
-#: model is at least this many seconds (below, the choice matters little)
+#: the planner estimates the sparse candidates (≈ 0.05–2 s) only for exponents whose sparse cost by the static
+#: model is at least this many seconds (below, the choice matters little) and not SPARSE_STATIC_SLACK times their SH
+#: pass (the static model was 1.3–3.6× below the measured cost on the CC0 probes at 256², s = 256)
 SPARSE_ESTIMATE_MIN_SECONDS = 0.3
+SPARSE_STATIC_SLACK = 4.0
 
 
 def _sparse_cost_estimated(cand, n_out, impl="numpy"):
@@ -689,8 +691,31 @@ def _route_auto(a4, s_list, rtol, out_size, normalized, info, impl="numpy", esti
     if not finite:
         return route, None, []
     c_sp = {s: (_sparse_cost(s, rtol, n_src, n_out, impl) if normalized else np.inf) for s in finite}
-    big = [s for s in finite if estimate and np.isfinite(c_sp[s]) and c_sp[s] * unit >= SPARSE_ESTIMATE_MIN_SECONDS]
-    if big:  # the real caps of this map (its contrast sets them), on a sample of tiles
+    mo_cand = [s for s in finite if s in MOMENT_EXPONENTS] if n_out * n_src >= MOMENT_MIN_PAIRS else []
+    c_mo = _moment_cost(n, out_size, moment_leaf(n, rtol), impl) if mo_cand else np.inf
+    L_of, risky = {}, set()
+    rest = [s for s in finite if s not in mo_cand]
+    # the SH plan unless no SH pass can beat even 4× the static model of the other routes (which can be ≈ 3× low on
+    # real probes, whose contrast widens the sparse caps)
+    static_other = sum(min(c_sp[s], _exact_cost(s, n_src, n_out, impl)) for s in rest)
+    if not rest or _sh_cannot_pay(rest, SPARSE_STATIC_SLACK * static_other, n, n_src, n_out, Q, impl, rtol):
+        info["sh_plan_skipped"] = True
+    else:
+        plan = shc.plan_sh(a4, finite, rtol=rtol, out_size=out_size)
+    # the sparse gather's real caps on this map (a sample of tiles), where its cost decides: its static model within
+    # SPARSE_STATIC_SLACK of the exponent's own SH pass, or no SH pass planned for it
+    big = []
+    for i, s in enumerate(finite):
+        if not (estimate and np.isfinite(c_sp[s]) and c_sp[s] * unit >= SPARSE_ESTIMATE_MIN_SECONDS):
+            continue
+        L_s = plan["L_per_s"][i] if plan else None
+        alt = _sh_pass_cost(L_s, plan["n_bright"], n_src, n_out, 1, Q, impl) if L_s is not None else np.inf
+        if s in mo_cand:
+            alt = min(alt, c_mo)
+        alt = min(alt, _exact_cost(s, n_src, n_out, impl))
+        if alt / SPARSE_STATIC_SLACK <= c_sp[s] <= SPARSE_STATIC_SLACK * alt:
+            big.append(s)
+    if big:
         from .phong_convolution import estimate_candidates
 
         cand = estimate_candidates(a4, big, rtol=rtol, out_size=out_size, impl=impl)
@@ -701,17 +726,10 @@ def _route_auto(a4, s_list, rtol, out_size, normalized, info, impl="numpy", esti
     for s in finite:
         c_ex = _exact_cost(s, n_src, n_out, impl)
         other[s] = ("sparse", c_sp[s]) if c_sp[s] < c_ex else ("exact", c_ex)
-    mo_cand = [s for s in finite if s in MOMENT_EXPONENTS] if n_out * n_src >= MOMENT_MIN_PAIRS else []
-    c_mo = _moment_cost(n, out_size, moment_leaf(n, rtol), impl) if mo_cand else np.inf
     costs = {"exact": sum(_exact_cost(s, n_src, n_out, impl) for s in finite)}
     if normalized:
         costs["sparse"] = sum(min(c_sp[s], _exact_cost(s, n_src, n_out, impl)) for s in finite)
-    L_of, risky = {}, set()
-    rest = [s for s in finite if s not in mo_cand]
-    if not rest or _sh_cannot_pay(rest, sum(other[s][1] for s in rest), n, n_src, n_out, Q, impl, rtol):
-        info["sh_plan_skipped"] = True
-    else:
-        plan = shc.plan_sh(a4, finite, rtol=rtol, out_size=out_size)
+    if plan is not None:
         info["sh_plan_L_per_s"] = {_s_json(s): L for s, L in zip(finite, plan["L_per_s"])}
         info["sh_plan_floor"] = {_s_json(s): y for s, y in zip(finite, plan["floor"])}
         for s, L_s, r in zip(finite, plan["L_per_s"], plan["reach"]):
@@ -878,8 +896,8 @@ def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_pla
             cost = cost * len(fc) / 6 * SPARSE_JOB_ORDER_FACTOR if np.isfinite(cost) else (
                 pair_units * _unit("EXACT_UNITS_PER_PAIR", impl))
             jobs.append(("sparse", ("sparse", bi, pi), cost,
-                         functools.partial(pc.convolve_sparse_many, a4, list(sb),
-                                           rtol=min(rtol * sc, 0.5), out_size=out_size, faces=fc, impl=impl)))
+                         functools.partial(pc.convolve_sparse_many, a4, list(sb), rtol=min(rtol * sc, 0.5),
+                                           out_size=out_size, faces=fc, impl=impl, return_info=True)))
     if ex_set:
         jobs.append(("exact", ("exact",), _unit("EXACT_UNITS_PER_PAIR", impl) * pair_units * len(ex_set),
                      functools.partial(pc.convolve_exact_many, a4, ex_set, normalized=normalized,
@@ -922,10 +940,7 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
     res = ConvolutionResult()
     if kernel_note:
         res.info["kernel_auto"] = kernel_note
-    if impl == "compiled":
-        from .kernel_choice import compiled
 
-        res.info["kernel_load_s"] = compiled().warm_up()
     timings = {"sh": 0.0, "sparse": 0.0, "exact": 0.0, "moment": 0.0}
 
     # ---- route every exponent ----------------------------------------------------------------
@@ -935,6 +950,13 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
             route, plan, finite = _route_auto(a4, s_list, rtol, out_size, normalized, res.info, impl)
     else:
         route = {s: method for s in s_list}
+
+    if impl == "compiled":  # load the kernels of the routes taken (before any worker is forked)
+        from .kernel_choice import compiled
+
+        stages = {"sparse": "sparse", "moment": "moment", "sh": "sh", "exact": "sparse"}
+        need = {stages[m] for m in route.values()} | ({"sparse"} if "sh" in route.values() else set())  # fallback
+        res.info["kernel_load_s"] = compiled().warm_up(sorted(need))
 
     # ---- execute: rounds of independent jobs (route × output-face part, :func:`_round_jobs`) --------
     results = {}
@@ -1043,6 +1065,11 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
             for bi, (sb, sc, att) in enumerate(sparse_batches):
                 maps = np.concatenate([out[("sparse", bi, pi)][0] for pi in range(len(parts))], axis=1)
                 abs_b = np.concatenate([out[("sparse", bi, pi)][1] for pi in range(len(parts))], axis=1)
+                # (output, source texel) pairs the gathers computed (all attempts), for the benchmarks
+                n_src = 6 * n * n
+                res.info["sparse_pairs"] = res.info.get("sparse_pairs", 0.0) + sum(
+                    i.gathered_fraction * len(fc) * out_size * out_size * n_src
+                    for pi, fc in enumerate(parts) for i in out[("sparse", bi, pi)][2])
                 worst, fb = 0.0, []
                 for k, s in enumerate(sb):
                     rel = _rel_from_abs(maps[k], abs_b[k])

@@ -70,7 +70,7 @@ def compiled_loaded() -> bool:
     import sys
 
     mod = sys.modules.get("ibl_ref.groundtruth.compiled_kernels")
-    return bool(mod is not None and getattr(mod, "WARM", False))
+    return bool(mod is not None and getattr(mod, "WARM", None))
 
 
 def compiled():

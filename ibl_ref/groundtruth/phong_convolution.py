@@ -726,8 +726,9 @@ class _Sources:
         sc, sa, sm = self._sup
         C = self.blk_max.shape[1]
         lmax, lmin = np.empty((len(q), C)), np.empty((len(q), C))
-        ck.cone_extremes(np.ascontiguousarray(cen), np.ascontiguousarray(q, dtype=np.float64), self.cen,
-                         float(self.alpha), self.blk_max, self.blk_min, sc, sa, sm, lmax, lmin)
+        ck.cone_extremes(np.array(cen, dtype=np.float64), np.array(q, dtype=np.float64), np.array(self.cen),
+                         float(self.alpha), self.blk_max, self.blk_min, sc, sa, sm, lmax, lmin)  # writeable copies: one
+        # compiled signature (the cached geometry is read-only)
         return lmax, lmin
 
     def cap_lists(self, cen, q, pad, multiple=1):

@@ -165,7 +165,29 @@ def _mirror_pairs(dirs):
 _SH_CACHE_ELEMS = 1 << 25
 
 
+@functools.lru_cache(maxsize=8)
+def _grid_orbits(n):
+    """:func:`_octant_orbits` of the texel directions of face size n (cached; read-only)."""
+    orb = _octant_orbits_of(envmap.texel_directions(n).reshape(-1, 3))
+    if orb is not None:
+        orb.flags.writeable = False
+    return orb
+
+
 def _octant_orbits(dirs):
+    """:func:`_octant_orbits_of`, taken from a per-size cache when ``dirs`` are the (cached) texel directions of a
+    cube grid."""
+    d = np.asarray(dirs)
+    M = d.shape[0] if d.ndim == 2 else 0
+    n = int(round(math.sqrt(M / 6))) if M else 0
+    if n and 6 * n * n == M:
+        grid = envmap.texel_directions(n)
+        if d.base is grid or d is grid or (d.base is not None and d.base is grid.base):
+            return _grid_orbits(n)
+    return _octant_orbits_of(d)
+
+
+def _octant_orbits_of(dirs):
     """Orbits of a direction set under the 8 sign flips of (x, y, z), or None if it is not closed.
 
     Returns ``idx`` (M/8, 8) with ``dirs[idx[o, g]] = σ_g · dirs[idx[o, 0]]``, where bit 0/1/2 of the
@@ -241,9 +263,10 @@ def _project_octant(dirs, W, L, orb, chunks=None):
     return acc[0], acc[1]
 
 
-def _evaluate_octant_values(dirs, Be, Bo, L, orb, chunks=None):
+def _evaluate_octant_values(dirs, Be, Bo, L, orb, chunks=None, blas_combine=False):
     """Values of :func:`_evaluate_octant` at the directions of the orbits ``orb`` only: ``(idx, vals)`` with
-    ``vals[i]`` the value at ``dirs[idx[i]]`` (``idx = orb.T.ravel()``)."""
+    ``vals[i]`` the value at ``dirs[idx[i]]`` (``idx = orb.T.ravel()``).  ``blas_combine``: the characters combined
+    by one matrix product instead of ``einsum`` (the compiled path; the same sums of 8 terms in another order)."""
     cls = _octant_row_classes(L)
     n_oct = orb.shape[0]
     V = np.zeros((8, n_oct, Be.shape[1]))
@@ -253,7 +276,10 @@ def _evaluate_octant_values(dirs, Be, Bo, L, orb, chunks=None):
             rows = cls[kappa // 4][kappa % 4]
             if rows.size:
                 V[kappa, i0:i1] = Yk[kappa].T @ (Be if kappa < 4 else Bo)[rows]
-    vals = np.einsum("kg,kop->gop", _walsh8(), V)  # (8, n_oct, P)
+    if blas_combine:
+        vals = (_walsh8() @ V.reshape(8, -1)).reshape(V.shape)
+    else:
+        vals = np.einsum("kg,kop->gop", _walsh8(), V)  # (8, n_oct, P)
     return orb.T.reshape(-1), vals.reshape(-1, Be.shape[1])
 
 
@@ -268,7 +294,7 @@ def _evaluate_octant(dirs, Be, Bo, L, orb, chunks=None):
 @functools.lru_cache(maxsize=16)
 def compiled_tables(L):
     """Tables of the compiled SH passes (:func:`ibl_ref.groundtruth.compiled_kernels.sh_project` /
-    ``sh_evaluate``): ``row_of[ℓ, m, kind]`` (the row in the even or odd matrix of :func:`_layout`; kind 0 =
+    ``sh_matrix``): ``row_of[ℓ, m, kind]`` (the row in the even or odd matrix of :func:`_layout`; kind 0 =
     cos, 1 = sin), ``cls_of[ℓ, m, kind]`` (its octant class κ, :func:`_octant_row_classes`) and the Legendre
     recurrence coefficients ``a[ℓ, m]``, ``b[ℓ, m]`` (:func:`_recurrence_coeffs`)."""
     row_of = np.full((L + 1, L + 1, 2), -1, dtype=np.int64)
@@ -294,7 +320,7 @@ def _project_octant_compiled(dirs, W, L, orb):
 
     ev_l, od_l = _row_layout(L)
     Q = W.shape[1]
-    Wk = np.einsum("kg,ogq->kqo", _walsh8(), W[orb])  # (8, Q, n_oct)
+    Wk = (_walsh8() @ W[orb].transpose(1, 2, 0).reshape(8, -1)).reshape(8, Q, -1)  # (8, Q, n_oct)
     reps = np.ascontiguousarray(dirs[orb[:, 0]])
     ae, ao = np.zeros((ev_l.size, Q)), np.zeros((od_l.size, Q))
     tabs = compiled_tables(L)
@@ -348,7 +374,8 @@ def _octant_Y_chunks_compiled(reps, L):
 
 def _evaluate_octant_values_compiled(dirs, Be, Bo, L, orb):
     """:func:`_evaluate_octant_values` with the SH matrix chunks of :func:`_octant_Y_chunks_compiled` (BLAS products)."""
-    return _evaluate_octant_values(dirs, Be, Bo, L, orb, _octant_Y_chunks_compiled(dirs[orb[:, 0]], L))
+    return _evaluate_octant_values(dirs, Be, Bo, L, orb, _octant_Y_chunks_compiled(dirs[orb[:, 0]], L),
+                                   blas_combine=True)
 
 
 def _project(dirs, W, L):

@@ -192,9 +192,9 @@ def _output_floor(rad, s_list):
     from .phong_convolution import convolve_exact_many
 
     M, C = rad.shape
-    key = (rad.shape, float(rad.sum()), float(rad[:: max(1, M // 997)].sum()), float(rad.max()), tuple(s_list))
-    if key in _FLOOR_CACHE:  # the same map planned again in one call (kernel choice, then routing)
-        return _FLOOR_CACHE[key]
+    key = (rad.shape, float(rad.sum()), float(rad[:: max(1, M // 997)].sum()), float(rad.max()))
+    if all((key, float(s)) in _FLOOR_CACHE for s in s_list):  # the map planned again (kernel choice, SH subset)
+        return np.array([_FLOOR_CACHE[(key, float(s))] for s in s_list])
     n = int(round(math.sqrt(M / 6)))
     nc = min(n, FLOOR_FACE)
     om = envmap.cube_solid_angles(n)
@@ -206,9 +206,9 @@ def _output_floor(rad, s_list):
     coarse = (coarse / oc[:, None]).reshape(6, nc, nc, C)
     ys = convolve_exact_many(coarse, list(s_list))
     out = FLOOR_SAFETY * ys.reshape(len(s_list), -1).min(axis=1)
-    if len(_FLOOR_CACHE) > 16:
+    if len(_FLOOR_CACHE) > 64:
         _FLOOR_CACHE.clear()
-    _FLOOR_CACHE[key] = out
+    _FLOOR_CACHE.update({(key, float(s)): float(y) for s, y in zip(s_list, out)})
     return out
 
 
@@ -523,6 +523,20 @@ def _values_and_bounds(setup: ShSetup, shq, nb):
     maps = np.empty((K, P, C))
     rel = np.empty((K, P))
     rel_est = np.full((K, P), np.inf) if est_idx else None
+    if getattr(setup, "impl", "numpy") == "compiled" and not est_idx:
+        from . import compiled_kernels as ck
+
+        E = np.array([legendre_series_truncation_envelope(s, L_use, rho)
+                      + _FOUR_PI * np.finfo(float).eps * (L_use + 1) ** 2 for s in s_list])
+        d_nb = np.zeros((K, P, C))
+        if setup.b_w.shape[0]:
+            bw = np.abs(setup.b_w).sum(axis=0)
+            for k, s in enumerate(s_list):
+                e_r, e_a = ck.weight_error(s, float(s).is_integer() and s <= ck.POWI_MAX)
+                d_nb[k] = e_r * nb[k] + e_a * bw
+        ck.sh_values_bounds(np.ascontiguousarray(shq), np.ascontiguousarray(nb), E, d_nb, float(tau_eff),
+                            float(m_rem), bool(normalized), maps, rel)
+        return maps, rel, None
     for k, s in enumerate(s_list):
         E_L = legendre_series_truncation_envelope(s, L_use, rho)
         E_L += _FOUR_PI * np.finfo(float).eps * (L_use + 1) ** 2  # rounding of the O(L²) SH sums
