@@ -77,8 +77,8 @@ def _nnls2(A, y):
 
 
 def _sparse_cells(sizes, probe):
-    for n in sizes:
-        yield f"sky {n}²", environment(n).astype(np.float32).astype(np.float64), S_SPARSE
+    for n, cube in _sky(sizes):
+        yield f"sky {n}²", cube, S_SPARSE
     if probe:
         from ibl_ref.environment.exr_io import load_cube
 
@@ -106,11 +106,16 @@ def fit_sparse(kernel, sizes, probe=None):
     return a, b
 
 
+def _sky(sizes):
+    """(face size, the sky + sun rounded to float32) per size."""
+    for n in sizes:
+        yield n, environment(n).astype(np.float32).astype(np.float64)
+
+
 def fit_sh(kernel, sizes):
     unit = shc.SECONDS_PER_UNIT
     rows = []
-    for n in sizes:
-        cube = environment(n).astype(np.float32).astype(np.float64)
+    for n, cube in _sky(sizes):
         for ss in S_SH:
             _, _, info = shc.convolve_sh_many(cube, list(ss), rtol=RTOL, impl=kernel)
             n_src = n_out = 6 * n * n
@@ -130,8 +135,7 @@ def fit_sh(kernel, sizes):
 def fit_moment(kernel, sizes):
     unit = shc.SECONDS_PER_UNIT
     rows = []
-    for n in sizes:
-        cube = environment(n).astype(np.float32).astype(np.float64)
+    for n, cube in _sky(sizes):
         leaf = mc.moment_leaf(n, RTOL)
         faces = (0,) if n >= 512 else None  # one face at 512² and more (× 6)
         _, t = _cpu(lambda: mc.convolve_moment_many(cube, [1.0, 2.0], leaf=leaf, rtol=RTOL if leaf > 1 else None,

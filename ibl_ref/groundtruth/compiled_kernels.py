@@ -324,6 +324,19 @@ def cap_count(t, q, frames, n):
     return m
 
 
+@_jit(fastmath={"contract"}, inline="always")
+def _put7(SX, SY, SZ, S0, S1, S2, S3, m, x, y, z, w0, w1, w2, w3):
+    """Entry m of the scratch arrays; returns m + 1."""
+    SX[m] = x
+    SY[m] = y
+    SZ[m] = z
+    S0[m] = w0
+    S1[m] = w1
+    S2[m] = w2
+    S3[m] = w3
+    return m + 1
+
+
 @_jit(fastmath={"contract"})
 def _collect(t, q, frames, n, X, Y, Z, RW, bdirs, brw, SX, SY, SZ, S0, S1, S2, S3):
     """Copy the source texels of the cap (angle q around t) and then the bright texels into the scratch arrays;
@@ -338,68 +351,38 @@ def _collect(t, q, frames, n, X, Y, Z, RW, bdirs, brw, SX, SY, SZ, S0, S1, S2, S
             j0, j1 = _row_cols(a, b, c, k, (i + 0.5) * h - 1.0, h, n, full)
             base = f * nn + i * n
             for j in range(base + j0, base + j1 + 1):
-                SX[m] = X[j]
-                SY[m] = Y[j]
-                SZ[m] = Z[j]
-                S0[m] = RW[0, j]
-                S1[m] = RW[1, j]
-                S2[m] = RW[2, j]
-                S3[m] = RW[3, j]
-                m += 1
+                m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, X[j], Y[j], Z[j], RW[0, j], RW[1, j], RW[2, j], RW[3, j])
     for j in range(bdirs.shape[0]):
-        SX[m] = bdirs[j, 0]
-        SY[m] = bdirs[j, 1]
-        SZ[m] = bdirs[j, 2]
-        S0[m] = brw[j, 0]
-        S1[m] = brw[j, 1]
-        S2[m] = brw[j, 2]
-        S3[m] = brw[j, 3]
-        m += 1
+        m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, bdirs[j, 0], bdirs[j, 1], bdirs[j, 2], brw[j, 0], brw[j, 1], brw[j, 2], brw[j, 3])
     while m % _VEC:
-        SX[m] = 0.0
-        SY[m] = 0.0
-        SZ[m] = 0.0
-        S0[m] = 0.0
-        S1[m] = 0.0
-        S2[m] = 0.0
-        S3[m] = 0.0
-        m += 1
+        m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     return m
 
 
-@_jit(fastmath={"contract", "reassoc"}, inline="always")
-def _sums_int(rx, ry, rz, SX, SY, SZ, S0, S1, S2, S3, m, s_int, c_floor):
-    """Σ w·S_k, w = c^s (:func:`powi_`), 0 for c < c_floor (weights < e^-700: no subnormal arithmetic)."""
-    a0 = 0.0
-    a1 = 0.0
-    a2 = 0.0
-    a3 = 0.0
-    for j in range(m):
-        c = rx * SX[j] + ry * SY[j] + rz * SZ[j]
+@_jit(fastmath={"contract"}, inline="always")
+def _weight(c, s, s_int, c_floor, lref):
+    """``c^s`` by :func:`powi_` for ``s_int > 0`` (0 for c < c_floor: weights < e^-700, no subnormal arithmetic),
+    else ``exp(s·(log c − lref))`` (0 for c ≤ 0 and below 2^-1021)."""
+    if s_int > 0:
         w = powi_(max(c, c_floor), s_int)
-        w = w if c >= c_floor else 0.0
-        a0 += w * S0[j]
-        a1 += w * S1[j]
-        a2 += w * S2[j]
-        a3 += w * S3[j]
-    return a0, a1, a2, a3
+        return w if c >= c_floor else 0.0
+    w = exp_(s * (log_(max(c, 1e-300)) - lref))
+    return w if c > 0.0 else 0.0
 
 
 @_jit(fastmath={"contract", "reassoc"}, inline="always")
-def _sums_log(rx, ry, rz, SX, SY, SZ, S0, S1, S2, S3, m, s, lref):
-    """Σ w·S_k, w = exp(s·(log c − lref)) (0 for c ≤ 0 and below 2^-1021)."""
-    a0 = 0.0
-    a1 = 0.0
-    a2 = 0.0
-    a3 = 0.0
-    for j in range(m):
-        c = rx * SX[j] + ry * SY[j] + rz * SZ[j]
-        w = exp_(s * (log_(max(c, 1e-300)) - lref))
-        w = w if c > 0.0 else 0.0
-        a0 += w * S0[j]
-        a1 += w * S1[j]
-        a2 += w * S2[j]
-        a3 += w * S3[j]
+def _sums(rx, ry, rz, SX, SY, SZ, S0, S1, S2, S3, m, s, s_int, c_floor, lref):
+    """Σ_j w_j·S_k[j] over the scratch entries, w = :func:`_weight` of c = r·ω_j (one loop per kind of weight:
+    a branch inside the loop would evaluate both powers)."""
+    a0 = a1 = a2 = a3 = 0.0
+    if s_int > 0:
+        for j in range(m):
+            w = _weight(rx * SX[j] + ry * SY[j] + rz * SZ[j], s, s_int, c_floor, lref)
+            a0, a1, a2, a3 = a0 + w * S0[j], a1 + w * S1[j], a2 + w * S2[j], a3 + w * S3[j]
+    else:
+        for j in range(m):
+            w = _weight(rx * SX[j] + ry * SY[j] + rz * SZ[j], s, 0, c_floor, lref)
+            a0, a1, a2, a3 = a0 + w * S0[j], a1 + w * S1[j], a2 + w * S2[j], a3 + w * S3[j]
     return a0, a1, a2, a3
 
 
@@ -438,13 +421,7 @@ def tile_gather(cen, rows, caps, frames, n, X, Y, Z, RW, bdirs, brw, s, s_int, r
     for i in range(nt):
         m_max = max(m_max, cap_count(cen[i], caps[i], frames, n))
     m_max += bdirs.shape[0] + _VEC
-    SX = np.empty(m_max)
-    SY = np.empty(m_max)
-    SZ = np.empty(m_max)
-    S0 = np.empty(m_max)
-    S1 = np.empty(m_max)
-    S2 = np.empty(m_max)
-    S3 = np.empty(m_max)
+    SX, SY, SZ, S0, S1, S2, S3 = _scratch7(m_max)
     for i in range(nt):
         m = _collect(cen[i], caps[i], frames, n, X, Y, Z, RW, bdirs, brw, SX, SY, SZ, S0, S1, S2, S3)
         count[i] = m
@@ -452,15 +429,11 @@ def tile_gather(cen, rows, caps, frames, n, X, Y, Z, RW, bdirs, brw, s, s_int, r
             rx = rows[i, b, 0]
             ry = rows[i, b, 1]
             rz = rows[i, b, 2]
-            if s_int > 0:
-                a0, a1, a2, a3 = _sums_int(rx, ry, rz, SX, SY, SZ, S0, S1, S2, S3, m, s_int, c_floor)
-                logmx[i, b] = 0.0
-            else:
-                lref = 0.0
-                if rowmax:
-                    lref = log_(max(_max_cos(rx, ry, rz, SX, SY, SZ, m), 1e-300))
-                a0, a1, a2, a3 = _sums_log(rx, ry, rz, SX, SY, SZ, S0, S1, S2, S3, m, s, lref)
-                logmx[i, b] = s * lref
+            lref = 0.0
+            if s_int <= 0 and rowmax:
+                lref = log_(max(_max_cos(rx, ry, rz, SX, SY, SZ, m), 1e-300))
+            a0, a1, a2, a3 = _sums(rx, ry, rz, SX, SY, SZ, S0, S1, S2, S3, m, s, s_int, c_floor, lref)
+            logmx[i, b] = s * lref
             acc[i, b, 0] = a0
             acc[i, b, 1] = a1
             acc[i, b, 2] = a2
@@ -501,6 +474,39 @@ def cone_extremes(cen, q, blk_cen, alpha, blk_max, blk_min, sup_cen, sup_alpha, 
 # ----------------------------------------------------------------------------------------------
 # horizon band of the moment route (s = 1, 2)
 # ----------------------------------------------------------------------------------------------
+@_jit()
+def _scratch7(m):
+    """Seven zeroed scratch vectors of length m (directions x, y, z and 4 weight rows)."""
+    return np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m)
+
+
+@_jit()
+def _longest(starts, nt):
+    """The longest of the nt lists ``starts[i]:starts[i+1]`` plus :data:`_VEC` (scratch length)."""
+    m = 0
+    for i in range(nt):
+        m = max(m, starts[i + 1] - starts[i])
+    return m + _VEC
+
+
+@_jit(fastmath={"contract"}, inline="always")
+def _add4(arr, i, b, x0, x1, x2, x3):
+    """``arr[i, b, 0:4] += (x0, x1, x2, x3)``."""
+    arr[i, b, 0] += x0
+    arr[i, b, 1] += x1
+    arr[i, b, 2] += x2
+    arr[i, b, 3] += x3
+
+
+@_jit(fastmath={"contract"}, inline="always")
+def _bracket(X, ca, sa):
+    """For x = r·c = X and a block cone of half-angle α (cos, sin): the half-width v = sin θ sin α (+1e-12 slack),
+    the centre u = X cos α of [x_lo, x_hi] = [u − v, u + v], and A = x_hi/(x_hi − x_lo) clipped to [0, 1]."""
+    v = math.sqrt(max(1.0 - X * X, 0.0)) * sa + 1e-12
+    u = X * ca
+    return v, u, min(max((u + v) / (2.0 * v), 0.0), 1.0)
+
+
 @_jit(fastmath={"contract", "reassoc"})
 def band_exact(R, starts, texels, D, Wt, do1, do2, num1, num2):
     """Exact gather of the horizon band (``leaf = 1`` of :mod:`ibl_ref.groundtruth.moment_convolution`): tile i's
@@ -510,52 +516,23 @@ def band_exact(R, starts, texels, D, Wt, do1, do2, num1, num2):
     terms, any order; the products r·ω are off by ≤ γ_3, entering x and x² to first and second order)."""
     nt = R.shape[0]
     B = R.shape[1]
-    m_max = 0
-    for i in range(nt):
-        m_max = max(m_max, starts[i + 1] - starts[i])
-    m_max += _VEC
-    SX = np.zeros(m_max)
-    SY = np.zeros(m_max)
-    SZ = np.zeros(m_max)
-    S0 = np.zeros(m_max)
-    S1 = np.zeros(m_max)
-    S2 = np.zeros(m_max)
-    S3 = np.zeros(m_max)
+    m_max = _longest(starts, nt)
+    SX, SY, SZ, S0, S1, S2, S3 = _scratch7(m_max)
     for i in range(nt):
         m = 0
         for k in range(starts[i], starts[i + 1]):
             j = texels[k]
-            SX[m] = D[j, 0]
-            SY[m] = D[j, 1]
-            SZ[m] = D[j, 2]
-            S0[m] = Wt[j, 0]
-            S1[m] = Wt[j, 1]
-            S2[m] = Wt[j, 2]
-            S3[m] = Wt[j, 3]
-            m += 1
+            m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, D[j, 0], D[j, 1], D[j, 2], Wt[j, 0], Wt[j, 1], Wt[j, 2], Wt[j, 3])
         if m == 0:
             continue
         while m % _VEC:
-            SX[m] = 0.0
-            SY[m] = 0.0
-            SZ[m] = 0.0
-            S0[m] = 0.0
-            S1[m] = 0.0
-            S2[m] = 0.0
-            S3[m] = 0.0
-            m += 1
+            m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         for b in range(B):
             rx = R[i, b, 0]
             ry = R[i, b, 1]
             rz = R[i, b, 2]
-            a0 = 0.0
-            a1 = 0.0
-            a2 = 0.0
-            a3 = 0.0
-            c0 = 0.0
-            c1 = 0.0
-            c2 = 0.0
-            c3 = 0.0
+            a0 = a1 = a2 = a3 = 0.0
+            c0 = c1 = c2 = c3 = 0.0
             for j in range(m):
                 x = max(rx * SX[j] + ry * SY[j] + rz * SZ[j], 0.0)
                 a0 += x * S0[j]
@@ -568,15 +545,9 @@ def band_exact(R, starts, texels, D, Wt, do1, do2, num1, num2):
                 c2 += xx * S2[j]
                 c3 += xx * S3[j]
             if do1:
-                num1[i, b, 0] += a0
-                num1[i, b, 1] += a1
-                num1[i, b, 2] += a2
-                num1[i, b, 3] += a3
+                _add4(num1, i, b, a0, a1, a2, a3)
             if do2:
-                num2[i, b, 0] += c0
-                num2[i, b, 1] += c1
-                num2[i, b, 2] += c2
-                num2[i, b, 3] += c3
+                _add4(num2, i, b, c0, c1, c2, c3)
 
 
 @_jit(fastmath={"contract", "reassoc"})
@@ -592,10 +563,7 @@ def band_brackets(R, starts, blocks, cb, ca, sa, M0, M1, M2, do1, do2, num1, err
     expressions."""
     nt = R.shape[0]
     B = R.shape[1]
-    m_max = 0
-    for i in range(nt):
-        m_max = max(m_max, starts[i + 1] - starts[i])
-    m_max += _VEC
+    m_max = _longest(starts, nt)
     CX = np.zeros(m_max)
     CY = np.zeros(m_max)
     CZ = np.zeros(m_max)
@@ -640,19 +608,10 @@ def band_brackets(R, starts, blocks, cb, ca, sa, M0, M1, M2, do1, do2, num1, err
             ry = R[i, b, 1]
             rz = R[i, b, 2]
             if do1:
-                n0 = 0.0
-                n1 = 0.0
-                n2 = 0.0
-                n3 = 0.0
-                e0 = 0.0
-                e1 = 0.0
-                e2 = 0.0
-                e3 = 0.0
+                n0 = n1 = n2 = n3 = 0.0
+                e0 = e1 = e2 = e3 = 0.0
                 for j in range(m):
-                    X = rx * CX[j] + ry * CY[j] + rz * CZ[j]
-                    v = math.sqrt(max(1.0 - X * X, 0.0)) * SA[j] + 1e-12
-                    u = X * CA[j]
-                    A = min(max((u + v) / (2.0 * v), 0.0), 1.0)
+                    v, u, A = _bracket(rx * CX[j] + ry * CY[j] + rz * CZ[j], CA[j], SA[j])
                     H = max(v - u, 0.0) * A * 0.5
                     n0 += A * (rx * Y[0, j] + ry * Y[4, j] + rz * Y[8, j]) + H * W[0, j]
                     n1 += A * (rx * Y[1, j] + ry * Y[5, j] + rz * Y[9, j]) + H * W[1, j]
@@ -662,14 +621,8 @@ def band_brackets(R, starts, blocks, cb, ca, sa, M0, M1, M2, do1, do2, num1, err
                     e1 += H * W[1, j]
                     e2 += H * W[2, j]
                     e3 += H * W[3, j]
-                num1[i, b, 0] += n0
-                num1[i, b, 1] += n1
-                num1[i, b, 2] += n2
-                num1[i, b, 3] += n3
-                err1[i, b, 0] += e0
-                err1[i, b, 1] += e1
-                err1[i, b, 2] += e2
-                err1[i, b, 3] += e3
+                _add4(num1, i, b, n0, n1, n2, n3)
+                _add4(err1, i, b, e0, e1, e2, e3)
             if do2:
                 r00 = rx * rx
                 r01 = 2.0 * rx * ry
@@ -677,19 +630,10 @@ def band_brackets(R, starts, blocks, cb, ca, sa, M0, M1, M2, do1, do2, num1, err
                 r11 = ry * ry
                 r12 = 2.0 * ry * rz
                 r22 = rz * rz
-                n0 = 0.0
-                n1 = 0.0
-                n2 = 0.0
-                n3 = 0.0
-                e0 = 0.0
-                e1 = 0.0
-                e2 = 0.0
-                e3 = 0.0
+                n0 = n1 = n2 = n3 = 0.0
+                e0 = e1 = e2 = e3 = 0.0
                 for j in range(m):
-                    X = rx * CX[j] + ry * CY[j] + rz * CZ[j]
-                    v = math.sqrt(max(1.0 - X * X, 0.0)) * SA[j] + 1e-12
-                    u = X * CA[j]
-                    A = min(max((u + v) / (2.0 * v), 0.0), 1.0)
+                    v, u, A = _bracket(rx * CX[j] + ry * CY[j] + rz * CZ[j], CA[j], SA[j])
                     nlo = v - u
                     P = 1.0 if A >= 1.0 else 0.0
                     a = 0.0 if A >= 1.0 else 2.0 * v * A * A
@@ -711,14 +655,17 @@ def band_brackets(R, starts, blocks, cb, ca, sa, M0, M1, M2, do1, do2, num1, err
                     e1 += hw * W[1, j]
                     e2 += hw * W[2, j]
                     e3 += hw * W[3, j]
-                num2[i, b, 0] += n0
-                num2[i, b, 1] += n1
-                num2[i, b, 2] += n2
-                num2[i, b, 3] += n3
-                err2[i, b, 0] += e0
-                err2[i, b, 1] += e1
-                err2[i, b, 2] += e2
-                err2[i, b, 3] += e3
+                _add4(num2, i, b, n0, n1, n2, n3)
+                _add4(err2, i, b, e0, e1, e2, e3)
+
+
+@_jit(fastmath={"contract"}, inline="always")
+def _acc4(a0, a1, a2, a3, i, w, w0, w1, w2, w3):
+    """``a_k[i] += w·w_k`` for the four accumulators."""
+    a0[i] += w * w0
+    a1[i] += w * w1
+    a2[i] += w * w2
+    a3[i] += w * w3
 
 
 @_jit(fastmath={"contract"})
@@ -760,21 +707,12 @@ def point_gather(out_dirs, b_dirs, b_w, s_arr, s_int, res):
                 a1 = acc[k, 1]
                 a2 = acc[k, 2]
                 a3 = acc[k, 3]
-                if si > 0:
+                if si > 0:  # (one loop per kind of weight, see _sums)
                     for i in range(m):
-                        w = powi_(max(c[i], 0.0), si)
-                        a0[i] += w * w0
-                        a1[i] += w * w1
-                        a2[i] += w * w2
-                        a3[i] += w * w3
+                        _acc4(a0, a1, a2, a3, i, _weight(c[i], s, si, 0.0, 0.0), w0, w1, w2, w3)
                 else:
                     for i in range(m):
-                        w = exp_(s * log_(max(c[i], 1e-300)))
-                        w = w if c[i] > 0.0 else 0.0
-                        a0[i] += w * w0
-                        a1[i] += w * w1
-                        a2[i] += w * w2
-                        a3[i] += w * w3
+                        _acc4(a0, a1, a2, a3, i, _weight(c[i], s, 0, 0.0, 0.0), w0, w1, w2, w3)
         for k in range(K):
             for q in range(4):
                 for i in range(m):
@@ -823,6 +761,13 @@ def sh_values_bounds(shq, nb, E, d_nb, tau_eff, m_rem, normalized, maps, rel):
 #: directions per block of the fused SH passes (the Legendre rows of one block, (L+1) × 3 × 128 float64,
 #: stay in the L2 cache)
 SH_BLOCK = 128
+
+
+@_jit()
+def _sh_block_arrays(L):
+    """Work arrays of one block of the SH passes: cos θ, sin θ, √2 cos mφ, √2 sin mφ and three Legendre bands."""
+    B = SH_BLOCK
+    return np.empty(B), np.empty(B), np.empty((L + 1, B)), np.empty((L + 1, B)), np.zeros((3, L + 1, B))
 
 
 @_jit(fastmath={"contract"})
@@ -881,20 +826,13 @@ def _legendre_band(ell, x, st, ch, p1, p2, pc, a_tab, b_tab):
 
 
 @_jit(fastmath={"contract", "reassoc"})
-def sh_project(reps, Wk, L, row_of, cls_of, a_tab, b_tab, acc_e, acc_o):
-    """``acc[row, q] += Σ_d Y_row(reps[d]) · Wk[κ(row), q, d]`` for every real SH row of band ≤ L (even rows —
-    ℓ + m even — into ``acc_e``, odd ones into ``acc_o``, at the row order of
-    :func:`ibl_ref.groundtruth.sh_basis._layout`, given by ``row_of[ℓ, m, kind]``; ``cls_of`` the row's octant
-    class κ; ``Wk`` (8, 4, n) the class-projected weights of the octant orbits).  The SH values are generated
-    block by block of :data:`SH_BLOCK` directions and used at once: no SH matrix in memory.  Float64; each row's
-    sum has relative error ≤ γ_n in the magnitudes (any order)."""
+def _sh_rows(reps, L, row_of, cls_of, a_tab, b_tab, Wk, acc_e, acc_o, dest, out, project):
+    """Every real SH row (ℓ ≤ L, m, cos/sin) at the directions ``reps``, block by block of :data:`SH_BLOCK`
+    directions (the Legendre recurrences of :func:`_legendre_band`): ``project`` — projected at once on the
+    class-projected weights (:func:`sh_project`), else written to the matrix ``out`` (:func:`sh_matrix`)."""
     n = reps.shape[0]
     B = SH_BLOCK
-    x = np.empty(B)
-    st = np.empty(B)
-    cm = np.empty((L + 1, B))
-    sm = np.empty((L + 1, B))
-    P = np.zeros((3, L + 1, B))
+    x, st, cm, sm, P = _sh_block_arrays(L)
     for c0 in range(0, n, B):
         ch = min(B, n - c0)
         _sh_block_setup(reps, c0, ch, L, x, st, cm, sm)
@@ -906,76 +844,49 @@ def sh_project(reps, Wk, L, row_of, cls_of, a_tab, b_tab, acc_e, acc_o):
                     if kind == 1 and m == 0:
                         continue
                     row = row_of[ell, m, kind]
+                    tr = cm[m] if kind == 0 else sm[m]
+                    if not project:
+                        o = out[dest[(ell + m) % 2, row]]
+                        for d in range(ch):
+                            o[c0 + d] = pc[m, d] * tr[d]
+                        continue
                     k = cls_of[ell, m, kind]
                     w0 = Wk[k, 0]
                     w1 = Wk[k, 1]
                     w2 = Wk[k, 2]
                     w3 = Wk[k, 3]
-                    s0 = 0.0
-                    s1 = 0.0
-                    s2 = 0.0
-                    s3 = 0.0
-                    if kind == 0:
-                        for d in range(ch):
-                            y = pc[m, d] * cm[m, d]
-                            s0 += y * w0[c0 + d]
-                            s1 += y * w1[c0 + d]
-                            s2 += y * w2[c0 + d]
-                            s3 += y * w3[c0 + d]
-                    else:
-                        for d in range(ch):
-                            y = pc[m, d] * sm[m, d]
-                            s0 += y * w0[c0 + d]
-                            s1 += y * w1[c0 + d]
-                            s2 += y * w2[c0 + d]
-                            s3 += y * w3[c0 + d]
-                    if (ell + m) % 2 == 0:
-                        acc_e[row, 0] += s0
-                        acc_e[row, 1] += s1
-                        acc_e[row, 2] += s2
-                        acc_e[row, 3] += s3
-                    else:
-                        acc_o[row, 0] += s0
-                        acc_o[row, 1] += s1
-                        acc_o[row, 2] += s2
-                        acc_o[row, 3] += s3
+                    s0 = s1 = s2 = s3 = 0.0
+                    for d in range(ch):
+                        y = pc[m, d] * tr[d]
+                        s0 += y * w0[c0 + d]
+                        s1 += y * w1[c0 + d]
+                        s2 += y * w2[c0 + d]
+                        s3 += y * w3[c0 + d]
+                    acc = acc_e if (ell + m) % 2 == 0 else acc_o
+                    acc[row, 0] += s0
+                    acc[row, 1] += s1
+                    acc[row, 2] += s2
+                    acc[row, 3] += s3
 
 
-@_jit(fastmath={"contract"})
-def sh_matrix(reps, L, row_of, cls_of, dest, out):
+@_jit()
+def sh_project(reps, Wk, L, row_of, cls_of, a_tab, b_tab, acc_e, acc_o):
+    """``acc[row, q] += Σ_d Y_row(reps[d]) · Wk[κ(row), q, d]`` for every real SH row of band ≤ L (even rows —
+    ℓ + m even — into ``acc_e``, odd ones into ``acc_o``, at the row order of
+    :func:`ibl_ref.groundtruth.sh_basis._layout`, given by ``row_of[ℓ, m, kind]``; ``cls_of`` the row's octant
+    class κ; ``Wk`` (8, 4, n) the class-projected weights of the octant orbits).  The SH values are generated
+    block by block and used at once: no SH matrix in memory.  Float64; each row's sum has relative error ≤ γ_n in
+    the magnitudes (any order)."""
+    _sh_rows(reps, L, row_of, cls_of, a_tab, b_tab, Wk, acc_e, acc_o, np.zeros((2, 1), dtype=np.int64),
+             np.zeros((1, 1)), True)
+
+
+@_jit()
+def sh_matrix(reps, L, row_of, cls_of, a_tab, b_tab, dest, out):
     """The real SH values of band ≤ L at ``reps`` as rows of ``out`` (rows, n): row (ℓ, m, kind) goes to
-    ``out[dest[(ℓ + m) % 2, row_of[ℓ, m, kind]]]`` (so the rows of each octant class can be contiguous), the
-    Legendre recurrences run on blocks of :data:`SH_BLOCK` directions."""
-    n = reps.shape[0]
-    B = SH_BLOCK
-    x = np.empty(B)
-    st = np.empty(B)
-    cm = np.empty((L + 1, B))
-    sm = np.empty((L + 1, B))
-    P = np.zeros((3, L + 1, B))
-    a_tab = np.zeros((L + 1, max(L, 1)))
-    b_tab = np.zeros((L + 1, max(L, 1)))
-    for ell in range(2, L + 1):
-        for m in range(ell - 1):
-            a_tab[ell, m] = math.sqrt((4.0 * ell * ell - 1.0) / (ell * ell - m * m))
-            b_tab[ell, m] = math.sqrt(((ell - 1.0) ** 2 - m * m) / (4.0 * (ell - 1.0) ** 2 - 1.0))
-    for c0 in range(0, n, B):
-        ch = min(B, n - c0)
-        _sh_block_setup(reps, c0, ch, L, x, st, cm, sm)
-        for ell in range(L + 1):
-            pc = P[ell % 3]
-            _legendre_band(ell, x, st, ch, P[(ell + 2) % 3], P[(ell + 1) % 3], pc, a_tab, b_tab)
-            for m in range(ell + 1):
-                for kind in range(2):
-                    if kind == 1 and m == 0:
-                        continue
-                    o = out[dest[(ell + m) % 2, row_of[ell, m, kind]]]
-                    if kind == 0:
-                        for d in range(ch):
-                            o[c0 + d] = pc[m, d] * cm[m, d]
-                    else:
-                        for d in range(ch):
-                            o[c0 + d] = pc[m, d] * sm[m, d]
+    ``out[dest[(ℓ + m) % 2, row_of[ℓ, m, kind]]]`` (so the rows of each octant class can be contiguous)."""
+    _sh_rows(reps, L, row_of, cls_of, a_tab, b_tab, np.zeros((8, 4, 1)), np.zeros((1, 4)), np.zeros((1, 4)), dest,
+             out, False)
 
 
 #: the kernel groups :func:`warm_up` has loaded in this process
@@ -1027,7 +938,7 @@ def warm_up(stages=STAGES):
         dest = np.zeros((2, ne), dtype=np.int64)
         dest[0] = np.arange(ne)
         dest[1, :no] = ne + np.arange(no)
-        sh_matrix(d[:3].copy(), 2, tabs[0], tabs[1], dest, np.zeros((ne + no, 3)))
+        sh_matrix(d[:3].copy(), 2, *tabs, dest, np.zeros((ne + no, 3)))
         point_gather(d[:3].copy(), d[:2].copy(), np.ones((2, 4)), np.array([2.0, 2.5]),
                      np.array([2, 0], dtype=np.int64), np.zeros((2, 4, 3)))
         sh_values_bounds(np.ones((1, 2, 4)), np.ones((1, 2, 3)), np.ones(1), np.zeros((1, 2, 3)), 1.0, 0.0, True,

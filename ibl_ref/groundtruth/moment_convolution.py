@@ -139,9 +139,15 @@ def moment_band_pairs_per_tile(n: int, out_size: int, tile: int, stop: int) -> f
     return 3.0 * w * m * m * stop * stop
 
 
-def moment_tiles_per_chunk(n: int, out_size: int, tile: int, stop: int) -> int:
-    """Output tiles per chunk of :func:`convolve_moment_many`: the band working set ≤ :data:`MOMENT_CHUNK_PAIRS`."""
-    return max(1, int(MOMENT_CHUNK_PAIRS // max(moment_band_pairs_per_tile(n, out_size, tile, stop), 1.0)))
+#: the same bound for the compiled band kernels (no NumPy temporaries of the band to amortise: smaller chunks,
+#: less memory; 4 MB of pairs)
+MOMENT_CHUNK_PAIRS_COMPILED = 1 << 19
+
+
+def moment_tiles_per_chunk(n: int, out_size: int, tile: int, stop: int, pairs: int = MOMENT_CHUNK_PAIRS) -> int:
+    """Output tiles per chunk of :func:`convolve_moment_many`: the band working set ≤ ``pairs``
+    (:data:`MOMENT_CHUNK_PAIRS`)."""
+    return max(1, int(pairs // max(moment_band_pairs_per_tile(n, out_size, tile, stop), 1.0)))
 
 
 #: the bracket band (``leaf > 1``) is used by :func:`moment_leaf` only from this leaf size on: at leaf 2
@@ -668,7 +674,8 @@ def convolve_moment_many(
             bright_sorted = brP[order_]
             bright_start = np.searchsorted(blk_of[order_], np.arange(6 * mg * mg + 1))
         # output tiles in chunks of bounded working set (independent of the worker count)
-        per_chunk = moment_tiles_per_chunk(n, out_size, t, stop)
+        per_chunk = moment_tiles_per_chunk(n, out_size, t, stop,
+                                           MOMENT_CHUNK_PAIRS if ck is None else MOMENT_CHUNK_PAIRS_COMPILED)
         for c0 in range(0, tsel.size, per_chunk):
             ch = tsel[c0 : c0 + per_chunk]
             nc = ch.size

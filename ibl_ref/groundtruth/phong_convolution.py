@@ -616,8 +616,19 @@ def _source_blocks_cached(m, b):
     return c, tex, alpha
 
 
-@functools.lru_cache(maxsize=16)
+@functools.lru_cache(maxsize=4)
 def _tile_layout(out_size: int, faces: tuple, T: int):
+    """:func:`_tile_layout_of`, cached per sizes (≈ 40 bytes per output texel: the last few face subsets only)."""
+    return _tile_layout_of(out_size, faces, T)
+
+
+@functools.lru_cache(maxsize=32)
+def _tile_radius(out_size: int, T: int) -> float:
+    """The largest tile radius of :func:`_tile_layout_of` over face 0 (all faces have the same tiles)."""
+    return _tile_layout_of(out_size, (0,), T)[5]
+
+
+def _tile_layout_of(out_size: int, faces: tuple, T: int):
     """Tiles of T×T output texels (row-major per face, faces in the given order; the last ones on a face
     smaller when T does not divide ``out_size``), padded to the largest tile by repeating its last texel:
     ``(IDX (n_t, B) flat output indices into the (F·n·n) output of the face subset, TD (n_t, B, 3) directions,
@@ -659,7 +670,7 @@ def _tile_layout(out_size: int, faces: tuple, T: int):
     if faces and faces[0] == 0:
         t_rad = float(ANG[: len(starts) ** 2].max())
     else:
-        t_rad = _tile_layout(out_size, (0,), T)[5]
+        t_rad = _tile_radius(out_size, T)
     for x in (IDX, TD, ANG, CEN, VALID):
         x.flags.writeable = False
     return IDX, TD, CEN, ANG, VALID, t_rad
@@ -1092,7 +1103,7 @@ def convolve_sparse_many(
         # tiles of T×T output texels sharing one candidate list
         T = (_tile_size(out_size, th, M, int(bright.size), _TILE_OVERHEAD_COMPILED, _CAND_OVERHEAD_COMPILED)
              if compiled else _tile_size(out_size, th, M, int(bright.size)))
-        IDX, TD, CEN, ANG, VALID, t_rad0 = _tile_layout(out_size, tuple(faces), T)
+        IDX, TD, CEN, ANG, VALID, t_rad0 = (_tile_layout_of if _sample else _tile_layout)(out_size, tuple(faces), T)
         if _sample:
             pick = np.unique(np.linspace(0, len(CEN) - 1, min(_sample, len(CEN))).astype(np.intp))
             IDX, TD, CEN, ANG, VALID = IDX[pick], TD[pick], CEN[pick], ANG[pick], VALID[pick]

@@ -361,14 +361,14 @@ def _octant_Y_chunks_compiled(reps, L):
     straight into class-contiguous rows (views, no copies), in chunks of ≈ 16 MB."""
     from . import compiled_kernels as ck
 
-    row_of, cls_of = compiled_tables(L)[:2]
+    tabs = compiled_tables(L)
     dest, spans = _class_destinations(L)
     rows = (L + 1) ** 2
     ch = max(ck.SH_BLOCK, (_SH_CHUNK_ELEMS_COMPILED // rows) // ck.SH_BLOCK * ck.SH_BLOCK)
     for i0 in range(0, reps.shape[0], ch):
         i1 = min(reps.shape[0], i0 + ch)
         Y = np.empty((rows, i1 - i0))
-        ck.sh_matrix(np.ascontiguousarray(reps[i0:i1]), L, row_of, cls_of, dest, Y)
+        ck.sh_matrix(np.ascontiguousarray(reps[i0:i1]), L, *tabs, dest, Y)
         yield i0, i1, [Y[a:b] for a, b in spans]
 
 
