@@ -19,14 +19,22 @@ literal Eq. 4 sum (``normalized=False``) at every output texel ``r``, by one of
     moments (exact polynomial kernel on blocks in the positive hemisphere) plus an exact gather of
     the horizon band; equals the exact gather up to rounding, ≈ 10× faster at 128² faces.
 ``"auto"``
-    per exponent, ``s ∈ {1, 2}`` by the moment route (broad lobes are where the SH bound is loose and
-    the sparse gather degenerates to the dense one) — from 512² faces (:func:`~ibl_ref.groundtruth.moment_convolution.moment_leaf`)
-    with linear brackets on leaf blocks of the horizon band instead of its exact gather (rigorous
-    bound; the leaf is halved while the bound misses rtol), whose cost grows as N² instead of N³ —
-    otherwise the cheapest of the above whose bound meets ``rtol``: the SH/hybrid route when its
-    a-priori band limit is affordable (broad lobes), the sparse gather otherwise (narrow lobes), and the
-    exact gather when neither bound meets ``rtol`` (checked a posteriori, per exponent) or for the
-    mirror ``s = inf``.  Exponents routed to SH share one SH pass.
+    per exponent the cheapest route by the cost models of the kernel in use (:func:`_route_auto`,
+    :func:`plan_routes`): ``s ∈ {1, 2}`` by the moment route or the shared SH pass (broad lobes are where the
+    SH bound is loose and the sparse gather degenerates to the dense one; from 256² faces,
+    :func:`~ibl_ref.groundtruth.moment_convolution.moment_leaf`, the moment route uses linear brackets on
+    leaf blocks of the horizon band instead of its exact gather: rigorous bound, the leaf halved while it
+    misses rtol, cost growing as N² instead of N³); the other exponents by the SH/hybrid route when its
+    planned band limit is affordable (broad lobes; the plan estimates the darkest output texel from a 16²
+    copy of the map), the sparse gather otherwise (narrow lobes; its cost from its own first caps on a
+    sample of tiles where that decides), and the exact gather when neither bound meets ``rtol`` (checked a
+    posteriori, per exponent) or for the mirror ``s = inf``.  Exponents routed to SH share one SH pass;
+    an exponent within reach of L_max may join it when that stays cheaper should it fail.
+
+Kernels (``kernel``)
+    ``"numpy"`` or ``"compiled"`` (numba, :mod:`ibl_ref.groundtruth.kernel_choice`,
+    :mod:`ibl_ref.groundtruth.compiled_kernels`): the same routes and bounds; ``"auto"`` takes the compiled
+    kernels when numba is installed and the call pays for loading them (:func:`_auto_kernel`).
 
 Concurrency (``workers``)
     The work is cut into independent jobs — the moment and sparse routes per fixed group of output

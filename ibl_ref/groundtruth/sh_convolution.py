@@ -55,8 +55,10 @@ bound ``A = max((τ − m) η, (y' − m) η/(1 − η))`` with ``η = E_L / D'`
 Band limit
 ----------
 The band limit is the smallest tabulated L (every L ≤ 24, then every 4th, up to :data:`SH_L_MAX`)
-with ``E_L / (2π/(s+1)) ≤ 0.8 rtol · min(1, y_lo / (τ − m))``, where ``y_lo`` is 0.8 × the minimum of
-a cheap band-4 preview of the output (or the environment minimum if larger).  The a-posteriori bound
+with ``E_L / (2π/(s+1)) ≤ 0.8 rtol · min(1, y_lo / (τ − m))``, where ``y_lo`` is an estimate of the darkest
+output texel of that exponent (:func:`_output_floor`: half the minimum of the exact lobe averages of a 16² copy of
+the map; a band-4 SH preview used before rang below zero on probes with a dark ground), or the environment minimum
+if larger.  The a-posteriori bound
 above is what is reported (plus a rounding allowance ``4π·ε_mach·(L+1)²`` added to ``E_L``); the
 a-priori choice only aims at it.  Exponents that would need L > SH_L_MAX (s ≈ 1, whose lobe has a kink at the
 horizon so ``E_L`` decays only like L^−1.5, and s ≳ 500, whose lobe is narrow) are left to the other
