@@ -1,6 +1,8 @@
 """Test-session settings: figures are written, never shown (a non-interactive matplotlib backend chosen
 through the environment, as the library itself never switches backends); progress lines silenced unless a
-test asks for them; the ``mitsuba_llvm`` fixture for tests that run Mitsuba."""
+test asks for them; the convolution kernel pinned to the NumPy reference (``IBL_REF_KERNEL=numpy`` unless set:
+the tests of the compiled kernels ask for ``kernel="compiled"`` themselves, ``tests/test_compiled_kernels.py``);
+the ``mitsuba_llvm`` fixture for tests that run Mitsuba."""
 
 import os
 
@@ -8,6 +10,7 @@ import pytest
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 os.environ.setdefault("IBL_REF_PROGRESS", "0")
+os.environ.setdefault("IBL_REF_KERNEL", "numpy")
 
 
 @pytest.fixture

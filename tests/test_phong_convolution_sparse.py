@@ -284,7 +284,7 @@ def test_float32_kernel_sums_within_rounding_bound_dense_sample(n, s):
     rad_w = np.concatenate([rad, np.ones((rad.shape[0], 1))], axis=1) * omega[:, None]
     slabs = pc._Slabs(src, rad_w, np.zeros(rad.shape[0], dtype=bool), n)
     T = 8
-    IDX, TD, CEN, ANG, VALID = pc._tile_arrays(*pc._tile_geometry(envmap.texel_directions(n), (0, 1, 2, 3, 4, 5), n, T))
+    IDX, TD, CEN, ANG, VALID, _ = pc._tile_layout(n, (0, 1, 2, 3, 4, 5), T)
     tiles = rng.choice(len(CEN), size=min(300, len(CEN)), replace=False)
     a_max = ANG[tiles].max(axis=1)
     q = np.full(tiles.size, pc.cutoff_angle(s, 1e-5, pc._texel_extent(n))) + a_max

@@ -58,7 +58,7 @@ def cmd_convolve(args) -> int:
         with step(f"convolving {cube.shape[1]}² faces with {len(exps)} exponent(s), method {args.method}"):
             res = convolve(
                 cube, exps, method=args.method, rtol=args.rtol, out_size=args.size, normalized=not args.unnormalized,
-                workers=args.workers, backend=args.parallel, executor=executor,
+                workers=args.workers, backend=args.parallel, executor=executor, kernel=args.kernel,
             )
     finally:
         if client is not None:
@@ -74,6 +74,7 @@ def cmd_convolve(args) -> int:
         summary.update(
             {
                 "workers": res.info.get("workers"),
+                "kernel": res.info.get("kernel"),
                 "parallel_backend": res.info.get("backend"),
                 "input": str(args.input),
                 "outputs": written,
@@ -89,7 +90,8 @@ def cmd_convolve(args) -> int:
     for e in summary["exponents"]:
         b = e["rel_bound_max"]
         print(f"s={e['s']}: {e['method']:6s} rel. bound max {b if b is not None else 'inf'} ({e['bound_kind']})")
-    print(f"total {res.timings_s['total']:.2f} s; wrote {len(written)} file(s) and {side}")
+    print(f"total {res.timings_s['total']:.2f} s ({res.info.get('kernel')} kernels); wrote {len(written)} file(s) "
+          f"and {side}")
     return 0
 
 
@@ -138,6 +140,10 @@ def register(sub) -> None:
     p.add_argument("--workers", type=int, default=None, metavar="W",
                    help="parallel workers (1 = serial; default $IBL_REF_WORKERS or min(2, CPUs)); results "
                         "are bit-for-bit identical for every W")
+    p.add_argument("--kernel", choices=("auto", "numpy", "compiled"), default=None,
+                   help="inner loops: numpy (the reference), compiled (numba, pip install 'ibl_ref[fast]'; cached "
+                        "after the first run) or auto (compiled when numba is installed and the run is big enough "
+                        "to pay for loading it); default $IBL_REF_KERNEL or auto. Both give rigorous bounds")
     p.add_argument("--parallel", choices=("auto", "process", "thread"), default="auto",
                    help="how W > 1 workers run: forked processes or threads (auto: processes when possible)")
     add_radiance_args(p)
