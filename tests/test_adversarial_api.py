@@ -663,3 +663,20 @@ def test_interrupt_during_an_import_is_deferred_not_swallowed(tmp_path, monkeypa
             time.sleep(0.5)  # the deferred interrupt arrives here
     assert sys.modules["guarded_mod"].swallowed is False and interrupts.interrupted()
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_a_resend_left_from_one_command_does_not_interrupt_the_next():
+    # in one process (a notebook, a test session) a Ctrl-C of one command arms its re-send timer; a command started
+    # right after must not receive that leftover interrupt
+    import signal
+    import time
+
+    from ibl_ref.cli import interrupts
+
+    with pytest.raises(KeyboardInterrupt, match="^$"):
+        with interrupts.handling():
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+    with interrupts.handling():
+        time.sleep(2 * interrupts._RESEND_S)  # the first block's timer fires in here and must do nothing
+    assert not interrupts.interrupted()

@@ -35,7 +35,7 @@ __all__ = ["handling", "interrupted", "in_import"]
 
 _RETRY_S = 0.02  #: re-delivery interval of a deferred SIGINT
 _RESEND_S = 0.25  #: interval at which a raised interrupt is sent again while the command still runs
-_STATE = {"active": False, "received": False, "pending": False}
+_STATE = {"active": False, "received": False, "pending": False, "generation": 0}
 _FORK_HOOK = {"registered": False}
 
 
@@ -53,11 +53,21 @@ def interrupted() -> bool:
     return _STATE["received"]
 
 
-def _redeliver() -> None:
+def _redeliver(generation: int) -> None:
+    # only into the block that received the signal: a timer left over from an earlier block (an in-process caller
+    # that runs several commands, e.g. a test session) must not interrupt the next one
+    if _STATE["generation"] != generation:
+        return
     _STATE["pending"] = False
     if _STATE["active"]:
         with contextlib.suppress(OSError):
             os.kill(os.getpid(), signal.SIGINT)
+
+
+def _later(delay: float) -> None:
+    t = threading.Timer(delay, _redeliver, args=(_STATE["generation"],))
+    t.daemon = True
+    t.start()
 
 
 def _stop_children() -> None:
@@ -76,16 +86,12 @@ def _on_sigint(signum, frame) -> None:
     if in_import(frame) or atomic.in_critical_section():
         if not _STATE["pending"]:
             _STATE["pending"] = True
-            t = threading.Timer(_RETRY_S, _redeliver)
-            t.daemon = True
-            t.start()
+            _later(_RETRY_S)
         return
     _stop_children()
     if not _STATE["pending"]:  # in case a library swallows the KeyboardInterrupt: send it again
         _STATE["pending"] = True
-        t = threading.Timer(_RESEND_S, _redeliver)
-        t.daemon = True
-        t.start()
+        _later(_RESEND_S)
     raise KeyboardInterrupt
 
 
@@ -108,9 +114,9 @@ def handling():
     if not _FORK_HOOK["registered"] and hasattr(os, "register_at_fork"):
         os.register_at_fork(after_in_child=_child_after_fork)
         _FORK_HOOK["registered"] = True
-    _STATE.update(active=True, received=False, pending=False)
+    _STATE.update(active=True, received=False, pending=False, generation=_STATE["generation"] + 1)
     try:
         yield
     finally:
-        _STATE["active"] = False
+        _STATE.update(active=False, generation=_STATE["generation"] + 1)  # pending timers of this block expire
         signal.signal(signal.SIGINT, old)
