@@ -1,0 +1,474 @@
+"""The exact unoccluded shading of a cube-map environment: ∫ L(ω) w(ω) dω per pixel, converged by adaptive
+subdivision of the map's texels.
+
+A cube map is a piecewise-constant radiance function: L(ω) = L_j on texel j.  For a pixel with shading normal n and
+view v (unit, toward the viewer) and a lobe weight w(ω) — the GGX term ``f_s(ω, v)·(n·ω)⁺`` of
+:func:`ibl_ref.lobes.brdfs.ggx`, a Phong lobe, or one of the lobes of the split-sum chain below — the exact value
+is
+
+    I = Σ_j L_j ∫_{texel j} w(ω) dω          (unnormalised lobes: the GGX specular term)
+    I = Σ_j L_j ∫_j w_num dω / Σ_j ∫_j w_den dω   (normalised lobes: a lobe average, the lab's Phong convention)
+
+with no visibility (an unoccluded convex object: the orthographic sphere of
+:func:`ibl_ref.rendering.sphere_render.orthographic_sphere`).  :func:`integrate` evaluates both integrals with a
+midpoint rule on *cells*: sub-rectangles of a texel in its face plane (level k: the texel split into 2^k × 2^k),
+each with its exact solid angle (:func:`ibl_ref.environment.envmap.rect_solid_angle`) and the weight at its centre
+direction; a cell inherits its texel's radiance, so the sum over cells converges to I as the cells shrink (the same
+as supersampling the cube with nearest-texel copies, but only where it matters).
+
+Refinement, per pixel:
+
+* **grading** (so that narrow lobes cannot fall between cell centres): a cell whose nearest point is γ from the lobe
+  axis (its centre angle minus its size) is split until its size 2/(N·2^k) (face-plane side, ≥ its angular size)
+  is ≤ ``grade_q``·max(w, ``grade_c``·γ), with w the lobe's narrowest half width at that pixel (GGX: 2θh½·(n·v),
+  θh½ the half width at half maximum of D, n·v floored at 1/64; Phong: θ½ = arccos 2^(−1/s)); cells grow
+  linearly away from the peak, so the count grows only with log(1/w);
+* **error-driven**: each cell carries its own midpoint value and the sum over its four children; |children − own|
+  (times the texel's radiance; for a lobe average also the normaliser's share) is the cell's error estimate; while
+  a pixel's summed estimate exceeds ``rtol``·max(|I|, ``floor``·mean |I| over the image), its largest-error cells
+  are split (the smallest set that carries all but half the tolerance), down to ``max_depth`` levels.
+
+The result is the children sums of the leaf cells; the error estimate (``err``) is the sum of the leaves'
+|children − own| (conservative: the children sum is the more accurate one).  Cells whose support is entirely below
+the lobe's horizon (``support_axis``·ω < 0 everywhere in the cell, where both weights vanish) are skipped.
+``tests/test_unoccluded_reference.py`` checks it against uniform supersampling, closed forms (white furnace: the
+GGX albedo of :func:`ibl_ref.lobes.brdfs.albedo`; a linear environment under a Phong lobe) and refinement.
+
+Lobes (``w_num``, ``w_den`` per unit solid angle; r = 2(n·v)n − v):
+
+* :class:`GGXSpecularLobe` — ``f_s(ω, v)(n·ω)⁺`` (Fresnel F0, α = roughness², Smith form), unnormalised;
+* :class:`PhongLobe` — ``max(d·ω, 0)^s``, d = r (``axis="mirror"``) or n (``"normal"``), normalised over the whole
+  sphere; ``clip=True`` keeps the numerator on n's hemisphere only ([n·ω > 0], the reference renderer's Phong
+  convention), ``clip=False`` is the lobe a prefilter sees;
+* :class:`SplitSumLobe` — the first factor of Karis's split sum with the true view: GGX sampling pdf
+  ``p(ω|v) = D(n·h)(n·h)/(4 v·h)`` weighted by (n·ω)⁺ (h = (v + ω)/|v + ω|), normalised;
+* :class:`NVRKernelLobe` — the same with n = v = r: ``K(r·ω) = D(√((1 + r·ω)/2))·max(r·ω, 0)``
+  (:func:`ibl_ref.prefilter.karis2013.prefilter_kernel`), normalised.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..conventions import ggx_alpha, lobe_half_angle
+from ..environment import envmap
+from ..errors import IBLError
+
+__all__ = ["GGXSpecularLobe", "PhongLobe", "SplitSumLobe", "NVRKernelLobe", "LobeIntegral", "integrate",
+           "ggx_half_width_h", "GGX_MIN_COS_VIEW"]
+
+#: the GGX lobe's width stops shrinking with n·v below this (the error-driven refinement resolves the rest)
+GGX_MIN_COS_VIEW = 1.0 / 64.0
+
+
+def _dot(a, b):
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
+def _reflect(n, v):
+    return 2.0 * _dot(n, v)[..., None] * n - v
+
+
+def ggx_half_width_h(alpha: float) -> float:
+    """Half width at half maximum of the GGX NDF in θh: cos²θh = (1 − √2 α²)/(1 − α²) (π/4 for α ≥ 2^(−1/4))."""
+    a2 = float(alpha) ** 2
+    if a2 >= 1.0 / np.sqrt(2.0):
+        return np.pi / 4
+    return float(np.arccos(np.sqrt((1.0 - np.sqrt(2.0) * a2) / (1.0 - a2))))
+
+
+def _check_roughness(roughness) -> tuple:
+    from ..prefilter.karis2013 import check_scalar_roughness
+
+    return check_scalar_roughness(roughness)
+
+
+@dataclass(frozen=True)
+class GGXSpecularLobe:
+    """``f_s(ω, v)·(n·ω)⁺`` of :func:`ibl_ref.lobes.brdfs.ggx` (kd = 0): unnormalised, its integral is the directional
+    albedo for L ≡ 1."""
+
+    roughness: float
+    f0: float = 1.0
+    smith: str = "height_correlated"
+    normalised = False
+
+    def __post_init__(self):
+        from ..lobes.brdfs import SMITH_FORMS
+        from ..prefilter.karis2013 import check_f0
+
+        r, _ = _check_roughness(self.roughness)
+        object.__setattr__(self, "roughness", r)
+        object.__setattr__(self, "f0", check_f0(self.f0))
+        if self.smith not in SMITH_FORMS:
+            raise IBLError(f"smith must be one of {', '.join(SMITH_FORMS)}, got {self.smith!r}")
+
+    def axis(self, n, v):
+        return _reflect(n, v)
+
+    def support_axis(self, n, v):
+        return n
+
+    def edges(self, n, v):
+        return [n]
+
+    def width(self, n, v):
+        ndv = np.clip(_dot(n, v), GGX_MIN_COS_VIEW, 1.0)
+        return 2.0 * ggx_half_width_h(ggx_alpha(self.roughness)) * ndv
+
+    def weights(self, n, v, w):
+        from ..lobes.brdfs import ggx
+
+        with np.errstate(divide="ignore", invalid="ignore", under="ignore", over="ignore"):
+            f = ggx(w, v, n, roughness=self.roughness, f0=self.f0, kd=0.0, smith=self.smith)
+        return f * np.maximum(_dot(n, w), 0.0), None
+
+
+@dataclass(frozen=True)
+class PhongLobe:
+    """``max(d·ω, 0)^s`` about d = r (``"mirror"``) or n (``"normal"``), normalised over the whole sphere;
+    ``clip``: numerator only on n's hemisphere."""
+
+    s: float
+    axis_kind: str = "mirror"
+    clip: bool = True
+    normalised = True
+
+    def __post_init__(self):
+        s = float(self.s)
+        if not (np.isfinite(s) and s >= 1.0):
+            raise IBLError(f"Phong exponent s must be finite and >= 1, got {self.s!r}")
+        if self.axis_kind not in ("mirror", "normal"):
+            raise IBLError(f"axis_kind must be 'mirror' or 'normal', got {self.axis_kind!r}")
+        object.__setattr__(self, "s", s)
+
+    def axis(self, n, v):
+        return n if self.axis_kind == "normal" else _reflect(n, v)
+
+    def support_axis(self, n, v):
+        return self.axis(n, v)
+
+    def edges(self, n, v):
+        return [self.axis(n, v), n] if (self.clip and self.axis_kind == "mirror") else [self.axis(n, v)]
+
+    def width(self, n, v):
+        return np.full(len(n), float(lobe_half_angle(self.s)))
+
+    def weights(self, n, v, w):
+        c = np.maximum(_dot(self.axis(n, v), w), 0.0)
+        with np.errstate(under="ignore"):
+            den = c if self.s == 1.0 else np.power(c, self.s)
+        return (den * (_dot(n, w) > 0) if self.clip else den), den
+
+
+@dataclass(frozen=True)
+class SplitSumLobe:
+    """Karis's split-sum first factor with the true view: ``p(ω|v)·(n·ω)⁺``, ``p = D(n·h)(n·h)/(4 v·h)``, normalised."""
+
+    roughness: float
+    normalised = True
+
+    def __post_init__(self):
+        object.__setattr__(self, "roughness", _check_roughness(self.roughness)[0])
+
+    def axis(self, n, v):
+        return _reflect(n, v)
+
+    def support_axis(self, n, v):
+        return n
+
+    def edges(self, n, v):
+        return [n]
+
+    def width(self, n, v):
+        return GGXSpecularLobe(self.roughness).width(n, v)
+
+    def weights(self, n, v, w):
+        from ..lobes.brdfs import ndf
+
+        h = v + w
+        ln = np.sqrt(_dot(h, h))
+        ok = (ln > 1e-12) & (_dot(n, w) > 0)
+        h = h / np.where(ln > 1e-12, ln, 1.0)[..., None]
+        nh = np.clip(_dot(n, h), 0.0, 1.0)
+        vh = _dot(v, h)
+        with np.errstate(divide="ignore", invalid="ignore", under="ignore"):
+            p = ndf(nh, ggx_alpha(self.roughness)) * nh / (4.0 * vh)
+        wt = np.where(ok & (vh > 0), p * np.maximum(_dot(n, w), 0.0), 0.0)
+        return wt, wt
+
+
+@dataclass(frozen=True)
+class NVRKernelLobe:
+    """The split sum's n = v = r kernel ``K(r·ω) = D(√((1 + r·ω)/2))·max(r·ω, 0)``, normalised."""
+
+    roughness: float
+    normalised = True
+
+    def __post_init__(self):
+        object.__setattr__(self, "roughness", _check_roughness(self.roughness)[0])
+
+    def axis(self, n, v):
+        return _reflect(n, v)
+
+    def support_axis(self, n, v):
+        return self.axis(n, v)
+
+    def edges(self, n, v):
+        return [self.axis(n, v)]
+
+    def width(self, n, v):
+        return np.full(len(n), 2.0 * ggx_half_width_h(ggx_alpha(self.roughness)))
+
+    def weights(self, n, v, w):
+        from ..lobes.brdfs import ndf
+
+        c = np.clip(_dot(self.axis(n, v), w), -1.0, 1.0)
+        with np.errstate(under="ignore"):
+            k = ndf(np.sqrt(0.5 * (1.0 + c)), ggx_alpha(self.roughness)) * np.maximum(c, 0.0)
+        return k, k
+
+
+@dataclass
+class LobeIntegral:
+    """Output of :func:`integrate`: ``value`` (P, C), ``err`` (P,) estimate of |value − exact| (channel mean),
+    ``num`` (P, C) and ``den`` (P,) (den None for unnormalised lobes), ``info`` (cells, depth, converged)."""
+
+    value: np.ndarray
+    err: np.ndarray
+    num: np.ndarray
+    den: np.ndarray | None
+    info: dict = field(default_factory=dict)
+
+
+_FRAMES = envmap.face_frames("openexr")
+
+
+def _cell_geometry(f, k, i, j, n_face):
+    """Centre directions (M, 3), solid angles (M,) and sizes (M,) of cells (face f, level k, row i, column j)."""
+    m = (n_face << k).astype(np.float64)
+    size = 2.0 / m
+    u0 = -1.0 + j * size
+    v0 = -1.0 + i * size
+    om = envmap.rect_solid_angle(u0, u0 + size, v0, v0 + size)
+    fr = _FRAMES[f]
+    uc, vc = u0 + 0.5 * size, v0 + 0.5 * size
+    d = fr[:, 0] + uc[:, None] * fr[:, 1] + vc[:, None] * fr[:, 2]
+    d /= np.sqrt(_dot(d, d))[:, None]
+    return d, om, size
+
+
+class _Cells:
+    """Leaf cells of a chunk of pixels: geometry, own and children midpoint values."""
+
+    __slots__ = ("px", "f", "k", "i", "j", "tex", "own_num", "own_den", "fine_num", "fine_den", "edge_num", "edge_den",
+                 "gamma", "size")
+
+    def __init__(self, **kw):
+        for k_, v_ in kw.items():
+            setattr(self, k_, v_)
+
+    def take(self, sel):
+        return _Cells(**{s: getattr(self, s)[sel] for s in self.__slots__})
+
+    @staticmethod
+    def concat(parts):
+        return _Cells(**{s: np.concatenate([getattr(p, s) for p in parts]) for s in _Cells.__slots__})
+
+    def __len__(self):
+        return len(self.px)
+
+
+def _evaluate(lobe, n_face, n, v, axis, edges, px, f, k, i, j):
+    """Cells with their own value, the sum over their four children and the edge term (module docstring)."""
+    d, om, size = _cell_geometry(f, k, i, j, n_face)
+    npx, vpx = n[px], v[px]
+    num, den = lobe.weights(npx, vpx, d)
+    # a cell cut by an edge of the weight (a great circle a·ω = 0 where it jumps or kinks) may hide what lies on
+    # the other side of the edge from all five sample points: its error term is the weight at the point of the
+    # cell farthest above the edge times the cell's solid angle
+    edge_num = np.zeros(len(px))
+    edge_den = np.zeros(len(px))
+    rc = np.sin(np.minimum(0.75 * size, np.pi / 2))  # ≥ sin(the cell's angular radius)
+    for e in edges:
+        ax = e[px]
+        h = _dot(ax, d)
+        cut = np.abs(h) < rc
+        if cut.any():
+            up = d[cut] + (rc[cut] - h[cut])[:, None] * ax[cut]
+            up /= np.sqrt(_dot(up, up))[:, None]
+            wn, wd = lobe.weights(npx[cut], vpx[cut], up)
+            edge_num[cut] = np.maximum(edge_num[cut], wn * om[cut])
+            if wd is not None:
+                edge_den[cut] = np.maximum(edge_den[cut], wd * om[cut])
+    own_num = num * om
+    own_den = None if den is None else den * om
+    fine_num = np.zeros(len(px))
+    fine_den = None if den is None else np.zeros(len(px))
+    for a in (0, 1):
+        for b in (0, 1):
+            dc, omc, _ = _cell_geometry(f, k + 1, 2 * i + a, 2 * j + b, n_face)
+            cn, cd = lobe.weights(npx, vpx, dc)
+            fine_num += cn * omc
+            if cd is not None:
+                fine_den += cd * omc
+    gamma = np.arccos(np.clip(_dot(axis[px], d), -1.0, 1.0))
+    tex = (f * n_face + (i >> k)) * n_face + (j >> k)
+    z = np.zeros(len(px))
+    return _Cells(px=px, f=f, k=k, i=i, j=j, tex=tex, own_num=own_num,
+                  own_den=z if own_den is None else own_den, fine_num=fine_num,
+                  fine_den=z if fine_den is None else fine_den, edge_num=edge_num, edge_den=edge_den, gamma=gamma,
+                  size=size)
+
+
+def _initial(lobe, n_face, n, v, axis, edges, sup, pix):
+    """Every texel of every pixel in ``pix``, minus those wholly below the lobe's support horizon."""
+    T = 6 * n_face * n_face
+    f = np.repeat(np.arange(6), n_face * n_face)
+    i = np.tile(np.repeat(np.arange(n_face), n_face), 6)
+    j = np.tile(np.arange(n_face), 6 * n_face)
+    d = envmap.texel_directions(n_face).reshape(-1, 3)
+    rad = 1.5 * 2.0 / n_face  # ≥ the angular radius of a texel
+    keep = (sup[pix] @ d.T) > -np.sin(min(rad, np.pi / 2))  # (P_chunk, T)
+    pp, tt = np.nonzero(keep)
+    px = pix[pp]
+    return _evaluate(lobe, n_face, n, v, axis, edges, px, f[tt], np.zeros(len(tt), dtype=np.int64), i[tt], j[tt])
+
+
+def _cell_errors(c: _Cells, lbar, value):
+    """Error estimate of each cell in numerator units: (|children − own| + edge term) × the texel's mean radiance,
+    plus the value times the normaliser's (for a lobe average, ``value`` per cell)."""
+    e = (np.abs(c.fine_num - c.own_num) + c.edge_num) * lbar[c.tex]
+    if value is not None:
+        e = e + value * (np.abs(c.fine_den - c.own_den) + c.edge_den)
+    return e
+
+
+def _children(c: _Cells):
+    f = np.repeat(c.f, 4)
+    k = np.repeat(c.k + 1, 4)
+    a = np.tile([0, 0, 1, 1], len(c))
+    b = np.tile([0, 1, 0, 1], len(c))
+    return np.repeat(c.px, 4), f, k, 2 * np.repeat(c.i, 4) + a, 2 * np.repeat(c.j, 4) + b
+
+
+def integrate(cube, lobe, normals, views, *, rtol: float = 1e-3, floor: float = 0.1, floor_value: float | None = None,
+              max_depth: int = 12, grade_q: float = 0.5, grade_c: float = 0.5, chunk_cells: int = 300_000,
+              max_cells_per_pixel: int = 400_000, progress: bool = False) -> LobeIntegral:
+    """The exact unoccluded integral of ``lobe`` at every pixel (module docstring).
+
+    Parameters
+    ----------
+    cube : (6, N, N, C) radiance (finite, ≥ 0)
+    lobe : :class:`GGXSpecularLobe`, :class:`PhongLobe`, :class:`SplitSumLobe`, :class:`NVRKernelLobe` (or any
+        object with ``normalised``, ``axis``, ``support_axis``, ``width``, ``weights``)
+    normals, views : (P, 3) unit shading normals and view directions (toward the viewer)
+    rtol : per-pixel target of the error estimate, relative to max(|I|, floor·mean |I|)
+    floor_value : the absolute floor instead (e.g. shared by several integrals of one image)
+    max_depth : finest cell level (texel split into 2^max_depth per axis)
+    grade_q, grade_c : the grading rule (module docstring)
+    chunk_cells : cells per chunk of pixels (memory ≈ 200 bytes × chunk_cells × 5)
+    max_cells_per_pixel : refinement stops there (``info["converged"]`` False)
+    """
+    from ..groundtruth.convolution_args import check_cube
+    from ..progress import track
+
+    a, _ = check_cube(cube)
+    n_face = a.shape[1]
+    C = a.shape[-1]
+    rad = a.reshape(-1, C)
+    lbar = rad.mean(axis=1)
+    n = envmap.unit_directions(np.asarray(normals, dtype=np.float64).reshape(-1, 3), "normals")
+    v = envmap.unit_directions(np.asarray(views, dtype=np.float64).reshape(-1, 3), "views")
+    if n.shape != v.shape:
+        raise IBLError(f"normals and views must have the same shape, got {n.shape} and {v.shape}")
+    if not (rtol > 0 and np.isfinite(rtol)):
+        raise IBLError(f"rtol must be a finite number > 0, got {rtol!r}")
+    P = len(n)
+    axis = lobe.axis(n, v)
+    axis = axis / np.maximum(np.sqrt(_dot(axis, axis)), 1e-300)[:, None]
+    sup = lobe.support_axis(n, v)
+    edges = [np.asarray(e, dtype=np.float64) for e in lobe.edges(n, v)]
+    width = np.maximum(np.asarray(lobe.width(n, v), dtype=np.float64), 1e-9)
+    num = np.zeros((P, C))
+    den = np.zeros(P) if lobe.normalised else None
+    err = np.zeros(P)
+    # pass 1: the plain texel-centre sums give the image's scale for the floor of the relative target
+    if floor_value is None:
+        coarse = np.zeros(P)
+        step = max(1, chunk_cells // (6 * n_face * n_face))
+        d0, om0, _ = _cell_geometry(np.repeat(np.arange(6), n_face * n_face), np.zeros(6 * n_face * n_face, int),
+                                    np.tile(np.repeat(np.arange(n_face), n_face), 6),
+                                    np.tile(np.arange(n_face), 6 * n_face), n_face)
+        for s0 in range(0, P, step):
+            sl = np.arange(s0, min(P, s0 + step))
+            px = np.repeat(sl, len(d0))
+            wn, wd = lobe.weights(n[px], v[px], np.tile(d0, (len(sl), 1)))
+            wn = (wn * np.tile(om0, len(sl))).reshape(len(sl), -1)
+            c0 = wn @ lbar
+            if wd is not None:
+                c0 = c0 / np.maximum((wd * np.tile(om0, len(sl))).reshape(len(sl), -1).sum(axis=1), 1e-300)
+            coarse[sl] = c0
+        floor_value = float(floor) * float(np.mean(np.abs(coarse))) if P else 0.0
+    floor_value = float(floor_value)
+    step = max(1, chunk_cells // (6 * n_face * n_face))
+    n_cells, depth_max, converged = 0, 0, True
+    for s0 in track(range(0, P, step), "unoccluded reference", unit="chunk", enabled=progress):
+        pix = np.arange(s0, min(P, s0 + step))
+        cells = _initial(lobe, n_face, n, v, axis, edges, sup, pix)
+        while True:
+            loc = cells.px - s0
+            tot_num = np.bincount(loc, cells.fine_num * lbar[cells.tex], len(pix))
+            if lobe.normalised:
+                tot_den = np.maximum(np.bincount(loc, cells.fine_den, len(pix)), 1e-300)
+                val = tot_num / tot_den
+                e = _cell_errors(cells, lbar, val[loc])
+                target = rtol * np.maximum(np.abs(val), floor_value) * tot_den
+            else:
+                e = _cell_errors(cells, lbar, None)
+                target = rtol * np.maximum(np.abs(tot_num), floor_value)
+            # grading: split cells larger than grade_q·max(w, grade_c·γ') (γ' = distance of the cell's nearest point)
+            g = np.maximum(cells.gamma - cells.size, 0.0)
+            forced = (cells.size > grade_q * np.maximum(width[cells.px], grade_c * g)) & (cells.k < max_depth)
+            e_tot = np.bincount(loc, e, len(pix))
+            need = e_tot > target
+            counts = np.bincount(loc, minlength=len(pix))
+            need &= counts < max_cells_per_pixel
+            chosen = forced.copy()
+            if need.any():
+                order = np.lexsort((-e, loc))  # by pixel, largest error first
+                es = e[order]
+                cs = np.cumsum(es)
+                start = np.r_[0, np.cumsum(counts)[:-1]]
+                before = cs - es - np.repeat(cs[start] - es[start], counts)
+                lo = loc[order]
+                pick = need[lo] & (before < (e_tot[lo] - 0.5 * target[lo])) & (cells.k[order] < max_depth)
+                chosen[order[pick]] = True
+            if not chosen.any():
+                break
+            keep = cells.take(~chosen)
+            new = _evaluate(lobe, n_face, n, v, axis, edges, *_children(cells.take(chosen)))
+            cells = _Cells.concat([keep, new])
+        loc = cells.px - s0
+        w = cells.fine_num
+        for c in range(C):
+            num[pix, c] = np.bincount(loc, w * rad[cells.tex, c], len(pix))
+        if lobe.normalised:
+            den[pix] = np.bincount(loc, cells.fine_den, len(pix))
+            val = num[pix].mean(axis=1) / np.maximum(den[pix], 1e-300)
+            err[pix] = np.bincount(loc, _cell_errors(cells, lbar, val[loc]), len(pix)) / np.maximum(den[pix], 1e-300)
+        else:
+            err[pix] = np.bincount(loc, _cell_errors(cells, lbar, None), len(pix))
+        counts = np.bincount(loc, minlength=len(pix))
+        converged &= bool(np.all(counts < max_cells_per_pixel))
+        n_cells += len(cells)
+        depth_max = max(depth_max, int(cells.k.max(initial=0)))
+    value = num / np.maximum(den, 1e-300)[:, None] if lobe.normalised else num.copy()
+    if not np.all(np.isfinite(value)):
+        raise IBLError("unoccluded reference: non-finite result")
+    info = dict(n_cells=int(n_cells), cells_per_pixel=n_cells / max(P, 1), max_depth_used=depth_max,
+                converged=converged, rtol=float(rtol), floor_value=floor_value,
+                err_rel_l1=float(err.sum() / max(np.abs(value.mean(axis=1)).sum(), 1e-300)))
+    return LobeIntegral(value=value, err=err, num=num, den=den, info=info)
