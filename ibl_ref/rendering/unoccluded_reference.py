@@ -28,7 +28,11 @@ Refinement, per pixel:
   a pixel's summed estimate exceeds ``rtol``·max(|I|, ``floor``·mean |I| over the image), its largest-error cells
   are split (the smallest set that carries all but half the tolerance), down to ``max_depth`` levels.
 
-The result is the children sums of the leaf cells; the error estimate (``err``) is the sum of the leaves'
+A lobe whose numerator is clipped to n's hemisphere (the reference's Phong convention) has a jump there; a cell cut
+by that plane takes its numerator from the part above the plane only (the plane cuts the face plane in a straight
+line: the part is the rectangle clipped by a half-plane, its solid angle a fan of spherical triangles, its weight at
+its area centroid), so the jump costs no more than a smooth integrand.  The result is the children sums of the leaf
+cells; the error estimate (``err``) is the sum of the leaves'
 |children − own| (conservative: the children sum is the more accurate one).  Cells whose support is entirely below
 the lobe's horizon (``support_axis``·ω < 0 everywhere in the cell, where both weights vanish) are skipped.
 ``tests/test_unoccluded_reference.py`` checks it against uniform supersampling, closed forms (white furnace: the
@@ -151,7 +155,11 @@ class PhongLobe:
         return self.axis(n, v)
 
     def edges(self, n, v):
-        return [self.axis(n, v), n] if (self.clip and self.axis_kind == "mirror") else [self.axis(n, v)]
+        return [self.axis(n, v)]
+
+    def clip_axis(self, n, v):
+        """The numerator's clip plane [n·ω > 0] (cells cut by it are integrated over their part above it)."""
+        return n if (self.clip and self.axis_kind == "mirror") else None
 
     def width(self, n, v):
         return np.full(len(n), float(lobe_half_angle(self.s)))
@@ -281,11 +289,89 @@ class _Cells:
         return len(self.px)
 
 
-def _evaluate(lobe, n_face, n, v, axis, edges, px, f, k, i, j):
+def _triangle_solid_angle(a, b, c):
+    """Solid angle of the spherical triangle of unit vectors a, b, c (Van Oosterom & Strackee 1983):
+    tan(Ω/2) = |a·(b×c)| / (1 + a·b + b·c + c·a)."""
+    num = np.abs(_dot(a, np.cross(b, c)))
+    den = 1.0 + _dot(a, b) + _dot(b, c) + _dot(c, a)
+    return 2.0 * np.arctan2(num, den)
+
+
+def _above_part(f, k, i, j, n_face, a):
+    """The part of each cell above the plane a·ω = 0: its centre direction (area centroid in the face plane) and
+    exact solid angle.  A plane through the origin cuts a face plane in a straight line, so the part is the cell's
+    rectangle clipped by a half-plane (≤ 5 vertices), its solid angle a fan of spherical triangles."""
+    m = (n_face << k).astype(np.float64)
+    size = 2.0 / m
+    u0 = -1.0 + j * size
+    v0 = -1.0 + i * size
+    fr = _FRAMES[f]
+    c0, cu, cv = _dot(a, fr[:, 0]), _dot(a, fr[:, 1]), _dot(a, fr[:, 2])
+    cu_, cv_ = [u0, u0 + size, u0 + size, u0], [v0, v0, v0 + size, v0 + size]
+    U = np.stack(cu_, axis=1)
+    V = np.stack(cv_, axis=1)
+    L = c0[:, None] + cu[:, None] * U + cv[:, None] * V  # (M, 4) signed height of the corners
+    pu, pv, ok = [], [], []
+    for e in range(4):
+        e2 = (e + 1) % 4
+        la, lb = L[:, e], L[:, e2]
+        pu.append(U[:, e])
+        pv.append(V[:, e])
+        ok.append(la > 0)
+        t = np.where(la != lb, la / np.where(la != lb, la - lb, 1.0), 0.0)
+        pu.append(U[:, e] + t * (U[:, e2] - U[:, e]))
+        pv.append(V[:, e] + t * (V[:, e2] - V[:, e]))
+        ok.append((la > 0) != (lb > 0))
+    pu, pv, ok = np.stack(pu, 1), np.stack(pv, 1), np.stack(ok, 1)  # (M, 8) polygon slots in order
+    order = np.argsort(~ok, axis=1, kind="stable")  # valid slots first, in polygon order
+    pu = np.take_along_axis(pu, order, 1)
+    pv = np.take_along_axis(pv, order, 1)
+    cnt = ok.sum(axis=1)
+    P = fr[:, None, 0] + pu[..., None] * fr[:, None, 1] + pv[..., None] * fr[:, None, 2]  # (M, 8, 3) on the plane
+    Pn = P / np.sqrt(_dot(P, P))[..., None]
+    om = np.zeros(len(f))
+    cx = np.zeros(len(f))
+    cy = np.zeros(len(f))
+    ar = np.zeros(len(f))
+    for t in range(1, 7):  # fan (0, t, t + 1)
+        on = cnt > t + 1
+        if not on.any():
+            break
+        om[on] += _triangle_solid_angle(Pn[on, 0], Pn[on, t], Pn[on, t + 1])
+        x0, y0, x1, y1, x2, y2 = pu[on, 0], pv[on, 0], pu[on, t], pv[on, t], pu[on, t + 1], pv[on, t + 1]
+        at = 0.5 * np.abs((x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0))
+        ar[on] += at
+        cx[on] += at * (x0 + x1 + x2) / 3.0
+        cy[on] += at * (y0 + y1 + y2) / 3.0
+    uc = np.where(ar > 0, cx / np.where(ar > 0, ar, 1.0), u0 + 0.5 * size)
+    vc = np.where(ar > 0, cy / np.where(ar > 0, ar, 1.0), v0 + 0.5 * size)
+    d = fr[:, 0] + uc[:, None] * fr[:, 1] + vc[:, None] * fr[:, 2]
+    d /= np.sqrt(_dot(d, d))[:, None]
+    return d, om
+
+
+def _num_weight(lobe, npx, vpx, d, om, f, k, i, j, n_face, clip):
+    """Numerator and normaliser contributions w·Ω of cells, the numerator of cells cut by the clip plane from the
+    part above it (module docstring)."""
+    num, den = lobe.weights(npx, vpx, d)
+    num = num * om
+    if clip is not None:
+        h = _dot(clip, d)
+        size = 2.0 / (n_face << k)
+        cut = np.abs(h) < np.sin(np.minimum(0.75 * size, np.pi / 2))
+        if cut.any():
+            dd, oo = _above_part(f[cut], k[cut], i[cut], j[cut], n_face, clip[cut])
+            wn, _ = lobe.weights(npx[cut], vpx[cut], dd)
+            num[cut] = np.where(oo > 0, wn * oo, 0.0)
+    return num, (None if den is None else den * om)
+
+
+def _evaluate(lobe, n_face, n, v, axis, edges, clip, px, f, k, i, j):
     """Cells with their own value, the sum over their four children and the edge term (module docstring)."""
     d, om, size = _cell_geometry(f, k, i, j, n_face)
     npx, vpx = n[px], v[px]
-    num, den = lobe.weights(npx, vpx, d)
+    cpx = None if clip is None else clip[px]
+    own_num, own_den = _num_weight(lobe, npx, vpx, d, om, f, k, i, j, n_face, cpx)
     # a cell cut by an edge of the weight (a great circle a·ω = 0 where it jumps or kinks) may hide what lies on
     # the other side of the edge from all five sample points: its error term is the weight at the point of the
     # cell farthest above the edge times the cell's solid angle
@@ -303,17 +389,16 @@ def _evaluate(lobe, n_face, n, v, axis, edges, px, f, k, i, j):
             edge_num[cut] = np.maximum(edge_num[cut], wn * om[cut])
             if wd is not None:
                 edge_den[cut] = np.maximum(edge_den[cut], wd * om[cut])
-    own_num = num * om
-    own_den = None if den is None else den * om
     fine_num = np.zeros(len(px))
-    fine_den = None if den is None else np.zeros(len(px))
+    fine_den = None if own_den is None else np.zeros(len(px))
     for a in (0, 1):
         for b in (0, 1):
-            dc, omc, _ = _cell_geometry(f, k + 1, 2 * i + a, 2 * j + b, n_face)
-            cn, cd = lobe.weights(npx, vpx, dc)
-            fine_num += cn * omc
+            ci, cj, ck = 2 * i + a, 2 * j + b, k + 1
+            dc, omc, _ = _cell_geometry(f, ck, ci, cj, n_face)
+            cn, cd = _num_weight(lobe, npx, vpx, dc, omc, f, ck, ci, cj, n_face, cpx)
+            fine_num += cn
             if cd is not None:
-                fine_den += cd * omc
+                fine_den += cd
     gamma = np.arccos(np.clip(_dot(axis[px], d), -1.0, 1.0))
     tex = (f * n_face + (i >> k)) * n_face + (j >> k)
     z = np.zeros(len(px))
@@ -323,7 +408,7 @@ def _evaluate(lobe, n_face, n, v, axis, edges, px, f, k, i, j):
                   size=size)
 
 
-def _initial(lobe, n_face, n, v, axis, edges, sup, pix):
+def _initial(lobe, n_face, n, v, axis, edges, clip, sup, pix):
     """Every texel of every pixel in ``pix``, minus those wholly below the lobe's support horizon."""
     T = 6 * n_face * n_face
     f = np.repeat(np.arange(6), n_face * n_face)
@@ -334,7 +419,8 @@ def _initial(lobe, n_face, n, v, axis, edges, sup, pix):
     keep = (sup[pix] @ d.T) > -np.sin(min(rad, np.pi / 2))  # (P_chunk, T)
     pp, tt = np.nonzero(keep)
     px = pix[pp]
-    return _evaluate(lobe, n_face, n, v, axis, edges, px, f[tt], np.zeros(len(tt), dtype=np.int64), i[tt], j[tt])
+    return _evaluate(lobe, n_face, n, v, axis, edges, clip, px, f[tt], np.zeros(len(tt), dtype=np.int64), i[tt],
+                     j[tt])
 
 
 def _cell_errors(c: _Cells, lbar, value):
@@ -391,6 +477,8 @@ def integrate(cube, lobe, normals, views, *, rtol: float = 1e-3, floor: float = 
     axis = axis / np.maximum(np.sqrt(_dot(axis, axis)), 1e-300)[:, None]
     sup = lobe.support_axis(n, v)
     edges = [np.asarray(e, dtype=np.float64) for e in lobe.edges(n, v)]
+    clip = getattr(lobe, "clip_axis", lambda n_, v_: None)(n, v)
+    clip = None if clip is None else np.asarray(clip, dtype=np.float64)
     width = np.maximum(np.asarray(lobe.width(n, v), dtype=np.float64), 1e-9)
     num = np.zeros((P, C))
     den = np.zeros(P) if lobe.normalised else None
@@ -417,7 +505,7 @@ def integrate(cube, lobe, normals, views, *, rtol: float = 1e-3, floor: float = 
     n_cells, depth_max, converged = 0, 0, True
     for s0 in track(range(0, P, step), "unoccluded reference", unit="chunk", enabled=progress):
         pix = np.arange(s0, min(P, s0 + step))
-        cells = _initial(lobe, n_face, n, v, axis, edges, sup, pix)
+        cells = _initial(lobe, n_face, n, v, axis, edges, clip, sup, pix)
         while True:
             loc = cells.px - s0
             tot_num = np.bincount(loc, cells.fine_num * lbar[cells.tex], len(pix))
@@ -449,7 +537,7 @@ def integrate(cube, lobe, normals, views, *, rtol: float = 1e-3, floor: float = 
             if not chosen.any():
                 break
             keep = cells.take(~chosen)
-            new = _evaluate(lobe, n_face, n, v, axis, edges, *_children(cells.take(chosen)))
+            new = _evaluate(lobe, n_face, n, v, axis, edges, clip, *_children(cells.take(chosen)))
             cells = _Cells.concat([keep, new])
         loc = cells.px - s0
         w = cells.fine_num
