@@ -79,7 +79,10 @@ and phi nodes and 1.5× the nodes (:attr:`DFGTable.quadrature_error`), within 2e
 normal view and within 5e-8 of :func:`ibl_ref.lobes.brdfs.albedo` (an independent rule in l, itself ≈ 1e-8 off at
 low roughness).  The 64² table's bilinear interpolation dominates: at the midpoints between its texel centres
 ``|Δ(F0·A + B)|`` ≤ 2.9e-4 for n·v ≥ 0.2 (O(h²)), mean 1.4e-4, max 1.8e-2 in the lowest n·v row (n·v ≈ 1/64, where
-the albedo of a near-mirror changes on the scale of n·v itself; not reduced by a larger table).
+the albedo of a near-mirror changes on the scale of n·v itself; not reduced by a larger table).  Beyond the last
+texel centre (n·v or roughness above 1 − 1/128) the look-up is clamped to the edge: the diffuse-like corner
+roughness 1, n·v → 1 is then 9.4e-3 off for F0 = 1 (5.5e-4 for F0 = 0.04; ≤ 2.8e-4 on the rest of
+n·v ∈ [0.2, 1]; a 101 × 161 grid of roughness and n·v).
 """
 
 from __future__ import annotations
