@@ -172,8 +172,8 @@ class PhongLobe:
 
 
 @dataclass(frozen=True)
-class SplitSumLobe:
-    """Karis's split-sum first factor with the true view: ``p(ω|v)·(n·ω)⁺``, ``p = D(n·h)(n·h)/(4 v·h)``, normalised."""
+class _SplitSumFactor:
+    """The normalised GGX lobes of the split sum's first factor (one roughness, axis r)."""
 
     roughness: float
     normalised = True
@@ -183,6 +183,11 @@ class SplitSumLobe:
 
     def axis(self, n, v):
         return _reflect(n, v)
+
+
+@dataclass(frozen=True)
+class SplitSumLobe(_SplitSumFactor):
+    """Karis's split-sum first factor with the true view: ``p(ω|v)·(n·ω)⁺``, ``p = D(n·h)(n·h)/(4 v·h)``, normalised."""
 
     def support_axis(self, n, v):
         return n
@@ -209,17 +214,8 @@ class SplitSumLobe:
 
 
 @dataclass(frozen=True)
-class NVRKernelLobe:
+class NVRKernelLobe(_SplitSumFactor):
     """The split sum's n = v = r kernel ``K(r·ω) = D(√((1 + r·ω)/2))·max(r·ω, 0)``, normalised."""
-
-    roughness: float
-    normalised = True
-
-    def __post_init__(self):
-        object.__setattr__(self, "roughness", _check_roughness(self.roughness)[0])
-
-    def axis(self, n, v):
-        return _reflect(n, v)
 
     def support_axis(self, n, v):
         return self.axis(n, v)
