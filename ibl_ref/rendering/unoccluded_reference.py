@@ -251,9 +251,9 @@ _FRAMES = envmap.face_frames("openexr")
 
 
 def _cell_geometry(f, k, i, j, n_face):
-    """Centre directions (M, 3), solid angles (M,) and sizes (M,) of cells (face f, level k, row i, column j)."""
-    m = (n_face << k).astype(np.float64)
-    size = 2.0 / m
+    """Centre directions (M, 3), solid angles (M,) and face-plane sizes (M,) of cells (face f, level k, row i,
+    column j; level k has N·2^k cells per face side, k < 0 are blocks of 2^−k × 2^−k texels)."""
+    size = 2.0 / (n_face * np.exp2(k))
     u0 = -1.0 + j * size
     v0 = -1.0 + i * size
     om = envmap.rect_solid_angle(u0, u0 + size, v0, v0 + size)
@@ -264,10 +264,39 @@ def _cell_geometry(f, k, i, j, n_face):
     return d, om, size
 
 
-class _Cells:
-    """Leaf cells of a chunk of pixels: geometry, own and children midpoint values."""
+class _Radiance:
+    """∫ L dω over cells: L_texel·Ω for cells inside a texel (k ≥ 0), the exact sums Σ L_j Ω_j of the texel blocks
+    for the coarse levels (k < 0)."""
 
-    __slots__ = ("px", "f", "k", "i", "j", "tex", "own_num", "own_den", "fine_num", "fine_den", "edge_num", "edge_den",
+    def __init__(self, a, levels: int):
+        self.n = a.shape[1]
+        self.C = a.shape[-1]
+        self.L = a.reshape(-1, self.C)
+        lw = a * envmap.cube_solid_angles(self.n)[..., None]
+        self.sums = {}
+        for m in range(1, levels + 1):
+            b = 2 ** m
+            g = self.n // b
+            self.sums[-m] = lw.reshape(6, g, b, g, b, self.C).sum(axis=(2, 4)).reshape(-1, self.C)
+
+    def __call__(self, f, k, i, j, om):
+        out = np.empty((len(f), self.C))
+        fine = k >= 0
+        if fine.any():
+            kk = k[fine]
+            tex = (f[fine] * self.n + (i[fine] >> kk)) * self.n + (j[fine] >> kk)
+            out[fine] = self.L[tex] * om[fine, None]
+        for lev in np.unique(k[~fine]):
+            sel = k == lev
+            g = self.n >> int(-lev)
+            out[sel] = self.sums[int(lev)][(f[sel] * g + i[sel]) * g + j[sel]]
+        return out
+
+
+class _Cells:
+    """Leaf cells of a chunk of pixels: geometry, own and children midpoint values, edge terms."""
+
+    __slots__ = ("px", "f", "k", "i", "j", "own", "fine", "fine_rgb", "own_den", "fine_den", "edge_num", "edge_den",
                  "gamma", "size")
 
     def __init__(self, **kw):
@@ -297,15 +326,13 @@ def _above_part(f, k, i, j, n_face, a):
     """The part of each cell above the plane a·ω = 0: its centre direction (area centroid in the face plane) and
     exact solid angle.  A plane through the origin cuts a face plane in a straight line, so the part is the cell's
     rectangle clipped by a half-plane (≤ 5 vertices), its solid angle a fan of spherical triangles."""
-    m = (n_face << k).astype(np.float64)
-    size = 2.0 / m
+    size = 2.0 / (n_face * np.exp2(k))
     u0 = -1.0 + j * size
     v0 = -1.0 + i * size
     fr = _FRAMES[f]
     c0, cu, cv = _dot(a, fr[:, 0]), _dot(a, fr[:, 1]), _dot(a, fr[:, 2])
-    cu_, cv_ = [u0, u0 + size, u0 + size, u0], [v0, v0, v0 + size, v0 + size]
-    U = np.stack(cu_, axis=1)
-    V = np.stack(cv_, axis=1)
+    U = np.stack([u0, u0 + size, u0 + size, u0], axis=1)
+    V = np.stack([v0, v0, v0 + size, v0 + size], axis=1)
     L = c0[:, None] + cu[:, None] * U + cv[:, None] * V  # (M, 4) signed height of the corners
     pu, pv, ok = [], [], []
     for e in range(4):
@@ -346,34 +373,35 @@ def _above_part(f, k, i, j, n_face, a):
     return d, om
 
 
-def _num_weight(lobe, npx, vpx, d, om, f, k, i, j, n_face, clip):
-    """Numerator and normaliser contributions w·Ω of cells, the numerator of cells cut by the clip plane from the
-    part above it (module docstring)."""
+def _contributions(lobe, npx, vpx, d, om, f, k, i, j, n_face, clip, radiance):
+    """Per cell: the numerator w·∫L (M, C), the normaliser w_den·Ω (M,) or None, and ∫L (M, C); a cell cut by the
+    clip plane takes its numerator from its part above the plane (its radiance spread evenly over the cell)."""
+    R = radiance(f, k, i, j, om)
     num, den = lobe.weights(npx, vpx, d)
-    num = num * om
+    num = num[:, None] * R
     if clip is not None:
         h = _dot(clip, d)
-        size = 2.0 / (n_face << k)
-        cut = np.abs(h) < np.sin(np.minimum(0.75 * size, np.pi / 2))
+        cut = np.abs(h) < np.sin(np.minimum(0.75 * 2.0 / (n_face * np.exp2(k)), np.pi / 2))
         if cut.any():
             dd, oo = _above_part(f[cut], k[cut], i[cut], j[cut], n_face, clip[cut])
             wn, _ = lobe.weights(npx[cut], vpx[cut], dd)
-            num[cut] = np.where(oo > 0, wn * oo, 0.0)
-    return num, (None if den is None else den * om)
+            num[cut] = np.where(oo > 0, wn * oo / om[cut], 0.0)[:, None] * R[cut]
+    return num, (None if den is None else den * om), R
 
 
-def _evaluate(lobe, n_face, n, v, axis, edges, clip, px, f, k, i, j):
+def _evaluate(lobe, n_face, n, v, axis, edges, clip, radiance, px, f, k, i, j):
     """Cells with their own value, the sum over their four children and the edge term (module docstring)."""
     d, om, size = _cell_geometry(f, k, i, j, n_face)
     npx, vpx = n[px], v[px]
     cpx = None if clip is None else clip[px]
-    own_num, own_den = _num_weight(lobe, npx, vpx, d, om, f, k, i, j, n_face, cpx)
+    own_rgb, own_den, R = _contributions(lobe, npx, vpx, d, om, f, k, i, j, n_face, cpx, radiance)
     # a cell cut by an edge of the weight (a great circle a·ω = 0 where it jumps or kinks) may hide what lies on
     # the other side of the edge from all five sample points: its error term is the weight at the point of the
-    # cell farthest above the edge times the cell's solid angle
+    # cell farthest above the edge times the cell's radiance integral
     edge_num = np.zeros(len(px))
     edge_den = np.zeros(len(px))
     rc = np.sin(np.minimum(0.75 * size, np.pi / 2))  # ≥ sin(the cell's angular radius)
+    rbar = R.mean(axis=1)
     for e in edges:
         ax = e[px]
         h = _dot(ax, d)
@@ -382,47 +410,51 @@ def _evaluate(lobe, n_face, n, v, axis, edges, clip, px, f, k, i, j):
             up = d[cut] + (rc[cut] - h[cut])[:, None] * ax[cut]
             up /= np.sqrt(_dot(up, up))[:, None]
             wn, wd = lobe.weights(npx[cut], vpx[cut], up)
-            edge_num[cut] = np.maximum(edge_num[cut], wn * om[cut])
+            edge_num[cut] = np.maximum(edge_num[cut], wn * rbar[cut])
             if wd is not None:
                 edge_den[cut] = np.maximum(edge_den[cut], wd * om[cut])
-    fine_num = np.zeros(len(px))
+    fine_rgb = np.zeros_like(own_rgb)
     fine_den = None if own_den is None else np.zeros(len(px))
     for a in (0, 1):
         for b in (0, 1):
             ci, cj, ck = 2 * i + a, 2 * j + b, k + 1
             dc, omc, _ = _cell_geometry(f, ck, ci, cj, n_face)
-            cn, cd = _num_weight(lobe, npx, vpx, dc, omc, f, ck, ci, cj, n_face, cpx)
-            fine_num += cn
+            cn, cd, _ = _contributions(lobe, npx, vpx, dc, omc, f, ck, ci, cj, n_face, cpx, radiance)
+            fine_rgb += cn
             if cd is not None:
                 fine_den += cd
     gamma = np.arccos(np.clip(_dot(axis[px], d), -1.0, 1.0))
-    tex = (f * n_face + (i >> k)) * n_face + (j >> k)
     z = np.zeros(len(px))
-    return _Cells(px=px, f=f, k=k, i=i, j=j, tex=tex, own_num=own_num,
-                  own_den=z if own_den is None else own_den, fine_num=fine_num,
-                  fine_den=z if fine_den is None else fine_den, edge_num=edge_num, edge_den=edge_den, gamma=gamma,
-                  size=size)
+    return _Cells(px=px, f=f, k=k, i=i, j=j, own=own_rgb.mean(axis=1), fine=fine_rgb.mean(axis=1), fine_rgb=fine_rgb,
+                  own_den=z if own_den is None else own_den, fine_den=z if fine_den is None else fine_den,
+                  edge_num=edge_num, edge_den=edge_den, gamma=gamma, size=size)
 
 
-def _initial(lobe, n_face, n, v, axis, edges, clip, sup, pix):
-    """Every texel of every pixel in ``pix``, minus those wholly below the lobe's support horizon."""
-    T = 6 * n_face * n_face
-    f = np.repeat(np.arange(6), n_face * n_face)
-    i = np.tile(np.repeat(np.arange(n_face), n_face), 6)
-    j = np.tile(np.arange(n_face), 6 * n_face)
-    d = envmap.texel_directions(n_face).reshape(-1, 3)
-    rad = 1.5 * 2.0 / n_face  # ≥ the angular radius of a texel
-    keep = (sup[pix] @ d.T) > -np.sin(min(rad, np.pi / 2))  # (P_chunk, T)
+def _top_cells(n_face, k0):
+    """(f, i, j) of every cell of level ``k0`` ≤ 0 (blocks of 2^−k0 texels)."""
+    g = n_face >> (-k0)
+    f = np.repeat(np.arange(6), g * g)
+    i = np.tile(np.repeat(np.arange(g), g), 6)
+    j = np.tile(np.arange(g), 6 * g)
+    return f, i, j
+
+
+def _initial(lobe, n_face, k0, n, v, axis, edges, clip, sup, radiance, pix):
+    """Every top cell of every pixel in ``pix``, minus those wholly below the lobe's support horizon."""
+    f, i, j = _top_cells(n_face, k0)
+    d, _, size = _cell_geometry(f, np.full(len(f), k0), i, j, n_face)
+    rad = min(1.5 * float(size[0]), np.pi / 2)  # ≥ the angular radius of a cell
+    keep = (sup[pix] @ d.T) > -np.sin(rad)  # (P_chunk, T)
     pp, tt = np.nonzero(keep)
-    px = pix[pp]
-    return _evaluate(lobe, n_face, n, v, axis, edges, clip, px, f[tt], np.zeros(len(tt), dtype=np.int64), i[tt],
-                     j[tt])
+    return _evaluate(lobe, n_face, n, v, axis, edges, clip, radiance, pix[pp], f[tt], np.full(len(tt), k0,
+                                                                                             dtype=np.int64),
+                     i[tt], j[tt])
 
 
-def _cell_errors(c: _Cells, lbar, value):
-    """Error estimate of each cell in numerator units: (|children − own| + edge term) × the texel's mean radiance,
-    plus the value times the normaliser's (for a lobe average, ``value`` per cell)."""
-    e = (np.abs(c.fine_num - c.own_num) + c.edge_num) * lbar[c.tex]
+def _cell_errors(c: _Cells, value):
+    """Error estimate of each cell in numerator units: |children − own| + the edge term (channel means), plus the
+    value times the normaliser's (for a lobe average, ``value`` per cell)."""
+    e = np.abs(c.fine - c.own) + c.edge_num
     if value is not None:
         e = e + value * (np.abs(c.fine_den - c.own_den) + c.edge_den)
     return e
@@ -437,8 +469,8 @@ def _children(c: _Cells):
 
 
 def integrate(cube, lobe, normals, views, *, rtol: float = 1e-3, floor: float = 0.1, floor_value: float | None = None,
-              max_depth: int = 12, grade_q: float = 0.5, grade_c: float = 0.5, chunk_cells: int = 300_000,
-              max_cells_per_pixel: int = 400_000, progress: bool = False) -> LobeIntegral:
+              max_depth: int = 12, coarse_levels: int = 3, grade_q: float = 0.5, grade_c: float = 0.5,
+              chunk_cells: int = 300_000, max_cells_per_pixel: int = 400_000, progress: bool = False) -> LobeIntegral:
     """The exact unoccluded integral of ``lobe`` at every pixel (module docstring).
 
     Parameters
@@ -450,6 +482,8 @@ def integrate(cube, lobe, normals, views, *, rtol: float = 1e-3, floor: float = 
     rtol : per-pixel target of the error estimate, relative to max(|I|, floor·mean |I|)
     floor_value : the absolute floor instead (e.g. shared by several integrals of one image)
     max_depth : finest cell level (texel split into 2^max_depth per axis)
+    coarse_levels : the refinement starts from blocks of 2^coarse_levels × 2^coarse_levels texels (fewer where the
+        face size has fewer factors 2), whose radiance is their exact sum Σ L_j Ω_j
     grade_q, grade_c : the grading rule (module docstring)
     chunk_cells : cells per chunk of pixels (memory ≈ 200 bytes × chunk_cells × 5)
     max_cells_per_pixel : refinement stops there (``info["converged"]`` False)
@@ -460,8 +494,10 @@ def integrate(cube, lobe, normals, views, *, rtol: float = 1e-3, floor: float = 
     a, _ = check_cube(cube)
     n_face = a.shape[1]
     C = a.shape[-1]
-    rad = a.reshape(-1, C)
-    lbar = rad.mean(axis=1)
+    k0 = 0  # the top level: blocks of 2^−k0 texels, as many halvings as the face size has (≤ coarse_levels)
+    while -k0 < int(coarse_levels) and n_face % (2 ** (1 - k0)) == 0:
+        k0 -= 1
+    radiance = _Radiance(a, -k0)
     n = envmap.unit_directions(np.asarray(normals, dtype=np.float64).reshape(-1, 3), "normals")
     v = envmap.unit_directions(np.asarray(views, dtype=np.float64).reshape(-1, 3), "views")
     if n.shape != v.shape:
@@ -479,39 +515,39 @@ def integrate(cube, lobe, normals, views, *, rtol: float = 1e-3, floor: float = 
     num = np.zeros((P, C))
     den = np.zeros(P) if lobe.normalised else None
     err = np.zeros(P)
-    # pass 1: the plain texel-centre sums give the image's scale for the floor of the relative target
+    n_top = 6 * (n_face >> -k0) ** 2
+    step = max(1, chunk_cells // n_top)
+    # pass 1: midpoint sums over the top cells give the image's scale for the floor of the relative target
     if floor_value is None:
         coarse = np.zeros(P)
-        step = max(1, chunk_cells // (6 * n_face * n_face))
-        d0, om0, _ = _cell_geometry(np.repeat(np.arange(6), n_face * n_face), np.zeros(6 * n_face * n_face, int),
-                                    np.tile(np.repeat(np.arange(n_face), n_face), 6),
-                                    np.tile(np.arange(n_face), 6 * n_face), n_face)
+        f0_, i0_, j0_ = _top_cells(n_face, k0)
+        kk = np.full(len(f0_), k0)
+        d0, om0, _ = _cell_geometry(f0_, kk, i0_, j0_, n_face)
+        r0 = radiance(f0_, kk, i0_, j0_, om0).mean(axis=1)
         for s0 in range(0, P, step):
             sl = np.arange(s0, min(P, s0 + step))
             px = np.repeat(sl, len(d0))
             wn, wd = lobe.weights(n[px], v[px], np.tile(d0, (len(sl), 1)))
-            wn = (wn * np.tile(om0, len(sl))).reshape(len(sl), -1)
-            c0 = wn @ lbar
+            c0 = wn.reshape(len(sl), -1) @ r0
             if wd is not None:
                 c0 = c0 / np.maximum((wd * np.tile(om0, len(sl))).reshape(len(sl), -1).sum(axis=1), 1e-300)
             coarse[sl] = c0
         floor_value = float(floor) * float(np.mean(np.abs(coarse))) if P else 0.0
     floor_value = float(floor_value)
-    step = max(1, chunk_cells // (6 * n_face * n_face))
-    n_cells, depth_max, converged = 0, 0, True
+    n_cells, depth_max, converged = 0, k0, True
     for s0 in track(range(0, P, step), "unoccluded reference", unit="chunk", enabled=progress):
         pix = np.arange(s0, min(P, s0 + step))
-        cells = _initial(lobe, n_face, n, v, axis, edges, clip, sup, pix)
+        cells = _initial(lobe, n_face, k0, n, v, axis, edges, clip, sup, radiance, pix)
         while True:
             loc = cells.px - s0
-            tot_num = np.bincount(loc, cells.fine_num * lbar[cells.tex], len(pix))
+            tot_num = np.bincount(loc, cells.fine, len(pix))
             if lobe.normalised:
                 tot_den = np.maximum(np.bincount(loc, cells.fine_den, len(pix)), 1e-300)
                 val = tot_num / tot_den
-                e = _cell_errors(cells, lbar, val[loc])
+                e = _cell_errors(cells, val[loc])
                 target = rtol * np.maximum(np.abs(val), floor_value) * tot_den
             else:
-                e = _cell_errors(cells, lbar, None)
+                e = _cell_errors(cells, None)
                 target = rtol * np.maximum(np.abs(tot_num), floor_value)
             # grading: split cells larger than grade_q·max(w, grade_c·γ') (γ' = distance of the cell's nearest point)
             g = np.maximum(cells.gamma - cells.size, 0.0)
@@ -533,22 +569,21 @@ def integrate(cube, lobe, normals, views, *, rtol: float = 1e-3, floor: float = 
             if not chosen.any():
                 break
             keep = cells.take(~chosen)
-            new = _evaluate(lobe, n_face, n, v, axis, edges, clip, *_children(cells.take(chosen)))
+            new = _evaluate(lobe, n_face, n, v, axis, edges, clip, radiance, *_children(cells.take(chosen)))
             cells = _Cells.concat([keep, new])
         loc = cells.px - s0
-        w = cells.fine_num
         for c in range(C):
-            num[pix, c] = np.bincount(loc, w * rad[cells.tex, c], len(pix))
+            num[pix, c] = np.bincount(loc, cells.fine_rgb[:, c], len(pix))
         if lobe.normalised:
             den[pix] = np.bincount(loc, cells.fine_den, len(pix))
             val = num[pix].mean(axis=1) / np.maximum(den[pix], 1e-300)
-            err[pix] = np.bincount(loc, _cell_errors(cells, lbar, val[loc]), len(pix)) / np.maximum(den[pix], 1e-300)
+            err[pix] = np.bincount(loc, _cell_errors(cells, val[loc]), len(pix)) / np.maximum(den[pix], 1e-300)
         else:
-            err[pix] = np.bincount(loc, _cell_errors(cells, lbar, None), len(pix))
+            err[pix] = np.bincount(loc, _cell_errors(cells, None), len(pix))
         counts = np.bincount(loc, minlength=len(pix))
         converged &= bool(np.all(counts < max_cells_per_pixel))
         n_cells += len(cells)
-        depth_max = max(depth_max, int(cells.k.max(initial=0)))
+        depth_max = max(depth_max, int(cells.k.max(initial=k0)))
     value = num / np.maximum(den, 1e-300)[:, None] if lobe.normalised else num.copy()
     if not np.all(np.isfinite(value)):
         raise IBLError("unoccluded reference: non-finite result")
