@@ -535,10 +535,30 @@ def integrate(cube, lobe, normals, views, *, rtol: float = 1e-3, floor: float = 
         floor_value = float(floor) * float(np.mean(np.abs(coarse))) if P else 0.0
     floor_value = float(floor_value)
     n_cells, depth_max, converged = 0, k0, True
+
+    def retire(cells, pix_sel):
+        """Add the cells' sums to their pixels (every cell of those pixels is final)."""
+        nonlocal n_cells, depth_max, converged
+        px = cells.px
+        for c in range(C):
+            num[:, c] += np.bincount(px, cells.fine_rgb[:, c], P)
+        if lobe.normalised:
+            d_p = np.bincount(px, cells.fine_den, P)
+            den[:] += d_p
+            val = num.mean(axis=1)[px] / np.maximum(den[px], 1e-300)
+            err[:] += np.bincount(px, _cell_errors(cells, val), P) / np.maximum(den, 1e-300) * (
+                np.bincount(px, minlength=P) > 0)
+        else:
+            err[:] += np.bincount(px, _cell_errors(cells, None), P)
+        cnt = np.bincount(px, minlength=P)[pix_sel]
+        converged &= bool(np.all(cnt < max_cells_per_pixel))
+        n_cells += len(cells)
+        depth_max = max(depth_max, int(cells.k.max(initial=k0)))
+
     for s0 in track(range(0, P, step), "unoccluded reference", unit="chunk", enabled=progress):
         pix = np.arange(s0, min(P, s0 + step))
         cells = _initial(lobe, n_face, k0, n, v, axis, edges, clip, sup, radiance, pix)
-        while True:
+        while len(cells):
             loc = cells.px - s0
             tot_num = np.bincount(loc, cells.fine, len(pix))
             if lobe.normalised:
@@ -553,37 +573,30 @@ def integrate(cube, lobe, normals, views, *, rtol: float = 1e-3, floor: float = 
             g = np.maximum(cells.gamma - cells.size, 0.0)
             forced = (cells.size > grade_q * np.maximum(width[cells.px], grade_c * g)) & (cells.k < max_depth)
             e_tot = np.bincount(loc, e, len(pix))
-            need = e_tot > target
             counts = np.bincount(loc, minlength=len(pix))
-            need &= counts < max_cells_per_pixel
+            need = (e_tot > target) & (counts < max_cells_per_pixel)
             chosen = forced.copy()
-            if need.any():
-                order = np.lexsort((-e, loc))  # by pixel, largest error first
-                es = e[order]
+            sel = np.flatnonzero(need[loc])
+            if len(sel):
+                ls, es = loc[sel], e[sel]
+                order = np.lexsort((-es, ls))  # by pixel, largest error first
+                es, ls = es[order], ls[order]
                 cs = np.cumsum(es)
-                start = np.r_[0, np.cumsum(counts)[:-1]]
-                before = cs - es - np.repeat(cs[start] - es[start], counts)
-                lo = loc[order]
-                pick = need[lo] & (before < (e_tot[lo] - 0.5 * target[lo])) & (cells.k[order] < max_depth)
-                chosen[order[pick]] = True
+                cnt = np.bincount(ls, minlength=len(pix))
+                start = np.r_[0, np.cumsum(cnt)[:-1]]
+                before = cs - es - np.repeat((cs - es)[start[cnt > 0]], cnt[cnt > 0])
+                pick = (before < (e_tot[ls] - 0.5 * target[ls])) & (cells.k[sel[order]] < max_depth)
+                chosen[sel[order[pick]]] = True
+            # pixels without a cell to split are final: their cells leave the working set
+            busy = np.bincount(loc, chosen, len(pix)) > 0
+            done = ~busy[loc]
+            if done.any():
+                retire(cells.take(done), pix[~busy])
             if not chosen.any():
                 break
-            keep = cells.take(~chosen)
+            keep = cells.take(~chosen & ~done)
             new = _evaluate(lobe, n_face, n, v, axis, edges, clip, radiance, *_children(cells.take(chosen)))
             cells = _Cells.concat([keep, new])
-        loc = cells.px - s0
-        for c in range(C):
-            num[pix, c] = np.bincount(loc, cells.fine_rgb[:, c], len(pix))
-        if lobe.normalised:
-            den[pix] = np.bincount(loc, cells.fine_den, len(pix))
-            val = num[pix].mean(axis=1) / np.maximum(den[pix], 1e-300)
-            err[pix] = np.bincount(loc, _cell_errors(cells, val[loc]), len(pix)) / np.maximum(den[pix], 1e-300)
-        else:
-            err[pix] = np.bincount(loc, _cell_errors(cells, None), len(pix))
-        counts = np.bincount(loc, minlength=len(pix))
-        converged &= bool(np.all(counts < max_cells_per_pixel))
-        n_cells += len(cells)
-        depth_max = max(depth_max, int(cells.k.max(initial=k0)))
     value = num / np.maximum(den, 1e-300)[:, None] if lobe.normalised else num.copy()
     if not np.all(np.isfinite(value)):
         raise IBLError("unoccluded reference: non-finite result")
