@@ -307,6 +307,19 @@ def check_method_zoo(out, summary):
     # estimate: it adds its own interpolation)
     from ibl_ref.prefilter.ramamoorthi_hanrahan2001 import error_bound
 
+    # the README's orderings at quick size: the exact-lobe chain below the paper's pyramid on every Phong material,
+    # cmft's released build above the exact-lobe chain on the diffuse material (its truncated support), FIS below
+    # plain importance sampling at equal N (roughness 0.6); and the DFG table's step below its own error bound
+    # (1.8e-2 in the albedo anywhere, karis2013) in every walk
+    l1 = {(q["env"], q["material"], q["method"]): float(q["rel_l1_frac"]) for q in rows if q["applicable"] == "True"}
+    for (e, mat, meth), v in l1.items():
+        if meth == "exact-lobe":
+            assert v < l1[(e, mat, "pyramid+vsm")], (e, mat)
+            if mat == "diffuse" and (e, mat, "cmft") in l1:
+                assert l1[(e, mat, "cmft")] > 3 * v
+        if meth == "split-sum-fis-16" and mat == "ggx0.6":
+            assert v < l1[(e, mat, "split-sum-is-16")]
+    assert all(float(q["rel_l1_increment_frac"]) < 1.8e-2 for q in b if q["step"] == "dfg_table")
     env = mz.environment("sky_sun", st["env_size"])[0]
     ref_mean = float(np.load(out / "method_zoo_images.npz")["sphere__diffuse__reference"].mean())
     sh = next(float(q["rel_l1_frac"]) for q in rows if (q["env"], q["material"], q["method"]) ==
