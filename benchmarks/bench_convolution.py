@@ -15,6 +15,13 @@ the 8-exponent result with the moment route (s = 1, 2; exact up to rounding) and
 the others; ``--exact-128`` compares all 8 with :func:`convolve_exact_many` (several minutes).
 Timings are wall clock on whatever machine runs this, printed as wall clock and as process CPU time (all
 threads); the 1-minute load average is printed before and after — quote it with the timings.
+
+``--probes [DIR]`` instead times ``auto`` against forced methods on every real probe in DIR (default
+``../shared/probes`` next to the repository) at native size (1024×512 lat-long → 256² faces), exponents
+``--probe-exponents`` (default 1 16 256), rtol 1e-3, ``--workers`` (default 2), for ``--kernel`` (numpy and
+compiled by default; ``--forced sh sparse`` chooses the forced methods; exact is reported by its model cost only):
+wall and CPU seconds, whether every bound meets rtol, the route ``auto`` took and the ratio auto ÷ the fastest
+forced method that meets rtol and ÷ the fastest forced method at all; printed as a markdown table.
 The repository root is put first on ``sys.path`` so that the working tree is measured, not an
 installed copy of ``ibl_ref``.
 """
@@ -64,7 +71,16 @@ def main():
     ap.add_argument("--exact-128", action="store_true", help="check the 128² result against exact (minutes)")
     ap.add_argument("--exact-cache", type=Path, default=None, metavar="NPY",
                     help="with --exact-128: load the 128² exact maps from NPY if it exists, else compute and save")
+    ap.add_argument("--probes", nargs="?", const=str(Path(__file__).resolve().parents[2] / "shared" / "probes"),
+                    default=None, metavar="DIR", help="time auto against forced methods on the probes in DIR")
+    ap.add_argument("--probe-exponents", type=float, nargs="+", default=[1.0, 16.0, 256.0])
+    ap.add_argument("--kernel", action="append", choices=("numpy", "compiled"))
+    ap.add_argument("--forced", nargs="+", default=["sh", "split"], choices=("sh", "sparse", "exact", "moment", "split"),
+                    help="forced methods to time against auto; split = moment for s = 1, 2 and sh for the rest, "
+                         "two calls (what a user forcing methods exponent by exponent would run)")
     args = ap.parse_args()
+    if args.probes:
+        return probe_routing(args)
     W = args.workers if args.workers is not None else default_workers()
     print(f"ibl_ref from {Path(sys.modules['ibl_ref'].__file__).parent}; workers = {W}; {_load()}")
     convolve(environment(4), [2.0, 64.0])  # warm-up (imports)
@@ -144,6 +160,63 @@ def main():
             print(f"    s={s:g}: {res.method_used[s]:6s} rel err max {rel.max():.2e} mean {rel.mean():.2e} "
                   f"(bound max {res.error_bound[s].max():.2e}; err ≤ bound at every texel: "
                   f"{bool(np.all(rel <= res.error_bound[s] + 1e-12))})")
+    print(f"done; {_load()}")
+
+
+def probe_routing(args):
+    """``--probes``: auto against forced methods on real probes (markdown table)."""
+    import subprocess
+
+    from ibl_ref.environment.exr_io import load_cube
+    from ibl_ref.groundtruth.convolve import plan_routes
+
+    W = args.workers if args.workers is not None else 2
+    kernels = args.kernel or ["numpy", "compiled"]
+    files = sorted(Path(args.probes).glob("*.exr"))
+    if not files:
+        raise SystemExit(f"no .exr probes in {args.probes}")
+    commit = subprocess.run(["git", "-C", str(Path(__file__).resolve().parents[1]), "rev-parse", "--short", "HEAD"],
+                            capture_output=True, text=True).stdout.strip()
+    ss = args.probe_exponents
+    print(f"command: python benchmarks/bench_convolution.py --probes {args.probes} --probe-exponents "
+          f"{' '.join(f'{s:g}' for s in ss)} --workers {W}; commit {commit}; {_load()}")
+    print()
+    print("| probe | kernel | method | routes | wall s | CPU s | largest bound | meets rtol | auto ÷ fastest forced "
+          "meeting rtol | auto ÷ fastest forced |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for f in files:
+        cube = load_cube(f)
+        for k in kernels:
+            convolve(environment(8), [2.0, 64.0], kernel=k)  # warm-up: imports, compiled code
+            rows = {}
+            for m in ["auto"] + list(args.forced):
+                if m == "moment" and any(s not in (1.0, 2.0) for s in ss):
+                    continue
+                groups = ([("moment", [s for s in ss if s in (1.0, 2.0)]), ("sh", [s for s in ss if s not in (1.0, 2.0)])]
+                          if m == "split" else [(m, ss)])
+                t = c = 0.0
+                bounds, used = {}, {}
+                for mm, sub in groups:
+                    if not sub:
+                        continue
+                    r, tt, _ = _timed(lambda: convolve(cube, sub, method=mm, rtol=1e-3, workers=W, kernel=k))
+                    t, c = t + tt, c + r.timings_s["total_cpu"]
+                    bounds.update({s: float(np.max(r.error_bound[s])) for s in sub})
+                    used.update(r.method_used)
+                b = max(bounds.values())
+                rows[m] = (t, c, b, b <= 1e-3, ", ".join(f"{s:g}:{used[s]}" for s in ss))
+                print(f"  {f.stem} {k} {m}: {t:.1f} s wall, {rows[m][1]:.1f} s CPU, bound {b:.1e} [{_load()}]",
+                      file=sys.stderr, flush=True)
+            model = plan_routes(cube, ss, rtol=1e-3, kernel=k)["model_costs_s"]
+            ok = [v[0] for m, v in rows.items() if m != "auto" and v[3]]
+            anyf = [v[0] for m, v in rows.items() if m != "auto"]
+            for m, (t, c, b, good, routes) in rows.items():
+                r1 = (f"{rows['auto'][0] / min(ok):.2f}" if ok else "—") if m == "auto" else ""
+                r2 = f"{rows['auto'][0] / min(anyf):.2f}" if m == "auto" and anyf else ""
+                print(f"| {f.stem} | {k} | {m} | {routes} | {t:.1f} | {c:.1f} | {b:.1e} | {'yes' if good else 'no'} | "
+                      f"{r1} | {r2} |")
+            print(f"| {f.stem} | {k} | exact (model only) | | {model.get('exact', float('nan')):.0f} | | | | | |")
+    print()
     print(f"done; {_load()}")
 
 

@@ -1,55 +1,48 @@
-"""Side-by-side benchmark of ``ibl-ref convolve`` against the peer prefilter tool cmft (whole processes).
+"""Side-by-side benchmark of the lab's Phong convolution against the peer prefilter tool cmft: the README's table.
 
-Usage::
+Usage (the full matrix, both kernels, cmft released and fixed, the synthetic scene and one real probe)::
 
-    python benchmarks/bench_peer.py [--cmft PATH [--cmft PATH ...]] [--faces 32 64 128]
-        [--exponents 1 4 16 64 256 1024 4096 inf] [--set8] [--repeat 3] [--timeout 120]
-        [--csv OUT.csv]
+    python benchmarks/bench_peer.py --cmft PATH/cmft --cmft PATH/cmft-fixed --probe PATH/courtyard.exr \
+        [--faces 64 128 256 512] [--exponents 1 4 16 64 256 1024 4096] [--kernels numpy compiled] [--set8]
+        [--native] [--repeat 3] [--timeout 150] [--markdown OUT.md] [--csv OUT.csv]
 
-What it runs, per cell (face size N, exponent s):
+Per scene (the sky + 1e5 sun 0.0015 rad from a cube corner of :func:`ibl_ref.experiments.speed_accuracy.environment`;
+with ``--probe`` also a real lat-long probe, resampled to every face size up to its native one), face size N and
+exponent s (one exponent per run; ``--set8``: also the 8 exponents {1, 2, 5, 10, 20, 50, 100, 1000} at once):
 
-* **the lab** — ``python -m ibl_ref convolve IN.exr OUT.exr -s S --rtol 1e-3`` (method ``auto``, default
-  workers) as a separate process, timed from start to exit (start-up, file reading and writing
-  included), with the package byte-compiled first, as ``pip install`` leaves it;
-* **each cmft binary** given by ``--cmft`` — one radiance filter at full resolution::
+* **the lab, in-process** — ``convolve(cube, [s], rtol=1e-3, kernel=K, workers=2)`` in this (warm) process, as a
+  notebook user calls it: imports done, the compiled kernels loaded by a warm-up call on another map; the first call
+  for the cell (then the median of ``--repeat`` calls);
+* **the lab, whole process** — ``python -m ibl_ref convolve IN.exr OUT.exr -s S --rtol 1e-3 --kernel K`` (2 workers,
+  the package byte-compiled first, as ``pip install`` leaves it; the compiled kernels' cache warm), from start to exit;
+* **each cmft binary** given by ``--cmft`` — one radiance filter at full resolution with 2 worker threads::
 
       cmft --input IN.dds --filter radiance --srcFaceSize 0 --dstFaceSize 0 --excludeBase false
            --mipCount 1 --lightingModel phong --edgeFixup none --numCpuProcessingThreads 3
            --useOpenCL false --glossScale K --glossBias 0 --generateMipChain false
            --outputNum 1 --output0 OUT --output0params dds,rgba32f,cubemap --silent
 
-  which filters with ``s = 2^K`` (cmft's Phong exponent is ``2^(glossScale·gloss + glossBias)`` and
-  ``gloss = 1`` for a single level).  ``--numCpuProcessingThreads 3`` starts 2 worker threads (cmft's main
-  thread only waits), the same 2 cores the lab uses.  The mirror ``s = ∞`` is timed against
-  ``--filter none`` (a copy: the least cmft can do).
+  (s = 2^K; ``--numCpuProcessingThreads 3`` starts 2 worker threads, cmft's main thread only waits).  cmft reaches
+  only s = 2^K: its "8 exponents" cell is the sum of its runs at the nearest powers of two {1, 2, 4, 8, 16, 64, 128,
+  1024}.  A run that exceeds ``--timeout`` seconds is killed (the ratio is then a bound).
 
-Wall time is the median of ``--repeat`` runs of the whole process; CPU time (user + system of the process
-and its children, i.e. the lab's forked workers and cmft's threads) is printed too, as the measure that
-depends least on what else runs on a shared machine.  A cmft run that exceeds ``--timeout``
-seconds is killed and reported as ``> timeout`` (the ratio is then a lower bound).
+Wall time (median of ``--repeat``) and CPU time (user + system of the process and its children; in-process: of
+this process and its forked workers) are printed; CPU depends least on what else runs on a shared machine.
 
-**cmft reaches only s = 2^K.**  For the 8-exponent set {1, 2, 5, 10, 20, 50, 100, 1000} (``--set8``) the
-lab runs all eight exponents in one process, while cmft is timed over the nearest powers of two in
-log₂ ({1, 2, 4, 8, 16, 64, 128, 1024}), one process each, summed.
+Error: the max relative error ``|approx − exact|/exact`` (max over RGB) of every tool's output against the exact
+float64 lobe average (:func:`ibl_ref.experiments.speed_accuracy.exact_subset`, every source texel) of the same
+float32-rounded input, at a seeded random subset of 1 500 output texels plus the 300 nearest the brightest texel
+(where truncated supports fail); for cmft at its own exponent 2^K.  The lab's whole-process outputs are float32 files
+(error floor ≈ 6e-8); its in-process maps float64.
 
-Input.  The synthetic sky + 1e5 sun 0.0015 rad from a cube corner (on three edges)
-(:func:`ibl_ref.experiments.speed_accuracy.environment`), rounded to float32 once; the lab reads it as an
-OpenEXR cube (float32), cmft as a DDS RGBA32F cube map written here after re-orienting the faces to the
-OpenGL/D3D convention (:func:`ibl_ref.environment.envmap.convert_convention`).  cmft's DDS output is read back
-(128-byte header, optional 20-byte DX10 header, then RGBA32F faces +X −X +Y −Y +Z −Z) and re-oriented to
-the lab's convention.  The face mapping is verified before any timing: a smooth test pattern filtered by
-the first cmft binary at s = 64 on 16² faces must agree with the lab's exact gather to 5 % (a wrong
-orientation of any face gives O(1) differences; cmft's own truncation error is below that there).
-
-Error.  Max relative error ``|approx − exact|/exact`` (max over RGB) against the lab's exact float64 lobe
-average (:func:`ibl_ref.experiments.speed_accuracy.exact_subset`, every source texel) of the same
-float32 input, at a seeded random subset of output texels plus the texels nearest the sun (where
-truncated supports fail); for cmft at s = 2^K the reference is evaluated at cmft's own exponent.  The
-mirror's exact reference is the input itself (output face size = input face size).
-
-Prints one line per cell and a table (wall, error, ratio cmft/lab: > 1 means the lab is faster) and
-writes it to ``--csv``.  Without ``--cmft`` only the lab's side is run.  Quote the load average printed
-at the start and end with the numbers.  The binaries are not part of the project.
+Also measured: the start-up floor (``python -S``, ``import numpy``, ``import numpy, OpenEXR``, ``import numba`` and
+loading the compiled kernels, ``ibl-ref convolve --help``); the compiled kernels' cold (first run after install:
+an empty numba cache) and warm whole-process cost on one cell; the machine's compiled peak (a tight multiply-add
+loop and a dot product, per core) against the pairs (output × source texel) per second per core the sparse gather
+achieves in the in-process cells; with ``--native`` the 512² and 1024² runs of the 8 exponents (whole process,
+peak RSS by ``/usr/bin/time -v``).  The face mapping between the two conventions is verified on a smooth pattern
+first.  Output: progress lines, then markdown tables (``--markdown`` writes them to a file too) headed by the
+command, the commit and the load average at start and end.  The binaries are not part of the project.
 """
 
 from __future__ import annotations
@@ -163,13 +156,6 @@ def cmft_cmd(binary, inp, outbase, s):
             "--output0params", "dds,rgba32f,cubemap", "--silent"]
 
 
-def lab_cmd(inp, out, exps):
-    cmd = [sys.executable, "-m", "ibl_ref", "convolve", str(inp), str(out), "--rtol", str(RTOL)]
-    for s in exps:
-        cmd += ["-s", "inf" if math.isinf(s) else format(s, "g")]
-    return cmd
-
-
 def lab_env():
     """Environment of the lab's processes: this checkout first on the path, with byte-code caching on
     (``PYTHONDONTWRITEBYTECODE`` removed; :func:`compile_lab` writes the caches first), as in an installed
@@ -266,6 +252,9 @@ FLOOR_COMMANDS = {
     "python -c 'import numpy'": [sys.executable, "-c", "import numpy"],
     "python -c 'import numpy, OpenEXR'": [sys.executable, "-c", "import numpy, OpenEXR"],
     "ibl-ref convolve --help": [sys.executable, "-m", "ibl_ref", "convolve", "--help"],
+    "python -c 'import numba'": [sys.executable, "-c", "import numba"],
+    "load the compiled kernels": [sys.executable, "-c",
+                                  "from ibl_ref.groundtruth import compiled_kernels as c; c.warm_up()"],
 }
 
 
@@ -275,99 +264,283 @@ def measure_floor(repeat):
     for label, cmd in FLOOR_COMMANDS.items():
         runs = []
         for _ in range(max(1, repeat)):
-            _, w, c = _timed_run(cmd, None, lab_env())
+            try:
+                _, w, c = _timed_run(cmd, None, lab_env())
+            except RuntimeError:
+                break  # e.g. numba not installed
             runs.append((w, c))
-        runs.sort()
-        out[label] = runs[len(runs) // 2]
+        if runs:
+            runs.sort()
+            out[label] = runs[len(runs) // 2]
     return out
 
 
+def measure_peak():
+    """Compiled peak of one core: multiply-adds per second of a tight loop (32 dependent multiply-adds per element,
+    elements independent: compute-bound) and of a dot product in the L1 cache (2 loads per multiply-add)."""
+    import numba
+
+    @numba.njit(fastmath={"contract"})
+    def madd(a, out, reps):
+        for _ in range(reps):
+            for j in range(a.shape[0]):
+                x = a[j]
+                p = 0.5
+                for _k in range(32):
+                    p = p * x + 0.25
+                out[j] = p
+
+    @numba.njit(fastmath={"contract", "reassoc"})
+    def dot(a, b, reps):
+        t = 0.0
+        for _ in range(reps):
+            for j in range(a.shape[0]):
+                t += a[j] * b[j]
+        return t
+
+    a, o, b = np.random.default_rng(0).random(1024), np.empty(1024), np.random.default_rng(1).random(1024)
+    madd(a, o, 1)
+    dot(a, b, 1)
+    c0 = time.process_time()
+    madd(a, o, 20000)
+    t_madd = time.process_time() - c0
+    c0 = time.process_time()
+    dot(a, b, 400000)
+    t_dot = time.process_time() - c0
+    return 1024 * 32 * 20000 / t_madd, 1024 * 400000 / t_dot
+
+
+def lab_cmd(inp, out, exps, kernel="auto"):
+    cmd = [sys.executable, "-m", "ibl_ref", "convolve", str(inp), str(out), "--rtol", str(RTOL), "--kernel", kernel]
+    for s in exps:
+        cmd += ["-s", "inf" if math.isinf(s) else format(s, "g")]
+    return cmd
+
+
+def timed_rss(cmd, env):
+    """Wall, CPU and peak RSS (GiB, the largest process, ``/usr/bin/time -v``) of one whole-process run."""
+    t0, c0 = time.perf_counter(), _child_cpu()
+    p = subprocess.run(["/usr/bin/time", "-v"] + cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    wall, cpu = time.perf_counter() - t0, _child_cpu() - c0
+    if p.returncode != 0:
+        raise RuntimeError(p.stderr.decode(errors="replace")[-400:])
+    rss = next((float(ln.split(":")[1]) / 2**20 for ln in p.stderr.decode().splitlines()
+                if "Maximum resident set size" in ln), math.nan)
+    return wall, cpu, rss
+
+
+def _fmt(w, c):
+    return "—" if w is None else f"{w:.2f} / {c:.2f}"
+
+
+def _err(e):
+    return "—" if e is None else f"{e:.0e}"
+
+
 def main(argv=None):
+    from ibl_ref.cli.cmd_convolve import exponent_path
     from ibl_ref.environment.exr_io import load_cube, write_envmap
     from ibl_ref.experiments.speed_accuracy import environment
+    from ibl_ref.groundtruth.convolve import convolve
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cmft", action="append", default=[], metavar="PATH", help="cmft binary (repeatable)")
-    ap.add_argument("--faces", type=int, nargs="+", default=[32, 64, 128])
-    ap.add_argument("--exponents", nargs="+", default=None, help="exponents (default 1 4 16 … 4096 inf)")
-    ap.add_argument("--set8", action="store_true", help="also the 8-exponent set in one lab process")
-    ap.add_argument("--only-set8", action="store_true", help="only the 8-exponent set")
+    ap.add_argument("--faces", type=int, nargs="+", default=[64, 128, 256, 512])
+    ap.add_argument("--exponents", nargs="+", default=None, help="exponents (default 1 4 16 64 256 1024 4096)")
+    ap.add_argument("--kernels", nargs="+", default=["numpy", "compiled"], choices=("numpy", "compiled"))
+    ap.add_argument("--probe", default=None, help="also a real lat-long probe (resampled to the face sizes ≤ native)")
+    ap.add_argument("--set8", action="store_true", help="also the 8-exponent set in one lab run")
+    ap.add_argument("--native", action="store_true", help="the 512² and 1024² 8-exponent runs (peak RSS)")
     ap.add_argument("--repeat", type=int, default=3, help="runs per cell (median wall time)")
-    ap.add_argument("--timeout", type=float, default=120.0, help="seconds after which a cmft run is killed")
+    ap.add_argument("--timeout", type=float, default=150.0, help="seconds after which a cmft run is killed")
+    ap.add_argument("--no-process", action="store_true", help="skip the lab's whole-process runs")
     ap.add_argument("--no-error", action="store_true", help="skip the error measurement (timing only)")
-    ap.add_argument("--csv", type=Path, default=None, help="write the table as CSV")
+    ap.add_argument("--csv", type=Path, default=None, help="write all cells as CSV")
+    ap.add_argument("--markdown", type=Path, default=None, help="write the tables to this file too")
     args = ap.parse_args(argv)
-    exps = ([float(e) for e in args.exponents] if args.exponents else list(DEFAULT_EXPONENTS))
-    if args.only_set8:
-        exps = []
+    exps = [float(e) for e in args.exponents] if args.exponents else [1.0, 4.0, 16.0, 64.0, 256.0, 1024.0, 4096.0]
     cmfts = [str(Path(c).resolve()) for c in args.cmft]
-    print(f"ibl_ref from {ROOT}; {_load()}; cmft: {', '.join(cmfts) or 'none (lab side only)'}")
+    cmft_names = ["cmft fixed" if "fixed" in Path(c).name else "cmft" for c in cmfts]
+    commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
+                            text=True).stdout.strip()
+    dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"],
+                           capture_output=True, text=True).stdout.strip()
+    started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    load0 = _load()
+    md = [f"Command: `python benchmarks/bench_peer.py {' '.join(sys.argv[1:] if argv is None else argv)}`; "
+          f"commit `{commit}`{' (with uncommitted changes)' if dirty else ''}; started {started}, {load0}."]
+    print(md[0], flush=True)
     compile_lab()
+    env = lab_env()
     floor = measure_floor(args.repeat)
-    for label, (w, c) in floor.items():
-        print(f"floor {label:>34s}: {w:.3f} s wall, {c:.3f} s CPU (median of {args.repeat})")
+    md.append("")
+    md.append("**Start-up floor** (whole processes, median of %d): " % args.repeat + "; ".join(
+        f"{k} {w:.2f} s wall / {c:.2f} s CPU" for k, (w, c) in floor.items()) + ".")
+    print(md[-1], flush=True)
+    if "compiled" in args.kernels:  # warm the compiled kernels here (in-process) and in the cache (processes)
+        convolve(environment(8), [2.0, 64.0, 4096.0], kernel="compiled")
+        convolve(environment(16), [1.0, 5.0], kernel="compiled", method="auto")
+        peak_madd, peak_dot = measure_peak()
+    for k in args.kernels:
+        convolve(environment(8), [2.0, 64.0], kernel=k)
     rows = []
+    scenes = [("sky + sun", None)] + ([(Path(args.probe).stem, args.probe)] if args.probe else [])
     with tempfile.TemporaryDirectory(prefix="bench_peer_") as td:
         tmp = Path(td)
         if cmfts:
             err, wrong = check_face_mapping(cmfts[0], tmp)
-            print(f"face mapping check (16², s = 64, smooth pattern): max rel. error {err:.2e} "
-                  f"(without re-orienting the faces: {wrong:.2e})")
+            md.append(f"Face mapping check (16², s = 64, smooth pattern): cmft vs the lab's exact gather {err:.1e} "
+                      f"(without re-orienting the faces: {wrong:.1e}).")
+            print(md[-1], flush=True)
             if not err < 0.05:
                 raise SystemExit("face mapping check failed: cmft output does not match the lab's convention")
-        env = lab_env()
-        for n in args.faces:
-            cube = environment(n).astype(np.float32).astype(np.float64)
-            inp_exr, inp_dds = tmp / f"in{n}.exr", tmp / f"in{n}.dds"
-            write_envmap(inp_exr, cube, layout="cube")
-            write_dds_cube(inp_dds, envmap.convert_convention(cube, "openexr", "opengl"))
-            ref = None if args.no_error else Reference(cube)
-            cells = [("s", (s,)) for s in exps] + ([("set8", S8)] if args.set8 or args.only_set8 else [])
-            for kind, ss in cells:
-                label = "8 exponents" if kind == "set8" else ("inf" if math.isinf(ss[0]) else format(ss[0], "g"))
-                out = tmp / f"lab{n}.exr"
-                wall, walls, cpu = median_wall(lab_cmd(inp_exr, out, ss), args.repeat, None, env)
-                from ibl_ref.cli.cmd_convolve import exponent_path
-
-                lab_err = None
-                if ref is not None:
-                    lab_err = max(ref.error(load_cube(exponent_path(out, s)), s) for s in ss)
-                row = {"face": n, "s": label, "lab_wall_s": wall, "lab_cpu_s": cpu, "lab_max_rel_error": lab_err}
-                for ci, c in enumerate(cmfts):
-                    tag = f"cmft{ci}"
-                    ss_c = [s if math.isinf(s) else nearest_pow2(s) for s in ss]
-                    tot, tot_cpu, err_c, timed_out = 0.0, 0.0, 0.0, False
-                    for s_c in dict.fromkeys(ss_c):
-                        w_c, _, c_c = median_wall(cmft_cmd(c, inp_dds, tmp / "cm", s_c), args.repeat, args.timeout)
-                        if w_c is None:
-                            timed_out = True
-                            break
-                        tot += w_c
-                        tot_cpu += c_c
+        if "compiled" in args.kernels and not args.no_process:  # cold (empty numba cache) and warm, one cell
+            cube = environment(64).astype(np.float32).astype(np.float64)
+            write_envmap(tmp / "cold.exr", cube, layout="cube")
+            e2 = dict(env, NUMBA_CACHE_DIR=str(tmp / "numba_cache"))
+            cold = [_timed_run(lab_cmd(tmp / "cold.exr", tmp / "cold_out.exr", [1.0, 5.0, 1000.0], "compiled"), None,
+                               e2)[1:] for _ in range(3)]
+            md.append("**Compile cost** (64², s = 1, 5, 1000 in one run, `--kernel compiled`, an empty numba cache "
+                      f"first): cold {cold[0][0]:.1f} s wall / {cold[0][1]:.1f} s CPU; warm {cold[1][0]:.2f} / "
+                      f"{cold[1][1]:.2f} s and {cold[2][0]:.2f} / {cold[2][1]:.2f} s.")
+            print(md[-1], flush=True)
+        for scene, path in scenes:
+            native = None
+            if path:
+                native = load_cube(path).shape[1]
+            for n in args.faces:
+                if native is not None and n > native:
+                    continue
+                cube = (environment(n) if path is None else load_cube(path, size=n)).astype(np.float32).astype(
+                    np.float64)
+                inp_exr, inp_dds = tmp / f"in{n}.exr", tmp / f"in{n}.dds"
+                write_envmap(inp_exr, cube, layout="cube")
+                write_dds_cube(inp_dds, envmap.convert_convention(cube, "openexr", "opengl"))
+                ref = None if args.no_error else Reference(cube)
+                cells = [("s", (s,)) for s in exps] + ([("set8", S8)] if args.set8 else [])
+                for kind, ss in cells:
+                    label = "8 exponents" if kind == "set8" else format(ss[0], "g")
+                    row = {"scene": scene, "face": n, "s": label}
+                    for k in args.kernels:
+                        runs = []
+                        for _ in range(max(1, args.repeat)):
+                            t0 = time.perf_counter()
+                            r = convolve(cube, list(ss), rtol=RTOL, kernel=k, workers=2)
+                            runs.append((time.perf_counter() - t0, r.timings_s["total_cpu"]))
+                        row[f"{k}_inproc_first_wall_s"], row[f"{k}_inproc_first_cpu_s"] = runs[0]
+                        row[f"{k}_inproc_wall_s"] = float(np.median([w for w, _ in runs]))
+                        row[f"{k}_inproc_cpu_s"] = float(np.median([c for _, c in runs]))
+                        row[f"{k}_routes"] = ",".join(sorted(set(r.method_used.values())))
+                        row[f"{k}_bound"] = max(float(np.max(r.error_bound[s])) for s in ss)
+                        if r.info.get("sparse_pairs") and r.timings_s.get("sparse"):
+                            row[f"{k}_sparse_pairs_per_core_s"] = r.info["sparse_pairs"] / r.timings_s["sparse"]
                         if ref is not None:
-                            got = envmap.convert_convention(read_dds_cube(tmp / "cm.dds"), "opengl", "openexr")
-                            err_c = max(err_c, ref.error(got, s_c))
-                    row[f"{tag}_wall_s"] = None if timed_out else tot
-                    row[f"{tag}_cpu_s"] = None if timed_out else tot_cpu
-                    row[f"{tag}_timed_out_after_s"] = args.timeout if timed_out else None
-                    row[f"{tag}_max_rel_error"] = None if (timed_out or ref is None) else err_c
-                    row[f"{tag}_over_lab"] = (args.timeout / wall if timed_out else tot / wall)
-                    row[f"{tag}_cpu_over_lab"] = None if timed_out else tot_cpu / cpu
-                rows.append(row)
-                msg = (f"{n:5d}² s={label:>11s}: lab {wall:7.2f} s (runs {', '.join(f'{w:.2f}' for w in walls)}; "
-                       f"CPU {cpu:.2f} s)")
-                if lab_err is not None:
-                    msg += f" err {lab_err:.1e}"
-                for ci in range(len(cmfts)):
-                    t = row[f"cmft{ci}_wall_s"]
-                    tt = f"> {args.timeout:.0f} s" if t is None else f"{t:.2f} s"
-                    e = row[f"cmft{ci}_max_rel_error"]
-                    cr = row[f"cmft{ci}_cpu_over_lab"]
-                    msg += (f" | cmft{ci} {tt}" + (f" err {e:.1e}" if e is not None else "")
-                            + f" ratio {'≥ ' if t is None else ''}{row[f'cmft{ci}_over_lab']:.2f}"
-                            + (f" (CPU {row[f'cmft{ci}_cpu_s']:.2f} s, ratio {cr:.2f})" if cr is not None else ""))
-                print(msg, flush=True)
-    print(_load())
+                            row[f"{k}_err"] = max(ref.error(r.maps[s], s) for s in ss)
+                        if not args.no_process:
+                            out = tmp / f"lab{n}.exr"
+                            w, walls, c = median_wall(lab_cmd(inp_exr, out, ss, k), args.repeat, None, env)
+                            row[f"{k}_proc_wall_s"], row[f"{k}_proc_cpu_s"] = w, c
+                            if ref is not None:
+                                row[f"{k}_proc_err"] = max(ref.error(load_cube(exponent_path(out, s)), s) for s in ss)
+                    for name, c in zip(cmft_names, cmfts):
+                        tot, tot_cpu, err_c, timed_out = 0.0, 0.0, 0.0, False
+                        for s_c in dict.fromkeys(nearest_pow2(s) for s in ss):
+                            w_c, _, c_c = median_wall(cmft_cmd(c, inp_dds, tmp / "cm", s_c), args.repeat, args.timeout)
+                            if w_c is None:
+                                timed_out = True
+                                break
+                            tot += w_c
+                            tot_cpu += c_c
+                            if ref is not None:
+                                got = envmap.convert_convention(read_dds_cube(tmp / "cm.dds"), "opengl", "openexr")
+                                err_c = max(err_c, ref.error(got, s_c))
+                        row[f"{name}_wall_s"] = None if timed_out else tot
+                        row[f"{name}_cpu_s"] = None if timed_out else tot_cpu
+                        row[f"{name}_err"] = None if (timed_out or ref is None) else err_c
+                    rows.append(row)
+                    print("  " + ", ".join(f"{a}={b:.3g}" if isinstance(b, float) else f"{a}={b}"
+                                           for a, b in row.items()) + f" [{_load()}]", flush=True)
+        if args.native:
+            md.append("")
+            md.append("**Native resolution, 8 exponents** {1, 2, 5, 10, 20, 50, 100, 1000} (sky + sun, float32 cube "
+                      "EXR, 2 workers, whole process):")
+            md.append("")
+            md.append("| face | kernel | wall s | CPU s | peak RSS (largest process) GiB | routes | largest bound |")
+            md.append("|---|---|---|---|---|---|---|")
+            for n in (512, 1024):
+                cube = environment(n).astype(np.float32).astype(np.float64)
+                write_envmap(tmp / f"nat{n}.exr", cube, layout="cube")
+                del cube
+                for k in args.kernels:
+                    w, c, rss = timed_rss(lab_cmd(tmp / f"nat{n}.exr", tmp / f"nat{n}_o.exr", S8, k), env)
+                    import json
+
+                    side = json.loads((tmp / f"nat{n}_o.json").read_text())
+                    meth = ", ".join(f"{e['s']:g}:{e['method']}" for e in side["exponents"])
+                    b = max(e["rel_bound_max"] or math.inf for e in side["exponents"])
+                    md.append(f"| {n}² | {k} | {w:.1f} | {c:.1f} | {rss:.2f} | {meth} | {b:.1e} |")
+                    print(md[-1] + f" [{_load()}]", flush=True)
+    load1 = _load()
+    # ---- tables ----
+    best_k = "compiled" if "compiled" in args.kernels else args.kernels[0]
+    for scene, _p in scenes:
+        md.append("")
+        md.append(f"**{scene}** — wall / CPU seconds; in-process = the first call in a warm process; process = "
+                  "`ibl-ref convolve` from start to exit; err = max relative error against the exact float64 gather.")
+        md.append("")
+        head = ["face", "s"]
+        for k in args.kernels:
+            head += [f"lab {k} in-process", f"lab {k} process", f"lab {k} err"]
+        for name in cmft_names:
+            head += [f"{name}", f"{name} err"]
+        if cmft_names:
+            head += [f"in-process ({best_k}) ≤ {cmft_names[0]}", f"process (better kernel) ≤ {cmft_names[0]}"]
+        md.append("| " + " | ".join(head) + " |")
+        md.append("|" + "---|" * len(head))
+        for row in (r for r in rows if r["scene"] == scene):
+            cells = [f"{row['face']}²", row["s"]]
+            for k in args.kernels:
+                cells += [_fmt(row.get(f"{k}_inproc_first_wall_s"), row.get(f"{k}_inproc_first_cpu_s")),
+                          _fmt(row.get(f"{k}_proc_wall_s"), row.get(f"{k}_proc_cpu_s")),
+                          _err(max((row[x] for x in (f"{k}_err", f"{k}_proc_err") if row.get(x) is not None),
+                                   default=None))]
+            for name in cmft_names:
+                w = row.get(f"{name}_wall_s")
+                cells += [f"> {args.timeout:.0f} (killed)" if w is None else _fmt(w, row[f"{name}_cpu_s"]),
+                          _err(row.get(f"{name}_err"))]
+            if cmft_names:
+                w_c = row.get(f"{cmft_names[0]}_wall_s")
+                lab_in = row.get(f"{best_k}_inproc_first_wall_s")
+                procs = [row[f"{k}_proc_wall_s"] for k in args.kernels if row.get(f"{k}_proc_wall_s") is not None]
+                lab_p = min(procs) if procs else None  # the better kernel: what --kernel auto aims at
+                fl = floor.get("python -c 'import numpy, OpenEXR'", (0.0, 0.0))[0]
+                if w_c is None:
+                    cells += ["yes (cmft killed)", "yes (cmft killed)" if lab_p is not None else "—"]
+                else:
+                    cells.append(f"{'yes' if lab_in <= w_c else 'no'} ({lab_in / w_c:.2f}×)")
+                    if lab_p is None:
+                        cells.append("—")
+                    elif w_c >= 0.5:
+                        cells.append(f"{'yes' if lab_p <= w_c else 'no'} ({lab_p / w_c:.2f}×)")
+                    else:
+                        cells.append(f"{'yes' if lab_p <= w_c + fl else 'no'} ({lab_p:.2f} s vs cmft + floor "
+                                     f"{w_c + fl:.2f} s)")
+            md.append("| " + " | ".join(cells) + " |")
+    if "compiled" in args.kernels:
+        md.append("")
+        pps = [(r["scene"], r["face"], r["s"], k, r[f"{k}_sparse_pairs_per_core_s"]) for r in rows
+               for k in args.kernels if r.get(f"{k}_sparse_pairs_per_core_s")]
+        md.append(f"**Machine peak** (one core, compiled): {peak_madd / 1e9:.1f} G multiply-adds/s (tight loop), "
+                  f"{peak_dot / 1e9:.1f} G/s (dot product in L1).  Sparse gather, (output × source texel) pairs per "
+                  "second per core (pairs / summed job seconds), in-process cells: " + "; ".join(
+                      f"{sc} {f}² s={s} {k} {v / 1e9:.2f} G" for sc, f, s, k, v in pps) + ".")
+    md.append("")
+    md.append(f"Ended {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {load1} (started at {load0}).")
+    text = "\n".join(md)
+    print()
+    print(text)
+    if args.markdown:
+        args.markdown.write_text(text + "\n")
     if args.csv and rows:
         keys = list(dict.fromkeys(k for r in rows for k in r))
         write_csv(args.csv, rows, keys)

@@ -109,11 +109,8 @@ def _integral_latlong_chunked(img) -> np.ndarray:
 
 
 def run_one(name: str, compression: str, lights: int) -> list:
-    import OpenEXR
-
     from ibl_ref.environment import exr_io, resample
     from ibl_ref.knuth2014.median_cut import median_cut
-    from ibl_ref.environment.probe_files import _ox_compression
 
     h, n = SIZES[name]
     rows = []
@@ -125,8 +122,7 @@ def run_one(name: str, compression: str, lights: int) -> list:
         path = Path(tmp) / f"probe_{name}.exr"
         with Peak() as p:
             planes = make_probe_planes(h)
-            OpenEXR.File({"compression": _ox_compression(OpenEXR, compression), "type": OpenEXR.scanlineimage},
-                         dict(zip("RGB", planes))).write(str(path))
+            exr_io.write_exr(path, exr_io.ExrPart(list(planes), ("R", "G", "B")), compression=compression)
             del planes
         rows.append(dict(size=name, step="make+write", seconds=p.seconds, peak_rss_bytes=p.peak))
         log(f"written {path.stat().st_size / 2**20:.0f} MiB; make+write peak {p.peak / 2**20:.0f} MiB")

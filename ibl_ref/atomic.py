@@ -23,8 +23,19 @@ Every file ibl_ref writes goes through :func:`atomic_path` / :func:`atomic_write
   outputs and manifest exactly as they were.
 * **Inputs are never outputs**: :func:`refuse_overwriting_inputs` rejects an output path that names
   the same file as an input (``render --env X --out X``), before any work.
+* **Side files never destroy a file the user did not name** (:func:`check_side_files`).  A command writes
+  the paths the user named, the documented files inside an output folder the user named (``pem --out DIR``,
+  experiments), and *side files* next to a named file: the JSON manifest ``OUT.json`` of ``render``,
+  ``km00-render`` and ``convolve``, ``convolve``'s ``OUT_s{S}.exr``, ``km00-render --png``'s ``OUT.png``.  A side
+  file is written only where no file of its name exists, or over a file that the previous run for the same
+  output wrote: the manifest of an ibl_ref output set (a JSON object listing its files) and the files it
+  lists.  Anything else is refused before any work, naming the file.
 * OS errors while writing (``ENOSPC``, ``EROFS``, ``EACCES`` …) become :class:`OutputError` naming the
   file and the reason.
+* **Folders created for an output that failed are removed** (when still empty): a failed or interrupted run
+  leaves no empty folder behind (:func:`output_folder`).
+* **Ctrl-C never splits a commit**: the renames of :class:`OutputSet` (and of :func:`atomic_path`) run in a
+  :func:`critical_section`, which holds SIGINT back until they are done.
 """
 
 from __future__ import annotations
@@ -56,6 +67,10 @@ __all__ = [
     "ensure_output_dir",
     "refuse_overwriting_inputs",
     "resolve_output",
+    "output_folder",
+    "check_side_files",
+    "critical_section",
+    "in_critical_section",
 ]
 
 TEMP_TAG = ".ibl-tmp-"  #: marker in every temporary file / staging folder name (followed by the PID)
@@ -63,6 +78,39 @@ TEMP_TAG = ".ibl-tmp-"  #: marker in every temporary file / staging folder name 
 
 class OutputError(IBLError):
     """An output file or folder cannot be written."""
+
+
+_CRITICAL = {"depth": 0}
+
+
+def in_critical_section() -> bool:
+    """True inside :func:`critical_section` (the CLI's SIGINT handler defers the interrupt then)."""
+    return _CRITICAL["depth"] > 0
+
+
+@contextlib.contextmanager
+def critical_section():
+    """Hold SIGINT back inside the block; an interrupt received meanwhile is delivered when it ends.
+
+    Used around renames that must happen all together (:meth:`OutputSet.commit`).  Only the main thread
+    receives signals; elsewhere the block just runs.
+    """
+    import signal
+    import threading
+
+    _CRITICAL["depth"] += 1
+    got, old = [], None
+    if threading.current_thread() is threading.main_thread() and _CRITICAL["depth"] == 1:
+        with contextlib.suppress(ValueError, OSError):
+            old = signal.signal(signal.SIGINT, lambda signum, frame: got.append(signum))
+    try:
+        yield
+    finally:
+        _CRITICAL["depth"] -= 1
+        if old is not None:
+            signal.signal(signal.SIGINT, old)
+            if got:
+                signal.raise_signal(signal.SIGINT)  # to the handler that was installed before the block
 
 
 def _kind(mode: int) -> str:
@@ -109,25 +157,69 @@ def resolve_output(path) -> Path:
     return real
 
 
-def ensure_output_dir(folder, what: str = "output folder") -> Path:
-    """Create ``folder`` (and parents) if needed; clear :class:`OutputError` if it cannot be a writable folder."""
+def _missing_dirs(folder: Path) -> list:
+    """The folders ``folder.mkdir(parents=True)`` would create, deepest first."""
+    out = []
+    for anc in [folder, *folder.parents]:
+        if anc.exists() or anc.is_symlink():
+            break
+        out.append(anc)
+    return out
+
+
+def _remove_empty(created) -> None:
+    """Remove the folders of ``created`` (deepest first) that are still empty; never anything else."""
+    for d in created:
+        with contextlib.suppress(OSError):
+            d.rmdir()  # fails (and is skipped) if anything is inside
+
+
+def ensure_output_dir(folder, what: str = "output folder", created: list | None = None) -> Path:
+    """Create ``folder`` (and parents) if needed; clear :class:`OutputError` if it cannot be a writable folder.
+
+    ``created``: a list that receives the folders this call made (deepest first), for removal on failure.
+    """
     folder = Path(folder)
     for anc in [folder, *folder.parents]:
         if anc.exists() or anc.is_symlink():
             if not anc.is_dir():
                 raise OutputError(f"{folder}: cannot create {what}: {anc} is a file, not a folder")
             break
+    missing = _missing_dirs(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
+        _remove_empty([d for d in missing if d.is_dir()])
         raise OutputError(f"{folder}: cannot create {what}: {_reason(exc)}") from exc
+    if created is not None:
+        created.extend(missing)
     if not os.access(folder, os.W_OK | os.X_OK):
         raise OutputError(f"{folder}: {what} is not writable")
     return folder
 
 
-def _check_dir(path: Path) -> Path:
-    return ensure_output_dir(path.parent if str(path.parent) else Path("."), f"output folder for {path.name}")
+@contextlib.contextmanager
+def output_folder(folder, what: str = "output folder", remove_tree: bool = False):
+    """Create ``folder`` for the block (:func:`ensure_output_dir`); if the block fails (an error, Ctrl-C), the
+    folders created here are removed again when they are empty: a failed run leaves no empty folder.
+
+    ``remove_tree=True`` (an experiment's own folder): a folder this block created is removed with everything in
+    it — it did not exist before the run, so all it holds is the failed run's partial output."""
+    created: list = []
+    folder = ensure_output_dir(folder, what, created)
+    try:
+        yield folder
+    except BaseException:
+        with critical_section():  # a repeated Ctrl-C waits for the clean-up
+            if remove_tree and created:
+                shutil.rmtree(created[-1], ignore_errors=True)  # the outermost folder this block made
+            _remove_empty(created)
+        raise
+
+
+def _check_dir(path: Path, created: list | None = None) -> Path:
+    return ensure_output_dir(path.parent if str(path.parent) else Path("."), f"output folder for {path.name}",
+                             created)
 
 
 def _pid_alive(pid: int) -> bool:
@@ -207,22 +299,27 @@ def atomic_path(path, suffix: str | None = None):
     """
     path = Path(path)
     real = resolve_output(path)
-    parent = _check_dir(real)
+    created: list = []
+    parent = _check_dir(real, created)
     clean_stale_temps(parent, real.name)
     tmp = parent / _temp_name(real.name, suffix if suffix is not None else real.suffix)
     try:
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666 & ~_umask())
         os.close(fd)
     except OSError as exc:
+        _remove_empty(created)
         raise OutputError(f"{path}: cannot create a file in {parent}: {_reason(exc)}") from exc
     try:
         yield tmp
         _fsync_path(tmp)
-        os.replace(tmp, real)
+        with critical_section():
+            os.replace(tmp, real)
         _fsync_path(parent, directory=True)
     except BaseException as exc:
-        with contextlib.suppress(OSError):
+        with critical_section(), contextlib.suppress(OSError):  # a repeated Ctrl-C waits for the clean-up
             os.unlink(tmp)
+            if not real.exists():
+                _remove_empty(created)
         if isinstance(exc, OSError) and not isinstance(exc, IBLError):
             raise OutputError(f"{path}: cannot write: {_reason(exc)}") from exc
         raise
@@ -263,6 +360,41 @@ def refuse_overwriting_inputs(inputs: dict, outputs: dict) -> None:
             if Path(op).exists() and Path(ip).exists() and _same_file(Path(op), Path(ip)):
                 raise OutputError(f"{ol} {op}: is the same file as the input {il} {ip}; refusing to overwrite "
                                   "the input (choose another output path)")
+
+
+def _manifest_names(path: Path, owned_key: str):
+    """Base names listed under ``owned_key`` by the JSON manifest at ``path``; None if it is not such a manifest."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+    entries = data.get(owned_key) if isinstance(data, dict) else None
+    if not isinstance(entries, list):
+        return None
+    return {Path(e).name for e in entries if isinstance(e, str) and e}
+
+
+def check_side_files(manifest, side=(), owned_key: str = "outputs", label: str = "--out") -> None:
+    """Refuse (:class:`OutputError`) to replace a file the user did not name (module docstring), before any work.
+
+    ``manifest``: the side-file JSON manifest of the output set (e.g. ``OUT.json``); ``side``: the other side
+    files the run will write.  Each may exist only if it is that manifest (a JSON object with a list under
+    ``owned_key``) or a file the manifest lists.  ``label`` names the option of the output in the message.
+    """
+    manifest = Path(manifest)
+    listed = None
+    if manifest.exists() or manifest.is_symlink():
+        listed = _manifest_names(manifest, owned_key)
+        if listed is None:
+            raise OutputError(f"{label}: the settings file {manifest} that this command writes beside its output "
+                              f"exists and was not written by ibl_ref for it; refusing to replace it (move it "
+                              f"away or choose another output name)")
+    for f in side:
+        f = Path(f)
+        if (f.exists() or f.is_symlink()) and (listed is None or f.name not in listed):
+            raise OutputError(f"{label}: {f} exists and was not written by the previous run for this output "
+                              f"(not listed in {manifest.name}); refusing to replace a file you did not name "
+                              f"(move it away or choose another output name)")
 
 
 def write_csv(path, rows, columns=None, comment: str | None = None):
@@ -342,11 +474,13 @@ class OutputSet:
     staging folders and leaves the previous outputs and manifest untouched.
     """
 
-    def __init__(self, manifest, owned_key: str = "files", keep=()):
+    def __init__(self, manifest, owned_key: str = "files", keep=(), remove_stale: bool = True):
         self.manifest = Path(manifest)
         self.owned_key = owned_key
+        self.remove_stale = remove_stale  # False: never delete files of the previous run (render's OUT.json)
         self._real_manifest = resolve_output(self.manifest)
-        self.folder = _check_dir(self._real_manifest)
+        self._created: list = []  # folders made for this set: removed again (if empty) when it fails
+        self.folder = _check_dir(self._real_manifest, self._created)
         self.keep = [Path(k) for k in keep if k is not None]
         self._staged: dict = {}  # real final path -> (staged path, given path)
         self._stage_dirs: dict = {}  # folder -> staging folder
@@ -362,7 +496,10 @@ class OutputSet:
             for staged, given in self._staged.values():
                 msg = msg.replace(str(staged), str(given))
             exc.args = (msg,) + exc.args[1:]
-        self._cleanup()
+        with critical_section():  # a repeated Ctrl-C waits for the clean-up
+            self._cleanup()
+            if not self.committed:
+                _remove_empty(self._created)
         return False
 
     def _cleanup(self):
@@ -388,7 +525,7 @@ class OutputSet:
             raise OutputError(f"{self.manifest}: output set already committed")
         final = Path(final)
         real = resolve_output(final)
-        folder = _check_dir(real)
+        folder = _check_dir(real, self._created)
         clean_stale_temps(folder, real.name)
         key = Path(os.path.realpath(real))
         if key in self._staged:
@@ -399,7 +536,7 @@ class OutputSet:
 
     def commit(self, manifest_data) -> Path:
         """Move the staged files into place, write ``manifest_data`` as the manifest, delete stale files."""
-        old_owned = self._previous_owned()
+        old_owned = self._previous_owned() if self.remove_stale else []
         missing = [str(g) for s, g in self._staged.values() if not s.exists()]
         if missing:
             raise OutputError(f"{self.manifest}: output file(s) were never written: {', '.join(missing)}")
@@ -409,14 +546,15 @@ class OutputSet:
         try:
             for real, (staged, given) in self._staged.items():
                 _fsync_path(staged)
-            for real, (staged, given) in self._staged.items():
-                os.replace(staged, real)
-            os.replace(staged_manifest, self._real_manifest)  # the manifest last
+            with critical_section():  # Ctrl-C: every file moved into place, or none
+                for real, (staged, given) in self._staged.items():
+                    os.replace(staged, real)
+                os.replace(staged_manifest, self._real_manifest)  # the manifest last
+                self.committed = True
             for folder in {real.parent for real in self._staged} | {self.folder}:
                 _fsync_path(folder, directory=True)
         except OSError as exc:
             raise OutputError(f"{self.manifest}: cannot move the outputs into place: {_reason(exc)}") from exc
-        self.committed = True
         produced = set(self._staged) | {Path(os.path.realpath(self._real_manifest))}
         protected = {Path(os.path.realpath(k)) for k in self.keep}
         owner = self.manifest.parent  # names are relative to the manifest as given (not its symlink target)
@@ -433,17 +571,5 @@ class OutputSet:
 
     def _previous_owned(self) -> list:
         """Base names listed under ``owned_key`` by the manifest of the previous run (empty if none/unreadable)."""
-        try:
-            old = json.loads(self._real_manifest.read_text())
-        except (OSError, ValueError):
-            return []
-        entries = old.get(self.owned_key) if isinstance(old, dict) else None
-        if not isinstance(entries, list):
-            return []
-        names = []
-        for e in entries:
-            if isinstance(e, str) and e:
-                n = Path(e).name
-                if n not in ("", ".", "..") and TEMP_TAG not in n:
-                    names.append(n)
-        return names
+        names = _manifest_names(self._real_manifest, self.owned_key) or ()
+        return sorted(n for n in names if n not in ("", ".", "..") and TEMP_TAG not in n)

@@ -27,7 +27,10 @@ import threading
 
 from .errors import IBLError
 
-__all__ = ["resolve_executor", "map_jobs", "worker_died", "one_blas_thread"]
+__all__ = ["resolve_executor", "map_jobs", "worker_died", "one_blas_thread", "CONNECT_TIMEOUT_S"]
+
+#: seconds to wait for a Dask scheduler address to answer (announced before waiting)
+CONNECT_TIMEOUT_S = 30.0
 
 
 def resolve_executor(executor):
@@ -39,10 +42,15 @@ def resolve_executor(executor):
             from distributed import Client
         except ImportError:
             raise IBLError("a scheduler address needs dask.distributed: pip install \".[dask]\"") from None
+        from .progress import say
+
+        # an address with nothing behind it only fails after the timeout: say so before waiting
+        say(f"connecting to the Dask scheduler at {executor} (waiting up to {CONNECT_TIMEOUT_S:g} s) …")
         try:
-            client = Client(executor, timeout=30)
+            client = Client(executor, timeout=CONNECT_TIMEOUT_S)
         except (OSError, TimeoutError) as exc:
-            raise IBLError(f"cannot connect to the Dask scheduler at {executor!r}: {exc}") from None
+            raise IBLError(f"cannot connect to the Dask scheduler at {executor!r} within {CONNECT_TIMEOUT_S:g} s: "
+                           f"{exc}") from None
         return client.get_executor(), client
     if hasattr(executor, "get_executor") and hasattr(executor, "scheduler_info"):  # dask.distributed.Client
         return executor.get_executor(), None
@@ -81,6 +89,15 @@ def one_blas_thread():
             if _BLAS_HOLD["users"] == 0:
                 _BLAS_HOLD["limiter"].restore_original_limits()
                 _BLAS_HOLD["limiter"] = None
+
+
+def _worker_ignores_sigint() -> None:
+    """Initializer of the local worker processes: Ctrl-C is the caller's to handle (it stops the workers), so a
+    worker prints no traceback of its own."""
+    import signal
+
+    with contextlib.suppress(ValueError, OSError):
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _job(fn, x, silent: bool = True):
@@ -147,7 +164,8 @@ def _run_all(fn, items, ex, workers, prog, what, cost=None) -> list:
 
         ctx = multiprocessing.get_context("spawn" if "fork" not in multiprocessing.get_all_start_methods()
                                           else "forkserver")
-        pool = ex = ProcessPoolExecutor(max_workers=min(workers, len(items)), mp_context=ctx)
+        pool = ex = ProcessPoolExecutor(max_workers=min(workers, len(items)), mp_context=ctx,
+                                        initializer=_worker_ignores_sigint)
     from concurrent.futures import as_completed
 
     order = list(range(len(items))) if cost is None else sorted(range(len(items)), key=lambda i: -cost[i])
@@ -161,6 +179,12 @@ def _run_all(fn, items, ex, workers, prog, what, cost=None) -> list:
         return out
     except BrokenExecutor as exc:
         raise worker_died(exc, what) from None
+    except KeyboardInterrupt:  # do not wait for the running jobs: stop our workers (they ignore SIGINT)
+        if pool is not None:
+            for proc in list((getattr(pool, "_processes", None) or {}).values()):
+                with contextlib.suppress(Exception):
+                    proc.terminate()
+        raise
     finally:
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)

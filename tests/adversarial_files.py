@@ -305,7 +305,38 @@ def bad_meshes(d: Path) -> dict:
     out["vertices_only_obj"] = (d / "vertices_only.obj", "triangle")
     (d / "binary.obj").write_bytes(b"v 0 0 0\n\0\0\0\x01\x02")
     out["binary_obj"] = (d / "binary.obj", "binary content")
+    out["huge_coordinates"] = (obj_file(d / "huge.obj", scale=1e200), "coordinates up to 1e+200")
     return out
+
+
+def obj_file(path: Path, scale: float = 1.0, uv: str | None = None) -> Path:
+    """An icosphere as OBJ text (vertices times ``scale``; ``uv``: the text of every ``vt`` line, e.g. "nan nan")."""
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=1)
+    lines = [f"v {float(a) * scale!r} {float(b) * scale!r} {float(c) * scale!r}" for a, b, c in m.vertices]
+    if uv is None:
+        lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in m.faces]
+    else:
+        lines += [f"vt {uv}"] * len(m.vertices)
+        lines += [f"f {a + 1}/{a + 1} {b + 1}/{b + 1} {c + 1}/{c + 1}" for a, b, c in m.faces]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def tiny_latlong(path: Path, value: float, h: int = 8) -> Path:
+    """A valid float32 lat-long EXR whose every texel is ``value`` (e.g. 1e-8: below half's range; 1e-40: below
+    RGBE's), written through the binding directly."""
+    px = np.full((h, 2 * h), value, np.float32)
+    return _exr_raw(path, {"R": px, "G": px, "B": px})
+
+
+def non_utf8_name(d: Path, stem: bytes = b"caf\xe9") -> Path:
+    """A valid cube EXR whose file name is not UTF-8 (Latin-1 bytes, as old archives have)."""
+    import os
+
+    p = d / os.fsdecode(stem + b".exr")
+    return write_good_exr(p)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -82,17 +82,17 @@ def test_ours_equals_render_pem_and_ao_bounds():
 
 def test_render_mode_and_bad_inputs():
     env = np.full((6, 8, 8, 3), 1.0)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"mode must be one of \('ours'"):
         am.render_mode([(_quad(), 0)], env, "magic", camera=CAM)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"kd, ks must be finite and"):
         am.render_modes([(_quad(), 0)], CAM, env, ("ours",), kd=-1.0)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"g must be in \[0, 1\]"):
         am.render_modes([(_quad(), 0)], CAM, env, ("ours",), g=2.0)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"ao_color_variant must be one of \('modulate'"):
         am.render_modes([(_quad(), 0)], CAM, env, ("ao-color",), ao_color_variant="tint")
     bad = env.copy()
     bad[1, 2, 3, 0] = np.inf
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"environment: 1 non\-finite value\(s\) \(first: Inf"):
         am.render_modes([(_quad(), 0)], CAM, bad, ("no-occlusion",))
 
 

@@ -112,16 +112,16 @@ def test_workers_argument_and_environment(monkeypatch):
     monkeypatch.delenv(WORKERS_ENV)
     assert 1 <= default_workers() <= 2
     for bad in (0, -1, 1.5, True, "2"):
-        with pytest.raises(IBLError):
+        with pytest.raises(IBLError, match=r"workers must be a positive integer"):
             convolve(cube, 4.0, workers=bad)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"unknown parallel backend 'mpi'; choose one"):
         convolve(cube, 4.0, workers=2, backend="mpi")
     monkeypatch.setenv(WORKERS_ENV, "many")
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"IBL_REF_WORKERS must be a positive integer"):
         convolve(cube, 4.0)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"faces must be distinct face indices"):
         mc.convolve_moment_many(cube, [1.0], faces=[6])
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"faces must be distinct face indices"):
         pc.convolve_sparse_many(cube, [64.0], faces=[0, 0])
 
 

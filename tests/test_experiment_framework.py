@@ -48,7 +48,7 @@ def test_every_experiment_declares_what_help_shows(name):
 @pytest.mark.parametrize("name", sorted(EXPS))
 def test_experiment_help_lists_description_paper_params_outputs_and_time(name, capsys):
     mod = EXPS[name]
-    with pytest.raises(SystemExit) as ex:
+    with pytest.raises(SystemExit, match=r"^0$") as ex:
         main(["experiment", name, "--help"])
     assert ex.value.code == 0
     text = " ".join(capsys.readouterr().out.split())

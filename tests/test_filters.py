@@ -26,7 +26,7 @@ def test_cos_taps_from_published_angles():
 def test_unknown_kernel_lists_options():
     with pytest.raises(IBLError, match="sqrtcos"):
         kernel_taps("lanczos")
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"explicit kernel taps must be 5"):
         kernel_taps([1, 2, 3])
 
 

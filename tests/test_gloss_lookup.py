@@ -80,7 +80,7 @@ def test_bad_gloss(g):
     with pytest.raises(IBLError, match="g"):
         phong_exponent(g)
     p = build_pyramid(np.ones((6, 4, 4, 1)))
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"g must be in \[0, 1\]"):
         lookup(p, np.array([[0.0, 0.0, 1.0]]), g)
 
 

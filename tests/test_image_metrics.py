@@ -45,7 +45,7 @@ def test_bad_inputs():
     bad[0, 0] = np.nan
     with pytest.raises(IBLError, match="NaN"):
         im.rel_l1(bad, B)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"reference image is zero on the"):
         im.rel_l1(A, np.zeros_like(B))
     with pytest.raises(IBLError, match="mask"):
         im.rmse(A, B, np.zeros((2, 2), bool))

@@ -18,7 +18,7 @@ from ibl_ref.errors import RadianceError
 def test_atomic_write_replaces_only_on_success(tmp_path):
     p = tmp_path / "data.json"
     atomic.write_json(p, {"a": 1})
-    with pytest.raises(RuntimeError):
+    with pytest.raises(RuntimeError, match="^boom$"):
         with atomic.atomic_write(p) as fh:
             fh.write("partial")
             raise RuntimeError("boom")
@@ -29,7 +29,7 @@ def test_atomic_write_replaces_only_on_success(tmp_path):
 def test_json_rejects_nan_and_keeps_old_file(tmp_path):
     p = tmp_path / "x.json"
     atomic.write_json(p, {"v": 2.0})
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"cannot write NaN or Inf"):
         atomic.write_json(p, {"v": float("nan")})
     assert json.loads(p.read_text()) == {"v": 2.0}
     assert sorted(os.listdir(tmp_path)) == ["x.json"]
@@ -81,7 +81,7 @@ def test_every_cli_command_has_help(capsys):
     for name, p in sub.choices.items():
         # a description of its own (not just the usage line), and every option explained in the help
         assert p.description and len(p.description) > 40, name
-        with pytest.raises(SystemExit) as ex:
+        with pytest.raises(SystemExit, match=r"^0$") as ex:
             main([name, "--help"])
         assert ex.value.code == 0
         text = capsys.readouterr().out

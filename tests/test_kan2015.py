@@ -75,9 +75,9 @@ def test_phong_brdf_energy_and_errors():
     n = 12.0
     e = quad(lambda mu: 2 * np.pi * phong_brdf(0.0, 1.0, n, mu, mu) * mu, 0, 1)[0]
     assert e == pytest.approx(1.0, rel=1e-8)  # quad default epsrel 1.5e-8
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"phong_brdf: \|n·ωi\| = 0 where the"):
         phong_brdf(0.5, 0.5, 4.0, 1.0, 0.0)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"quadrature must be one of \('literal'"):
         irradiance_map(np.ones((6, 2, 2, 3)), quadrature="exact")
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"Phong exponent s must be >="):
         specular_maps(np.ones((6, 2, 2, 3)), [0.5])

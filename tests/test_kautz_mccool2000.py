@@ -143,11 +143,11 @@ def test_rms_error_definition():
 
 def test_bad_inputs():
     f = b.get_brdf("phong", ks=0.5, s=10)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"theta_o must be in \[0, π"):
         km.fit_single_lobe(f, np.pi / 2)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"n_lobes must be >= 1, got"):
         km.fit_multi_lobe(f, 0.3, n_lobes=0)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"n_gamma must be >= 8, got"):
         km.gamma_nodes(2)
 
 

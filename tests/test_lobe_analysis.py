@@ -54,9 +54,9 @@ def test_s_texel_limit():
 
 
 def test_bad_options():
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"unknown volume definition 'area'; choose one"):
         target_volume(1.0, "area")
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"unknown lit\-texel position 'middle'; choose one"):
         LobeResponse(8, "box", position="middle")
 
 

@@ -123,25 +123,25 @@ def test_float32_pems_close_to_float64(sky16):
 
 
 def test_bad_input(sky16):
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"s_min must be >= 1 and"):
         chain_spec(16, s_min=0.5)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"factor must be > 1 and"):
         chain_spec(16, factor=1.0)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"n_min must be a power of"):
         chain_spec(16, n_min=3)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"texels_per_halfwidth must be > 0, got"):
         chain_spec(16, texels_per_halfwidth=0.0)
     bad = sky16.copy()
     bad[0, 0, 0, 0] = np.nan
-    with pytest.raises(RadianceError):
+    with pytest.raises(RadianceError, match=r"environment: 1 non\-finite value\(s\) \(first: NaN"):
         build_lobe_chain(bad)
-    with pytest.raises(LayoutError):
+    with pytest.raises(LayoutError, match=r"environment: expected an array of shape"):
         build_lobe_chain(np.ones((5, 4, 4, 3)))
-    with pytest.raises(LayoutError):
+    with pytest.raises(LayoutError, match=r"labels must have shape \(6, 16"):
         lobe_average_regions(sky16, np.zeros((6, 8, 8), dtype=int), 1, 2.0, 4)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"Phong exponent must be finite and"):
         lobe_average_regions(sky16, np.zeros((6, 16, 16), dtype=int), 1, 0.5, 4)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"PEM dtype must be a float"):
         build_lobe_chain_pems(sky16, n_lights=6, dtype=np.int32)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"PEM values exceed the range of"):
         build_lobe_chain_pems(np.full((6, 16, 16, 3), 1e39), n_lights=6, dtype=np.float32)

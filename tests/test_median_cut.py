@@ -147,9 +147,9 @@ def test_errors():
         median_cut(neg, 6)
     nan = cube.copy()
     nan[0, 0, 0, 1] = np.nan
-    with pytest.raises(RadianceError):
+    with pytest.raises(RadianceError, match=r"median cut input: 1 non\-finite value\(s"):
         median_cut(nan, 6)
-    with pytest.raises(LayoutError):
+    with pytest.raises(LayoutError, match=r"median cut input: expected an array"):
         median_cut(np.ones((5, 8, 8, 3)), 6)
     with pytest.raises(IBLError, match="variant"):
         median_cut(cube, 6, "octree")
@@ -221,7 +221,8 @@ def test_partition_property(n, seed, density, variant, k):
     n_lights = 6 * k
     feasible = n_lights <= 6 * n * n if variant == "per-face" else n_lights <= n_lit + dark
     if not feasible:
-        with pytest.raises(IBLError):
+        with pytest.raises(IBLError, match=r"regions per face but a face has only" if variant == "per-face"
+                           else r"dark face\(s\)\); every light needs at"):
             median_cut(cube, n_lights, variant)
         return
     ls = median_cut(cube, n_lights, variant)

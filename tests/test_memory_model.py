@@ -67,5 +67,5 @@ def test_library_bytes_match_real_arrays():
     levels = [np.zeros((6, m, m, 3), np.float32) for m in (16, 8, 4, 2, 1)]
     assert library_pem_bytes(1, 16) == sum(a.nbytes for a in levels)
     assert library_vsm_bytes(3, 64, np.float16) == 3 * np.zeros((64, 64, 2), np.float16).nbytes
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"face size must be a power"):
         mip_chain_texels(12)

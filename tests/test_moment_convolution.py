@@ -85,15 +85,15 @@ def test_unnormalized_and_out_size_and_single_channel():
 
 def test_errors():
     cube = np.ones((6, 4, 4, 3))
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"moment convolution supports Phong exponents \(1\.0"):
         convolve_moment_many(cube, [3.0])
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"leaf must be a positive power"):
         convolve_moment_many(cube, [1.0], leaf=3)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"out_size must be a positive integer"):
         convolve_moment_many(cube, [1.0], out_size=0)
     bad = cube.copy()
     bad[0, 0, 0, 0] = np.nan
-    with pytest.raises(RadianceError):
+    with pytest.raises(RadianceError, match=r"environment cube map: 1 non\-finite value\(s"):
         convolve_moment_many(bad, [1.0])
     with pytest.raises(IBLError, match="moment"):
         convolve(cube, [4.0], method="moment")

@@ -75,11 +75,11 @@ def test_pemset_interface_and_nbytes():
     assert pems.directions.shape == (12, 3) and pems.rgb.shape == (12, 3) and pems.solid_angle.shape == (12,)
     # independent route: closed-form byte count L · Σ_l 6 (n/2^l)^2 · C · 4
     assert pems.nbytes == 12 * 6 * (16**2 + 8**2 + 4**2 + 2**2 + 1) * 3 * 4 == library_pem_bytes(12, 16)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"PEM index must be an integer"):
         pems.lookup(12, np.array([0.0, 0.0, 1.0]), 0.5)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"build_pems: give either lights \(a LightSet"):
         build_pems(cube)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"PEM dtype must be a float"):
         build_pems(cube, n_lights=12, dtype=np.int32)
 
 

@@ -138,15 +138,15 @@ def test_neglected_fraction_closed_form_and_weight_bound_dominates_continuum():
 
 def test_sparse_bad_input():
     cube = np.ones((6, 4, 4, 3))
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"Phong exponent s must be >="):
         convolve_sparse(cube, 0.0)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"rtol must be in \(0, 1"):
         convolve_sparse(cube, 4.0, rtol=0.0)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"n_bright must be 'auto' or a"):
         convolve_sparse(cube, 4.0, n_bright=-1)
     bad = cube.copy()
     bad[0, 0, 0, 0] = np.inf
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"environment cube map: 1 non\-finite value\(s"):
         convolve_sparse(bad, 4.0)
 
 
@@ -284,7 +284,7 @@ def test_float32_kernel_sums_within_rounding_bound_dense_sample(n, s):
     rad_w = np.concatenate([rad, np.ones((rad.shape[0], 1))], axis=1) * omega[:, None]
     slabs = pc._Slabs(src, rad_w, np.zeros(rad.shape[0], dtype=bool), n)
     T = 8
-    IDX, TD, CEN, ANG, VALID = pc._tile_arrays(*pc._tile_geometry(envmap.texel_directions(n), (0, 1, 2, 3, 4, 5), n, T))
+    IDX, TD, CEN, ANG, VALID, _ = pc._tile_layout(n, (0, 1, 2, 3, 4, 5), T)
     tiles = rng.choice(len(CEN), size=min(300, len(CEN)), replace=False)
     a_max = ANG[tiles].max(axis=1)
     q = np.full(tiles.size, pc.cutoff_angle(s, 1e-5, pc._texel_extent(n))) + a_max

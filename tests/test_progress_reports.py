@@ -80,7 +80,7 @@ def test_disabled_track_is_the_iterable_itself(log_mode):
 
 def test_step_left_by_an_error_prints_no_done_line(log_mode):
     s = _Stream()
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="^bad$"):
         with progress.step("reading x", stream=s):
             raise ValueError("bad")
     assert s.getvalue() == "reading x …\n"

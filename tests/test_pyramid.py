@@ -74,7 +74,7 @@ def test_energy_drift_one_hot_matches_closed_form():
 def test_radiance_check():
     c = np.ones((6, 4, 4, 1))
     c[0, 0, 0, 0] = np.nan
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"environment map: 1 non\-finite value\(s\) \(first"):
         build_pyramid(c)
 
 

@@ -247,7 +247,7 @@ def test_bad_meshes():
     with pytest.warns(UserWarning, match="dropped 1 degenerate"):
         sc = prepare_scene(mixed)
     assert len(sc.faces) == 1 and sc.n_degenerate == 1
-    with pytest.raises(MeshError):
+    with pytest.raises(MeshError, match=r"mesh list item 0: not a"):
         prepare_scene([("not a mesh", 0)])
     assert issubclass(MeshError, IBLError)
 

@@ -28,7 +28,7 @@ km00-render image errors (full run, 3 min)                 quick analogue, bias 
 median-cut equivalent lobes 2.9 … 323 (10.8), …            :func:`test_equivalent_lobes_of_median_cut_regions`
 Meunier: paper's statistics inconsistent                   :func:`test_meunier_published_statistics_are_inconsistent`
 Meunier: product-fit mean 9.9e-4 (full run)                quick analogue, factor 3: ``check_cosine_lobes``
-cross-validate table (61 s, Mitsuba)                       quick analogue, target: ``check_cross_validate``
+cross-validate table (4 min 48 s, Mitsuba)                 quick analogue, target: ``check_cross_validate``
 reference at 128²: back-facing pixels                      :func:`test_back_facing_pixels_of_the_default_view`
 solid angles sum to 4π within 1.1e-14 (1 … 2048)          :func:`test_solid_angles_sum_to_4pi_within_the_readme_bound`
 DWAB negatives 42 … 2382, f = 1.5e-10 … 3.7e-9             :func:`test_dwab_negatives_of_the_probe_like_files`

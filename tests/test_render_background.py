@@ -59,8 +59,7 @@ def test_background_pem_mirror_lookup_equals_cube_lookup_and_modes_share_it():
     a, b = background_image(CAM, pems), background_image(CAM, env)
     np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6 * b.max())
     res = render_modes(_scene(), CAM, env, ("ours", "no-occlusion", "ao", "ao-color", "reference"), pems=pems,
-                       kd=0.2, ks=0.8, g=0.5, vsm_resolution=32, background="env",
-                       reference_kw=dict(n_env_glossy=8))
+                       kd=0.2, ks=0.8, g=0.5, vsm_resolution=32, background="env")
     m = res.mask
     for k, img in res.images.items():
         np.testing.assert_array_equal(img[~m], b[~m], err_msg=k)
@@ -74,8 +73,7 @@ def test_every_mode_honours_per_material_weights():
 
     env = np.ones((6, 8, 8, 3))
     mats = {0: Material(kd=0.1, ks=0.2, g=0.3), 1: Material(kd=0.5, ks=0.4, g=0.0)}
-    res = render_modes(_scene(), CAM, env, ("no-occlusion", "reference"), n_lights=6, materials=mats,
-                       reference_kw=dict(n_env_glossy=8))
+    res = render_modes(_scene(), CAM, env, ("no-occlusion", "reference"), n_lights=6, materials=mats)
     mid = res.gbuffer.material_id
     for k in ("no-occlusion",):
         np.testing.assert_allclose(res.images[k][mid == 0], 0.3, rtol=1e-5, err_msg=k)

@@ -133,8 +133,9 @@ def test_image_io_roundtrip_and_errors(tmp_path):
     a = np.random.default_rng(0).random((5, 7, 3)) * 1e4
     write_image_exr(tmp_path / "a.exr", a)
     np.testing.assert_array_equal(_read_exr(tmp_path / "a.exr"), a.astype(np.float32))  # float32 storage
-    for bad in (np.full((2, 2, 3), np.nan), -np.ones((2, 2, 3)), np.ones((2, 2, 2))):
-        with pytest.raises(IBLError):
+    for bad, why in ((np.full((2, 2, 3), np.nan), "non-finite"), (-np.ones((2, 2, 3)), "negative radiance"),
+                     (np.ones((2, 2, 2)), r"must be \(H, W\)")):
+        with pytest.raises(IBLError, match=why):
             write_image_exr(tmp_path / "b.exr", bad)
     assert not (tmp_path / "b.exr").exists()
     write_image_exr(tmp_path / "g.exr", np.full((3, 4, 3), 0.25))

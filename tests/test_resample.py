@@ -232,21 +232,21 @@ def test_faces_to_cube(convention):
 
 
 def test_bad_inputs():
-    with pytest.raises(LayoutError):
+    with pytest.raises(LayoutError, match=r"lat\-long map must have shape \(H"):
         R.latlong_to_cube(np.ones((8, 12, 3)), 4)
     bad = np.ones((8, 16, 3))
     bad[2, 3, 1] = np.nan
-    with pytest.raises(RadianceError):
+    with pytest.raises(RadianceError, match=r"lat\-long map: 1 non\-finite value\(s\) \(first"):
         R.latlong_to_cube(bad, 4)
-    with pytest.raises(RadianceError):
+    with pytest.raises(RadianceError, match=r"cube map: 288 negative radiance value\(s"):
         R.cube_to_latlong(-np.ones((6, 4, 4, 3)), 8)
-    with pytest.raises(LayoutError):
+    with pytest.raises(LayoutError, match=r"hcross: expected an image 4N wide"):
         R.cross_to_cube(np.ones((12, 12, 3)), "hcross")
-    with pytest.raises(LayoutError):
+    with pytest.raises(LayoutError, match=r"unknown cross layout 'diagonal'; choose one"):
         R.cross_to_cube(np.ones((12, 16, 3)), "diagonal")
-    with pytest.raises(LayoutError):
+    with pytest.raises(LayoutError, match=r"need 6 face images \(\+X, \-X"):
         R.faces_to_cube([np.ones((4, 4))] * 5)
-    with pytest.raises(LayoutError):
+    with pytest.raises(LayoutError, match=r"face images must all have the"):
         R.faces_to_cube([np.ones((4, 4))] * 5 + [np.ones((3, 3))])
 
 

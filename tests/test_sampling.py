@@ -161,7 +161,7 @@ def test_padding_dtypes_and_errors():
         S.pad_faces(cube, 5)
     with pytest.raises(ValueError, match="mode"):
         S.pad_faces(cube, 1, mode="mirror")
-    with pytest.raises(LayoutError):
+    with pytest.raises(LayoutError, match=r"cube map: expected an array of"):
         S.sample_bilinear(np.ones((6, 4, 5)), np.array([0, 0, 1.0]))
 
 

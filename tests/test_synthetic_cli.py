@@ -14,7 +14,7 @@ from ibl_ref.errors import IBLError
 def test_parse_params():
     p = parse_params(["a=1e5", "b=[1,2,3]", "c=1,2,3", "d=true", "e=latlong"])
     assert p == {"a": 1e5, "b": [1, 2, 3], "c": [1.0, 2.0, 3.0], "d": True, "e": "latlong"}
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"\-\-param expects key=value, got 'novalue'"):
         parse_params(["novalue"])
 
 
@@ -54,7 +54,7 @@ def test_synth_mesh(tmp_path):
 
 
 def test_synth_help_lists_generators(capsys):
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit, match=r"^0$"):
         main(["synth", "env", "--help"])
     text = capsys.readouterr().out
     for name in se.ENV_NAMES:

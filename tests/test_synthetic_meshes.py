@@ -167,7 +167,7 @@ def test_torus_watertight_volume():
     # closed form 2π²Rr²; inscribed polygons lose ≈ (1 − sinc) terms < 1 %
     assert mesh.volume == pytest.approx(2 * np.pi**2 * R * r * r, rel=1e-2)
     np.testing.assert_allclose(mesh.bounds[:, 1], [0.0, 2 * r], atol=1e-12)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"torus: minor_radius \(0\.5\) must be smaller"):
         sm.make_mesh("torus", major_radius=0.3, minor_radius=0.5)
 
 
@@ -210,7 +210,7 @@ def test_make_mesh_errors():
         sm.make_mesh("bunny")
     with pytest.raises(IBLError, match="unknown parameter"):
         sm.make_mesh("teapot", subdivisions=3)
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"subdiv: expected an integer in \[1"):
         sm.make_mesh("teapot", subdiv=0)
 
 
@@ -241,7 +241,7 @@ def test_load_mesh_errors(tmp_path):
         sm.validate_mesh(trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0, 1, 2]], process=False))
     with pytest.raises(MeshError, match="empty"):
         sm.validate_mesh(trimesh.Trimesh())
-    with pytest.raises(IBLError):
+    with pytest.raises(IBLError, match=r"load_mesh: parameters \['subdiv'\] only apply to"):
         sm.load_mesh(empty, subdiv=3)
 
 

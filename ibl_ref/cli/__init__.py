@@ -14,6 +14,12 @@ Errors (this module, for every command):
   exit code 1 (like every other bad input);
 * an :class:`~ibl_ref.errors.IBLError` prints one line and returns 1; Python parameter hints in library
   messages (``variant='global'``) are rewritten to the command's flags (``--variant global``);
+* library hints ``(Python: …)`` are dropped (the flags are named already);
+* warnings are one line each: ``ibl-ref CMD: warning: …`` (:class:`~ibl_ref.errors.IBLWarning` and ibl_ref's
+  own); a warning of another package (numpy, scipy, trimesh) that reaches the command is one line naming the
+  package and asking for a report — the known cases are checked where they arise and named by their flag;
+* Ctrl-C at any moment: ``ibl-ref CMD: interrupted``, exit code 130, no partial output
+  (:mod:`ibl_ref.cli.interrupts`);
 * last resort: an unexpected ``OSError`` / ``MemoryError`` prints one line asking for a report instead
   of a traceback (known cases are translated where they happen, not here).
 """
@@ -28,7 +34,8 @@ import pkgutil
 import re
 import sys
 
-from ..errors import IBLError
+from ..errors import IBLError, IBLWarning
+from .interrupts import handling  # stdlib only: installed first thing in main()
 
 __all__ = ["main", "build_parser", "validate_args"]
 
@@ -120,7 +127,7 @@ def validate_args(parser, args) -> None:
 
 #: library parameter -> CLI flags that set it, where the names differ (the first flag the command has wins)
 PARAM_FLAGS = {"n_lights": ("--lights",), "variant": ("--variant", "--median-cut"), "n_lobes": ("--lobes",),
-               "out_size": ("--size",), "vsm_resolution": ("--vsm-res",)}
+               "out_size": ("--size",), "vsm_resolution": ("--vsm-res",), "uv_fallback": ("--gmap-fallback",)}
 
 
 def _flag_hints(message: str, sp) -> str:
@@ -142,6 +149,7 @@ def _flag_hints(message: str, sp) -> str:
         val = m.group(3)
         return f"{flag}" if val in ("True",) else f"{flag} {val}"
 
+    message = re.sub(r"\s*\(Python: [^()]*\)", "", message)  # the CLI names its flags; the Python hint is noise
     message = re.sub(r"\b([a-z][a-z_]*)=(['\"]?)([\w.+-]+)\2", repl, message)
     m = re.match(r"([a-z][a-z_]*) must\b", message)  # "rtol must be in (0, 1)" -> "--rtol: rtol must ..."
     if m and flag_of(m.group(1)):
@@ -151,7 +159,52 @@ def _flag_hints(message: str, sp) -> str:
     return message
 
 
+def _one_line_warnings(prog: str):
+    """A ``warnings.showwarning`` that prints every warning as one line (module docstring)."""
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        text = " ".join(str(message).split())
+        mod = filename.replace(os.sep, "/")
+        # ibl_ref's own: IBLWarning, or a UserWarning it issues; anything else (numpy's RuntimeWarnings, wherever
+        # the arithmetic is) is a case the checks did not foresee
+        ours = issubclass(category, IBLWarning) or (category is UserWarning and "/ibl_ref/" in mod)
+        if not ours:
+            where = ("ibl_ref." + mod.rsplit("/ibl_ref/", 1)[1].removesuffix(".py").replace("/", ".")
+                     if "/ibl_ref/" in mod else next((p for p in ("numpy", "scipy", "trimesh", "matplotlib",
+                                                                  "OpenEXR", "mitsuba", "drjit") if f"/{p}/" in mod),
+                                                     "a library"))
+            text = f"{category.__name__} in {where}: {text} (unexpected; please report the command)"
+        print(f"{prog}: warning: {text}", file=sys.stderr if file is None else file)
+
+    return show
+
+
 def main(argv=None) -> int:
+    rc = None
+    try:  # a Ctrl-C before the handler is installed lands here too (Python's default handler raises)
+        try:
+            with handling():  # Ctrl-C from here on: one line, exit code 130 (ibl_ref.cli.interrupts)
+                rc = _main(argv)
+        finally:
+            if argv is None:  # the program itself: what follows is the interpreter's shutdown, the work is done
+                import signal
+
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except KeyboardInterrupt:
+        rc = None
+    if rc is not None:
+        return rc
+    words = sys.argv[1:] if argv is None else [str(a) for a in argv]
+    command = words[0] if words and not str(words[0]).startswith("-") else ""
+    print(f"ibl-ref{' ' + command if command else ''}: interrupted", file=sys.stderr)
+    return 130
+
+
+def _main(argv=None) -> int:
+    import warnings
+
+    from .interrupts import interrupted
+
     # the command line only writes figure files: a non-interactive backend unless the user chose one
     os.environ.setdefault("MPLBACKEND", "Agg")
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -161,22 +214,29 @@ def main(argv=None) -> int:
         parser.print_help()
         return 2
     prog = f"ibl-ref {args.command}"
-    try:
-        validate_args(parser, args)  # numeric flags, before any work
-        return int(args.func(args) or 0)
-    except IBLError as exc:
-        msg = " ".join(str(exc).split("\n"))
-        print(f"{prog}: error: {_flag_hints(msg, _subparser(parser, args.command))}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
-    except MemoryError:  # last resort: sizes are checked up front, this is a case we did not foresee
-        print(f"{prog}: error: out of memory (try smaller sizes; please report the command that caused this)",
-              file=sys.stderr)
-        return 1
-    except OSError as exc:  # last resort: known cases are OutputError / EnvMapFileError at their source
-        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
-        print(f"{prog}: error: {where}{exc.strerror or exc} (unexpected system error; please report it)",
-              file=sys.stderr)
-        return 1
+    import logging
+
+    logging.getLogger("trimesh").setLevel(logging.ERROR)  # its fallback notices are internals (with tracebacks)
+    with warnings.catch_warnings():
+        warnings.showwarning = _one_line_warnings(prog)
+        try:
+            validate_args(parser, args)  # numeric flags, before any work
+            rc = int(args.func(args) or 0)
+        except IBLError as exc:
+            if interrupted():  # an interrupt that a library turned into another error
+                raise KeyboardInterrupt from None
+            msg = " ".join(str(exc).split("\n"))
+            print(f"{prog}: error: {_flag_hints(msg, _subparser(parser, args.command))}", file=sys.stderr)
+            return 1
+        except MemoryError:  # last resort: sizes are checked up front, this is a case we did not foresee
+            print(f"{prog}: error: out of memory (try smaller sizes; please report the command that caused this)",
+                  file=sys.stderr)
+            return 1
+        except OSError as exc:  # last resort: known cases are OutputError / EnvMapFileError at their source
+            where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+            print(f"{prog}: error: {where}{exc.strerror or exc} (unexpected system error; please report it)",
+                  file=sys.stderr)
+            return 1
+    if interrupted():  # the interrupt was swallowed somewhere (an outside ``except BaseException``)
+        raise KeyboardInterrupt
+    return rc

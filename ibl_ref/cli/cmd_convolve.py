@@ -4,7 +4,9 @@ Output naming of ``convolve``: one OpenEXR CUBE file per exponent, named like OU
 inserted before the extension (``S`` printed with ``%g``; ``inf`` for the mirror), e.g.
 ``out.exr --exponent 16 --exponent 2.5`` → ``out_s16.exr``, ``out_s2.5.exr``; plus a JSON sidecar
 ``out.json`` (OUT with the extension replaced by ``.json``) holding, per exponent, the method used, the
-kind of bound (rigorous / rounding) and its max / mean / 99th percentile, and the timings.
+kind of bound (rigorous / rounding) and its max / mean / 99th percentile, and the timings.  The sidecar and the
+``_s{S}`` files replace only files that the previous run for the same OUT wrote (listed in its ``out.json``); any
+other file of those names is refused before the work (:func:`ibl_ref.atomic.check_side_files`).
 """
 
 from __future__ import annotations
@@ -36,22 +38,31 @@ def _exponent(text: str) -> float:
 
 
 def cmd_convolve(args) -> int:
-    from ..atomic import OutputSet, refuse_overwriting_inputs
+    from ..atomic import OutputSet, check_side_files, refuse_overwriting_inputs
     from ..groundtruth.convolve import convolve
     from ..environment.exr_io import write_envmap
     from .radiance_args import load_env
 
     exps = [_exponent(e) for e in args.exponent]
     side = Path(args.output).with_suffix(".json")
-    refuse_overwriting_inputs({"IN": args.input}, [("OUT", side)] + [("OUT", exponent_path(args.output, s)) for s in exps])
-    cube, radiance = load_env(args, args.input, args.input_size)
-    from ..progress import step
+    maps = [exponent_path(args.output, s) for s in exps]
+    refuse_overwriting_inputs({"IN": args.input}, [("OUT", side)] + [("OUT", m) for m in maps])
+    check_side_files(side, maps, "outputs", "OUT")  # never replace a file the user did not name
+    from ..executors import resolve_executor
 
-    with step(f"convolving {cube.shape[1]}² faces with {len(exps)} exponent(s), method {args.method}"):
-        res = convolve(
-            cube, exps, method=args.method, rtol=args.rtol, out_size=args.size, normalized=not args.unnormalized,
-            workers=args.workers, backend=args.parallel, executor=args.scheduler,
-        )
+    executor, client = resolve_executor(args.scheduler)  # an unreachable scheduler fails before the file is read
+    try:
+        cube, radiance = load_env(args, args.input, args.input_size)
+        from ..progress import step
+
+        with step(f"convolving {cube.shape[1]}² faces with {len(exps)} exponent(s), method {args.method}"):
+            res = convolve(
+                cube, exps, method=args.method, rtol=args.rtol, out_size=args.size, normalized=not args.unnormalized,
+                workers=args.workers, backend=args.parallel, executor=executor, kernel=args.kernel,
+            )
+    finally:
+        if client is not None:
+            client.close()
     written = []
     outs = OutputSet(side, owned_key="outputs", keep=[args.input])  # all files or none; stale _s* removed
     with outs:
@@ -63,6 +74,7 @@ def cmd_convolve(args) -> int:
         summary.update(
             {
                 "workers": res.info.get("workers"),
+                "kernel": res.info.get("kernel"),
                 "parallel_backend": res.info.get("backend"),
                 "input": str(args.input),
                 "outputs": written,
@@ -78,7 +90,8 @@ def cmd_convolve(args) -> int:
     for e in summary["exponents"]:
         b = e["rel_bound_max"]
         print(f"s={e['s']}: {e['method']:6s} rel. bound max {b if b is not None else 'inf'} ({e['bound_kind']})")
-    print(f"total {res.timings_s['total']:.2f} s; wrote {len(written)} file(s) and {side}")
+    print(f"total {res.timings_s['total']:.2f} s ({res.info.get('kernel')} kernels); wrote {len(written)} file(s) "
+          f"and {side}")
     return 0
 
 
@@ -127,6 +140,10 @@ def register(sub) -> None:
     p.add_argument("--workers", type=int, default=None, metavar="W",
                    help="parallel workers (1 = serial; default $IBL_REF_WORKERS or min(2, CPUs)); results "
                         "are bit-for-bit identical for every W")
+    p.add_argument("--kernel", choices=("auto", "numpy", "compiled"), default=None,
+                   help="inner loops: numpy (the reference), compiled (numba, pip install 'ibl_ref[fast]'; cached "
+                        "after the first run) or auto (compiled when numba is installed and the run is big enough "
+                        "to pay for loading it); default $IBL_REF_KERNEL or auto. Both give rigorous bounds")
     p.add_argument("--parallel", choices=("auto", "process", "thread"), default="auto",
                    help="how W > 1 workers run: forked processes or threads (auto: processes when possible)")
     add_radiance_args(p)

@@ -17,10 +17,11 @@ from .. import experiments
 
 
 def _run_one(mod, out: Path, quick: bool, overrides: dict | None = None, **jobs) -> dict:
-    from ..atomic import ensure_output_dir
+    from ..atomic import output_folder
 
-    ensure_output_dir(out, "--out folder")  # under a file / read-only: one-line error, no traceback
-    return experiments.run_experiment(mod, out, quick, overrides, **jobs)
+    # under a file / read-only: one-line error, no traceback; a failed run leaves no folder it created
+    with output_folder(out, "--out folder", remove_tree=True):
+        return experiments.run_experiment(mod, out, quick, overrides, **jobs)
 
 
 def _jobs(args) -> dict:
@@ -106,10 +107,14 @@ def _copy_gallery(results, folder: Path) -> list:
 
 
 def cmd_reproduce(args) -> int:
-    from ..atomic import ensure_output_dir
+    from ..atomic import output_folder
 
     out = Path(args.out)
-    ensure_output_dir(out, "--out folder")
+    with output_folder(out, "--out folder"):  # a run that fails leaves no empty folder behind
+        return _reproduce(args, out)
+
+
+def _reproduce(args, out: Path) -> int:
     jobs = _jobs(args)
     exps = experiments.available()
     n = sum(1 for m in exps.values() if not args.quick or getattr(m, "IN_QUICK_REPRODUCE", True))

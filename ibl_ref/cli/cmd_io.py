@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import warnings
 from pathlib import Path
 
@@ -14,53 +15,27 @@ OUT_SUFFIXES = (".exr", ".hdr", ".pic")  #: file types ``convert`` writes
 
 
 def _load_any(path: Path, negative: str = "auto", nonfinite: str = "error"):
-    """(data, layout, channels, pixel_type, file_format, extra, radiance report) of any supported file.
+    """:func:`ibl_ref.environment.exr_io.read_map` of any supported file (no resampling), EXR pixels as float32
+    (exact for half and float files); the radiance policy is applied to the colour channels."""
+    import warnings
 
-    No resampling; the radiance policy (:mod:`ibl_ref.environment.radiance_policy`) is applied to the colour channels.
-    """
     from ..environment import exr_io
-    from ..environment.hdr_io import read_hdr
+    from ..errors import RadianceWarning
 
-    if path.suffix.lower() in (".hdr", ".pic", ".rgbe"):
-        img, rep = read_hdr(path, negative=negative, nonfinite=nonfinite, return_report=True)
-        img, layout, chans, ptype, fmt, extra, header = _hdr_meta(path, img)
-    else:
-        img, chans, ptype, header, where = exr_io._read_raw(path, dtype=np.float32)  # exact for half/float
-        layout = exr_io.infer_layout(img.shape[0], img.shape[1], exr_io._declared(header, str(path)), str(path))
-        rep = exr_io._radiance(img, chans, where, layout, negative, nonfinite)
-        fmt, extra = "OpenEXR", _exr_extra(header)
-    return _as_layout(img, layout, header, str(path)) + (chans, ptype, fmt, extra, rep)
+    with warnings.catch_warnings():  # the report is printed by the command (radiance_args.tell)
+        warnings.simplefilter("ignore", RadianceWarning)
+        return exr_io.read_map(path, negative=negative, nonfinite=nonfinite, dtype=np.float32)
 
 
-def _hdr_meta(path: Path, img):
-    from ..environment import exr_io
+def _hdr_extra(path: Path) -> dict:
     from ..environment.hdr_io import read_hdr_header
 
     hdr = read_hdr_header(path)
-    layout = exr_io.infer_layout(img.shape[0], img.shape[1], None, str(path))
-    extra = {"exposure_product": hdr["exposure"], "orientation": f"{hdr['major']} {hdr['minor']}"}
-    return img, layout, ("R", "G", "B"), "rgbe", "Radiance RGBE", extra, {}
+    return {"exposure_product": hdr["exposure"], "orientation": f"{hdr['major']} {hdr['minor']}"}
 
 
 def _exr_extra(header: dict) -> dict:
     return {"envmap_attribute": header.get("envmap", "-"), "convention": header.get("iblref_convention", "-")}
-
-
-def _as_layout(img, layout: str, header: dict, where: str):
-    """(data, layout): cube strips reshaped (and re-oriented to OpenEXR), crosses cut, lat-long as is."""
-    from ..environment import envmap, exr_io, resample
-
-    if layout == "cube":
-        n = img.shape[1]
-        data = img.reshape(6, n, n, img.shape[-1])
-        conv = exr_io._convention(header, None, where)  # a bad iblref_convention attribute: LayoutError
-        if conv != "openexr":
-            data = envmap.convert_convention(data, conv, "openexr")
-    elif layout in ("hcross", "vcross"):
-        data = resample.cross_to_cube(img, layout)
-    else:
-        data = img
-    return data, layout
 
 
 _LAYOUT_RULES = "N wide x 6N high = cube strip, 2H x H = lat-long, 4N x 3N = horizontal cross, 3N x 4N = vertical cross"
@@ -76,39 +51,23 @@ def _info_read(path: Path):
     from ..environment.hdr_io import read_hdr
 
     if path.suffix.lower() in (".hdr", ".pic", ".rgbe"):
-        img, _, chans, ptype, fmt, extra, header = _hdr_meta(path, read_hdr(path, negative="clamp", nonfinite="zero"))
-        return img, chans, 3, ptype, fmt, extra, header, 1
-    _, parts = exr_io._open(path)
-    part = parts[0]
-    names = sorted(part.channels)
-    colour = [c for c in ("R", "G", "B") if c in names] if {"R", "G", "B"} <= set(names) else (
-        ["Y"] if "Y" in names else [])
-    order = colour + [c for c in names if c not in colour]
-    arrs = [part.channels[c].pixels for c in order]
-    if len({a.shape for a in arrs}) != 1 or arrs[0].ndim != 2:
-        raise IBLError(f"{path}: channels have different sizes {sorted({a.shape for a in arrs})} "
-                       "(subsampled channels unsupported)")
-    types = {exr_io._simple(part.channels[c].type()) for c in order}
-    img = np.empty(arrs[0].shape + (len(arrs),), np.float32)  # float32 holds half/float exactly
-    del arrs
-    for i, c in enumerate(order):
-        img[..., i] = part.channels[c].pixels
-        part.channels[c].pixels = np.empty((0, 0), np.float32)  # release the binding's copy
-    ptype = {"HALF": "half", "FLOAT": "float", "UINT": "uint"}.get(types.pop(), "mixed") if len(types) == 1 else "mixed"
-    header = exr_io.header_dict(part, str(path))
-    extra = _exr_extra(header)
-    extra["compression"] = header.get("compression", "-")
-    return img, tuple(order), len(colour), ptype, "OpenEXR", extra, header, len(parts)
+        img = read_hdr(path, negative="clamp", nonfinite="zero")
+        return img, ("R", "G", "B"), 3, "rgbe", "Radiance RGBE", _hdr_extra(path), {}, 1
+    ex = exr_io.read_exr(path, dtype=np.float32, channels="all")  # float32 holds half/float exactly
+    extra = _exr_extra(ex.header)
+    extra["compression"] = ex.header.get("compression", "-")
+    return ex.pixels, ex.channels, ex.n_colour, ex.pixel_type, "OpenEXR", extra, ex.header, ex.n_parts
 
 
 def _channel_stats(img: np.ndarray, weights) -> dict:
     """Per channel: min / max / mean of the finite values, NaN / Inf / negative counts and ∫ dω (NaN/Inf as 0).
 
-    Works in row chunks (``weights``: per-pixel solid angles broadcastable to (H, W), or None).
+    ``mean`` is the solid-angle weighted mean ∫L dω / ∫dω over the finite values when ``weights`` (per-pixel
+    solid angles broadcastable to (H, W)) are given, the per-pixel mean otherwise.  Works in row chunks.
     """
     c = img.shape[-1]
     st = {"min": np.full(c, np.inf), "max": np.full(c, -np.inf), "sum": np.zeros(c), "n": np.zeros(c, np.int64),
-          "nan": [0] * c, "inf": [0] * c, "neg": [0] * c, "integral": np.zeros(c)}
+          "nan": [0] * c, "inf": [0] * c, "neg": [0] * c, "integral": np.zeros(c), "omega": np.zeros(c)}
     wts = None if weights is None else np.broadcast_to(weights, img.shape[:2])
     step = max(1, (1 << 22) // max(1, img.shape[1] * c))
     for r0 in range(0, img.shape[0], step):
@@ -127,7 +86,11 @@ def _channel_stats(img: np.ndarray, weights) -> dict:
                 st["neg"][i] += int((v < 0).sum())
             if wts is not None:
                 st["integral"][i] += float(np.sum(np.where(f, b, 0.0) * wts[r0 : r0 + step]))
-    st["mean"] = np.where(st["n"] > 0, st["sum"] / np.maximum(st["n"], 1), np.nan)
+                st["omega"][i] += float(np.sum(np.where(f, wts[r0 : r0 + step], 0.0)))
+    if wts is not None:
+        st["mean"] = np.where(st["omega"] > 0, st["integral"] / np.where(st["omega"] > 0, st["omega"], 1.0), np.nan)
+    else:
+        st["mean"] = np.where(st["n"] > 0, st["sum"] / np.maximum(st["n"], 1), np.nan)
     st["min"] = np.where(st["n"] > 0, st["min"], np.nan)
     st["max"] = np.where(st["n"] > 0, st["max"], np.nan)
     return st
@@ -138,7 +101,7 @@ def _layout_reason(path: Path, h: int, w: int, header: dict):
     from ..environment import exr_io
 
     try:
-        declared = exr_io._declared(header, str(path))
+        declared = exr_io.declared_layout(header, str(path))
     except IBLError as exc:
         return None, str(exc)
     try:
@@ -167,7 +130,7 @@ def cmd_info(args) -> int:
         from ..environment import exr_io
 
         try:
-            exr_io._convention(header, None, str(path))
+            exr_io.cube_convention(header, None, str(path))
         except IBLError as exc:
             bad_convention = str(exc)
     print(f"file:       {path}")
@@ -183,13 +146,16 @@ def cmd_info(args) -> int:
     if nc:  # before anything is zeroed
         rep = assess(img[..., :nc], f"{path}: radiance", weights, args.negative, args.nonfinite)
     st = _channel_stats(img, weights)
-    print("channel     min           max           mean          integral_L_domega_(sr)  NaN      Inf      negative")
+    mean_kind = "mean_per_sr" if weights is not None else "pixel_mean"  # solid-angle weighted, or not inferable
+    print(f"channel     min           max           {mean_kind:13s} integral_L_domega_(sr)  NaN      Inf      negative")
     for i, c in enumerate(chans):
         integ = st["integral"][i] if layout is not None else np.nan
         print(f"{c:11s} {st['min'][i]:<13.6g} {st['max'][i]:<13.6g} {st['mean'][i]:<13.6g} {integ:<23.9g} "
               f"{st['nan'][i]:<8d} {st['inf'][i]:<8d} {st['neg'][i]}")
     other_nonfinite = any(st["nan"][i] + st["inf"][i] for i in range(nc, len(chans)))
     other_negative = {chans[i]: st["neg"][i] for i in range(nc, len(chans)) if st["neg"][i]}
+    print("(mean_per_sr: the solid-angle weighted mean, integral / 4 pi for a full sphere)" if weights is not None
+          else "(pixel_mean: the layout is unknown, so the mean is over pixels, not weighted by solid angle)")
     if any(st["nan"]) or any(st["inf"]):
         print("(statistics and integrals over the finite values; NaN/Inf counted as 0)")
     if nc:
@@ -216,7 +182,10 @@ def cmd_info(args) -> int:
                 verdict += ("; NaN/Inf in the other channels: " + ("replaced by 0" if args.nonfinite == "zero"
                             else "refused (--nonfinite zero replaces them by 0)"))
         except IBLError as exc:
+            import re
+
             verdict = f"refuse the file: {str(exc).split(': radiance: ', 1)[-1]}"
+            verdict = re.sub(r"\s*\(Python: [^()]*\)", "", verdict)  # the flags are named already
         if layout is None:
             verdict = "refuse the file: its layout cannot be inferred"
         elif bad_convention:
@@ -247,8 +216,19 @@ def cmd_convert(args) -> int:
     from .radiance_args import tell
 
     with step(f"reading {src}"):  # a 16K probe takes seconds
-        data, layout, chans, _, _, _, rep = _load_any(src, args.negative, args.nonfinite)
-    tell(rep)
+        m = _load_any(src, args.negative, args.nonfinite)
+    data = m.data
+    tell(m.radiance)
+    if data.ndim == 3 and args.layout == "cube" and args.method == "conservative":  # say what it costs first
+        from ..limits import check_allocation
+
+        n_out = args.size or max(1, data.shape[0] // 2)
+        cost = resample.latlong_to_cube_cost(data.shape[0], n_out)
+        if cost["seconds"] > 10 or cost["bytes"] > 2**30:
+            print(f"converting a {data.shape[0]}-row lat-long map to {n_out}² cube faces: expect about "
+                  f"{cost['seconds']:.0f} s and {cost['bytes'] / 2**30:.1f} GiB of memory (2-core machine; "
+                  "--size sets a smaller cube)", file=sys.stderr, flush=True)
+        check_allocation(cost["bytes"], f"converting to {n_out}² cube faces", "--size")
     with step(f"converting to {args.layout}" + (f" (size {args.size})" if args.size else "")):  # 16K → 2048²: ~20 s
         if data.ndim == 4:  # cube
             src_int = resample.integral_cube(data)
@@ -319,8 +299,8 @@ def register(sub) -> None:
     i = sub.add_parser(
         "info",
         help="print layout, size, channels and radiance statistics of an environment map",
-        description="Print layout, size, channels, pixel type, min/max/mean radiance and the integral of "
-        "L dω per channel (exact texel solid angles) of an OpenEXR or Radiance .hdr environment map, "
+        description="Print layout, size, channels, pixel type, min/max radiance, its solid-angle weighted mean "
+        "and the integral of L dω per channel (exact texel solid angles) of an OpenEXR or Radiance .hdr environment map, "
         "the counts of NaN, Inf and negative values in every channel, where the layout came from (envmap "
         "attribute or aspect ratio) and what the other commands would do with the file under --negative / "
         "--nonfinite. Never refuses a file it can decode.",

@@ -29,17 +29,20 @@ def _env(text: str, size: int, args=None):
 
 
 def run(args) -> int:
+    from ..atomic import OutputSet, check_side_files, refuse_overwriting_inputs
     from ..rendering.km00_render import render_single_method
     from ..rendering.image_io import write_image_exr
 
     from .cmd_render import _check_output, _size, parse_exposure
 
+    # ---- every argument first, before the environment is read --------------------------------------------
     out = _check_output(Path(args.out), (".exr",))
+    png = out.with_suffix(".png") if args.png else None
+    side = out.with_suffix(".json")
     stops = parse_exposure(args.exposure)
-    from ..atomic import refuse_overwriting_inputs
-
     env_file = args.env if Path(args.env).exists() else None
-    refuse_overwriting_inputs({"--env": env_file}, {"--out": out, "--png": out.with_suffix(".png") if args.png else None})
+    refuse_overwriting_inputs({"--env": env_file}, {"--out": out, "--png": png, "--out (.json sidecar)": side})
+    check_side_files(side, [png] if png else [], "outputs", "--out")  # never replace a file the user did not name
     w, h = _size(args.size)
     if args.env_size < 2 or args.env_size & (args.env_size - 1):
         raise IBLError(f"--env-size must be a power of two >= 2, got {args.env_size}")
@@ -54,13 +57,21 @@ def run(args) -> int:
     img, mask, info = render_single_method(args.method, env, width=w, height=h, brdf=args.brdf, brdf_params=params,
                                            n_lobes=args.lobes, n_theta=args.n_theta, rescale_lobes=args.rescale_lobes,
                                            progress=not args.quiet)
-    write_image_exr(out, img)
-    if args.png:
-        from ..rendering.tonemap import save_png
+    # ---- outputs: image, --png and the JSON manifest committed together (a failed PNG leaves no image) -------
+    manifest = {"out": str(out), "method": args.method, "brdf": args.brdf, "brdf_params": params,
+                "size": [w, h], "env": str(args.env), "env_size": int(env.shape[1]), "lobes": args.lobes,
+                "n_theta": args.n_theta, "rescale_lobes": bool(args.rescale_lobes), "exposure_stops": stops,
+                "time_s": info.get("time_s"), "outputs": [out.name] + ([png.name] if png else [])}
+    with OutputSet(side, owned_key="outputs", remove_stale=False) as outs:
+        write_image_exr(outs.path(out), img)
+        if png is not None:
+            from ..rendering.tonemap import save_png
 
-        save_png(out.with_suffix(".png"), img, stops=stops, mask=mask)
+            save_png(outs.path(png), img, stops=stops, mask=mask)
+        outs.commit(manifest)
     if not args.quiet:
-        print(f"wrote {out} ({w}x{h}, method {args.method}, {info['time_s']} s)")
+        print(f"wrote {out} ({w}x{h}, method {args.method}, {info['time_s']} s)"
+              + (f" and {png}" if png else "") + f"; settings in {side}")
     return 0
 
 
@@ -84,8 +95,9 @@ def register(sub) -> None:
                    help="image size W H (or N for N x N; default 256 256)")
     p.add_argument("--env", default="sky_sun", help="synthetic environment name or an environment-map file")
     p.add_argument("--env-size", type=int, default=64, help="cube face size of the environment (default 64)")
-    p.add_argument("--out", required=True, help="output OpenEXR image (linear radiance)")
-    p.add_argument("--png", action="store_true", help="also write a tone-mapped PNG next to it")
+    p.add_argument("--out", required=True,
+                   help="output OpenEXR image OUT.exr (linear radiance); OUT.json beside it records the settings")
+    p.add_argument("--png", action="store_true", help="also write a tone-mapped PNG next to it (OUT.png)")
     p.add_argument("--exposure", default="auto", metavar="auto|EV|xK",
                    help="PNG exposure: 'auto' (default), EV stops (e.g. -2) or a linear scale (e.g. x0.25)")
     p.add_argument("--quiet", action="store_true", help="no progress reports (bar or status lines) and no summary line")

@@ -13,8 +13,24 @@ from .radiance_args import add_radiance_args
 
 VARIANT_HELP = (
     "per-face: the paper (N/6 regions per face, Debevec's recursion; N must be a multiple of 6); "
-    "global: split the most energetic region anywhere; variance: Viriyothai & Debevec 2009 variance-minimising cut"
+    "global: split the most energetic region anywhere; variance: Viriyothai & Debevec 2009 variance-minimising cut "
+    "(global and variance: any N >= 6)"
 )
+
+
+def check_lights(n_lights: int, variant: str, option: str = "--lights") -> None:
+    """The light count's rules of :func:`ibl_ref.knuth2014.median_cut.median_cut`, checked before any file is read:
+    N >= 6 for every variant (regions never cross a cube edge), a multiple of 6 for ``per-face``."""
+    from ..knuth2014.median_cut import per_face_counts
+
+    if n_lights < 6:
+        raise IBLError(f"{option}: n_lights must be >= 6 (regions never cross a cube edge, so each face holds >= 1); "
+                       f"got {n_lights}")
+    if variant == "per-face":
+        try:
+            per_face_counts(n_lights)
+        except IBLError as exc:
+            raise IBLError(f"{option}: {exc}") from None
 
 
 def _load(path, size, args):
@@ -33,6 +49,7 @@ def cmd_mediancut(args) -> int:
 
     refuse_overwriting_inputs({"IN": args.input}, {"--out": args.out})
     resolve_output(args.out)  # a folder / device / FIFO as --out: refuse before the work
+    check_lights(args.lights, args.variant)  # before the file is read and converted
     cube, radiance = _load(args.input, args.size, args)
     with step(f"median cut of {cube.shape[1]}² faces into {args.lights} regions"):
         ls = median_cut(cube, args.lights, args.variant)
@@ -60,7 +77,7 @@ def cmd_mediancut(args) -> int:
 def cmd_pem(args) -> int:
     import numpy as np
 
-    from ..atomic import OutputSet, ensure_output_dir
+    from ..atomic import OutputSet, output_folder
     from ..environment.exr_io import HALF_MAX, write_pyramid
     from ..knuth2014.filters import kernel_taps
     from ..knuth2014.median_cut import median_cut
@@ -74,6 +91,7 @@ def cmd_pem(args) -> int:
         kernel_taps(args.kernel)
     except IBLError as exc:
         raise IBLError(f"--kernel: {exc}") from None
+    check_lights(args.lights, args.variant)  # before the file is read and converted
     cube, radiance = _load(args.input, args.size, args)
     with step(f"median cut of {cube.shape[1]}² faces into {args.lights} regions"):
         ls = median_cut(cube, args.lights, args.variant)
@@ -85,11 +103,10 @@ def cmd_pem(args) -> int:
         if vmax > HALF_MAX:
             raise IBLError(f"--pixel-type half: PEM values up to {vmax:g} exceed the largest half float "
                            f"({HALF_MAX:g}); use --pixel-type float")
-    ensure_output_dir(out, "--out folder")
     files = []
     rng = track(range(len(pems)), "writing PEMs", unit="file")
-    outs = OutputSet(out / "pems.json", owned_key="files", keep=[args.input])  # all or nothing; stale PEMs removed
-    with outs:
+    # all or nothing; stale PEMs removed; a folder created for a failed run is removed again
+    with output_folder(out, "--out folder"), OutputSet(out / "pems.json", owned_key="files", keep=[args.input]) as outs:
         for i in rng:
             p = out / f"pem_{i:03d}.exr"
             write_pyramid(outs.path(p), [lev[:, :, :, i, :] for lev in pems.levels], pixel_type=args.pixel_type)

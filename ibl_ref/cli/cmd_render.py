@@ -20,17 +20,25 @@ OUT_EXTS = (".exr", ".npz")
 
 
 def parse_material(text: str, option: str = "--material"):
-    """``"kd,ks,g"`` (3 numbers) or ``"kdR,kdG,kdB,ksR,ksG,ksB,g"`` (7 numbers) → :class:`ibl_ref.rendering.render.Material`."""
+    """``"kd,ks,g"`` (3 numbers) or ``"kdR,kdG,kdB,ksR,ksG,ksB,g"`` (7 numbers) → :class:`ibl_ref.rendering.render.Material`;
+    ``"ggx:…"`` / ``"phong:…"`` → :func:`ibl_ref.rendering.materials.parse_material` (a GGX material is rendered by
+    ``--mode reference`` and ``--mode mitsuba``)."""
     from ..rendering.render import Material
 
+    if ":" in str(text):
+        from ..rendering.materials import parse_material as parse_kind
+
+        m = parse_kind(text, option)
+        return m if m.kind == "ggx" else Material(kd=m.kd, ks=m.ks, g=m.g)
     parts = [p.strip() for p in str(text).split(",")]
     try:
         vals = [float(p) for p in parts]
     except ValueError:
         vals = None
     if vals is None or len(vals) not in (3, 7):
-        raise IBLError(f"{option}: expected 'kd,ks,g' (3 numbers, e.g. 0.2,0.8,0.9) or "
-                       f"'kdR,kdG,kdB,ksR,ksG,ksB,g' (7 numbers), got {text!r}")
+        raise IBLError(f"{option}: expected 'kd,ks,g' (3 numbers, e.g. 0.2,0.8,0.9), "
+                       f"'kdR,kdG,kdB,ksR,ksG,ksB,g' (7 numbers) or 'ggx:ROUGHNESS' (e.g. ggx:0.3, "
+                       f"ggx:roughness=0.3,f0=1,kd=0.5), got {text!r}")
     if len(vals) == 3:
         kd, ks, g = vals
     else:
@@ -41,6 +49,23 @@ def parse_material(text: str, option: str = "--material"):
         raise IBLError(f"{option} {text!r}: {exc}") from exc
 
 
+def _is_ggx(m) -> bool:
+    return getattr(m, "kind", None) == "ggx"
+
+
+def _weight_max(m) -> float:
+    """Largest weight of a material's terms (a GGX term is at most 1: Fresnel ≤ 1)."""
+    import numpy as np
+
+    return max(float(np.max(m.kd)), 1.0 if _is_ggx(m) else float(np.max(m.ks)))
+
+
+def _material_info(m, gmap=None) -> dict:
+    if _is_ggx(m):
+        return m.describe()
+    return {"kd": m.kd, "ks": m.ks, "g": m.g, **({"g_map": gmap} if gmap is not None else {})}
+
+
 def _check_output(path: Path, exts=None, option: str = "--out") -> Path:
     """Fail early (before any rendering) on a bad extension or an unwritable output folder."""
     path = Path(path)
@@ -49,15 +74,11 @@ def _check_output(path: Path, exts=None, option: str = "--out") -> Path:
     if path.is_dir():
         raise IBLError(f"{option} {path}: is a folder, expected a file path")
     parent = path.resolve().parent
-    if parent.exists() and not parent.is_dir():
-        raise IBLError(f"{option} {path}: output folder {parent} is not a folder")
-    if not parent.exists():
-        try:
-            parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise IBLError(f"{option} {path}: cannot create output folder {parent}: {exc.strerror}") from exc
-    if not os.access(parent, os.W_OK):
-        raise IBLError(f"{option} {path}: output folder {parent} is not writable")
+    anc = next(a for a in [parent, *parent.parents] if a.exists() or a.is_symlink())  # "/" always exists
+    if not anc.is_dir():
+        raise IBLError(f"{option} {path}: output folder {parent} cannot be created: {anc} is not a folder")
+    if not os.access(anc, os.W_OK | os.X_OK):  # created only when the outputs are written (none if the run fails)
+        raise IBLError(f"{option} {path}: output folder {anc} is not writable")
     from ..atomic import resolve_output
 
     try:  # a device, FIFO or socket (also behind a symlink) is refused here, before rendering
@@ -79,8 +100,15 @@ def _size(values):
     return int(w), int(h)
 
 
+#: largest |EV| accepted by --exposure: 2^1024 leaves float64 (every radiance would be white or black)
+MAX_EXPOSURE_STOPS = 1024.0
+
+
 def parse_exposure(text, option: str = "--exposure"):
-    """``auto`` → None (auto exposure), a number → EV stops, ``xK`` or ``Kx`` → a linear scale K (stops = log2 K)."""
+    """``auto`` → None (auto exposure), a number → EV stops, ``xK`` or ``Kx`` → a linear scale K (stops = log2 K).
+
+    |stops| ≤ :data:`MAX_EXPOSURE_STOPS`; beyond, the scale leaves float64 and the preview would be one colour.
+    """
     import math
 
     t = str(text).strip().lower()
@@ -91,14 +119,18 @@ def parse_exposure(text, option: str = "--exposure"):
             k = float(t.strip("x"))
             if not (math.isfinite(k) and k > 0):
                 raise ValueError
-            return math.log2(k)
-        v = float(t)
-        if not math.isfinite(v):
-            raise ValueError
-        return v
+            v = math.log2(k)
+        else:
+            v = float(t)
+            if not math.isfinite(v):
+                raise ValueError
     except ValueError:
         raise IBLError(f"{option}: expected 'auto', EV stops (e.g. -2 or 1.5) or a linear scale (e.g. x0.25), "
                        f"got {text!r}") from None
+    if abs(v) > MAX_EXPOSURE_STOPS:
+        raise IBLError(f"{option} {text}: {v:g} stops scales radiance by 2^{v:g}, beyond float64 (at most "
+                       f"{MAX_EXPOSURE_STOPS:g} stops either way; a preview needs a few)")
+    return v
 
 
 def _camera(args, meshes):
@@ -121,8 +153,18 @@ def _camera(args, meshes):
     v = np.asarray(args.view_dir, float)
     if not np.all(np.isfinite(v)) or np.linalg.norm(v) == 0:
         raise IBLError("--view-dir must be a finite non-zero vector")
-    return default_camera(meshes, view_dir=v, fov_y_deg=args.fov, distance=dist, width=w, height=h,
-                          eye=args.camera_eye, target=args.camera_target, up=args.camera_up)
+    from ..rendering.camera import CameraError
+
+    try:
+        return default_camera(meshes, view_dir=v, fov_y_deg=args.fov, distance=dist, width=w, height=h,
+                              eye=args.camera_eye, target=args.camera_target, up=args.camera_up)
+    except CameraError as exc:  # name the flag that set the vector
+        flag = next((f for k, f in (("eye", "--camera-eye"), ("target", "--camera-target"), ("up", "--camera-up"))
+                     if str(exc).startswith(k)), None)
+        msg = str(exc)
+        if flag:
+            msg = f"{flag}:" + (msg.split(":", 1)[1] if msg.split(" ", 1)[0].endswith(":") else f" {msg}")
+        raise CameraError(msg) from None
 
 
 def _ao_render_mode():
@@ -142,24 +184,32 @@ def cmd_render(args) -> int:
     from ..rendering.scenes import teapot_on_ground
 
     # ---- validate everything cheap before the expensive parts ----------------------------------------------
-    from ..atomic import OutputSet, refuse_overwriting_inputs
+    from ..atomic import OutputSet, check_side_files, refuse_overwriting_inputs
 
     out = _check_output(Path(args.out), OUT_EXTS, "--out")
     png = _check_output(Path(args.png), (".png",), "--png") if args.png else None
     refuse_overwriting_inputs({"--env": args.env, "--mesh": args.mesh, "--gmap": args.gmap},
                               {"--out": out, "--png": png, "--out (.json sidecar)": out.with_suffix(".json")})
+    check_side_files(out.with_suffix(".json"), (), "outputs", "--out")  # never replace a file the user did not name
     w, h = _size(args.size)
     stops = parse_exposure(args.exposure)
-    if args.lights < 1:
-        raise IBLError(f"--lights must be >= 1, got {args.lights}")
+    mode = args.mode
+    if mode not in _EXACT_MODES:  # the median cut's light count, before the environment is read
+        from .cmd_mediancut import check_lights
+
+        check_lights(args.lights, args.median_cut)
     mat = parse_material(args.material) if args.material else Material(kd=0.0, ks=1.0, g=args.gloss)
     gmat = (parse_material(args.ground_material, "--ground-material") if args.ground_material
             else Material(kd=0.0, ks=1.0, g=args.ground_gloss))
+    if (_is_ggx(mat) or _is_ggx(gmat)) and args.mode not in _EXACT_MODES:
+        raise IBLError("GGX materials (ggx:...) are rendered by --mode reference and --mode mitsuba; the other modes "
+                       "take kd,ks,g")
+    if args.gmap and _is_ggx(mat):
+        raise IBLError("--gmap replaces the glossiness g of a kd,ks,g material; a GGX material has none")
     if args.gmap:
         from ..rendering.image_io import read_g_map
 
         mat = Material(kd=mat.kd, ks=mat.ks, g=mat.g, g_map=read_g_map(args.gmap), uv_fallback=args.gmap_fallback)
-    mode = args.mode
     if mode in _EXACT_MODES:
         from .exact_modes import check_args
 
@@ -176,7 +226,13 @@ def cmd_render(args) -> int:
                            "material; RGB weights and --gmap work with the other modes")
     progress = args.progress
 
-    # ---- scene -------------------------------------------------------------------------------------------
+    # ---- scene (the mesh first: it is cheaper to check than a big environment map) -------------------------
+    meshes = teapot_on_ground(args.mesh, ground=args.ground)
+    if mat.g_map is not None:  # NaN/Inf UVs of a mesh file: refused before any rendering
+        from ..rendering.render import mesh_uv
+
+        mesh_uv(meshes[0][0], f"--mesh {args.mesh}")
+    cam = _camera(args, meshes[:1])
     radiance = None
     if args.env is not None:
         from .radiance_args import load_env
@@ -187,19 +243,17 @@ def cmd_render(args) -> int:
 
         cube = make_env(args.synthetic, n=args.env_size)
     # Eq. 5 sums L+1 terms, each at most weight x max radiance: refuse weights that overflow float64
-    wmax = max(float(np.max(x)) for x in (mat.kd, mat.ks, gmat.kd, gmat.ks))
+    wmax = max(_weight_max(mat), _weight_max(gmat))
     if wmax * float(np.max(cube)) * (args.lights + 1) > np.finfo(np.float64).max:
         raise IBLError(f"--material / --ground-material: weights up to {wmax:g} times radiance up to "
                        f"{float(np.max(cube)):g} overflow float64 in the shading sum; use smaller weights")
-    meshes = teapot_on_ground(args.mesh, ground=args.ground)
-    cam = _camera(args, meshes[:1])
 
     t0 = time.perf_counter()
     info = {"out": str(out), "mode": mode, "size": [w, h], "fov_y_deg": args.fov,
             "camera_eye": cam.eye.tolist(), "camera_target": cam.target.tolist(),
             "background": args.background, "exposure_stops": stops,
-            "material": {"kd": mat.kd, "ks": mat.ks, "g": mat.g, "g_map": args.gmap},
-            "ground_material": ({"kd": gmat.kd, "ks": gmat.ks, "g": gmat.g} if args.ground else None),
+            "material": _material_info(mat, args.gmap),
+            "ground_material": (_material_info(gmat) if args.ground else None),
             "radiance": radiance}
     pems = None
     if mode not in _EXACT_MODES:
@@ -251,9 +305,14 @@ def cmd_render(args) -> int:
     t2 = time.perf_counter()
     if image.shape[:2] != (h, w):
         raise IBLError(f"renderer returned an image of shape {image.shape}, expected ({h}, {w}, C)")
+    top = float(np.max(image)) if image.size else 0.0
+    if out.suffix.lower() == ".exr" and top > float(np.finfo(np.float32).max):  # name the flags, not the file format
+        raise IBLError(f"--out {out}: the image reaches {top:.3g}, beyond float32 (3.4e+38) of an .exr; use smaller "
+                       "--material / --ground-material weights or write .npz (float64)")
 
     # ---- outputs (image, --png and the JSON sidecar committed together, the JSON last) -----------------------
-    with OutputSet(out.with_suffix(".json"), owned_key="outputs") as outs:
+    info["outputs"] = [out.name]  # marks OUT.json as this output's manifest (ibl_ref.atomic.check_side_files)
+    with OutputSet(out.with_suffix(".json"), owned_key="outputs", remove_stale=False) as outs:
         if out.suffix.lower() == ".exr":
             from ..rendering.image_io import write_image_exr
 
@@ -309,11 +368,12 @@ modes:
                 embreex, pip install ".[fast]"; ~13× the CPU without)
   mitsuba       the same scene rendered by Mitsuba 3 (pip install ".[mitsuba]"; --spp, --seed)
   every mode shades the mesh with --material and the ground with --ground-material
-  (reference, mitsuba: scalar kd, ks and no --gmap).
+  (reference, mitsuba: scalar kd, ks and no --gmap; they also take GGX materials, ggx:ROUGHNESS).
 
 examples:
   ibl-ref render --out x.exr
   ibl-ref render --mesh sphere_on_plane --no-ground --material 0.3,0.7,0.9 --out s.exr --png s.png
+  ibl-ref render --mode reference --material ggx:roughness=0.3,f0=1 --ground-material ggx:0.6 --out g.exr
   ibl-ref render --env studio.exr --mesh bunny.obj --size 320 240 --lights 48 --out b.exr
   ibl-ref render --mesh cloth --gmap yarns.png --gmap-fallback spherical --out c.exr
   ibl-ref render --camera-eye 3 2 4 --camera-target 0 0.5 0 --fov 30 --out v.exr
@@ -343,13 +403,17 @@ def register(sub) -> None:
                      help="synthetic environment: sky_sun (default), constant, gradient, studio, checker, delta")
     g.add_argument("--env-size", type=int, default=32, metavar="N",
                    help="cube face size the PEMs are built at (power of two; default 32)")
-    g = p.add_argument_group("material (kd, ks >= 0; g in [0, 1], 0 = diffuse, 1 = mirror)")
-    g.add_argument("--material", metavar="kd,ks,g",
-                   help="mesh material, e.g. 0.2,0.8,0.9; RGB weights as kdR,kdG,kdB,ksR,ksG,ksB,g "
-                   "(default: pure glossy 0,1,--gloss)")
+    g = p.add_argument_group("material (kd,ks,g: kd, ks >= 0, g in [0, 1], 0 = diffuse, 1 = mirror; or ggx:...)")
+    g.add_argument("--material", metavar="SPEC",
+                   help="mesh material: kd,ks,g (Phong lobes of Eq. 5, e.g. 0.2,0.8,0.9; RGB weights as "
+                   "kdR,kdG,kdB,ksR,ksG,ksB,g), or for --mode reference/mitsuba a GGX microfacet material "
+                   "ggx:ROUGHNESS or ggx:roughness=R,f0=F,kd=K,smith=S (roughness in (0, 1], alpha = roughness^2; "
+                   "f0 in [0, 1], default 0.04; kd >= 0 Lambertian, default 0; smith: height-correlated (default) "
+                   "or separable), e.g. ggx:0.3 or ggx:roughness=0.3,f0=1 (default: pure glossy 0,1,--gloss)")
     g.add_argument("--gloss", type=float, default=0.8, metavar="G",
                    help="shortcut for --material 0,1,G (default 0.8)")
-    g.add_argument("--ground-material", metavar="kd,ks,g", help="ground material (default 0,1,--ground-gloss)")
+    g.add_argument("--ground-material", metavar="SPEC",
+                   help="ground material, same forms as --material (default 0,1,--ground-gloss)")
     g.add_argument("--ground-gloss", type=float, default=0.2, metavar="G", help="ground glossiness (default 0.2)")
     g.add_argument("--gmap", metavar="FILE",
                    help="per-texel glossiness map for the mesh (.png, .exr or .npy, values in [0, 1]; row 0 = top, "
@@ -360,11 +424,12 @@ def register(sub) -> None:
     g = p.add_argument_group("method")
     g.add_argument("--mode", choices=MODES, default="ours", help="what to render (see below; default ours)")
     g.add_argument("--lights", type=int, default=24, metavar="N",
-                   help="number of median-cut lights / PEMs: a multiple of 6, N/6 per cube face as in the paper "
-                   "(default 24)")
+                   help="number of median-cut lights / PEMs, >= 6: a multiple of 6 (N/6 per cube face as in the "
+                   "paper) for --median-cut per-face (default 24)")
     g.add_argument("--median-cut", choices=("per-face", "global", "variance"), default="per-face",
                    help="region split: per cube face (paper, default), global over the whole map, or "
-                   "variance-minimising (Viriyothai & Debevec 2009); the last two allow any --lights")
+                   "variance-minimising (Viriyothai & Debevec 2009); the last two allow any --lights >= 6, not only "
+                   "multiples of 6")
     from ..prefilter.registry import prefilter_methods
 
     phong = prefilter_methods("phong")
@@ -382,13 +447,18 @@ def register(sub) -> None:
     g.add_argument("--vsm-dtype", choices=("float16", "float32", "float64"), default="float32",
                    help="shadow-map moment storage (float16 = the paper's RG16F; default float32)")
     g.add_argument("--ref-rtol", type=float, default=None, metavar="R",
-                   help="--mode reference: estimated relative L1 error to converge to (default 2e-3; 0 = the "
-                   "fixed coarse quadrature)")
+                   help="--mode reference: estimated relative L1 error to converge to (default 2e-3; > 0, "
+                   "e.g. 1e-2 for a quick look)")
     g.add_argument("--workers", type=int, default=None, metavar="W",
                    help="--mode reference: worker processes for its pixel blocks (1 = serial; default "
                    "$IBL_REF_WORKERS or min(2, CPUs)); the image is bit-for-bit the same for every W")
     g.add_argument("--spp", type=int, default=1024, metavar="N",
                    help="--mode mitsuba: samples per pixel (two halves with seeds S, S+1 estimate the noise)")
+    g.add_argument("--mitsuba-ggx", choices=("lab", "builtin", "both"), default="both",
+                   help="--mode mitsuba with a GGX material: the lab's GGX formula as a Python BSDF (lab), Mitsuba's "
+                   "own roughconductor (builtin: separable Smith and Fresnel 1, so it needs smith=separable and "
+                   "f0=1), or both (default): the image is the lab's, the JSON records the built-in's difference "
+                   "(the built-in is skipped, with a note, where it does not apply)")
     g.add_argument("--seed", type=int, default=0, metavar="S",
                    help="--mode mitsuba: first seed; --mode reference: seed of its random ray points (default 0)")
     g = p.add_argument_group("camera (perspective, y is up)")

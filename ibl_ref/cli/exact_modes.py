@@ -1,5 +1,6 @@
 """``ibl-ref render --mode reference|mitsuba``: the converged reference (:func:`ibl_ref.rendering.reference_render.render_reference`)
-and Mitsuba 3 (:func:`ibl_ref.rendering.mitsuba_render.render_mitsuba`) with per-mesh materials (mesh id 0, ground id 1)."""
+and Mitsuba 3 (:func:`ibl_ref.rendering.mitsuba_render.render_mitsuba`) with per-mesh materials (mesh id 0, ground id 1):
+Phong ``kd,ks,g`` or GGX ``ggx:...`` (:mod:`ibl_ref.rendering.materials`)."""
 
 from __future__ import annotations
 
@@ -8,17 +9,21 @@ import numpy as np
 from ..errors import IBLError
 
 
-def _scalar(mat, option):
-    if np.ndim(mat.kd) or np.ndim(mat.ks) or mat.g_map is not None:
-        raise IBLError(f"{option}: --mode reference/mitsuba take scalar kd, ks and one g (no RGB weights, no --gmap)")
-    return float(mat.kd), float(mat.ks), float(mat.g)
+def _material(mat, option):
+    """The exact renderers' material (:func:`ibl_ref.rendering.materials.as_material`): scalar kd, ks, one g."""
+    from ..rendering.materials import as_material
+
+    try:
+        return as_material(mat, option)
+    except IBLError as exc:
+        raise IBLError(f"{exc} (--mode reference/mitsuba: no RGB weights, no --gmap)") from None
 
 
 def check_args(args) -> None:
     """Cheap flag checks before any rendering."""
     if args.mode == "reference" and args.ref_rtol is not None:
-        if not (np.isfinite(args.ref_rtol) and args.ref_rtol >= 0):
-            raise IBLError(f"--ref-rtol must be a finite number >= 0, got {args.ref_rtol}")
+        if not (np.isfinite(args.ref_rtol) and args.ref_rtol > 0):
+            raise IBLError(f"--ref-rtol must be a finite number > 0 (e.g. 1e-2 for a quick look), got {args.ref_rtol}")
     if getattr(args, "workers", None) is not None and args.workers < 1:
         raise IBLError(f"--workers must be a positive integer (1 = serial), got {args.workers}")
     if args.mode == "mitsuba" and (args.spp < 2 or args.spp % 2):
@@ -27,11 +32,12 @@ def check_args(args) -> None:
 
 def render_exact(mode, meshes, camera, cube, mat, ground_mat, args, progress=False):
     """(image (H, W, C), mask (H, W), info dict) of ``mode`` ∈ {reference, mitsuba}."""
-    materials = {0: _scalar(mat, "--material")}
+    materials = {0: _material(mat, "--material")}
     if ground_mat is not None:
-        materials[1] = _scalar(ground_mat, "--ground-material")
+        materials[1] = _material(ground_mat, "--ground-material")
     if mode == "reference":
-        from ..rendering.reference_render import DEFAULT_RTOL, render_reference
+        from ..rendering.reference_converged import DEFAULT_RTOL
+        from ..rendering.reference_render import render_reference
 
         from ..groundtruth.convolve import default_workers
 
@@ -40,13 +46,31 @@ def render_exact(mode, meshes, camera, cube, mat, ground_mat, args, progress=Fal
         res = render_reference(meshes, camera, cube, materials=materials, rtol=rtol, seed=args.seed,
                                workers=workers, progress=progress)
         keep = ("rtol", "err_rel_l1", "err_rel_p99", "converged", "n_rays", "time_s", "sided", "n_back_facing",
-                "quadrature", "ray_backend", "lobes")
+                "quadrature", "ray_backend", "lobes", "materials")
         res.info["workers"] = workers
         keep = keep + ("workers",)
         return res.image, res.mask, {"reference": {k: res.info[k] for k in keep if k in res.info}}
-    from ..rendering.mitsuba_render import render_mitsuba
+    from ..rendering.mitsuba_render import bsdf_dict, render_mitsuba
 
-    if any(m[2] >= 1.0 for m in materials.values()):
+    if any(m.kind == "phong" and m.mirror for m in materials.values()):
         raise IBLError("--mode mitsuba: glossiness must be < 1 (the mirror g = 1 is not a Phong lobe)")
-    res = render_mitsuba(meshes, camera, cube, materials=materials, spp=args.spp, seed=args.seed)
-    return res.image, res.mask, {"mitsuba": res.info}
+    route = getattr(args, "mitsuba_ggx", "lab")
+    has_ggx = any(m.kind == "ggx" for m in materials.values())
+    first = "builtin" if route == "builtin" else "lab"
+    res = render_mitsuba(meshes, camera, cube, materials=materials, ggx_route=first, spp=args.spp, seed=args.seed)
+    info = {"mitsuba": res.info}
+    if has_ggx and route == "both":
+        try:
+            for m in materials.values():
+                bsdf_dict(m, "builtin")  # applies? (separable Smith, F0 = 1)
+        except IBLError as exc:
+            info["mitsuba_builtin"] = {"skipped": str(exc)}
+        else:
+            b = render_mitsuba(meshes, camera, cube, materials=materials, ggx_route="builtin", spp=args.spp,
+                               seed=args.seed + 2)
+            m = res.mask & b.mask
+            den = float(np.abs(b.image[m]).sum())
+            info["mitsuba_builtin"] = dict(b.info, rel_l1_vs_lab=float(np.abs(res.image[m] - b.image[m]).sum() / den)
+                                           if den > 0 else 0.0,
+                                           noise_rel_l1_both=float(res.info["noise_rel_l1"] + b.info["noise_rel_l1"]))
+    return res.image, res.mask, info

@@ -144,9 +144,11 @@ def face_frames(convention: str) -> np.ndarray:
 
 
 def check_face_size(n) -> int:
-    """``n`` as an int if it is a positive integer (not a bool or a float), else ValueError."""
+    """``n`` as an int if it is a positive integer (not a bool or a float), else :class:`~ibl_ref.limits.SizeError`."""
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or int(n) < 1:
-        raise ValueError(f"face size must be a positive integer, got {n!r}")
+        from ..limits import SizeError
+
+        raise SizeError(f"face size must be a positive integer, got {n!r}")
     return int(n)
 
 
@@ -174,7 +176,7 @@ def face_uv_to_direction(face, u, v, convention: str = "openexr", normalize: boo
     frames = face_frames(convention)
     face = np.asarray(face)
     if face.size and (np.any(face < 0) or np.any(face > 5) or not np.issubdtype(face.dtype, np.integer)):
-        raise ValueError("face indices must be integers in 0..5")
+        raise LayoutError("face indices must be integers in 0..5")
     u = np.asarray(u, dtype=np.float64)
     v = np.asarray(v, dtype=np.float64)
     face, u, v = np.broadcast_arrays(face, u, v)
@@ -200,14 +202,17 @@ def unit_directions(v, name: str = "directions", min_norm: float = 0.0) -> np.nd
 
 
 def as_directions(d) -> np.ndarray:
-    """``d`` as a float64 array of finite 3-vectors (trailing axis 3), else ValueError."""
-    d = np.asarray(d, dtype=np.float64)
+    """``d`` as a float64 array of finite non-zero 3-vectors (trailing axis 3), else :class:`IBLError`."""
+    try:
+        d = np.asarray(d, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise IBLError(f"directions must be a numeric (..., 3) array ({exc})") from None
     if d.shape[-1:] != (3,):
-        raise ValueError(f"directions must have a trailing axis of length 3, got shape {d.shape}")
+        raise LayoutError(f"directions must have a trailing axis of length 3, got shape {d.shape}")
     if not np.all(np.isfinite(d)):
-        raise ValueError("directions contain NaN or Inf")
+        raise IBLError("directions contain NaN or Inf")
     if np.any(np.all(d == 0, axis=-1)):
-        raise ValueError("zero-length direction")
+        raise IBLError("zero-length direction")
     return d
 
 
@@ -278,9 +283,18 @@ def _texel_directions_cached(n: int, convention: str, normalize: bool) -> np.nda
     return d
 
 
+def _check_grid(n, per_texel_bytes: int, what: str) -> int:
+    """:func:`check_face_size`, and the grid of ``per_texel_bytes`` per texel must fit in memory (SizeError)."""
+    from ..limits import check_allocation
+
+    n = check_face_size(n)
+    check_allocation(per_texel_bytes * n * n, f"the {what} of {n}x{n} faces", "face size")
+    return n
+
+
 def texel_directions(n: int, convention: str = "openexr", normalize: bool = True) -> np.ndarray:
     """Directions of all texel centres, shape (6, n, n, 3), float64 (read-only, cached)."""
-    return _texel_directions_cached(check_face_size(n), convention, bool(normalize))
+    return _texel_directions_cached(_check_grid(n, 6 * 3 * 8 * 3, "texel directions"), convention, bool(normalize))
 
 
 def direction_to_texel_coords(d, n: int, convention: str = "openexr"):
@@ -332,12 +346,13 @@ def texel_solid_angles(n: int) -> np.ndarray:
     The same for all six faces and both conventions.  Σ over 6 faces = 4π to rounding (the sum
     telescopes to 6 · 4 · atan2(1, √3) = 4π).
     """
-    return _texel_solid_angles_cached(check_face_size(n))
+    return _texel_solid_angles_cached(_check_grid(n, 8 * 4, "texel solid angles"))
 
 
 def cube_solid_angles(n: int) -> np.ndarray:
     """Exact texel solid angles of a whole cube map, shape (6, n, n) (a broadcast view)."""
-    return np.broadcast_to(texel_solid_angles(n), (6, n, n))
+    om = texel_solid_angles(n)
+    return np.broadcast_to(om, (6,) + om.shape)
 
 
 def convert_convention(cube: np.ndarray, src: str, dst: str) -> np.ndarray:
@@ -401,7 +416,7 @@ def mip_levels(n: int) -> list[MipLevel]:
     """Levels N, N/2, …, 1 of a cube-map pyramid; N must be a power of two."""
     n = check_face_size(n)
     if n & (n - 1):
-        raise ValueError(f"MIP pyramids need a power-of-two face size, got {n}")
+        raise LayoutError(f"MIP pyramids need a power-of-two face size, got {n}")
     out = []
     lvl, m = 0, n
     while True:

@@ -25,13 +25,26 @@ File layouts (OpenEXR ``ImfEnvmap.h``; see ``docs/background.md`` §2 and :mod:`
   parts share level 0's display window (OpenEXR requires shared attributes to agree); each part's
   data window is its own strip size.
 
+One writer, one reader
+----------------------
+Every OpenEXR file ibl_ref writes goes through :func:`write_exr` and every one it reads through
+:func:`read_exr` (environment maps here, rendered images in :mod:`ibl_ref.rendering.image_io`, probe-like
+test files in :mod:`ibl_ref.environment.probe_files`, the ``convert`` / ``info`` commands).  Header
+policy of :func:`write_exr`: scanline parts, ZIP compression unless the caller names another, the caller's
+attributes (``envmap``, ``iblref_*``) and nothing else; each channel is handed to the binding as its own
+C-contiguous array.  File names that are not valid UTF-8 are passed to the binding as bytes (it refuses
+such ``str`` names with an unrelated message).
+
 Validation
 ----------
 Writers check the data first (:func:`ibl_ref.environment.radiance_policy.check_radiance`: NaN, ±Inf, negative radiance →
 :class:`~ibl_ref.errors.RadianceError`) and never let a value overflow silently: in ``half`` a value
 above 65504 raises :class:`~ibl_ref.errors.IBLError` naming the file, the count and the maximum, unless
 ``clamp_half=True``, which clamps to 65504, warns and reports the clamping in the returned
-:class:`WriteReport`.  Every write is atomic (:func:`ibl_ref.atomic.atomic_path`, the temporary file keeps
+:class:`WriteReport`.  Values below the pixel type's normal range (half: 6.1e-5, float: 1.2e-38) are
+measured as a share of ∫L dω and refused or reported
+(:func:`ibl_ref.environment.radiance_policy.check_format_range`): a map of 1e-8 written as half is an error,
+not a black file.  Every write is atomic (:func:`ibl_ref.atomic.atomic_path`, the temporary file keeps
 the ``.exr`` suffix): on any error the previous file is untouched and no temporary file remains.
 
 Readers raise :class:`~ibl_ref.errors.EnvMapFileError`, :class:`~ibl_ref.errors.LayoutError` or
@@ -54,27 +67,45 @@ import numpy as np
 
 from . import envmap
 from ..atomic import atomic_path
-from ..errors import EnvMapFileError, IBLError, LayoutError, RadianceError, check_input_file
+from ..errors import (EnvMapFileError, FormatRangeWarning, IBLError, LayoutError, RadianceError, as_path,
+                      check_input_file)
 from .radiance_policy import check_radiance
 
 __all__ = [
     "HALF_MAX",
     "FLOAT_MAX",
+    "HALF_MIN_NORMAL",
+    "FLOAT_MIN_NORMAL",
+    "COMPRESSIONS",
     "EnvMap",
+    "ExrImage",
+    "ExrPart",
     "WriteReport",
+    "write_exr",
+    "read_exr",
+    "to_pixel_type",
     "write_envmap",
     "read_envmap",
+    "read_map",
     "read_image",
     "load_cube",
     "write_pyramid",
     "read_pyramid",
     "infer_layout",
+    "declared_layout",
+    "cube_convention",
+    "header_dict",
 ]
 
 HALF_MAX = 65504.0  #: largest finite IEEE binary16 value
 FLOAT_MAX = float(np.finfo(np.float32).max)
+HALF_MIN_NORMAL = float(np.finfo(np.float16).tiny)  #: 2^-14, smallest half of full relative precision
+FLOAT_MIN_NORMAL = float(np.finfo(np.float32).tiny)  #: 2^-126
+#: compression names accepted by :func:`write_exr` (OpenEXR's ``*_COMPRESSION`` constants)
+COMPRESSIONS = ("dwab", "dwaa", "piz", "zip", "zips", "none", "rle", "pxr24", "b44")
 _LAYOUTS = ("cube", "latlong")
 _PIXEL_TYPES = ("float", "half")
+_HDR_SUFFIXES = (".hdr", ".pic", ".rgbe")
 
 
 def _openexr():
@@ -104,6 +135,11 @@ class EnvMap:
         ``"half"``, ``"float"``, ``"uint"`` or ``"mixed"`` as stored in the file.
     radiance : RadianceReport
         What the radiance policy found and did (:mod:`ibl_ref.environment.radiance_policy`).
+    file_format : str
+        ``"OpenEXR"`` or ``"Radiance RGBE"``.
+    source_layout : str
+        Layout of the image in the file: ``layout`` itself, or ``"hcross"`` / ``"vcross"`` for a cross
+        cut into a cube by :func:`read_map`.
     """
 
     data: np.ndarray
@@ -113,6 +149,8 @@ class EnvMap:
     header: dict = field(default_factory=dict)
     pixel_type: str = "float"
     radiance: object = None  #: :class:`ibl_ref.environment.radiance_policy.RadianceReport` of the read
+    file_format: str = "OpenEXR"
+    source_layout: str = ""
 
     @property
     def size(self) -> int:
@@ -187,8 +225,16 @@ def _prepare(data, layout: str, where: str):
     return strip.astype(np.float64, copy=False)
 
 
-def _to_pixel_type(strip: np.ndarray, pixel_type: str, clamp_half: bool, where: str):
-    """Cast to float32/float16 without silent overflow; returns (array, clamped_count, clamped_max)."""
+def to_pixel_type(strip: np.ndarray, pixel_type: str, clamp_half: bool, where: str, weights=None):
+    """Cast (H, W, C) float64 radiance to float32/float16 without silent overflow or underflow for
+    :func:`write_exr`; returns (array, clamped_count, clamped_max).
+
+    ``weights``: per-pixel solid angles broadcastable to the strip's (H, W) (None: pixel sums) for the share of
+    ∫L dω that values below the pixel type's normal range would change
+    (:func:`ibl_ref.environment.radiance_policy.check_format_range`).
+    """
+    from .radiance_policy import check_format_range
+
     if pixel_type not in _PIXEL_TYPES:
         raise IBLError(f"{where}: unknown pixel type {pixel_type!r}; choose one of {_PIXEL_TYPES}")
     limit = HALF_MAX if pixel_type == "half" else FLOAT_MAX
@@ -204,24 +250,110 @@ def _to_pixel_type(strip: np.ndarray, pixel_type: str, clamp_half: bool, where: 
         warnings.warn(
             f"{where}: clamped {count} value(s) above {HALF_MAX:g} to {HALF_MAX:g} for half output "
             f"(max original value {vmax:g})",
-            RuntimeWarning,
+            FormatRangeWarning,
             stacklevel=3,
         )
         strip = np.minimum(strip, HALF_MAX)
     out = strip.astype(np.float16 if pixel_type == "half" else np.float32)
     if not np.all(np.isfinite(out)):  # defensive: must be impossible after the checks above
         raise IBLError(f"{where}: conversion to {pixel_type} produced non-finite values")
+    nc = 3 if strip.shape[-1] >= 3 else 1  # colour channels (alpha is not radiance)
+    remedy = ("scale the map up, or write float pixels: pixel_type='float', no --half" if pixel_type == "half"
+              else "scale the map up")
+    check_format_range(strip[..., :nc], out[..., :nc], where, f"the smallest normal {pixel_type}",
+                       HALF_MIN_NORMAL if pixel_type == "half" else FLOAT_MIN_NORMAL, weights, remedy)
     return out, count, (vmax if count else 0.0)
-
-
-def _channels_dict(arr: np.ndarray) -> dict:
-    names = _channel_names(arr.shape[2], "")
-    return {nm: np.ascontiguousarray(arr[..., i]) for i, nm in enumerate(names)}
 
 
 # ----------------------------------------------------------------------------------------------
 # writing
 # ----------------------------------------------------------------------------------------------
+@dataclass
+class ExrPart:
+    """One part for :func:`write_exr`: ``pixels`` (H, W, C) float16 or float32 (or a list of C (H, W) planes, which
+    big probes need: no stacked copy), one name per channel, header ``attributes`` (e.g. ``envmap``,
+    ``iblref_convention``; the binding's types) and an optional part name."""
+
+    pixels: np.ndarray
+    channels: tuple
+    attributes: dict = field(default_factory=dict)
+    name: str | None = None
+
+
+def _ox_compression(ox, name: str, where: str):
+    if name not in COMPRESSIONS:
+        raise IBLError(f"{where}: unknown compression {name!r}; choose one of {COMPRESSIONS}")
+    return getattr(ox, f"{'NO' if name == 'none' else name.upper()}_COMPRESSION")
+
+
+def _binding_path(path) -> "str | bytes":
+    """The file name as the binding takes it: ``str``, or bytes for names that are not valid UTF-8."""
+    s = os.fspath(path)
+    try:
+        s.encode("utf-8")
+    except UnicodeEncodeError:  # surrogate-escaped bytes of a non-UTF-8 name: the binding refuses such str
+        return os.fsencode(s)
+    return s
+
+
+def write_exr(path, parts, compression: str = "zip") -> Path:
+    """The one OpenEXR writer: ``parts`` (an :class:`ExrPart` or a list of them) → ``path``, atomically.
+
+    Header policy (module docstring): scanline, ``compression`` (one of :data:`COMPRESSIONS`, default ZIP),
+    each part's attributes; several parts (or a named one) make a multi-part file.  Pixels are written as
+    given: the callers check radiance and range (:func:`write_envmap`, :func:`write_pyramid`,
+    :func:`ibl_ref.rendering.image_io.write_image_exr`).
+
+    Raises
+    ------
+    EnvMapFileError
+        The binding cannot write the file (message names ``path``).
+    OutputError
+        The target cannot be replaced (:mod:`ibl_ref.atomic`: folder, device, full disk …).
+    """
+    ox = _openexr()
+    path = as_path(path, "OpenEXR output")
+    where = str(path)
+    parts = [parts] if isinstance(parts, ExrPart) else list(parts)
+    if not parts:
+        raise LayoutError(f"{where}: an OpenEXR file needs at least one part")
+    comp = _ox_compression(ox, compression, where)
+    built = []
+    for part in parts:
+        if isinstance(part.pixels, (list, tuple)):
+            planes = [np.asarray(x) for x in part.pixels]
+        else:
+            px = np.asarray(part.pixels)
+            planes = [px[..., i] for i in range(px.shape[2])] if px.ndim == 3 else [px]
+        if (len(planes) != len(part.channels) or len({x.shape for x in planes}) != 1 or planes[0].ndim != 2
+                or any(x.dtype not in (np.float16, np.float32) for x in planes)):
+            raise LayoutError(f"{where}: part pixels must be (H, W, {len(part.channels)}) float16/float32, got "
+                              f"{[x.shape for x in planes]} {sorted({str(x.dtype) for x in planes})}")
+        header = {"compression": comp, "type": ox.scanlineimage}
+        header.update(part.attributes)
+        # one C-contiguous array per channel: the binding ignores strides (a view would be written scrambled)
+        chans = {nm: np.ascontiguousarray(x) for nm, x in zip(part.channels, planes)}
+        built.append((header, chans, part.name))
+    try:
+        with atomic_path(path, suffix=".exr") as tmp:
+            if len(built) == 1 and built[0][2] is None:
+                f = ox.File(built[0][0], built[0][1])
+            else:
+                f = ox.File([ox.Part(h, c, name=nm or f"part{i}") for i, (h, c, nm) in enumerate(built)])
+            f.write(_binding_path(tmp))
+    except IBLError:
+        raise
+    except (OSError, RuntimeError, ValueError, TypeError) as exc:
+        raise EnvMapFileError(f"{where}: cannot write OpenEXR file: {exc}") from exc
+    return path
+
+
+def _strip_weights(strip: np.ndarray, layout: str):
+    from .radiance_policy import pixel_solid_angles
+
+    return pixel_solid_angles(strip.shape[0], strip.shape[1], layout)
+
+
 def write_envmap(
     path,
     data,
@@ -230,11 +362,11 @@ def write_envmap(
     clamp_half: bool = False,
     convention: str = "openexr",
 ) -> WriteReport:
-    """Write a cube map or lat-long map as an OpenEXR environment map (atomically).
+    """Write a cube map or lat-long map as an OpenEXR environment map (atomically, through :func:`write_exr`).
 
     Parameters
     ----------
-    path : str or Path
+    path : str, bytes or os.PathLike
         Destination file (any name; ``.exr`` recommended).
     data : array
         ``(6, N, N[, C])`` for ``layout="cube"`` in OpenEXR face orientation, ``(H, 2H[, C])`` for
@@ -254,14 +386,15 @@ def write_envmap(
     Raises
     ------
     RadianceError
-        NaN, Inf or negative values (checked before any file is touched).
+        NaN, Inf or negative values (checked before any file is touched), or values below the pixel type's
+        range that carry more than 1e-4 of ∫L dω (module docstring).
     LayoutError
         Wrong shape or channel count.
     IBLError
         Values that do not fit the pixel type.
     """
     ox = _openexr()
-    path = Path(path)
+    path = as_path(path, "OpenEXR output")
     where = str(path)
     if convention not in envmap.CONVENTIONS:
         raise IBLError(f"{where}: unknown convention {convention!r}; choose one of {envmap.CONVENTIONS}")
@@ -271,33 +404,27 @@ def write_envmap(
         strip = envmap.convert_convention(strip.reshape(6, n, n, -1), "openexr", convention).reshape(strip.shape)
     elif layout == "latlong" and convention != "openexr":
         raise IBLError(f"{where}: convention={convention!r} applies to cube maps only")
-    pix, count, cmax = _to_pixel_type(strip, pixel_type, clamp_half, where)
-    header = {"compression": ox.ZIP_COMPRESSION, "type": ox.scanlineimage}
+    pix, count, cmax = to_pixel_type(strip, pixel_type, clamp_half, where, _strip_weights(strip, layout))
+    attrs = {}
     if layout == "latlong":
-        header["envmap"] = ox.ENVMAP_LATLONG
+        attrs["envmap"] = ox.ENVMAP_LATLONG
     else:
         if convention == "openexr":
-            header["envmap"] = ox.ENVMAP_CUBE
-        header["iblref_convention"] = convention
-    try:
-        with atomic_path(path, suffix=".exr") as tmp:
-            ox.File(header, _channels_dict(pix)).write(str(tmp))
-    except IBLError:
-        raise
-    except (OSError, RuntimeError, ValueError, TypeError) as exc:
-        raise EnvMapFileError(f"{where}: cannot write OpenEXR file: {exc}") from exc
+            attrs["envmap"] = ox.ENVMAP_CUBE
+        attrs["iblref_convention"] = convention
+    write_exr(path, ExrPart(pix, _channel_names(pix.shape[2], where), attrs))
     return WriteReport(path, layout, pixel_type, tuple(np.shape(data)), count, cmax)
 
 
 def write_pyramid(path, levels, pixel_type: str = "float", clamp_half: bool = False) -> WriteReport:
-    """Write a list of cube maps (a MIP pyramid, level 0 first) as a multi-part EXR.
+    """Write a list of cube maps (a MIP pyramid, level 0 first) as a multi-part EXR (through :func:`write_exr`).
 
     One part per level, named ``level{i}``, each an OpenEXR CUBE strip (see module docstring).
     All levels must have the same channel count.  Returns a :class:`WriteReport` (``shape`` is the
     list of level shapes; clamping counts are summed over levels).
     """
     ox = _openexr()
-    path = Path(path)
+    path = as_path(path, "OpenEXR output")
     where = str(path)
     levels = list(levels)
     if not levels:
@@ -307,30 +434,16 @@ def write_pyramid(path, levels, pixel_type: str = "float", clamp_half: bool = Fa
         s = _prepare(lv, "cube", f"{where} level {i}")
         if strips and s.shape[2] != strips[0].shape[2]:
             raise LayoutError(f"{where}: level {i} has {s.shape[2]} channels, level 0 has {strips[0].shape[2]}")
-        p, c, m = _to_pixel_type(s, pixel_type, clamp_half, f"{where} level {i}")
+        p, c, m = to_pixel_type(s, pixel_type, clamp_half, f"{where} level {i}", _strip_weights(s, "cube"))
         strips.append(p)
         total += c
         cmax = max(cmax, m)
     n0 = strips[0].shape[1]
     display = (np.array([0, 0], dtype=np.int32), np.array([n0 - 1, 6 * n0 - 1], dtype=np.int32))
-    parts = []
-    for i, p in enumerate(strips):
-        hdr = {
-            "compression": ox.ZIP_COMPRESSION,
-            "type": ox.scanlineimage,
-            "envmap": ox.ENVMAP_CUBE,
-            "displayWindow": display,
-            "iblref_convention": "openexr",
-            "iblref_level": i,
-        }
-        parts.append(ox.Part(hdr, _channels_dict(p), name=f"level{i}"))
-    try:
-        with atomic_path(path, suffix=".exr") as tmp:
-            ox.File(parts).write(str(tmp))
-    except IBLError:
-        raise
-    except (OSError, RuntimeError, ValueError, TypeError) as exc:
-        raise EnvMapFileError(f"{where}: cannot write OpenEXR file: {exc}") from exc
+    names = _channel_names(strips[0].shape[2], where)
+    parts = [ExrPart(p, names, {"envmap": ox.ENVMAP_CUBE, "displayWindow": display, "iblref_convention": "openexr",
+                                "iblref_level": i}, name=f"level{i}") for i, p in enumerate(strips)]
+    write_exr(path, parts)
     return WriteReport(path, "cube", pixel_type, tuple(np.shape(x) for x in levels), total, cmax)
 
 
@@ -502,7 +615,7 @@ def _open(path: Path):
     native = _NativeOutput()
     try:
         with native:
-            f = ox.File(str(path), separate_channels=True)
+            f = ox.File(_binding_path(path), separate_channels=True)
             parts = list(f.parts)
             if parts:
                 for p in parts:  # force pixel access now so that truncation errors surface here
@@ -523,7 +636,7 @@ def _open(path: Path):
     return f, parts
 
 
-def _convention(header: dict, override, where: str) -> str:
+def cube_convention(header: dict, override=None, where: str = "image") -> str:
     """Cube face convention: ``override`` or the file's ``iblref_convention`` attribute, validated."""
     conv = override if override is not None else header.get("iblref_convention", "openexr")
     if not isinstance(conv, str) or conv not in envmap.CONVENTIONS:
@@ -532,8 +645,42 @@ def _convention(header: dict, override, where: str) -> str:
     return conv
 
 
-def _part_image(path: Path, part, label: str = "", dtype=np.float64):
-    """Raw (H, W, C) image (``dtype``), channel names, pixel type and simple header of one part.
+@dataclass
+class ExrImage:
+    """One part of an OpenEXR file as :func:`read_exr` returns it (radiance not yet checked).
+
+    ``pixels`` (H, W, C) with ``channels`` in that order: the colour channels first (``R, G, B`` or ``Y``;
+    ``n_colour`` of them, 0 if the part has neither), then alpha or, with ``channels="all"``, every other
+    channel.  ``pixel_type``: ``"half"``, ``"float"``, ``"uint"`` or ``"mixed"``; ``header``: plain Python
+    values; ``n_parts``: parts in the file; ``where``: the name used in messages (file and part).
+    """
+
+    pixels: np.ndarray
+    channels: tuple
+    n_colour: int
+    pixel_type: str
+    header: dict
+    n_parts: int
+    where: str
+
+
+def _channel_order(names: set, which: str, where: str) -> tuple:
+    """(order, n_colour) of a part's channels for :func:`read_exr` (``which`` = ``"colour"`` or ``"all"``)."""
+    if {"R", "G", "B"} <= names:
+        colour = ["R", "G", "B"]
+    elif "Y" in names and (which == "all" or names <= {"Y", "A"}):
+        colour = ["Y"]
+    else:
+        colour = []
+    if which == "all":
+        return tuple(colour + sorted(names - set(colour))), len(colour)
+    if not colour:
+        raise LayoutError(f"{where}: missing R/G/B channels (file has channels {sorted(names)})")
+    return tuple(colour + (["A"] if colour != ["Y"] and "A" in names else [])), len(colour)
+
+
+def _part_image(path: Path, part, label: str = "", dtype=np.float64, which: str = "colour"):
+    """Raw (H, W, C) image (``dtype``), channel names, colour-channel count, pixel type and header of one part.
 
     No radiance check here (see :func:`_radiance`); channels are copied one by one into the result and
     the binding's copy of each is released at once (no stacked temporary: a 16K float32 RGB file peaks
@@ -541,13 +688,7 @@ def _part_image(path: Path, part, label: str = "", dtype=np.float64):
     """
     where = f"{path}{label}"
     chans = part.channels
-    names = set(chans)
-    if {"R", "G", "B"} <= names:
-        order = ["R", "G", "B"] + (["A"] if "A" in names else [])
-    elif names == {"Y"} or names == {"Y", "A"}:
-        order = ["Y"]
-    else:
-        raise LayoutError(f"{where}: missing R/G/B channels (file has channels {sorted(names)})")
+    order, n_colour = _channel_order(set(chans), which, where)
     arrs, types = [], set()
     for nm in order:
         px = chans[nm].pixels
@@ -565,7 +706,28 @@ def _part_image(path: Path, part, label: str = "", dtype=np.float64):
         chans[nm].pixels = np.empty((0, 0), np.float32)  # release the binding's copy now (big probes)
     ptype = {"HALF": "half", "FLOAT": "float", "UINT": "uint"}
     pixel_type = ptype.get(types.pop(), "mixed") if len(types) == 1 else "mixed"
-    return img, tuple(order), pixel_type, header_dict(part, where)
+    return img, order, n_colour, pixel_type, header_dict(part, where)
+
+
+def read_exr(path, part: int = 0, dtype=np.float64, channels: str = "colour") -> ExrImage:
+    """The one OpenEXR reader: one part of ``path`` as an :class:`ExrImage`, radiance unchecked.
+
+    The header is parsed by ibl_ref first (deep files, impossible data windows and sizes beyond memory are
+    refused before the binding allocates anything); the binding's own error text for corrupt or truncated
+    files becomes the one-line :class:`~ibl_ref.errors.EnvMapFileError`.  ``channels="colour"`` (default)
+    reads ``R, G, B`` (+ ``A``) or ``Y`` and refuses parts with neither (:class:`LayoutError`);
+    ``"all"`` reads every channel, colour first, and refuses nothing a decoder can read (``ibl-ref info``).
+    ``dtype``: float64 (default) or float32 (exact for half and float files, half the memory).
+    """
+    path = as_path(path, "OpenEXR file")
+    if channels not in ("colour", "all"):
+        raise IBLError(f"{path}: channels must be 'colour' or 'all', got {channels!r}")
+    _, parts = _open(path)
+    if isinstance(part, bool) or not isinstance(part, (int, np.integer)) or not 0 <= part < len(parts):
+        raise EnvMapFileError(f"{path}: has {len(parts)} part(s), part {part!r} requested")
+    label = f" (part {part})" if len(parts) > 1 else ""
+    img, order, nc, ptype, header = _part_image(path, parts[int(part)], label, dtype=dtype, which=channels)
+    return ExrImage(img, order, nc, ptype, header, len(parts), f"{path}{label}")
 
 
 def header_dict(part, where: str) -> dict:
@@ -582,7 +744,7 @@ def header_dict(part, where: str) -> dict:
 def _weights_layout(h: int, w: int, header: dict, layout=None):
     """Layout used for the solid-angle weights of the radiance policy (None when not inferable)."""
     try:
-        return infer_layout(h, w, layout or _declared(header, ""), "")
+        return infer_layout(h, w, layout or declared_layout(header, ""), "")
     except IBLError:
         return None
 
@@ -639,7 +801,8 @@ def infer_layout(h: int, w: int, declared=None, where: str = "image") -> str:
     )
 
 
-def _declared(header: dict, where: str):
+def declared_layout(header: dict, where: str = "image"):
+    """Layout named by a header's ``envmap`` attribute (``"cube"`` / ``"latlong"``), None without one."""
     env = header.get("envmap")
     if env is None:
         return None
@@ -656,32 +819,85 @@ def read_image(path, part: int = 0, negative: str = "auto", nonfinite: str = "er
 
     Radiance is checked and repaired under ``negative`` / ``nonfinite`` (:mod:`ibl_ref.environment.radiance_policy`;
     solid-angle weights of the layout from the ``envmap`` attribute or the aspect ratio, uniform if
-    neither applies); the layout is not otherwise interpreted.  ``return_report=True`` appends the
-    :class:`~ibl_ref.environment.radiance_policy.RadianceReport` to the tuple.  ``dtype``: float64 (default) or
-    float32 (half the memory for big probes).
+    neither applies; a repair warns once, :class:`~ibl_ref.errors.RadianceWarning`); the layout is not otherwise
+    interpreted.  ``return_report=True`` appends the :class:`~ibl_ref.environment.radiance_policy.RadianceReport`
+    to the tuple.  ``dtype``: float64 (default) or float32 (half the memory for big probes).
     """
-    img, chans, ptype, header, where = _read_raw(Path(path), part, dtype)
-    rep = _radiance(img, chans, where, _weights_layout(img.shape[0], img.shape[1], header), negative, nonfinite)
-    return (img, chans, ptype, header, rep) if return_report else (img, chans, ptype, header)
+    from .radiance_policy import warn_repaired
+
+    ex = read_exr(path, part, dtype)
+    img = ex.pixels
+    rep = _radiance(img, ex.channels, ex.where, _weights_layout(img.shape[0], img.shape[1], ex.header), negative,
+                    nonfinite)
+    warn_repaired(rep)
+    return (img, ex.channels, ex.pixel_type, ex.header, rep) if return_report else (img, ex.channels, ex.pixel_type,
+                                                                                     ex.header)
 
 
-def _read_raw(path: Path, part: int = 0, dtype=np.float64):
-    """(image, channels, pixel_type, header, name for messages) of one part, radiance unchecked."""
-    _, parts = _open(path)
-    if not 0 <= part < len(parts):
-        raise EnvMapFileError(f"{path}: has {len(parts)} part(s), part {part} requested")
-    label = f" (part {part})" if len(parts) > 1 else ""
-    img, chans, ptype, header = _part_image(path, parts[part], label, dtype=dtype)
-    return img, chans, ptype, header, f"{path}{label}"
+def _as_map(img, lay: str, header: dict, convention, where: str):
+    """(data, layout): a cube strip reshaped (and re-oriented to OpenEXR), a cross cut into a cube, lat-long as is."""
+    from . import resample
+
+    h, w = img.shape[:2]
+    if lay == "cube":
+        data = img.reshape(6, w, w, img.shape[2])
+        conv = cube_convention(header, convention, where)
+        return (envmap.convert_convention(data, conv, "openexr") if conv != "openexr" else data), "cube"
+    if lay in ("hcross", "vcross"):
+        return resample.cross_to_cube(img, lay), "cube"
+    return img, "latlong"
+
+
+def _read_map(path, layout, convention, negative, nonfinite, dtype, part=0, crosses=True) -> EnvMap:
+    """:func:`read_map` without the warning; ``crosses=False``: OpenEXR cube strips and lat-long maps only."""
+    path = as_path(path, "environment map")
+    where = str(path)
+    if layout is not None and layout not in ("cube", "latlong", "hcross", "vcross"):
+        raise LayoutError(f"{where}: unknown layout {layout!r}; choose one of "
+                          f"{('cube', 'latlong', 'hcross', 'vcross') if crosses else _LAYOUTS}")
+    if crosses and path.suffix.lower() in _HDR_SUFFIXES:
+        from .hdr_io import read_hdr
+
+        img, rep = read_hdr(path, negative=negative, nonfinite=nonfinite, return_report=True, dtype=dtype)
+        header, chans, ptype, fmt = {}, ("R", "G", "B"), "rgbe", "Radiance RGBE"
+        lay = infer_layout(img.shape[0], img.shape[1], layout, where)
+    else:
+        ex = read_exr(path, part, dtype)
+        img, chans, ptype, header, fmt, where = ex.pixels, ex.channels, ex.pixel_type, ex.header, "OpenEXR", ex.where
+        lay = infer_layout(img.shape[0], img.shape[1], layout or declared_layout(header, where), where)
+        rep = _radiance(img, chans, where, lay, negative, nonfinite)
+    if not crosses and lay not in _LAYOUTS:
+        raise LayoutError(f"{where}: {img.shape[1]} x {img.shape[0]} looks like a {lay} image; use load_cube() or "
+                          "read_map() for cross layouts")
+    data, out_layout = _as_map(img, lay, header, convention, where)
+    return EnvMap(data=data, layout=out_layout, path=path, channels=chans, header=header, pixel_type=ptype,
+                  radiance=rep, file_format=fmt, source_layout=lay)
+
+
+def read_map(path, layout: str | None = None, convention: str | None = None, negative: str = "auto",
+             nonfinite: str = "error", dtype=np.float64) -> EnvMap:
+    """Read any supported environment-map file without resampling → :class:`EnvMap`.
+
+    OpenEXR (first part) or Radiance ``.hdr`` / ``.pic``; a cube strip or a cross becomes a ``(6, N, N, C)``
+    cube in OpenEXR orientation (``EnvMap.source_layout`` says which it was), a lat-long map stays ``(H, 2H, C)``.
+    ``layout`` overrides the ``envmap`` attribute / aspect ratio (``"cube"``, ``"latlong"``, ``"hcross"``,
+    ``"vcross"``); ``convention``, ``negative``, ``nonfinite`` as in :func:`read_envmap`; a repair of the radiance
+    warns once (:class:`~ibl_ref.errors.RadianceWarning`).
+    """
+    from .radiance_policy import warn_repaired
+
+    m = _read_map(path, layout, convention, negative, nonfinite, dtype)
+    warn_repaired(m.radiance)
+    return m
 
 
 def read_envmap(path, layout: str | None = None, convention: str | None = None, part: int = 0,
                 negative: str = "auto", nonfinite: str = "error") -> EnvMap:
-    """Read an OpenEXR environment map.
+    """Read an OpenEXR environment map (cube strip or lat-long; crosses: :func:`read_map`).
 
     Parameters
     ----------
-    path : str or Path
+    path : str, bytes or os.PathLike
     layout : {"cube", "latlong"}, optional
         Override the file's ``envmap`` attribute.  Without attribute or override, a ``N × 6N`` strip is a
         cube and a ``2H × H`` image a lat-long map; anything else is a :class:`LayoutError`.
@@ -692,38 +908,29 @@ def read_envmap(path, layout: str | None = None, convention: str | None = None, 
         Part index of a multi-part file (0 = first; use :func:`read_pyramid` for pyramids).
     negative, nonfinite : str
         Radiance policy (:mod:`ibl_ref.environment.radiance_policy`): default clamp negligible negatives (reported in
-        ``EnvMap.radiance``), refuse NaN/Inf.
+        ``EnvMap.radiance`` and warned once, :class:`~ibl_ref.errors.RadianceWarning`), refuse NaN/Inf.
 
     Returns
     -------
     EnvMap
     """
-    path = Path(path)
-    img, chans, ptype, header, rep = read_image(path, part, negative, nonfinite, return_report=True)
-    h, w = img.shape[:2]
-    if layout is None:
-        layout = _declared(header, str(path))
+    from .radiance_policy import warn_repaired
+
+    path = as_path(path, "OpenEXR file")
     if layout is not None and layout not in _LAYOUTS:
         raise LayoutError(f"{path}: unknown layout {layout!r}; choose one of {_LAYOUTS}")
-    layout = infer_layout(h, w, layout, str(path))
-    if layout not in _LAYOUTS:
-        raise LayoutError(f"{path}: {w} x {h} looks like a {layout} image; use load_cube() for cross layouts")
-    data = img
-    if layout == "cube":
-        data = img.reshape(6, w, w, img.shape[2])
-        conv = _convention(header, convention, str(path))
-        if conv != "openexr":
-            data = envmap.convert_convention(data, conv, "openexr")
-    return EnvMap(data=data, layout=layout, path=path, channels=chans, header=header, pixel_type=ptype, radiance=rep)
+    m = _read_map(path, layout, convention, negative, nonfinite, np.float64, part=part, crosses=False)
+    warn_repaired(m.radiance)
+    return m
 
 
 def read_pyramid(path) -> list:
     """Read a multi-part pyramid written by :func:`write_pyramid` → list of ``(6, n, n, C)`` float64."""
-    path = Path(path)
+    path = as_path(path, "OpenEXR file")
     _, parts = _open(path)
     levels = []
     for i, p in enumerate(parts):
-        img, chans, _, header = _part_image(path, p, f" (part {i})")
+        img, chans, _, _, header = _part_image(path, p, f" (part {i})")
         h, w = img.shape[:2]
         infer_layout(h, w, "cube", f"{path} (part {i})")
         _radiance(img, chans, f"{path} (part {i})", "cube", "auto", "error")
@@ -748,6 +955,7 @@ def load_cube(path, size: int | None = None, layout: str | None = None, conventi
     Supported: OpenEXR CUBE strips and LATLONG maps (attribute or aspect ratio), Radiance ``.hdr`` /
     ``.pic`` (lat-long), horizontal (4N × 3N) and vertical (3N × 4N) crosses in either file format
     (layout in :mod:`ibl_ref.environment.resample`).  Y files are replicated to RGB, alpha is dropped.
+    ``path``: str, bytes or os.PathLike (file names need not be UTF-8).
 
     Parameters
     ----------
@@ -761,50 +969,31 @@ def load_cube(path, size: int | None = None, layout: str | None = None, conventi
         Face orientation of a cube strip in the file (see :func:`read_envmap`).
     negative, nonfinite : str
         Radiance policy (:mod:`ibl_ref.environment.radiance_policy`; default: clamp the negligible negatives of lossy
-        compression and report them, refuse NaN/Inf).
+        compression, refuse NaN/Inf).  A repair is reported in the returned report and warned once
+        (:class:`~ibl_ref.errors.RadianceWarning`, the line the CLI prints).
     return_report : bool
         Return ``(cube, RadianceReport)`` instead of the cube.
 
     EXR pixels are read as float32 (exact for half and float files; half the memory of a big probe) and
     the result is float64.
     """
-    path = Path(path)
-    where = str(path)
+    from . import resample
+    from .radiance_policy import warn_repaired
+
+    path = as_path(path, "environment map")
     if size is not None:
         from ..limits import check_cube_size
 
         size = check_cube_size(size, "size")
-    if path.suffix.lower() in (".hdr", ".pic", ".rgbe"):
-        from .hdr_io import read_hdr
-
-        img, rep = read_hdr(path, negative=negative, nonfinite=nonfinite, return_report=True, dtype=np.float32)
-        header = {}
-        lay = infer_layout(img.shape[0], img.shape[1], layout, where)
-    else:
-        # float32 holds every half/float pixel exactly and halves the memory of big probes
-        img, chans, _, header, _ = _read_raw(path, dtype=np.float32)
-        lay = infer_layout(img.shape[0], img.shape[1], layout or _declared(header, where), where)
-        rep = _radiance(img, chans, where, lay, negative, nonfinite)
-    cube = _load_cube_image(img, lay, header, size, convention, where)
-    return (cube, rep) if return_report else cube
-
-
-def _load_cube_image(img, lay, header, size, convention, where: str = "image"):
-    from . import resample
-
-    h, w = img.shape[:2]
-    if lay == "cube":
-        cube = img.reshape(6, w, w, img.shape[2])
-        conv = _convention(header, convention, where)
-        cube = envmap.convert_convention(cube, conv, "openexr") if conv != "openexr" else cube
-    elif lay in ("hcross", "vcross"):
-        cube = resample.cross_to_cube(img, lay)
-    else:
-        cube = None
-    if cube is not None:
-        cube = _rgb(cube)
+    # float32 holds every half/float pixel exactly and halves the memory of big probes
+    m = _read_map(path, layout, convention, negative, nonfinite, np.float32)
+    warn_repaired(m.radiance)
+    if m.layout == "cube":
+        cube = _rgb(m.data)
         if size is not None and int(size) != cube.shape[1]:
             cube = resample.cube_to_cube(cube, int(size))
-        return np.ascontiguousarray(cube, dtype=np.float64)
-    n = int(size) if size is not None else max(1, h // 2)
-    return resample.latlong_to_cube(_rgb(img), n)
+        cube = np.ascontiguousarray(cube, dtype=np.float64)
+    else:
+        n = int(size) if size is not None else max(1, m.data.shape[0] // 2)
+        cube = resample.latlong_to_cube(_rgb(m.data), n)
+    return (cube, m.radiance) if return_report else cube

@@ -33,10 +33,13 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_write
-from ..errors import EnvMapFileError, LayoutError, check_input_file
+from ..errors import EnvMapFileError, LayoutError, as_path, check_input_file
 from .radiance_policy import check_radiance
 
 __all__ = ["read_hdr", "read_hdr_header", "write_hdr", "rgbe_to_float", "float_to_rgbe"]
+
+#: smallest pixel maximum RGBE keeps (Radiance's ``setcolr`` writes (0, 0, 0, 0) below it)
+RGBE_MIN = 1e-32
 
 _RES_RE = re.compile(rb"^([-+])([XY]) (\d+) ([-+])([XY]) (\d+)$")
 
@@ -54,7 +57,7 @@ def float_to_rgbe(rgb: np.ndarray) -> np.ndarray:
     rgb = np.asarray(rgb, dtype=np.float64)
     m = rgb.max(axis=-1)
     frac, ex = np.frexp(m)  # m = frac * 2**ex, frac in [0.5, 1)
-    ok = m > 1e-32
+    ok = m > RGBE_MIN
     if np.any(ex[ok] + 128 > 255):
         raise EnvMapFileError(f"radiance {m.max():g} is too large for RGBE (max ≈ 1.7e38)")
     scale = np.where(ok, np.ldexp(256.0, -ex), 0.0)  # 256 / 2**ex
@@ -129,7 +132,7 @@ def _check_claimed_size(n_major: int, n_minor: int, n_data: int, path, res: byte
 
 def read_hdr_header(path) -> dict:
     """Header of a Radiance file: ``format``, ``exposure`` (product), ``lines``, orientation and size."""
-    path = Path(path)
+    path = as_path(path, "Radiance file")
     with _open(path) as fh:
         buf = fh.read(65536)
         complete = not fh.read(1)
@@ -235,7 +238,7 @@ def read_hdr(path, apply_exposure: bool = False, negative: str = "auto", nonfini
         Of the result; RGBE values (8-bit mantissas) are exact in float32.  Decoding runs in row blocks,
         so a big probe needs the file, its (H, W, 4) bytes and the result only.
     """
-    path = Path(path)
+    path = as_path(path, "Radiance file")
     with _open(path) as fh:
         buf = fh.read()
     info, pos = _parse_header(buf, path)
@@ -323,8 +326,12 @@ def write_hdr(path, img, rle: bool = True, exposure: float | None = None) -> Pat
         New-style run-length encoding (needs 8 ≤ W ≤ 32767; otherwise flat scanlines are written).
     exposure : float, optional
         Written as an ``EXPOSURE=`` header line (pixels are stored as given).
+
+    Values that RGBE cannot hold are never lost silently: radiance above ≈ 1.7e38 is refused, pixels below
+    :data:`RGBE_MIN` (stored as 0) are measured as a share of ∫L dω and refused above 1e-4 or reported
+    (:func:`ibl_ref.environment.radiance_policy.check_format_range`; lat-long solid angles for W = 2H images).
     """
-    path = Path(path)
+    path = as_path(path, "Radiance file")
     a = np.asarray(img, dtype=np.float64)
     if a.ndim == 2:
         a = np.repeat(a[..., None], 3, axis=-1)
@@ -335,6 +342,12 @@ def write_hdr(path, img, rle: bool = True, exposure: float | None = None) -> Pat
         rgbe = float_to_rgbe(a)
     except EnvMapFileError as exc:
         raise EnvMapFileError(f"{path}: {exc}") from None
+    # RGBE stores a pixel whose largest channel is below 1e-32 as 0: refuse or report what that loses
+    from .radiance_policy import check_format_range, pixel_solid_angles
+
+    h, w = a.shape[:2]
+    check_format_range(a, rgbe_to_float(rgbe), str(path), "the smallest pixel value of Radiance RGBE", RGBE_MIN,
+                       pixel_solid_angles(h, w, "latlong" if w == 2 * h else None), "scale the map up")
     h, w = a.shape[:2]
     head = b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n"
     if exposure is not None:

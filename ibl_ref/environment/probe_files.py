@@ -4,9 +4,9 @@ Not a paper concept.  Published outdoor probes are 2:1 lat-long OpenEXR files (f
 often **DWAB**, PIZ or ZIP compressed, usually without an ``envmap`` attribute) or Radiance ``.hdr``
 files (RLE), with a small sun of 1e4–1e5 (docs/background.md "Real light probes").
 :func:`sky_sun_latlong` builds such a map with a **closed-form** ∫L dω, and :func:`write_probe_exr`
-writes it with the OpenEXR binding exactly as a third-party tool would (chosen compression, no
-``envmap`` attribute), bypassing :func:`ibl_ref.environment.exr_io.write_envmap` (which always writes ZIP with the
-attribute).
+writes it the way a third-party tool would (chosen compression, no ``envmap`` attribute, half overflow to
+Inf) through the one OpenEXR writer :func:`ibl_ref.environment.exr_io.write_exr`, bypassing the checks of
+:func:`ibl_ref.environment.exr_io.write_envmap` (which always writes ZIP with the attribute).
 
 The map (H × 2H, rows = latitude bands of the OpenEXR LATLONG layout, ``ibl_ref.environment.envmap``)
 -----------------------------------------------------------------------------------------
@@ -29,9 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["sky_sun_latlong", "probe_cube", "write_probe_exr", "COMPRESSIONS"]
+from ..errors import IBLError
+from .exr_io import COMPRESSIONS
 
-COMPRESSIONS = ("dwab", "dwaa", "piz", "zip", "zips", "none", "rle", "pxr24", "b44")
+__all__ = ["sky_sun_latlong", "probe_cube", "write_probe_exr", "COMPRESSIONS"]
 
 
 def sky_sun_latlong(h: int, a: float = 0.4, b: float = 1.2, g: float = 0.05, sun: float = 3e4,
@@ -42,7 +43,7 @@ def sky_sun_latlong(h: int, a: float = 0.4, b: float = 1.2, g: float = 0.05, sun
     ``h`` must be even.  The sun covers at least the one texel nearest to ``sun_dir``.
     """
     if h < 2 or h % 2:
-        raise ValueError(f"h must be an even integer >= 2, got {h}")
+        raise IBLError(f"h must be an even integer >= 2, got {h}")
     w = 2 * h
     edges = np.pi / 2 - np.pi * np.arange(h + 1) / h  # latitude of the row edges, top first
     s0, s1 = np.sin(edges[1:]), np.sin(edges[:-1])  # sin φ0 < sin φ1 per row
@@ -90,31 +91,23 @@ def probe_cube(n: int, h: int | None = None, **kw) -> np.ndarray:
     return np.asarray(latlong_to_cube(img, int(n)), dtype=np.float64)
 
 
-def _ox_compression(ox, name: str):
-    key = {"none": "NO"}.get(name, name.upper())
-    try:
-        return getattr(ox, f"{key}_COMPRESSION")
-    except AttributeError:
-        raise ValueError(f"unknown compression {name!r}; choose one of {COMPRESSIONS}") from None
-
-
 def write_probe_exr(path, img, compression: str = "dwab", pixel_type: str = "float",
                     envmap_attribute: bool = False) -> Path:
-    """Write an ``(H, W, 3)`` image as an RGB scanline EXR the way published probes are made.
+    """Write an ``(H, W, 3)`` image as an RGB scanline EXR the way published probes are made (atomically).
 
     ``compression`` ∈ :data:`COMPRESSIONS`; ``pixel_type`` ``"float"`` or ``"half"`` (values above
     65504 become Inf in half, as in any tool that does not clamp); no ``envmap`` attribute unless
-    ``envmap_attribute=True`` (then LATLONG).  Not atomic (a test/benchmark fixture).
+    ``envmap_attribute=True`` (then LATLONG).  No radiance checks (a test/benchmark fixture).
     """
     import OpenEXR as ox
 
+    from .exr_io import ExrPart, write_exr
+
+    if pixel_type not in ("float", "half"):
+        raise IBLError(f"{path}: pixel_type must be 'float' or 'half', got {pixel_type!r}")
     a = np.asarray(img)
     dt = {"float": np.float32, "half": np.float16}[pixel_type]
-    header = {"compression": _ox_compression(ox, compression), "type": ox.scanlineimage}
-    if envmap_attribute:
-        header["envmap"] = ox.ENVMAP_LATLONG
     with np.errstate(over="ignore"):
-        chans = {c: np.ascontiguousarray(a[..., i].astype(dt)) for i, c in enumerate("RGB")}
-    path = Path(path)
-    ox.File(header, chans).write(str(path))
-    return path
+        pix = a[..., :3].astype(dt)
+    attrs = {"envmap": ox.ENVMAP_LATLONG} if envmap_attribute else {}
+    return write_exr(path, ExrPart(pix, ("R", "G", "B"), attrs), compression=compression)

@@ -37,7 +37,25 @@ fraction* is
 Non-finite values are handled first, so f is computed over finite values.  Only the colour channels
 (R, G, B or Y) are radiance; an alpha channel is checked for NaN/Inf by the readers but never clamped.
 The :class:`RadianceReport` of every read is printed on stderr by the CLI and stored under
-``"radiance"`` in each command's JSON sidecar.
+``"radiance"`` in each command's JSON sidecar; the Python readers warn once with the same line
+(:class:`~ibl_ref.errors.RadianceWarning`) whenever the policy changed a value.
+
+Writing: what a format cannot hold (:func:`check_format_range`)
+----------------------------------------------------------------
+Overflow is refused by every writer.  At the other end a format holds small values only down to a limit:
+half floats are exact relative to 2^-11 down to their smallest normal number 2^-14 ≈ 6.1e-5, below it
+(subnormals) the step is a constant 2^-24 ≈ 6e-8 and values under 2^-25 become 0; float32 likewise below
+2^-126 ≈ 1.2e-38 (0 under 2^-150); Radiance RGBE stores a pixel whose largest channel is below 1e-32 as 0.  The
+writers measure what this costs in the map's own unit, the share of ∫L dω (exact texel solid angles; pixel
+sums for rendered images)
+
+    f_range = Σ ω·|q(L) − L| / Σ ω·L        over the values below the format's normal range,
+
+and refuse the write (:class:`~ibl_ref.errors.RadianceError`, naming the format, the count, f_range and the
+remedy) when f_range > :data:`AUTO_MAX_REMOVED_FRACTION`, the same share the reader's ``negative="auto"``
+accepts; a smaller positive f_range above :data:`RANGE_WARN_FRACTION` is a
+:class:`~ibl_ref.errors.FormatRangeWarning` with the same numbers.  So a map of 1e-8 written as half (every
+value would become 0) is an error, never a silent black file.
 """
 
 from __future__ import annotations
@@ -46,7 +64,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from ..errors import RadianceError
+from ..errors import FormatRangeWarning, RadianceError
 
 __all__ = [
     "NEGATIVE_MODES",
@@ -58,12 +76,18 @@ __all__ = [
     "apply_policy",
     "pixel_solid_angles",
     "check_radiance",
+    "RANGE_WARN_FRACTION",
+    "range_loss",
+    "check_format_range",
+    "warn_repaired",
 ]
 
 NEGATIVE_MODES = ("auto", "clamp", "error")
 NONFINITE_MODES = ("error", "zero")
 #: largest share of ∫|L| dω that ``negative="auto"`` removes by clamping (above it the data are refused)
 AUTO_MAX_REMOVED_FRACTION = 1e-4
+#: share of ∫L dω below which the loss of values under a format's normal range is not reported
+RANGE_WARN_FRACTION = 1e-7
 _CHUNK = 1 << 22  # elements per reduction chunk (bounds the temporaries to ~32 MB)
 
 
@@ -249,7 +273,7 @@ def decide(rep: RadianceReport) -> tuple:
             raise RadianceError(
                 f"{name}: {rep.n_negative} negative radiance value(s) (min {rep.negative_min:g}, "
                 f"{rep.removed_fraction:.2e} of the integral of |L| domega); pass --negative auto or clamp "
-                f"(Python: negative='auto'/'clamp') to clamp them to 0")
+                f"(Python: negative='auto' or negative='clamp') to clamp them to 0")
         if rep.negative_policy == "auto" and rep.removed_fraction > AUTO_MAX_REMOVED_FRACTION:
             raise RadianceError(
                 f"{name}: {rep.n_negative} negative radiance value(s) (min {rep.negative_min:g}) carry "
@@ -282,10 +306,10 @@ def apply_policy(values, name: str = "radiance", negative: str = "auto", nonfini
             if clamp:
                 np.maximum(blk, 0, out=blk)
         if zero_nf:
-            rep.action.append(f"replaced {rep.n_nonfinite} NaN/Inf value(s) by 0 (--nonfinite zero)")
+            rep.action.append(f"replaced {rep.n_nonfinite} NaN/Inf value(s) by 0 (policy nonfinite=zero)")
         if clamp:
-            why = (f"--negative auto: {rep.removed_fraction:.2e} <= {AUTO_MAX_REMOVED_FRACTION:g} of the integral"
-                   if rep.negative_policy == "auto" else "--negative clamp")
+            why = (f"policy negative=auto: {rep.removed_fraction:.2e} <= {AUTO_MAX_REMOVED_FRACTION:g} of the integral"
+                   if rep.negative_policy == "auto" else "policy negative=clamp")
             rep.action.append(f"clamped {rep.n_negative} negative value(s) to 0 ({why})")
     return a, rep
 
@@ -298,3 +322,60 @@ def check_radiance(values, name: str = "radiance", negative: str = "error", nonf
     policy (module docstring; then a repaired copy may be returned).
     """
     return apply_policy(values, name, negative=negative, nonfinite=nonfinite)[0]
+def warn_repaired(rep: RadianceReport, stacklevel: int = 3) -> None:
+    """Warn once (:class:`~ibl_ref.errors.RadianceWarning`, the CLI's ``note:`` line) if the policy changed values."""
+    if rep is not None and rep.action:
+        import warnings
+
+        from ..errors import RadianceWarning
+
+        warnings.warn(rep.summary(), RadianceWarning, stacklevel=stacklevel)
+
+
+def range_loss(values, stored, min_normal: float, weights=None) -> tuple:
+    """``(f_range, n_below, n_zeroed)`` of the module docstring for ``values`` written as ``stored``.
+
+    ``values``: the radiance to write (float64, non-negative, leading axes as ``weights``), ``stored``: the
+    same array as the format holds it (any float dtype, same shape); ``min_normal``: the format's smallest
+    value of full relative precision.  Works in row chunks.
+    """
+    a = np.asarray(values)
+    q = np.asarray(stored)
+    if a.ndim == 0:
+        a, q = a.reshape(1), q.reshape(1)
+    lost = total = 0.0
+    n_below = n_zero = 0
+    for sl in _chunks(a):
+        blk = np.asarray(a[sl], dtype=np.float64)
+        w = _weights_for(a, weights, sl)
+        total += float(np.sum(blk * w))
+        small = (blk > 0) & (blk < min_normal)
+        k = int(small.sum())
+        if not k:
+            continue
+        qb = np.asarray(q[sl], dtype=np.float64)
+        n_below += k
+        n_zero += int((small & (qb == 0)).sum())
+        lost += float(np.sum(np.where(small, np.abs(qb - blk), 0.0) * w))
+    return (lost / total if total > 0 else 0.0), n_below, n_zero
+
+
+def check_format_range(values, stored, where: str, fmt: str, min_normal: float, weights=None,
+                       remedy: str = "") -> float:
+    """Refuse or warn about values below a format's range (module docstring); returns f_range.
+
+    ``fmt`` names the limit in the message (e.g. ``"the smallest normal half"``), ``remedy`` says what to do instead.
+    """
+    f, n_below, n_zero = range_loss(values, stored, min_normal, weights)
+    if f <= RANGE_WARN_FRACTION:
+        return f
+    share = "of the integral of L domega" if weights is not None else "of the image's sum"
+    what = (f"{n_below} value(s) below {fmt} ({min_normal:.3g}), {n_zero} of them stored as 0, "
+            f"change {f:.2e} {share}")
+    if f > AUTO_MAX_REMOVED_FRACTION:
+        raise RadianceError(f"{where}: {what}, more than {AUTO_MAX_REMOVED_FRACTION:g}; the file would not hold "
+                            f"this map" + (f" ({remedy})" if remedy else ""))
+    import warnings
+
+    warnings.warn(f"{where}: {what}", FormatRangeWarning, stacklevel=3)
+    return f

@@ -45,6 +45,7 @@ import numpy as np
 
 from . import envmap
 from .envmap import check_cube_shape
+from ..errors import IBLError
 
 __all__ = ["pad_faces", "padding_tables", "CubeSampler", "sample_nearest", "sample_bilinear"]
 
@@ -61,7 +62,7 @@ def padding_tables(n: int, k: int, convention: str = "openexr"):
         Their weights (sum 1).
     """
     if k < 0 or k > n:
-        raise ValueError(f"padding width must be in 0..N (N={n}), got {k}")
+        raise IBLError(f"padding width must be in 0..N (N={n}), got {k}")
     frames = envmap.face_frames(convention)
     m = n + 2 * k
     idx = np.arange(-k, n + k)
@@ -165,7 +166,7 @@ def pad_faces(cube: np.ndarray, k: int, convention: str = "openexr", mode: str =
         flat = pad_faces(cube, 1, convention, "unfold")
         flat = flat.reshape((6 * (n + 2) * (n + 2),) + cube.shape[3:])
     else:
-        raise ValueError(f"unknown padding mode {mode!r}; choose 'unfold' or 'geometric'")
+        raise IBLError(f"unknown padding mode {mode!r}; choose 'unfold' or 'geometric'")
     if cube.ndim == 3:
         out = (flat[src] * w).sum(axis=-1)
     else:
@@ -213,7 +214,7 @@ def _geometric_tables(n: int, k: int, convention: str = "openexr"):
     and never leaves the input's range.
     """
     if k < 0 or k > n:
-        raise ValueError(f"padding width must be in 0..N (N={n}), got {k}")
+        raise IBLError(f"padding width must be in 0..N (N={n}), got {k}")
     frames = envmap.face_frames(convention)
     m, mp = n + 2 * k, n + 2
     idx = np.arange(-k, n + k)

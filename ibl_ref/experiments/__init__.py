@@ -221,14 +221,16 @@ def run_experiment(mod: ModuleType, out: Path, quick: bool, overrides: dict | No
             raise IBLError(f"experiment {mod.NAME} does not split into independent jobs (--workers / --scheduler "
                            f"apply to {names}; 'ibl-ref reproduce --workers N' runs whole experiments in parallel)")
         jobs = dict(executor=executor, workers=workers)
-    out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    with progress.step(f"{mod.NAME}: compute", announce=False):
-        summary = mod.run(out, quick=quick, **params, **jobs) or {}
-    t1 = time.perf_counter()
-    with progress.step(f"{mod.NAME}: plot", announce=False):
-        figs = mod.plot(out) or []
-    t2 = time.perf_counter()
+    from ..atomic import output_folder
+
+    with output_folder(out, "experiment output folder", remove_tree=True):  # a failed run leaves no folder of its own
+        t0 = time.perf_counter()
+        with progress.step(f"{mod.NAME}: compute", announce=False):
+            summary = mod.run(out, quick=quick, **params, **jobs) or {}
+        t1 = time.perf_counter()
+        with progress.step(f"{mod.NAME}: plot", announce=False):
+            figs = mod.plot(out) or []
+        t2 = time.perf_counter()
     return {"experiment": mod.NAME, "quick": quick, "params": {k: _jsonable(v) for k, v in params.items()},
             "compute_time_s": round(t1 - t0, 3), "plot_time_s": round(t2 - t1, 3),
             "figures": [str(f) for f in figs], "summary": summary}
@@ -270,20 +272,22 @@ def reproduce(out, quick: bool = False, names=None, *, executor=None, workers: i
         chosen = [n for n, m in exps.items() if not quick or getattr(m, "IN_QUICK_REPRODUCE", True)]
     else:
         chosen = [get(n).NAME for n in names]
-    out.mkdir(parents=True, exist_ok=True)
-    jobs = [(n, str(out.resolve()), bool(quick), i, len(chosen)) for i, n in enumerate(chosen, 1)]
-    where = ("serial" if executor is None and workers <= 1 else
-             f"{workers} local processes" if executor is None else f"executor {executor!r}")
-    results = map_jobs(_reproduce_job, jobs, executor=executor, workers=workers,
-                       desc=None if executor is None and workers <= 1 else "reproduce", unit="experiment",
-                       what="reproduce worker")
-    missing = [f for r in results for f in r["figures"] if not Path(f).exists()]
-    if missing:
-        raise IBLError(f"{len(missing)} figure(s) written by the workers are not visible here (first: {missing[0]}); "
-                       "the output folder must be on a file system every worker shares")
-    skipped = sorted(set(exps) - set(chosen))
-    summary = {"quick": bool(quick), "ran_on": where, "runs": results, "skipped_in_quick": skipped}
-    write_json(out / "reproduce_summary.json", summary)
+    from ..atomic import output_folder
+
+    with output_folder(out, "reproduce output folder"):  # created for a run that fails: removed if still empty
+        jobs = [(n, str(out.resolve()), bool(quick), i, len(chosen)) for i, n in enumerate(chosen, 1)]
+        where = ("serial" if executor is None and workers <= 1 else
+                 f"{workers} local processes" if executor is None else f"executor {executor!r}")
+        results = map_jobs(_reproduce_job, jobs, executor=executor, workers=workers,
+                           desc=None if executor is None and workers <= 1 else "reproduce", unit="experiment",
+                           what="reproduce worker")
+        missing = [f for r in results for f in r["figures"] if not Path(f).exists()]
+        if missing:
+            raise IBLError(f"{len(missing)} figure(s) written by the workers are not visible here (first: "
+                           f"{missing[0]}); the output folder must be on a file system every worker shares")
+        skipped = sorted(set(exps) - set(chosen))
+        summary = {"quick": bool(quick), "ran_on": where, "runs": results, "skipped_in_quick": skipped}
+        write_json(out / "reproduce_summary.json", summary)
     return summary
 
 

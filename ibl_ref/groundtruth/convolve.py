@@ -19,14 +19,22 @@ literal Eq. 4 sum (``normalized=False``) at every output texel ``r``, by one of
     moments (exact polynomial kernel on blocks in the positive hemisphere) plus an exact gather of
     the horizon band; equals the exact gather up to rounding, ≈ 10× faster at 128² faces.
 ``"auto"``
-    per exponent, ``s ∈ {1, 2}`` by the moment route (broad lobes are where the SH bound is loose and
-    the sparse gather degenerates to the dense one) — from 512² faces (:func:`~ibl_ref.groundtruth.moment_convolution.moment_leaf`)
-    with linear brackets on leaf blocks of the horizon band instead of its exact gather (rigorous
-    bound; the leaf is halved while the bound misses rtol), whose cost grows as N² instead of N³ —
-    otherwise the cheapest of the above whose bound meets ``rtol``: the SH/hybrid route when its
-    a-priori band limit is affordable (broad lobes), the sparse gather otherwise (narrow lobes), and the
-    exact gather when neither bound meets ``rtol`` (checked a posteriori, per exponent) or for the
-    mirror ``s = inf``.  Exponents routed to SH share one SH pass.
+    per exponent the cheapest route by the cost models of the kernel in use (:func:`_route_auto`,
+    :func:`plan_routes`): ``s ∈ {1, 2}`` by the moment route or the shared SH pass (broad lobes are where the
+    SH bound is loose and the sparse gather degenerates to the dense one; from 256² faces,
+    :func:`~ibl_ref.groundtruth.moment_convolution.moment_leaf`, the moment route uses linear brackets on
+    leaf blocks of the horizon band instead of its exact gather: rigorous bound, the leaf halved while it
+    misses rtol, cost growing as N² instead of N³); the other exponents by the SH/hybrid route when its
+    planned band limit is affordable (broad lobes; the plan estimates the darkest output texel from a 16²
+    copy of the map), the sparse gather otherwise (narrow lobes; its cost from its own first caps on a
+    sample of tiles where that decides), and the exact gather when neither bound meets ``rtol`` (checked a
+    posteriori, per exponent) or for the mirror ``s = inf``.  Exponents routed to SH share one SH pass;
+    an exponent within reach of L_max may join it when that stays cheaper should it fail.
+
+Kernels (``kernel``)
+    ``"numpy"`` or ``"compiled"`` (numba, :mod:`ibl_ref.groundtruth.kernel_choice`,
+    :mod:`ibl_ref.groundtruth.compiled_kernels`): the same routes and bounds; ``"auto"`` takes the compiled
+    kernels when numba is installed and the call pays for loading them (:func:`_auto_kernel`).
 
 Concurrency (``workers``)
     The work is cut into independent jobs — the moment and sparse routes per fixed group of output
@@ -119,9 +127,6 @@ MOMENT_MIN_PAIRS = 1e8
 WORKERS_ENV = "IBL_REF_WORKERS"
 #: parallel back-ends of :func:`convolve` (``auto``: forked processes where possible, else threads)
 BACKENDS = ("auto", "process", "thread")
-#: cost units per (output × source texel) pair of the moment route (both s = 1 and 2 in one call: 3.4 s CPU
-#: at 128² faces, 1 BLAS thread); only used to order the jobs (longest first)
-MOMENT_UNITS_PER_PAIR = 0.45
 #: correction of the sparse cost model for the ordering of the jobs only (1: the model as fitted)
 SPARSE_JOB_ORDER_FACTOR = 1.0
 #: :func:`convolve` rescales the input by a power of two (exact) when its largest radiance is above
@@ -450,16 +455,79 @@ EXACT_UNITS_PER_PAIR_S1 = 6.0
 #: the SH route at 1.8 s instead of the sparse gather's 1.4 s.
 SPARSE_UNITS_PER_PAIR = 6.0
 SPARSE_UNITS_PER_OUTPUT = 6.8e3
+#: the same constants for ``kernel="compiled"`` (:mod:`ibl_ref.groundtruth.compiled_kernels`; the exact gather has
+#: no compiled kernel); ``SH_FACTOR*`` and ``SH_BRIGHT_FACTOR*`` scale
+#: :func:`~ibl_ref.groundtruth.sh_convolution.sh_cost` and ``bright_cost``, ``MOMENT_UNITS*`` :func:`_moment_cost`:
+#: medians of measured / model of ``benchmarks/bench_cost_models.py`` (2026-12-02, load 0.3–1.0, sky + sun 64²–256²;
+#: the moment route 64²–512²: measured / model 0.63–1.23 NumPy, 0.39–1.28 compiled)
+EXACT_UNITS_PER_PAIR_COMPILED = 17.0
+EXACT_UNITS_PER_PAIR_S1_COMPILED = 6.0
+SPARSE_UNITS_PER_PAIR_COMPILED = 1.33
+SPARSE_UNITS_PER_OUTPUT_COMPILED = 2.2e3
+SH_FACTOR = 0.37
+SH_FACTOR_COMPILED = 0.19
+SH_BRIGHT_FACTOR = 0.43
+SH_BRIGHT_FACTOR_COMPILED = 0.23
 
 
-def _sparse_cost(s, rtol, n_src, n_out):
+def _unit(name, impl):
+    """The cost-model constant ``name`` of the kernel ``impl`` (read at call time)."""
+    return globals()[name + ("_COMPILED" if impl == "compiled" else "")]
+
+
+def _seconds_per_unit():
+    from .sh_convolution import SECONDS_PER_UNIT
+
+    return SECONDS_PER_UNIT
+
+
+def _exact_cost(s, n_src, n_out, impl="numpy"):
+    """Cost model of the dense exact gather of one exponent (units of :func:`_seconds_per_unit`)."""
+    return n_out * n_src * _unit("EXACT_UNITS_PER_PAIR_S1" if s == 1.0 else "EXACT_UNITS_PER_PAIR", impl)
+
+
+#: cost units of the moment route (s = 1 and 2 in one call) per (output texel × 6N/leaf): the horizon band holds
+#: O(N) source texels per output texel with the exact band (leaf 1), O(N/leaf) leaf blocks with brackets
+MOMENT_UNITS = 56.0
+MOMENT_UNITS_COMPILED = 34.0
+
+
+def _moment_cost(n, out_size, leaf, impl="numpy"):
+    """Cost model of :func:`ibl_ref.groundtruth.moment_convolution.convolve_moment_many` for s = 1 and 2 (units of
+    :func:`_seconds_per_unit`)."""
+    return _unit("MOMENT_UNITS", impl) * 6.0 * out_size * out_size * 6.0 * n / max(leaf, 1)
+
+
+#: sparse cost per (output texel × candidate source texel per output) and per output texel, with the candidates of
+#: :func:`ibl_ref.groundtruth.phong_convolution.estimate_candidates` (its first caps on a sample of tiles), per
+#: kernel; fitted by ``benchmarks/bench_cost_models.py --only sparse --probe …/courtyard.exr`` (2026-12-02, load
+#: 1.9–2.9; sky + sun 64²–256² × s = 64…4096 and the courtyard probe at 256², s = 256…4096: measured / model
+#: 0.78–1.57 NumPy, 0.78–1.77 compiled)
+SPARSE_UNITS_PER_CAND = 5.04
+SPARSE_UNITS_PER_CAND_OUTPUT = 992.0
+SPARSE_UNITS_PER_CAND_COMPILED = 1.03
+SPARSE_UNITS_PER_CAND_OUTPUT_COMPILED = 1.01e3
+#: the planner estimates the sparse candidates (≈ 0.05–2 s) only for exponents whose sparse cost by the static
+#: model is at least this many seconds (below, the choice matters little) and not SPARSE_STATIC_SLACK times their SH
+#: pass (the static model was 1.3–3.6× below the measured cost on the CC0 probes at 256², s = 256)
+SPARSE_ESTIMATE_MIN_SECONDS = 0.3
+SPARSE_STATIC_SLACK = 4.0
+
+
+def _sparse_cost_estimated(cand, n_out, impl="numpy"):
+    """Sparse cost from the estimated candidates per output texel (units of :func:`_seconds_per_unit`)."""
+    return n_out * (cand * _unit("SPARSE_UNITS_PER_CAND", impl) + _unit("SPARSE_UNITS_PER_CAND_OUTPUT", impl))
+
+
+def _sparse_cost(s, rtol, n_src, n_out, impl="numpy"):
     """Cost model of the sparse gather (units of :func:`ibl_ref.groundtruth.sh_convolution.sh_cost`)."""
     eps = max(rtol * 1e-2, 1e-300)
     cos_c = math.exp(math.log(eps) / (s + 1.0))
     frac = (1.0 - cos_c) / 2.0
     if frac > 0.4:  # the sparse gather itself falls back to the dense gather there
         return math.inf
-    return n_out * n_src * frac * SPARSE_UNITS_PER_PAIR + n_out * SPARSE_UNITS_PER_OUTPUT
+    return (n_out * n_src * frac * _unit("SPARSE_UNITS_PER_PAIR", impl)
+            + n_out * _unit("SPARSE_UNITS_PER_OUTPUT", impl))
 
 
 def convolve(
@@ -474,6 +542,7 @@ def convolve(
     backend: str = "auto",
     executor=None,
     memory_limit: float | None = None,
+    kernel: str | None = None,
 ) -> ConvolutionResult:
     """Convolve a cube map with Phong lobes ``max(r·ω,0)^s`` for several exponents, with error bounds.
 
@@ -516,6 +585,11 @@ def convolve(
         fewer workers when ``workers`` of them would not fit (``info["workers_planned"]``); results
         do not change.  A worker process that dies anyway (killed for lack of memory) raises
         :class:`~ibl_ref.errors.IBLError`.
+    kernel : {"auto", "numpy", "compiled"}, optional
+        Implementation of the inner loops (:mod:`ibl_ref.groundtruth.kernel_choice`): the NumPy reference or
+        the numba-compiled kernels (extra ``fast``).  Default ``$IBL_REF_KERNEL`` or ``"auto"``.  Both give
+        rigorous bounds; their maps agree within the sum of the two bounds.  ``info["kernel"]`` records the one
+        used.
 
     Returns
     -------
@@ -553,6 +627,12 @@ def convolve(
         raise IBLError("method 'sparse' computes the normalised lobe average only; use 'sh' or 'exact'")
     workers = _resolve_workers(workers)
     backend = _resolve_backend(backend, workers)
+    from .kernel_choice import resolve_kernel
+
+    impl = resolve_kernel(kernel)
+    from .kernel_choice import KERNEL_ENV
+
+    kernel_auto = (kernel if kernel is not None else os.environ.get(KERNEL_ENV, "").strip().lower() or "auto") == "auto"
     if memory_limit is not None:
         try:
             memory_limit = float(memory_limit)
@@ -560,25 +640,52 @@ def convolve(
             raise IBLError(f"memory_limit must be a number of bytes, got {memory_limit!r}") from None
         if not memory_limit > 0:
             raise IBLError(f"memory_limit must be positive, got {memory_limit!r}")
+    kernel_note = None
+    if impl == "compiled" and kernel_auto:
+        with threadpool_limits(limits=1, user_api="blas"):
+            impl, kernel_note = _auto_kernel(a4, s_list, method, rtol, out_size, normalized)
     executor, owned_client = resolve_executor(executor)
     try:
         return _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, workers, backend,
-                         executor, memory_limit, scale_k, t_start, c_start)
+                         executor, memory_limit, scale_k, t_start, c_start, impl, kernel_note)
     finally:
         if owned_client is not None:
             owned_client.close()
 
 
-def _route_auto(a4, s_list, rtol, out_size, normalized, info):
-    """Method per exponent for ``method="auto"`` (module docstring): ``(route, SH plan or None, finite)``.
+#: an exponent the SH plan cannot promise (band limit > L_max at the estimated output floor) but that is within
+#: reach (:data:`ibl_ref.groundtruth.sh_convolution.FLOOR_REACH`) joins the SH pass at L_max only if that is cheaper
+#: than its other route even when the attempt is charged this share of the other route (the cost of a failed
+#: attempt: the bound is checked after the pass and a miss goes to the sparse gather)
+SH_RISK_SHARE = 0.25
 
-    ``finite``: the finite exponents left to the SH / sparse / exact cost comparison (the SH plan was
-    made for exactly these).  Writes the planning diagnostics into ``info``.
-    """
-    n = a4.shape[1]
-    n_src, n_out = 6 * n * n, 6 * out_size * out_size
+
+def _sh_pass_cost(L, n_bright, n_src, n_out, K, Q, impl):
+    """Model cost of one SH pass (its passes, the bright gather and the fixed part; units of
+    :func:`_seconds_per_unit`)."""
     from . import sh_convolution as shc
 
+    return (_unit("SH_FACTOR", impl) * shc.sh_cost(L, n_src, n_out, K, Q)
+            + _unit("SH_BRIGHT_FACTOR", impl) * shc.bright_cost(n_bright, n_out, K) + shc.SH_OVERHEAD_UNITS)
+
+
+def _route_auto(a4, s_list, rtol, out_size, normalized, info, impl="numpy", estimate=True):
+    """Method per exponent for ``method="auto"`` (module docstring): ``(route, SH plan or None, SH set)``.
+
+    Every finite exponent gets the cheapest of its routes by the cost models of the kernel ``impl``: the exact
+    gather, the sparse gather (normalised only), the moment route (s = 1, 2 from :data:`MOMENT_MIN_PAIRS`; one call
+    for both) and the shared SH pass, whose cost is set by the largest band limit of its exponents: every prefix
+    of the exponents sorted by their planned band limit (:func:`ibl_ref.groundtruth.sh_convolution.plan_sh`) is
+    tried, exponents within reach of L_max last (charged :data:`SH_RISK_SHARE`).  Returns the SH plan made for
+    exactly the chosen SH set.  Writes the planning diagnostics and the model costs of the chosen plan and of every
+    single forced method into ``info`` (``route_model_costs_s``)."""
+    n = a4.shape[1]
+    n_src, n_out = 6 * n * n, 6 * out_size * out_size
+    Q = a4.shape[-1] + 1
+    from . import sh_convolution as shc
+    from .moment_convolution import moment_leaf
+
+    unit = _seconds_per_unit()
     route, plan = {}, None
     finite = [s for s in s_list if np.isfinite(s)]
     for s in s_list:
@@ -588,72 +695,150 @@ def _route_auto(a4, s_list, rtol, out_size, normalized, info):
         info["auto_tiny_map_exact"] = True
         for s in finite:
             route[s] = "exact"
-        finite = []
-    if n_out * n_src >= MOMENT_MIN_PAIRS:
-        for s in finite:
-            if s in MOMENT_EXPONENTS:
-                route[s] = "moment"
-        finite = [s for s in finite if s not in MOMENT_EXPONENTS]
-    if finite and _sh_cannot_pay(finite, rtol, n, n_src, n_out, normalized, a4.shape[-1] + 1):
+        return route, None, []
+    if not finite:
+        return route, None, []
+    c_sp = {s: (_sparse_cost(s, rtol, n_src, n_out, impl) if normalized else np.inf) for s in finite}
+    mo_cand = [s for s in finite if s in MOMENT_EXPONENTS] if n_out * n_src >= MOMENT_MIN_PAIRS else []
+    c_mo = _moment_cost(n, out_size, moment_leaf(n, rtol), impl) if mo_cand else np.inf
+    L_of, risky = {}, set()
+    rest = [s for s in finite if s not in mo_cand]
+    # the SH plan unless no SH pass can beat even 4× the static model of the other routes (which can be ≈ 3× low on
+    # real probes, whose contrast widens the sparse caps)
+    static_other = sum(min(c_sp[s], _exact_cost(s, n_src, n_out, impl)) for s in rest)
+    if not rest or _sh_cannot_pay(rest, SPARSE_STATIC_SLACK * static_other, n, n_src, n_out, Q, impl, rtol):
         info["sh_plan_skipped"] = True
-        for s in finite:
-            c_sp = _sparse_cost(s, rtol, n_src, n_out) if normalized else np.inf
-            c_ex = n_out * n_src * (EXACT_UNITS_PER_PAIR_S1 if s == 1.0 else EXACT_UNITS_PER_PAIR)
-            route[s] = "sparse" if c_sp < c_ex else "exact"
-        finite = []
-    if finite:
+    else:
         plan = shc.plan_sh(a4, finite, rtol=rtol, out_size=out_size)
+    # the sparse gather's real caps on this map (a sample of tiles), where its cost decides: its static model within
+    # SPARSE_STATIC_SLACK of the exponent's own SH pass, or no SH pass planned for it
+    big = []
+    for i, s in enumerate(finite):
+        if not (estimate and np.isfinite(c_sp[s]) and c_sp[s] * unit >= SPARSE_ESTIMATE_MIN_SECONDS):
+            continue
+        L_s = plan["L_per_s"][i] if plan else None
+        alt = _sh_pass_cost(L_s, plan["n_bright"], n_src, n_out, 1, Q, impl) if L_s is not None else np.inf
+        if s in mo_cand:
+            alt = min(alt, c_mo)
+        alt = min(alt, _exact_cost(s, n_src, n_out, impl))
+        if alt / SPARSE_STATIC_SLACK <= c_sp[s] <= SPARSE_STATIC_SLACK * alt:
+            big.append(s)
+    if big:
+        from .phong_convolution import estimate_candidates
+
+        cand = estimate_candidates(a4, big, rtol=rtol, out_size=out_size, impl=impl)
+        info["sparse_candidates_per_output"] = {_s_json(s): float(c) for s, c in zip(big, cand)}
+        for s, c in zip(big, cand):
+            c_sp[s] = _sparse_cost_estimated(c, n_out, impl)
+    other = {}
+    for s in finite:
+        c_ex = _exact_cost(s, n_src, n_out, impl)
+        other[s] = ("sparse", c_sp[s]) if c_sp[s] < c_ex else ("exact", c_ex)
+    costs = {"exact": sum(_exact_cost(s, n_src, n_out, impl) for s in finite)}
+    if normalized:
+        costs["sparse"] = sum(min(c_sp[s], _exact_cost(s, n_src, n_out, impl)) for s in finite)
+    if plan is not None:
         info["sh_plan_L_per_s"] = {_s_json(s): L for s, L in zip(finite, plan["L_per_s"])}
-        info["sh_plan_L_estimate"] = {_s_json(s): L for s, L in plan["L_est"].items()}
-        Q = a4.shape[-1] + 1
-        L_of = {}
-        other = {}
-        for s, L_s in zip(finite, plan["L_per_s"]):
-            # rigorous band limit (estimate-mode band limit only if estimates were planned)
-            L_s = L_s if L_s is not None else plan["L_est"].get(s)
+        info["sh_plan_floor"] = {_s_json(s): y for s, y in zip(finite, plan["floor"])}
+        for s, L_s, r in zip(finite, plan["L_per_s"], plan["reach"]):
             if L_s is not None:
                 L_of[s] = L_s
-            c_sp = _sparse_cost(s, rtol, n_src, n_out) if normalized else np.inf
-            c_ex = n_out * n_src * (EXACT_UNITS_PER_PAIR_S1 if s == 1.0 else EXACT_UNITS_PER_PAIR)
-            other[s] = ("sparse", c_sp) if c_sp < c_ex else ("exact", c_ex)
-        # The SH exponents share one pass whose cost is set by the largest band limit: try every
-        # prefix of the SH-capable exponents sorted by band limit, the rest by sparse/exact.
-        cand = sorted(L_of, key=lambda s: L_of[s])
-        best = None
-        for j in range(len(cand) + 1):
-            grp = cand[:j]
-            cost = sum(other[s][1] for s in finite if s not in grp)
-            if grp:
-                cost += shc.sh_cost(L_of[grp[-1]], n_src, n_out, len(grp), Q) + shc.SH_OVERHEAD_UNITS
-            if best is None or cost < best[0]:
-                best = (cost, grp)
-        info["auto_model_cost_s"] = float(best[0] * shc.SECONDS_PER_UNIT)
-        for s in finite:
-            route[s] = "sh" if s in best[1] else other[s][0]
-    return route, plan, finite
+            elif r and s not in MOMENT_EXPONENTS:
+                L_of[s] = shc.SH_L_MAX
+                risky.add(s)
+        if L_of:
+            costs["sh"] = _sh_pass_cost(max(L_of.values()), plan["n_bright"], n_src, n_out, len(finite), Q, impl)
+    # SH group: a prefix of the candidates by band limit (risky ones last); the rest by moment / sparse / exact
+    cand = sorted(L_of, key=lambda s: (s in risky, L_of[s]))
+    nb = plan["n_bright"] if plan else 0
+    best = None
+    for j in range(len(cand) + 1):
+        grp = cand[:j]
+        rest = [s for s in finite if s not in grp]
+        mo = [s for s in rest if s in mo_cand and c_mo < sum(other[x][1] for x in rest if x in mo_cand)]
+        mo = [s for s in rest if s in mo_cand] if mo else []
+        cost = (c_mo if mo else 0.0) + sum(other[s][1] for s in rest if s not in mo)
+        if grp:
+            cost += _sh_pass_cost(L_of[grp[-1]], nb, n_src, n_out, len(grp), Q, impl)
+            cost += SH_RISK_SHARE * sum(other[s][1] for s in grp if s in risky)
+        if best is None or cost < best[0]:
+            best = (cost, grp, mo)
+    cost, grp, mo = best
+    grp = [s for s in finite if s in grp]  # in the order of the exponents
+    for s in finite:
+        route[s] = "sh" if s in grp else ("moment" if s in mo else other[s][0])
+    if risky & set(grp):
+        info["sh_within_reach"] = [_s_json(s) for s in grp if s in risky]
+    info["auto_model_cost_s"] = float(cost * unit)
+    costs["auto"] = cost
+    info["route_model_costs_s"] = {k: float(v * unit) for k, v in costs.items()}
+    if grp and plan is not None and len(grp) != len(finite):
+        plan = shc.plan_sh(a4, grp, rtol=rtol, out_size=out_size)  # the plan of exactly the SH set
+    return route, (plan if grp else None), grp
 
 
-def _sh_cannot_pay(finite, rtol, n, n_src, n_out, normalized, Q):
-    """True when no SH pass can be cheaper than the sparse/exact gathers of ``finite`` together, by a
-    lower bound of its cost: the band limit the planner could choose is never below the one the
-    truncation bound needs at the most lenient target 0.8·rtol (:func:`~ibl_ref.groundtruth.sh_bounds.choose_band_limit`).
-    Spares the planner (an SH projection preview, ≈ 0.1–0.3 s) where narrow lobes go to the sparse gather."""
+#: work (output × source texels × exponents) from which ``kernel="auto"`` takes the compiled kernels without
+#: comparing the models (their load time is then a small part)
+AUTO_COMPILED_PAIRS = 2e11
+
+
+def _auto_kernel(a4, s_list, method, rtol, out_size, normalized):
+    """``kernel="auto"`` with numba installed: ``("compiled", None)`` when the compiled kernels are loaded in this
+    process already or the work is large, else the kernel whose model cost plus load time
+    (:data:`~ibl_ref.groundtruth.kernel_choice.COMPILED_LOAD_SECONDS`) is smaller, with a note why."""
+    from .kernel_choice import COMPILED_LOAD_SECONDS, compiled_loaded
+
+    n = a4.shape[1]
+    if compiled_loaded() or 36 * n * n * out_size * out_size * len(s_list) >= AUTO_COMPILED_PAIRS:
+        return "compiled", None
+    cost = {}
+    for impl in ("numpy", "compiled"):
+        info = {}
+        _route_auto(a4, s_list, rtol, out_size, normalized, info, impl, estimate=False)
+        costs = info.get("route_model_costs_s", {})
+        cost[impl] = costs.get("auto" if method == "auto" else method, costs.get("auto", 0.0))
+    if cost["numpy"] <= cost["compiled"] + COMPILED_LOAD_SECONDS:
+        return "numpy", (f"numpy: model {cost['numpy']:.2f} s vs compiled {cost['compiled']:.2f} s + "
+                         f"{COMPILED_LOAD_SECONDS:.2f} s to load it")
+    return "compiled", None
+
+
+def plan_routes(cube, exponents, *, rtol: float = 1e-3, out_size: int | None = None, normalized: bool = True,
+                kernel: str | None = None) -> dict:
+    """The routes :func:`convolve` with ``method="auto"`` would take, without running them: ``{"route": {s: method},
+    "model_costs_s": {"auto": …, "exact": …, "sparse": …, "sh": …}}`` (model seconds of the chosen plan and of
+    each method forced for every finite exponent; "sh" only when some exponent can be planned), ``"kernel"`` and
+    the planning diagnostics of ``info``."""
+    from .kernel_choice import resolve_kernel
+
+    a4, _ = check_cube(cube)
+    a4, _k = _power_of_two_scaled(a4)
+    s_list = check_exponents(exponents)
+    out_size = check_out_size(out_size, a4.shape[1])
+    impl = resolve_kernel(kernel)
+    info = {}
+    route, _plan, _grp = _route_auto(a4, s_list, float(rtol), out_size, normalized, info, impl)
+    return {"route": route, "model_costs_s": info.pop("route_model_costs_s", {}), "kernel": impl, "info": info}
+
+
+def _sh_cannot_pay(finite, others, n, n_src, n_out, Q, impl="numpy", rtol=1e-3):
+    """True when no SH pass can be cheaper than the other routes of ``finite`` together (model cost ``others``), by
+    a lower bound of its cost: the band limit the planner could choose is never below the one the truncation
+    bound needs at the most lenient target 0.8·rtol (:func:`~ibl_ref.groundtruth.sh_bounds.choose_band_limit`).
+    Spares the planner (its coarse lobe averages and bound tables) where narrow lobes go to the sparse gather."""
     from .sh_bounds import choose_band_limit, texel_max_radius
-    from .sh_convolution import SH_L_MAX, SH_OVERHEAD_UNITS, sh_cost
+    from .sh_convolution import SH_L_MAX
 
     rho = texel_max_radius(n)
-    others = 0.0
     sh_lb = np.inf
     for s in finite:
-        c_sp = _sparse_cost(s, rtol, n_src, n_out) if normalized else np.inf
-        others += min(c_sp, n_out * n_src * (EXACT_UNITS_PER_PAIR_S1 if s == 1.0 else EXACT_UNITS_PER_PAIR))
         L = choose_band_limit(s, 0.8 * rtol, rho, SH_L_MAX)
         if L is not None:
-            sh_lb = min(sh_lb, sh_cost(L, n_src, n_out, 1, Q) + SH_OVERHEAD_UNITS)
+            sh_lb = min(sh_lb, _sh_pass_cost(L, 0, n_src, n_out, 1, Q, impl))
     return others < sh_lb
 
 
-def _sh_split_state(a4, sh_set, sh_plan, rtol, out_size, normalized):
+def _sh_split_state(a4, sh_set, sh_plan, rtol, out_size, normalized, impl="numpy"):
     """``("project", setup)`` when the SH pass of ``sh_set`` is big enough to split
     (:data:`SH_SPLIT_MIN_SECONDS`, decided from the sizes and the band limit), else None.  Without a plan the
     band limit is planned here (as the single job would)."""
@@ -668,7 +853,7 @@ def _sh_split_state(a4, sh_set, sh_plan, rtol, out_size, normalized):
     if shc.sh_cost(L_min, n_src, n_out, len(sh_set), Q) * shc.SECONDS_PER_UNIT < SH_SPLIT_MIN_SECONDS:
         return None
     t0 = time.perf_counter()
-    setup = shc.sh_setup(a4, sh_set, rtol=rtol, out_size=out_size, normalized=normalized, plan=sh_plan)
+    setup = shc.sh_setup(a4, sh_set, rtol=rtol, out_size=out_size, normalized=normalized, plan=sh_plan, impl=impl)
     if shc.sh_cost(setup.L, n_src, n_out, len(sh_set), Q) * shc.SECONDS_PER_UNIT < SH_SPLIT_MIN_SECONDS:
         return None
     shc.sh_split(setup, SH_PARTS)
@@ -677,7 +862,7 @@ def _sh_split_state(a4, sh_set, sh_plan, rtol, out_size, normalized):
 
 
 def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_plan, sparse_batches, parts, ex_set,
-                mo_leaf=1, sh_state=None):
+                mo_leaf=1, sh_state=None, impl="numpy"):
     """The independent jobs ``(stage, key, model cost, callable)`` of one round of :func:`convolve`.
 
     Every job computes a fixed piece of work (its exponents, its output faces) that does not depend on
@@ -694,10 +879,10 @@ def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_pla
         from . import moment_convolution as mc
 
         for pi, fc in enumerate(mo_parts):
-            jobs.append(("moment", ("moment", pi), MOMENT_UNITS_PER_PAIR * pair_units * len(fc) / 6,
+            jobs.append(("moment", ("moment", pi), _moment_cost(n, out_size, mo_leaf, impl) * len(fc) / 6,
                          functools.partial(mc.convolve_moment_many, a4, mo_set, out_size=out_size,
                                            normalized=normalized, faces=fc, leaf=mo_leaf,
-                                           rtol=rtol if mo_leaf > 1 else None)))
+                                           rtol=rtol if mo_leaf > 1 else None, impl=impl)))
     if sh_set and sh_state is not None:  # a split SH pass (:data:`SH_SPLIT_MIN_SECONDS`): one phase per round
         setup = sh_state[1]
         n_parts = setup.sym_src.n_parts
@@ -712,17 +897,17 @@ def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_pla
         L_guess = (sh_plan or {}).get("L") or 32
         jobs.append(("sh", ("sh",), shc.sh_cost(L_guess, n_src, n_out, len(sh_set), a4.shape[-1] + 1),
                      functools.partial(shc.convolve_sh_many, a4, sh_set, rtol=rtol, out_size=out_size,
-                                       normalized=normalized, plan=sh_plan)))
+                                       normalized=normalized, plan=sh_plan, impl=impl)))
     for bi, (sb, sc, _att) in enumerate(sparse_batches):
         for pi, fc in enumerate(parts):
-            cost = sum(_sparse_cost(x, rtol * sc, n_src, n_out) for x in sb)
+            cost = sum(_sparse_cost(x, rtol * sc, n_src, n_out, impl) for x in sb)
             cost = cost * len(fc) / 6 * SPARSE_JOB_ORDER_FACTOR if np.isfinite(cost) else (
-                pair_units * EXACT_UNITS_PER_PAIR)
+                pair_units * _unit("EXACT_UNITS_PER_PAIR", impl))
             jobs.append(("sparse", ("sparse", bi, pi), cost,
-                         functools.partial(pc.convolve_sparse_many, a4, list(sb),
-                                           rtol=min(rtol * sc, 0.5), out_size=out_size, faces=fc)))
+                         functools.partial(pc.convolve_sparse_many, a4, list(sb), rtol=min(rtol * sc, 0.5),
+                                           out_size=out_size, faces=fc, impl=impl, return_info=True)))
     if ex_set:
-        jobs.append(("exact", ("exact",), EXACT_UNITS_PER_PAIR * pair_units * len(ex_set),
+        jobs.append(("exact", ("exact",), _unit("EXACT_UNITS_PER_PAIR", impl) * pair_units * len(ex_set),
                      functools.partial(pc.convolve_exact_many, a4, ex_set, normalized=normalized,
                                        out_size=out_size)))
     return jobs
@@ -757,18 +942,29 @@ def _round_workers(jobs, a4, out_size, workers, executor, memory_limit, need2):
 
 
 def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, workers, backend, executor,
-              memory_limit, scale_k, t_start, c_start):
+              memory_limit, scale_k, t_start, c_start, impl="numpy", kernel_note=None):
     """Body of :func:`convolve` after the argument checks (routing, jobs, collection)."""
 
     res = ConvolutionResult()
+    if kernel_note:
+        res.info["kernel_auto"] = kernel_note
+
     timings = {"sh": 0.0, "sparse": 0.0, "exact": 0.0, "moment": 0.0}
 
     # ---- route every exponent ----------------------------------------------------------------
     plan, finite = None, []
     if method == "auto":
-        route, plan, finite = _route_auto(a4, s_list, rtol, out_size, normalized, res.info)
+        with threadpool_limits(limits=1, user_api="blas"):
+            route, plan, finite = _route_auto(a4, s_list, rtol, out_size, normalized, res.info, impl)
     else:
         route = {s: method for s in s_list}
+
+    if impl == "compiled":  # load the kernels of the routes taken (before any worker is forked)
+        from .kernel_choice import compiled
+
+        stages = {"sparse": "sparse", "moment": "moment", "sh": "sh", "exact": "sparse"}
+        need = {stages[m] for m in route.values()} | ({"sparse"} if "sh" in route.values() else set())  # fallback
+        res.info["kernel_load_s"] = compiled().warm_up(sorted(need))
 
     # ---- execute: rounds of independent jobs (route × output-face part, :func:`_round_jobs`) --------
     results = {}
@@ -789,6 +985,13 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
     sh_set = [s for s in s_list if route[s] == "sh"]
     sparse_batches = [(tuple(s for s in s_list if route[s] == "sparse"), scale0, 0)]
     sparse_batches = [b for b in sparse_batches if b[0]]
+    if sparse_batches and normalized:
+        # a sparse gather too small to pay for a pool runs as one job over all faces (each face's result is the
+        # same whatever the face subset, so this changes no number)
+        n_src, n_out = 6 * n * n, 6 * out_size * out_size
+        sp_cost = sum(_sparse_cost(s, rtol, n_src, n_out, impl) for s in sparse_batches[0][0])
+        if sp_cost * _seconds_per_unit() < PARALLEL_MIN_SECONDS:
+            parts = (tuple(range(6)),)
     ex_set = [s for s in s_list if route[s] == "exact"]
     fallback_sh, fallback_sparse = [], []
     stage_busy = {"sh": 0.0, "sparse": 0.0, "exact": 0.0, "moment": 0.0}
@@ -803,11 +1006,11 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
         while mo_set or sh_set or sparse_batches or ex_set:
             sub_plan = None
             if sh_set and method == "auto":  # re-plan only if the SH subset differs from the planned set
-                sub_plan = plan if len(sh_set) == len(finite) else None
+                sub_plan = plan if list(sh_set) == list(finite) else None
             if sh_set and sh_state is None:
-                sh_state = _sh_split_state(a4, sh_set, sub_plan, rtol, out_size, normalized)
+                sh_state = _sh_split_state(a4, sh_set, sub_plan, rtol, out_size, normalized, impl)
             jobs = _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sub_plan,
-                               sparse_batches, parts, ex_set, mo_leaf, sh_state)
+                               sparse_batches, parts, ex_set, mo_leaf, sh_state, impl)
             w_plan, warning = _round_workers(jobs, a4, out_size, workers, executor, memory_limit, 2.0 in mo_set)
             planned.append(w_plan)
             if warning:
@@ -870,6 +1073,11 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
             for bi, (sb, sc, att) in enumerate(sparse_batches):
                 maps = np.concatenate([out[("sparse", bi, pi)][0] for pi in range(len(parts))], axis=1)
                 abs_b = np.concatenate([out[("sparse", bi, pi)][1] for pi in range(len(parts))], axis=1)
+                # (output, source texel) pairs the gathers computed (all attempts), for the benchmarks
+                n_src = 6 * n * n
+                res.info["sparse_pairs"] = res.info.get("sparse_pairs", 0.0) + sum(
+                    i.gathered_fraction * len(fc) * out_size * out_size * n_src
+                    for pi, fc in enumerate(parts) for i in out[("sparse", bi, pi)][2])
                 worst, fb = 0.0, []
                 for k, s in enumerate(sb):
                     rel = _rel_from_abs(maps[k], abs_b[k])
@@ -896,6 +1104,7 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
     timings.update(stage_busy)
     timings["jobs_wall"] = t_par
     res.info["workers"] = workers
+    res.info["kernel"] = impl
     res.info["workers_planned"] = min(planned) if planned else workers
     res.info["backend"] = "executor" if executor is not None else backend
 

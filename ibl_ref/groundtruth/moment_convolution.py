@@ -139,9 +139,15 @@ def moment_band_pairs_per_tile(n: int, out_size: int, tile: int, stop: int) -> f
     return 3.0 * w * m * m * stop * stop
 
 
-def moment_tiles_per_chunk(n: int, out_size: int, tile: int, stop: int) -> int:
-    """Output tiles per chunk of :func:`convolve_moment_many`: the band working set ≤ :data:`MOMENT_CHUNK_PAIRS`."""
-    return max(1, int(MOMENT_CHUNK_PAIRS // max(moment_band_pairs_per_tile(n, out_size, tile, stop), 1.0)))
+#: the same bound for the compiled band kernels (no NumPy temporaries of the band to amortise: smaller chunks,
+#: less memory; 4 MB of pairs)
+MOMENT_CHUNK_PAIRS_COMPILED = 1 << 19
+
+
+def moment_tiles_per_chunk(n: int, out_size: int, tile: int, stop: int, pairs: int = MOMENT_CHUNK_PAIRS) -> int:
+    """Output tiles per chunk of :func:`convolve_moment_many`: the band working set ≤ ``pairs``
+    (:data:`MOMENT_CHUNK_PAIRS`)."""
+    return max(1, int(pairs // max(moment_band_pairs_per_tile(n, out_size, tile, stop), 1.0)))
 
 
 #: the bracket band (``leaf > 1``) is used by :func:`moment_leaf` only from this leaf size on: at leaf 2
@@ -404,6 +410,62 @@ def _band_brackets(Rc, tiles, blk, cb_leaf, ab_leaf, M0, M1, M2, s_list, num, er
                 err[s][tc] += half_W
 
 
+def _csr(tiles, items, T):
+    """``(starts (T+1,), items sorted by tile)``: the (tile, item) pairs grouped per tile (stable order)."""
+    order = np.argsort(tiles, kind="stable")
+    counts = np.bincount(tiles, minlength=T)
+    return np.concatenate([[0], np.cumsum(counts)]).astype(np.int64), np.ascontiguousarray(items[order], dtype=np.int64)
+
+
+def _pad4(x, Q):
+    """The last axis (Q ≤ 4 channels, the last one L ≡ 1) padded with zeros to 4."""
+    if Q == 4:
+        return np.ascontiguousarray(x)
+    out = np.zeros(x.shape[:-1] + (4,))
+    out[..., :Q] = x
+    return out
+
+
+def _band_exact_compiled(ck, Rc, tiles, blk, D, W4, s_list, num):
+    """:func:`_band_exact` by :func:`ibl_ref.groundtruth.compiled_kernels.band_exact` (``D`` (M+1, 3), ``W4``
+    (M+1, 4): the last entry the zero dummy of the pads)."""
+    T, B = Rc.shape[0], Rc.shape[1]
+    Q = next(iter(num.values())).shape[-1]
+    starts, items = _csr(tiles, np.where(blk < 0, D.shape[0] - 1, blk), T)
+    n1 = np.zeros((T, B, 4))
+    n2 = np.zeros((T, B, 4))
+    ck.band_exact(np.ascontiguousarray(Rc), starts, items, D, W4, 1.0 in s_list, 2.0 in s_list, n1, n2)
+    for s, acc in ((1.0, n1), (2.0, n2)):
+        if s in num:
+            num[s] += acc[..., :Q]
+
+
+def _brackets_prep(cb_leaf, ab_leaf, M0, M1, M2):
+    """The leaf blocks' cones and moments as :func:`ibl_ref.groundtruth.compiled_kernels.band_brackets` takes them
+    (once per pass, not per chunk of tiles)."""
+    Q = M0.shape[1]
+    if ab_leaf.size and float(ab_leaf.max()) >= 0.25 * math.pi:
+        raise IBLError("leaf blocks too large for the bracket band (cone half-angle ≥ π/4); use a smaller leaf")
+    nbk = M0.shape[0]
+    m1 = _pad4(M1.reshape(nbk, 3, Q), Q)
+    m2 = _pad4(M2.reshape(nbk, 6, Q), Q) if M2 is not None else np.zeros((nbk, 6, 4))
+    return (np.ascontiguousarray(cb_leaf), np.cos(ab_leaf), np.sin(ab_leaf), _pad4(M0, Q), m1, m2, Q)
+
+
+def _band_brackets_compiled(ck, Rc, tiles, blk, prep, s_list, num, err):
+    """:func:`_band_brackets` by :func:`ibl_ref.groundtruth.compiled_kernels.band_brackets` (``prep``:
+    :func:`_brackets_prep`)."""
+    T, B = Rc.shape[0], Rc.shape[1]
+    Q = prep[-1]
+    starts, items = _csr(tiles, blk, T)
+    acc = [np.zeros((T, B, 4)) for _ in range(4)]
+    ck.band_brackets(np.ascontiguousarray(Rc), starts, items, *prep[:-1], 1.0 in s_list, 2.0 in s_list, *acc)
+    for s, (nn, ee) in ((1.0, acc[:2]), (2.0, acc[2:])):
+        if s in num:
+            num[s] += nn[..., :Q]
+            err[s] += ee[..., :Q]
+
+
 def _padded_batches(tiles, blk, T, tt, chunk_elems, per_elem):
     """Yield ``(tile indices, padded index matrix)`` batches of tiles sorted by band size (pads = −1)."""
     order = np.argsort(tiles, kind="stable")
@@ -463,6 +525,7 @@ def convolve_moment_many(
     chunk_elems: int = 1 << 16,
     faces=None,
     rtol: float | None = None,
+    impl: str = "numpy",
 ):
     """Lobe average (or Eq. 4 sum) for ``s ∈ {1, 2}`` by hierarchical moments, with a rigorous bound.
 
@@ -499,6 +562,10 @@ def convolve_moment_many(
         same computation restricted to those tiles (used by :func:`ibl_ref.groundtruth.convolve.convolve` to
         split the work between workers; results agree with the full call up to float64 rounding of
         the band sums, whose batching depends on the tile set).
+    impl : {"numpy", "compiled"}
+        ``"compiled"``: the horizon band (exact gather or brackets, and the bright texels of straddling leaf
+        blocks) by :mod:`ibl_ref.groundtruth.compiled_kernels` (up to 3 colour channels; the same sums in another
+        order: equal to the NumPy path up to float64 rounding).
 
     Returns
     -------
@@ -524,6 +591,11 @@ def convolve_moment_many(
     faces = check_faces(faces)
     nF = len(faces)
     need2 = 2.0 in s_list
+    if impl not in ("numpy", "compiled"):
+        raise IBLError(f"impl must be 'numpy' or 'compiled', got {impl!r}")
+    ck = None
+    if impl == "compiled" and a4.shape[-1] <= 3:
+        from . import compiled_kernels as ck
     C = a4.shape[-1]
     Q = C + 1  # channel Q-1: L ≡ 1 (denominator)
 
@@ -569,12 +641,16 @@ def convolve_moment_many(
     if brP.size:  # the bright texels' own weights; the denominator (L ≡ 1) stays in the blocks
         bw_bright = np.zeros_like(bw_pad)
         bw_bright[brP, :C] = bw_pad[brP, :C]
+    if ck is not None and bdT is not None:
+        bD = np.ascontiguousarray(bdT.T)
+        bW4 = _pad4(bw_pad, Q)
+        bB4 = _pad4(bw_bright, Q) if bw_bright is not None else None
 
     def run_pass(lf, tsel):
         """num/err of the output tiles ``tsel`` with leaf size ``lf`` (1: exact band)."""
         LAST_INFO["leaf_tiles"][lf] = int(tsel.size)
         stop = lf if lf > 1 else min(gather, P)
-        M0 = M1 = M2 = None
+        M0 = M1 = M2 = prep = None
         if lf == 1:
             F = _texel_moments(dP, wP, Q, need2)
             levels = _block_levels(dP, real, F, P, stop)
@@ -598,7 +674,8 @@ def convolve_moment_many(
             bright_sorted = brP[order_]
             bright_start = np.searchsorted(blk_of[order_], np.arange(6 * mg * mg + 1))
         # output tiles in chunks of bounded working set (independent of the worker count)
-        per_chunk = moment_tiles_per_chunk(n, out_size, t, stop)
+        per_chunk = moment_tiles_per_chunk(n, out_size, t, stop,
+                                           MOMENT_CHUNK_PAIRS if ck is None else MOMENT_CHUNK_PAIRS_COMPILED)
         for c0 in range(0, tsel.size, per_chunk):
             ch = tsel[c0 : c0 + per_chunk]
             nc = ch.size
@@ -620,11 +697,18 @@ def convolve_moment_many(
                     num_c[s_] = np.einsum("tik,tkq->tiq", rr, S2)
                 err_c[s_] = np.zeros_like(num_c[s_])
             _t0 = time.perf_counter()
-            if lf == 1:
+            if lf == 1 and ck is not None:
+                _band_exact_compiled(ck, Rc, tiles, blk, bD, bW4, s_list, num_c)
+            elif lf == 1:
                 _band_exact(Rc, tiles, blk, bdT, bw_pad, s_list, num_c, chunk_elems)
             else:
-                _band_brackets(Rc, tiles, blk, levels[-1][2], levels[-1][3], M0, M1, M2, s_list, num_c, err_c,
-                               chunk_elems)
+                if ck is not None:
+                    if prep is None:
+                        prep = _brackets_prep(levels[-1][2], levels[-1][3], M0, M1, M2)
+                    _band_brackets_compiled(ck, Rc, tiles, blk, prep, s_list, num_c, err_c)
+                else:
+                    _band_brackets(Rc, tiles, blk, levels[-1][2], levels[-1][3], M0, M1, M2, s_list, num_c, err_c,
+                                   chunk_elems)
                 nb = bright_start[blk + 1] - bright_start[blk]
                 if nb.any():  # bright texels of straddling leaf blocks: exact gather
                     sel = np.flatnonzero(nb)
@@ -632,7 +716,10 @@ def convolve_moment_many(
                     first = np.repeat(bright_start[blk[sel]], nb[sel])
                     within = np.arange(bt.size) - np.repeat(np.cumsum(nb[sel]) - nb[sel], nb[sel])
                     btex = bright_sorted[first + within]
-                    _band_exact(Rc, bt, btex, bdT, bw_bright, s_list, num_c, chunk_elems)
+                    if ck is not None:
+                        _band_exact_compiled(ck, Rc, bt, btex, bD, bB4, s_list, num_c)
+                    else:
+                        _band_exact(Rc, bt, btex, bdT, bw_bright, s_list, num_c, chunk_elems)
             for s_ in s_list:
                 num[s_][ch] = num_c[s_]
                 err[s_][ch] = err_c[s_]

@@ -131,6 +131,7 @@ __all__ = [
     "cutoff_angle",
     "SparseInfo",
     "lobe_average",
+    "estimate_candidates",
 ]
 
 #: target size of one chunk's weight matrix, in float64 elements (2 MB: the passes stay in cache)
@@ -392,6 +393,7 @@ class SparseInfo:
     kernel: str = "float64"
 
 
+@functools.lru_cache(maxsize=32)
 def _texel_extent(m: int) -> float:
     """Max angle between a texel centre and its corners on a face of size m (same for all faces)."""
     e = np.linspace(-1.0, 1.0, m + 1)
@@ -486,6 +488,17 @@ def neglected_weight_bound(s: float, theta_c: float, rho: float) -> float:
     return b
 
 
+@functools.lru_cache(maxsize=64)
+def _wb_grid(s: float, rho: float, cap_min: float, top: float):
+    """θ from cap_min to top in steps of ρ/4 (and π/2), and the running minimum of log W_b(s, θ, ρ) there
+    (:func:`convolve_sparse_many`); cached per arguments (read-only arrays)."""
+    grid = np.append(np.arange(cap_min, top, max(rho / 4.0, 1e-5)), np.pi / 2)
+    log_wb_grid = np.minimum.accumulate([neglected_weight_bound(s, g, rho) for g in grid])
+    grid.flags.writeable = False
+    log_wb_grid.flags.writeable = False
+    return grid, log_wb_grid
+
+
 @functools.lru_cache(maxsize=1024)
 def cutoff_angle(s: float, eps: float, rho: float) -> float:
     """Smallest θc ∈ (0, π/2] (bisection, W_b is non-increasing) with W_b(θc) ≤ eps · 2π/(s+1)."""
@@ -504,7 +517,15 @@ def cutoff_angle(s: float, eps: float, rho: float) -> float:
     return hi
 
 
-def _tile_size(out_size: int, theta_c: float, m_src: int, n_bright: int) -> int:
+#: the same two constants for the compiled gather (:func:`ibl_ref.groundtruth.compiled_kernels.tile_gather`: no
+#: Python per tile; per candidate the interval search and the copy into the scratch arrays), in units of one
+#: of its weights
+_TILE_OVERHEAD_COMPILED = 300.0
+_CAND_OVERHEAD_COMPILED = 4.0
+
+
+def _tile_size(out_size: int, theta_c: float, m_src: int, n_bright: int, tile_overhead: float = _TILE_OVERHEAD_ELEMS,
+               cand_overhead: float = _CAND_OVERHEAD_ELEMS) -> int:
     """Output tile width T minimising n_tiles·overhead + Σ T²·|candidates| (cost model)."""
     best, best_cost = 1, np.inf
     delta = (np.pi / 2) / out_size  # texel angle at a face centre
@@ -514,41 +535,10 @@ def _tile_size(out_size: int, theta_c: float, m_src: int, n_bright: int) -> int:
         n_tiles = 6 * math.ceil(out_size / T) ** 2
         q = min(theta_c + 0.75 * T * delta, np.pi)
         cand = m_src * (1.0 - math.cos(q)) / 2.0 + n_bright
-        cost = n_tiles * (_TILE_OVERHEAD_ELEMS + cand * (T * T + _CAND_OVERHEAD_ELEMS))
+        cost = n_tiles * (tile_overhead + cand * (T * T + cand_overhead))
         if cost < best_cost:
             best, best_cost = T, cost
     return best
-
-
-def _tile_geometry(dst, faces, out_size, T):
-    """Tiles of T×T output texels (row-major per face, faces in the given order), vectorised per shape.
-
-    Returns lists (one entry per tile): flat output indices (B,) into the (F·n·n) output of the face
-    subset, directions (B, 3), unit centre (3,) (normalised sum) and angles (B,) to the centre
-    (``atan2(|d × c|, d·c)``, accurate near 0).
-    """
-    starts = list(range(0, out_size, T))
-    order, groups = [], {}
-    for fi, f in enumerate(faces):
-        for r0 in starts:
-            for c0 in starts:
-                shape = (min(T, out_size - r0), min(T, out_size - c0))
-                groups.setdefault(shape, []).append(len(order))
-                order.append((fi, f, r0, c0))
-    idx_t, td_t, cen_t, ang_t = [None] * len(order), [None] * len(order), [None] * len(order), [None] * len(order)
-    for (h, w), members in groups.items():
-        fi, f, r0, c0 = (np.array([order[m][j] for m in members]) for j in range(4))
-        rr = r0[:, None, None] + np.arange(h)[None, :, None]
-        cc = c0[:, None, None] + np.arange(w)[None, None, :]
-        td = dst[f[:, None, None], rr, cc].reshape(len(members), h * w, 3)
-        idx = ((fi[:, None, None] * out_size + rr) * out_size + cc).reshape(len(members), h * w)
-        cen = td.sum(axis=1)
-        cen /= np.linalg.norm(cen, axis=1, keepdims=True)
-        cr = np.cross(td, cen[:, None, :])
-        ang = np.arctan2(np.linalg.norm(cr, axis=2), np.einsum("gbk,gk->gb", td, cen))
-        for j, m in enumerate(members):
-            idx_t[m], td_t[m], cen_t[m], ang_t[m] = idx[j], np.ascontiguousarray(td[j]), cen[j], ang[j]
-    return idx_t, td_t, cen_t, ang_t
 
 
 def _bright_set(rad: np.ndarray, omega: np.ndarray, n_bright, bright_factor: float, max_bright: int) -> np.ndarray:
@@ -604,7 +594,14 @@ def _gamma(n: int, u: float) -> float:
 def _source_blocks(src_dirs, m, b=_CAP_BLOCK):
     """Blocks of b×b source texels per face (the last ones partial): unit centres (nb, 3), flat texel
     indices (nb, b²; −1 = none) and the largest angle between a block's centre and its texel centres
-    (with a 1e-9 rad margin for the arccos)."""
+    (with a 1e-9 rad margin for the arccos).  Cached per (m, b) (read-only arrays): ``src_dirs`` is always the
+    texel grid of m."""
+    return _source_blocks_cached(m, b)
+
+
+@functools.lru_cache(maxsize=16)
+def _source_blocks_cached(m, b):
+    src_dirs = envmap.texel_directions(m).reshape(-1, 3)
     nbk = -(-m // b)
     idx = np.full((6, nbk * b, nbk * b), -1, dtype=np.intp)
     idx[:, :m, :m] = np.arange(6 * m * m).reshape(6, m, m)
@@ -614,23 +611,69 @@ def _source_blocks(src_dirs, m, b=_CAP_BLOCK):
     c /= np.linalg.norm(c, axis=1, keepdims=True)
     dots = np.where(tex >= 0, np.einsum("bjk,bk->bj", d, c), 1.0)
     alpha = float(np.arccos(np.clip(dots.min(), -1.0, 1.0))) + 1e-9
+    c.flags.writeable = False
+    tex.flags.writeable = False
     return c, tex, alpha
 
 
-def _tile_arrays(idx_t, td_t, cen_t, ang_t):
-    """The per-tile lists of :func:`_tile_geometry` as arrays padded to the largest tile (the last texel
-    repeated): ``(IDX (n_t, B), TD (n_t, B, 3), CEN (n_t, 3), ANG (n_t, B), VALID (n_t, B))``."""
-    B = max(len(i) for i in idx_t)
-    n_t = len(idx_t)
+@functools.lru_cache(maxsize=4)
+def _tile_layout(out_size: int, faces: tuple, T: int):
+    """:func:`_tile_layout_of`, cached per sizes (≈ 40 bytes per output texel: the last few face subsets only)."""
+    return _tile_layout_of(out_size, faces, T)
+
+
+@functools.lru_cache(maxsize=32)
+def _tile_radius(out_size: int, T: int) -> float:
+    """The largest tile radius of :func:`_tile_layout_of` over face 0 (all faces have the same tiles)."""
+    return _tile_layout_of(out_size, (0,), T)[5]
+
+
+def _tile_layout_of(out_size: int, faces: tuple, T: int):
+    """Tiles of T×T output texels (row-major per face, faces in the given order; the last ones on a face
+    smaller when T does not divide ``out_size``), padded to the largest tile by repeating its last texel:
+    ``(IDX (n_t, B) flat output indices into the (F·n·n) output of the face subset, TD (n_t, B, 3) directions,
+    CEN (n_t, 3) unit centres (normalised sums), ANG (n_t, B) angles to the centre (``atan2(|d × c|, d·c)``,
+    accurate near 0), VALID (n_t, B), the largest tile radius over face 0)``, computed per tile shape at once;
+    cached per sizes (read-only arrays)."""
+    dst = envmap.texel_directions(out_size)
+    starts = list(range(0, out_size, T))
+    order, groups = [], {}
+    for fi, f in enumerate(faces):
+        for r0 in starts:
+            for c0 in starts:
+                shape = (min(T, out_size - r0), min(T, out_size - c0))
+                groups.setdefault(shape, []).append(len(order))
+                order.append((fi, f, r0, c0))
+    order = np.array(order, dtype=np.intp).reshape(-1, 4)
+    n_t = len(order)
+    B = max(h * w for h, w in groups)
     IDX = np.empty((n_t, B), dtype=np.intp)
     TD = np.empty((n_t, B, 3))
     ANG = np.empty((n_t, B))
+    CEN = np.empty((n_t, 3))
     VALID = np.zeros((n_t, B), dtype=bool)
-    for t, (i, d, a) in enumerate(zip(idx_t, td_t, ang_t)):
-        k = len(i)
-        IDX[t, :k], TD[t, :k], ANG[t, :k], VALID[t, :k] = i, d, a, True
-        IDX[t, k:], TD[t, k:], ANG[t, k:] = i[-1], d[-1], a[-1]
-    return IDX, TD, np.array(cen_t), ANG, VALID
+    t_rad = 0.0
+    for (h, w), members in groups.items():
+        mem = np.array(members)
+        fi, f, r0, c0 = (order[mem, j] for j in range(4))
+        rr = r0[:, None, None] + np.arange(h)[None, :, None]
+        cc = c0[:, None, None] + np.arange(w)[None, None, :]
+        td = dst[f[:, None, None], rr, cc].reshape(len(members), h * w, 3)
+        idx = ((fi[:, None, None] * out_size + rr) * out_size + cc).reshape(len(members), h * w)
+        cen = td.sum(axis=1)
+        cen /= np.linalg.norm(cen, axis=1, keepdims=True)
+        cr = np.cross(td, cen[:, None, :])
+        ang = np.arctan2(np.linalg.norm(cr, axis=2), np.einsum("gbk,gk->gb", td, cen))
+        k = h * w
+        IDX[mem, :k], TD[mem, :k], ANG[mem, :k], VALID[mem, :k], CEN[mem] = idx, td, ang, True, cen
+        IDX[mem, k:], TD[mem, k:], ANG[mem, k:] = idx[:, -1:], td[:, -1:], ang[:, -1:]
+    if faces and faces[0] == 0:
+        t_rad = float(ANG[: len(starts) ** 2].max())
+    else:
+        t_rad = _tile_radius(out_size, T)
+    for x in (IDX, TD, ANG, CEN, VALID):
+        x.flags.writeable = False
+    return IDX, TD, CEN, ANG, VALID, t_rad
 
 
 class _Sources:
@@ -645,10 +688,14 @@ class _Sources:
         self.dirs = src_dirs
         self.cen, self.tex, self.alpha = _source_blocks(src_dirs, m)
         ok = (self.tex >= 0) & ~is_bright[np.maximum(self.tex, 0)]
-        self.blk_dirs = np.where(ok[..., None], src_dirs[np.maximum(self.tex, 0)], np.nan)
+        self._ok = ok
         r = rad[np.maximum(self.tex, 0)]  # (nb, b², C)
         self.blk_max = np.where(ok[..., None], r, -np.inf).max(axis=1)
         self.blk_min = np.where(ok[..., None], r, np.inf).min(axis=1)
+
+    @functools.cached_property
+    def blk_dirs(self):
+        return np.where(self._ok[..., None], self.dirs[np.maximum(self.tex, 0)], np.nan)
 
     def hits(self, cen, q):
         """(tile, block) index pairs, tile-major: blocks whose cone reaches the cap of radius q[i] around
@@ -668,6 +715,31 @@ class _Sources:
             # every cap holds the block of its own centre (q ≥ 0, α > 0): no tile is without hits
             lmax[i0 : i0 + rows] = np.maximum.reduceat(self.blk_max[bi], starts, axis=0)
             lmin[i0 : i0 + rows] = np.minimum.reduceat(self.blk_min[bi], starts, axis=0)
+        return lmax, lmin
+
+    def local_extremes_compiled(self, ck, cen, q, k=8):
+        """:meth:`local_extremes` by :func:`ibl_ref.groundtruth.compiled_kernels.cone_extremes` (super-blocks of
+        k × k blocks)."""
+        if not hasattr(self, "_sup"):
+            nb = len(self.cen)
+            nside = int(round(math.sqrt(nb / 6)))
+            nk = -(-nside // k)
+            mem = np.full((6, nk * k, nk * k), -1, dtype=np.intp)
+            mem[:, :nside, :nside] = np.arange(nb).reshape(6, nside, nside)
+            mem = mem.reshape(6, nk, k, nk, k).transpose(0, 1, 3, 2, 4).reshape(-1, k * k)
+            mem = mem[(mem >= 0).any(axis=1)]
+            valid = mem >= 0
+            c = np.where(valid[..., None], self.cen[np.maximum(mem, 0)], 0.0).sum(axis=1)
+            c /= np.linalg.norm(c, axis=1, keepdims=True)
+            dots = np.where(valid, np.einsum("skj,sj->sk", self.cen[np.maximum(mem, 0)], c), 1.0)
+            sup_alpha = float(np.arccos(np.clip(dots.min(), -1.0, 1.0))) + self.alpha + 1e-9
+            self._sup = (np.ascontiguousarray(c), sup_alpha, np.ascontiguousarray(mem.astype(np.int64)))
+        sc, sa, sm = self._sup
+        C = self.blk_max.shape[1]
+        lmax, lmin = np.empty((len(q), C)), np.empty((len(q), C))
+        ck.cone_extremes(np.array(cen, dtype=np.float64), np.array(q, dtype=np.float64), np.array(self.cen),
+                         float(self.alpha), self.blk_max, self.blk_min, sc, sa, sm, lmax, lmin)  # writeable copies: one
+        # compiled signature (the cached geometry is read-only)
         return lmax, lmin
 
     def cap_lists(self, cen, q, pad, multiple=1):
@@ -731,6 +803,26 @@ class _Slabs:
         d = np.einsum("hkj,hj->hk", self.cen[np.maximum(mem, 0)], cen[ti])
         sel = (mem >= 0) & (d >= np.cos(np.minimum(q + self.alpha, np.pi))[ti, None])
         return mem[sel], np.bincount(np.repeat(ti, sel.sum(axis=1)), minlength=len(q))
+
+
+def _compiled_sources(src_dirs, rad_w, is_bright):
+    """Source arrays of :func:`ibl_ref.groundtruth.compiled_kernels.tile_gather`: directions X, Y, Z (M,), and the
+    weight rows ``[L·Ω, Ω]`` in groups of ≤ 3 channels plus Ω, padded to 4 rows (zero for the bright texels):
+    ``[(rows (4, M), (output columns, input columns)), …]`` and the bright texels' rows (nb, 4·groups)."""
+    M, Q = rad_w.shape
+    C = Q - 1
+    X, Y, Z = (np.ascontiguousarray(src_dirs[:, i]) for i in range(3))
+    groups, bright_cols = [], []
+    for g0 in range(0, max(C, 1), 3):
+        ch = list(range(g0, min(g0 + 3, C))) + [C]
+        rws = np.zeros((4, M))
+        rws[: len(ch)] = rad_w[:, ch].T
+        rws[:, is_bright] = 0.0
+        groups.append((np.ascontiguousarray(rws), (ch, slice(4 * len(groups), 4 * len(groups) + 4))))
+    bright_rw = np.zeros((int(is_bright.sum()), 4 * len(groups)))
+    for gi, (_rws, (ch, _sl)) in enumerate(groups):
+        bright_rw[:, 4 * gi : 4 * gi + len(ch)] = rad_w[is_bright][:, ch]
+    return X, Y, Z, groups, np.ascontiguousarray(bright_rw)
 
 
 def _padded(flat, counts, rows, width, pad):
@@ -888,6 +980,8 @@ def convolve_sparse_many(
     local: bool = True,
     kernel: str = "auto",
     dark_floor: float = 1e-6,
+    impl: str = "numpy",
+    _sample: int = 0,
 ):
     """Truncated-support gather of the normalised Eq. 4 lobe average, several exponents.
 
@@ -896,6 +990,15 @@ def convolve_sparse_many(
     0…5, default all six, F = their number) restricts the output to those faces: every tile is
     computed independently, so the result on a face is bit-for-bit the same as in the full call
     (used by :func:`ibl_ref.groundtruth.convolve.convolve` to split the work between workers).
+
+    ``impl="compiled"`` runs the gather of every tile (its cap's texels found by face-row intervals, the
+    weights, the bright set) in :func:`ibl_ref.groundtruth.compiled_kernels.tile_gather` (float64; its rounding
+    bound, :func:`~ibl_ref.groundtruth.compiled_kernels.weight_error`, replaces the float32 kernel's in the
+    bound); tiles, caps, attempts and the bound are the same code as for ``impl="numpy"``.
+
+    ``_sample > 0`` (used by the planner of :func:`ibl_ref.groundtruth.convolve.convolve`, see
+    :func:`estimate_candidates`): no gather; the first attempt's caps of that many evenly spaced tiles only,
+    returned as the mean number of source texels per output texel, one per exponent.
     """
     a, squeeze = check_cube(cube)
     n = a.shape[1]
@@ -911,6 +1014,14 @@ def convolve_sparse_many(
         raise IBLError(f"rtol must be in (0, 1), got {rtol!r}")
     if kernel not in ("auto", "float32", "float64"):
         raise IBLError(f"kernel must be 'auto', 'float32' or 'float64', got {kernel!r}")
+    if impl not in ("numpy", "compiled"):
+        raise IBLError(f"impl must be 'numpy' or 'compiled', got {impl!r}")
+    if impl == "compiled" and kernel == "float32":
+        raise IBLError("kernel='float32' is the NumPy path's kernel; the compiled gather is float64 (kernel='auto')")
+    compiled = impl == "compiled"
+    ck = None
+    if compiled:
+        from . import compiled_kernels as ck
     try:
         dark_floor = float(dark_floor)
     except (TypeError, ValueError):
@@ -953,7 +1064,6 @@ def convolve_sparse_many(
         ratio = np.where(span > 0, lo / np.where(span > 0, span, 1.0), np.inf)
     eps_far = max(_FAR_SHARE * tau * float(ratio.min()) if np.isfinite(ratio.min()) else 1.0, 1e-300)
 
-    dst = envmap.texel_directions(out_size)  # (6, n, n, 3)
     geometry = {}  # tile size → per-tile output indices, directions, centre, angles
     rad_w = np.concatenate([rad, np.ones((M, 1))], axis=1) * omega[:, None]
     is_bright = np.zeros(M, dtype=bool)
@@ -969,6 +1079,9 @@ def convolve_sparse_many(
 
     for k, s in enumerate(s_list):
         if not np.isfinite(s):
+            if _sample:
+                infos.append(1.0)
+                continue
             maps[k] = _mirror(a, out_size)[list(faces)].reshape(-1, C)
             infos.append(SparseInfo(s, 0.0, rho, 0.0, -np.inf, 0, 1.0 / M))
             continue
@@ -979,22 +1092,26 @@ def convolve_sparse_many(
             th = float(min(max(theta_c, 0.0), np.pi / 2))
         if (1.0 - math.cos(min(th, np.pi))) / 2.0 > 0.4:
             # the cap covers most of the lobe's hemisphere: the dense exact gather is cheaper
+            if _sample:
+                infos.append(float(M))
+                continue
             ex = convolve_exact_many(a, [s], supersample=supersample, out_size=out_size)[0][list(faces)].reshape(-1, C)
             maps[k] = ex
             bounds[k] = 1e-12 * ex
             infos.append(SparseInfo(s, np.pi / 2, rho, eps, -np.inf, int(bright.size), 1.0))
             continue
         # tiles of T×T output texels sharing one candidate list
-        T = _tile_size(out_size, th, M, int(bright.size))
-        if T not in geometry:
-            geometry[T] = _tile_arrays(*_tile_geometry(dst, faces, out_size, T))
-        IDX, TD, CEN, ANG, VALID = geometry[T]
+        T = (_tile_size(out_size, th, M, int(bright.size), _TILE_OVERHEAD_COMPILED, _CAND_OVERHEAD_COMPILED)
+             if compiled else _tile_size(out_size, th, M, int(bright.size)))
+        IDX, TD, CEN, ANG, VALID, t_rad0 = (_tile_layout_of if _sample else _tile_layout)(out_size, tuple(faces), T)
+        if _sample:
+            pick = np.unique(np.linspace(0, len(CEN) - 1, min(_sample, len(CEN))).astype(np.intp))
+            IDX, TD, CEN, ANG, VALID = IDX[pick], TD[pick], CEN[pick], ANG[pick], VALID[pick]
         n_t, B = IDX.shape
         a_max = ANG.max(axis=1)
-        if ("t_rad", T) not in geometry:  # the largest tile radius, from face 0 whatever the face subset (all
-            # faces have the same tiles): the kernel choice below is the same for every subset
-            geometry[("t_rad", T)] = max(float(np.max(x)) for x in _tile_geometry(dst, (0,), out_size, T)[3])
-        t_rad = geometry[("t_rad", T)] * (1.0 + 1e-9)
+        # the largest tile radius, from face 0 whatever the face subset (all faces have the same tiles): the kernel
+        # choice below is the same for every subset
+        t_rad = t_rad0 * (1.0 + 1e-9)
         # every cap reaches ρ beyond its tile's texels: each row's own source texel (within ρ) is gathered
         cap_min = rho + _ANGLE_MARGIN
         th_far = max(th if single else cutoff_angle(s, eps_far, rho), cap_min)
@@ -1002,8 +1119,7 @@ def convolve_sparse_many(
         # W_b tabulated from cap_min to beyond every θ a bound looks up (step ρ/4), made non-increasing by a
         # running minimum (W_b(θ') bounds every texel beyond θ ≥ θ': valid); a texel uses the grid angle ≤ its θ
         top = min(th_far + t_rad + 2.0 * _ANGLE_MARGIN, np.pi / 2)
-        grid = np.append(np.arange(cap_min, top, max(rho / 4.0, 1e-5)), np.pi / 2)
-        log_wb_grid = np.minimum.accumulate([neglected_weight_bound(s, g, rho) for g in grid])
+        grid, log_wb_grid = _wb_grid(float(s), float(rho), float(cap_min), float(top))
 
         def cap_for(eps_t):
             i = np.searchsorted(-log_wb_grid, -(np.log(eps_t) + log_lobe), side="left")
@@ -1024,7 +1140,8 @@ def convolve_sparse_many(
         x_glob = 1.0 - math.cos(min(q_top + t_rad, np.pi))
         own_log = s * math.log(max(math.cos(min(rho, np.pi / 2)), 1e-300))
         n_terms = int(_series_terms(s, x_glob + _gamma(8, _U32) * (q_top + t_rad) ** 2))
-        use32 = kernel != "float64" and n_terms > 0 and x_glob <= _X32_MAX and own_log >= _OWN_LOG_MIN
+        use32 = (not compiled and kernel != "float64" and n_terms > 0 and x_glob <= _X32_MAX
+                 and own_log >= _OWN_LOG_MIN)
         if use32:  # its rounding bound at the typical cap (first attempt) takes ≤ 20 % of rtol
             q_typ = th + t_rad + _ANGLE_MARGIN + 2.0 * al_slab
             eta_typ = float(_kernel32_eta(s, n_terms, t_rad, q_typ, t_rad + q_typ))
@@ -1036,6 +1153,14 @@ def convolve_sparse_many(
         if use32 and slabs is None:
             slabs = _Slabs(src_dirs, rad_w, is_bright, n * supersample)
         rowmax = (not use32) and own_log < -600.0
+        if compiled:
+            # c^s by binary powering for integer exponents (own weight ≥ e^-600: no reference needed), else
+            # exp(s·log c), relative to the row's largest cosine where the own weight may underflow
+            s_int = int(s) if (float(s).is_integer() and s <= ck.POWI_MAX and own_log >= -600.0) else 0
+            eta_w, eps_w = ck.weight_error(s, bool(s_int), rowmax)
+            if ("rw4",) not in geometry:
+                geometry[("rw4",)] = _compiled_sources(src_dirs, rad_w, is_bright)
+            l_und = float(rad.max()) if rad.size else 0.0
 
         # caps per attempt: local (radiance extremes within the far cap), then local with κ ≥ 1 (an average
         # above the local maximum, e.g. next to the bright set), then the far cap
@@ -1044,7 +1169,8 @@ def convolve_sparse_many(
             lmax2, lmin2 = np.broadcast_to(l_max_out, (n_t, C)), np.broadcast_to(l_min_out, (n_t, C))
             attempts = [np.full(n_t, th_far)]
         else:
-            lmax2, lmin2 = sources.local_extremes(CEN, q_far)
+            lmax2, lmin2 = (sources.local_extremes_compiled(ck, CEN, q_far) if compiled
+                            else sources.local_extremes(CEN, q_far))
             with np.errstate(invalid="ignore", divide="ignore"):
                 kap = np.where(lmax2 > lmin2, (lmax2 - lmin2) / np.maximum(lmin2, max(floor, 1e-300)), 0.0).max(axis=1)
             tau_near = max(tau * (1.0 - _FAR_SHARE) - fp_share, 1e-3 * tau)
@@ -1052,6 +1178,10 @@ def convolve_sparse_many(
                 eps1 = np.minimum(_CAP_MARGIN * tau_near / np.maximum(kap, 1e-12), 0.5)
                 eps2 = np.minimum(_CAP_MARGIN * tau_near / np.maximum(kap, 1.0), 0.5)
             attempts = [cap_for(eps1), cap_for(eps2), np.full(n_t, th_far)]
+        if _sample:
+            q0 = attempts[0] + a_max + _ANGLE_MARGIN
+            infos.append(float(np.mean((1.0 - np.cos(np.minimum(q0, np.pi))) / 2.0 * M)) + bright.size)
+            continue
         todo = np.arange(n_t)
         prev = np.full(n_t, -1.0)
         gathered = 0
@@ -1081,7 +1211,25 @@ def convolve_sparse_many(
             else:
                 terms = np.zeros(n_t, dtype=np.intp)
             order = todo[np.lexsort((est[todo], terms[todo]))]
-            if use32:
+            if compiled:
+                X, Y, Z, groups, bright_rw = geometry[("rw4",)]
+                for rws, cols in groups:
+                    acc_g = np.empty((todo.size, B, 4))
+                    lm_g = np.empty((todo.size, B))
+                    cnt = np.empty(todo.size, dtype=np.int64)
+                    ck.tile_gather(CEN[todo], TD[todo], q_t[todo], envmap.face_frames("openexr"), n * supersample,
+                                   X, Y, Z, rws, src_dirs[bright], bright_rw[:, cols[1]], float(s), s_int, rowmax,
+                                   math.exp(-700.0 / s), acc_g, lm_g, cnt)
+                    acc[..., cols[0]] = acc_g[..., : len(cols[0])]
+                    log_mx = lm_g
+                m_t = cnt.astype(np.float64)
+                eta = eta_w + ck.sum_error(cnt)
+                # absolute errors of the smallest weights and of the weights left out below e^-700 (per pair ≤
+                # eps_w, relative to the weight scale 1: the row maximum or c^s with c ≤ 1), against W_in ≥ the
+                # own texel's weight · Ω_min
+                und = m_t * eps_w * math.exp(-(0.0 if rowmax else own_log)) * omega_ratio
+                gathered += int(cnt.sum()) * B
+            elif use32:
                 # groups of tiles with the same number of series terms: their slab lists, then batches of tiles
                 # with similar list lengths (the batch pads to its longest list)
                 per = _KC // _SLAB**2
@@ -1129,7 +1277,8 @@ def convolve_sparse_many(
             p_avg = acc[..., :C] / acc[..., C:]
             # log W_in (absolute Σ cos^s Ω over the gathered set), lowered by the kernel's error bound
             log_win = log_mx + np.log(acc[..., C]) - np.log1p(eta + und)[:, None]
-            e_fp = (2.0 * eta / (1.0 - eta))[:, None, None] * p_avg + und[:, None, None] * (lmax2[tt][:, None, :] + p_avg)
+            l_u = l_und if compiled else lmax2[tt][:, None, :]  # the compiled kernel's absolute terms: any texel
+            e_fp = (2.0 * eta / (1.0 - eta))[:, None, None] * p_avg + und[:, None, None] * (l_u + p_avg)
             # neglected texels of a row at angle a from the centre: beyond q − a (the near annulus up to
             # q_far − a: local extremes) and beyond q_far − a (global extremes)
             ang = ANG[tt]
@@ -1150,10 +1299,21 @@ def convolve_sparse_many(
             todo = np.sort(tt[~(worst <= tau)])
         infos.append(SparseInfo(s, float(caps_used.max()), rho, eps_far if not single else eps,
                                 float(neglected_weight_bound(s, float(caps_used.max()), rho)), int(bright.size),
-                                gathered / (P * M), float(caps_used.min()), int(retried), "float32" if use32 else "float64"))
+                                gathered / (P * M), float(caps_used.min()), int(retried),
+                                "compiled" if compiled else ("float32" if use32 else "float64")))
+    if _sample:
+        return infos
     shape = (K, nF, out_size, out_size) + (() if squeeze else (C,))
     out = (maps.reshape(shape), bounds.reshape(shape))
     return out + (infos,) if return_info else out
+
+
+def estimate_candidates(cube, exponents, *, rtol: float = 1e-3, out_size: int | None = None, impl: str = "numpy",
+                        sample: int = 256) -> list:
+    """Per exponent, the mean number of source texels per output texel the sparse gather collects in its first
+    attempt (its own cap rule — local radiance extremes, per-tile caps — on ``sample`` evenly spaced tiles of every
+    face): what its cost grows with, for the planner.  Retries (tiles whose bound misses rtol) are not included."""
+    return convolve_sparse_many(cube, exponents, rtol=rtol, out_size=out_size, impl=impl, _sample=sample)
 
 
 def convolve_sparse(

@@ -165,7 +165,29 @@ def _mirror_pairs(dirs):
 _SH_CACHE_ELEMS = 1 << 25
 
 
+@functools.lru_cache(maxsize=8)
+def _grid_orbits(n):
+    """:func:`_octant_orbits` of the texel directions of face size n (cached; read-only)."""
+    orb = _octant_orbits_of(envmap.texel_directions(n).reshape(-1, 3))
+    if orb is not None:
+        orb.flags.writeable = False
+    return orb
+
+
 def _octant_orbits(dirs):
+    """:func:`_octant_orbits_of`, taken from a per-size cache when ``dirs`` are the (cached) texel directions of a
+    cube grid."""
+    d = np.asarray(dirs)
+    M = d.shape[0] if d.ndim == 2 else 0
+    n = int(round(math.sqrt(M / 6))) if M else 0
+    if n and 6 * n * n == M:
+        grid = envmap.texel_directions(n)
+        if d.base is grid or d is grid or (d.base is not None and d.base is grid.base):
+            return _grid_orbits(n)
+    return _octant_orbits_of(d)
+
+
+def _octant_orbits_of(dirs):
     """Orbits of a direction set under the 8 sign flips of (x, y, z), or None if it is not closed.
 
     Returns ``idx`` (M/8, 8) with ``dirs[idx[o, g]] = σ_g · dirs[idx[o, 0]]``, where bit 0/1/2 of the
@@ -241,9 +263,10 @@ def _project_octant(dirs, W, L, orb, chunks=None):
     return acc[0], acc[1]
 
 
-def _evaluate_octant_values(dirs, Be, Bo, L, orb, chunks=None):
+def _evaluate_octant_values(dirs, Be, Bo, L, orb, chunks=None, blas_combine=False):
     """Values of :func:`_evaluate_octant` at the directions of the orbits ``orb`` only: ``(idx, vals)`` with
-    ``vals[i]`` the value at ``dirs[idx[i]]`` (``idx = orb.T.ravel()``)."""
+    ``vals[i]`` the value at ``dirs[idx[i]]`` (``idx = orb.T.ravel()``).  ``blas_combine``: the characters combined
+    by one matrix product instead of ``einsum`` (the compiled path; the same sums of 8 terms in another order)."""
     cls = _octant_row_classes(L)
     n_oct = orb.shape[0]
     V = np.zeros((8, n_oct, Be.shape[1]))
@@ -253,7 +276,10 @@ def _evaluate_octant_values(dirs, Be, Bo, L, orb, chunks=None):
             rows = cls[kappa // 4][kappa % 4]
             if rows.size:
                 V[kappa, i0:i1] = Yk[kappa].T @ (Be if kappa < 4 else Bo)[rows]
-    vals = np.einsum("kg,kop->gop", _walsh8(), V)  # (8, n_oct, P)
+    if blas_combine:
+        vals = (_walsh8() @ V.reshape(8, -1)).reshape(V.shape)
+    else:
+        vals = np.einsum("kg,kop->gop", _walsh8(), V)  # (8, n_oct, P)
     return orb.T.reshape(-1), vals.reshape(-1, Be.shape[1])
 
 
@@ -263,6 +289,93 @@ def _evaluate_octant(dirs, Be, Bo, L, orb, chunks=None):
     out = np.empty((dirs.shape[0], Be.shape[1]))
     out[idx] = vals
     return out
+
+
+@functools.lru_cache(maxsize=16)
+def compiled_tables(L):
+    """Tables of the compiled SH passes (:func:`ibl_ref.groundtruth.compiled_kernels.sh_project` /
+    ``sh_matrix``): ``row_of[ℓ, m, kind]`` (the row in the even or odd matrix of :func:`_layout`; kind 0 =
+    cos, 1 = sin), ``cls_of[ℓ, m, kind]`` (its octant class κ, :func:`_octant_row_classes`) and the Legendre
+    recurrence coefficients ``a[ℓ, m]``, ``b[ℓ, m]`` (:func:`_recurrence_coeffs`)."""
+    row_of = np.full((L + 1, L + 1, 2), -1, dtype=np.int64)
+    cls_of = np.full((L + 1, L + 1, 2), -1, dtype=np.int64)
+    for bz, rows in enumerate(_layout(L)):
+        for i, (ell, m, kind) in enumerate(rows):
+            k = 0 if kind == "c" else 1
+            bx = (m % 2) if kind == "c" else ((m + 1) % 2)
+            row_of[ell, m, k] = i
+            cls_of[ell, m, k] = bx + 2 * k + 4 * bz
+    a_tab = np.zeros((L + 1, max(L, 1)))
+    b_tab = np.zeros((L + 1, max(L, 1)))
+    for ell in range(2, L + 1):
+        a, b = _recurrence_coeffs(ell)
+        a_tab[ell, : ell - 1] = a[:, 0]
+        b_tab[ell, : ell - 1] = b[:, 0]
+    return row_of, cls_of, a_tab, b_tab
+
+
+def _project_octant_compiled(dirs, W, L, orb):
+    """:func:`_project_octant` by :func:`ibl_ref.groundtruth.compiled_kernels.sh_project` (no SH matrix)."""
+    from . import compiled_kernels as ck
+
+    ev_l, od_l = _row_layout(L)
+    Q = W.shape[1]
+    Wk = (_walsh8() @ W[orb].transpose(1, 2, 0).reshape(8, -1)).reshape(8, Q, -1)  # (8, Q, n_oct)
+    reps = np.ascontiguousarray(dirs[orb[:, 0]])
+    ae, ao = np.zeros((ev_l.size, Q)), np.zeros((od_l.size, Q))
+    tabs = compiled_tables(L)
+    for q0 in range(0, Q, 4):
+        q1 = min(Q, q0 + 4)
+        W4 = np.zeros((8, 4, reps.shape[0]))
+        W4[:, : q1 - q0] = Wk[:, q0:q1]
+        acc_e, acc_o = np.zeros((ev_l.size, 4)), np.zeros((max(od_l.size, 1), 4))
+        ck.sh_project(reps, W4, L, *tabs, acc_e, acc_o)
+        ae[:, q0:q1] = acc_e[:, : q1 - q0]
+        ao[:, q0:q1] = acc_o[: od_l.size, : q1 - q0]
+    return ae, ao
+
+
+#: working-set size of one chunk of the compiled SH matrix (float64 elements, 16 MB: the products read it
+#: from the L3 cache)
+_SH_CHUNK_ELEMS_COMPILED = 1 << 21
+
+
+@functools.lru_cache(maxsize=16)
+def _class_destinations(L):
+    """Row destinations that make the rows of every octant class contiguous (even classes κ = 0..3, then odd
+    4..7): ``(dest (2, rows), [(start, stop) per κ])`` for :func:`ibl_ref.groundtruth.compiled_kernels.sh_matrix`."""
+    cls = _octant_row_classes(L)
+    n_e, n_o = (r.size for r in _row_layout(L))
+    dest = np.zeros((2, max(n_e, n_o)), dtype=np.int64)
+    spans, pos = [], 0
+    for par in range(2):
+        for c in cls[par]:
+            dest[par, c] = pos + np.arange(c.size)
+            spans.append((pos, pos + c.size))
+            pos += c.size
+    return dest, tuple(spans)
+
+
+def _octant_Y_chunks_compiled(reps, L):
+    """:func:`_octant_Y_chunks` with the SH values generated by :func:`ibl_ref.groundtruth.compiled_kernels.sh_matrix`
+    straight into class-contiguous rows (views, no copies), in chunks of ≈ 16 MB."""
+    from . import compiled_kernels as ck
+
+    tabs = compiled_tables(L)
+    dest, spans = _class_destinations(L)
+    rows = (L + 1) ** 2
+    ch = max(ck.SH_BLOCK, (_SH_CHUNK_ELEMS_COMPILED // rows) // ck.SH_BLOCK * ck.SH_BLOCK)
+    for i0 in range(0, reps.shape[0], ch):
+        i1 = min(reps.shape[0], i0 + ch)
+        Y = np.empty((rows, i1 - i0))
+        ck.sh_matrix(np.ascontiguousarray(reps[i0:i1]), L, *tabs, dest, Y)
+        yield i0, i1, [Y[a:b] for a, b in spans]
+
+
+def _evaluate_octant_values_compiled(dirs, Be, Bo, L, orb):
+    """:func:`_evaluate_octant_values` with the SH matrix chunks of :func:`_octant_Y_chunks_compiled` (BLAS products)."""
+    return _evaluate_octant_values(dirs, Be, Bo, L, orb, _octant_Y_chunks_compiled(dirs[orb[:, 0]], L),
+                                   blas_combine=True)
 
 
 def _project(dirs, W, L):
@@ -346,7 +459,7 @@ def funk_hecke(kernel_coeffs, ae, ao):
     return Be, Bo
 
 
-def sh_lobe_convolve(src_dirs, weights, out_dirs, kernel_coeffs) -> np.ndarray:
+def sh_lobe_convolve(src_dirs, weights, out_dirs, kernel_coeffs, impl: str = "numpy") -> np.ndarray:
     """``Σ_l k_l Σ_m a_lm Y_lm(r)`` with ``a_lm = Σ_j weights_j Y_lm(ω_j)``, for several kernels at once.
 
     The SH matrix is built in chunks of directions (≈ 128 MB) for the projection and again for the
@@ -364,6 +477,9 @@ def sh_lobe_convolve(src_dirs, weights, out_dirs, kernel_coeffs) -> np.ndarray:
     weights : (M, Q) values × solid angle
     out_dirs : (P, 3) output directions r
     kernel_coeffs : (K, L+1) Funk–Hecke eigenvalues per kernel
+    impl : ``"numpy"`` (the SH matrix in chunks, BLAS products) or ``"compiled"``
+        (:mod:`ibl_ref.groundtruth.compiled_kernels`: the SH values generated and used block by block, no
+        matrix; octant-symmetric sets only, others by the NumPy path)
 
     Returns
     -------
@@ -378,6 +494,16 @@ def sh_lobe_convolve(src_dirs, weights, out_dirs, kernel_coeffs) -> np.ndarray:
     dst = np.asarray(out_dirs, dtype=np.float64)
     chunks = None
     same = src is dst or (src.shape == dst.shape and np.array_equal(src, dst))
+    if impl == "compiled":
+        orb_s = _octant_orbits(src)
+        orb_d = orb_s if same else _octant_orbits(dst)
+        if orb_s is not None and orb_d is not None:
+            ae, ao = _project_octant_compiled(src, W, L, orb_s)
+            Be, Bo = funk_hecke(kc, ae, ao)
+            idx, vals = _evaluate_octant_values_compiled(dst, Be, Bo, L, orb_d)
+            out = np.empty((dst.shape[0], Be.shape[1]))
+            out[idx] = vals
+            return out.reshape(-1, K, Q).transpose(1, 0, 2)
     orb = _octant_orbits(src) if same else None
     if orb is not None and orb.shape[0] * (L + 1) ** 2 <= _SH_CACHE_ELEMS:
         # same directions in and out (output size = input size): build the SH matrix once
@@ -430,13 +556,16 @@ class SymmetryPlan:
         self.ranges = [(cuts[i], cuts[i + 1]) for i in range(self.n_parts)]
 
 
-def project_part(dirs, W, sym: SymmetryPlan, part: int):
+def project_part(dirs, W, sym: SymmetryPlan, part: int, impl: str = "numpy"):
     """Part ``part`` of the projection ``a = Σ_j W_j Y(ω_j)`` (:func:`_project`): ``(a_even, a_odd)``
     summed over that part's directions only.  The parts of a :class:`SymmetryPlan` add up to the whole
-    projection (up to the order of the float64 sums)."""
+    projection (up to the order of the float64 sums).  ``impl="compiled"``: octant-symmetric sets by
+    :func:`_project_octant_compiled`."""
     L = sym.L
     u0, u1 = sym.ranges[part]
     if sym.kind == "octant":
+        if impl == "compiled":
+            return _project_octant_compiled(dirs, W, L, sym.orb[u0:u1])
         return _project_octant(dirs, W, L, sym.orb[u0:u1])
     ev_l, od_l = _row_layout(L)
     ae = np.zeros((ev_l.size, W.shape[1]))
@@ -455,11 +584,13 @@ def project_part(dirs, W, sym: SymmetryPlan, part: int):
     return ae, ao
 
 
-def evaluate_part(dirs, Be, Bo, sym: SymmetryPlan, part: int):
+def evaluate_part(dirs, Be, Bo, sym: SymmetryPlan, part: int, impl: str = "numpy"):
     """Part ``part`` of the evaluation (:func:`_evaluate`): ``(idx, vals)``, the values at ``dirs[idx]``."""
     L = sym.L
     u0, u1 = sym.ranges[part]
     if sym.kind == "octant":
+        if impl == "compiled":
+            return _evaluate_octant_values_compiled(dirs, Be, Bo, L, sym.orb[u0:u1])
         return _evaluate_octant_values(dirs, Be, Bo, L, sym.orb[u0:u1])
     h, mir = sym.h, sym.mir
     ch = _chunk(L)

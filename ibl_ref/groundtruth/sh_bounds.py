@@ -82,6 +82,7 @@ def zonal_coefficients(s: float, L: int) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 # truncation-error envelope
 # ----------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=32)
 def texel_max_radius(n: int) -> float:
     """Largest angle (rad) between a texel centre and one of its corners on a cube face of size n."""
     c = envmap.texel_center_uv(n)

@@ -55,8 +55,10 @@ bound ``A = max((τ − m) η, (y' − m) η/(1 − η))`` with ``η = E_L / D'`
 Band limit
 ----------
 The band limit is the smallest tabulated L (every L ≤ 24, then every 4th, up to :data:`SH_L_MAX`)
-with ``E_L / (2π/(s+1)) ≤ 0.8 rtol · min(1, y_lo / (τ − m))``, where ``y_lo`` is 0.8 × the minimum of
-a cheap band-4 preview of the output (or the environment minimum if larger).  The a-posteriori bound
+with ``E_L / (2π/(s+1)) ≤ 0.8 rtol · min(1, y_lo / (τ − m))``, where ``y_lo`` is an estimate of the darkest
+output texel of that exponent (:func:`_output_floor`: half the minimum of the exact lobe averages of a 16² copy of
+the map; a band-4 SH preview used before rang below zero on probes with a dark ground), or the environment minimum
+if larger.  The a-posteriori bound
 above is what is reported (plus a rounding allowance ``4π·ε_mach·(L+1)²`` added to ``E_L``); the
 a-priori choice only aims at it.  Exponents that would need L > SH_L_MAX (s ≈ 1, whose lobe has a kink at the
 horizon so ``E_L`` decays only like L^−1.5, and s ≳ 500, whose lobe is narrow) are left to the other
@@ -85,6 +87,7 @@ only underflow to 0 near the poles, where they are negligible).
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -128,14 +131,28 @@ from .sh_bounds import (
 # ----------------------------------------------------------------------------------------------
 # hybrid SH convolution with bound
 # ----------------------------------------------------------------------------------------------
-def _bright_gather(out_dirs, b_dirs, b_w, s_list, chunk_elems=1 << 22):
-    """Exact Σ_b w_b max(r·ω_b, 0)^s for every r (K, P, C)."""
+def _bright_gather(out_dirs, b_dirs, b_w, s_list, chunk_elems=1 << 22, impl="numpy"):
+    """Exact Σ_b w_b max(r·ω_b, 0)^s for every r (K, P, C) (``impl="compiled"``:
+    :func:`ibl_ref.groundtruth.compiled_kernels.point_gather`)."""
     P = out_dirs.shape[0]
     K = len(s_list)
     C = b_w.shape[1]
     res = np.zeros((K, P, C))
     nb = b_dirs.shape[0]
     if nb == 0:
+        return res
+    if impl == "compiled":
+        from . import compiled_kernels as ck
+
+        s_int = np.array([int(s) if float(s).is_integer() and s <= ck.POWI_MAX else 0 for s in s_list], dtype=np.int64)
+        for c0 in range(0, C, 4):
+            c1 = min(C, c0 + 4)
+            bw4 = np.zeros((nb, 4))
+            bw4[:, : c1 - c0] = b_w[:, c0:c1]
+            acc = np.zeros((K, 4, P))
+            ck.point_gather(np.ascontiguousarray(out_dirs), np.ascontiguousarray(b_dirs), bw4,
+                            np.array(s_list, dtype=np.float64), s_int, acc)
+            res[:, :, c0:c1] = acc[:, : c1 - c0].transpose(0, 2, 1)
         return res
     chunk = max(1, chunk_elems // nb)
     for i0 in range(0, P, chunk):
@@ -159,12 +176,56 @@ def _threshold_candidates(lum):
     return cands
 
 
+#: face size of the coarse map whose exact lobe averages estimate the darkest output texel (:func:`_output_floor`)
+FLOOR_FACE = 16
+#: the planner takes this share of that estimate as the output floor (minima narrower than a coarse texel)
+FLOOR_SAFETY = 0.5
+#: an exponent whose band limit would fit L_max with a floor this many times higher is "within reach": the
+#: planner of :func:`ibl_ref.groundtruth.convolve.convolve` may try it at L_max (the bound is checked after)
+FLOOR_REACH = 10.0
+
+
+def _output_floor(rad, s_list):
+    """Per exponent, an estimate of the smallest lobe average of the output (over texels and channels):
+    :data:`FLOOR_SAFETY` × the minimum of the exact lobe averages of a coarse copy of the map (face size
+    :data:`FLOOR_FACE`, each coarse texel the solid-angle-weighted mean of the texels whose face position falls in
+    it).  On the CC0 probes at 256² it is within 0.86–1.0 of the darkest output texel of the SH route at L = 160
+    (s = 16, 256), where the band-4 SH preview used before rang below zero (probes with a dark ground)."""
+    from .phong_convolution import convolve_exact_many
+
+    M, C = rad.shape
+    key = (rad.shape, float(rad.sum()), float(rad[:: max(1, M // 997)].sum()), float(rad.max()))
+    if all((key, float(s)) in _FLOOR_CACHE for s in s_list):  # the map planned again (kernel choice, SH subset)
+        return np.array([_FLOOR_CACHE[(key, float(s))] for s in s_list])
+    n = int(round(math.sqrt(M / 6)))
+    nc = min(n, FLOOR_FACE)
+    om = envmap.cube_solid_angles(n)
+    idx = (np.arange(n) * nc) // n
+    flat = (np.arange(6)[:, None, None] * nc * nc + (idx[:, None] * nc + idx[None, :])[None]).ravel()
+    oc = np.bincount(flat, om.ravel(), 6 * nc * nc)
+    a = rad.reshape(6, n, n, C)
+    coarse = np.stack([np.bincount(flat, (a[..., c] * om).ravel(), 6 * nc * nc) for c in range(C)], axis=-1)
+    coarse = (coarse / oc[:, None]).reshape(6, nc, nc, C)
+    ys = convolve_exact_many(coarse, list(s_list))
+    out = FLOOR_SAFETY * ys.reshape(len(s_list), -1).min(axis=1)
+    if len(_FLOOR_CACHE) > 64:
+        _FLOOR_CACHE.clear()
+    _FLOOR_CACHE.update({(key, float(s)): float(y) for s, y in zip(s_list, out)})
+    return out
+
+
+#: the last floors of :func:`_output_floor`, keyed by a fingerprint of the map and the exponents (planning only)
+_FLOOR_CACHE: dict = {}
+
+
 def _plan(rad, omega, src, n_out, s_list, rtol, rho, hybrid, tau, L_max, estimate=False):
     """Choose the sun threshold τ and band limit L from the a-priori bound and a cost model.
 
     Returns dict with ``L`` (joint band limit; None if no candidate meets rtol within L_max and
     ``estimate`` is False), ``tau``, ``L_per_s`` (band limit each exponent needs for the rigorous bound,
-    None if > L_max), ``L_est`` (exponent → band limit used in estimate mode) and ``cost``.
+    None if > L_max), ``L_est`` (exponent → band limit used in estimate mode), ``reach`` (per exponent: would
+    fit L_max with a :data:`FLOOR_REACH` times higher output floor), ``n_bright`` and ``cost``.  The output floor of
+    each exponent is :func:`_output_floor`.
     """
     C = rad.shape[1]
     lum = rad.max(axis=1)
@@ -175,18 +236,16 @@ def _plan(rad, omega, src, n_out, s_list, rtol, rho, hybrid, tau, L_max, estimat
         cands = [(int(np.count_nonzero(lum > tau)), float(tau))]
     else:
         cands = _threshold_candidates(lum)
-    # a-priori lower estimate of the output: a cheap low-order preview of the clipped remainder
-    tau_p = cands[-1][1]
-    rem = np.minimum(rad, tau_p)
-    sub = slice(None, None, max(1, src.shape[0] // 2000))
-    prev = sh_lobe_convolve(src, np.concatenate([rem, np.ones((rem.shape[0], 1))], 1) * omega[:, None],
-                            src[sub], zonal_coefficients(float(np.median(s_list)), 4)[None])[0]
-    y_lo = max(m_min, 0.8 * float(np.min(prev[:, :C] / np.maximum(prev[:, C:], 1e-300))), 1e-300)
+    # a-priori estimate of the darkest output texel, per exponent
+    y_lo = np.maximum(np.maximum(_output_floor(rad, s_list), m_min), 1e-300)
     best = None
     K = len(s_list)
+    reach = [False] * K
     for nb, tau_k in cands:
-        eta_t = 0.8 * rtol * min(1.0, y_lo / max(tau_k - m_min, 1e-300))
-        Ls = [choose_band_limit(s, eta_t, rho, L_max) for s in s_list]
+        eta_t = [0.8 * rtol * min(1.0, y / max(tau_k - m_min, 1e-300)) for y in y_lo]
+        Ls = [choose_band_limit(s, e, rho, L_max) for s, e in zip(s_list, eta_t)]
+        reach = [r or choose_band_limit(s, min(FLOOR_REACH * e, 0.8 * rtol), rho, L_max) is not None
+                 for r, s, e in zip(reach, s_list, eta_t)]
         L_est = {s: _estimate_band_limit(s, rtol, rho) for s, x in zip(s_list, Ls) if x is None} if estimate else {}
         feas = [x for x in Ls if x is not None] + list(L_est.values())
         if not feas:
@@ -197,8 +256,10 @@ def _plan(rad, omega, src, n_out, s_list, rtol, rho, hybrid, tau, L_max, estimat
         if best is None or key < best[0]:
             best = (key, Lk, nb, tau_k, Ls, L_est)
     if best is None:
-        return {"L": None, "tau": cands[-1][1], "L_per_s": [None] * K, "L_est": {}, "cost": np.inf}
-    return {"L": best[1], "tau": best[3], "L_per_s": best[4], "L_est": best[5], "cost": best[0][1]}
+        return {"L": None, "tau": cands[-1][1], "L_per_s": [None] * K, "L_est": {}, "cost": np.inf, "reach": reach,
+                "n_bright": cands[-1][0], "floor": [float(y) for y in y_lo]}
+    return {"L": best[1], "tau": best[3], "L_per_s": best[4], "L_est": best[5], "cost": best[0][1], "reach": reach,
+            "n_bright": best[2], "floor": [float(y) for y in y_lo]}
 
 
 #: largest band limit used for exponents whose rigorous bound cannot meet rtol (estimate mode)
@@ -266,6 +327,7 @@ def convolve_sh_many(
     L_max: int = SH_L_MAX,
     estimate: bool = False,
     plan: dict | None = None,
+    impl: str = "numpy",
 ):
     """SH (optionally hybrid) convolution for several exponents sharing one SH pass.
 
@@ -297,6 +359,9 @@ def convolve_sh_many(
         never relies on it.
     plan : dict, optional
         Result of :func:`plan_sh` for the same cube/exponents/rtol (avoids planning twice).
+    impl : {"numpy", "compiled"}
+        ``"compiled"``: the SH passes without an SH matrix and the bright gather by
+        :mod:`ibl_ref.groundtruth.compiled_kernels` (the gather's rounding bound is added to the bound).
 
     Returns
     -------
@@ -306,11 +371,11 @@ def convolve_sh_many(
     info : dict (L, tau, n_bright, bound_kind list, timings)
     """
     setup = sh_setup(cube, exponents, rtol=rtol, L=L, hybrid=hybrid, tau=tau, out_size=out_size,
-                     normalized=normalized, L_max=L_max, estimate=estimate, plan=plan)
+                     normalized=normalized, L_max=L_max, estimate=estimate, plan=plan, impl=impl)
     t_plan = time.perf_counter()
-    shq = sh_lobe_convolve(setup.src, setup.Wq, setup.out_dirs, setup.kcoef)  # (K, P, C+1)
+    shq = sh_lobe_convolve(setup.src, setup.Wq, setup.out_dirs, setup.kcoef, impl=impl)  # (K, P, C+1)
     t_sh = time.perf_counter()
-    nb = _bright_gather(setup.out_dirs, setup.b_dirs, setup.b_w, setup.s_list)  # exact part
+    nb = _bright_gather(setup.out_dirs, setup.b_dirs, setup.b_w, setup.s_list, impl=impl)  # exact part
     t_gather = time.perf_counter()
     return sh_finish(setup, shq, nb, {"time_plan_s": t_plan - setup.t0, "time_sh_s": t_sh - t_plan,
                                       "time_bright_s": t_gather - t_sh})
@@ -327,7 +392,8 @@ class ShSetup:
 
 def sh_setup(cube, exponents, *, rtol: float = 1e-3, L: int | None = None, hybrid: bool = True,
              tau: float | None = None, out_size: int | None = None, normalized: bool = True,
-             L_max: int = SH_L_MAX, estimate: bool = False, plan: dict | None = None) -> ShSetup:
+             L_max: int = SH_L_MAX, estimate: bool = False, plan: dict | None = None,
+             impl: str = "numpy") -> ShSetup:
     """Checks, plan (band limit, sun threshold) and the split of :func:`convolve_sh_many` (same parameters)."""
     t0 = time.perf_counter()
     a, squeeze = check_cube(cube)
@@ -379,7 +445,7 @@ def sh_setup(cube, exponents, *, rtol: float = 1e-3, L: int | None = None, hybri
                    rho=rho, L=int(L_use), tau=float(tau_use), est_idx=est_idx, n_bright=int(np.count_nonzero(bright)),
                    b_dirs=src[bright], b_w=excess * omega[bright][:, None], kcoef=kcoef, Wq=Wq,
                    m_rem=float(rem.min()), tau_eff=float(rem.max()), normalized=normalized, rtol=rtol,
-                   sym_src=None, sym_out=None)
+                   sym_src=None, sym_out=None, impl=impl)
 
 
 def sh_split(setup: ShSetup, n_parts: int) -> ShSetup:
@@ -398,7 +464,7 @@ def sh_project_part(setup: ShSetup, part: int):
     ``(a_even, a_odd)``; :func:`sh_coefficients` adds the parts in order."""
     from .sh_basis import project_part
 
-    return project_part(setup.src, setup.Wq, setup.sym_src, part)
+    return project_part(setup.src, setup.Wq, setup.sym_src, part, getattr(setup, "impl", "numpy"))
 
 
 def sh_coefficients(setup: ShSetup, parts):
@@ -419,10 +485,11 @@ def sh_evaluate_part(setup: ShSetup, Be, Bo, part: int):
     for the outputs ``idx`` (:func:`sh_assemble` puts the parts together)."""
     from .sh_basis import evaluate_part
 
-    idx, vals = evaluate_part(setup.out_dirs, Be, Bo, setup.sym_out, part)
+    impl = getattr(setup, "impl", "numpy")
+    idx, vals = evaluate_part(setup.out_dirs, Be, Bo, setup.sym_out, part, impl)
     K = setup.kcoef.shape[0]
     shq = vals.reshape(-1, K, setup.Wq.shape[1]).transpose(1, 0, 2)
-    nb = _bright_gather(setup.out_dirs[idx], setup.b_dirs, setup.b_w, setup.s_list)
+    nb = _bright_gather(setup.out_dirs[idx], setup.b_dirs, setup.b_w, setup.s_list, impl=impl)
     return (idx,) + _values_and_bounds(setup, shq, nb)
 
 
@@ -458,6 +525,20 @@ def _values_and_bounds(setup: ShSetup, shq, nb):
     maps = np.empty((K, P, C))
     rel = np.empty((K, P))
     rel_est = np.full((K, P), np.inf) if est_idx else None
+    if getattr(setup, "impl", "numpy") == "compiled" and not est_idx:
+        from . import compiled_kernels as ck
+
+        E = np.array([legendre_series_truncation_envelope(s, L_use, rho)
+                      + _FOUR_PI * np.finfo(float).eps * (L_use + 1) ** 2 for s in s_list])
+        d_nb = np.zeros((K, P, C))
+        if setup.b_w.shape[0]:
+            bw = np.abs(setup.b_w).sum(axis=0)
+            for k, s in enumerate(s_list):
+                e_r, e_a = ck.weight_error(s, float(s).is_integer() and s <= ck.POWI_MAX)
+                d_nb[k] = e_r * nb[k] + e_a * bw
+        ck.sh_values_bounds(np.ascontiguousarray(shq), np.ascontiguousarray(nb), E, d_nb, float(tau_eff),
+                            float(m_rem), bool(normalized), maps, rel)
+        return maps, rel, None
     for k, s in enumerate(s_list):
         E_L = legendre_series_truncation_envelope(s, L_use, rho)
         E_L += _FOUR_PI * np.finfo(float).eps * (L_use + 1) ** 2  # rounding of the O(L²) SH sums
@@ -475,6 +556,14 @@ def _values_and_bounds(setup: ShSetup, shq, nb):
         else:
             y = num
             A = np.full_like(y, tau_eff * E_L)
+        if getattr(setup, "impl", "numpy") == "compiled" and setup.b_w.shape[0]:
+            # rounding of the compiled bright gather (relative η for r·ω ≥ C0, absolute ε per weight below)
+            from . import compiled_kernels as ck
+
+            e_r, e_a = ck.weight_error(s, float(s).is_integer() and s <= ck.POWI_MAX)
+            d_nb = e_r * nb[k] + e_a * np.abs(setup.b_w).sum(axis=0)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                A = A + (np.where(den > 0, d_nb / np.where(den > 0, den, 1.0), np.inf) if normalized else d_nb)
         with np.errstate(invalid="ignore", divide="ignore"):
             r = np.where(y > A, A / np.maximum(y - A, 1e-300), np.inf)
         maps[k] = y

@@ -33,19 +33,28 @@ import numpy as np
 
 from ..errors import IBLError
 
-__all__ = ["CameraError", "PerspectiveCamera", "OrthographicCamera", "look_at_basis", "light_camera", "scene_bounds"]
+__all__ = ["CameraError", "PerspectiveCamera", "OrthographicCamera", "look_at_basis", "light_camera", "scene_bounds",
+           "as_vec3", "MAX_COORDINATE"]
 
 
 class CameraError(IBLError):
     """A camera is ill-defined (eye on target, up parallel to the view direction, bad size or fov)."""
 
 
-def _vec3(v, name: str) -> np.ndarray:
+#: largest |coordinate| of an eye, target or up vector (as for meshes: products of a few stay in float64)
+MAX_COORDINATE = 1e100
+
+
+def as_vec3(v, name: str) -> np.ndarray:
+    """``v`` as a finite float64 3-vector of coordinates <= :data:`MAX_COORDINATE`; :class:`CameraError` naming ``name``."""
     a = np.asarray(v, dtype=np.float64)
     if a.shape != (3,):
         raise CameraError(f"{name}: expected 3 numbers, got shape {a.shape}")
     if not np.all(np.isfinite(a)):
         raise CameraError(f"{name}: contains NaN or Inf ({a.tolist()})")
+    if np.abs(a).max() > MAX_COORDINATE:
+        raise CameraError(f"{name}: coordinates up to {np.abs(a).max():.3g}; the camera's products of coordinates "
+                          f"would overflow float64 (|coordinate| <= {MAX_COORDINATE:g})")
     return a
 
 
@@ -95,8 +104,8 @@ def look_at_basis(forward, up_hint) -> np.ndarray:
     Raises :class:`CameraError` when ``forward`` is zero or ``up_hint`` is (nearly) parallel to it
     (|sin| < 1e-6), since the image orientation is then undefined.
     """
-    f = _vec3(forward, "forward")
-    u = _vec3(up_hint, "up")
+    f = as_vec3(forward, "forward")
+    u = as_vec3(up_hint, "up")
     nf = np.linalg.norm(f)
     if nf == 0:
         raise CameraError("view direction is zero (eye == target?)")
@@ -141,9 +150,9 @@ class PerspectiveCamera(_CameraFrame):
     basis: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self):
-        eye = _vec3(self.eye, "eye")
-        target = _vec3(self.target, "target")
-        up = _vec3(self.up, "up")
+        eye = as_vec3(self.eye, "eye")
+        target = as_vec3(self.target, "target")
+        up = as_vec3(self.up, "up")
         if np.linalg.norm(target - eye) <= 1e-12 * max(1.0, np.abs(eye).max()):
             raise CameraError(f"eye {eye.tolist()} coincides with target {target.tolist()}")
         w, h = _check_size(self.width, self.height)
@@ -263,7 +272,7 @@ class OrthographicCamera(_CameraFrame):
     is_orthographic = True
 
     def __post_init__(self):
-        eye = _vec3(self.eye, "eye")
+        eye = as_vec3(self.eye, "eye")
         w, h = _check_size(self.width, self.height)
         hw, hh = float(self.half_width), float(self.half_height)
         if not (hw > 0 and hh > 0 and np.isfinite(hw) and np.isfinite(hh)):
@@ -272,7 +281,7 @@ class OrthographicCamera(_CameraFrame):
             )
         near, far = _clip_planes(self.near, self.far, near_may_be_zero=True)
         basis = look_at_basis(self.forward, self.up)
-        _freeze(self, eye=eye, forward=basis[2].copy(), up=_vec3(self.up, "up"), half_width=hw, half_height=hh,
+        _freeze(self, eye=eye, forward=basis[2].copy(), up=as_vec3(self.up, "up"), half_width=hw, half_height=hh,
                 width=w, height=h, near=near, far=far, basis=basis)
 
     @property
@@ -333,7 +342,7 @@ def light_camera(direction, centre, radius, resolution: int = 512, margin: float
     ``near = 0``, ``far = 2R`` (the whole sphere lies in [0, 2R] depth), half extents ``R``, so the texel size
     is ``2R / resolution``.  The up hint is +Y, or +Z when ω is within ~0.06° of ±Y.
     """
-    w = _vec3(direction, "light direction")
+    w = as_vec3(direction, "light direction")
     n = np.linalg.norm(w)
     if n == 0:
         raise CameraError("light direction is zero")
@@ -343,7 +352,7 @@ def light_camera(direction, centre, radius, resolution: int = 512, margin: float
         raise CameraError(f"radius must be positive and finite, got {radius!r}")
     up = np.array([0.0, 1.0, 0.0]) if abs(w[1]) < 1 - 5e-7 else np.array([0.0, 0.0, 1.0])
     return OrthographicCamera(
-        eye=_vec3(centre, "centre") + R * w,
+        eye=as_vec3(centre, "centre") + R * w,
         forward=-w,
         up=up,
         half_width=R,

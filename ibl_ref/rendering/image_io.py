@@ -2,8 +2,9 @@
 
 Rendered images of Knuth et al. (2014), Eq. 5, are radiance (linear, unbounded) and are stored as plain
 scanline OpenEXR images, channels ``R, G, B`` (or ``Y`` for one channel), 32-bit float, ZIP compression, no
-``envmap`` attribute (they are not environment maps; use :mod:`ibl_ref.environment.exr_io` for those).  Written atomically
-(:func:`ibl_ref.atomic.atomic_path`).
+``envmap`` attribute (they are not environment maps; use :mod:`ibl_ref.environment.exr_io` for those).  Written and
+read by the one OpenEXR writer and reader (:func:`ibl_ref.environment.exr_io.write_exr`,
+:func:`ibl_ref.environment.exr_io.read_exr`), atomically (:func:`ibl_ref.atomic.atomic_path`).
 
 Glossiness maps (the per-texel g of :class:`ibl_ref.rendering.render.Material`) are read from ``.npy`` (a 2D float
 array), ``.exr`` (channel ``Y``, or the mean of ``R, G, B``) or ``.png`` (8/16-bit, values / max → [0, 1];
@@ -17,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..environment.radiance_policy import check_radiance
-from ..errors import EnvMapFileError, IBLError, check_input_file
+from ..errors import IBLError, as_path, check_input_file
 
 __all__ = ["write_image_exr", "read_image_exr", "read_g_map"]
 
@@ -27,18 +28,22 @@ _FLOAT32_MAX = float(np.finfo(np.float32).max)
 def write_image_exr(path, img, *, signed: bool = False) -> Path:
     """Write a radiance image (H, W), (H, W, 1) or (H, W, 3) as a float32 OpenEXR file (atomically).
 
-    ``signed=True`` accepts negative values: difference images (e.g. the error budget's per-step differences,
-    ``ibl_ref.rendering.error_budget``), which are not radiance; read them with any EXR reader that keeps the sign.
+    Through the one OpenEXR writer :func:`ibl_ref.environment.exr_io.write_exr` (same header policy as the
+    environment maps, without an ``envmap`` attribute).  ``signed=True`` accepts negative values: difference
+    images (e.g. the error budget's per-step differences, ``ibl_ref.rendering.error_budget``), which are not
+    radiance; read them with any EXR reader that keeps the sign.
 
     Raises
     ------
     IBLError
-        NaN/Inf, negative values, values beyond float32, or an unsupported shape (checked before writing).
+        NaN/Inf, negative values, values beyond float32, values below float32's normal range that carry more
+        than 1e-4 of the image's sum, or an unsupported shape (checked before writing).
     EnvMapFileError
         The OpenEXR library cannot write the file.
     """
-    from ..atomic import atomic_path
+    from ..environment.exr_io import ExrPart, to_pixel_type, write_exr
 
+    path = as_path(path, "OpenEXR image")
     a = np.asarray(img, dtype=np.float64)
     if a.ndim == 2:
         a = a[..., None]
@@ -47,25 +52,13 @@ def write_image_exr(path, img, *, signed: bool = False) -> Path:
     if signed:  # signed data (difference images): only NaN / Inf are refused
         if not np.all(np.isfinite(a)):
             raise IBLError(f"{path}: image contains NaN or Inf; refusing to write")
+        if np.any(np.abs(a) > _FLOAT32_MAX):
+            raise IBLError(f"{path}: values exceed the float32 range")
+        pix = a.astype(np.float32)
     else:
         check_radiance(a, f"{path}: image")  # NaN / Inf / negative radiance: refuse to write
-    if np.any(np.abs(a) > _FLOAT32_MAX):
-        raise IBLError(f"{path}: values exceed the float32 range")
-    try:
-        import OpenEXR
-    except ImportError as exc:  # pragma: no cover - declared dependency
-        raise EnvMapFileError("the OpenEXR Python package (>= 3.2) is required to write .exr images") from exc
-    pix = np.ascontiguousarray(a.astype(np.float32))
-    channels = {"RGB": pix} if pix.shape[2] == 3 else {"Y": np.ascontiguousarray(pix[..., 0])}
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    path = Path(path)
-    try:
-        with atomic_path(path, suffix=".exr") as tmp:
-            OpenEXR.File(header, channels).write(str(tmp))
-    except IBLError:
-        raise
-    except (OSError, RuntimeError, ValueError, TypeError) as exc:
-        raise EnvMapFileError(f"{path}: cannot write OpenEXR image: {exc}") from exc
+        pix = to_pixel_type(a, "float", False, str(path))[0]  # overflow refused, underflow measured
+    write_exr(path, ExrPart(pix, ("R", "G", "B") if pix.shape[2] == 3 else ("Y",)))
     return path
 
 

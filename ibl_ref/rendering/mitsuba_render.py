@@ -27,9 +27,24 @@ error of one of them (or Monte Carlo noise, which is estimated):
   (the trapezoid sum it normalises its importance sampling with) holds exactly the texel's energy L·Ω — without
   that, a 1.5° sun of 3e4 lost 2.2 % of its energy to the pixel staircase at the texel borders
   (``tests/test_mitsuba_render.py`` checks directions, a bright patch, a mirror sphere and the energy);
-* **BSDF** — :class:`LabPhongBSDF` (a Python ``mi.BSDF``) implements f above, **one-sided** like Mitsuba's own
-  BSDFs: zero when n·v ≤ 0 or n·ω ≤ 0 with n the shading normal (the lab's convention, README "Conventions");
-  sampling picks the cosine lobe with probability kd/(kd+ks) and the Phong lobe around r otherwise.
+* **BSDF** — the lab's materials (:mod:`ibl_ref.rendering.materials`), **one-sided** like Mitsuba's own BSDFs:
+  zero when n·v ≤ 0 or n·ω ≤ 0 with n the shading normal (the lab's convention, README "Conventions").
+  :class:`LabPhongBSDF` (a Python ``mi.BSDF``) implements f above; sampling picks the cosine lobe with probability
+  kd/(kd+ks) and the Phong lobe around r otherwise.  A GGX material
+  (:class:`ibl_ref.rendering.materials.GGXMaterial`, f = kd/π + D·G·F/(4 (n·ω)(n·v)), α = roughness²) goes one of
+  two routes (``ggx_route``): ``"lab"`` — :class:`LabGGXBSDF`, the lab's formula (:func:`ibl_ref.lobes.brdfs.ggx`:
+  GGX D, Schlick F with F0, Smith G in the material's form) as a Python BSDF, sampling D(h)·cos θh (and the cosine
+  lobe with probability kd/(kd+1)); ``"builtin"`` — Mitsuba's own ``roughconductor`` with ``distribution='ggx'``,
+  ``alpha = roughness²``, ``material='none'`` (η = 0, k = 1: Fresnel exactly 1 = Schlick with F0 = 1) and visible-
+  normal sampling (``sample_visible``, its default and lower-variance sampler).  Mitsuba's microfacet model uses the
+  **separable** Smith form: ``MicrofacetDistribution::G(wi, wo, m) = smith_g1(wi, m) * smith_g1(wo, m)``
+  ("Smith's separable shadowing-masking approximation", ``include/mitsuba/render/microfacet.h``, Mitsuba 3), with
+  the GGX ``smith_g1 = 2 / (1 + √(1 + α² tan²θ))`` — equal to the lab's G1 — and ``roughconductor``'s ``eval``
+  returns D·G·F/(4 cos θi) (its f times cos θo), so the built-in route needs a material with ``smith="separable"``
+  and ``f0 = 1``.  A diffuse part kd > 0 is added exactly with a ``blendbsdf`` of weight ½ between ``diffuse``
+  (a ``uniform`` reflectance 2·kd: Mitsuba refuses RGB reflectances above 1, not uniform ones) and the
+  conductor with ``specular_reflectance`` 2: ½·2kd/π + ½·2·f_s = kd/π + f_s (``tests/test_mitsuba_render.py``
+  checks both routes against :func:`ibl_ref.lobes.brdfs.ggx` at random directions through Mitsuba's ``eval``).
 
 Noise: the render is the mean of two independent halves (seeds ``seed`` and ``seed + 1``, ``spp/2`` samples
 each).  For each pixel E|mean − truth| ≈ E|a − b|/2 (a, b the halves; Gaussian noise), so
@@ -70,7 +85,12 @@ __all__ = [
     "ENVMAP_MAX_LOST_FRAC",
     "envmap_radiance",
     "render_mitsuba",
+    "bsdf_dict",
+    "GGX_ROUTES",
 ]
+
+#: how :func:`render_mitsuba` renders a GGX material: the lab's formula as a Python BSDF, or Mitsuba's roughconductor
+GGX_ROUTES = ("lab", "builtin")
 
 #: Dr.Jit's LLVM backend needs at least this libLLVM major version (older ones abort the process).
 MIN_LLVM_MAJOR = 17
@@ -159,9 +179,14 @@ def envmap_directions(height: int) -> np.ndarray:
     H = int(height)
     if H < 2:
         raise IBLError(f"envmap height must be >= 2, got {height}")
+    return _envmap_rows(H, 0, H)
+
+
+def _envmap_rows(H: int, j0: int, j1: int) -> np.ndarray:
+    """Rows j0 … j1−1 of :func:`envmap_directions` (H)."""
     W = 2 * H
     u = (np.arange(W) + 0.5) / W
-    v = np.arange(H) / (H - 1)
+    v = np.arange(j0, j1) / (H - 1)
     phi = 2 * np.pi * u[None, :]
     theta = np.pi * v[:, None]
     st = np.sin(theta)
@@ -206,7 +231,7 @@ def mitsuba_envmap(cube, height: int = 1024, energy: str = "texel", return_info:
     reports it in the info only.
     """
     from ..environment.envmap import cube_solid_angles, direction_to_texel
-    from .reference_render import check_environment
+    from .reference_converged import check_environment
 
     if energy not in ENVMAP_ENERGY_MODES:
         raise IBLError(f"energy must be one of {ENVMAP_ENERGY_MODES}, got {energy!r}")
@@ -216,13 +241,22 @@ def mitsuba_envmap(cube, height: int = 1024, energy: str = "texel", return_info:
     if a.shape[-1] != 3:
         raise IBLError(f"environment must have 1 or 3 channels for Mitsuba, got {a.shape[-1]}")
     N = a.shape[1]
-    d = envmap_directions(height)
-    f, r, c = direction_to_texel(d, N)
-    t = (np.asarray(f) * N + np.asarray(r)) * N + np.asarray(c)  # (H, W) texel of every pixel
-    bm = a.reshape(-1, 3)[t]
+    H = int(height)
+    if H < 2:
+        raise IBLError(f"envmap height must be >= 2, got {height}")
+    t = np.empty((H, 2 * H), dtype=np.int32 if 6 * N * N < 2 ** 31 else np.int64)  # texel of every pixel
+    rows = max(1, (1 << 21) // (2 * H))  # rows per step: bounded memory at any height
+    for j0 in range(0, H, rows):
+        d = _envmap_rows(H, j0, min(H, j0 + rows))
+        f, r, c = direction_to_texel(d, N)
+        t[j0:j0 + rows] = (np.asarray(f) * N + np.asarray(r)) * N + np.asarray(c)
     omega = np.asarray(cube_solid_angles(N), dtype=np.float64).reshape(-1)
-    w_pix = np.broadcast_to(envmap_grid_weights(height)[:, None], t.shape)
-    w_tex = np.bincount(t.reshape(-1), weights=w_pix.reshape(-1), minlength=6 * N * N)
+    w_row = envmap_grid_weights(H)
+    w_tex = np.zeros(6 * N * N)
+    for j0 in range(0, H, rows):
+        tt = t[j0:j0 + rows]
+        w_tex += np.bincount(tt.reshape(-1), weights=np.broadcast_to(w_row[j0:j0 + rows, None], tt.shape).reshape(-1),
+                             minlength=6 * N * N)
     empty = w_tex <= 0
     e_tex = (a.reshape(-1, 3) * omega[:, None]).sum(axis=-1)
     tot = float(e_tex.sum())
@@ -230,10 +264,12 @@ def mitsuba_envmap(cube, height: int = 1024, energy: str = "texel", return_info:
     if energy == "texel" and lost > ENVMAP_MAX_LOST_FRAC:
         raise IBLError(f"envmap height {int(height)} is too coarse for a {N}² cube: {int(empty.sum())} texels get no "
                        f"bitmap pixel ({lost:.2%} of the energy); use a height of at least {max(8 * N, 64)}")
+    lut = a.reshape(-1, 3)
     if energy == "texel":
-        scale = np.where(empty, 0.0, omega / np.where(empty, 1.0, w_tex))
-        bm = bm * scale[t][..., None]
-    out = np.ascontiguousarray(bm, dtype=np.float32)
+        lut = lut * np.where(empty, 0.0, omega / np.where(empty, 1.0, w_tex))[:, None]
+    out = np.empty((H, 2 * H, 3), dtype=np.float32)
+    for j0 in range(0, H, rows):
+        out[j0:j0 + rows] = lut[t[j0:j0 + rows]]
     if not return_info:
         return out
     return out, dict(energy=energy, texels_without_pixel=int(empty.sum()), energy_lost_frac=lost)
@@ -263,46 +299,24 @@ def envmap_radiance(cube, dirs, height: int = 1024, variant: str = "auto", energ
 def _register_bsdf(mi):
     import drjit as dr
 
-    class LabPhongBSDF(mi.BSDF):
-        """f·(n·ω) = kd/π·(n·ω) + ks·(s+1)/(2π)·max(r·ω,0)^s on n·v > 0, n·ω > 0 (shading frame); else 0."""
+    class _LabBSDF(mi.BSDF):
+        """A cosine lobe (probability ``p_diffuse``) and a glossy lobe (:meth:`_glossy_direction`), one-sided; the
+        subclasses give the value f·(n·ω) and the mixture pdf (:meth:`_value_pdf`)."""
 
-        def __init__(self, props):
-            mi.BSDF.__init__(self, props)
-            self.kd = float(props.get("kd", 0.0))
-            self.ks = float(props.get("ks", 1.0))
-            self.s = float(props.get("s", 1.0))
-            tot = self.kd + self.ks
-            self.p_diffuse = self.kd / tot if tot > 0 else 1.0
+        def _flags(self, diffuse: bool, glossy: bool):
             flags = mi.BSDFFlags.FrontSide
-            if self.kd > 0:
+            if diffuse:
                 flags = flags | mi.BSDFFlags.DiffuseReflection
-            if self.ks > 0:
+            if glossy:
                 flags = flags | mi.BSDFFlags.GlossyReflection
             self.m_components = [flags]
             self.m_flags = flags
 
-        def _value_pdf(self, si, wo):
-            cos_i = mi.Frame3f.cos_theta(si.wi)
-            cos_o = mi.Frame3f.cos_theta(wo)
-            r = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)  # mirror direction of wi about the shading normal
-            lobe = dr.power(dr.maximum(dr.dot(r, wo), 0.0), self.s) * ((self.s + 1.0) / (2.0 * dr.pi))
-            diff = dr.maximum(cos_o, 0.0) * dr.inv_pi
-            ok = (cos_i > 0) & (cos_o > 0)
-            value = dr.select(ok, self.kd * diff + self.ks * lobe, 0.0)
-            pdf = dr.select(ok, self.p_diffuse * diff + (1.0 - self.p_diffuse) * lobe, 0.0)
-            return value, pdf
-
         def sample(self, ctx, si, sample1, sample2, active=True):
             cos_i = mi.Frame3f.cos_theta(si.wi)
-            r = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
-            # Phong lobe around r: cos α = ξ^(1/(s+1)), pdf (s+1)/(2π) cos^s α
-            ca = dr.power(sample2.x, 1.0 / (self.s + 1.0))
-            sa = dr.safe_sqrt(1.0 - ca * ca)
-            phi = 2.0 * dr.pi * sample2.y
-            w_lobe = mi.Frame3f(r).to_world(mi.Vector3f(sa * dr.cos(phi), sa * dr.sin(phi), ca))
             w_diff = mi.warp.square_to_cosine_hemisphere(sample2)
             pick_diffuse = sample1 < self.p_diffuse
-            wo = dr.select(pick_diffuse, w_diff, w_lobe)
+            wo = dr.select(pick_diffuse, w_diff, self._glossy_direction(si, sample2))
             value, pdf = self._value_pdf(si, wo)
             bs = mi.BSDFSample3f()
             bs.wo = wo
@@ -327,10 +341,97 @@ def _register_bsdf(mi):
             value, pdf = self._value_pdf(si, wo)
             return mi.Color3f(dr.select(active, value, 0.0)), dr.select(active, pdf, 0.0)
 
+    class LabPhongBSDF(_LabBSDF):
+        """f·(n·ω) = kd/π·(n·ω) + ks·(s+1)/(2π)·max(r·ω,0)^s on n·v > 0, n·ω > 0 (shading frame); else 0."""
+
+        def __init__(self, props):
+            mi.BSDF.__init__(self, props)
+            self.kd = float(props.get("kd", 0.0))
+            self.ks = float(props.get("ks", 1.0))
+            self.s = float(props.get("s", 1.0))
+            tot = self.kd + self.ks
+            self.p_diffuse = self.kd / tot if tot > 0 else 1.0
+            self._flags(self.kd > 0, self.ks > 0)
+
+        def _value_pdf(self, si, wo):
+            cos_i = mi.Frame3f.cos_theta(si.wi)
+            cos_o = mi.Frame3f.cos_theta(wo)
+            r = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)  # mirror direction of wi about the shading normal
+            lobe = dr.power(dr.maximum(dr.dot(r, wo), 0.0), self.s) * ((self.s + 1.0) / (2.0 * dr.pi))
+            diff = dr.maximum(cos_o, 0.0) * dr.inv_pi
+            ok = (cos_i > 0) & (cos_o > 0)
+            value = dr.select(ok, self.kd * diff + self.ks * lobe, 0.0)
+            pdf = dr.select(ok, self.p_diffuse * diff + (1.0 - self.p_diffuse) * lobe, 0.0)
+            return value, pdf
+
+        def _glossy_direction(self, si, sample2):
+            r = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
+            # Phong lobe around r: cos α = ξ^(1/(s+1)), pdf (s+1)/(2π) cos^s α
+            ca = dr.power(sample2.x, 1.0 / (self.s + 1.0))
+            sa = dr.safe_sqrt(1.0 - ca * ca)
+            phi = 2.0 * dr.pi * sample2.y
+            return mi.Frame3f(r).to_world(mi.Vector3f(sa * dr.cos(phi), sa * dr.sin(phi), ca))
+
         def to_string(self):
             return f"LabPhongBSDF[kd={self.kd}, ks={self.ks}, s={self.s}]"
 
     mi.register_bsdf("lab_phong", lambda props: LabPhongBSDF(props))
+
+    class LabGGXBSDF(_LabBSDF):
+        """f·(n·ω) = kd/π·(n·ω) + D·G·F/(4 n·v) on n·v > 0, n·ω > 0 (shading frame; :func:`ibl_ref.lobes.brdfs.ggx`:
+        D = α²/(π(cos²θh(α²−1)+1)²), G1(c) = 2c/(c + √(α² + (1−α²)c²)), G = G1·G1 or 1/(1/G1 + 1/G1 − 1),
+        F = F0 + (1−F0)(1 − h·ω)⁵); else 0.  Sampling: the cosine lobe with probability kd/(kd+1), else h from
+        D(h)·cos θh (tan²θh = α² ξ/(1 − ξ)) reflected about h."""
+
+        def __init__(self, props):
+            mi.BSDF.__init__(self, props)
+            self.kd = float(props.get("kd", 0.0))
+            self.alpha = float(props.get("alpha", 0.25))
+            self.f0 = float(props.get("f0", 0.04))
+            self.height_correlated = bool(props.get("height_correlated", True))
+            self.p_diffuse = self.kd / (self.kd + 1.0)
+            self._flags(self.kd > 0, True)
+
+        def _g1(self, c):
+            a2 = self.alpha * self.alpha
+            return 2.0 * c / (c + dr.sqrt(a2 + (1.0 - a2) * c * c))
+
+        def _value_pdf(self, si, wo):
+            cos_i = mi.Frame3f.cos_theta(si.wi)  # toward the viewer
+            cos_o = mi.Frame3f.cos_theta(wo)  # toward the light
+            ok = (cos_i > 0) & (cos_o > 0)
+            h = dr.normalize(si.wi + wo)
+            ch = mi.Frame3f.cos_theta(h)
+            a2 = self.alpha * self.alpha
+            t = ch * ch * (a2 - 1.0) + 1.0
+            D = dr.select(ch > 0, a2 / (dr.pi * t * t), 0.0)
+            ci_ = dr.select(ok, cos_i, 1.0)
+            co_ = dr.select(ok, cos_o, 1.0)
+            g_i, g_o = self._g1(ci_), self._g1(co_)
+            G = 1.0 / (1.0 / g_i + 1.0 / g_o - 1.0) if self.height_correlated else g_i * g_o
+            F = self.f0 + (1.0 - self.f0) * dr.power(1.0 - dr.clip(dr.dot(h, wo), 0.0, 1.0), 5.0)
+            diff = dr.maximum(cos_o, 0.0) * dr.inv_pi
+            value = dr.select(ok, self.kd * diff + D * G * F / (4.0 * ci_), 0.0)
+            hw = dr.dot(wo, h)
+            pdf_spec = dr.select(hw > 0, D * ch / (4.0 * dr.select(hw > 0, hw, 1.0)), 0.0)
+            pdf = dr.select(ok, self.p_diffuse * diff + (1.0 - self.p_diffuse) * pdf_spec, 0.0)
+            return value, pdf
+
+        def _glossy_direction(self, si, sample2):
+            a2 = self.alpha * self.alpha
+            xi = dr.minimum(sample2.x, 1.0 - 1e-7)
+            tan2 = a2 * xi / (1.0 - xi)
+            ct = dr.rsqrt(1.0 + tan2)
+            st = dr.safe_sqrt(1.0 - ct * ct)
+            phi = 2.0 * dr.pi * sample2.y
+            h = mi.Vector3f(st * dr.cos(phi), st * dr.sin(phi), ct)
+            return 2.0 * dr.dot(si.wi, h) * h - si.wi
+
+        def to_string(self):
+            return (f"LabGGXBSDF[kd={self.kd}, alpha={self.alpha}, f0={self.f0}, "
+                    f"smith={'height_correlated' if self.height_correlated else 'separable'}]")
+
+    mi.register_bsdf("lab_ggx", lambda props: LabGGXBSDF(props))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -355,22 +456,50 @@ class MitsubaResult:
     info: dict = field(default_factory=dict)
 
 
-def _material_table(materials, mat_ids):
-    from ..knuth2014.gloss_lookup import phong_exponent
+def bsdf_dict(material, ggx_route: str = "lab") -> dict:
+    """The Mitsuba BSDF dictionary of a lab material (:func:`ibl_ref.rendering.materials.as_material`; a raw Mitsuba
+    dict passes through): Phong → ``lab_phong``; GGX → ``lab_ggx`` (``ggx_route="lab"``) or Mitsuba's
+    ``roughconductor`` (``"builtin"``; needs ``smith="separable"`` and ``f0 = 1``, module docstring), blended with a
+    ``diffuse`` for kd > 0."""
+    from .materials import as_material
 
+    if isinstance(material, dict) and "type" in material:  # a raw Mitsuba BSDF dict (tests: a perfect mirror)
+        return dict(material)
+    if ggx_route not in GGX_ROUTES:
+        raise IBLError(f"ggx_route must be one of {', '.join(GGX_ROUTES)}, got {ggx_route!r}")
+    m = as_material(material)
+    if m.kind == "phong":
+        if not (m.kd + m.ks > 0):
+            raise IBLError(f"kd, ks must not both be 0, got {m.kd}, {m.ks}")
+        if m.mirror:
+            raise IBLError("the Mitsuba renderer needs 0 <= g < 1 (the mirror g = 1 is not a Phong lobe)")
+        return {"type": "lab_phong", "kd": m.kd, "ks": m.ks, "s": m.s}
+    if ggx_route == "lab":
+        return {"type": "lab_ggx", "kd": m.kd, "alpha": m.alpha, "f0": m.f0,
+                "height_correlated": m.smith == "height_correlated"}
+    if m.smith != "separable" or m.f0 != 1.0:
+        raise IBLError(f"Mitsuba's built-in roughconductor is GGX with separable Smith G1·G1 and (material='none') "
+                       f"Fresnel 1: render a GGX material with smith='separable' and f0=1 (got smith={m.smith!r}, "
+                       f"f0={m.f0:g})")
+    cond = {"type": "roughconductor", "distribution": "ggx", "alpha": m.alpha, "material": "none",
+            "sample_visible": True}
+    if m.kd == 0:
+        return cond
+    cond["specular_reflectance"] = {"type": "uniform", "value": 2.0}
+    return {"type": "blendbsdf", "weight": 0.5, "a": {"type": "diffuse", "reflectance": {"type": "uniform",
+                                                                                        "value": 2.0 * m.kd}},
+            "b": cond}
+
+
+def _material_table(materials, mat_ids, ggx_route="lab"):
     out = {}
     for mid in mat_ids:
         if mid not in materials:
             raise IBLError(f"no material for material id {mid} (have {sorted(materials)})")
-        if isinstance(materials[mid], dict):  # a raw Mitsuba BSDF dict (tests: a perfect mirror)
-            out[mid] = dict(materials[mid])
-            continue
-        kd, ks, g = (float(x) for x in materials[mid])
-        if not (kd >= 0 and ks >= 0 and np.isfinite(kd) and np.isfinite(ks) and kd + ks > 0):
-            raise IBLError(f"material {mid}: kd, ks must be finite, >= 0 and not both 0, got {kd}, {ks}")
-        if not (0.0 <= g < 1.0):
-            raise IBLError(f"material {mid}: Mitsuba renderer needs 0 <= g < 1 (no mirror), got {g}")
-        out[mid] = (kd, ks, float(phong_exponent(g)))
+        try:
+            out[mid] = bsdf_dict(materials[mid], ggx_route)
+        except IBLError as exc:
+            raise IBLError(f"material {mid}: {exc}") from None
     return out
 
 
@@ -386,8 +515,7 @@ def _build_scene(mi, scene, materials, bitmap):
         V = scene.vertices[used]
         N = scene.vertex_normals[used]
         F = inv.reshape(-1, 3)
-        bsdf = mi.load_dict(mat if isinstance(mat, dict) else
-                            {"type": "lab_phong", "kd": mat[0], "ks": mat[1], "s": mat[2]})
+        bsdf = mi.load_dict(mat)
         props = mi.Properties()
         props["bsdf"] = bsdf
         mesh = mi.Mesh(f"mat{mid}", len(V), len(F), props=props, has_vertex_normals=True)
@@ -426,8 +554,9 @@ def _render_half(mi, mscene, o, dirs, spp, seed, lanes):
 
 
 def render_mitsuba(meshes, camera, cube, *, materials=None, kd: float = 0.0, ks: float = 1.0, g: float = 0.9,
-                   spp: int = 256, seed: int = 0, envmap_height: int | None = None, envmap_energy: str = "texel",
-                   lanes: int = 1 << 21, variant: str = "auto") -> MitsubaResult:
+                   material=None, ggx_route: str = "lab", spp: int = 256, seed: int = 0,
+                   envmap_height: int | None = None, envmap_energy: str = "texel", lanes: int = 1 << 21,
+                   variant: str = "auto") -> MitsubaResult:
     """Render (*) with Mitsuba 3's ``direct`` integrator through the lab's pixel centres.
 
     Parameters
@@ -435,7 +564,10 @@ def render_mitsuba(meshes, camera, cube, *, materials=None, kd: float = 0.0, ks:
     meshes : see :func:`ibl_ref.rendering.raster.prepare_scene` (material ids select ``materials``)
     camera : :class:`ibl_ref.rendering.camera.PerspectiveCamera` (any camera with ``pixel_rays``)
     cube : (6, N, N, C) environment (the radiance function: nearest texel, see module docstring)
-    materials : {material_id: (kd, ks, g)}; default: every id gets (kd, ks, g)
+    materials : {material_id: material} (any form :func:`ibl_ref.rendering.materials.as_material` takes, or a raw
+        Mitsuba BSDF dict); default: every id gets ``material``, else the Phong material (kd, ks, g)
+    ggx_route : how a GGX material is rendered (:data:`GGX_ROUTES`; module docstring): ``"lab"`` (the lab's formula
+        as a Python BSDF, any smith and F0) or ``"builtin"`` (Mitsuba's roughconductor: separable Smith, F0 = 1)
     spp : samples per pixel in total (two halves of spp/2 with seeds ``seed``, ``seed + 1``; even, ≥ 2)
     envmap_height : lat-long bitmap height handed to Mitsuba (width 2H); default max(1024, 8·N) for an N² cube
         (every texel then holds at least one pixel)
@@ -451,7 +583,8 @@ def render_mitsuba(meshes, camera, cube, *, materials=None, kd: float = 0.0, ks:
     t0 = time.perf_counter()
     scene = prepare_scene(meshes, warn=False)
     ids = sorted(int(x) for x in np.unique(scene.material_id))
-    mats = _material_table({i: (kd, ks, g) for i in ids} if materials is None else materials, ids)
+    default = (kd, ks, g) if material is None else material
+    mats = _material_table({i: default for i in ids} if materials is None else materials, ids, ggx_route)
     if envmap_height is None:
         shape = np.shape(cube)  # the layout itself is checked by mitsuba_envmap
         envmap_height = max(1024, 8 * int(shape[1])) if len(shape) >= 2 else 1024
@@ -482,8 +615,7 @@ def render_mitsuba(meshes, camera, cube, *, materials=None, kd: float = 0.0, ks:
     info = dict(renderer="mitsuba", variant=v, libllvm=_STATE.get("libllvm"), mitsuba_version=mi.__version__,
                 integrator="direct", sampler=SAMPLER, spp=int(min(spp_done)) if spp_done else spp, seeds=[int(seed), int(seed) + 1],
                 envmap_height=int(envmap_height), envmap=env_info, n_pixels=int(mask.sum()),
-                materials={str(k_): (m if isinstance(m, dict) else dict(kd=m[0], ks=m[1], s=m[2]))
-                           for k_, m in mats.items()},
+                materials={str(k_): m for k_, m in mats.items()}, ggx_route=ggx_route,
                 noise_rel_l1=float(np.abs(diff).sum() / 2 / den) if den > 0 else float("nan"),
                 noise_rmse=float(np.sqrt(np.mean(diff ** 2) / 4)) if diff.size else float("nan"),
                 setup_s=round(t1 - t0, 3), time_s=round(time.perf_counter() - t0, 3))

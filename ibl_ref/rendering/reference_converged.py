@@ -1,39 +1,59 @@
-"""The converged reference of Knuth et al. (2014) Eq. 4–5: visibility-weighted Phong lobe averages to a tolerance.
+"""The converged reference of Knuth et al. (2014) Eq. 4–5: visibility-weighted lobe integrals to a tolerance.
 
-Per surface point x (shading normal n, face normal n_f) and lobe axis d (n for the diffuse term, r for the glossy
-one, ``s = 1/(1−g)``, Eq. 3), :mod:`ibl_ref.rendering.reference_render` defines the exact value::
+The one integrator of the lab's exact reference (:mod:`ibl_ref.rendering.reference_render` renders images with it;
+:func:`converged_shading` is its entry for any surface points).  Per surface point x (shading normal n, face normal
+n_f, view direction v) and lobe (:mod:`ibl_ref.rendering.materials`: the one definition of the lobe weights), it
+computes::
 
-    A_s = ∫ L(ω) V(x, ω) max(d·ω, 0)^s [n·ω > 0] dω  /  ∫ max(d·ω, 0)^s dω                                (*)
+    Phong lobe (axis d = n or r, s = 1/(1−g), Eq. 3):
+        A = ∫ L(ω) V(x, ω) max(d·ω, 0)^s [n·ω > 0] dω  /  ∫ max(d·ω, 0)^s dω                                  (*)
+    GGX lobe (α = roughness², f_s = D·G·F / (4 (n·ω)(n·v)), :func:`ibl_ref.lobes.brdfs.ggx`):
+        A = ∫ L(ω) V(x, ω) f_s(ω, v) (n·ω) [n·ω > 0] dω                                                       (**)
 
-(the lobe average of Eq. 4 with exact visibility V; docs/background.md §8 for the conventions: the hemisphere
-Ω⁺ of n clips the numerator only, as the normalised Phong BRDF of Kán et al. 2015, Eq. 2).  L is the map's
-piecewise-constant radiance (each texel constant over its exact solid angle).  :func:`converged_shading`
-computes (*) to a requested estimated relative L1 error ``rtol`` of the image (and, per pixel, to ``pixel_rtol``
-where the visibility limits it), with two discretisations:
+(*) is the lobe average of Eq. 4 with exact visibility V (docs/background.md §8: the hemisphere Ω⁺ of n clips the
+numerator only, as the normalised Phong BRDF of Kán et al. 2015, Eq. 2); (**) is the one-bounce rendering equation
+of the GGX specular term.  L is the map's piecewise-constant radiance (each texel constant over its exact solid
+angle).  Both are computed to a requested estimated relative L1 error ``rtol`` of the image (and, per pixel, to
+``pixel_rtol`` where the visibility limits it), with two discretisations:
 
-**Quadrature** (radiance × lobe).  The integrand without V is summed at the texel centres of a face size M
-(a power-of-two multiple of the visibility base level and of the map's N, ≥ 4 texels across the lobe's half
-width): ``w_q = L_q max(d·ω_q,0)^s [n·ω_q>0] Ω_q`` (the midpoint rule inside the map's texels; the normalisation
-Σ_q max(d·ω_q,0)^s Ω_q is the same sum over the whole sphere, so L ≡ 1 without occluders gives exactly the share
-of the lobe above the horizon).  Estimate per pixel: |Σ_c V̄_c (W_c(M) − W_c(M/2))| over the base cells c with
-their visible fractions V̄_c — the change from M/2 to M of the visibility-weighted average (for a smooth lobe the
-error of M is ≈ ⅓ of it; where the horizon or a cell edge cuts the lobe, about it).  M doubles (the cells and
-their rays stay) while this change, with the base cells' rays, exceeds :data:`QUAD_SHARE` of rtol for the block
-or of ``pixel_rtol`` for more than :data:`QUAD_PIXEL_SHARE` of its pixels (up to ``n_quad_max``).
+**Quadrature** (radiance × lobe).  The integrand without V is summed at the texel centres of face sizes M (power-
+of-two multiples of the visibility base level and of the map's N, so that every quadrature texel lies inside one
+map texel): ``w_q = L_q · weight(ω_q) · Ω_q`` with the lobe's weight (the midpoint rule inside the map's texels; a
+Phong lobe's normalisation Σ_q max(d·ω_q,0)^s Ω_q is the same sum over the whole sphere, so L ≡ 1 without
+occluders gives exactly the share of the lobe above the horizon; a GGX lobe is normalised analytically).  Each
+(pixel, base cell) pair has its own level M_pc = min(M·2^g_pc, cap): Phong lobes are radially symmetric and take
+g = 0 everywhere (one M per block, ≥ 4 texels across the half width θ½); a GGX lobe is not — it depends on (n, v,
+ω), has heavy tails over the whole hemisphere and a core that narrows out of the plane of incidence by the factor
+n·v at grazing view — so M starts where the tails need it (as for a diffuse lobe) and each pair gets the grade g
+that puts ≥ 4 texels across its local scale ℓ = w + δ/2 (w the lobe's narrowest half width at that pixel,
+:meth:`ibl_ref.rendering.materials.GGXLobe.width`; δ the angle from the peak r to the nearest point of the cell:
+D falls as δ⁻⁴ in the tails).  Estimate per pixel: |Σ_c V̄_c (W_c(M_pc) − W_c(M_pc/2))| over the base cells c
+with their visible fractions V̄_c — the change from M_pc/2 to M_pc of the visibility-weighted value (for a smooth
+integrand the error of M is ≈ ⅓ of it; where the horizon or a cell edge cuts the lobe, about it), measured per
+pair, so it sees the lobe's real shape whatever its symmetry.  M doubles for the block (the cells and their rays
+stay) while this change, with the base cells' rays, exceeds :data:`QUAD_SHARE` of rtol for the block or of
+``pixel_rtol`` for more than :data:`QUAD_PIXEL_SHARE` of its pixels (up to ``n_quad_max``).
 
 **Visibility** (stratified, adaptive).  The sphere is cut into cells: the six faces at a base size n_b
-(≥ ``n_vis_start`` and ≥ 2 cells across the lobe's half width), each cell splittable 2×2 down to face size
-``n_vis_max``.  A cell c carries the exact quadrature weight W_c = Σ_{q∈c} w_q (cells finer than M split their
-parent's weight in proportion to max(d·ω,0)^s [n·ω>0] Ω at their centres) and ONE shadow ray toward a random
-point of the cell (drawn uniformly in the cell, or in proportion to the map's energy L·Ω where the cell spans
-several map texels, so that a sun inside a coarse cell is aimed at).  The pixel's value is Σ_c W_c V_c / Σ w.
-A cell whose ray differs from the ray of a neighbouring cell (the 8 cells around it at its own level, across
-face borders; a shadow edge passes near it) is an *edge* cell: its visible fraction q_c is unknown, its ray is
-an unbiased one-sample estimate of it, with error e_c = W_c (V_c − q_c), |e_c| ≤ W_c and variance
-W_c² q_c (1 − q_c) ≤ W_c²/4 (q_c measured with the density the point is drawn from, not with the lobe's weight
-inside the cell: a second-order difference that shrinks as edge cells are split).  The errors of different cells
-are independent (independent points), so per pixel, taking the final cells as given (weights relative to Σ w,
-channel means)
+(≥ ``n_vis_start`` and ≥ 2 cells across the lobe's half width; for GGX the tails' width), each cell splittable 2×2
+down to face size ``n_vis_max``.  A cell c carries the exact quadrature weight W_c = Σ_{q∈c} w_q (cells finer than
+M split their parent's weight in proportion to the lobe's weight × Ω at their centres) and ONE shadow ray toward a
+random point of the cell (drawn uniformly in the cell, or in proportion to the map's energy L·Ω where the cell
+spans several map texels, so that a sun inside a coarse cell is aimed at) — and above the pixel's shading horizon
+n·ω > 0, where the weight is: a point drawn below it in a cell that the horizon cuts is drawn again (up to
+:data:`HORIZON_TRIES` times, from the same density restricted to n·ω > 0), since a ray below the receiving plane is
+occluded by definition and would count the cell's lit weight as shadowed; such a cell is an edge cell whatever its
+ray says (the surface and what stands on it — a contact, a concave part — often occlude its lowest directions,
+which a ray drawn above the horizon cannot tell).  For a GGX lobe, cells that hold more
+than :data:`PRESPLIT_SHARE` of the pixel's value and are wider than half the lobe's core are split before the
+search for shadow edges (the base level is set by the tails; this gives the core the ≥ 2 cells per half width that
+the base level gives a Phong lobe).  The pixel's value is Σ_c W_c V_c (/ Σ w for a Phong lobe).  A cell whose ray
+differs from the ray of a neighbouring cell (the 8 cells around it at its own level, across face borders; a shadow
+edge passes near it) is an *edge* cell: its visible fraction q_c is unknown, its ray is an unbiased one-sample
+estimate of it, with error e_c = W_c (V_c − q_c), |e_c| ≤ W_c and variance W_c² q_c (1 − q_c) ≤ W_c²/4 (q_c
+measured with the density the point is drawn from, not with the lobe's weight inside the cell: a second-order
+difference that shrinks as edge cells are split).  The errors of different cells are independent (independent
+points), so per pixel, taking the final cells as given (weights relative to the normalisation, channel means)
 
     E|e| ≤ √(Σ_edge W_c² q_c(1 − q_c)) ≤ σ = ½ √(Σ_edge W_c²)      (Jensen)
     P(|e| > t σ) ≤ 2 exp(−t²/2)                                      (Hoeffding: e_c lies in an interval of length W_c)
@@ -42,17 +62,19 @@ Cells that agree with all neighbours are taken as fully lit / fully shadowed: a 
 between two agreeing rays is missed, which the model does not count (hence the base level's ≥ 2 cells per lobe
 half width and ``n_vis_start``; the tests measure it against finer runs).
 
-**Refinement** (where weight × possible change is largest).  Each round splits the edge cells with the largest
-weights: for the image, the fewest whose split is predicted (a split cell's W² shrinks ≈ 8×: four children of
-W/4, about half of them edges) to bring the block's Σ E|e| below rtol·ΣA minus the quadrature estimate; for every
-pixel whose bound (below) exceeds ``pixel_rtol`` × max(A, :data:`ERR_FLOOR` × mean A), its largest edge cells until
-its predicted bound fits (not where the quadrature estimate alone exceeds it: that is M's job).  The child that
-holds its parent's point keeps the parent's ray (it is a uniform point of the child too); the others get their
-own.  New children are compared with their siblings and with the 12 cells around their 2×2 block (a neighbour
-that differs from a child becomes an edge too; edge flags of older cells only grow).  The estimate falls from
-round to round (up to the re-measured κ̂ below), and the loop stops when both targets are met or no wanted edge
-cell can be split any more (the finest level ``n_vis_max``).  ``converged`` says whether the image target was met;
-the per-pixel target is best effort (its outcome is ``err_rel_p99``).
+**Refinement** (where weight × possible change is largest).  Each round splits edge cells with the largest
+weights — only among each pixel's cells that hold the top :data:`SPLIT_SHARE` of its Σ W² (a cell in the last
+share cannot change the pixel's σ much; splitting it now would only multiply the finest cells): for the image, the
+fewest whose split is predicted (a split cell's W² shrinks ≈ 8×: four children of W/4, about half of them edges)
+to bring the block's Σ E|e| below rtol·ΣA minus the quadrature estimate; for every pixel whose bound (below)
+exceeds ``pixel_rtol`` × max(A, :data:`ERR_FLOOR` × mean A), its largest edge cells until its predicted bound fits
+(not where the quadrature estimate alone exceeds it: that is M's job).  The child that holds its parent's point
+keeps the parent's ray (it is a uniform point of the child too); the others get their own.  New children are
+compared with their siblings and with the 12 cells around their 2×2 block (a neighbour that differs from a child
+becomes an edge too; edge flags of older cells only grow).  The estimate falls from round to round (up to the
+re-measured κ̂ below), and the loop stops when both targets are met, no wanted edge cell can be split any more (the
+finest level ``n_vis_max``), or the block holds ``max_cells`` cells (the memory bound, below).  ``converged`` says
+whether the image target was met; the per-pixel target is best effort (its outcome is ``err_rel_p99``).
 
 **Reported error.**  Per pixel: ``err_mean`` = √(κ̂ Σ_edge W_c²/4) + quadrature estimate, the estimate of E|e| used
 for the image's rel. L1 ``err_rel_l1`` = Σ err_mean / Σ A.  κ̂ ≤ 1 is the share of the worst-case variance the edge
@@ -63,12 +85,16 @@ worst case σ and t = √(2 ln(2/δ)), δ = :data:`BOUND_DELTA`: a per-pixel bou
 so its 99th percentile bounds the actual error's up to a δ share of the pixels.  ``tests/test_reference_render.py``
 checks both against closed forms, brute force and much finer runs.
 
-**Blocks and determinism.**  Pixels are dealt to blocks round-robin (block b holds pixels b, b + B, b + 2B, …, so
-every block is a sample of the whole image and meets the image's tolerance on its own); blocks run independently
-(:func:`ibl_ref.executors.map_jobs`: serially, on local processes or any executor) and each block's random points
-come from a counter-based hash of (seed, block, cell), so the image is bit-identical wherever the blocks ran.
-Memory is O(block pixels × cells), never (all pixels × all cells); the refined cells are kept as leaves of a
-quadtree per pixel, sorted by Morton key for the neighbour look-ups.
+**Blocks, memory and determinism.**  Pixels are dealt to blocks round-robin (block b holds pixels b, b + B,
+b + 2B, …, so every block is a sample of the whole image and meets the image's tolerance on its own); blocks run
+independently (:func:`ibl_ref.executors.map_jobs`: serially, on local processes or any executor) and each block's
+random points come from a counter-based hash of (seed, block, cell[, pixel, try]), so the image is bit-identical
+wherever the blocks ran.  A block's memory is bounded whatever the environment: the refined cells are kept as
+leaves of a quadtree per pixel (Morton-sorted, ~100 bytes each) and never exceed ``max_cells``
+(:data:`MAX_BLOCK_CELLS`); cells are split in chunks of :data:`SPLIT_CHUNK` parents; the quadrature texels are
+generated per chunk of :data:`QUAD_CHUNK_ELEMENTS` (pair, texel) elements, never as whole levels.  With
+``progress``, the first block runs alone and the predicted cost of the rest (rays, CPU and wall time, memory per
+worker) is printed before they start.
 
 Shadow rays: :class:`ibl_ref.rendering.raycast.ShadowRays` (Embree with a float64 check of every hit when
 ``embreex`` is installed, the package's float64 casters otherwise).
@@ -80,30 +106,31 @@ import time
 
 import numpy as np
 
-from ..conventions import lobe_half_angle
-from ..errors import IBLError
+from ..environment.radiance_policy import check_radiance
+from ..errors import IBLError, LayoutError
 
-__all__ = ["converged_shading", "DEFAULT_RTOL", "LOBE_TAIL_CUT", "BOUND_DELTA", "base_level", "quadrature_start"]
+__all__ = ["converged_shading", "check_environment", "radiance_at_face_size", "coarse_env", "DEFAULT_RTOL",
+           "BOUND_DELTA", "ERR_FLOOR", "PIXEL_RTOL_FACTOR", "MAX_BLOCK_CELLS", "memory_bound_mb", "base_level",
+           "quadrature_start"]
 
 #: default tolerance of :func:`ibl_ref.rendering.reference_render.render_reference` (relative L1 of the image,
 #: estimated)
 DEFAULT_RTOL = 2e-3
-#: lobe support of the quadrature: max(d·ω,0)^s below this (relative to the peak 1) is dropped (from the numerator
-#: and the normalisation alike; the dropped share is < 4π·1e-8/(2π/(s+1)) ≪ 1e-6 for s ≤ 100)
-LOBE_TAIL_CUT = 1e-8
 #: per-pixel failure probability of ``err_bound`` (Hoeffding): t = √(2 ln(2/δ)) ≈ 3.9
 BOUND_DELTA = 1e-3
 #: a split cell's Σ W² is predicted to shrink by this factor (4 children of W/4, about half of them edges)
 SPLIT_GAIN = 1.0 / 8.0
+#: a round splits only cells among the top SPLIT_SHARE of their pixel's Σ W² (largest first)
+SPLIT_SHARE = 0.95
 #: a round aims at this fraction of the visibility budget (fewer rounds, a little more refinement)
 ROUND_AIM = 0.7
-MAX_ROUNDS = 80
+MAX_ROUNDS = 120
 #: share of rtol (and of pixel_rtol) the quadrature may take: M doubles until the M/2 → M change of the average
 #: (with the base cells' visibility) is below it for the image and for all but QUAD_PIXEL_SHARE of the pixels
 QUAD_SHARE = 0.5
 QUAD_PIXEL_SHARE = 0.01
-#: elements of the (pixels, cells, texels) arrays of one quadrature step
-QUAD_CHUNK_ELEMENTS = 1 << 20
+#: (pair, texel) elements of one quadrature step (bounds its memory: ~30 float64 temporaries per element for GGX)
+QUAD_CHUNK_ELEMENTS = 1 << 18
 #: per-pixel bound: t = √(2 ln(2/δ)) standard deviations (Hoeffding)
 T_BOUND = float(np.sqrt(2.0 * np.log(2.0 / BOUND_DELTA)))
 #: default ``pixel_rtol`` = this × rtol (3 % at the default rtol 2e-3)
@@ -116,8 +143,73 @@ KAPPA_MIN_SPLITS = 200
 KAPPA_FLOOR = 0.1
 #: κ used to plan the first split, before κ̂ can be measured (the estimate itself uses 1 until then)
 KAPPA_PLAN = 0.3
+#: default ``max_cells``: cells (base pairs + refined leaves) of one block; with ~100 B per cell kept and ~240 B at
+#: the peak of a round (split chunks), this bounds a worker's memory (docs/background.md §8: measured at the cap)
+MAX_BLOCK_CELLS = 1_000_000
+#: memory model of a process running blocks (measured, docs/background.md §8): Python, NumPy, trimesh, Embree and
+#: the scene, the peak bytes per cell of a block, and the environment's copies (its radiance and energy per texel)
+MEM_BASE_MB = 120.0
+MEM_PER_CELL_B = 240.0
+MEM_ENV_COPIES = 6.0
+#: parents split per step (bounds the temporary arrays of a round)
+SPLIT_CHUNK = 1 << 16
+#: draws of a cell's random point until one lies above the pixel's shading horizon
+HORIZON_TRIES = 8
+#: GGX core: cells holding more than this share of the pixel's value are split while wider than half the core
+PRESPLIT_SHARE = 1.0 / 16.0
+#: graded quadrature (GGX): texels across the local scale ℓ = w + δ/2
+GRADE_TEXELS = 4.0
 _MORTON_BITS = 21  # coordinates at the finest level < 2^21 per face side
 _HASH_MUL = np.uint64(0x9E3779B97F4A7C15)
+
+
+# ------------------------------------------------------------------------------------------------
+# environment: validation and piecewise-constant radiance on any face size
+# ------------------------------------------------------------------------------------------------
+def check_environment(cube) -> np.ndarray:
+    """The environment of a render as validated float64 radiance (6, N, N, C): layout checked, NaN/Inf/negative
+    radiance refused with a clear :class:`ibl_ref.errors.RadianceError` (:func:`ibl_ref.environment.radiance_policy.check_radiance`);
+    a (6, N, N) map gets one channel."""
+    from ..environment.envmap import check_cube_shape
+
+    check_cube_shape(cube, "environment")
+    a = np.asarray(check_radiance(cube, "environment"), dtype=np.float64)
+    if a.ndim == 3:
+        a = a[..., None]
+    return a
+
+
+def coarse_env(cube, n_env: int) -> np.ndarray:
+    """Exact area average of a cube map onto face size ``n_env`` (must divide N).
+
+    L_coarse = Σ_f L_f Ω_f / Σ_f Ω_f over the k×k fine texels f of each coarse texel (k = N / n_env); since the
+    coarse texel is exactly the union of its fine texels, L_coarse·Ω_coarse = Σ L_f Ω_f and ∫L dω is kept.
+    """
+    from ..environment.envmap import cube_solid_angles
+
+    a = check_environment(cube)
+    N = a.shape[1]
+    n_env = int(n_env)
+    if n_env < 1 or N % n_env:
+        raise LayoutError(f"n_env={n_env} must divide the face size {N}")
+    k = N // n_env
+    om = cube_solid_angles(N)[..., None]
+    num = (a * om).reshape(6, n_env, k, n_env, k, -1).sum(axis=(2, 4))
+    den = om.reshape(6, n_env, k, n_env, k, 1).sum(axis=(2, 4))
+    return num / den
+
+
+def radiance_at_face_size(a: np.ndarray, n: int) -> np.ndarray:
+    """The map's piecewise-constant radiance as exact area averages on face size n (any n ≥ 1)."""
+    import math
+
+    N = a.shape[1]
+    if n % N == 0:
+        k = n // N
+        return np.repeat(np.repeat(a, k, axis=1), k, axis=2)
+    if N % n == 0:
+        return coarse_env(a, n)
+    return coarse_env(radiance_at_face_size(a, N * n // math.gcd(N, n)), n)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -131,20 +223,20 @@ def _pow2_multiples(N: int):
     return sorted(lo)[:-1] + [N * 2 ** k for k in range(0, 16)]
 
 
-def base_level(s: float, N: int, n_vis_start: int = 16) -> int:
+def base_level(theta_half: float, N: int, n_vis_start: int = 16) -> int:
     """Visibility base face size n_b = N·2^k (k ∈ ℤ): the smallest ≥ ``n_vis_start`` with ≥ 2 cells across the lobe's
-    half width θ½ (cell angle (π/2)/n_b ≤ θ½/2)."""
-    need = max(float(n_vis_start), np.pi / float(lobe_half_angle(s)))
+    half width ``theta_half`` (cell angle (π/2)/n_b ≤ θ½/2)."""
+    need = max(float(n_vis_start), np.pi / float(theta_half))
     for n in _pow2_multiples(int(N)):
         if n >= need:
             return int(n)
     return int(N) * 2 ** 15
 
 
-def quadrature_start(s: float, N: int, nb: int) -> int:
+def quadrature_start(theta_half: float, N: int, nb: int) -> int:
     """First quadrature face size M: a power-of-two multiple of max(N, n_b), ≥ 2 n_b (so M/2 nests in the cells)
-    and with ≥ 4 texels across the lobe's half width ((π/2)/M ≤ θ½/4)."""
-    need = max(2 * nb, 2 * np.pi / float(lobe_half_angle(s)))
+    and with ≥ 4 texels across the half width ``theta_half`` ((π/2)/M ≤ θ½/4)."""
+    need = max(2 * nb, 2 * np.pi / float(theta_half))
     M = max(int(N), int(nb))
     while M < need:
         M *= 2
@@ -188,12 +280,15 @@ def _hash(x):
         return x ^ (x >> np.uint64(31))
 
 
-def _uniforms(seed: int, block: int, lvl, f, i, j, k: int = 3):
-    """(K, k) uniforms in [0, 1) from a hash of (seed, block, level, face, row, col) — a pure function of the cell."""
+def _uniforms(seed: int, block: int, lvl, f, i, j, k: int = 3, salt=None):
+    """(K, k) uniforms in [0, 1) from a hash of (seed, block, level, face, row, col[, salt]) — a pure function of the
+    cell (and of ``salt``: a pixel and a try, for points drawn again above a pixel's horizon)."""
     with np.errstate(over="ignore"):
         h = _hash(np.uint64(seed & 0xFFFFFFFF) * np.uint64(0x100000001B3) + np.uint64(block & 0xFFFFFFFF))
         c = _hash(h ^ _hash(lvl.astype(np.uint64) * np.uint64(8) + f.astype(np.uint64)))
         c = _hash(c ^ (i.astype(np.uint64) << np.uint64(32)) ^ j.astype(np.uint64))
+        if salt is not None:
+            c = _hash(c ^ _hash(np.asarray(salt).astype(np.uint64) + np.uint64(0xD6E8FEB86659FD93)))
         out = np.empty((len(c), k))
         for m in range(k):
             c = _hash(c + np.uint64(m + 1))
@@ -250,8 +345,25 @@ def _dot(a, b):
 # ------------------------------------------------------------------------------------------------
 # the per-block computation
 # ------------------------------------------------------------------------------------------------
+class _Geom:
+    """Per-pixel geometry of a block: points, shading normals n, face normals, views v, lobe axis / peak d, the
+    lobe's narrowest half width w."""
+
+    def __init__(self, lobe, P, n, fn, v):
+        self.P, self.n, self.fn, self.v = P, n, fn, v
+        d = lobe.direction(n, v)
+        self.d = d / np.sqrt(_dot(d, d))[:, None]
+        self.w = np.asarray(lobe.width(n, v, self.d), dtype=np.float64)
+
+    def weights(self, lobe, p, w, om):
+        """The lobe's weights (:meth:`ibl_ref.rendering.materials.PhongLobe.weights`) for pixels ``p`` (rows of
+        ``w``, ``om``: (len(p), …, 3) and (len(p), …))."""
+        ex = (slice(None),) + (None,) * (w.ndim - 2) + (slice(None),)
+        return lobe.weights(self.n[p][ex], self.v[p][ex], self.d[p][ex], w, om)
+
+
 class _Env:
-    """The map's radiance on the levels the block needs (cell-major with respect to the base level)."""
+    """The map's radiance, and texel blocks of any face size generated on demand (never a whole fine level)."""
 
     def __init__(self, a, nb):
         from ..environment.envmap import cube_solid_angles
@@ -262,31 +374,43 @@ class _Env:
         self.nb = nb
         om = cube_solid_angles(self.N)
         self.energy = a.mean(axis=-1).clip(min=0.0) * om  # (6, N, N): where to aim rays inside coarse cells
-        self._q = {}
+        self._rad = {}
+        self._edges = {}
 
-    def quad(self, M):
-        """Cell-major arrays of level M: directions (K_b, k², 3), solid angles (K_b, k²), radiance (K_b, k², C)."""
-        if M not in self._q:
-            from ..environment.envmap import texel_directions, texel_solid_angles
-            from .reference_render import radiance_at_face_size
+    def _edge(self, M):
+        if M not in self._edges:
+            self._edges[M] = np.linspace(-1.0, 1.0, M + 1)  # the texel edges of texel_solid_angles
+        return self._edges[M]
 
-            nb, k = self.nb, M // self.nb
+    def texels(self, f, r0, c0, k: int, M: int):
+        """Blocks of k×k texels of face size M (block b: face f[b], rows r0[b]…, cols c0[b]…, row-major inside):
+        centre directions (B, k², 3), exact solid angles (B, k²), radiance (B, k², C)."""
+        from ..environment.envmap import face_frames, rect_solid_angle
 
-            def cm(x):
-                t = x.reshape((6, nb, k, nb, k) + x.shape[3:])
-                t = np.moveaxis(t, 3, 2)
-                return np.ascontiguousarray(t.reshape((6 * nb * nb, k * k) + x.shape[3:]))
+        ar = np.arange(k)
+        R = np.repeat(r0[:, None] + ar[None, :], k, axis=1)
+        Cc = np.tile(c0[:, None] + ar[None, :], (1, k))
+        e = self._edge(M)
+        om = rect_solid_angle(e[Cc], e[Cc + 1], e[R], e[R + 1])
+        F = face_frames("openexr")[f]
+        u = (Cc + 0.5) / M * 2.0 - 1.0
+        v = (R + 0.5) / M * 2.0 - 1.0
+        d = F[:, None, 0, :] + u[..., None] * F[:, None, 1, :] + v[..., None] * F[:, None, 2, :]
+        d = d / np.sqrt(_dot(d, d))[..., None]
+        fb = np.broadcast_to(f[:, None], R.shape)
+        if M % self.N == 0:
+            q = M // self.N
+            L = self.a[fb, R // q, Cc // q]
+        else:
+            if M not in self._rad:
+                self._rad[M] = radiance_at_face_size(self.a, M)
+            L = self._rad[M][fb, R, Cc]
+        return d, om, L
 
-            d = cm(np.asarray(texel_directions(M)))
-            o = cm(np.broadcast_to(texel_solid_angles(M), (6, M, M)))
-            L = cm(radiance_at_face_size(self.a, M))
-            self._q[M] = (d, o, L)
-        return self._q[M]
-
-    def samples(self, seed, block, lvl, f, i, j, n):
+    def samples(self, seed, block, lvl, f, i, j, n, salt=None):
         """Random points (u, v) in cells (f, i, j) of face sizes n (arrays): uniform in the cell's face-plane square,
         or — where the cell spans several map texels — a texel drawn in proportion to its energy L·Ω first."""
-        r = _uniforms(seed, block, lvl, f, i, j, 3)
+        r = _uniforms(seed, block, lvl, f, i, j, 3, salt=salt)
         u0, u1, v0, v1 = _rect(i, j, n)
         fine = n >= self.N
         u = u0 + r[:, 0] * (u1 - u0)
@@ -309,63 +433,111 @@ class _Env:
                 v[sel] = (i[sel] * kk + a_ + r[sel, 1]) * h - 1.0
         return u, v
 
+    def above(self, seed, block, lvl, f, i, j, n, su, sv, nrm, pix):
+        """The points (su, sv) of cells (lvl, f, i, j of face sizes n), with each one below its pixel's shading
+        horizon (n·ω ≤ 0; ``nrm`` per point, ``pix`` its pixel) drawn again from the cell's density, salted with
+        (pixel, try), up to :data:`HORIZON_TRIES` times → (su, sv, directions, redrawn mask)."""
+        su, sv = su.copy(), sv.copy()
+        w = _dirs(f, su, sv)
+        bad = np.flatnonzero(_dot(nrm, w) <= 0)
+        moved = np.zeros(len(su), bool)
+        for t in range(HORIZON_TRIES):
+            if len(bad) == 0:
+                break
+            salt = pix[bad].astype(np.uint64) * np.uint64(HORIZON_TRIES) + np.uint64(t)
+            u2, v2 = self.samples(seed, block, lvl[bad], f[bad], i[bad], j[bad], n[bad], salt=salt)
+            w2 = _dirs(f[bad], u2, v2)
+            ok = _dot(nrm[bad], w2) > 0
+            g = bad[ok]
+            su[g], sv[g], w[g] = u2[ok], v2[ok], w2[ok]
+            moved[g] = True
+            bad = bad[~ok]
+        return su, sv, w, moved
 
-def _lobe_weights(d, nrm, w, om, s):
-    """max(d·ω,0)^s Ω (normalisation) and the same × [n·ω > 0] (numerator) for pixel-aligned arrays."""
-    c = np.maximum(_dot(d, w), 0.0)
-    with np.errstate(divide="ignore", under="ignore"):
-        f = (c if s == 1.0 else np.power(c, s)) * om
-    return f, f * (_dot(nrm, w) > 0)
+
+def _cut_by_horizon(f, i, j, n, nrm):
+    """Cells (f, i, j) of face sizes n that the shading horizon n·ω = 0 of their pixel (``nrm`` per cell) cuts: corners
+    on both sides (a cell is convex on the sphere, so its corners decide).  Such a cell is an edge whatever its ray
+    says: the surface and what stands on it (contact, concave parts) often occlude its low directions, and its ray,
+    drawn above the horizon, cannot tell."""
+    u0, u1, v0, v1 = _rect(i, j, n)
+    pos = np.zeros(len(f), bool)
+    neg = np.zeros(len(f), bool)
+    for u, v in ((u0, v0), (u0, v1), (u1, v0), (u1, v1)):
+        c = _dot(_dirs(f, u, v, normalize=False), nrm)
+        pos |= c > 0
+        neg |= c < 0
+    return pos & neg
 
 
-def _level_weights(env, M, d, nrm, s):
-    """Base-cell weights of every pixel at quadrature level M: the pairs (pixel, cell) with W > 0 (``key`` =
-    pixel·K + cell, ascending), their weights ``W`` (n, C), and per pixel the normalisation ``ws`` = Σ max(d·ω,0)^s Ω
-    and the unoccluded average ``U`` (P, C)."""
-    from ..environment.envmap import direction_to_texel, texel_directions
+def _cell_geometry(nb):
+    """Centre directions (K, 3) of the base cells of face size nb and their angular radius (K,): the largest angle
+    from the centre to a corner (every direction of the cell lies within it)."""
+    from ..environment.envmap import texel_directions
 
-    nb = env.nb
     K = 6 * nb * nb
-    dq, oq, Lq = env.quad(M)
+    cells = np.arange(K)
+    f, i, j = cells // (nb * nb), (cells // nb) % nb, cells % nb
     cen = np.asarray(texel_directions(nb)).reshape(-1, 3)
-    k = dq.shape[1]
-    kk = int(round(np.sqrt(k)))
-    # angular radius of every cell around its centre direction (a corner is farthest), plus a texel of margin
-    corner = dq.reshape(K, kk, kk, 3)[:, [0, 0, -1, -1], [0, -1, 0, -1]]
-    rad = np.arccos(np.clip(_dot(corner, cen[:, None, :]), -1.0, 1.0)).max(axis=1) + 2.0 * np.pi / M
-    cut = np.arccos(LOBE_TAIL_CUT ** (1.0 / s))
-    P = len(d)
-    fo, ro, co = direction_to_texel(d, 8)
-    order = np.argsort((np.asarray(fo) * 8 + ro) * 8 + co, kind="stable")  # lobes of a chunk overlap
-    C = env.C
-    ws = np.zeros(P)
-    U = np.zeros((P, C))
-    chunk = int(np.clip(QUAD_CHUNK_ELEMENTS // (K * k), 1, 64))
-    keys, Ws = [], []
-    for a0 in range(0, P, chunk):
-        idx = order[a0:a0 + chunk]
-        ang = np.arccos(np.clip(_dot(d[idx][:, None, :], cen[None, :, :]), -1.0, 1.0))
-        cells = np.flatnonzero((ang <= cut + rad[None, :]).any(axis=0))
-        f, fh = _lobe_weights(d[idx][:, None, None, :], nrm[idx][:, None, None, :], dq[cells][None],
-                              oq[cells][None], s)  # (p, cells, k)
-        ws[idx] = f.sum(axis=(1, 2))
-        W = np.stack([(fh * Lq[cells][None, :, :, ch]).sum(axis=2) for ch in range(C)], axis=-1)  # (p, cells, C)
-        U[idx] = W.sum(axis=1)
-        pl, cl = np.nonzero(W.mean(axis=-1) > 0)
-        keys.append(idx[pl] * K + cells[cl])
-        Ws.append(W[pl, cl])
-    key = np.concatenate(keys)
-    o = np.argsort(key, kind="stable")
-    ws = np.where(ws > 0, ws, 1.0)
-    return dict(key=key[o], W=np.concatenate(Ws)[o], ws=ws, U=U / ws[:, None], K=K)
+    u0, u1, v0, v1 = _rect(i, j, nb)
+    rad = np.zeros(K)
+    for u, v in ((u0, v0), (u0, v1), (u1, v0), (u1, v1)):
+        rad = np.maximum(rad, np.arccos(np.clip(_dot(_dirs(f, u, v), cen), -1.0, 1.0)))
+    return cen, rad * (1.0 + 1e-9) + 1e-12
 
 
-def _child_weights(env, M, d, nrm, s, p, f, lvl, i, j, Wpar):
-    """Weights (4K, C) of the 4 children of K parent cells (level lvl → lvl + 1), children in order (a, b) =
-    (0,0), (0,1), (1,0), (1,1) per parent: exact sums of the level-M texels they hold, or — finer than M — the
-    parent's weight split in proportion to max(d·ω,0)^s [n·ω>0] Ω at the children's centres."""
+def _candidates(lobe, g, cen, rad):
+    """(pixel, base cell) pairs whose cell meets the lobe's support cone (ascending pixel·K + cell)."""
+    ax, cut = lobe.support(g.n, g.v, g.d)
+    K = len(cen)
+    step = max(1, (1 << 21) // K)
+    ps, cs = [], []
+    for a0 in range(0, len(ax), step):
+        ang = np.arccos(np.clip(_dot(ax[a0:a0 + step, None, :], cen[None, :, :]), -1.0, 1.0))
+        p, c = np.nonzero(ang <= cut[a0:a0 + step, None] + rad[None, :])
+        ps.append(p + a0)
+        cs.append(c)
+    return np.concatenate(ps).astype(np.int64), np.concatenate(cs).astype(np.int64)
+
+
+def _grades(lobe, g, cp, cc, cen, rad, M0):
+    """Per pair the number of doublings g ≥ 0 of the block's quadrature level that puts GRADE_TEXELS texels across
+    the local scale ℓ = w + δ/2 of a non-symmetric lobe (module docstring); 0 for a Phong lobe."""
+    if not lobe.presplit:
+        return np.zeros(len(cp), np.int64)
+    delta = np.maximum(np.arccos(np.clip(_dot(g.d[cp], cen[cc]), -1.0, 1.0)) - rad[cc], 0.0)
+    ell = g.w[cp] + 0.5 * delta
+    need = GRADE_TEXELS * (np.pi / 2) / ell
+    return np.maximum(np.ceil(np.log2(np.maximum(need / M0, 1.0)) - 1e-9), 0).astype(np.int64)
+
+
+def _pair_weights(env, lobe, g, cp, cc, Mp):
+    """Weights W (n, C) = Σ L·weight·Ω over the level-M texels of base cell cc of pixel cp (M = Mp per pair), and the
+    normalisation Σ norm·Ω (n,) (0 for a lobe without a discrete normalisation)."""
     nb = env.nb
-    C = env.C
+    W = np.zeros((len(cp), env.C))
+    ns = np.zeros(len(cp))
+    for M in np.unique(Mp):
+        sel = np.flatnonzero(Mp == M)
+        sel = sel[np.argsort(cc[sel], kind="stable")]  # pairs of one cell together: its texels once per chunk
+        k = int(M) // nb
+        step = max(1, QUAD_CHUNK_ELEMENTS // (k * k))
+        for a0 in range(0, len(sel), step):
+            s_ = sel[a0:a0 + step]
+            uc, inv = np.unique(cc[s_], return_inverse=True)
+            dq, oq, Lq = env.texels(uc // (nb * nb), ((uc // nb) % nb) * k, (uc % nb) * k, k, int(M))
+            norm, num = g.weights(lobe, cp[s_], dq[inv], oq[inv])
+            W[s_] = np.einsum("kt,ktc->kc", num, Lq[inv])
+            if norm is not None:
+                ns[s_] = norm.sum(axis=1)
+    return W, ns
+
+
+def _child_weights(env, lobe, g, p, f, lvl, i, j, Wpar, Mpar):
+    """Weights (4K, C) of the 4 children of K parent cells (level lvl → lvl + 1), children in order (a, b) =
+    (0,0), (0,1), (1,0), (1,1) per parent: exact sums of the texels of the parent's quadrature level Mpar that they
+    hold, or — finer than it — the parent's weight split in proportion to the lobe's weight × Ω at their centres."""
+    nb = env.nb
     K = len(p)
     a = np.array([0, 0, 1, 1])
     b = np.array([0, 1, 0, 1])
@@ -374,38 +546,30 @@ def _child_weights(env, M, d, nrm, s, p, f, lvl, i, j, Wpar):
     cl = np.repeat(lvl + 1, 4)
     cf = np.repeat(f, 4)
     cp = np.repeat(p, 4)
+    Mc = np.repeat(Mpar, 4)
     n_c = nb * (2 ** cl)
-    W = np.zeros((4 * K, C))
-    coarse = n_c <= M
-    if coarse.any():
-        dq, oq, Lq = env.quad(M)
-        k = M // nb
-        sel_all = np.flatnonzero(coarse)
-        for kc in np.unique(M // n_c[sel_all]):
-            ar = np.arange(kc)
-            sel_k = sel_all[(M // n_c[sel_all]) == kc]
-            step = max(1, QUAD_CHUNK_ELEMENTS // (4 * kc * kc))
+    W = np.zeros((4 * K, env.C))
+    coarse = np.flatnonzero(n_c <= Mc)
+    if len(coarse):
+        kcs = Mc[coarse] // n_c[coarse]
+        for M, kc in sorted(set(zip(Mc[coarse].tolist(), kcs.tolist()))):
+            sel_k = coarse[(Mc[coarse] == M) & (kcs == kc)]
+            step = max(1, QUAD_CHUNK_ELEMENTS // (kc * kc))
             for a0 in range(0, len(sel_k), step):  # bounded memory
                 sel = sel_k[a0:a0 + step]
-                L_ = cl[sel]
-                cb = (cf[sel] * nb + (ci[sel] >> L_)) * nb + (cj[sel] >> L_)
-                r0 = (ci[sel] & ((1 << L_) - 1)) * kc
-                c0 = (cj[sel] & ((1 << L_) - 1)) * kc
-                sub = ((r0[:, None, None] + ar[None, :, None]) * k + c0[:, None, None]
-                       + ar[None, None, :]).reshape(len(sel), -1)
-                _, fh = _lobe_weights(d[cp[sel]][:, None, :], nrm[cp[sel]][:, None, :], dq[cb[:, None], sub],
-                                      oq[cb[:, None], sub], s)
-                W[sel] = np.einsum("kt,ktc->kc", fh, Lq[cb[:, None], sub])
-    fine = np.flatnonzero(~coarse)
+                dq, oq, Lq = env.texels(cf[sel], ci[sel] * kc, cj[sel] * kc, int(kc), int(M))
+                _, num = g.weights(lobe, cp[sel], dq, oq)
+                W[sel] = np.einsum("kt,ktc->kc", num, Lq)
+    fine = np.flatnonzero(n_c > Mc)
     if len(fine):
         from ..environment.envmap import rect_solid_angle
 
         u0, u1, v0, v1 = _rect(ci[fine], cj[fine], n_c[fine])
         om = rect_solid_angle(u0, u1, v0, v1)
         w = _dirs(cf[fine], 0.5 * (u0 + u1), 0.5 * (v0 + v1))
-        _, g = _lobe_weights(d[cp[fine]], nrm[cp[fine]], w, om, s)
+        _, gw = g.weights(lobe, cp[fine], w[:, None, :], om[:, None])
         g4 = np.zeros(4 * K)
-        g4[fine] = g
+        g4[fine] = gw[:, 0]
         om4 = np.zeros(4 * K)
         om4[fine] = om
         gs = g4.reshape(K, 4).sum(axis=1)
@@ -422,6 +586,20 @@ def _kappa(num: float, den: float, n: int) -> float:
     if n < KAPPA_MIN_SPLITS or den <= 0:
         return 1.0
     return float(min(1.0, max(KAPPA_FLOOR, num / den)))
+
+
+def _worth_splitting(pix, Y, S):
+    """Mask of the cells (sorted by Y descending; ``pix`` their pixels) among the top :data:`SPLIT_SHARE` of their
+    pixel's Σ Y² (``S`` per pixel): the largest cell of a pixel always is."""
+    o = np.argsort(pix, kind="stable")  # by pixel, Y still descending inside a pixel
+    pp, y2 = pix[o], Y[o] ** 2
+    first = np.r_[0, np.flatnonzero(pp[1:] != pp[:-1]) + 1] if len(pp) else np.zeros(0, np.int64)
+    seg = np.repeat(first, np.diff(np.r_[first, len(pp)]))
+    c2 = np.cumsum(y2)
+    before = c2 - y2 - (c2[seg] - y2[seg])  # Σ Y² of the pixel's larger cells
+    ok = np.zeros(len(pix), bool)
+    ok[o] = before < SPLIT_SHARE * S[pp]
+    return ok
 
 
 def _select_pixels(pix, Y, idx, need, S, strict, q, target, P):
@@ -511,70 +689,104 @@ class _Cells:
 
 
 def _converge_block(job: dict) -> dict:
-    """One block of pixels: quadrature level, base rays, adaptive refinement → occluded, unoccluded, errors."""
+    """One block of pixels: quadrature levels, base rays, adaptive refinement → occluded, unoccluded, errors."""
     from .raycast import ShadowRays
 
     t0, c0 = time.perf_counter(), time.process_time()
-    a, s, rtol = job["env"], float(job["s"]), float(job["rtol"])
-    P_, nrm, fn, d = job["points"], job["normals"], job["face_normals"], job["d"]
+    a, lobe, rtol = job["env"], job["lobe"], float(job["rtol"])
     nb, depth, seed, blk = int(job["nb"]), int(job["depth"]), int(job["seed"]), int(job["block"])
+    g = _Geom(lobe, job["points"], job["normals"], job["face_normals"], job["views"])
+    P_, nrm, fn = g.P, g.n, g.fn
     Pn = len(P_)
     C = a.shape[-1]
     env = _Env(a, nb)
     caster = ShadowRays(job["scene"], job["backend"], job["eps"])
+    max_cells = int(job["max_cells"])
 
-    # ---- base cells: one random point each, shared by the block's pixels; weights at quadrature level M --------
+    # ---- base cells: one random point each (drawn again above a pixel's horizon where needed) -------------------
     K = 6 * nb * nb
     cells = np.arange(K)
     cf, ci, cj = cells // (nb * nb), (cells // nb) % nb, cells % nb
     su_c, sv_c = env.samples(seed, blk, np.zeros(K, np.int64), cf, ci, cj, np.full(K, nb))
-    sdir = _dirs(cf, su_c, sv_c)
-    prtol = float(job["pixel_rtol"])
+    cen, rad = _cell_geometry(nb)
+    cand_p, cand_c = _candidates(lobe, g, cen, rad)
     M = int(job["M0"])
-    half = _level_weights(env, M // 2, d, nrm, s)
-    Q = _level_weights(env, M, d, nrm, s)
-    vis_key = np.zeros(0, np.int64)  # (pixel·K + cell) pairs cast so far, ascending, and their visibility
+    cap = max(int(job["n_quad_max"]), M)
+    grade = _grades(lobe, g, cand_p, cand_c, cen, rad, M)
+
+    def levels(M_):
+        return np.minimum(M_ * 2 ** grade, max(cap, M_))
+
+    prtol = float(job["pixel_rtol"])
+    Wh, nsh = _pair_weights(env, lobe, g, cand_p, cand_c, levels(M // 2))
+    Wq, nsq = _pair_weights(env, lobe, g, cand_p, cand_c, levels(M))
+    vis_key = np.zeros(0, np.int64)  # (pixel·K + cell) pairs cast so far, ascending, their visibility and points
     vis_val = np.zeros(0, np.int8)
+    vis_su, vis_sv = np.zeros(0), np.zeros(0)
     n_rays = 0
+
+    def norm_sums(ns):
+        if not lobe.normalised:
+            return np.ones(Pn)
+        w = np.bincount(cand_p, weights=ns, minlength=Pn)
+        return np.where(w > 0, w, 1.0)
+
     while True:
-        ws = Q["ws"]
-        bp, bc, bW = Q["key"] // K, Q["key"] % K, Q["W"]
+        keep = Wq.mean(axis=-1) > 0
+        ws, wsh = norm_sums(nsq), norm_sums(nsh)
+        bp, bc, bW = cand_p[keep], cand_c[keep], Wq[keep]
+        bkey = bp * K + bc
         bY = bW.mean(axis=-1) / ws[bp]
-        bYh = _match(half["key"], half["W"].mean(axis=-1), Q["key"]) / half["ws"][bp]  # the same cells at M/2
+        bYh = Wh[keep].mean(axis=-1) / wsh[bp]  # the same cells at M/2
+        U = np.stack([np.bincount(bp, weights=bW[:, ch], minlength=Pn) for ch in range(C)], -1) / ws[:, None]
         # rays for the pairs not cast yet (a finer M can give weight to a few more cells)
-        known = _match(vis_key, np.ones(len(vis_key)), Q["key"]) > 0
+        known = _match(vis_key, np.ones(len(vis_key)), bkey) > 0
         new = np.flatnonzero(~known)
         if len(new):
-            v_new = caster.visibility(P_[bp[new]], fn[bp[new]], sdir[bc[new]], groups=bc[new]).astype(np.int8)
+            p_, c_ = bp[new], bc[new]
+            su, sv, w, moved = env.above(seed, blk, np.zeros(len(new), np.int64), cf[c_], ci[c_], cj[c_],
+                                         np.full(len(new), nb), su_c[c_], sv_c[c_], nrm[p_], p_)
+            grp = np.where(moved, K + np.arange(len(new)), c_)  # rays toward one cell's shared point: one direction
+            v_new = caster.visibility(P_[p_], fn[p_], w, groups=grp).astype(np.int8)
             n_rays += len(new)
-            vis_key = np.concatenate([vis_key, Q["key"][new]])
-            vis_val = np.concatenate([vis_val, v_new])
-            o = np.argsort(vis_key, kind="stable")
-            vis_key, vis_val = vis_key[o], vis_val[o]
-        bV = _match(vis_key, vis_val.astype(np.float64), Q["key"]).astype(np.int8)
+            o = np.argsort(np.concatenate([vis_key, bkey[new]]), kind="stable")
+            vis_key = np.concatenate([vis_key, bkey[new]])[o]
+            vis_val = np.concatenate([vis_val, v_new])[o]
+            vis_su = np.concatenate([vis_su, su])[o]
+            vis_sv = np.concatenate([vis_sv, sv])[o]
+        at = np.searchsorted(vis_key, bkey)
+        bV, bsu, bsv = vis_val[at], vis_su[at], vis_sv[at]
         # quadrature estimate with the base visibility: image share ≤ QUAD_SHARE·rtol, and ≤ 1 % of the pixels above
         # QUAD_SHARE·pixel_rtol of their value; else M doubles (the cells and their rays stay)
         A0 = np.bincount(bp, weights=bY * (bV > 0), minlength=Pn)
         q0 = np.abs(np.bincount(bp, weights=(bV > 0) * (bY - bYh), minlength=Pn))
         over = (q0 > QUAD_SHARE * prtol * np.maximum(A0, ERR_FLOOR * A0.mean())).mean() if Pn else 0.0
         if ((q0.sum() <= QUAD_SHARE * rtol * max(A0.sum(), 1e-300) and over <= QUAD_PIXEL_SHARE)
-                or 2 * M > job["n_quad_max"]):
+                or 2 * M > cap):
             break
-        M, half, Q = 2 * M, Q, _level_weights(env, 2 * M, d, nrm, s)
-    del half, vis_key, vis_val
+        M = 2 * M
+        Wh, nsh = Wq, nsq
+        Wq, nsq = _pair_weights(env, lobe, g, cand_p, cand_c, levels(M))
+    bM = levels(M)[keep]
+    del Wh, Wq, vis_key, vis_val, vis_su, vis_sv, cand_p, cand_c, grade
     nB = len(bp)
-    pidx = np.full((Pn, K), -1, dtype=np.int32)
-    pidx[bp, bc] = np.arange(nB)
-    Vd = np.full((Pn, K), -1, dtype=np.int8)
-    Vd[bp, bc] = bV
     nF, nI, nJ = _neighbours(cf, ci, cj, nb)
     nbr = (nF * nb + nI) * nb + nJ  # (K, 8)
-    Vn = Vd[bp[:, None], nbr[bc]]
-    bedge = ((Vn >= 0) & (Vn != bV[:, None])).any(axis=1)
-    del Vn
+
+    def find(p, cb):
+        """index of the base pair (pixel p, base cell cb), −1 where it has no weight"""
+        q_ = p * K + cb
+        at_ = np.minimum(np.searchsorted(bkey, q_), max(nB - 1, 0))
+        return np.where((nB > 0) & (bkey[at_] == q_), at_, -1) if nB else np.full(len(q_), -1)
+
+    pin = find(np.repeat(bp, 8), nbr[bc].reshape(-1)).reshape(-1, 8)
+    Vn = np.where(pin >= 0, bV[np.maximum(pin, 0)], -1)
+    bedge = ((Vn >= 0) & (Vn != bV[:, None])).any(axis=1) | _cut_by_horizon(cf[bc], ci[bc], cj[bc], nb, nrm[bp])
+    del Vn, pin
     bsplit = np.zeros(nB, dtype=bool)
     R = _Cells(C)
-    ctx = dict(bV=bV, bedge=bedge, bsplit=bsplit, pidx=pidx, Vd=Vd, nb=nb, depth=depth)
+    ctx = dict(bV=bV, bedge=bedge, bsplit=bsplit, find=find, nb=nb, depth=depth)
+    st = dict(n_rays=n_rays, kap_num=0.0, kap_den=0.0, n_kap=0, cap_reached=False, presplit=0)
 
     def quad_est(vb):
         """per-pixel |Σ_c V̄_c (Y_c(M) − Y_c(M/2))| (channel mean, relative to ws)."""
@@ -593,52 +805,23 @@ def _converge_block(job: dict) -> dict:
         ur = np.flatnonzero(R["edge"])
         return ub, ur, np.concatenate([bp[ub], R["p"][ur]]), np.concatenate([bY[ub], R["Y"][ur]])
 
-    rounds = []
-    converged = False
-    kap_num = kap_den = 0.0  # Σ W² q̂(1−q̂) n/(n−1) and Σ W²/4 over split cells (→ κ̂)
-    n_kap = 0
-    for rnd in range(MAX_ROUNDS):
-        ub, ur, pix, Yu = uncertain()
-        S = np.bincount(pix, weights=Yu ** 2, minlength=Pn)
-        strict = np.bincount(pix, weights=Yu, minlength=Pn)
-        A = (np.bincount(bp, weights=bY * ((bV > 0) & ~bsplit), minlength=Pn)
-             + np.bincount(R["p"], weights=R["Y"] * (R["V"] > 0), minlength=Pn))
-        q = quad_est(vbar())
-        kap = _kappa(kap_num, kap_den, n_kap)
-        sig = 0.5 * np.sqrt(kap * S)
-        tot_A = max(A.sum(), 1e-300)
-        est = (sig.sum() + q.sum()) / tot_A
-        # per pixel: the bound should stay within pixel_rtol of the pixel's value (lit pixels; best effort: pixels
-        # whose quadrature estimate alone exceeds it, or whose edge cells are at the finest level, stay over)
-        bound = np.minimum(strict, T_BOUND * 0.5 * np.sqrt(S)) + q
-        den = np.maximum(A, ERR_FLOOR * A.mean()) if Pn else A
-        target = ROUND_AIM * prtol * den
-        viol = np.flatnonzero((bound > prtol * den) & (q < target))
-        rounds.append(dict(round=rnd, rays=int(n_rays), est_rel_l1=float(est), vis_rel_l1=float(sig.sum() / tot_A),
-                           quad_rel_l1=float(q.sum() / tot_A), kappa=float(kap), edge_cells=int(len(pix)),
-                           cells=int(nB + len(R)), pixels_over=int(len(viol))))
-        if est <= rtol and len(viol) == 0:
-            converged = True
-            break
-        # candidates: edge cells that can still be split, largest weight first
-        lv = np.concatenate([np.zeros(len(ub), np.int64), R["l"][ur].astype(np.int64)])
-        can = np.flatnonzero(lv < depth)
-        o = can[np.argsort(-Yu[can], kind="stable")]
-        chosen = np.zeros(0, np.int64)
-        if est > rtol and len(o):
-            budget = ROUND_AIM * max(rtol * tot_A - q.sum(), 0.25 * rtol * tot_A)
-            k_plan = kap if n_kap >= KAPPA_MIN_SPLITS else KAPPA_PLAN  # planning only; the estimate keeps κ̂ = 1
-            chosen = o[:_select(pix[o], Yu[o], S, budget, min_split=64, kappa=k_plan)]
-        if len(viol) and len(o):
-            pick = np.zeros(len(pix), bool)
-            pick[chosen] = True
-            pick[_select_pixels(pix[o], Yu[o], o, viol, S, strict, q, target, Pn)] = True
-            chosen = np.flatnonzero(pick)
-        if len(chosen) == 0:
-            converged = est <= rtol
-            break
-        bsel = ub[chosen[chosen < len(ub)]]
-        rsel = ur[chosen[chosen >= len(ub)] - len(ub)]
+    def split(bsel, rsel):
+        """Split base pairs ``bsel`` and refined cells ``rsel`` (both in priority order) into 2×2 children: weights,
+        points, rays, edge flags; at most up to the block's cell budget → number of cells split."""
+        room = max(0, (max_cells - nB - len(R)) // 4)
+        if len(bsel) + len(rsel) > room:
+            st["cap_reached"] = True
+            take_b = min(len(bsel), room)
+            bsel, rsel = bsel[:take_b], rsel[:room - take_b]
+        bsel = np.asarray(bsel, np.int64)
+        rsel = np.sort(np.asarray(rsel, np.int64))[::-1]  # refined cells from the highest index: lower ones stay put
+        for a0 in range(0, len(bsel), SPLIT_CHUNK):
+            _split_chunk(bsel[a0:a0 + SPLIT_CHUNK], np.zeros(0, np.int64))
+        for a0 in range(0, len(rsel), SPLIT_CHUNK):
+            _split_chunk(np.zeros(0, np.int64), rsel[a0:a0 + SPLIT_CHUNK])
+        return len(bsel) + len(rsel)
+
+    def _split_chunk(bsel, rsel):
         cb_ = bc[bsel]
         par = dict(p=np.concatenate([bp[bsel], R["p"][rsel]]).astype(np.int64),
                    f=np.concatenate([cb_ // (nb * nb), R["f"][rsel]]).astype(np.int64),
@@ -646,16 +829,17 @@ def _converge_block(job: dict) -> dict:
                    i=np.concatenate([(cb_ // nb) % nb, R["i"][rsel]]).astype(np.int64),
                    j=np.concatenate([cb_ % nb, R["j"][rsel]]).astype(np.int64),
                    V=np.concatenate([bV[bsel], R["V"][rsel]]),
-                   su=np.concatenate([su_c[cb_], R["su"][rsel]]),
-                   sv=np.concatenate([sv_c[cb_], R["sv"][rsel]]),
+                   su=np.concatenate([bsu[bsel], R["su"][rsel]]),
+                   sv=np.concatenate([bsv[bsel], R["sv"][rsel]]),
                    bi=np.concatenate([bsel, R["bi"][rsel]]).astype(np.int64))
         Wpar = np.concatenate([bW[bsel], R.W[rsel]])
+        pedge = np.concatenate([bedge[bsel], R["edge"][rsel]])  # κ̂ is measured on split edge cells only
         bsplit[bsel] = True
-        cp, cf2, cl2, ci2, cj2, cW = _child_weights(env, M, d, nrm, s, par["p"], par["f"], par["l"], par["i"],
-                                                    par["j"], Wpar)
+        cp, cf2, cl2, ci2, cj2, cW = _child_weights(env, lobe, g, par["p"], par["f"], par["l"], par["i"],
+                                                    par["j"], Wpar, bM[par["bi"]])
         nc = nb * (2 ** cl2)
         cY = cW.mean(axis=-1) / ws[cp]
-        # the child holding its parent's point keeps point and ray; the others get their own
+        # the child holding its parent's point keeps point and ray; the others get their own (above the horizon)
         u0, u1, v0, v1 = _rect(ci2, cj2, nc)
         psu, psv = np.repeat(par["su"], 4), np.repeat(par["sv"], 4)
         inherit = (psu >= u0) & (psu < u1) & (psv >= v0) & (psv < v1)
@@ -666,34 +850,106 @@ def _converge_block(job: dict) -> dict:
         relevant = cY > 0
         cast = np.flatnonzero(relevant & ~inherit)
         if len(cast):
+            su_, sv_, w, moved = env.above(seed, blk, cl2[cast], cf2[cast], ci2[cast], cj2[cast], nc[cast],
+                                           su2[cast], sv2[cast], nrm[cp[cast]], cp[cast])
+            su2[cast], sv2[cast] = su_, sv_
             grp = None
             if caster.backend == "exact":  # rays toward one cell share their direction: one projection set-up each
                 ck = _keys(np.zeros(len(cast), np.int64), cf2[cast], cl2[cast], ci2[cast], cj2[cast], depth)
                 grp = np.unique(ck, return_inverse=True)[1]
-            cV[cast] = caster.visibility(P_[cp[cast]], fn[cp[cast]], _dirs(cf2[cast], su2[cast], sv2[cast]),
-                                         groups=grp)
-            n_rays += len(cast)
+                grp = np.where(moved, grp.max() + 1 + np.arange(len(cast)), grp)
+            cV[cast] = caster.visibility(P_[cp[cast]], fn[cp[cast]], w, groups=grp)
+            st["n_rays"] += len(cast)
         cV[~relevant] = -1
         # siblings: a child differing from one of its three siblings is an edge
         v4 = cV.reshape(-1, 4)
         nrel = (v4 >= 0).sum(axis=1)
-        ok = nrel >= 2
+        ok = (nrel >= 2) & pedge  # a pre-split cell that agreed with its neighbours would dilute κ̂
         if ok.any():
             qh = (v4 > 0).sum(axis=1)[ok] / nrel[ok]
             wp = (Wpar.mean(axis=-1) / ws[par["p"]])[ok] ** 2
-            kap_num += float((wp * qh * (1 - qh) * nrel[ok] / (nrel[ok] - 1)).sum())
-            kap_den += float((wp / 4).sum())
-            n_kap += int(ok.sum())
+            st["kap_num"] += float((wp * qh * (1 - qh) * nrel[ok] / (nrel[ok] - 1)).sum())
+            st["kap_den"] += float((wp / 4).sum())
+            st["n_kap"] += int(ok.sum())
         has1 = ((v4 == 1).any(axis=1))[:, None]
         has0 = ((v4 == 0).any(axis=1))[:, None]
         sib = ((v4 == 1) & has0) | ((v4 == 0) & has1)
-        keep = np.ones(len(R), dtype=bool)
-        keep[rsel] = False
-        new = dict(p=cp, f=cf2, l=cl2, i=ci2, j=cj2, Y=cY, V=cV, edge=sib.reshape(-1), su=su2, sv=sv2,
-                   bi=np.repeat(par["bi"], 4), key=_keys(cp, cf2, cl2, ci2, cj2, depth))
-        inew = R.replace(keep, new, cW)
+        sib |= (_cut_by_horizon(cf2, ci2, cj2, nc, nrm[cp]) & (cV >= 0)).reshape(-1, 4)
+        keep_ = np.ones(len(R), dtype=bool)
+        keep_[rsel] = False
+        new_ = dict(p=cp, f=cf2, l=cl2, i=ci2, j=cj2, Y=cY, V=cV, edge=sib.reshape(-1), su=su2, sv=sv2,
+                    bi=np.repeat(par["bi"], 4), key=_keys(cp, cf2, cl2, ci2, cj2, depth))
+        inew = R.replace(keep_, new_, cW)
         # the new children against the 12 cells around their 2×2 block (edge flags of older cells only grow)
         _classify_children(R, inew, ctx)
+
+    # ---- a non-symmetric lobe's core: split cells holding a large share of the pixel until they resolve it -------
+    if lobe.presplit:
+        for _ in range(depth):
+            Up = np.bincount(bp, weights=bY, minlength=Pn)
+            size_b = (np.pi / 2) / nb
+            wb = np.flatnonzero(~bsplit & (bY > PRESPLIT_SHARE * Up[bp]) & (size_b > 0.5 * g.w[bp]) & (depth > 0))
+            size_r = (np.pi / 2) / (nb * 2.0 ** R["l"].astype(np.float64))
+            wr = np.flatnonzero((R["Y"] > PRESPLIT_SHARE * Up[R["p"]]) & (size_r > 0.5 * g.w[R["p"]])
+                                & (R["l"] < depth))
+            if len(wb) + len(wr) == 0:
+                break
+            st["presplit"] += split(wb[np.argsort(-bY[wb], kind="stable")], wr[np.argsort(-R["Y"][wr], kind="stable")])
+            if st["cap_reached"]:
+                break
+
+    rounds = []
+    converged = False
+    for rnd in range(MAX_ROUNDS):
+        ub, ur, pix, Yu = uncertain()
+        S = np.bincount(pix, weights=Yu ** 2, minlength=Pn)
+        strict = np.bincount(pix, weights=Yu, minlength=Pn)
+        A = (np.bincount(bp, weights=bY * ((bV > 0) & ~bsplit), minlength=Pn)
+             + np.bincount(R["p"], weights=R["Y"] * (R["V"] > 0), minlength=Pn))
+        q = quad_est(vbar())
+        kap = _kappa(st["kap_num"], st["kap_den"], st["n_kap"])
+        sig = 0.5 * np.sqrt(kap * S)
+        tot_A = max(A.sum(), 1e-300)
+        est = (sig.sum() + q.sum()) / tot_A
+        # per pixel: the bound should stay within pixel_rtol of the pixel's value (lit pixels; best effort: pixels
+        # whose quadrature estimate alone exceeds it, or whose edge cells are at the finest level, stay over)
+        bound = np.minimum(strict, T_BOUND * 0.5 * np.sqrt(S)) + q
+        den = np.maximum(A, ERR_FLOOR * A.mean()) if Pn else A
+        target = ROUND_AIM * prtol * den
+        viol = np.flatnonzero((bound > prtol * den) & (q < target))
+        rounds.append(dict(round=rnd, rays=int(st["n_rays"]), est_rel_l1=float(est), vis_rel_l1=float(sig.sum() / tot_A),
+                           quad_rel_l1=float(q.sum() / tot_A), kappa=float(kap), edge_cells=int(len(pix)),
+                           cells=int(nB + len(R)), pixels_over=int(len(viol))))
+        if est <= rtol and len(viol) == 0:
+            converged = True
+            break
+        if st["cap_reached"]:
+            converged = est <= rtol
+            break
+        # candidates: edge cells that can still be split, largest weight first, among the top SPLIT_SHARE of their
+        # pixel's Σ W² (the smallest cells of a pixel wait until the larger ones are split)
+        lv = np.concatenate([np.zeros(len(ub), np.int64), R["l"][ur].astype(np.int64)])
+        can = np.flatnonzero(lv < depth)
+        o = can[np.argsort(-Yu[can], kind="stable")]
+        o = o[_worth_splitting(pix[o], Yu[o], S)]
+        chosen = np.zeros(0, np.int64)
+        if est > rtol and len(o):
+            budget = ROUND_AIM * max(rtol * tot_A - q.sum(), 0.25 * rtol * tot_A)
+            k_plan = kap if st["n_kap"] >= KAPPA_MIN_SPLITS else KAPPA_PLAN  # planning only; the estimate keeps κ̂ = 1
+            chosen = o[:_select(pix[o], Yu[o], S, budget, min_split=64, kappa=k_plan)]
+        if len(viol) and len(o):
+            pick = np.zeros(len(pix), bool)
+            pick[chosen] = True
+            pick[_select_pixels(pix[o], Yu[o], o, viol, S, strict, q, target, Pn)] = True
+            chosen = np.flatnonzero(pick)
+        if len(chosen) == 0:
+            converged = est <= rtol
+            break
+        chosen = chosen[np.argsort(-Yu[chosen], kind="stable")]
+        isb = chosen < len(ub)
+        if split(ub[chosen[isb]], ur[chosen[~isb] - len(ub)]) == 0:
+            converged = est <= rtol
+            break
 
     # ---- results ---------------------------------------------------------------------------------------------------
     lit_b = (bV > 0) & ~bsplit
@@ -704,10 +960,11 @@ def _converge_block(job: dict) -> dict:
     S = np.bincount(pix, weights=Yu ** 2, minlength=Pn)
     strict = np.bincount(pix, weights=Yu, minlength=Pn)
     q = quad_est(vbar())
-    kap = _kappa(kap_num, kap_den, n_kap)
-    return dict(occ=occ, un=Q["U"], err_mean=0.5 * np.sqrt(kap * S) + q,
+    kap = _kappa(st["kap_num"], st["kap_den"], st["n_kap"])
+    return dict(occ=occ, un=U, err_mean=0.5 * np.sqrt(kap * S) + q,
                 err_bound=np.minimum(strict, T_BOUND * 0.5 * np.sqrt(S)) + q, kappa=float(kap),
-                n_rays=int(n_rays), n_quad=int(M), converged=converged, rounds=rounds,
+                n_rays=int(st["n_rays"]), n_quad=int(M), n_quad_pair_max=int(bM.max()) if nB else int(M),
+                converged=converged, rounds=rounds, cap_reached=bool(st["cap_reached"]), presplit=int(st["presplit"]),
                 max_level=int(nb * 2 ** (int(R["l"].max()) if len(R) else 0)),
                 n_cells=int(nB + len(R)), time_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0,
                 peak_rss_mb=_peak_rss_mb())
@@ -780,9 +1037,9 @@ def _classify_children_chunk(R, g, ctx):
             F[o], I[o], J[o] = _neighbour_of(F[o], I[o], J[o], n[o])
             k0[o] = _keys(p[o], F[o], lvl[o], I[o], J[o], depth)
         cb = (F * nb + (I >> lvl)) * nb + (J >> lvl)
-        vd = ctx["Vd"][p, cb]
-        pi_ = ctx["pidx"][p, cb]
-        valid = vd >= 0
+        pi_ = ctx["find"](p, cb)
+        valid = pi_ >= 0
+        vd = np.where(valid, ctx["bV"][np.maximum(pi_, 0)], -1)
         split = valid & ctx["bsplit"][np.maximum(pi_, 0)]
         base = valid & ~split
         has0[:, r] = base & (vd == 0)
@@ -854,74 +1111,105 @@ def _neighbour_of(f, I, J, n):
 # ------------------------------------------------------------------------------------------------
 # public entry
 # ------------------------------------------------------------------------------------------------
-def converged_shading(scene, points, normals, face_normals, d_lobe, cube, s: float, *, rtol: float = DEFAULT_RTOL,
-                      n_vis_start: int = 16, n_vis_max: int = 16384, n_quad_max: int = 256, eps: float | None = None,
-                      backend: str = "auto", seed: int = 0, block_pixels: int = 256, pixel_rtol: float | None = None,
-                      workers: int = 1,
-                      executor=None, progress: bool = False):
-    """Visibility-weighted lobe averages A_s(d) of (*) converged to ``rtol`` (module docstring).
+def _int_arg(name, v):
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+        raise IBLError(f"{name} must be a positive integer, got {v!r}")
+    return int(v)
+
+
+def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *, rtol: float = DEFAULT_RTOL,
+                      n_vis_start: int = 16, n_vis_max: int = 16384, n_quad_max: int | None = None,
+                      max_cells: int = MAX_BLOCK_CELLS, eps: float | None = None, backend: str = "auto",
+                      seed: int = 0, block_pixels: int = 256, pixel_rtol: float | None = None, workers: int = 1,
+                      executor=None, progress: bool = False, predict: bool | None = None):
+    """One lobe's visibility-weighted integral (*) or (**) at surface points, converged to ``rtol`` (module
+    docstring).
 
     Parameters
     ----------
     scene : occluders (:func:`ibl_ref.rendering.raster.prepare_scene`)
-    points, normals, face_normals, d_lobe : (P, 3) surface points, shading normals, face normals, lobe axes
+    points, normals, face_normals, views : (P, 3) surface points, shading normals n, face normals, unit directions
+        v toward the viewer
     cube : (6, N, N, C) radiance
-    s : Phong exponent (finite, ≥ 1)
+    lobe : :class:`ibl_ref.rendering.materials.PhongLobe` or :class:`ibl_ref.rendering.materials.GGXLobe` (the
+        weight of a material's term: :meth:`ibl_ref.rendering.materials.PhongMaterial.lobes`)
     rtol : target estimated relative L1 (Σ err_mean / Σ A)
     n_vis_start : smallest visibility base face size; n_vis_max : finest visibility face size
-    n_quad_max : largest quadrature face size
+    n_quad_max : largest quadrature face size (default: the lobe's, 256 for Phong, 4096 for GGX)
+    max_cells : cells of one block at most (base pairs + refined leaves; the memory bound; the refinement stops
+        there and ``converged`` says whether the targets were met)
     eps : shadow-ray offset (default 1e-6 × scene radius); backend : ray caster (``"auto"``, ``"embree"``,
         ``"exact"``; :class:`ibl_ref.rendering.raycast.ShadowRays`)
     seed : random points of the visibility cells; block_pixels : pixels per block (the blocks, hence the image,
         depend on it, never on ``workers``/``executor``)
     workers, executor : where the blocks run (:func:`ibl_ref.executors.map_jobs`); the result is bit-identical
+    progress : progress reports; predict : run the first block alone and print the predicted cost of the others
+        before they start (default: with ``progress``; it changes no result)
 
     Returns
     -------
     occluded (P, C), unoccluded (P, C), err_mean (P,), err_bound (P,), info
     """
     from ..executors import map_jobs
+    from .materials import GGXLobe, PhongLobe
     from .raster import prepare_scene
     from .raycast import resolve_shadow_backend
-    from .reference_render import check_environment
 
+    if not isinstance(lobe, (PhongLobe, GGXLobe)):
+        raise IBLError(f"lobe must be a PhongLobe or a GGXLobe (ibl_ref.rendering.materials), got {lobe!r}")
     a = check_environment(cube)
     N = a.shape[1]
     P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    nrm = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-    fn = np.asarray(face_normals, dtype=np.float64).reshape(-1, 3)
-    d = np.asarray(d_lobe, dtype=np.float64).reshape(-1, 3)
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
-    s = float(s)
-    if not (np.isfinite(s) and s >= 1.0):
-        raise IBLError(f"Phong exponent s must be finite and >= 1 for the converged reference, got {s}")
+    arrs = []
+    for name, x in (("normals", normals), ("face_normals", face_normals), ("views", views)):
+        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+        if len(x) != len(P):
+            raise IBLError(f"{name} has {len(x)} rows for {len(P)} points")
+        ln = np.linalg.norm(x, axis=1, keepdims=True)
+        if not (np.all(np.isfinite(x)) and np.all(ln > 0)):
+            raise IBLError(f"{name} must be finite non-zero vectors")
+        arrs.append(x / ln)
+    nrm, fn, v = arrs
     rtol = float(rtol)
     if not (rtol > 0 and np.isfinite(rtol)):
         raise IBLError(f"rtol must be a finite number > 0, got {rtol}")
-    for name, v in (("n_vis_start", n_vis_start), ("n_vis_max", n_vis_max), ("n_quad_max", n_quad_max),
-                    ("block_pixels", block_pixels)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-            raise IBLError(f"{name} must be a positive integer, got {v!r}")
+    n_quad_max = lobe.n_quad_max if n_quad_max is None else n_quad_max
+    for name, val in (("n_vis_start", n_vis_start), ("n_vis_max", n_vis_max), ("n_quad_max", n_quad_max),
+                      ("block_pixels", block_pixels), ("max_cells", max_cells)):
+        _int_arg(name, val)
     backend = resolve_shadow_backend(backend)
     t0 = time.perf_counter()
     scene = prepare_scene(scene, warn=False)
-    nb = base_level(s, N, n_vis_start)
+    theta = lobe.base_half_angle()
+    nb = base_level(theta, N, n_vis_start)
     depth = 0
     while nb * 2 ** (depth + 1) <= n_vis_max and nb * 2 ** (depth + 1) < 2 ** _MORTON_BITS:
         depth += 1
-    M0 = quadrature_start(s, N, nb)
+    M0 = quadrature_start(theta, N, nb)
     n_quad_max = max(int(n_quad_max), M0)
     nP = len(P)
     nblk = max(1, -(-nP // int(block_pixels)))
     jobs = []
     for b in range(nblk):
         idx = np.arange(b, nP, nblk)
-        jobs.append(dict(env=a, s=s, rtol=rtol, points=P[idx], normals=nrm[idx], face_normals=fn[idx], d=d[idx],
-                         nb=nb, depth=depth, seed=int(seed), block=b, M0=M0, n_quad_max=n_quad_max, scene=scene,
+        jobs.append(dict(env=a, lobe=lobe, rtol=rtol, points=P[idx], normals=nrm[idx], face_normals=fn[idx],
+                         views=v[idx], nb=nb, depth=depth, seed=int(seed), block=b, M0=M0, n_quad_max=n_quad_max,
+                         scene=scene, max_cells=int(max_cells),
                          pixel_rtol=PIXEL_RTOL_FACTOR * rtol if pixel_rtol is None else float(pixel_rtol),
                          backend=backend, eps=eps))
-    res = map_jobs(_converge_block, jobs, executor=executor, workers=workers,
-                   desc=f"reference s={s:g} ({nblk} blocks)" if progress else None, what="reference block")
+    label = _label(lobe)
+    predict = progress if predict is None else bool(predict)
+    res, prediction = [], None
+    if predict and nblk > 1 and nP:
+        from ..progress import say
+
+        res = map_jobs(_converge_block, jobs[:1], workers=1)
+        prediction = _predict(res[0], nblk, workers if executor is None else None, len(jobs[0]["points"]), nP,
+                              time.perf_counter() - t0, int(max_cells), memory_bound_mb(int(max_cells), a))
+        say(f"reference {label}: {prediction['text']}")
+        jobs = jobs[1:]
+    res = res + map_jobs(_converge_block, jobs, executor=executor, workers=workers,
+                         desc=f"reference {label} ({nblk} blocks)" if progress else None, what="reference block")
     C = a.shape[-1]
     occ = np.zeros((nP, C))
     un = np.zeros((nP, C))
@@ -932,13 +1220,50 @@ def converged_shading(scene, points, normals, face_normals, d_lobe, cube, s: flo
         occ[idx], un[idx], em[idx], eb[idx] = r["occ"], r["un"], r["err_mean"], r["err_bound"]
     y = occ.mean(axis=-1)
     tot = max(float(np.abs(y).sum()), 1e-300)
-    info = dict(n_vis_base=int(nb), n_vis_finest=int(max(r["max_level"] for r in res)),
-                n_quad=sorted({int(r["n_quad"]) for r in res}), n_rays=int(sum(r["n_rays"] for r in res)),
+    info = dict(lobe_kind=lobe.kind, n_vis_base=int(nb), n_vis_finest=int(max(r["max_level"] for r in res)),
+                n_quad=sorted({int(r["n_quad"]) for r in res}),
+                n_quad_pair_max=int(max(r["n_quad_pair_max"] for r in res)),
+                n_rays=int(sum(r["n_rays"] for r in res)),
                 n_cells=int(sum(r["n_cells"] for r in res)), blocks=nblk, backend=backend, rtol=rtol,
                 est_rel_l1=float(em.sum() / tot), block_converged=int(sum(r["converged"] for r in res)),
                 converged=bool(all(r["converged"] for r in res)),
+                max_cells=int(max_cells), blocks_at_cell_cap=int(sum(r["cap_reached"] for r in res)),
+                block_cells_max=int(max(r["n_cells"] for r in res)),
+                presplit_cells=int(sum(r["presplit"] for r in res)),
                 rounds_max=int(max(len(r["rounds"]) for r in res)),
                 block_rounds=[r["rounds"] for r in res[:1]], time_s=time.perf_counter() - t0,
                 block_time_s=float(sum(r["time_s"] for r in res)), block_cpu_s=float(sum(r["cpu_s"] for r in res)),
-                worker_peak_rss_mb=float(max(r["peak_rss_mb"] for r in res)))
+                worker_peak_rss_mb=float(max(r["peak_rss_mb"] for r in res[1 if prediction is not None and
+                                                                                 len(res) > 1 else 0:])))
+    if prediction is not None:  # block 1 ran in this process (its CPU time is this process's, not a worker's)
+        info["predicted"] = {k: vv for k, vv in prediction.items() if k != "text"}
+        info["pilot_cpu_s"] = float(res[0]["cpu_s"])
     return occ, un, em, eb, info
+
+
+def _label(lobe) -> str:
+    if lobe.kind == "phong":
+        return f"s={lobe.s:g}"
+    return f"GGX roughness {lobe.roughness:g}"
+
+
+def memory_bound_mb(max_cells: int, env) -> float:
+    """Predicted peak memory (MB) of a process running blocks of at most ``max_cells`` cells on ``env`` (the
+    measured model of :data:`MEM_BASE_MB`, :data:`MEM_PER_CELL_B`, :data:`MEM_ENV_COPIES`; the scene's own size
+    aside)."""
+    return float(MEM_BASE_MB + MEM_PER_CELL_B * max_cells / 2 ** 20 + MEM_ENV_COPIES * np.asarray(env).nbytes / 2 ** 20)
+
+
+def _predict(r0: dict, nblk: int, workers, n0: int, nP: int, elapsed: float, max_cells: int, mem_mb: float) -> dict:
+    """Predicted cost of all blocks from the first one (a round-robin sample of the pixels)."""
+    scale = nP / max(n0, 1)
+    rays = r0["n_rays"] * scale
+    cpu = r0["cpu_s"] * scale
+    par = max(1, min(workers or 1, nblk - 1))
+    wall = elapsed + r0["time_s"] * (nblk - 1) / par
+    mem = r0["peak_rss_mb"]
+    text = (f"predicted from block 1 of {nblk}: {rays / 1e6:.1f} M rays, {cpu:.0f} s CPU, ~{wall:.0f} s wall with "
+            f"{par} worker{'s' if par > 1 else ''}; memory: block 1 held {r0['n_cells'] / 1e6:.2f} M cells and peaked at "
+            f"{mem:.0f} MB; every block stops at {max_cells / 1e6:.2f} M cells: <= ~{mem_mb:.0f} MB per process)")
+    return dict(rays=int(rays), cpu_s=float(cpu), wall_s=float(wall), block_peak_rss_mb=float(mem),
+                memory_bound_mb=mem_mb, text=text)

@@ -65,7 +65,7 @@ import numpy as np
 
 from ..errors import IBLError
 
-__all__ = ["RenderResult", "Material", "glossiness_image", "material_images", "surface_uv", "sample_g_map",
+__all__ = ["RenderResult", "Material", "glossiness_image", "material_images", "surface_uv", "mesh_uv", "sample_g_map",
            "render_pem", "resolve_materials", "light_visibilities", "horizon_term", "eq5_lookups", "eq5_terms", "shade_eq5",
            "unshadowed_eq5", "background_image", "apply_background", "VISIBILITY_METHODS", "UV_FALLBACKS",
            "BACKGROUNDS"]
@@ -276,14 +276,20 @@ def sample_g_map(g_map, uv, filter: str = "bilinear", wrap: str = "repeat") -> n
     return np.clip(top * (1 - ty) + bot * ty, 0.0, 1.0)  # clip: rounding only
 
 
-def _mesh_uv(mesh):
-    """(V, 2) per-vertex UVs of a trimesh mesh, or None."""
+def mesh_uv(mesh, name="mesh 0"):
+    """(V, 2) per-vertex UVs of a trimesh mesh, or None; NaN/Inf UVs are an :class:`IBLError` (broken data, not
+    missing UVs: no silent fallback)."""
     uv = getattr(getattr(mesh, "visual", None), "uv", None)
     if uv is None:
         return None
     uv = np.asarray(uv, dtype=np.float64)
-    if uv.ndim != 2 or uv.shape != (len(mesh.vertices), 2) or not np.all(np.isfinite(uv)):
+    if uv.ndim != 2 or uv.shape != (len(mesh.vertices), 2):
         return None
+    bad = int(np.sum(~np.all(np.isfinite(uv), axis=1)))
+    if bad:
+        raise IBLError(f"{name}: {bad} of its {len(uv)} texture coordinates are NaN or Inf, so its g map cannot "
+                       "be looked up; fix the mesh's UVs (or remove them to use uv_fallback='planar_xz' or "
+                       "uv_fallback='spherical')")
     return uv
 
 
@@ -308,14 +314,14 @@ def surface_uv(meshes, scene, gbuffer, pixels, fallback: str = "planar_xz") -> n
     for k in np.unique(midx):
         sel = midx == k
         mesh = mesh_list[k] if mesh_list is not None else None
-        muv = _mesh_uv(mesh) if mesh is not None else None
+        muv = mesh_uv(mesh, f"mesh {int(k)}") if mesh is not None else None
         if muv is not None:
             fv = np.asarray(mesh.faces)[scene.source_face[tri[sel]]]  # same vertex order as scene.faces
             uv[sel] = np.einsum("nk,nkc->nc", lam[sel], muv[fv])
             continue
         if fallback == "error":
             raise IBLError(f"mesh {int(k)} has no texture coordinates (mesh.visual.uv) for its g map; "
-                           "give the mesh UVs or choose uv_fallback='planar_xz' or 'spherical'")
+                           "give the mesh UVs or choose uv_fallback='planar_xz' or uv_fallback='spherical'")
         if mesh is not None:
             V = np.asarray(mesh.vertices, dtype=np.float64)
         else:

@@ -75,7 +75,9 @@ def default_camera(meshes, size: int = 64, view_dir=DEFAULT_VIEW_DIR, fov_y_deg:
         raise IBLError(f"field of view must be in (0, 180) degrees, got {fov_y_deg}")
     w = int(size if width is None else width)
     h = int(size if height is None else height)
-    tgt = c if target is None else np.asarray(target, dtype=np.float64)
+    from .camera import as_vec3
+
+    tgt = c if target is None else as_vec3(target, "target")  # checked first: the eye is placed from it
     if eye is None:
         d = np.asarray(view_dir, dtype=np.float64)
         if d.shape != (3,) or not np.all(np.isfinite(d)) or np.linalg.norm(d) == 0:
@@ -87,10 +89,16 @@ def default_camera(meshes, size: int = 64, view_dir=DEFAULT_VIEW_DIR, fov_y_deg:
             dist = R / np.sin(np.radians(float(fov_y_deg)) / 2) * 1.1
         else:
             dist = float(distance) * R
-        e = tgt + dist * d
+        from .camera import MAX_COORDINATE
+
+        with np.errstate(over="ignore"):
+            e = tgt + dist * d
+        if not (np.isfinite(dist) and dist > 0 and np.all(np.abs(e) <= MAX_COORDINATE)):
+            raise IBLError(f"distance={distance!r} (bounding radii of {R:.3g}) puts the eye at {e.tolist()}, beyond "
+                           f"what the camera can use (|coordinate| <= {MAX_COORDINATE:g}); choose a smaller distance")
         far = 100 * R
     else:
-        e = np.asarray(eye, dtype=np.float64)
+        e = as_vec3(eye, "eye")
         far = 100 * (float(np.linalg.norm(e - tgt)) + R)
     return PerspectiveCamera(eye=e, target=tgt, up=list(up), fov_y_deg=fov_y_deg, width=w, height=h,
                              near=1e-3 * R, far=far)

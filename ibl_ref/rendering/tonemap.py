@@ -2,7 +2,10 @@
 
 ``exposure_srgb``: v = 2^stops · x, optional Reinhard (v / (1 + v), applied to each channel), then the sRGB
 transfer function (IEC 61966-2-1) and clipping to [0, 1].  Deterministic; finite for any finite non-negative input
-(e.g. a 1e5 sun).  ``auto_exposure`` picks the stops mapping a percentile of the covered luminance to ``key``.
+(e.g. a 1e5 sun) and any finite ``stops``: where 2^stops · x would leave float64 (``stops`` beyond ±1023, or a
+huge x times a large scale) the product is formed as 2^(log2 x + stops), limited to float64's range, so it
+saturates to white or black instead of overflowing.  ``auto_exposure`` picks the stops mapping a percentile of
+the covered luminance to ``key`` (finite also for subnormal luminances).
 """
 
 from __future__ import annotations
@@ -11,7 +14,7 @@ import numpy as np
 
 from ..errors import IBLError
 
-__all__ = ["srgb_encode", "reinhard", "exposure_srgb", "auto_exposure", "save_png", "backdrop", "with_backdrop"]
+__all__ = ["srgb_encode", "reinhard", "expose", "exposure_srgb", "auto_exposure", "save_png", "backdrop", "with_backdrop"]
 
 
 def srgb_encode(x) -> np.ndarray:
@@ -41,12 +44,33 @@ def auto_exposure(img, mask=None, percentile: float = 90.0, key: float = 0.8) ->
     y = y[y > 0]
     if y.size == 0:
         return 0.0
-    return float(np.log2(key / np.percentile(y, percentile)))
+    return float(np.log2(key) - np.log2(np.percentile(y, percentile)))  # no overflow for subnormal y
+
+
+#: float64's binary exponent range (2^-1074 … 2^1023): the exposed values are kept inside it
+_LOG2_MIN, _LOG2_MAX = -1074.0, 1023.0
+
+
+def expose(x, stops: float) -> np.ndarray:
+    """2^stops · x for non-negative x, without overflow: exact (a power-of-two scale) where the product fits in
+    float64, else 2^(log2 x + stops) limited to float64's range (saturated)."""
+    stops = float(stops)
+    if not np.isfinite(stops):
+        raise IBLError(f"exposure must be a finite number of stops, got {stops!r}")
+    a = np.asarray(x, dtype=np.float64)
+    top = float(a.max()) if a.size else 0.0
+    if abs(stops) <= 1000 and (top == 0.0 or np.log2(top) + stops < _LOG2_MAX):
+        return a * 2.0 ** stops
+    out = np.zeros_like(a)
+    pos = a > 0
+    with np.errstate(under="ignore"):
+        out[pos] = np.exp2(np.clip(np.log2(a[pos]) + stops, _LOG2_MIN, _LOG2_MAX))
+    return out
 
 
 def exposure_srgb(img, stops: float = 0.0, operator: str = "reinhard") -> np.ndarray:
-    """Display values in [0, 1]: sRGB(op(2^stops · x)), op = ``"reinhard"`` or ``"clip"``."""
-    a = np.clip(_check(img), 0.0, None) * 2.0 ** float(stops)
+    """Display values in [0, 1]: sRGB(op(2^stops · x)), op = ``"reinhard"`` or ``"clip"``; any finite ``stops``."""
+    a = expose(np.clip(_check(img), 0.0, None), stops)
     if operator == "reinhard":
         a = reinhard(a)
     elif operator != "clip":

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import functools
 import inspect
+import warnings
 from importlib import resources
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -481,8 +482,13 @@ def mesh_help(name: str | None = None) -> str:
     return "\n".join(out)
 
 
+#: largest |vertex coordinate| accepted: products of a few coordinates (areas, normals, projections) stay in float64
+MAX_COORDINATE = 1e100
+
+
 def validate_mesh(mesh, name: str = "mesh", area_eps: float = 0.0) -> trimesh.Trimesh:
-    """Check a mesh is usable: faces present, finite vertices, valid indices, not all degenerate.
+    """Check a mesh is usable: faces present, finite vertices of magnitude <= :data:`MAX_COORDINATE`, valid
+    indices, not all degenerate.
 
     Raises :class:`MeshError` naming ``name``.  Returns the mesh unchanged.
     """
@@ -499,6 +505,11 @@ def validate_mesh(mesh, name: str = "mesh", area_eps: float = 0.0) -> trimesh.Tr
         raise MeshError(f"{name}: {bad} vertex/vertices with NaN or Inf coordinates")
     if f.min() < 0 or f.max() >= len(v):
         raise MeshError(f"{name}: face indices out of range [0, {len(v)})")
+    vmax = float(np.abs(v).max())
+    if vmax > MAX_COORDINATE:
+        raise MeshError(f"{name}: coordinates up to {vmax:.3g} in magnitude; areas, normals and the camera's "
+                        f"projections multiply coordinates and would overflow float64 (|coordinate| <= "
+                        f"{MAX_COORDINATE:g}); rescale the mesh")
     e1 = v[f[:, 1]] - v[f[:, 0]]
     e2 = v[f[:, 2]] - v[f[:, 0]]
     area = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=1)
@@ -566,13 +577,18 @@ def load_mesh(path_or_name, **params) -> trimesh.Trimesh:
         return make_mesh(path_or_name, **params)
     if params:
         raise IBLError(f"load_mesh: parameters {sorted(params)} only apply to generated meshes {MESH_NAMES}")
-    path = Path(path_or_name)
+    from ..errors import as_path
+
+    path = as_path(path_or_name, "mesh file")
     if not path.is_file():
         raise MeshError(f"{path}: no such mesh file (and not a generated mesh name: {', '.join(MESH_NAMES)})")
     _sniff_mesh_file(path)
     try:
-        # process=False: trimesh's processing would silently drop NaN vertices and their faces
-        mesh = trimesh.load(str(path), force="mesh", process=False)
+        # process=False: trimesh's processing would silently drop NaN vertices and their faces; its numerical
+        # warnings on such data (overflow, NaN casts) are replaced by validate_mesh's one-line errors below
+        with warnings.catch_warnings(), np.errstate(all="ignore"):
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mesh = trimesh.load(str(path), force="mesh", process=False)
     except ImportError as exc:  # trimesh falls back to optional text-encoding detectors on odd bytes
         raise MeshError(f"{path}: cannot read mesh: not a valid {path.suffix or 'mesh'} file "
                         f"(trimesh could not parse it: {exc})") from exc
@@ -582,5 +598,7 @@ def load_mesh(path_or_name, **params) -> trimesh.Trimesh:
         raise MeshError(f"{path}: no triangles could be read from this {path.stat().st_size}-byte "
                         f"{path.suffix or 'mesh'} file (corrupt, truncated or not a triangle mesh)")
     validate_mesh(mesh, str(path))
-    mesh.process(validate=False)  # merge duplicate vertices (split normals/uv seams in OBJ files)
+    with warnings.catch_warnings(), np.errstate(all="ignore"):  # NaN UVs: refused where a g map needs them
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mesh.process(validate=False)  # merge duplicate vertices (split normals/uv seams in OBJ files)
     return validate_mesh(mesh, str(path))

@@ -1,0 +1,116 @@
+"""Ctrl-C for the ``ibl-ref`` command: at any moment, exit code 130, one line, no partial output.
+
+Not a command module (no ``cmd_`` prefix).  :func:`handling` is entered by :func:`ibl_ref.cli.main` around a
+command; inside it, SIGINT is handled by :func:`_on_sigint`:
+
+* **Deferred while a module is being imported.**  Some dependencies guard their optional imports with
+  ``except BaseException`` (trimesh does), which swallows a ``KeyboardInterrupt`` raised inside the import and
+  leaves the half-imported modules behind (a later ``NameError`` deep in scipy.ndimage).  So while the Python
+  stack of the main thread contains an import (a frame of ``importlib._bootstrap``), the handler records the
+  signal and re-delivers it every 20 ms until no import is running; only then is ``KeyboardInterrupt`` raised.
+* **Deferred inside the commit of outputs** (:func:`ibl_ref.atomic.critical_section`): the files of one output
+  set are all moved into place or none.
+* **Delivered again if swallowed**: trimesh also guards some numerical fallbacks with ``except BaseException``
+  (``weighted_vertex_normals``).  Once raised, the interrupt is re-sent every :data:`_RESEND_S` s until the command
+  has ended, so no library can make the command carry on; ibl_ref's own clean-up (removing temporary files and
+  staging folders) runs in :func:`ibl_ref.atomic.critical_section`, where a repeated interrupt waits.
+* **Worker processes stop with the command**: forked workers (``convolve``) and pool workers
+  (:func:`ibl_ref.executors.map_jobs`) ignore SIGINT themselves (no traceback of theirs on the terminal); when
+  the interrupt is raised the handler terminates every live :mod:`multiprocessing` child, so that the command
+  does not wait for their jobs.
+
+Every output is written atomically or as an :class:`ibl_ref.atomic.OutputSet`, so an interrupt leaves the
+previous files as they were and no temporary file behind; :func:`ibl_ref.cli.main` prints
+``ibl-ref CMD: interrupted`` and returns 130 (128 + SIGINT, the shell's convention).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import threading
+
+__all__ = ["handling", "interrupted", "in_import"]
+
+_RETRY_S = 0.02  #: re-delivery interval of a deferred SIGINT
+_RESEND_S = 0.25  #: interval at which a raised interrupt is sent again while the command still runs
+_STATE = {"active": False, "received": False, "pending": False}
+_FORK_HOOK = {"registered": False}
+
+
+def in_import(frame) -> bool:
+    """True if ``frame`` or a caller of it belongs to the import machinery (a module is being imported)."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
+
+
+def interrupted() -> bool:
+    """True once SIGINT arrived inside :func:`handling` (also when something swallowed the KeyboardInterrupt)."""
+    return _STATE["received"]
+
+
+def _redeliver() -> None:
+    _STATE["pending"] = False
+    if _STATE["active"]:
+        with contextlib.suppress(OSError):
+            os.kill(os.getpid(), signal.SIGINT)
+
+
+def _stop_children() -> None:
+    import multiprocessing
+
+    with contextlib.suppress(Exception):
+        for child in multiprocessing.active_children():
+            with contextlib.suppress(Exception):
+                child.terminate()
+
+
+def _on_sigint(signum, frame) -> None:
+    from .. import atomic
+
+    _STATE["received"] = True
+    if in_import(frame) or atomic.in_critical_section():
+        if not _STATE["pending"]:
+            _STATE["pending"] = True
+            t = threading.Timer(_RETRY_S, _redeliver)
+            t.daemon = True
+            t.start()
+        return
+    _stop_children()
+    if not _STATE["pending"]:  # in case a library swallows the KeyboardInterrupt: send it again
+        _STATE["pending"] = True
+        t = threading.Timer(_RESEND_S, _redeliver)
+        t.daemon = True
+        t.start()
+    raise KeyboardInterrupt
+
+
+def _child_after_fork() -> None:
+    if _STATE["active"]:  # a worker forked by a command: the command handles Ctrl-C, the worker keeps quiet
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@contextlib.contextmanager
+def handling():
+    """Install :func:`_on_sigint` for the block (main thread only; elsewhere a no-op)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    try:
+        old = signal.signal(signal.SIGINT, _on_sigint)
+    except (ValueError, OSError):  # pragma: no cover - no signals here (embedded interpreter)
+        yield
+        return
+    if not _FORK_HOOK["registered"] and hasattr(os, "register_at_fork"):
+        os.register_at_fork(after_in_child=_child_after_fork)
+        _FORK_HOOK["registered"] = True
+    _STATE.update(active=True, received=False, pending=False)
+    try:
+        yield
+    finally:
+        _STATE["active"] = False
+        signal.signal(signal.SIGINT, old)

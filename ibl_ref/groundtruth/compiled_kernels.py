@@ -1,0 +1,947 @@
+"""Compiled inner loops of the Phong-lobe convolution (Knuth et al. 2014, Sec. 3.2, Eq. 4), written for numba.
+
+The NumPy implementation in :mod:`ibl_ref.groundtruth.phong_convolution`, :mod:`~ibl_ref.groundtruth.sh_basis`,
+:mod:`~ibl_ref.groundtruth.sh_convolution` and :mod:`~ibl_ref.groundtruth.moment_convolution` stays the
+reference; these loops compute the same quadratures (the weights ``max(r·ω_j, 0)^s Ω_j`` of Eq. 4) without
+the temporaries, index matrices and repeated passes of the array code, and each states the relative error
+bound of its floating-point arithmetic, which the callers add to their rigorous bounds.  Selected by
+:mod:`ibl_ref.groundtruth.kernel_choice`.
+
+Elementary functions (vectorisable: no calls, no branches)
+    :func:`exp_` — Cody–Waite reduction ``u = k ln 2 + f``, ``|f| ≤ ln2/2``, the Taylor polynomial of degree 13
+    (remainder ≤ 0.347^14/14! < 4.5e-18), ``2^k`` put into the exponent field; 0 below 2^-1021.  Relative
+    error ≤ :data:`EXP_REL` (measured: 1.22 ulp over 2·10⁶ arguments in [−745, 709]).
+    :func:`log_` — ``c = 2^e m``, ``m ∈ [√½, √2)``, ``log m = 2 atanh z``, ``z = (m−1)/(m+1)`` (|z| ≤ 0.1716, the
+    odd series to z^21, remainder < 2e-18); absolute error ≤ :data:`LOG_ABS` + |log c|·:data:`LOG_REL`
+    (measured 3.2e-16 relative).
+    :func:`powi_` — ``c^s`` for integers ``1 ≤ s ≤ 8191`` by binary powering (13 fixed steps): every result
+    is a product of s factors c formed by s − 1 roundings, relative error ≤ γ_{s−1} (Higham, *Accuracy and
+    Stability of Numerical Algorithms*, 2nd ed., Lemma 3.1 applied to the multiplication tree).
+
+Compilation and its cache
+    Every kernel is compiled on first use with ``cache=True``: the machine code is written next to this file
+    (``__pycache__``) or to numba's cache folder (``$NUMBA_CACHE_DIR``) and later processes load it instead
+    of compiling (cold and warm costs are measured by ``benchmarks/bench_peer.py``).  When no cache folder
+    is writable (an explicitly given ``$NUMBA_CACHE_DIR`` that is read-only, or none of numba's locations)
+    one line goes to stderr and the kernels are compiled without a cache, in every process.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import tempfile
+
+import numba
+import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.extending import intrinsic
+
+__all__ = ["EXP_REL", "LOG_ABS", "LOG_REL", "POWI_MAX", "C0", "CACHE_NOTE", "tile_gather", "cap_count", "cone_extremes", "band_exact",
+           "band_brackets", "sh_project", "sh_matrix", "SH_BLOCK",
+           "point_gather", "sh_values_bounds",
+           "weight_error", "sum_error", "warm_up"]
+
+#: relative error bound of :func:`exp_` for results ≥ 2^-1021 (Taylor remainder 4.5e-18/e^-0.347, Horner
+#: rounding γ_26·e^{0.694} ≈ 5.8e-15, the reduction's f off by ≤ 2u·|f| + |k|·2^-60: together < 8e-15)
+EXP_REL = 8e-15
+#: absolute / relative parts of the error bound of :func:`log_` (the series ≤ 6u relative to |log m| ≤ 0.35,
+#: e·ln 2 with ln 2 split hi + lo: ≤ 2u·|e ln 2|; the final sums: u·|log c|)
+LOG_ABS = 4e-16
+LOG_REL = 4.5e-16
+#: largest integer exponent of :func:`powi_` (13 binary digits)
+POWI_MAX = 8191
+#: unit roundoff of float64
+U64 = 2.0 ** -53
+
+#: what happened to the cache (None: cached as usual; else the one line printed to stderr)
+CACHE_NOTE = None
+
+
+def _cache_usable() -> bool:
+    """False (after one line on stderr) when ``$NUMBA_CACHE_DIR`` is given but cannot be written."""
+    global CACHE_NOTE
+    d = os.environ.get("NUMBA_CACHE_DIR", "").strip()
+    if not d:
+        return True
+    try:
+        os.makedirs(d, exist_ok=True)
+        tempfile.TemporaryFile(dir=d).close()
+        return True
+    except OSError as exc:
+        CACHE_NOTE = (f"ibl_ref: NUMBA_CACHE_DIR={d} is not writable ({exc.strerror or exc}); the compiled kernels "
+                      "are compiled without a cache in this process")
+        print(CACHE_NOTE, file=sys.stderr)
+        return False
+
+
+_CACHE = _cache_usable()
+
+
+def _jit(**kw):
+    """``numba.njit(cache=True, nogil=True, error_model="numpy", **kw)``, without the cache (one line on stderr)
+    when numba finds no writable cache location."""
+    global _CACHE, CACHE_NOTE
+
+    def deco(fn):
+        global _CACHE, CACHE_NOTE
+        opts = dict(nogil=True, error_model="numpy")
+        opts.update(kw)
+        if _CACHE:
+            try:
+                return numba.njit(cache=True, **opts)(fn)
+            except RuntimeError as exc:  # "cannot cache function ...: no locator available"
+                _CACHE = False
+                CACHE_NOTE = f"ibl_ref: no writable numba cache folder ({exc}); compiling the kernels without a cache"
+                print(CACHE_NOTE, file=sys.stderr)
+        return numba.njit(cache=False, **opts)(fn)
+
+    return deco
+
+
+# ----------------------------------------------------------------------------------------------
+# elementary functions
+# ----------------------------------------------------------------------------------------------
+@intrinsic
+def _f2i(typingctx, x):
+    """The bits of a float64 as an int64 (an LLVM bitcast: vectorisable)."""
+    sig = types.int64(types.float64)
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.IntType(64))
+
+    return sig, codegen
+
+
+@intrinsic
+def _i2f(typingctx, x):
+    """An int64 read as the bits of a float64."""
+    sig = types.float64(types.int64)
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.DoubleType())
+
+    return sig, codegen
+
+
+_LN2_HI = 6.93147180369123816490e-01  # 0x3FE62E42FEE00000: k·_LN2_HI is exact for |k| < 2^11
+_LN2_LO = 1.90821492927058770002e-10
+_LOG2E = 1.4426950408889634
+_SQRT2 = 1.4142135623730951
+#: half-angle of the cone around a face's axis that holds the face (its corners: atan √2)
+_FACE_CONE = 0.9553166181245093
+
+
+@_jit(fastmath={"contract"})
+def exp_(u):
+    """e^u for u ≤ 709 (0 below ≈ −708.4: results under 2^-1021 are returned as 0)."""
+    u = min(max(u, -745.0), 709.0)
+    kf = math.floor(u * _LOG2E + 0.5)
+    f = (u - kf * _LN2_HI) - kf * _LN2_LO
+    p = 1.0 / 6227020800.0
+    p = p * f + 1.0 / 479001600.0
+    p = p * f + 1.0 / 39916800.0
+    p = p * f + 1.0 / 3628800.0
+    p = p * f + 1.0 / 362880.0
+    p = p * f + 1.0 / 40320.0
+    p = p * f + 1.0 / 5040.0
+    p = p * f + 1.0 / 720.0
+    p = p * f + 1.0 / 120.0
+    p = p * f + 1.0 / 24.0
+    p = p * f + 1.0 / 6.0
+    p = p * f + 0.5
+    p = p * f + 1.0
+    p = p * f + 1.0
+    k = np.int64(kf)
+    r = _i2f(_f2i(p) + (k << 52))  # p ∈ [0.70, 1.42]: 2^k·p by the exponent field
+    return r if k > -1021 else 0.0
+
+
+@_jit(fastmath={"contract"})
+def log_(c):
+    """log c for normal c > 0 (c below 2^-1022 is taken as 2^-1022)."""
+    c = max(c, 2.2250738585072014e-308)
+    b = _f2i(c)
+    e = (b >> 52) - 1023
+    m = _i2f((b & 0x000FFFFFFFFFFFFF) | 0x3FF0000000000000)  # c = 2^e m, m ∈ [1, 2)
+    big = m > _SQRT2
+    m = m * 0.5 if big else m
+    e = e + 1 if big else e
+    z = (m - 1.0) / (m + 1.0)  # m − 1 exact (Sterbenz)
+    z2 = z * z
+    p = 1.0 / 21.0
+    p = p * z2 + 1.0 / 19.0
+    p = p * z2 + 1.0 / 17.0
+    p = p * z2 + 1.0 / 15.0
+    p = p * z2 + 1.0 / 13.0
+    p = p * z2 + 1.0 / 11.0
+    p = p * z2 + 1.0 / 9.0
+    p = p * z2 + 1.0 / 7.0
+    p = p * z2 + 1.0 / 5.0
+    p = p * z2 + 1.0 / 3.0
+    ef = np.float64(e)
+    return (2.0 * z + 2.0 * z * z2 * p) + (ef * _LN2_HI + ef * _LN2_LO)
+
+
+@_jit(fastmath={"contract"}, inline="always")
+def powi_(c, s):
+    """c^s for an integer 1 ≤ s ≤ :data:`POWI_MAX` (13 fixed binary-powering steps, branch-free; no squaring
+    beyond the highest bit of s, so nothing underflows needlessly)."""
+    r = 1.0
+    p = c
+    for b in range(13):
+        r = r * p if (s >> b) & 1 else r
+        p = p * p if (s >> (b + 1)) != 0 else 1.0
+    return r
+
+
+#: the weights' error bound is relative for pairs with r·ω ≥ this and absolute below it
+C0 = 0.05
+
+
+def weight_error(s: float, integer: bool, reference: bool = False):
+    """``(η, ε)``: the rounding of one computed weight ``max(r·ω, 0)^s`` of :func:`tile_gather` (``(c/c_max)^s``
+    with ``reference``) is ≤ η·w for pairs with c = r·ω ≥ :data:`C0` and ≤ ε in absolute terms (the weight
+    scale is 1: c ≤ 1, or the row's largest cosine) below, including the weights left out or returned as 0
+    (below e^-700 / 2^-1021).
+
+    The cosine from two float64 unit vectors is off by Δ ≤ γ_3 + 2u (each vector's own rounding u), i.e. by
+    the factor (1 ± Δ/c)^s ≤ (1 + Δ/C0)^s in the weight; the power adds γ_{s−1} (:func:`powi_`) or, for
+    ``exp(s·log c)``, an exponent off by ≤ 2s·(:data:`LOG_ABS` + |log C0|·:data:`LOG_REL`) + 745·2u (log of c and of
+    the reference; arguments below −745 give weights below e^-745, counted in ε) and :data:`EXP_REL`.  Below C0:
+    |ĉ^s − c^s| ≤ s·Δ·(C0 + Δ)^{s−1} (mean value theorem, s ≥ 1) plus η·(C0 + Δ)^s; ĉ ≤ 0 gives 0 where the
+    true weight is ≤ Δ^s."""
+    gam3 = 3 * U64 / (1 - 3 * U64)
+    d = gam3 + 2 * U64
+    if integer:
+        n = max(int(s) - 1, 0)
+        e_f = n * U64 / (1 - n * U64)
+    else:
+        du = 2.0 * s * (LOG_ABS + abs(math.log(C0)) * LOG_REL) + 745.0 * 2 * U64
+        e_f = math.expm1(du) * (1 + EXP_REL) + EXP_REL
+    eta = math.exp(s * math.log1p(d / C0)) * (1 + e_f) - 1
+    eps = s * d * (C0 + d) ** (s - 1) * (1 + e_f) + e_f * (C0 + d) ** s + d ** s + math.exp(-700.0)
+    return eta, eps
+
+
+def sum_error(m):
+    """γ_m: relative error of a float64 sum of m non-negative terms, in any order (the kernels' reductions are
+    vectorised, so their order is the compiler's); ``m`` a number or an array."""
+    m = np.asarray(m, dtype=np.float64)
+    return m * U64 / (1 - m * U64)
+
+
+# ----------------------------------------------------------------------------------------------
+# truncated-support gather (sparse route)
+# ----------------------------------------------------------------------------------------------
+@_jit(fastmath={"contract"})
+def _interval(alpha, beta, kappa, w2):
+    """``{x : α + βx ≥ κ √(w² + x²)}`` for κ > 0 (convex: a line above a convex curve), as ``(lo, hi, ok)``.
+
+    With D = β² − κ² < 0 the set is the part of the root interval of ``D x² + 2αβ x + α² − κ²w² ≥ 0`` where
+    α + βx > 0 (the other part of the squared inequality, α + βx ≤ −κ√…, is the opposite cap; the root
+    interval is one or the other, told by the sign at its midpoint −αβ/D).  Near-tangent cases (D ≥ −1e-9)
+    return the whole line (a superset).  A discriminant that is negative by rounding only is taken as a point.
+    """
+    D = beta * beta - kappa * kappa
+    if D > -1e-9:
+        return -1e300, 1e300, True
+    disc = alpha * alpha + D * w2
+    scale = alpha * alpha - D * w2
+    if disc < -1e-12 * scale:
+        return 0.0, 0.0, False
+    xm = -alpha * beta / D
+    if alpha + beta * xm <= 0.0:
+        return 0.0, 0.0, False
+    sq = kappa * math.sqrt(max(disc, 0.0)) / (-D)
+    return xm - sq, xm + sq, True
+
+
+@_jit(fastmath={"contract"})
+def _index_range(lo, hi, h, n):
+    """Texel indices whose centres (i + ½)·h − 1 lie in [lo, hi] widened by 1e-3 texel each side (≫ the error of
+    the interval ends), clipped to [0, n − 1] (empty: first > last)."""
+    lo = max(lo, -3.0)
+    hi = min(hi, 3.0)
+    i0 = int(math.ceil((lo + 1.0) / h - 0.5 - 1e-3))
+    i1 = int(math.floor((hi + 1.0) / h - 0.5 + 1e-3))
+    return max(i0, 0), min(i1, n - 1)
+
+
+#: the candidate lists are padded to a multiple of this many entries (zero weight), so that the vectorised
+#: loops never fall back to their scalar remainder (8 lanes × 4-way interleave)
+_VEC = 32
+
+
+@_jit(fastmath={"contract"})
+def _face_rows(t, k, f, frames, h, n):
+    """Row range of face f touched by the cap ``{d : d·t ≥ k}`` and the numbers (a, b, c) = t·(axis, u, v):
+    ``(i0, i1, a, b, c, full)`` (``full``: every column of those rows, for caps reaching the face plane's
+    horizon); i1 < i0 when the cap misses the face."""
+    a = t[0] * frames[f, 0, 0] + t[1] * frames[f, 0, 1] + t[2] * frames[f, 0, 2]
+    b = t[0] * frames[f, 1, 0] + t[1] * frames[f, 1, 1] + t[2] * frames[f, 1, 2]
+    c = t[0] * frames[f, 2, 0] + t[1] * frames[f, 2, 1] + t[2] * frames[f, 2, 2]
+    if k <= 1e-9:
+        return 0, n - 1, a, b, c, True
+    # the cap misses the face's bounding cone (half-angle atan √2 around the axis)
+    if a < math.cos(min(math.acos(k) + _FACE_CONE, math.pi)):
+        return 0, -1, a, b, c, False
+    K = k * k - b * b
+    if K <= 1e-9:
+        return 0, n - 1, a, b, c, True
+    vlo, vhi, ok = _interval(a, c, math.sqrt(K), 1.0)
+    if not ok:
+        return 0, -1, a, b, c, False
+    i0, i1 = _index_range(vlo, vhi, h, n)
+    return i0, i1, a, b, c, False
+
+
+@_jit(fastmath={"contract"})
+def _row_cols(a, b, c, k, v, h, n, full):
+    """Column range of the row at face-plane v touched by the cap (see :func:`_face_rows`)."""
+    if full:
+        return 0, n - 1
+    lo, hi, ok = _interval(a + c * v, b, k, 1.0 + v * v)
+    if not ok:
+        return 0, -1
+    return _index_range(lo, hi, h, n)
+
+
+@_jit(fastmath={"contract"})
+def cap_count(t, q, frames, n):
+    """Number of source texels :func:`tile_gather` collects for the cap of angle q around the unit vector t."""
+    h = 2.0 / n
+    k = math.cos(min(q + 1e-6, 0.5 * math.pi)) if q + 1e-6 < 0.5 * math.pi else 0.0
+    m = 0
+    for f in range(6):
+        i0, i1, a, b, c, full = _face_rows(t, k, f, frames, h, n)
+        for i in range(i0, i1 + 1):
+            j0, j1 = _row_cols(a, b, c, k, (i + 0.5) * h - 1.0, h, n, full)
+            if j1 >= j0:
+                m += j1 - j0 + 1
+    return m
+
+
+@_jit(fastmath={"contract"}, inline="always")
+def _put7(SX, SY, SZ, S0, S1, S2, S3, m, x, y, z, w0, w1, w2, w3):
+    """Entry m of the scratch arrays; returns m + 1."""
+    SX[m] = x
+    SY[m] = y
+    SZ[m] = z
+    S0[m] = w0
+    S1[m] = w1
+    S2[m] = w2
+    S3[m] = w3
+    return m + 1
+
+
+@_jit(fastmath={"contract"})
+def _collect(t, q, frames, n, X, Y, Z, RW, bdirs, brw, SX, SY, SZ, S0, S1, S2, S3):
+    """Copy the source texels of the cap (angle q around t) and then the bright texels into the scratch arrays;
+    pad with zero entries to a multiple of :data:`_VEC`.  Returns the number of entries (padding included)."""
+    h = 2.0 / n
+    nn = n * n
+    k = math.cos(min(q + 1e-6, 0.5 * math.pi)) if q + 1e-6 < 0.5 * math.pi else 0.0
+    m = 0
+    for f in range(6):
+        i0, i1, a, b, c, full = _face_rows(t, k, f, frames, h, n)
+        for i in range(i0, i1 + 1):
+            j0, j1 = _row_cols(a, b, c, k, (i + 0.5) * h - 1.0, h, n, full)
+            base = f * nn + i * n
+            for j in range(base + j0, base + j1 + 1):
+                m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, X[j], Y[j], Z[j], RW[0, j], RW[1, j], RW[2, j], RW[3, j])
+    for j in range(bdirs.shape[0]):
+        m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, bdirs[j, 0], bdirs[j, 1], bdirs[j, 2], brw[j, 0], brw[j, 1], brw[j, 2], brw[j, 3])
+    while m % _VEC:
+        m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    return m
+
+
+@_jit(fastmath={"contract"}, inline="always")
+def _weight(c, s, s_int, c_floor, lref):
+    """``c^s`` by :func:`powi_` for ``s_int > 0`` (0 for c < c_floor: weights < e^-700, no subnormal arithmetic),
+    else ``exp(s·(log c − lref))`` (0 for c ≤ 0 and below 2^-1021)."""
+    if s_int > 0:
+        w = powi_(max(c, c_floor), s_int)
+        return w if c >= c_floor else 0.0
+    w = exp_(s * (log_(max(c, 1e-300)) - lref))
+    return w if c > 0.0 else 0.0
+
+
+@_jit(fastmath={"contract", "reassoc"}, inline="always")
+def _sums(rx, ry, rz, SX, SY, SZ, S0, S1, S2, S3, m, s, s_int, c_floor, lref):
+    """Σ_j w_j·S_k[j] over the scratch entries, w = :func:`_weight` of c = r·ω_j (one loop per kind of weight:
+    a branch inside the loop would evaluate both powers)."""
+    a0 = a1 = a2 = a3 = 0.0
+    if s_int > 0:
+        for j in range(m):
+            w = _weight(rx * SX[j] + ry * SY[j] + rz * SZ[j], s, s_int, c_floor, lref)
+            a0, a1, a2, a3 = a0 + w * S0[j], a1 + w * S1[j], a2 + w * S2[j], a3 + w * S3[j]
+    else:
+        for j in range(m):
+            w = _weight(rx * SX[j] + ry * SY[j] + rz * SZ[j], s, 0, c_floor, lref)
+            a0, a1, a2, a3 = a0 + w * S0[j], a1 + w * S1[j], a2 + w * S2[j], a3 + w * S3[j]
+    return a0, a1, a2, a3
+
+
+@_jit(fastmath={"contract", "reassoc"}, inline="always")
+def _max_cos(rx, ry, rz, SX, SY, SZ, m):
+    mx = -2.0
+    for j in range(m):
+        mx = max(mx, rx * SX[j] + ry * SY[j] + rz * SZ[j])
+    return mx
+
+
+@_jit(fastmath={"contract", "reassoc"})
+def tile_gather(cen, rows, caps, frames, n, X, Y, Z, RW, bdirs, brw, s, s_int, rowmax, c_floor, acc, logmx, count):
+    """Truncated-support gather of tiles of output texels: tile i's rows ``rows[i]`` (B, 3) gather every source
+    texel within the angle ``caps[i]`` of the tile centre ``cen[i]`` (plus 1e-6 rad and 1e-3 texel of slack)
+    and the bright texels ``bdirs``/``brw``: ``acc[i, b] = Σ_j w_bj RW[:, j]``.
+
+    The cap's texels are found without a search structure: on each face (frame rows: axis, u, v) that the cap
+    reaches, the cap ``{(u, v) : a + bu + cv ≥ k √(1 + u² + v²)}`` (a, b, c = t·axis, t·u, t·v; k = cos cap) is
+    convex: its rows are the interval of v where ``a + cv ≥ √(k² − b²) √(1 + v²)`` (the maximum over u), on
+    each row the columns an interval (:func:`_interval`).  The interval ends are computed to ≈ 1e-12 in
+    face-plane units, far within the 1e-3-texel widening (2e-3/n ≥ 5e-7 for n ≤ 4096), so no texel of the cap
+    is missed (brute-force check in the tests).  The texels are copied to contiguous scratch arrays (with the
+    bright texels, padded with zero entries to a multiple of :data:`_VEC`), then every row runs one vectorised
+    loop over them.
+
+    Weights: ``s_int > 0`` — ``c^s`` by :func:`powi_` (0 for c < ``c_floor``, whose weight is below e^-700;
+    callers count that as underflow); else ``exp(s·(log c − log c_max))`` with ``c_max`` the row's largest
+    cosine when ``rowmax`` (``logmx[i, b] = s·log c_max``), else ``c_max = 1``.  ``RW`` (4, 6n²): the rows
+    ``[L·Ω, …, Ω]`` padded to 4, zero for the bright texels.  ``count[i]``: entries of tile i's list (with the
+    bright texels and the padding: the pairs computed per row).
+    """
+    nt = rows.shape[0]
+    B = rows.shape[1]
+    m_max = 0
+    for i in range(nt):
+        m_max = max(m_max, cap_count(cen[i], caps[i], frames, n))
+    m_max += bdirs.shape[0] + _VEC
+    SX, SY, SZ, S0, S1, S2, S3 = _scratch7(m_max)
+    for i in range(nt):
+        m = _collect(cen[i], caps[i], frames, n, X, Y, Z, RW, bdirs, brw, SX, SY, SZ, S0, S1, S2, S3)
+        count[i] = m
+        for b in range(B):
+            rx = rows[i, b, 0]
+            ry = rows[i, b, 1]
+            rz = rows[i, b, 2]
+            lref = 0.0
+            if s_int <= 0 and rowmax:
+                lref = log_(max(_max_cos(rx, ry, rz, SX, SY, SZ, m), 1e-300))
+            a0, a1, a2, a3 = _sums(rx, ry, rz, SX, SY, SZ, S0, S1, S2, S3, m, s, s_int, c_floor, lref)
+            logmx[i, b] = s * lref
+            acc[i, b, 0] = a0
+            acc[i, b, 1] = a1
+            acc[i, b, 2] = a2
+            acc[i, b, 3] = a3
+
+
+@_jit(fastmath={"contract"})
+def cone_extremes(cen, q, blk_cen, alpha, blk_max, blk_min, sup_cen, sup_alpha, sup_mem, lmax, lmin):
+    """Per-channel max and min of ``blk_max``/``blk_min`` over the blocks whose centre lies within q[i] + α of
+    cen[i] (the blocks whose cone reaches the cap), for every tile i: the same set as the NumPy path's
+    ``_Sources.hits``, found through super-blocks (members ``sup_mem`` (ns, k²), −1 = none; every member
+    centre within ``sup_alpha`` − α of the super-block centre, so a super-block is skipped only when none of
+    its blocks can qualify)."""
+    nt = cen.shape[0]
+    C = blk_max.shape[1]
+    for i in range(nt):
+        tx = cen[i, 0]
+        ty = cen[i, 1]
+        tz = cen[i, 2]
+        c_sup = math.cos(min(q[i] + sup_alpha, math.pi))
+        c_blk = math.cos(min(q[i] + alpha, math.pi))
+        for ch in range(C):
+            lmax[i, ch] = -np.inf
+            lmin[i, ch] = np.inf
+        for sb in range(sup_cen.shape[0]):
+            if tx * sup_cen[sb, 0] + ty * sup_cen[sb, 1] + tz * sup_cen[sb, 2] < c_sup:
+                continue
+            for k in range(sup_mem.shape[1]):
+                b = sup_mem[sb, k]
+                if b < 0:
+                    continue
+                if tx * blk_cen[b, 0] + ty * blk_cen[b, 1] + tz * blk_cen[b, 2] >= c_blk:
+                    for ch in range(C):
+                        lmax[i, ch] = max(lmax[i, ch], blk_max[b, ch])
+                        lmin[i, ch] = min(lmin[i, ch], blk_min[b, ch])
+
+
+# ----------------------------------------------------------------------------------------------
+# horizon band of the moment route (s = 1, 2)
+# ----------------------------------------------------------------------------------------------
+@_jit()
+def _scratch7(m):
+    """Seven zeroed scratch vectors of length m (directions x, y, z and 4 weight rows)."""
+    return np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m)
+
+
+@_jit()
+def _longest(starts, nt):
+    """The longest of the nt lists ``starts[i]:starts[i+1]`` plus :data:`_VEC` (scratch length)."""
+    m = 0
+    for i in range(nt):
+        m = max(m, starts[i + 1] - starts[i])
+    return m + _VEC
+
+
+@_jit(fastmath={"contract"}, inline="always")
+def _add4(arr, i, b, x0, x1, x2, x3):
+    """``arr[i, b, 0:4] += (x0, x1, x2, x3)``."""
+    arr[i, b, 0] += x0
+    arr[i, b, 1] += x1
+    arr[i, b, 2] += x2
+    arr[i, b, 3] += x3
+
+
+@_jit(fastmath={"contract"}, inline="always")
+def _bracket(X, ca, sa):
+    """For x = r·c = X and a block cone of half-angle α (cos, sin): the half-width v = sin θ sin α (+1e-12 slack),
+    the centre u = X cos α of [x_lo, x_hi] = [u − v, u + v], and A = x_hi/(x_hi − x_lo) clipped to [0, 1]."""
+    v = math.sqrt(max(1.0 - X * X, 0.0)) * sa + 1e-12
+    u = X * ca
+    return v, u, min(max((u + v) / (2.0 * v), 0.0), 1.0)
+
+
+@_jit(fastmath={"contract", "reassoc"})
+def band_exact(R, starts, texels, D, Wt, do1, do2, num1, num2):
+    """Exact gather of the horizon band (``leaf = 1`` of :mod:`ibl_ref.groundtruth.moment_convolution`): tile i's
+    rows ``R[i]`` (t², 3) and its straddling source texels ``texels[starts[i]:starts[i+1]]`` (directions ``D``
+    (M, 3), weights ``Wt`` (M, 4): ``[L·Ω, …, Ω]`` padded to 4): ``num1[i, b] += Σ max(r·ω, 0)·w`` (``do1``),
+    ``num2[i, b] += Σ max(r·ω, 0)²·w`` (``do2``).  Float64; relative error of each sum ≤ γ_{m+2} (non-negative
+    terms, any order; the products r·ω are off by ≤ γ_3, entering x and x² to first and second order)."""
+    nt = R.shape[0]
+    B = R.shape[1]
+    m_max = _longest(starts, nt)
+    SX, SY, SZ, S0, S1, S2, S3 = _scratch7(m_max)
+    for i in range(nt):
+        m = 0
+        for k in range(starts[i], starts[i + 1]):
+            j = texels[k]
+            m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, D[j, 0], D[j, 1], D[j, 2], Wt[j, 0], Wt[j, 1], Wt[j, 2], Wt[j, 3])
+        if m == 0:
+            continue
+        while m % _VEC:
+            m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        for b in range(B):
+            rx = R[i, b, 0]
+            ry = R[i, b, 1]
+            rz = R[i, b, 2]
+            a0 = a1 = a2 = a3 = 0.0
+            c0 = c1 = c2 = c3 = 0.0
+            for j in range(m):
+                x = max(rx * SX[j] + ry * SY[j] + rz * SZ[j], 0.0)
+                a0 += x * S0[j]
+                a1 += x * S1[j]
+                a2 += x * S2[j]
+                a3 += x * S3[j]
+                xx = x * x
+                c0 += xx * S0[j]
+                c1 += xx * S1[j]
+                c2 += xx * S2[j]
+                c3 += xx * S3[j]
+            if do1:
+                _add4(num1, i, b, a0, a1, a2, a3)
+            if do2:
+                _add4(num2, i, b, c0, c1, c2, c3)
+
+
+@_jit(fastmath={"contract", "reassoc"})
+def band_brackets(R, starts, blocks, cb, ca, sa, M0, M1, M2, do1, do2, num1, err1, num2, err2):
+    """Linear brackets of the clamped kernel on straddling leaf blocks (``leaf > 1`` of
+    :mod:`ibl_ref.groundtruth.moment_convolution`, :func:`~ibl_ref.groundtruth.moment_convolution._band_brackets`
+    for the formulas): tile i's rows ``R[i]`` and its blocks ``blocks[starts[i]:starts[i+1]]`` with cone centres
+    ``cb``, cos/sin of their half-angles ``ca``/``sa`` and moments ``M0`` (n, 4) = Σ L Ω, ``M1`` (n, 3, 4) =
+    Σ L Ω ω, ``M2`` (n, 6, 4) = Σ L Ω ω_k ω_l (pairs (0,0), (0,1), (0,2), (1,1), (1,2), (2,2)); adds the midpoint
+    and the half-width of each block's interval to ``num``/``err``.  Float64 sums of ≤ m terms of bounded
+    condition (the midpoints are differences only through the −a²/4 of s = 2, within the half-width).  The
+    NumPy path's 1e-12 slack in v keeps the intervals valid under rounding; this kernel computes the same
+    expressions."""
+    nt = R.shape[0]
+    B = R.shape[1]
+    m_max = _longest(starts, nt)
+    CX = np.zeros(m_max)
+    CY = np.zeros(m_max)
+    CZ = np.zeros(m_max)
+    CA = np.zeros(m_max)
+    SA = np.zeros(m_max)
+    W = np.zeros((4, m_max))
+    Y = np.zeros((12, m_max))
+    Z2 = np.zeros((24, m_max))
+    for i in range(nt):
+        m = 0
+        for k in range(starts[i], starts[i + 1]):
+            j = blocks[k]
+            CX[m] = cb[j, 0]
+            CY[m] = cb[j, 1]
+            CZ[m] = cb[j, 2]
+            CA[m] = ca[j]
+            SA[m] = sa[j]
+            for q in range(4):
+                W[q, m] = M0[j, q]
+                for kk in range(3):
+                    Y[kk * 4 + q, m] = M1[j, kk, q]
+                for kk in range(6):
+                    Z2[kk * 4 + q, m] = M2[j, kk, q]
+            m += 1
+        if m == 0:
+            continue
+        while m % _VEC:  # zero entries: (z-axis cone, α = 0, no weight) contribute exactly 0
+            CX[m] = 0.0
+            CY[m] = 0.0
+            CZ[m] = 1.0
+            CA[m] = 1.0
+            SA[m] = 0.0
+            for q in range(4):
+                W[q, m] = 0.0
+            for q in range(12):
+                Y[q, m] = 0.0
+            for q in range(24):
+                Z2[q, m] = 0.0
+            m += 1
+        for b in range(B):
+            rx = R[i, b, 0]
+            ry = R[i, b, 1]
+            rz = R[i, b, 2]
+            if do1:
+                n0 = n1 = n2 = n3 = 0.0
+                e0 = e1 = e2 = e3 = 0.0
+                for j in range(m):
+                    v, u, A = _bracket(rx * CX[j] + ry * CY[j] + rz * CZ[j], CA[j], SA[j])
+                    H = max(v - u, 0.0) * A * 0.5
+                    n0 += A * (rx * Y[0, j] + ry * Y[4, j] + rz * Y[8, j]) + H * W[0, j]
+                    n1 += A * (rx * Y[1, j] + ry * Y[5, j] + rz * Y[9, j]) + H * W[1, j]
+                    n2 += A * (rx * Y[2, j] + ry * Y[6, j] + rz * Y[10, j]) + H * W[2, j]
+                    n3 += A * (rx * Y[3, j] + ry * Y[7, j] + rz * Y[11, j]) + H * W[3, j]
+                    e0 += H * W[0, j]
+                    e1 += H * W[1, j]
+                    e2 += H * W[2, j]
+                    e3 += H * W[3, j]
+                _add4(num1, i, b, n0, n1, n2, n3)
+                _add4(err1, i, b, e0, e1, e2, e3)
+            if do2:
+                r00 = rx * rx
+                r01 = 2.0 * rx * ry
+                r02 = 2.0 * rx * rz
+                r11 = ry * ry
+                r12 = 2.0 * ry * rz
+                r22 = rz * rz
+                n0 = n1 = n2 = n3 = 0.0
+                e0 = e1 = e2 = e3 = 0.0
+                for j in range(m):
+                    v, u, A = _bracket(rx * CX[j] + ry * CY[j] + rz * CZ[j], CA[j], SA[j])
+                    nlo = v - u
+                    P = 1.0 if A >= 1.0 else 0.0
+                    a = 0.0 if A >= 1.0 else 2.0 * v * A * A
+                    av = a * nlo
+                    hw = 0.5 * (0.25 * a * a + av)
+                    n0 += (a * (rx * Y[0, j] + ry * Y[4, j] + rz * Y[8, j]) + (av - hw) * W[0, j]
+                           + P * (r00 * Z2[0, j] + r01 * Z2[4, j] + r02 * Z2[8, j] + r11 * Z2[12, j] + r12 * Z2[16, j]
+                                  + r22 * Z2[20, j]))
+                    n1 += (a * (rx * Y[1, j] + ry * Y[5, j] + rz * Y[9, j]) + (av - hw) * W[1, j]
+                           + P * (r00 * Z2[1, j] + r01 * Z2[5, j] + r02 * Z2[9, j] + r11 * Z2[13, j] + r12 * Z2[17, j]
+                                  + r22 * Z2[21, j]))
+                    n2 += (a * (rx * Y[2, j] + ry * Y[6, j] + rz * Y[10, j]) + (av - hw) * W[2, j]
+                           + P * (r00 * Z2[2, j] + r01 * Z2[6, j] + r02 * Z2[10, j] + r11 * Z2[14, j] + r12 * Z2[18, j]
+                                  + r22 * Z2[22, j]))
+                    n3 += (a * (rx * Y[3, j] + ry * Y[7, j] + rz * Y[11, j]) + (av - hw) * W[3, j]
+                           + P * (r00 * Z2[3, j] + r01 * Z2[7, j] + r02 * Z2[11, j] + r11 * Z2[15, j] + r12 * Z2[19, j]
+                                  + r22 * Z2[23, j]))
+                    e0 += hw * W[0, j]
+                    e1 += hw * W[1, j]
+                    e2 += hw * W[2, j]
+                    e3 += hw * W[3, j]
+                _add4(num2, i, b, n0, n1, n2, n3)
+                _add4(err2, i, b, e0, e1, e2, e3)
+
+
+@_jit(fastmath={"contract"}, inline="always")
+def _acc4(a0, a1, a2, a3, i, w, w0, w1, w2, w3):
+    """``a_k[i] += w·w_k`` for the four accumulators."""
+    a0[i] += w * w0
+    a1[i] += w * w1
+    a2[i] += w * w2
+    a3[i] += w * w3
+
+
+@_jit(fastmath={"contract"})
+def point_gather(out_dirs, b_dirs, b_w, s_arr, s_int, res):
+    """Exact ``res[k, q, p] += Σ_b b_w[b, q]·max(r_p·ω_b, 0)^{s_k}`` (absolute weights: ``c^s`` by :func:`powi_` where
+    ``s_int[k] > 0``, else ``exp(s·log c)``) — the SH route's gather from its few bright texels; blocks of 256
+    outputs, their sums in the cache.  Relative error of every term ≤ :func:`weight_error` (η for c ≥ :data:`C0`,
+    ε absolute below)."""
+    P = out_dirs.shape[0]
+    nb = b_dirs.shape[0]
+    K = s_arr.shape[0]
+    BL = 256
+    X = np.empty(BL)
+    Y = np.empty(BL)
+    Z = np.empty(BL)
+    c = np.empty(BL)
+    acc = np.zeros((K, 4, BL))
+    for p0 in range(0, P, BL):
+        m = min(BL, P - p0)
+        for i in range(m):
+            X[i] = out_dirs[p0 + i, 0]
+            Y[i] = out_dirs[p0 + i, 1]
+            Z[i] = out_dirs[p0 + i, 2]
+        acc[:] = 0.0
+        for b in range(nb):
+            bx = b_dirs[b, 0]
+            by = b_dirs[b, 1]
+            bz = b_dirs[b, 2]
+            for i in range(m):
+                c[i] = X[i] * bx + Y[i] * by + Z[i] * bz
+            for k in range(K):
+                s = s_arr[k]
+                si = s_int[k]
+                w0 = b_w[b, 0]
+                w1 = b_w[b, 1]
+                w2 = b_w[b, 2]
+                w3 = b_w[b, 3]
+                a0 = acc[k, 0]
+                a1 = acc[k, 1]
+                a2 = acc[k, 2]
+                a3 = acc[k, 3]
+                if si > 0:  # (one loop per kind of weight, see _sums)
+                    for i in range(m):
+                        _acc4(a0, a1, a2, a3, i, _weight(c[i], s, si, 0.0, 0.0), w0, w1, w2, w3)
+                else:
+                    for i in range(m):
+                        _acc4(a0, a1, a2, a3, i, _weight(c[i], s, 0, 0.0, 0.0), w0, w1, w2, w3)
+        for k in range(K):
+            for q in range(4):
+                for i in range(m):
+                    res[k, q, p0 + i] += acc[k, q, i]
+
+
+@_jit(fastmath={"contract"})
+def sh_values_bounds(shq, nb, E, d_nb, tau_eff, m_rem, normalized, maps, rel):
+    """The lobe averages and rigorous relative bounds of the SH route per texel (the formulas of
+    :func:`ibl_ref.groundtruth.sh_convolution._values_and_bounds`, in one pass): ``shq`` (K', p, C+1) the SH sums
+    (the last column the weight), ``nb`` (K, p, C) the bright gather, ``E`` (K,) the truncation envelopes with the
+    rounding allowance, ``d_nb`` (K, p, C) the bright gather's own error bound (absolute)."""
+    K = nb.shape[0]
+    P = nb.shape[1]
+    C = nb.shape[2]
+    for k in range(K):
+        EL = E[k]
+        for p in range(P):
+            den = shq[k, p, C]
+            worst = 0.0
+            for c in range(C):
+                num = shq[k, p, c] + nb[k, p, c]
+                if normalized:
+                    y = num / den if den > 0.0 else 0.0
+                    if den > EL and den > 0.0:
+                        eta = EL / den
+                        if eta < 1.0:
+                            A = max((tau_eff - m_rem) * eta, max(y - m_rem, 0.0) * eta / max(1.0 - eta, 1e-300))
+                        else:
+                            A = np.inf
+                    else:
+                        A = np.inf
+                    A = A + (d_nb[k, p, c] / den if den > 0.0 else np.inf)
+                else:
+                    y = num
+                    A = tau_eff * EL + d_nb[k, p, c]
+                r = A / max(y - A, 1e-300) if y > A else np.inf
+                worst = max(worst, r)
+                maps[k, p, c] = y
+            rel[k, p] = worst
+
+
+# ----------------------------------------------------------------------------------------------
+# spherical harmonics: projection and evaluation without the SH matrix
+# ----------------------------------------------------------------------------------------------
+#: directions per block of the fused SH passes (the Legendre rows of one block, (L+1) × 3 × 128 float64,
+#: stay in the L2 cache)
+SH_BLOCK = 128
+
+
+@_jit()
+def _sh_block_arrays(L):
+    """Work arrays of one block of the SH passes: cos θ, sin θ, √2 cos mφ, √2 sin mφ and three Legendre bands."""
+    B = SH_BLOCK
+    return np.empty(B), np.empty(B), np.empty((L + 1, B)), np.empty((L + 1, B)), np.zeros((3, L + 1, B))
+
+
+@_jit(fastmath={"contract"})
+def _sh_block_setup(reps, c0, ch, L, x, st, cm, sm):
+    """cos θ, sin θ and √2·cos mφ, √2·sin mφ (m ≥ 1; cm[0] = 1, sm[0] = 0) of ``reps[c0:c0+ch]`` (polar axis +z),
+    the same recurrences as :func:`ibl_ref.groundtruth.sh_basis._real_sh_parity` (e^{imφ} by repeated
+    multiplication with e^{iφ})."""
+    sqrt2 = math.sqrt(2.0)
+    for d in range(ch):
+        vx = reps[c0 + d, 0]
+        vy = reps[c0 + d, 1]
+        vz = reps[c0 + d, 2]
+        nrm = math.sqrt(vx * vx + vy * vy + vz * vz)
+        vx /= nrm
+        vy /= nrm
+        vz /= nrm
+        z = min(max(vz, -1.0), 1.0)
+        x[d] = z
+        st[d] = math.sqrt(max(0.0, 1.0 - z * z))
+        rxy = math.hypot(vx, vy)
+        if rxy > 0.0:
+            ec = vx / rxy
+            es = vy / rxy
+        else:
+            ec = 1.0
+            es = 0.0
+        re = 1.0
+        im = 0.0
+        cm[0, d] = 1.0
+        sm[0, d] = 0.0
+        for m in range(1, L + 1):
+            re, im = re * ec - im * es, re * es + im * ec
+            cm[m, d] = sqrt2 * re
+            sm[m, d] = sqrt2 * im
+
+
+@_jit(fastmath={"contract"})
+def _legendre_band(ell, x, st, ch, p1, p2, pc, a_tab, b_tab):
+    """Fully normalised P̄_{ℓ,m}(x), m ≤ ℓ, into pc from P̄_{ℓ−1,·} (p1) and P̄_{ℓ−2,·} (p2) (the recurrences of
+    :func:`ibl_ref.groundtruth.sh_basis._real_sh_parity`; ``a_tab``/``b_tab`` its coefficients)."""
+    if ell == 0:
+        v = 1.0 / math.sqrt(4.0 * math.pi)
+        for d in range(ch):
+            pc[0, d] = v
+        return
+    cs = math.sqrt((2 * ell + 1) / (2.0 * ell))
+    cl = math.sqrt(2.0 * ell + 1.0)
+    for d in range(ch):
+        pc[ell, d] = cs * st[d] * p1[ell - 1, d]
+        pc[ell - 1, d] = cl * x[d] * p1[ell - 1, d]
+    for m in range(ell - 1):
+        a = a_tab[ell, m]
+        b = b_tab[ell, m]
+        for d in range(ch):
+            pc[m, d] = a * (x[d] * p1[m, d] - b * p2[m, d])
+
+
+@_jit(fastmath={"contract", "reassoc"})
+def _sh_rows(reps, L, row_of, cls_of, a_tab, b_tab, Wk, acc_e, acc_o, dest, out, project):
+    """Every real SH row (ℓ ≤ L, m, cos/sin) at the directions ``reps``, block by block of :data:`SH_BLOCK`
+    directions (the Legendre recurrences of :func:`_legendre_band`): ``project`` — projected at once on the
+    class-projected weights (:func:`sh_project`), else written to the matrix ``out`` (:func:`sh_matrix`)."""
+    n = reps.shape[0]
+    B = SH_BLOCK
+    x, st, cm, sm, P = _sh_block_arrays(L)
+    for c0 in range(0, n, B):
+        ch = min(B, n - c0)
+        _sh_block_setup(reps, c0, ch, L, x, st, cm, sm)
+        for ell in range(L + 1):
+            pc = P[ell % 3]
+            _legendre_band(ell, x, st, ch, P[(ell + 2) % 3], P[(ell + 1) % 3], pc, a_tab, b_tab)
+            for m in range(ell + 1):
+                for kind in range(2):
+                    if kind == 1 and m == 0:
+                        continue
+                    row = row_of[ell, m, kind]
+                    tr = cm[m] if kind == 0 else sm[m]
+                    if not project:
+                        o = out[dest[(ell + m) % 2, row]]
+                        for d in range(ch):
+                            o[c0 + d] = pc[m, d] * tr[d]
+                        continue
+                    k = cls_of[ell, m, kind]
+                    w0 = Wk[k, 0]
+                    w1 = Wk[k, 1]
+                    w2 = Wk[k, 2]
+                    w3 = Wk[k, 3]
+                    s0 = s1 = s2 = s3 = 0.0
+                    for d in range(ch):
+                        y = pc[m, d] * tr[d]
+                        s0 += y * w0[c0 + d]
+                        s1 += y * w1[c0 + d]
+                        s2 += y * w2[c0 + d]
+                        s3 += y * w3[c0 + d]
+                    acc = acc_e if (ell + m) % 2 == 0 else acc_o
+                    acc[row, 0] += s0
+                    acc[row, 1] += s1
+                    acc[row, 2] += s2
+                    acc[row, 3] += s3
+
+
+@_jit()
+def sh_project(reps, Wk, L, row_of, cls_of, a_tab, b_tab, acc_e, acc_o):
+    """``acc[row, q] += Σ_d Y_row(reps[d]) · Wk[κ(row), q, d]`` for every real SH row of band ≤ L (even rows —
+    ℓ + m even — into ``acc_e``, odd ones into ``acc_o``, at the row order of
+    :func:`ibl_ref.groundtruth.sh_basis._layout`, given by ``row_of[ℓ, m, kind]``; ``cls_of`` the row's octant
+    class κ; ``Wk`` (8, 4, n) the class-projected weights of the octant orbits).  The SH values are generated
+    block by block and used at once: no SH matrix in memory.  Float64; each row's sum has relative error ≤ γ_n in
+    the magnitudes (any order)."""
+    _sh_rows(reps, L, row_of, cls_of, a_tab, b_tab, Wk, acc_e, acc_o, np.zeros((2, 1), dtype=np.int64),
+             np.zeros((1, 1)), True)
+
+
+@_jit()
+def sh_matrix(reps, L, row_of, cls_of, a_tab, b_tab, dest, out):
+    """The real SH values of band ≤ L at ``reps`` as rows of ``out`` (rows, n): row (ℓ, m, kind) goes to
+    ``out[dest[(ℓ + m) % 2, row_of[ℓ, m, kind]]]`` (so the rows of each octant class can be contiguous)."""
+    _sh_rows(reps, L, row_of, cls_of, a_tab, b_tab, np.zeros((8, 4, 1)), np.zeros((1, 4)), np.zeros((1, 4)), dest,
+             out, False)
+
+
+#: the kernel groups :func:`warm_up` has loaded in this process
+WARM: set = set()
+#: kernel groups per route of :func:`ibl_ref.groundtruth.convolve.convolve`
+STAGES = ("sparse", "moment", "sh")
+
+
+def warm_up(stages=STAGES):
+    """Compile (or load from the cache) the kernels of ``stages`` on tiny inputs, once per process (before workers
+    are forked, so that they inherit the machine code); returns the seconds it took (0 when done already)."""
+    import time
+
+    todo = [st for st in stages if st in STAGES and st not in WARM]
+    if not todo:
+        return 0.0
+    t0 = time.perf_counter()
+    from ..environment import envmap
+
+    n = 2
+    d = envmap.texel_directions(n).reshape(-1, 3)
+    if "sparse" in todo:
+        X, Y, Z = (np.ascontiguousarray(d[:, i]) for i in range(3))
+        RW = np.ones((4, d.shape[0]))
+        fr = envmap.face_frames("openexr")
+        cen = d[:2].copy()
+        rows = d[:2].reshape(2, 1, 3).copy()
+        for s_int, rowmax in ((2, False), (0, True)):
+            tile_gather(cen, rows, np.full(2, 0.5), fr, n, X, Y, Z, RW, np.zeros((0, 3)), np.zeros((0, 4)), 2.0,
+                        s_int, rowmax, 1e-300, np.zeros((2, 1, 4)), np.zeros((2, 1)), np.zeros(2, dtype=np.int64))
+        cap_count(cen[0], 0.5, fr, n)
+        mem = np.array([[0, 1, -1, -1]])
+        cone_extremes(cen, np.full(2, 0.5), d[:2].copy(), 0.1, np.ones((2, 3)), np.ones((2, 3)), d[:1].copy(), 0.3,
+                      mem, np.zeros((2, 3)), np.zeros((2, 3)))
+    if "moment" in todo:
+        R = d[:2].reshape(2, 1, 3).copy()
+        st = np.array([0, 1, 2], dtype=np.int64)
+        tx = np.array([0, 1], dtype=np.int64)
+        band_exact(R, st, tx, d, np.ones((d.shape[0], 4)), True, True, np.zeros((2, 1, 4)), np.zeros((2, 1, 4)))
+        z = [np.zeros((2, 1, 4)) for _ in range(4)]
+        band_brackets(R, st, tx, d, np.ones(d.shape[0]), np.zeros(d.shape[0]), np.ones((d.shape[0], 4)),
+                      np.ones((d.shape[0], 3, 4)), np.ones((d.shape[0], 6, 4)), True, True, *z)
+    if "sh" in todo:
+        from .sh_basis import _row_layout, compiled_tables
+
+        tabs = compiled_tables(2)
+        ne, no = (r.size for r in _row_layout(2))
+        sh_project(d[:3].copy(), np.ones((8, 4, 3)), 2, *tabs, np.zeros((ne, 4)), np.zeros((no, 4)))
+        dest = np.zeros((2, ne), dtype=np.int64)
+        dest[0] = np.arange(ne)
+        dest[1, :no] = ne + np.arange(no)
+        sh_matrix(d[:3].copy(), 2, *tabs, dest, np.zeros((ne + no, 3)))
+        point_gather(d[:3].copy(), d[:2].copy(), np.ones((2, 4)), np.array([2.0, 2.5]),
+                     np.array([2, 0], dtype=np.int64), np.zeros((2, 4, 3)))
+        sh_values_bounds(np.ones((1, 2, 4)), np.ones((1, 2, 3)), np.ones(1), np.zeros((1, 2, 3)), 1.0, 0.0, True,
+                         np.zeros((1, 2, 3)), np.zeros((1, 2)))
+    WARM.update(todo)
+    return time.perf_counter() - t0
