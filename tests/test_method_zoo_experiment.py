@@ -44,3 +44,24 @@ def test_missing_inputs_are_skipped_with_the_reason(tmp_path, monkeypatch):
     assert set(res["mean_rel_l1"]) == {"sphere/phong16/exact-lobe"}
     cube, why = mz.environment("sky_sun", 4)
     assert why is None and np.all(np.isfinite(cube))
+
+
+def test_teapot_walk_starts_at_the_certified_reference(tmp_path):
+    # occluded scene: the walk's first step is the reference renderer's own V ≡ 1 image, the second the lab's
+    # adaptive texel integral of the same unoccluded shading — two independent exact integrators, which must agree
+    # within the sum of their error estimates; the paper's Eq. 5 step then gives back part of the missing light
+    import json
+
+    res = mz.run(tmp_path, quick=True, scenes=("teapot",), envs=("sky_sun",), materials=("ggx0.6", "phong16"),
+                 methods=("split-sum", "pyramid+vsm"), teapot_size=10)
+    assert not res["skipped"]
+    meta = json.loads((tmp_path / "method_zoo_meta.json").read_text())
+    assert {(c["material"], c["method"]) for c in meta["checks"]} == {("ggx0.6", "split-sum"), ("phong16", "pyramid+vsm")}
+    for c in meta["checks"]:
+        assert c["integrator_increment_frac"] <= c["integrator_estimate_frac"], c
+        assert c["final_minus_method_rel"] <= 1e-5 and abs(c["bias_sum_minus_total"]) < 1e-12
+    from ibl_ref.atomic import read_csv
+
+    b = {(q["method"], q["step"]): q for q in read_csv(tmp_path / "method_zoo_budget.csv")}
+    assert float(b[("split-sum", "visibility")]["bias_increment_frac"]) > 0  # the missing shadows add light
+    assert float(b[("pyramid+vsm", "pem_visibility")]["bias_increment_frac"]) < 0  # the VSMs take some back
