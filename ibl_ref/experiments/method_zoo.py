@@ -22,9 +22,8 @@ Scenes: ``sphere`` — the orthographic unit sphere (:func:`ibl_ref.rendering.sp
 view +z), unoccluded: the reference is the exact texel integral of
 :mod:`ibl_ref.rendering.unoccluded_reference` (adaptive subdivision of the map's texels converged to ``rtol``, with
 its error estimate); ``teapot`` — the teapot on a ground quad (both with the material), the reference of
-:func:`ibl_ref.rendering.reference_render.render_reference` (exact visibility, converged to ``ref_rtol``).  The
-teapot needs the reference renderer's GGX materials (:mod:`ibl_ref.rendering.materials`); without them it is
-skipped with the reason.
+:func:`ibl_ref.rendering.reference_render.render_reference` (exact visibility, GGX materials of
+:mod:`ibl_ref.rendering.materials`, converged to ``ref_rtol``).
 
 Per (scene, environment, material, method): rel. L1 Σ|I − I_ref| / Σ|I_ref| and the signed bias Σ(I − I_ref) /
 Σ I_ref over the covered pixels (channel means), the 99th percentile of the per-pixel relative error
@@ -63,7 +62,7 @@ PAPER = ("Karis 2013 (split sum, Eq. 7-9), Krivanek & Colbert 2008 (FIS), Ramamo
          "Knuth et al. 2014 Eq. 5 for GGX, cmft; Karis's claim that the n = v = r assumption is the larger error")
 IN_QUICK_REPRODUCE = True
 RUNTIME = {"quick": "12 s (load 3)",
-           "full": "6 min for the sphere, 5 environments, serial (load 3.9-5.0); the teapot adds its references"}
+           "full": "17 min with --workers 2 (load 0.4-1.9; sphere 1-4 min, teapot 3-6 min per environment)"}
 OUTPUTS = ("method_zoo.csv", "method_zoo_budget.csv", "method_zoo_karis.csv", "method_zoo_meta.json",
            "method_zoo_table.md", "method_zoo_images.npz", "method_zoo_pareto_MATERIAL.png",
            "method_zoo_budget_SCENE.png", "method_zoo_images_SCENE.png")
@@ -212,14 +211,6 @@ def _reference_lobe(m):
     if m["ks"] == 0:
         return ur.PhongLobe(1.0, "normal")
     return ur.PhongLobe(1.0 / (1.0 - m["g"]), "mirror", clip=True)
-
-
-def _teapot_reference_available():
-    import importlib.util
-
-    if importlib.util.find_spec("ibl_ref.rendering.materials") is None:
-        return "the reference renderer has no GGX materials here (ibl_ref.rendering.materials is missing)"
-    return None
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -407,11 +398,6 @@ def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **p
     out_dir.mkdir(parents=True, exist_ok=True)
     skipped = {}
     scenes = list(st["scenes"])
-    if "teapot" in scenes:
-        why = _teapot_reference_available()
-        if why:
-            skipped["scene teapot"] = why
-            scenes.remove("teapot")
     cmft = cmft_path(st["cmft"])
     load0, t0 = os.getloadavg(), time.perf_counter()
     common = {k: st[k] for k in ("materials", "methods", "size", "teapot_size", "env_size", "rtol", "ref_rtol",

@@ -25,8 +25,8 @@ GGX) w_s = F0·A + B per pixel and g = 1 − 1/s(roughness), the mapped Phong ex
 One-sided, as the reference: pixels with n·v ≤ 0 are black.  A method that does not serve a material kind raises
 :class:`MethodNotApplicable` (the experiment's table marks the cell n/a).
 
-Materials are objects with ``kind`` (``"ggx"``: ``roughness``, ``f0``, ``kd``, ``smith``; ``"phong"``: ``kd``,
-``ks``, ``g``) or the equivalent dicts (:func:`material_params`).
+Materials are those of the exact renderers (:mod:`ibl_ref.rendering.materials`: ``GGXMaterial(roughness, f0, kd,
+smith)``, ``PhongMaterial(kd, ks, g)``, or their dicts and text forms; :func:`material_params`).
 """
 
 from __future__ import annotations
@@ -50,44 +50,17 @@ class MethodNotApplicable(IBLError):
 
 
 def material_params(material) -> dict:
-    """``{"kind", ...}`` of a material object or dict (module docstring), with its parameters checked:
-    roughness in (0, 1], F0 in [0, 1], kd, ks ≥ 0, g in [0, 1)."""
-    from ..prefilter.karis2013 import check_f0, check_roughness
+    """``{"kind", ...}`` of a material: anything :func:`ibl_ref.rendering.materials.as_material` accepts (a
+    :class:`~ibl_ref.rendering.materials.GGXMaterial` or :class:`~ibl_ref.rendering.materials.PhongMaterial`, a
+    dict with ``kind``, ``"ggx:0.3"``, …), its parameters checked there (roughness in (0, 1], F0 in [0, 1], kd,
+    ks ≥ 0, the Smith form); Phong materials here need g < 1 (a finite exponent; the mirror is no prefilter's)."""
+    from .materials import as_material
 
-    get = (lambda k, d=None: material.get(k, d)) if isinstance(material, dict) else (
-        lambda k, d=None: getattr(material, k, d))
-    kind = get("kind", "phong")
-    if kind == "ggx":
-        r, _ = check_roughness(get("roughness"), "GGX roughness")
-        if np.ndim(r):
-            raise IBLError("GGX roughness must be one number")
-        out = dict(kind="ggx", roughness=float(r), f0=float(check_f0(get("f0", 0.04))), kd=_weight(get("kd", 0.0), "kd"),
-                   smith=str(get("smith", "height_correlated")))
-        from ..lobes.brdfs import SMITH_FORMS
-
-        if out["smith"] not in SMITH_FORMS:
-            raise IBLError(f"smith must be one of {', '.join(SMITH_FORMS)}, got {out['smith']!r}")
-        return out
-    if kind == "phong":
-        g = get("g", 0.0)
-        try:
-            g = float(g)
-        except (TypeError, ValueError):
-            raise IBLError(f"g must be a number in [0, 1), got {g!r}") from None
-        if not (0.0 <= g < 1.0):
-            raise IBLError(f"g must be in [0, 1) (a finite Phong exponent s = 1/(1 - g)), got {g!r}")
-        return dict(kind="phong", kd=_weight(get("kd", 0.0), "kd"), ks=_weight(get("ks", 1.0), "ks"), g=g)
-    raise IBLError(f"material kind must be 'ggx' or 'phong', got {kind!r}")
-
-
-def _weight(x, name) -> float:
-    try:
-        x = float(x)
-    except (TypeError, ValueError):
-        raise IBLError(f"{name} must be a number >= 0, got {x!r}") from None
-    if not (np.isfinite(x) and x >= 0):
-        raise IBLError(f"{name} must be finite and >= 0, got {x!r}")
-    return x
+    d = as_material(material).describe()
+    d.pop("alpha", None)
+    if d["kind"] == "phong" and not d["g"] < 1.0:
+        raise IBLError(f"g must be in [0, 1) (a finite Phong exponent s = 1/(1 - g)), got {d['g']!r}")
+    return d
 
 
 @dataclass(frozen=True)
