@@ -2,15 +2,32 @@
 through the environment, as the library itself never switches backends); progress lines silenced unless a
 test asks for them; the convolution kernel pinned to the NumPy reference (``IBL_REF_KERNEL=numpy`` unless set:
 the tests of the compiled kernels ask for ``kernel="compiled"`` themselves, ``tests/test_compiled_kernels.py``);
-the ``mitsuba_llvm`` fixture for tests that run Mitsuba."""
+the ``mitsuba_llvm`` fixture for tests that run Mitsuba; the ``cmft`` fixture for tests that run the peer tool
+cmft (``$IBL_REF_CMFT``, by default ``../shared/peers/cmft/cmft`` beside the project, where CI keeps it)."""
 
 import os
+from pathlib import Path
 
 import pytest
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 os.environ.setdefault("IBL_REF_PROGRESS", "0")
 os.environ.setdefault("IBL_REF_KERNEL", "numpy")
+_CMFT = Path(__file__).resolve().parent.parent.parent / "shared" / "peers" / "cmft" / "cmft"
+if "IBL_REF_CMFT" not in os.environ and _CMFT.is_file():
+    os.environ["IBL_REF_CMFT"] = str(_CMFT)
+
+
+@pytest.fixture
+def cmft():
+    """The cmft binary (:func:`ibl_ref.prefilter.cmft_peer.cmft_binary`); the test is skipped with the reason
+    where there is none."""
+    from ibl_ref.prefilter.cmft_peer import CmftUnavailable, cmft_binary
+
+    try:
+        return cmft_binary()
+    except CmftUnavailable as exc:
+        pytest.skip(str(exc))
 
 
 @pytest.fixture

@@ -151,9 +151,37 @@ def test_ggx_phong_mapping_class():
     A, B = m.dfg.lookup(0.8, 0.3)
     np.testing.assert_allclose(m.shade(n, v, 0.3, 0.04), m.lookup(2 * 0.8 * n - v, 0.3) * (0.04 * A + B), rtol=1e-13)
     calls = []
-    m2 = g.GGXPhongMapping(lambda dd, s: calls.append(s) or np.ones(dd.shape[:-1] + (1,)), mapping="mean_cosine")
+    m2 = g.GGXPhongMapping.from_lookup(lambda dd, s: calls.append(s) or np.ones(dd.shape[:-1] + (1,)),
+                                       mapping="mean_cosine")
     m2.lookup(d, 0.5)
     assert calls == [g.phong_exponent(0.5, "mean_cosine")]
+
+
+def test_ggx_phong_mapping_on_a_registered_phong_prefilter():
+    # the registry entry ggx-phong-pem: the paper's pyramid (default) or any Phong method by name; its look-up is
+    # that method's look-up at s(roughness), its regions the method's PEMs (Σ_i PEM_i = the whole map, Sec. 3.1)
+    from ibl_ref.knuth2014.median_cut import median_cut
+    from ibl_ref.prefilter import build_prefilter
+    from ibl_ref.prefilter.knuth2014_pyramid import Knuth2014Pyramid
+
+    cube = se.env_studio(8)
+    m = build_prefilter(cube, "ggx-phong-pem", dfg_size=16)
+    assert m.phong_method is Knuth2014Pyramid
+    d = np.random.default_rng(4).normal(size=(30, 3))
+    for r in (0.1, 0.45, 1.0):
+        np.testing.assert_allclose(m.lookup(d, r), Knuth2014Pyramid(cube).lookup(d, g.phong_exponent(r)),
+                                   rtol=1e-13)
+    assert m.nbytes == m.phong.nbytes + 2 * 16 * 16 * 8
+    pems = m.region_prefilters(median_cut(cube, 6))
+    s = g.phong_exponent(0.3)
+    np.testing.assert_allclose(pems.lookup_all(d, 1 - 1 / s).sum(axis=0), m.lookup(d, 0.3), rtol=2e-6)
+    ex = build_prefilter(cube, "ggx-phong-pem", phong_method="exact-lobe", phong_params={"factor": 2.0},
+                         dfg_size=16)
+    assert ex.phong.lookup(d, 5.0).shape == (30, 3) and ex.phong_params == {"factor": 2.0}
+    with pytest.raises(IBLError, match="Phong prefilter class"):
+        g.GGXPhongMapping(cube, phong_method="pyramid")  # names are resolved by build_prefilter
+    with pytest.raises(IBLError, match="Phong prefilter class"):
+        build_prefilter(cube, "ggx-phong-pem", phong_method="split-sum")
 
 
 def test_mapping_bad_input():
@@ -162,7 +190,8 @@ def test_mapping_bad_input():
                        (lambda: g.lobe_tv(0.5, np.nan), ">= 1"), (lambda: g.kernel_mean_cosine(np.nan), "roughness"),
                        (lambda: g.brdf_lobe_tv(0.5, 0.3, f0=2.0), "F0"),
                        (lambda: g.brdf_lobe_tv(0.5, 2.0), "theta_o"),
-                       (lambda: g.GGXPhongMapping(None, mapping="x"), "mapping")):
+                       (lambda: g.GGXPhongMapping(None, mapping="x"), "mapping"),
+                       (lambda: g.GGXPhongMapping.from_lookup(None, mapping="x"), "mapping")):
         with pytest.raises(IBLError) as e:
             call()
         assert word in str(e.value) and "\n" not in str(e.value)

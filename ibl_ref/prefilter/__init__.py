@@ -41,12 +41,14 @@ Adding a method (one module plus one registry entry)
 
 Methods here: the paper's filter pyramid (``pyramid``, :mod:`~ibl_ref.prefilter.knuth2014_pyramid`), the exact-lobe
 chain (``exact-lobe``, :mod:`~ibl_ref.prefilter.exact_lobe_chain`), Kautz & McCool's lobe maps (``km00-lobes``,
-:mod:`~ibl_ref.prefilter.kautz_mccool2000_lobes`) and Kán et al.'s specular maps (``kan2015``,
-:mod:`~ibl_ref.prefilter.kan2015_maps`).  The GGX-era methods (Karis 2013 split sum with exact and importance-sampled
-prefilters, :mod:`~ibl_ref.prefilter.karis2013`; Křivánek & Colbert 2008 filtered importance sampling,
-:mod:`~ibl_ref.prefilter.krivanek_colbert2008`; Ramamoorthi & Hanrahan 2001 SH9 irradiance,
-:mod:`~ibl_ref.prefilter.ramamoorthi_hanrahan2001`; GGX lobes mapped to Phong exponents,
-:mod:`~ibl_ref.prefilter.ggx_phong_mapping`) live beside them.
+:mod:`~ibl_ref.prefilter.kautz_mccool2000_lobes`), Kán et al.'s specular maps (``kan2015``,
+:mod:`~ibl_ref.prefilter.kan2015_maps`) and the peer tool cmft run as a program (``cmft``,
+:mod:`~ibl_ref.prefilter.cmft_peer`) for Phong lobes; the GGX-era methods — Karis 2013's split sum with the exact,
+an importance-sampled and a filtered-importance-sampled prefilter (``split-sum``, ``split-sum-is``,
+:mod:`~ibl_ref.prefilter.karis2013`; ``split-sum-fis``, Křivánek & Colbert 2008,
+:mod:`~ibl_ref.prefilter.krivanek_colbert2008`), GGX through a Phong prefilter (``ggx-phong-pem``, default the
+paper's pyramid and its PEMs, :mod:`~ibl_ref.prefilter.ggx_phong_mapping`) — and SH9 irradiance for the cosine lobe
+(``sh9``, Ramamoorthi & Hanrahan 2001, :mod:`~ibl_ref.prefilter.ramamoorthi_hanrahan2001`).
 """
 
 from .interface import LOBES, Prefilter, RegionPrefilters, check_lobe_param

@@ -51,6 +51,7 @@ from ..groundtruth.convolution_args import check_cube
 from ..groundtruth.phong_convolution import lobe_average
 from ..lobes import brdfs
 from . import karis2013
+from .knuth2014_pyramid import Knuth2014Pyramid
 
 __all__ = ["MAPPINGS", "kernel_mass", "kernel_mean_cosine", "phong_mean_cosine", "phong_exponent", "lobe_tv",
            "brdf_lobe_tv", "GGXPhongMapping"]
@@ -205,20 +206,40 @@ def brdf_lobe_tv(roughness, theta_v: float, s=None, *, f0: float = 1.0, smith: s
 
 
 class GGXPhongMapping:
-    """GGX materials through a Phong-lobe prefilter: ``lookup(directions, roughness)`` is the Phong lobe average
-    at ``s = phong_exponent(roughness, mapping)`` from ``phong_lookup(directions, s) -> (..., C)``; :meth:`shade`
-    is the split sum ``lookup(r, roughness)·(F0·A + B)`` with a DFG table.
+    """GGX through a Phong-lobe prefilter: roughness → Phong exponent s (mapping), the Phong look-up, a DFG table.
 
-    :meth:`build` uses the exact Phong lobe average of the source
-    (:func:`ibl_ref.groundtruth.phong_convolution.lobe_average`), which isolates the mapping's error; pass a PEM
-    lookup (Knuth et al. 2014) as ``phong_lookup`` to shade through the paper's method.  ``error_bound`` is None
-    (:func:`lobe_tv` bounds the continuum error of the mapping, not the discrete lookup).
+    ``lookup(directions, roughness)`` is the Phong prefilter's look-up at ``s = phong_exponent(roughness,
+    mapping)``; :meth:`shade` is the split sum ``lookup(r, roughness)·(F0·A + B)`` with the DFG table.
+
+    ``GGXPhongMapping(cube, phong_method=Knuth2014Pyramid)`` builds the Phong prefilter ``phong_method`` (a Phong
+    method class; through :func:`ibl_ref.prefilter.registry.build_prefilter` also its registry name, e.g.
+    ``"exact-lobe"``) with ``phong_params`` from the whole map — with the default, the paper's filter pyramid
+    (Knuth et al. 2014): the paper's method for GGX materials; its partial environment maps for Eq. 5 (one per
+    median-cut region, with visibilities) are :meth:`region_prefilters`.  :meth:`build` uses the exact Phong lobe
+    average of the source instead (:func:`ibl_ref.groundtruth.phong_convolution.lobe_average`), which isolates the
+    mapping's error; :meth:`from_lookup` takes any look-up ``(directions, s) -> (..., C)``.  ``error_bound`` is
+    None (:func:`lobe_tv` bounds the continuum error of the mapping, not the discrete look-up).
     """
 
     lobe = "ggx"
+    paper = ("Knuth et al. 2014 (PEMs + VSM, Eq. 5) for GGX: the split sum's n = v = r lobe replaced by the Phong lobe "
+             "of the same roughness (TV-optimal exponent), the paper's filter pyramid, a DFG table (Karis 2013, Eq. 9)")
     error_bound = None
 
-    def __init__(self, phong_lookup, *, mapping: str = "tv_optimal", nbytes: int = 0, dfg=None):
+    def __init__(self, cube, *, phong_method=Knuth2014Pyramid, phong_params: dict | None = None,
+                 mapping: str = "tv_optimal", dfg_size=64, smith: str = "height_correlated"):
+        karis2013.check_option(mapping, MAPPINGS, "mapping")
+        if not (isinstance(phong_method, type) and getattr(phong_method, "lobe", None) == "phong"):
+            raise IBLError(f"phong_method must be a Phong prefilter class (or its registry name through "
+                           f"ibl_ref.prefilter.build_prefilter), got {phong_method!r}")
+        a, _ = check_cube(cube)
+        self.phong_method = phong_method
+        self.phong_params = dict(phong_params or {})
+        self.phong = phong_method(a, **self.phong_params)
+        self._init(self.phong.lookup, mapping, self.phong.nbytes, karis2013.build_dfg_table(dfg_size, smith=smith))
+        self._cube = a
+
+    def _init(self, phong_lookup, mapping, nbytes, dfg):
         karis2013.check_option(mapping, MAPPINGS, "mapping")
         self.phong_lookup = phong_lookup
         self.mapping = mapping
@@ -226,20 +247,46 @@ class GGXPhongMapping:
         self.dfg = dfg
 
     @classmethod
+    def from_lookup(cls, phong_lookup, *, mapping: str = "tv_optimal", nbytes: int = 0, dfg=None):
+        """The mapping on any Phong look-up ``phong_lookup(directions, s) -> (..., C)``."""
+        obj = cls.__new__(cls)
+        obj._init(phong_lookup, mapping, nbytes, dfg)
+        return obj
+
+    @classmethod
     def build(cls, cube, *, mapping: str = "tv_optimal", dfg_size=64, smith: str = "height_correlated"):
+        """The mapping on the exact Phong lobe average of ``cube`` (no prefilter error)."""
         a, _ = check_cube(cube)
-        return cls(lambda d, s: lobe_average(a, d, s), mapping=mapping, nbytes=a.nbytes,
-                   dfg=karis2013.build_dfg_table(dfg_size, smith=smith))
+        return cls.from_lookup(lambda d, s: lobe_average(a, d, s), mapping=mapping, nbytes=a.nbytes,
+                               dfg=karis2013.build_dfg_table(dfg_size, smith=smith))
+
+    def exponent(self, roughness):
+        """The Phong exponent s of each roughness (:func:`phong_exponent` with this mapping)."""
+        return phong_exponent(roughness, self.mapping)
+
+    def region_prefilters(self, lights):
+        """The partial environment maps of ``lights`` (median-cut regions of the same map) with this Phong method
+        (:func:`ibl_ref.prefilter.registry.build_region_prefilters`); look them up by the glossiness
+        ``g = 1 − 1/s`` of :meth:`exponent` (Eq. 3)."""
+        from .regions import build_region_set
+
+        cube = getattr(self, "_cube", None)
+        if cube is None:
+            raise IBLError("region_prefilters needs a mapping built from a cube (GGXPhongMapping(cube, ...))")
+        return build_region_set(self.phong_method, cube, lights, **self.phong_params)
 
     @property
     def nbytes(self) -> int:
+        """Bytes of the Phong prefilter and the DFG table."""
         return self._nbytes + (self.dfg.nbytes if self.dfg is not None else 0)
 
     def lookup(self, directions, roughness) -> np.ndarray:
+        from .interface import check_lobe_param
+
         d = unit_directions(directions, "directions")
         lead = d.shape[:-1]
         d = d.reshape(-1, 3)
-        r = np.broadcast_to(np.asarray(karis2013.check_roughness(roughness)[0], dtype=np.float64), lead).reshape(-1)
+        r = np.broadcast_to(check_lobe_param(self.lobe, roughness), lead).reshape(-1)
         out = None
         for rv in np.unique(r):
             sel = r == rv
@@ -247,6 +294,8 @@ class GGXPhongMapping:
             if out is None:
                 out = np.empty((len(d), vals.shape[-1]))
             out[sel] = vals
+        if out is None:  # no directions
+            out = np.empty((0, 1))
         return out.reshape(lead + (out.shape[-1],))
 
     def shade(self, normals, views, roughness, f0) -> np.ndarray:

@@ -15,6 +15,8 @@ often as needed.  Every method of :mod:`ibl_ref.prefilter` is a class that satis
            :func:`ibl_ref.conventions.phong_exponent`          normalised; Kán et al. 2015, Eq. 2–4)
   ggx      perceptual roughness r ∈ (0, 1]; α = r²,           the method's GGX prefilter lobe (stated by the
            :func:`ibl_ref.conventions.ggx_alpha`               method, e.g. the n = v = r lobe of the split sum)
+  cosine   none: 1 (the cosine lobe's Phong exponent) or       the irradiance E(n)/π, E(n) = Σ_j L_j max(n·ω_j, 0)
+           ``None``; a Lambertian surface shades kd·lookup(n)  Ω_j (Kán et al. 2015, Eq. 3; the diffuse methods)
   ======== ================================================= ==================================================
 
 * ``lookup(directions, param)``: directions ``(..., 3)`` (need not be normalised), ``param`` a scalar or an array
@@ -52,7 +54,7 @@ from ..errors import IBLError
 __all__ = ["LOBES", "Prefilter", "RegionPrefilters", "check_lobe_param"]
 
 #: the lobe families a prefilter can serve (the meaning of its look-up parameter: module docstring)
-LOBES = ("phong", "ggx")
+LOBES = ("phong", "ggx", "cosine")
 
 
 @runtime_checkable
@@ -106,8 +108,15 @@ def check_lobe_param(lobe: str, param) -> np.ndarray:
     """The look-up parameter of lobe family ``lobe`` as a float64 array, or a one-line :class:`IBLError`.
 
     ``"phong"``: Phong exponents s ≥ 1 (``np.inf`` allowed: the mirror); ``"ggx"``: perceptual roughness in (0, 1]
-    (:func:`ibl_ref.conventions.ggx_alpha` checks it).
+    (:func:`ibl_ref.conventions.ggx_alpha` checks it); ``"cosine"``: 1 or ``None`` (the lobe has no parameter).
     """
+    if lobe == "cosine":
+        p = np.asarray(1.0 if param is None else param, dtype=np.float64)
+        if np.any(p != 1.0):
+            bad = p[p != 1.0].ravel()[0]
+            raise IBLError(f"the cosine lobe (irradiance) has no parameter: pass 1 (its Phong exponent) or None, "
+                           f"got {bad!r}")
+        return p
     p = np.asarray(param, dtype=np.float64)
     if lobe == "phong":
         if np.any(np.isnan(p)) or np.any(p < 1.0):

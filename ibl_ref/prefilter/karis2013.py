@@ -79,7 +79,10 @@ and phi nodes and 1.5× the nodes (:attr:`DFGTable.quadrature_error`), within 2e
 normal view and within 5e-8 of :func:`ibl_ref.lobes.brdfs.albedo` (an independent rule in l, itself ≈ 1e-8 off at
 low roughness).  The 64² table's bilinear interpolation dominates: at the midpoints between its texel centres
 ``|Δ(F0·A + B)|`` ≤ 2.9e-4 for n·v ≥ 0.2 (O(h²)), mean 1.4e-4, max 1.8e-2 in the lowest n·v row (n·v ≈ 1/64, where
-the albedo of a near-mirror changes on the scale of n·v itself; not reduced by a larger table).
+the albedo of a near-mirror changes on the scale of n·v itself; not reduced by a larger table).  Beyond the last
+texel centre (n·v or roughness above 1 − 1/128) the look-up is clamped to the edge: the diffuse-like corner
+roughness 1, n·v → 1 is then 9.4e-3 off for F0 = 1 (5.5e-4 for F0 = 0.04; ≤ 2.8e-4 on the rest of
+n·v ∈ [0.2, 1]; a 101 × 161 grid of roughness and n·v).
 """
 
 from __future__ import annotations
@@ -104,7 +107,7 @@ __all__ = [
     "ggx_half_vectors", "sample_pdf", "tangent_frames", "sample_points",
     "dfg_terms", "DFGTable", "build_dfg_table",
     "roughness_of_level", "level_of_roughness", "PrefilteredChain", "build_chain",
-    "reflect", "split_sum", "shade", "SplitSum",
+    "reflect", "split_sum", "shade", "SplitSum", "SplitSumImportance",
 ]
 
 #: roughness ↔ MIP-level mappings of :func:`roughness_of_level` (module doc)
@@ -762,33 +765,60 @@ def shade(lookup, dfg: DFGTable | None, normals, views, roughness, f0) -> np.nda
 
 
 class SplitSum:
-    """Karis's split sum as a method: a prefiltered chain (:func:`build_chain`) plus a DFG table.
-
-    ``lookup(directions, roughness)`` is the prefiltered radiance ``P(r, roughness)``; :meth:`shade` the specular
-    radiance of Eq. 7.  ``error_bound`` is None: the split sum has no rigorous bound.
-    """
+    """Karis 2013 split sum: n = v = r GGX prefilter (exact texel sum per level) + DFG table, trilinear roughness MIP look-up."""
 
     lobe = "ggx"
+    paper = "Karis 2013, Real Shading in Unreal Engine 4, Image-Based Lighting: split sum (Eq. 7-9), exact prefilter"
     error_bound = None
 
-    def __init__(self, chain: PrefilteredChain, dfg: DFGTable):
+    def __init__(self, cube, *, n_levels=None, min_face_size: int = 1, dfg_size=64,
+                 smith: str = "height_correlated", dtype="float64"):
+        self._init(build_chain(cube, n_levels=n_levels, prefilter="exact", min_face_size=min_face_size, dtype=dtype),
+                   build_dfg_table(dfg_size, smith=smith))
+
+    def _init(self, chain: PrefilteredChain, dfg: DFGTable):
         self.chain = chain
         self.dfg = dfg
 
     @classmethod
+    def from_parts(cls, chain: PrefilteredChain, dfg: DFGTable) -> "SplitSum":
+        """The split sum of a given chain (:func:`build_chain`, any quadrature) and DFG table."""
+        obj = cls.__new__(cls)
+        obj._init(chain, dfg)
+        return obj
+
+    @classmethod
     def build(cls, cube, *, prefilter="exact", n_levels=None, samples: int = 1024, sequence: str = "hammersley",
               seed: int = 0, dfg_size=64, smith: str = "height_correlated", dtype="float64", **chain_kw):
-        """Build the chain (:func:`build_chain`) and the table (:func:`build_dfg_table`)."""
+        """Build the chain (:func:`build_chain` with any ``prefilter``) and the table (:func:`build_dfg_table`)."""
         chain = build_chain(cube, n_levels=n_levels, prefilter=prefilter, samples=samples, sequence=sequence,
                             seed=seed, dtype=dtype, **chain_kw)
-        return cls(chain, build_dfg_table(dfg_size, smith=smith))
+        return cls.from_parts(chain, build_dfg_table(dfg_size, smith=smith))
 
     @property
     def nbytes(self) -> int:
+        """Bytes of the chain's levels and the DFG table."""
         return self.chain.nbytes + self.dfg.nbytes
 
     def lookup(self, directions, roughness) -> np.ndarray:
-        return self.chain.lookup(directions, roughness)
+        """Prefiltered radiance ``P(r, roughness)`` (..., C): the chain's trilinear look-up."""
+        from .interface import check_lobe_param
+
+        return self.chain.lookup(directions, check_lobe_param(self.lobe, roughness))
 
     def shade(self, normals, views, roughness, f0) -> np.ndarray:
-        return shade(self.chain.lookup, self.dfg, normals, views, roughness, f0)
+        """Specular radiance of Eq. 7, ``P(r, roughness)·(F0·A + B)`` (:func:`shade`)."""
+        return shade(self.lookup, self.dfg, normals, views, roughness, f0)
+
+
+class SplitSumImportance(SplitSum):
+    """Karis 2013 split sum with the chain prefiltered by GGX importance sampling (N samples per texel)."""
+
+    paper = ("Karis 2013, Real Shading in Unreal Engine 4, Image-Based Lighting: split sum (Eq. 7-9), "
+             "importance-sampled prefilter (PrefilterEnvMap)")
+
+    def __init__(self, cube, *, samples: int = 1024, sequence: str = "hammersley", seed: int = 0, n_levels=None,
+                 min_face_size: int = 1, dfg_size=64, smith: str = "height_correlated", dtype="float64"):
+        self._init(build_chain(cube, n_levels=n_levels, prefilter="importance", samples=samples, sequence=sequence,
+                               seed=seed, min_face_size=min_face_size, dtype=dtype),
+                   build_dfg_table(dfg_size, smith=smith))

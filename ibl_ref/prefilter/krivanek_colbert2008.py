@@ -173,12 +173,22 @@ def build_fis_chain(cube, *, samples: int = 64, sequence: str = "hammersley", se
 
 
 class FilteredImportanceSampling(karis2013.SplitSum):
-    """The split sum (:class:`ibl_ref.prefilter.karis2013.SplitSum`) with its chain prefiltered by FIS."""
+    """Karis 2013 split sum with the chain prefiltered by filtered importance sampling (Křivánek & Colbert 2008)."""
+
+    paper = ("Křivánek & Colbert 2008, Real-time Shading with Filtered Importance Sampling, Sec. 3, as the "
+             "prefilter of Karis 2013's split sum")
+
+    def __init__(self, cube, *, samples: int = 64, sequence: str = "hammersley", seed: int = 0, bias: float = 1.0,
+                 texel_solid_angle: str = "exact", n_levels=None, min_face_size: int = 1, dfg_size=64,
+                 smith: str = "height_correlated", dtype="float64"):
+        self._init(build_fis_chain(cube, samples=samples, sequence=sequence, seed=seed, bias=bias,
+                                   texel_solid_angle=texel_solid_angle, n_levels=n_levels,
+                                   min_face_size=min_face_size, dtype=dtype),
+                   karis2013.build_dfg_table(dfg_size, smith=smith))
 
     @classmethod
     def build(cls, cube, *, samples: int = 64, sequence: str = "hammersley", seed: int = 0, bias: float = 1.0,
               texel_solid_angle: str = "exact", dfg_size=64, smith: str = "height_correlated", **chain_kw):
         chain = build_fis_chain(cube, samples=samples, sequence=sequence, seed=seed, bias=bias,
                                 texel_solid_angle=texel_solid_angle, **chain_kw)
-        return cls(chain, karis2013.build_dfg_table(dfg_size, smith=smith))
-
+        return cls.from_parts(chain, karis2013.build_dfg_table(dfg_size, smith=smith))

@@ -144,31 +144,52 @@ def error_bound(cube) -> np.ndarray:
 
 
 class SH9Irradiance:
-    """SH9 irradiance as a method: ``lookup(directions)`` is ``E(n)/π`` (..., C), the lobe average of the cosine
-    lobe (what :func:`ibl_ref.groundtruth.kan2015.irradiance_map` returns), so a Lambertian surface shades as
-    ``kd · lookup(n)``.  ``error_bound`` (C,) bounds ``|lookup − exact E/π|`` everywhere (module doc)."""
+    """Ramamoorthi & Hanrahan 2001 SH9 irradiance: 9 coefficients per channel, E(n) as a quadratic in n."""
 
     lobe = "cosine"
+    paper = "Ramamoorthi & Hanrahan 2001, An Efficient Representation for Irradiance Environment Maps, Eq. 7-13"
 
-    def __init__(self, coeffs, error_bound_irradiance):
+    def __init__(self, cube):
+        self._init(sh9_coefficients(cube), error_bound(cube))
+
+    def _init(self, coeffs, error_bound_irradiance):
         self.coeffs = _check_coeffs(coeffs)
-        self._bound = np.asarray(error_bound_irradiance, dtype=np.float64)
+        self._bound = np.asarray(error_bound_irradiance, dtype=np.float64).reshape(-1)
 
     @classmethod
-    def build(cls, cube):
-        return cls(sh9_coefficients(cube), error_bound(cube))
+    def from_coefficients(cls, coeffs, error_bound_irradiance) -> "SH9Irradiance":
+        """The method of given coefficients (9, C) and irradiance bound per channel (C,)."""
+        obj = cls.__new__(cls)
+        obj._init(coeffs, error_bound_irradiance)
+        return obj
+
+    @classmethod
+    def build(cls, cube) -> "SH9Irradiance":
+        return cls(cube)
 
     @property
     def nbytes(self) -> int:
         return int(self.coeffs.nbytes)
 
     @property
-    def error_bound(self) -> np.ndarray:
+    def channel_bounds(self) -> np.ndarray:
+        """(C,) bound of ``|lookup − E/π|`` per channel: (3/32)·Σ_j L_j Ω_j / π (module doc)."""
         return self._bound / np.pi
 
-    def lookup(self, directions, param=None) -> np.ndarray:
-        """``E(n)/π`` at unit directions; ``param`` is ignored (the cosine lobe has no parameter)."""
-        return irradiance(self.coeffs, directions) / np.pi
+    @property
+    def error_bound(self) -> float:
+        """The largest channel bound (radiance units): ``|lookup(n) − E(n)/π| ≤ error_bound`` for every n, with
+        E the exact cosine convolution over the same texels (the target of the ``"cosine"`` lobe family)."""
+        return float(np.max(self.channel_bounds))
+
+    def lookup(self, directions, param=1.0) -> np.ndarray:
+        """``E(n)/π`` (..., C) at ``directions`` (normalised here); ``param`` is the cosine lobe's exponent, 1
+        (``None`` allowed), checked by :func:`ibl_ref.prefilter.interface.check_lobe_param`."""
+        from .interface import check_lobe_param
+
+        out = irradiance(self.coeffs, directions) / np.pi  # normalises and checks the directions
+        np.broadcast_to(check_lobe_param(self.lobe, param), out.shape[:-1])
+        return out
 
     def shade(self, normals, kd=1.0) -> np.ndarray:
         return lambertian_radiance(self.coeffs, normals, kd)

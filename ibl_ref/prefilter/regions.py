@@ -22,7 +22,16 @@ import numpy as np
 
 from ..errors import IBLError
 
-__all__ = ["RegionSet"]
+__all__ = ["RegionSet", "build_region_set"]
+
+
+def build_region_set(method, cube, lights, **params):
+    """The region set of a Phong method class on ``lights``: its joint ``build_regions`` if it has one, else
+    :meth:`RegionSet.build` (the method on every partial map)."""
+    build = getattr(method, "build_regions", None)
+    if build is not None:
+        return build(cube, lights, **params)
+    return RegionSet.build(method, cube, lights, **params)
 
 
 class RegionSet:

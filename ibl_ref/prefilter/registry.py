@@ -12,13 +12,18 @@ import inspect
 from typing import NamedTuple
 
 from ..errors import IBLError
+from .cmft_peer import CmftRadiance
 from .exact_lobe_chain import ExactLobeChain
+from .ggx_phong_mapping import GGXPhongMapping
 from .kan2015_maps import Kan2015Maps
+from .karis2013 import SplitSum, SplitSumImportance
 from .kautz_mccool2000_lobes import KautzMcCool2000Lobes
 from .knuth2014_pyramid import Knuth2014Pyramid
+from .krivanek_colbert2008 import FilteredImportanceSampling
+from .ramamoorthi_hanrahan2001 import SH9Irradiance
 
 __all__ = ["PREFILTER_METHODS", "PrefilterMethod", "prefilter_methods", "get_method", "region_params",
-           "build_prefilter", "build_region_prefilters"]
+           "build_prefilter", "build_region_prefilters", "resolve_method_params"]
 
 #: method name → prefilter class
 PREFILTER_METHODS = {
@@ -26,6 +31,12 @@ PREFILTER_METHODS = {
     "exact-lobe": ExactLobeChain,
     "km00-lobes": KautzMcCool2000Lobes,
     "kan2015": Kan2015Maps,
+    "cmft": CmftRadiance,
+    "split-sum": SplitSum,
+    "split-sum-is": SplitSumImportance,
+    "split-sum-fis": FilteredImportanceSampling,
+    "ggx-phong-pem": GGXPhongMapping,
+    "sh9": SH9Irradiance,
 }
 
 
@@ -48,7 +59,9 @@ def get_method(method: str):
 
 
 def _params(fn) -> dict:
-    return {p.name: p.default for p in inspect.signature(fn).parameters.values() if p.kind is p.KEYWORD_ONLY}
+    names = {cls: name for name, cls in PREFILTER_METHODS.items()}
+    return {p.name: names.get(p.default, p.default) if isinstance(p.default, type) else p.default
+            for p in inspect.signature(fn).parameters.values() if p.kind is p.KEYWORD_ONLY}
 
 
 def prefilter_methods(lobe: str | None = None) -> list:
@@ -70,9 +83,16 @@ def region_params(method: str) -> dict:
     return _params(getattr(cls, "build_regions", cls.__init__))
 
 
+def resolve_method_params(params: dict) -> dict:
+    """``params`` with the value of every parameter named ``*_method`` given as a registry name replaced by its
+    class (a method built on another method, e.g. ``ggx-phong-pem``'s ``phong_method="exact-lobe"``)."""
+    return {k: (get_method(v) if k.endswith("_method") and isinstance(v, str) else v) for k, v in params.items()}
+
+
 def build_prefilter(cube, method: str = "pyramid", **params):
-    """``PREFILTER_METHODS[method](cube, **params)``: the prefilter of a cube map (6, N, N, C)."""
-    return get_method(method)(cube, **params)
+    """``PREFILTER_METHODS[method](cube, **params)``: the prefilter of a cube map (6, N, N, C); parameters
+    ``*_method`` may name a registered method (:func:`resolve_method_params`)."""
+    return get_method(method)(cube, **resolve_method_params(params))
 
 
 def build_region_prefilters(cube, lights=None, method: str = "pyramid", *, n_lights: int | None = None,
@@ -94,9 +114,6 @@ def build_region_prefilters(cube, lights=None, method: str = "pyramid", *, n_lig
         from ..knuth2014.median_cut import median_cut
 
         lights = median_cut(cube, n_lights, variant)
-    build = getattr(cls, "build_regions", None)
-    if build is not None:
-        return build(cube, lights, **params)
-    from .regions import RegionSet
+    from .regions import build_region_set
 
-    return RegionSet.build(cls, cube, lights, **params)
+    return build_region_set(cls, cube, lights, **params)
