@@ -174,11 +174,6 @@ def test_run_time_lookup_does_not_import_the_analysis():
 
 # ---- the import graph: no cycles between files, none between sub-packages -------------------------------------------
 
-#: file cycles that are known and being removed (each pair: both directions of one cycle).  The reference renderer
-#: and its converged integrator import each other while the two reference integrators are merged into one.
-ALLOWED_FILE_CYCLES = {frozenset({"ibl_ref.rendering.reference_render", "ibl_ref.rendering.reference_converged"})}
-
-
 def _module_name(path: Path, root: Path) -> str:
     parts = list(path.relative_to(root).with_suffix("").parts)
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
@@ -254,8 +249,8 @@ def test_cycle_finder_finds_a_lazy_cycle(tmp_path):
 
 def test_no_import_cycles_between_files():
     # every module can be read (and imported) without its importers: no file imports one of its own importers,
-    # not even lazily inside a function (known cycles being removed: ALLOWED_FILE_CYCLES)
-    cycles = [c for c in _cycles(_import_graph()) if frozenset(c) not in ALLOWED_FILE_CYCLES]
+    # not even lazily inside a function
+    cycles = _cycles(_import_graph())
     assert not cycles, cycles
 
 

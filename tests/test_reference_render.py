@@ -154,7 +154,7 @@ def test_bad_inputs():
         rr.coarse_env(env, 3)
     with pytest.raises(IBLError, match=r"g must be in \[0, 1\]"):
         rr.render_reference([(_quad(), 0)], CAM, env, g=1.5)
-    with pytest.raises(IBLError, match=r"kd, ks must be finite and"):
+    with pytest.raises(IBLError, match=r"kd must be finite and >= 0"):
         rr.render_reference([(_quad(), 0)], CAM, env, kd=-1)
     bad = env.copy()
     bad[0, 0, 0, 0] = np.nan

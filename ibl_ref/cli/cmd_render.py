@@ -228,7 +228,7 @@ def cmd_render(args) -> int:
 
     # ---- scene (the mesh first: it is cheaper to check than a big environment map) -------------------------
     meshes = teapot_on_ground(args.mesh, ground=args.ground)
-    if mat.g_map is not None:  # NaN/Inf UVs of a mesh file: refused before any rendering
+    if getattr(mat, "g_map", None) is not None:  # NaN/Inf UVs of a mesh file: refused before any rendering
         from ..rendering.render import mesh_uv
 
         mesh_uv(meshes[0][0], f"--mesh {args.mesh}")

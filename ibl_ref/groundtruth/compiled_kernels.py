@@ -930,7 +930,7 @@ def warm_up(stages=STAGES):
         band_brackets(R, st, tx, d, np.ones(d.shape[0]), np.zeros(d.shape[0]), np.ones((d.shape[0], 4)),
                       np.ones((d.shape[0], 3, 4)), np.ones((d.shape[0], 6, 4)), True, True, *z)
     if "sh" in todo:
-        from .sh_basis import _row_layout, compiled_tables
+        from .sh_tables import _row_layout, compiled_tables
 
         tabs = compiled_tables(2)
         ne, no = (r.size for r in _row_layout(2))

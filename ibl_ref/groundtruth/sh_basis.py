@@ -20,6 +20,7 @@ import numpy as np
 from ..environment import envmap
 from .convolution_args import check_cube
 from ..errors import LayoutError
+from .sh_tables import _layout, _recurrence_coeffs, _row_layout, compiled_tables
 
 __all__ = ["real_sh", "sh_project", "sh_evaluate", "sh_lobe_convolve"]
 
@@ -47,39 +48,8 @@ def _chunk(L):
     return max(512, _SH_CHUNK_ELEMS // (L + 1) ** 2)
 
 
-@functools.lru_cache(maxsize=64)
-def _layout(L):
-    """Internal row order of the SH matrix, split by parity of l+m.
-
-    Band-major: for each l, the rows of orders m ≡ l (mod 2) go to the *even* matrix (cos rows, then
-    sin rows for m > 0), the others to the *odd* matrix.  Returns (even, odd) lists of (l, m, kind)
-    with kind 'c' (Y_lm, m ≥ 0) or 's' (Y_l,−m).
-    """
-    even, odd = [], []
-    for ell in range(L + 1):
-        me = range(ell % 2, ell + 1, 2)
-        mo = range((ell + 1) % 2, ell + 1, 2)
-        even += [(ell, m, "c") for m in me] + [(ell, m, "s") for m in me if m > 0]
-        odd += [(ell, m, "c") for m in mo] + [(ell, m, "s") for m in mo if m > 0]
-    return tuple(even), tuple(odd)
-
-
-def _row_layout(L):
-    """Band l of every row of the (even, odd) SH matrices."""
-    ev, od = _layout(L)
-    return np.array([r[0] for r in ev], dtype=int), np.array([r[0] for r in od], dtype=int)
-
-
 def _std_index(rows):
     return np.array([ell * ell + ell + (m if kind == "c" else -m) for ell, m, kind in rows], dtype=int)
-
-
-@functools.lru_cache(maxsize=512)
-def _recurrence_coeffs(ell):
-    m = np.arange(ell - 1, dtype=np.float64)
-    a = np.sqrt((4.0 * ell * ell - 1.0) / (ell * ell - m * m))
-    b = np.sqrt(((ell - 1.0) ** 2 - m * m) / (4.0 * (ell - 1.0) ** 2 - 1.0))
-    return a[:, None], b[:, None]
 
 
 def _real_sh_parity(dirs, L):
@@ -289,29 +259,6 @@ def _evaluate_octant(dirs, Be, Bo, L, orb, chunks=None):
     out = np.empty((dirs.shape[0], Be.shape[1]))
     out[idx] = vals
     return out
-
-
-@functools.lru_cache(maxsize=16)
-def compiled_tables(L):
-    """Tables of the compiled SH passes (:func:`ibl_ref.groundtruth.compiled_kernels.sh_project` /
-    ``sh_matrix``): ``row_of[ℓ, m, kind]`` (the row in the even or odd matrix of :func:`_layout`; kind 0 =
-    cos, 1 = sin), ``cls_of[ℓ, m, kind]`` (its octant class κ, :func:`_octant_row_classes`) and the Legendre
-    recurrence coefficients ``a[ℓ, m]``, ``b[ℓ, m]`` (:func:`_recurrence_coeffs`)."""
-    row_of = np.full((L + 1, L + 1, 2), -1, dtype=np.int64)
-    cls_of = np.full((L + 1, L + 1, 2), -1, dtype=np.int64)
-    for bz, rows in enumerate(_layout(L)):
-        for i, (ell, m, kind) in enumerate(rows):
-            k = 0 if kind == "c" else 1
-            bx = (m % 2) if kind == "c" else ((m + 1) % 2)
-            row_of[ell, m, k] = i
-            cls_of[ell, m, k] = bx + 2 * k + 4 * bz
-    a_tab = np.zeros((L + 1, max(L, 1)))
-    b_tab = np.zeros((L + 1, max(L, 1)))
-    for ell in range(2, L + 1):
-        a, b = _recurrence_coeffs(ell)
-        a_tab[ell, : ell - 1] = a[:, 0]
-        b_tab[ell, : ell - 1] = b[:, 0]
-    return row_of, cls_of, a_tab, b_tab
 
 
 def _project_octant_compiled(dirs, W, L, orb):

@@ -103,12 +103,23 @@ def target_volume(s, volume: str = "integral"):
     return 2.0 * np.pi / (3.0 * (3.0 * s + 1.0))
 
 
+def _wsum(w, x) -> float:
+    """Σ w·x by NumPy's pairwise summation, not BLAS: a BLAS dot splits its sum by the number of BLAS threads, so its
+    last digits would depend on where the job runs (a worker process holds BLAS at one thread)."""
+    return float(np.sum(np.asarray(w) * np.asarray(x)))
+
+
+def _dir_dot(dirs, d):
+    """dirs · d over the last axis (three products, the same rounding in every process)."""
+    return dirs[..., 0] * d[0] + dirs[..., 1] * d[1] + dirs[..., 2] * d[2]
+
+
 def lobe_volume(f_hat, omega, volume: str = "integral") -> float:
     """Volume of a peak-normalised lobe sampled with solid angles ``omega`` (same shape)."""
     _check("volume definition", volume, VOLUME_DEFS)
     if volume == "integral":
-        return float(np.dot(f_hat, omega))
-    return float(np.dot(f_hat**3, omega) / 3.0)
+        return _wsum(f_hat, omega)
+    return _wsum(f_hat**3, omega) / 3.0
 
 
 def s_texel_limit(n: int) -> float:
@@ -161,7 +172,7 @@ class LobeResponse:
         self.sample_size = m
         self.dirs = texel_directions(m).reshape(-1, 3)
         self.omega = np.ascontiguousarray(cube_solid_angles(m)).reshape(-1)
-        self.cos_theta = self.dirs @ self.d0
+        self.cos_theta = _dir_dot(self.dirs, self.d0)
         self.R = np.stack([self.pyramid.sampler(L).bilinear(self.dirs)[:, 0] for L in range(self.pyramid.n_levels)])
         self.max_level = self.pyramid.max_level
         self._curves = {}
@@ -207,8 +218,8 @@ class LobeResponse:
             w = self.omega
             k = min(64, a.size)
             cand = np.union1d(np.argpartition(a, -k)[-k:], np.argpartition(b, -k)[-k:])
-            mom = {"a": w @ a, "b": w @ b, "aaa": w @ a**3, "aab": w @ (a * a * b), "abb": w @ (a * b * b),
-                   "bbb": w @ b**3}
+            mom = {"a": _wsum(w, a), "b": _wsum(w, b), "aaa": _wsum(w, a**3), "aab": _wsum(w, a * a * b),
+                   "abb": _wsum(w, a * b * b), "bbb": _wsum(w, b**3)}
             self._moment_cache[L0] = (mom, a[cand], b[cand])
         return self._moment_cache[L0]
 
@@ -279,18 +290,18 @@ class LobeResponse:
         if centring == "texel":
             return self.d0
         f = self.at_level(ell)
-        m = (f * self.omega) @ self.dirs
+        m = np.sum((f * self.omega)[:, None] * self.dirs, axis=0)
         return m / np.linalg.norm(m)
 
     def errors(self, s: float, ell: float, volume: str = "integral", centring: str = "texel") -> dict:
         """Relative errors (fractions of the analytic target volume) of the lobe at ``ell`` vs cosˢ."""
         vt = float(target_volume(s, volume))
         f = self.normalised(ell)
-        t = target_lobe(self.dirs @ self.axis(ell, centring), s)
+        t = target_lobe(_dir_dot(self.dirs, self.axis(ell, centring)), s)
         if volume == "integral":
-            sym = float(np.dot(np.abs(f - t), self.omega))
+            sym = _wsum(np.abs(f - t), self.omega)
         else:
-            sym = float(np.dot(np.abs(f**3 - t**3), self.omega) / 3.0)
+            sym = _wsum(np.abs(f**3 - t**3), self.omega) / 3.0
         vf = lobe_volume(f, self.omega, volume)
         vq = lobe_volume(t, self.omega, volume)
         return {"symdiff": sym / vt, "voldiff": abs(vf - vt) / vt, "target_quad_rel_err": (vq - vt) / vt}
