@@ -28,7 +28,8 @@ def main():
     ap.add_argument("--repeat", type=int, default=2, help="frames per light count; the best is kept")
     args = ap.parse_args()
 
-    from ibl_ref.rendering.ao_modes import default_camera, render_modes
+    from ibl_ref.rendering.ao_modes import render_modes
+    from ibl_ref.rendering.scenes import default_camera
     from ibl_ref.experiments.fig7 import STAGES, fit_line
     from ibl_ref.knuth2014.pem import build_pems
     from ibl_ref.rendering.raster import prepare_scene, rasterize

@@ -11,7 +11,7 @@
 
 They live here so that the exact reference (:mod:`ibl_ref.rendering.reference_render`), the prefilters
 (:mod:`ibl_ref.knuth2014.lobe_chain`, :mod:`ibl_ref.knuth2014.pyramid`) and the run-time look-up (:mod:`ibl_ref.knuth2014.gloss_lookup`) can all use
-them without importing one another; the old import places re-export them.
+them without importing one another.
 """
 
 from __future__ import annotations

@@ -12,6 +12,8 @@ from ibl_ref.environment import envmap
 from ibl_ref.groundtruth import moment_convolution as mc
 from ibl_ref.groundtruth import phong_convolution as pc
 from ibl_ref.groundtruth import sh_convolution as shc
+from ibl_ref.groundtruth import sh_basis as shbasis
+from ibl_ref.groundtruth import sh_bounds as shb
 from ibl_ref.groundtruth.convolve import WORKERS_ENV, convolve, default_workers
 from ibl_ref.errors import IBLError
 
@@ -87,19 +89,19 @@ def test_octant_symmetric_sh_projection_matches_dense():
     # reference: the dense real-SH matrix at every direction (no symmetry folding)
     n, L = 6, 11
     dirs = envmap.texel_directions(n).reshape(-1, 3)
-    assert shc._octant_orbits(dirs) is not None
-    assert shc._octant_orbits(envmap.texel_directions(5).reshape(-1, 3)) is None  # texels on the planes
+    assert shbasis._octant_orbits(dirs) is not None
+    assert shbasis._octant_orbits(envmap.texel_directions(5).reshape(-1, 3)) is None  # texels on the planes
     rng = np.random.default_rng(3)
     cube = rng.random((6, n, n, 2))
-    Y = shc.real_sh(dirs, L)  # (M, (L+1)²)
+    Y = shbasis.real_sh(dirs, L)  # (M, (L+1)²)
     w = cube.reshape(-1, 2) * envmap.cube_solid_angles(n).reshape(-1, 1)
-    a = shc.sh_project(cube, L)
+    a = shbasis.sh_project(cube, L)
     np.testing.assert_allclose(a, Y.T @ w, rtol=0, atol=1e-13)  # sums of 216 terms ≤ 1: rounding only
     coeffs = rng.standard_normal(((L + 1) ** 2, 3))
-    np.testing.assert_allclose(shc.sh_evaluate(coeffs, dirs), Y @ coeffs, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(shbasis.sh_evaluate(coeffs, dirs), Y @ coeffs, rtol=0, atol=1e-12)
     # same directions in and out (shared SH matrix) vs an odd-size grid's generic path
-    kc = np.stack([shc.zonal_coefficients(s, L) for s in (2.0, 9.0)])
-    got = shc.sh_lobe_convolve(dirs, w, dirs, kc)
+    kc = np.stack([shb.zonal_coefficients(s, L) for s in (2.0, 9.0)])
+    got = shbasis.sh_lobe_convolve(dirs, w, dirs, kc)
     want = np.einsum("kl,ml,lq->kmq", kc[:, [int(np.sqrt(i)) for i in range((L + 1) ** 2)]], Y, Y.T @ w)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-13)
 

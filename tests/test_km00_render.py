@@ -7,6 +7,7 @@ import numpy as np
 from ibl_ref.atomic import read_csv
 from ibl_ref.experiments import km00_render as E
 from ibl_ref.rendering.image_io import read_image_exr
+from ibl_ref.rendering.km00_render import render_single_method
 
 
 def _tiny(env="sky_sun"):
@@ -51,7 +52,7 @@ def test_reference_with_a_diffuse_term_gathers_the_whole_hemisphere():
     # L ≡ 1, Ward with kd = 0.5, ks = 0: Lo = ∫ kd/π cos θi dω = kd at every front-facing pixel (closed form).
     # The Ward cone cut covers the specular term only; applied here it kept ≈ 6 % of the diffuse light.
     # Tolerance: texel quadrature of cos θi with its horizon cut on 8² faces, supersampled (≤ 1 %)
-    img, mask, _ = E.render_single_method("reference", np.ones((6, 8, 8, 3)), width=12, brdf="ward",
+    img, mask, _ = render_single_method("reference", np.ones((6, 8, 8, 3)), width=12, brdf="ward",
                                           brdf_params=dict(kd=0.5, ks=0.0, alpha=0.04), n_theta=3)
     v = img[mask].mean(axis=-1)
     v = v[v > 0]  # back-facing pixels are black

@@ -6,6 +6,7 @@ import numpy as np
 
 from ibl_ref.atomic import read_csv
 from ibl_ref.experiments import lobe_chain
+from ibl_ref.knuth2014.gloss_lookup import best_constant_level
 
 
 def test_quick_run_and_plot(tmp_path):
@@ -37,7 +38,7 @@ def test_best_constant_level_finds_a_planted_level():
     rng = np.random.default_rng(4)
     levels = [rng.random((50, 3)) + k for k in range(4)]
     exact = 0.7 * levels[1] + 0.3 * levels[2]
-    err, lev = lobe_chain.best_constant_level(levels, exact)
+    err, lev = best_constant_level(levels, exact)
     assert err < 1e-12 and abs(lev - 1.3) < 1e-9
-    err0, lev0 = lobe_chain.best_constant_level(levels, levels[3])  # the coarsest level itself (no blend past it)
+    err0, lev0 = best_constant_level(levels, levels[3])  # the coarsest level itself (no blend past it)
     assert err0 == 0.0 and lev0 == 3.0

@@ -198,7 +198,7 @@ def test_batched_gather_bound_holds_on_probe_like_map(s, n):
     assert err.max() > 0
 
 
-# ---- local bound, per-tile caps and the float32 kernel (issue 18) -------------------------------------------
+# ---- local bound, per-tile caps and the float32 kernel ----------------------------------------------------
 def _dark_beside_bright(n, seed=3):
     """Worst case for a local radiance bound: radiance ≈ 50 on the half-space x > 0.05, ≈ 1e-4 elsewhere (a
     sharp edge: dark tiles whose near cap is dark but whose far field holds the bright side)."""

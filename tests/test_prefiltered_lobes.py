@@ -16,6 +16,7 @@ from ibl_ref.lobes import kautz_mccool2000 as km
 from ibl_ref.lobes import km00_reference as kref
 from ibl_ref.groundtruth import phong_convolution as pc
 from ibl_ref.lobes import prefiltered_lobes as pl
+from ibl_ref.lobes import profile_convolution as pconv
 from ibl_ref.synthetic import synthetic_envs as se
 from ibl_ref.errors import IBLError, LayoutError
 from ibl_ref.knuth2014.pyramid import build_pyramid
@@ -50,16 +51,16 @@ def test_profile_integral_matches_phong_closed_form():
         p = _cos_profile(g, s)
         # |∫ p_lin − ∫ cos^s| ≤ max|p_lin − cos^s| · 4π  (the integrand error is bounded pointwise)
         tol = _interp_error(g, s) * 4 * np.pi + 1e-14
-        assert abs(pl.profile_integral(g, p) - 2 * np.pi / (s + 1)) <= tol
+        assert abs(pconv.profile_integral(g, p) - 2 * np.pi / (s + 1)) <= tol
 
 
 def test_constant_env_gives_profile_integral_and_converges():
     g = km.gamma_nodes(512)
     p = _cos_profile(g, 6.0)
-    I = pl.profile_integral(g, p)
+    I = pconv.profile_integral(g, p)
     errs = []
     for n in (8, 16):
-        E = pl.convolve_profiles(np.full((6, n, n, 2), 3.0), g, p)
+        E = pconv.convolve_profiles(np.full((6, n, n, 2), 3.0), g, p)
         assert E.shape == (6, n, n, 2)
         errs.append(np.abs(E / (3.0 * I) - 1).max())
     # texel-centre quadrature of a smooth lobe: O(h²) → halving h must shrink the error ≥ 3× (4× asymptotically),
@@ -72,7 +73,7 @@ def test_cos_profile_equals_unnormalised_phong_convolution():
     env = se.make_env("sky_sun", n=8)
     g = km.gamma_nodes(1024)
     for s in (3.0, 20.0):
-        E = pl.convolve_profiles(env, g, _cos_profile(g, s))
+        E = pconv.convolve_profiles(env, g, _cos_profile(g, s))
         ref = pc.convolve_exact(env, s, normalized=False)
         # same source texels and solid angles; the only difference is the tabulated profile:
         # |ΔE| ≤ max|p_lin − cos^s| · Σ_j L_j Ω_j
@@ -86,7 +87,7 @@ def test_single_texel_source_gives_the_profile_shape():
     env[4, 3, 5, 0] = 2.0
     g = km.gamma_nodes(256)
     p = np.maximum(0.0, 1.0 - g / 0.6)  # compact support (γ < 0.6 rad): exercises the exact truncation
-    E = pl.convolve_profiles(env, g, p)[..., 0]
+    E = pconv.convolve_profiles(env, g, p)[..., 0]
     d = envmap.texel_directions(n)
     w = d[4, 3, 5]
     gam = np.arccos(np.clip(d @ w, -1, 1))
@@ -99,12 +100,12 @@ def test_tail_truncation_is_within_stated_fraction():
     env = se.make_env("sky_sun", n=8, sun_radiance=10.0)
     g = km.gamma_nodes(512)
     p = _cos_profile(g, 40.0)
-    full = pl.convolve_profiles(env, g, p)
-    cut, info = pl.convolve_profiles(env, g, p, tail_rtol=1e-3, return_info=True)
+    full = pconv.convolve_profiles(env, g, p)
+    cut, info = pconv.convolve_profiles(env, g, p, tail_rtol=1e-3, return_info=True)
     assert info["cut_angle"][0] < np.pi / 2 and 0 < info["tail_fraction"][0] <= 1e-3
     # neglected ≤ L_max · (discrete tail weight); the continuous tail ≤ 1e-3 ∫p, the discrete one on 8² texels
     # may exceed it by the quadrature error of the tail (allow 3×)
-    bound = env.max() * 3e-3 * pl.profile_integral(g, p)
+    bound = env.max() * 3e-3 * pconv.profile_integral(g, p)
     assert np.all(full - cut >= -1e-12) and (full - cut).max() <= bound
 
 
@@ -115,8 +116,8 @@ def test_auto_supersample_fixes_narrow_lobes():
     p = _cos_profile(g, s)
     n = 8
     env = np.ones((6, n, n, 1))
-    plain = pl.convolve_profiles(env, g, p)
-    auto = pl.convolve_profiles(env, g, p, supersample="auto", max_supersample=64)
+    plain = pconv.convolve_profiles(env, g, p)
+    auto = pconv.convolve_profiles(env, g, p, supersample="auto", max_supersample=64)
     exact = 2 * np.pi / (s + 1)
     assert np.abs(plain / exact - 1).max() > 1.0  # grossly wrong without supersampling
     # HWHM-based k puts ≥ 1.5 sub-texels per half width: Gaussian-like lobe, midpoint error ≪ 1 % (measured
@@ -195,9 +196,9 @@ def test_scaled_lobe_set_equals_reconvolution(ward_lobes):
     f = np.array([1.3, 0.0, 2.5])
     sc = ls.scaled(f)
     K, J, G = ls.profiles.shape
-    again = pl.convolve_profiles(env, ls.gamma, (ls.profiles * f[:, None, None]).reshape(K * J, G), tail_rtol=1e-6)
+    again = pconv.convolve_profiles(env, ls.gamma, (ls.profiles * f[:, None, None]).reshape(K * J, G), tail_rtol=1e-6)
     np.testing.assert_allclose(sc.maps, np.asarray(again).reshape(sc.maps.shape), rtol=1e-12, atol=1e-15)
-    np.testing.assert_allclose(sc.integral, pl.profile_integral(ls.gamma, sc.profiles), rtol=1e-12, atol=1e-300)
+    np.testing.assert_allclose(sc.integral, pconv.profile_integral(ls.gamma, sc.profiles), rtol=1e-12, atol=1e-300)
     np.testing.assert_array_equal(sc.phong_s, ls.phong_s)
     d = envmap.texel_directions(8).reshape(-1, 3)
     np.testing.assert_allclose(sc.lookup(0, d, ls.theta_o[2]), 2.5 * ls.lookup(0, d, ls.theta_o[2]), rtol=1e-12)
@@ -227,7 +228,7 @@ def test_whole_sphere_profile_keeps_the_antipodal_texel():
     for n, tile in ((2, 1), (3, 4)):
         cube = np.ones((6, n, n))
         cube[1, n // 2, n // 2] = 1e6
-        E = pl.convolve_profiles(cube, g, np.ones_like(g), tile=tile)
+        E = pconv.convolve_profiles(cube, g, np.ones_like(g), tile=tile)
         np.testing.assert_allclose(E, np.sum(cube * envmap.cube_solid_angles(n)), rtol=1e-13)
 
 
@@ -308,16 +309,16 @@ def test_bad_input_raises_clear_errors(ward_lobes):
     ls, env = ward_lobes
     g = km.gamma_nodes(64)
     p = _cos_profile(g, 5.0)
-    with pytest.raises(pl.ProfileError, match="NaN"):
-        pl.convolve_profiles(env, g, np.where(g > 1, np.nan, p))
-    with pytest.raises(pl.ProfileError, match="negative"):
-        pl.convolve_profiles(env, g, p - 0.5)
-    with pytest.raises(pl.ProfileError, match=r"gamma must be finite, strictly increasing"):
-        pl.convolve_profiles(env, g[::-1], p)
+    with pytest.raises(pconv.ProfileError, match="NaN"):
+        pconv.convolve_profiles(env, g, np.where(g > 1, np.nan, p))
+    with pytest.raises(pconv.ProfileError, match="negative"):
+        pconv.convolve_profiles(env, g, p - 0.5)
+    with pytest.raises(pconv.ProfileError, match=r"gamma must be finite, strictly increasing"):
+        pconv.convolve_profiles(env, g[::-1], p)
     with pytest.raises(LayoutError, match=r"environment cube map: expected an array"):
-        pl.convolve_profiles(np.ones((6, 8, 9, 3)), g, p)
+        pconv.convolve_profiles(np.ones((6, 8, 9, 3)), g, p)
     with pytest.raises(IBLError, match=r"supersample must be a positive integer"):
-        pl.convolve_profiles(env, g, p, supersample="fast")
+        pconv.convolve_profiles(env, g, p, supersample="fast")
     d = np.array([[0.0, 0.0, 1.0]])
     with pytest.raises(pl.ElevationRangeError, match=r"theta_o outside the sampled elevations \[0\.000°"):
         ls.lookup(0, d, np.radians(70.0))  # sampled range is [0°, 60°]
@@ -333,7 +334,7 @@ def test_bad_input_raises_clear_errors(ward_lobes):
         pl.shade_pyramid(ls, build_prefilter(env, "pyramid"), d, wo, energy="volume")
     with pytest.raises(IBLError, match="Phong prefilter"):  # a bare pyramid has no look-up of its own
         pl.shade_pyramid(ls, build_pyramid(env), d, wo)
-    assert issubclass(pl.ProfileError, IBLError) and issubclass(pl.ElevationRangeError, IBLError)
+    assert issubclass(pconv.ProfileError, IBLError) and issubclass(pl.ElevationRangeError, IBLError)
 
 
 def test_hwhm_helpers_match_closed_forms():
@@ -343,13 +344,13 @@ def test_hwhm_helpers_match_closed_forms():
     s = 60.0
     exact = np.arccos(2 ** (-1 / s))
     g = km.gamma_nodes(2048)
-    assert abs(pl.profile_hwhm(g, _cos_profile(g, s)) - exact) < np.radians(0.1)
+    assert abs(pconv.profile_hwhm(g, _cos_profile(g, s)) - exact) < np.radians(0.1)
     f = B.get_brdf("phong", ks=1.0, s=s)
     h = kref.brdf_min_hwhm(f, 0.3)  # θo = 0.3 rad: the lobe (≈ 9° HWHM) is clear of the horizon
     assert exact - 1e-12 <= h <= exact + np.radians(0.5)
     # auto_supersample: the face-centre sub-texel 2/(n k) must not exceed hwhm / samples_per_hwhm
     for n_, hw, q in ((8, 0.01, 1.5), (64, 0.02, 3.0), (16, 1.0, 1.5)):
-        k = pl.auto_supersample(n_, hw, q, 1000)
+        k = pconv.auto_supersample(n_, hw, q, 1000)
         assert 2 / (n_ * k) <= hw / q + 1e-15 and (k == 1 or 2 / (n_ * (k - 1)) > hw / q)
 
 

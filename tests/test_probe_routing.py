@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from ibl_ref.groundtruth.convolve import convolve, plan_routes
-from ibl_ref.groundtruth.sh_convolution import SH_L_MAX
+from ibl_ref.groundtruth.sh_bounds import SH_L_MAX
 
 PROBES = Path(__file__).resolve().parents[1].parent / "shared" / "probes"
 FILES = sorted(PROBES.glob("*.exr")) if PROBES.is_dir() else []

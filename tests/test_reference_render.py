@@ -7,7 +7,9 @@ import trimesh
 from ibl_ref.rendering import reference_render as rr
 from ibl_ref.rendering.camera import PerspectiveCamera
 from ibl_ref.environment.envmap import cube_solid_angles, texel_directions
+from ibl_ref.conventions import lobe_half_angle
 from ibl_ref.errors import IBLError, LayoutError, RadianceError
+from ibl_ref.rendering.reference_converged import coarse_env
 
 
 def _quad(size=2.0):
@@ -34,7 +36,7 @@ def test_lobe_average_equals_convolve_exact_at_texel_centres():
 def test_coarse_env_keeps_integral():
     rng = np.random.default_rng(2)
     cube = rng.uniform(0, 5, size=(6, 16, 16, 3))
-    c = rr.coarse_env(cube, 4)
+    c = coarse_env(cube, 4)
     i_fine = (cube * cube_solid_angles(16)[..., None]).sum(axis=(0, 1, 2))
     i_coarse = (c * cube_solid_angles(4)[..., None]).sum(axis=(0, 1, 2))
     np.testing.assert_allclose(i_coarse, i_fine, rtol=1e-12)  # exact by construction (texels nest)
@@ -130,9 +132,9 @@ def test_env_size_for_exponent_and_limit():
     assert sizes == sorted(sizes) and sizes[0] == 8
     # lobe half-width must cover ≥ 1 texel of the chosen level (unless capped at the fine size)
     for s, n in zip((1, 10, 100, 1000), sizes):
-        assert rr.lobe_half_angle(s) >= (np.pi / 2) / n or n == 256
+        assert lobe_half_angle(s) >= (np.pi / 2) / n or n == 256
     assert rr.env_size_for_exponent(1e6, 32) == 32
-    np.testing.assert_allclose(rr.lobe_half_angle(1.0), np.pi / 3)  # cos θ = 1/2
+    np.testing.assert_allclose(lobe_half_angle(1.0), np.pi / 3)  # cos θ = 1/2
 
 
 def test_coarse_level_error_against_direct_sums():
@@ -151,7 +153,7 @@ def test_coarse_level_error_against_direct_sums():
 def test_bad_inputs():
     env = np.ones((6, 8, 8, 3))
     with pytest.raises(LayoutError, match=r"n_env=3 must divide the face size"):
-        rr.coarse_env(env, 3)
+        coarse_env(env, 3)
     with pytest.raises(IBLError, match=r"g must be in \[0, 1\]"):
         rr.render_reference([(_quad(), 0)], CAM, env, g=1.5)
     with pytest.raises(IBLError, match=r"kd must be finite and >= 0"):

@@ -9,6 +9,8 @@ from scipy.special import eval_legendre, sph_harm_y
 
 from ibl_ref.environment import envmap
 from ibl_ref.groundtruth import sh_convolution as shc
+from ibl_ref.groundtruth import sh_basis as shbasis
+from ibl_ref.groundtruth import sh_bounds as shb
 from ibl_ref.errors import IBLError, LayoutError, RadianceError
 
 
@@ -39,7 +41,7 @@ def _sky_with_sun(n, sun_radiance=1e5):
 # ------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("s", [1.0, 2.5, 16.0, 100.0])
 def test_zonal_coefficients_match_quadrature(s):
-    c = shc.zonal_coefficients(s, 12)
+    c = shb.zonal_coefficients(s, 12)
     ref = [2 * np.pi * quad(lambda x: x**s * eval_legendre(ell, x), 0, 1, epsabs=1e-13, epsrel=1e-12)[0]
            for ell in range(13)]
     # quad's requested accuracy (1e-13 abs on the integral, ×2π)
@@ -48,16 +50,16 @@ def test_zonal_coefficients_match_quadrature(s):
 
 def test_zonal_coefficients_closed_forms_and_large_s():
     for s in (1.0, 7.0, 1e3, 1e6):
-        c = shc.zonal_coefficients(s, 200)
+        c = shb.zonal_coefficients(s, 200)
         assert np.all(np.isfinite(c))
         # c_0 = 2π/(s+1), c_1 = 2π/(s+2) (∫_0^1 x^s dx, ∫_0^1 x^{s+1} dx)
         assert c[0] == pytest.approx(2 * np.pi / (s + 1), rel=1e-10)
         assert c[1] == pytest.approx(2 * np.pi / (s + 2), rel=1e-10)
     # odd l ≥ 3 vanish for s = 1 (x·P_l integrates to 0 on [0,1] for odd l ≥ 3)
-    c1 = shc.zonal_coefficients(1.0, 9)
+    c1 = shb.zonal_coefficients(1.0, 9)
     np.testing.assert_allclose(c1[3::2], 0.0, atol=1e-15)
     with pytest.raises(IBLError, match=r"zonal_coefficients needs a finite exponent s"):
-        shc.zonal_coefficients(float("nan"), 3)
+        shb.zonal_coefficients(float("nan"), 3)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -68,7 +70,7 @@ def test_real_sh_matches_scipy():
     d = rng.normal(size=(200, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     L = 10
-    Y = shc.real_sh(d, L)
+    Y = shbasis.real_sh(d, L)
     theta, phi = np.arccos(d[:, 2]), np.arctan2(d[:, 1], d[:, 0])
     for ell in range(L + 1):
         for m in range(-ell, ell + 1):
@@ -85,7 +87,7 @@ def test_real_sh_high_band_addition_theorem():
     d[0] = [0, 0, 1]  # pole
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     L = 150
-    Y = shc.real_sh(d, L)
+    Y = shbasis.real_sh(d, L)
     assert np.all(np.isfinite(Y))
     for ell in (0, 1, 17, 80, 150):
         band = (Y[:, ell * ell : (ell + 1) ** 2] ** 2).sum(axis=1)
@@ -96,10 +98,10 @@ def test_project_evaluate_roundtrip_band_limited():
     rng = np.random.default_rng(5)
     a = rng.normal(size=(49, 2))
     d = envmap.texel_directions(8).reshape(-1, 3)
-    v = shc.sh_evaluate(a, d)
-    np.testing.assert_allclose(v, shc.real_sh(d, 6) @ a, atol=1e-12)  # parity split == direct
+    v = shbasis.sh_evaluate(a, d)
+    np.testing.assert_allclose(v, shbasis.real_sh(d, 6) @ a, atol=1e-12)  # parity split == direct
     with pytest.raises(LayoutError, match=r"SH coefficient array must have \(L\+1\)\^2"):
-        shc.sh_evaluate(np.zeros((10, 1)), d)
+        shbasis.sh_evaluate(np.zeros((10, 1)), d)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -181,8 +183,8 @@ def test_auto_plan_meets_rtol_against_c1_exact():
 
 def test_texel_radius():
     # centre texel of a 1×1 face: centre (0,0,1)-like, corner at angle atan(√2)
-    assert shc.texel_max_radius(1) == pytest.approx(math.atan(math.sqrt(2)), rel=1e-12)
-    assert shc.texel_max_radius(64) < shc.texel_max_radius(32)
+    assert shb.texel_max_radius(1) == pytest.approx(math.atan(math.sqrt(2)), rel=1e-12)
+    assert shb.texel_max_radius(64) < shb.texel_max_radius(32)
 
 
 def test_bad_inputs():
@@ -206,7 +208,7 @@ def test_sliding_max_matches_loop():
     for n, h in ((1, 0), (7, 3), (100, 0), (100, 9), (57, 40)):
         a = rng.random(n)
         ref = np.array([a[max(0, i - h) : i + h + 1].max() for i in range(n)])
-        np.testing.assert_array_equal(shc._sliding_max(a, h), ref)
+        np.testing.assert_array_equal(shb._sliding_max(a, h), ref)
 
 
 @pytest.mark.parametrize("s,L", [(1.0, 8), (4.0, 12), (30.0, 20)])
@@ -215,13 +217,13 @@ def test_envelope_integral_bounds_discrete_error_sum(s, L):
     n = 8
     d = envmap.texel_directions(n).reshape(-1, 3)
     om = envmap.cube_solid_angles(n).reshape(-1)
-    c = shc.zonal_coefficients(s, L)
+    c = shb.zonal_coefficients(s, L)
     rng = np.random.default_rng(7)
     r = rng.normal(size=(40, 3))
     r /= np.linalg.norm(r, axis=1, keepdims=True)
     t = np.clip(r @ d.T, -1, 1)
     kL = sum(c[ell] * (2 * ell + 1) / (4 * np.pi) * eval_legendre(ell, t) for ell in range(L + 1))
     lhs = (om * np.abs(np.maximum(t, 0) ** s - kL)).sum(axis=1)
-    E = shc.legendre_series_truncation_envelope(s, L, shc.texel_max_radius(n))
+    E = shb.legendre_series_truncation_envelope(s, L, shb.texel_max_radius(n))
     assert lhs.max() <= E
     assert lhs.max() > 0.05 * E  # and not absurdly loose

@@ -30,9 +30,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import IBLError
-from .exr_io import COMPRESSIONS
 
-__all__ = ["sky_sun_latlong", "probe_cube", "write_probe_exr", "COMPRESSIONS"]
+__all__ = ["sky_sun_latlong", "probe_cube", "write_probe_exr"]
 
 
 def sky_sun_latlong(h: int, a: float = 0.4, b: float = 1.2, g: float = 0.05, sun: float = 3e4,

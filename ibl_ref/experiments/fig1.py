@@ -40,7 +40,8 @@ PARAMS = params_from_settings(settings)
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..rendering.ao_modes import default_camera, light_visibilities, shade_eq5
+    from ..rendering.render import light_visibilities, shade_eq5
+    from ..rendering.scenes import default_camera
     from ..knuth2014.pem import build_pems
     from ..rendering.raster import prepare_scene, rasterize
     from ..synthetic.synthetic_envs import make_env

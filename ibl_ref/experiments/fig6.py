@@ -43,7 +43,8 @@ PARAMS = params_from_settings(settings)
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..rendering.ao_modes import default_camera, render_modes
+    from ..rendering.ao_modes import render_modes
+    from ..rendering.scenes import default_camera
     from ..rendering.image_metrics import all_metrics, rel_l1
     from ..synthetic.synthetic_envs import make_env
     from ..synthetic.synthetic_meshes import make_mesh

@@ -2,7 +2,7 @@
 
 Per frame (one image, ``kd = 0, ks = 1, g = 0.5``): rasterisation of the G-buffer, per light a shadow (depth) map,
 the moment blur, the VSM look-ups (``visibility``), the PEM look-ups (``lookup``) and the Eq. 5 sum
-(``shading``) — timed stage by stage (:func:`ibl_ref.rendering.ao_modes.light_visibilities` with ``timings``).  Building the
+(``shading``) — timed stage by stage (:func:`ibl_ref.rendering.render.light_visibilities` with ``timings``).  Building the
 PEMs (median cut + one filter pyramid per region) is a pre-process in the paper and reported separately
 (``pem_build_s``).  A least-squares line ``frame_s = intercept + slope·lights`` is fitted per scene.
 CPU NumPy timings (2 shared cores, under load) — only the trend is comparable to the paper's GPU numbers.
@@ -63,7 +63,8 @@ def _load_average():
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..rendering.ao_modes import default_camera, render_modes
+    from ..rendering.ao_modes import render_modes
+    from ..rendering.scenes import default_camera
     from ..knuth2014.pem import build_pems
     from ..synthetic.synthetic_envs import make_env
     from ..synthetic.synthetic_meshes import make_mesh

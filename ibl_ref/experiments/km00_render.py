@@ -9,7 +9,7 @@ Methods (:mod:`ibl_ref.lobes.prefiltered_lobes`):
 * ``reference`` — per-pixel exact filtering ``Σ_j L_j f(ω_j, wo) max(n·ω_j, 0) Ω_j`` over the environment texels
   (piecewise constant), each split into k×k sub-texels with k per pixel chosen so that the BRDF slice's narrowest
   half width (:func:`~ibl_ref.lobes.prefiltered_lobes.brdf_min_hwhm`, ≈ 0.7° at θo = 80° for α = 0.04) spans
-  ``ref_samples_per_hwhm`` sub-texels (:func:`~ibl_ref.lobes.prefiltered_lobes.auto_supersample`), times a multiplier
+  ``ref_samples_per_hwhm`` sub-texels (:func:`~ibl_ref.lobes.profile_convolution.auto_supersample`), times a multiplier
   (``ref_k_multipliers``, 1/2/4; the last is the reference), capped at ``ref_max_supersample``; gathered in the cone
   γc = :func:`~ibl_ref.lobes.prefiltered_lobes.ward_cut_angle` (ε = 1e-12) around r; the neglected radiance is bounded
   (``meta.info.reference.neglected_bound_max``).  Successive multipliers show the quadrature convergence.
@@ -47,8 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import read_csv, write_csv, write_json
-from ..lobes.lobe_render import SINGLE_METHODS, THETA_MAX_DEG, reference_supersample  # noqa: F401
-from ..rendering.km00_render import render_single_method  # noqa: F401
+from ..lobes.lobe_render import THETA_MAX_DEG, reference_supersample
 from ..rendering.km00_render import teapot_gbuffer as _gbuffer
 from . import params_from_settings, settings_with
 
@@ -96,6 +95,8 @@ def render_all(st: dict, env: np.ndarray, progress: bool = False) -> dict:
     from ..lobes import brdfs as B
     from ..lobes import kautz_mccool2000 as km
     from ..lobes import prefiltered_lobes as pl
+    from ..lobes import km00_reference
+    from ..lobes.profile_convolution import profile_integral
     from ..prefilter.registry import build_prefilter
 
     T: dict = {}
@@ -166,7 +167,7 @@ def render_all(st: dict, env: np.ndarray, progress: bool = False) -> dict:
     # reference with a supersampling sweep (the last one is the reference): per pixel, k sub-texels per texel edge
     # so that the slice's narrowest half width (brdf_min_hwhm at the pixel's θo) spans ≥ spw sub-texels, × multiplier
     alpha, ks = BRDF[1]["alpha"], BRDF[1]["ks"]
-    gc = pl.ward_cut_angle(alpha, float(st["ref_eps"]))
+    gc = km00_reference.ward_cut_angle(alpha, float(st["ref_eps"]))
     cos_o = np.sum(n * wo, axis=1)
     t0 = time.perf_counter()
     k_base = reference_supersample(f, env.shape[1], n, wo, st["ref_samples_per_hwhm"], st["ref_max_supersample"])
@@ -175,12 +176,12 @@ def render_all(st: dict, env: np.ndarray, progress: bool = False) -> dict:
     for mult in st["ref_k_multipliers"]:
         kpix = np.minimum(k_base * int(mult), int(st["ref_max_supersample"]))
         t0 = time.perf_counter()
-        refs.append(pl.render_reference(env, n, wo, f, supersample=kpix, cut_angle=gc, progress=progress))
+        refs.append(km00_reference.render_reference(env, n, wo, f, supersample=kpix, cut_angle=gc, progress=progress))
         T[f"reference_x{mult}"] = time.perf_counter() - t0
         u, c = np.unique(kpix[cos_o > 0], return_counts=True)
         k_counts.append({int(a): int(b) for a, b in zip(u, c)})
     vals["reference"] = refs[-1]
-    bound = pl.ward_neglected_bound(alpha, ks, gc, cos_o[cos_o > 0], float(env.max()))
+    bound = km00_reference.ward_neglected_bound(alpha, ks, gc, cos_o[cos_o > 0], float(env.max()))
 
     # the same methods under a constant environment L ≡ 1 (no map/pyramid resolution error): the reference is the
     # albedo a(θo) (brdfs.albedo, Gauss–Legendre), each method gives cos-factor × its lobe weights — isolates the
@@ -235,6 +236,7 @@ def _constant_env_images(L3, L3r, L1, L2, f, n, wo) -> dict:
 
     from ..lobes import brdfs as B
     from ..lobes import prefiltered_lobes as pl
+    from ..lobes.profile_convolution import profile_integral
     from ..prefilter.registry import build_prefilter
 
     def const_maps(ls):
@@ -252,7 +254,7 @@ def _constant_env_images(L3, L3r, L1, L2, f, n, wo) -> dict:
     out["lobes3_peakcos"] = pl.shade_lobes(c3, n, wo, cos_mode="peak")
     out["lobes3_rescaled"] = pl.shade_lobes(const_maps(L3r), n, wo)
     out["single"] = pl.shade_lobes(const_maps(L1), n, wo)
-    c2 = dataclasses.replace(L2, map=np.full((6, 2, 2, 1), float(pl.profile_integral(L2.gamma, L2.p_bar))),
+    c2 = dataclasses.replace(L2, map=np.full((6, 2, 2, 1), float(profile_integral(L2.gamma, L2.p_bar))),
                              _sampler=None)
     out["single2d"] = pl.shade_2d(c2, n, wo)
     pyr1 = build_prefilter(np.ones((6, 16, 16, 1)), "pyramid")
@@ -335,7 +337,7 @@ def run_with(out_dir: Path, st: dict, quick: bool = False, progress: bool = Fals
     cam = default_camera([(make_mesh("teapot"), 0)], size=int(st["size"]))
     write_image_exr(out_dir / "km00_render_background.exr", backdrop(env, cam))
     meta = dict(quick=quick, settings=st, brdf=dict(model=BRDF[0], **BRDF[1]), scene="teapot",
-                camera="ibl_ref.rendering.ao_modes.default_camera (as fig6)", visibility="none (KM2000 has no shadows)",
+                camera="ibl_ref.rendering.scenes.default_camera (as fig6)", visibility="none (KM2000 has no shadows)",
                 theta_max_deg=THETA_MAX_DEG, timings_s={k: round(v, 3) for k, v in T.items()},
                 total_time_s=round(time.perf_counter() - t_all, 2), info=res["info"],
                 definitions=dict(

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..knuth2014.gloss_lookup import LEVEL_STEP, best_constant_level, level_fit_directions  # noqa: F401  (library home)
+from ..knuth2014.gloss_lookup import LEVEL_STEP, best_constant_level, level_fit_directions
 from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 from . import params_from_settings, settings_with

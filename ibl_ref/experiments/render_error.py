@@ -59,7 +59,8 @@ PARAMS = params_from_settings(settings)
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..rendering.ao_modes import default_camera, light_visibilities, shade_eq5
+    from ..rendering.render import light_visibilities, shade_eq5
+    from ..rendering.scenes import default_camera
     from ..rendering.image_metrics import rel_l1, rel_max
     from ..prefilter.registry import build_region_prefilters
     from ..progress import track

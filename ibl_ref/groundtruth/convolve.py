@@ -104,7 +104,7 @@ except ImportError:  # pragma: no cover - not POSIX (no fork either)
 
 from ..environment import envmap
 from ..errors import IBLError
-from ..executors import resolve_executor, worker_died  # noqa: F401  (resolve_executor re-exported, old name)
+from ..executors import resolve_executor, worker_died
 from .convolution_args import check_cube, check_exponents, check_out_size
 
 __all__ = ["ConvolutionResult", "convolve", "default_workers", "METHODS", "WORKERS_ENV"]
@@ -744,7 +744,7 @@ def _route_auto(a4, s_list, rtol, out_size, normalized, info, impl="numpy", esti
             if L_s is not None:
                 L_of[s] = L_s
             elif r and s not in MOMENT_EXPONENTS:
-                L_of[s] = shc.SH_L_MAX
+                L_of[s] = SH_L_MAX
                 risky.add(s)
         if L_of:
             costs["sh"] = _sh_pass_cost(max(L_of.values()), plan["n_bright"], n_src, n_out, len(finite), Q, impl)
@@ -826,8 +826,7 @@ def _sh_cannot_pay(finite, others, n, n_src, n_out, Q, impl="numpy", rtol=1e-3):
     a lower bound of its cost: the band limit the planner could choose is never below the one the truncation
     bound needs at the most lenient target 0.8·rtol (:func:`~ibl_ref.groundtruth.sh_bounds.choose_band_limit`).
     Spares the planner (its coarse lobe averages and bound tables) where narrow lobes go to the sparse gather."""
-    from .sh_bounds import choose_band_limit, texel_max_radius
-    from .sh_convolution import SH_L_MAX
+    from .sh_bounds import SH_L_MAX, choose_band_limit, texel_max_radius
 
     rho = texel_max_radius(n)
     sh_lb = np.inf

@@ -75,7 +75,7 @@ vs. number of gathered texels).
 
 Modules.  This module holds the hybrid split, the planner (band limit, sun threshold, cost model) and
 :func:`convolve_sh_many`; the basis with the cube grid's reflection symmetries is :mod:`ibl_ref.groundtruth.sh_basis`, the
-zonal coefficients and the truncation envelope :mod:`ibl_ref.groundtruth.sh_bounds` (their public names are re-exported here).
+zonal coefficients and the truncation envelope :mod:`ibl_ref.groundtruth.sh_bounds`.
 
 Real SH basis (no Condon–Shortley phase; projection and evaluation use the same basis, so the phase is
 irrelevant): ``Y_l0 = P̄_l0(cos θ)``, ``Y_lm = √2 P̄_l|m|(cos θ) cos(mφ)`` (m > 0), ``√2 P̄_l|m| sin(|m|φ)``
@@ -97,30 +97,19 @@ from .convolution_args import check_cube, check_exponent, check_out_size
 from ..errors import IBLError
 
 __all__ = [
-    "zonal_coefficients",
-    "legendre_series_truncation_envelope",
-    "texel_max_radius",
-    "real_sh",
-    "sh_project",
-    "sh_evaluate",
-    "sh_lobe_convolve",
-    "choose_band_limit",
     "convolve_sh",
     "convolve_sh_many",
     "plan_sh",
     "sh_cost",
     "bright_cost",
-    "SH_L_MAX",
 ]
 
 _FOUR_PI = 4.0 * np.pi
 
-# the basis (with the grid symmetries) and the zonal coefficients / truncation bounds live in their own
-# modules; their public names (and the two helpers the tests use) stay importable from here
-from .sh_basis import _octant_orbits, real_sh, sh_evaluate, sh_lobe_convolve, sh_project  # noqa: E402,F401
-from .sh_bounds import (
+# the basis (with the grid symmetries) and the zonal coefficients / truncation bounds live in their own modules
+from .sh_basis import sh_lobe_convolve  # noqa: E402
+from .sh_bounds import (  # noqa: E402
     SH_L_MAX,
-    _sliding_max,
     choose_band_limit,
     legendre_series_truncation_envelope,
     texel_max_radius,

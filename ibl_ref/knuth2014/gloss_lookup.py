@@ -39,10 +39,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..conventions import phong_exponent  # noqa: F401  (Eq. 3; re-exported, old name)
+from ..conventions import phong_exponent  # Eq. 3
 from ..errors import IBLError
 
-__all__ = ["phong_exponent", "Calibration", "analytic_calibration", "get_calibration", "shipped_calibration", "calibration_path",
+__all__ = ["Calibration", "analytic_calibration", "get_calibration", "shipped_calibration", "calibration_path",
            "level_for_gloss", "lookup", "lookup_at_level", "best_constant_level", "level_fit_directions", "LEVEL_STEP",
            "DATA_DIR"]
 

@@ -51,7 +51,7 @@ from ..environment.radiance_policy import check_radiance
 from ..errors import IBLError, LayoutError
 from ..conventions import lobe_half_angle
 
-__all__ = ["ChainSpec", "chain_spec", "lobe_half_angle", "build_lobe_chain", "build_lobe_chain_pems",
+__all__ = ["ChainSpec", "chain_spec", "build_lobe_chain", "build_lobe_chain_pems",
            "chain_calibration", "exponent_calibration", "lobe_average_regions"]
 
 KERNEL_NAME = "exact-lobe"

@@ -30,16 +30,17 @@ SINGLE_METHODS = ("reference", "lobes", "single", "2d", "pyramid")
 def reference_supersample(f, env_size: int, n, wo, samples_per_hwhm: float, max_supersample: int) -> np.ndarray:
     """Per-sample source supersampling k of the per-pixel reference: the BRDF slice's narrowest half width at the
     sample's θo (:func:`~ibl_ref.lobes.prefiltered_lobes.brdf_min_hwhm`, tabulated every 0.5°, the smaller of the two
-    bracketing entries) spans ``samples_per_hwhm`` sub-texels (:func:`~ibl_ref.lobes.prefiltered_lobes.auto_supersample`),
+    bracketing entries) spans ``samples_per_hwhm`` sub-texels (:func:`~ibl_ref.lobes.profile_convolution.auto_supersample`),
     capped at ``max_supersample``.  Returns (P,) integers."""
-    from . import prefiltered_lobes as pl
+    from . import km00_reference
+    from .profile_convolution import auto_supersample
 
     th = np.arccos(np.clip(np.sum(n * wo, axis=1), 0.0, 1.0))
     th_tab = np.radians(np.arange(0.0, 90.0, 0.5))
-    hw_tab = pl.brdf_min_hwhm(f, th_tab)
+    hw_tab = km00_reference.brdf_min_hwhm(f, th_tab)
     i = np.clip((th / np.radians(0.5)).astype(int), 0, th_tab.size - 2)
     hw = np.minimum(hw_tab[i], hw_tab[i + 1])
-    return np.array([pl.auto_supersample(int(env_size), h, float(samples_per_hwhm), int(max_supersample))
+    return np.array([auto_supersample(int(env_size), h, float(samples_per_hwhm), int(max_supersample))
                      for h in hw], dtype=np.intp)
 
 
@@ -57,12 +58,12 @@ def check_resolvable(f, method: str, env_size: int, thetas, n_gamma: int = 256, 
     (:func:`ibl_ref.lobes.kautz_mccool2000.gamma_nodes`; narrower lobes fit to no lobe at all).  The message names
     the BRDF parameter that sets the width (``alpha=…`` / ``s=…``).
     """
-    from . import prefiltered_lobes as pl
+    from . import km00_reference
     from .kautz_mccool2000 import gamma_nodes
     from ..errors import IBLError
 
     with np.errstate(all="ignore"):  # a needle-thin lobe overflows the BRDF at its peak: judged below instead
-        hws = np.atleast_1d(pl.brdf_min_hwhm(f, thetas))
+        hws = np.atleast_1d(km00_reference.brdf_min_hwhm(f, thetas))
     hw = float(np.min(hws))
     limits = []
     if method != "pyramid":
@@ -121,6 +122,7 @@ def shade_single_method(method: str, env: np.ndarray, n, wo, *, brdf: str = "war
     from . import brdfs as B
     from . import kautz_mccool2000 as km
     from . import prefiltered_lobes as pl
+    from . import km00_reference
     from ..errors import IBLError
     from ..progress import step
 
@@ -139,9 +141,9 @@ def shade_single_method(method: str, env: np.ndarray, n, wo, *, brdf: str = "war
     info: dict = dict(method=method, brdf=brdf, brdf_params=dict(brdf_params or {}))
     if method == "reference":
         # the cone cut and its bound cover Ward's specular term only: with a diffuse term gather everything
-        cut = pl.ward_cut_angle(f.params.get("alpha", 0.04), 1e-12) if brdf == "ward" and not f.params.get("kd", 0.0) else None
+        cut = km00_reference.ward_cut_angle(f.params.get("alpha", 0.04), 1e-12) if brdf == "ward" and not f.params.get("kd", 0.0) else None
         kpix = reference_supersample(f, env.shape[1], n, wo, ref_samples_per_hwhm, ref_max_supersample)
-        vals = pl.render_reference(env, n, wo, f, supersample=kpix, cut_angle=cut, progress=progress)
+        vals = km00_reference.render_reference(env, n, wo, f, supersample=kpix, cut_angle=cut, progress=progress)
         info.update(cut_angle_deg=None if cut is None else float(np.degrees(cut)), max_supersample=int(kpix.max()))
     elif method in ("lobes", "pyramid"):
         with step(f"{n_lobes}-lobe fits at {len(thetas)} elevations", enabled=progress):

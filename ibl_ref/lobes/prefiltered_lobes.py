@@ -13,8 +13,7 @@ with ``c_j = n·r`` (``cos_mode="mirror"``, the paper's Eq. 2 approximation ``n�
 sphere (a map cannot know the surface's horizon), exactly as in the paper; the reference clips at ``n·l > 0``.
 
 The prefiltering itself (exact convolution with radial profiles) is :mod:`ibl_ref.lobes.profile_convolution`; the
-per-pixel exact reference the renders are judged by is :mod:`ibl_ref.lobes.km00_reference` (both names stay importable
-from here).
+per-pixel exact reference the renders are judged by is :mod:`ibl_ref.lobes.km00_reference`.
 
 (b) :class:`LobeSet` / :func:`build_lobe_set` — the "3D maps": for the sampled elevations θo_k and every tracked lobe
     j (:func:`ibl_ref.lobes.kautz_mccool2000.track_lobes`), the environment prefiltered with lobe j's profile at θo_k,
@@ -52,34 +51,17 @@ from ..environment import envmap
 from ..errors import IBLError
 from .profile_convolution import (
     ProfileError,
-    auto_supersample,
     check_profile,
-    convolve_profile,
     convolve_profiles,
-    profile_hwhm,
     profile_integral,
-    support_angle,
 )
 
-__all__ = ["ProfileError", "ElevationRangeError", "check_profile", "profile_integral", "support_angle",
-           "convolve_profiles", "convolve_profile", "profile_hwhm", "auto_supersample", "LobeSet", "build_lobe_set",
+__all__ = ["ElevationRangeError", "LobeSet", "build_lobe_set",
            "build_2d_lobe", "Lobe2D", "local_frame", "peak_direction", "shade_lobes", "shade_2d", "shade_pyramid",
            "COS_MODES", "ENERGY_MODES"]
 
 COS_MODES = ("mirror", "peak")
 ENERGY_MODES = ("phong", "profile")
-
-#: names that live in :mod:`ibl_ref.lobes.km00_reference` (importable from here as before)
-_REFERENCE_NAMES = ("render_reference", "brdf_min_hwhm", "ward_cut_angle", "ward_neglected_bound")
-
-
-def __getattr__(name):
-    if name in _REFERENCE_NAMES:
-        from . import km00_reference
-
-        return getattr(km00_reference, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
 
 class ElevationRangeError(IBLError):
     """A view elevation θo lies outside the sampled range of a 3D map (or outside [0, π/2))."""

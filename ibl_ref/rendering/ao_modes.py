@@ -32,11 +32,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import IBLError
-from .render import light_visibilities, shade_eq5  # noqa: F401  (the one Eq. 5 path; re-exported, old names)
-from .scenes import default_camera  # noqa: F401  (re-exported, old name)
+from .render import light_visibilities, shade_eq5  # the one Eq. 5 path
+from .scenes import default_camera
 
-__all__ = ["MODES", "ModesResult", "render_modes", "render_mode", "light_visibilities", "default_camera",
-           "shade_eq5"]
+__all__ = ["MODES", "ModesResult", "render_modes", "render_mode"]
 
 MODES = ("ours", "no-occlusion", "ao", "ao-color", "reference")
 AO_COLOR_VARIANTS = ("modulate", "irradiance")
@@ -250,7 +249,7 @@ def _reference_per_material(scene, camera, env, gb, mats, progress, reference_kw
 def render_mode(scene, env, mode: str, *, camera=None, **kw) -> np.ndarray:
     """One Fig. 6 image (H, W, C) for ``mode`` ∈ :data:`MODES` (keywords as :func:`render_modes`).
 
-    ``scene`` are the meshes; ``camera`` defaults to :func:`default_camera` (64² px).
+    ``scene`` are the meshes; ``camera`` defaults to :func:`ibl_ref.rendering.scenes.default_camera` (64² px).
     """
     if mode not in MODES:
         raise IBLError(f"mode must be one of {MODES}, got {mode!r}")

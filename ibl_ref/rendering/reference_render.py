@@ -47,25 +47,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..conventions import lobe_half_angle, phong_exponent  # noqa: F401  (re-exported, old names)
+from ..conventions import lobe_half_angle
 from ..errors import IBLError, LayoutError
-from .reference_converged import (DEFAULT_RTOL, ERR_FLOOR, check_environment, coarse_env,  # noqa: F401 (re-exported)
-                                  converged_shading, radiance_at_face_size)
+from .reference_converged import (DEFAULT_RTOL, ERR_FLOOR, check_environment, coarse_env,
+                                  converged_shading)
 
 __all__ = [
     "ReferenceResult",
-    "check_environment",
-    "radiance_at_face_size",
-    "coarse_env",
     "coarse_directions",
-    "lobe_half_angle",
     "env_size_for_exponent",
     "lobe_average",
     "parallel_visibility",
     "reference_shading",
     "render_reference",
-    "converged_shading",
-    "DEFAULT_RTOL",
     "coarse_level_error",
     "exact_pem_lookup",
 ]
