@@ -19,7 +19,7 @@ import numpy as np
 
 from ..environment import envmap
 from .convolution_args import check_cube
-from ..errors import LayoutError
+from ..errors import IBLError, LayoutError
 from .sh_tables import _layout, _recurrence_coeffs, _row_layout, compiled_tables
 
 __all__ = ["real_sh", "sh_project", "sh_evaluate", "sh_lobe_convolve"]
@@ -482,7 +482,7 @@ class SymmetryPlan:
 
     def __init__(self, dirs, L: int, n_parts: int):
         if n_parts < 1:
-            raise ValueError(f"n_parts must be >= 1, got {n_parts}")
+            raise IBLError(f"n_parts must be >= 1, got {n_parts}")
         self.L = int(L)
         self.n_parts = int(n_parts)
         self.orb = _octant_orbits(dirs)
