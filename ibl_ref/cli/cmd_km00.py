@@ -33,7 +33,7 @@ def run(args) -> int:
     from ..rendering.km00_render import render_single_method
     from ..rendering.image_io import write_image_exr
 
-    from .cmd_render import _check_output, _size, parse_exposure
+    from .cmd_render import _check_output, _preview_exposure, _size, parse_exposure
 
     # ---- every argument first, before the environment is read --------------------------------------------
     out = _check_output(Path(args.out), (".exr",))
@@ -54,20 +54,22 @@ def run(args) -> int:
     if args.brdf == "cook_torrance":
         params.pop("ks")
     env = _env(args.env, args.env_size, args)
+    png_stops, exposure_rule = _preview_exposure(stops, env)
     img, mask, info = render_single_method(args.method, env, width=w, height=h, brdf=args.brdf, brdf_params=params,
                                            n_lobes=args.lobes, n_theta=args.n_theta, rescale_lobes=args.rescale_lobes,
                                            progress=not args.quiet)
     # ---- outputs: image, --png and the JSON manifest committed together (a failed PNG leaves no image) -------
     manifest = {"out": str(out), "method": args.method, "brdf": args.brdf, "brdf_params": params,
                 "size": [w, h], "env": str(args.env), "env_size": int(env.shape[1]), "lobes": args.lobes,
-                "n_theta": args.n_theta, "rescale_lobes": bool(args.rescale_lobes), "exposure_stops": stops,
+                "n_theta": args.n_theta, "rescale_lobes": bool(args.rescale_lobes), "exposure_stops": png_stops,
+                "exposure_rule": exposure_rule,
                 "time_s": info.get("time_s"), "outputs": [out.name] + ([png.name] if png else [])}
     with OutputSet(side, owned_key="outputs", remove_stale=False) as outs:
         write_image_exr(outs.path(out), img)
         if png is not None:
             from ..rendering.tonemap import save_png
 
-            save_png(outs.path(png), img, stops=stops, mask=mask)
+            save_png(outs.path(png), img, stops=png_stops, mask=mask)
         outs.commit(manifest)
     if not args.quiet:
         print(f"wrote {out} ({w}x{h}, method {args.method}, {info['time_s']} s)"
@@ -99,7 +101,9 @@ def register(sub) -> None:
                    help="output OpenEXR image OUT.exr (linear radiance); OUT.json beside it records the settings")
     p.add_argument("--png", action="store_true", help="also write a tone-mapped PNG next to it (OUT.png)")
     p.add_argument("--exposure", default="auto", metavar="auto|EV|xK",
-                   help="PNG exposure: 'auto' (default), EV stops (e.g. -2) or a linear scale (e.g. x0.25)")
+                   help="PNG exposure: 'auto' (default: one exposure per environment, its solid-angle mean "
+                   "radiance maps to 0.5, the same for every method), 'image' (per image), EV stops (e.g. -2) or a "
+                   "linear scale (e.g. x0.25)")
     p.add_argument("--quiet", action="store_true", help="no progress reports (bar or status lines) and no summary line")
     from .radiance_args import add_radiance_args
 

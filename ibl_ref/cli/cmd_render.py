@@ -105,7 +105,8 @@ MAX_EXPOSURE_STOPS = 1024.0
 
 
 def parse_exposure(text, option: str = "--exposure"):
-    """``auto`` → None (auto exposure), a number → EV stops, ``xK`` or ``Kx`` → a linear scale K (stops = log2 K).
+    """``auto`` → None (one exposure per environment, :func:`ibl_ref.rendering.tonemap.environment_exposure`),
+    ``image`` → ``"image"`` (per-image auto exposure), a number → EV stops, ``xK`` or ``Kx`` → a linear scale K (stops = log2 K).
 
     |stops| ≤ :data:`MAX_EXPOSURE_STOPS`; beyond, the scale leaves float64 and the preview would be one colour.
     """
@@ -114,6 +115,8 @@ def parse_exposure(text, option: str = "--exposure"):
     t = str(text).strip().lower()
     if t == "auto":
         return None
+    if t == "image":
+        return "image"
     try:
         if t.startswith("x") or t.endswith("x"):
             k = float(t.strip("x"))
@@ -125,12 +128,30 @@ def parse_exposure(text, option: str = "--exposure"):
             if not math.isfinite(v):
                 raise ValueError
     except ValueError:
-        raise IBLError(f"{option}: expected 'auto', EV stops (e.g. -2 or 1.5) or a linear scale (e.g. x0.25), "
+        raise IBLError(f"{option}: expected 'auto', 'image', EV stops (e.g. -2 or 1.5) or a linear scale (e.g. x0.25), "
                        f"got {text!r}") from None
     if abs(v) > MAX_EXPOSURE_STOPS:
         raise IBLError(f"{option} {text}: {v:g} stops scales radiance by 2^{v:g}, beyond float64 (at most "
                        f"{MAX_EXPOSURE_STOPS:g} stops either way; a preview needs a few)")
     return v
+
+
+def _preview_exposure(stops, cube):
+    """(stops for the PNG or None for per-image auto exposure, the rule in words) from ``--exposure``."""
+    if stops == "image":
+        return None, "per image: the object's 90th-percentile luminance maps to 0.8 (not comparable across images)"
+    if stops is not None:
+        return stops, "fixed by --exposure"
+    import numpy as np
+
+    from ..environment.envmap import cube_solid_angles
+    from ..rendering.tonemap import environment_exposure
+
+    omega = cube_solid_angles(cube.shape[1])
+    y = cube.mean(axis=-1) if cube.ndim == 4 else cube
+    mean = float(np.sum(y * omega) / np.sum(omega))
+    return environment_exposure(mean), ("per environment: its solid-angle mean radiance maps to 0.5, the same for "
+                                        "every mode and method, so previews of one scene compare")
 
 
 def _camera(args, meshes):
@@ -248,10 +269,11 @@ def cmd_render(args) -> int:
         raise IBLError(f"--material / --ground-material: weights up to {wmax:g} times radiance up to "
                        f"{float(np.max(cube)):g} overflow float64 in the shading sum; use smaller weights")
 
+    png_stops, exposure_rule = _preview_exposure(stops, cube)
     t0 = time.perf_counter()
     info = {"out": str(out), "mode": mode, "size": [w, h], "fov_y_deg": args.fov,
             "camera_eye": cam.eye.tolist(), "camera_target": cam.target.tolist(),
-            "background": args.background, "exposure_stops": stops,
+            "background": args.background, "exposure_stops": png_stops, "exposure_rule": exposure_rule,
             "material": _material_info(mat, args.gmap),
             "ground_material": (_material_info(gmat) if args.ground else None),
             "radiance": radiance}
@@ -327,7 +349,7 @@ def cmd_render(args) -> int:
         if png is not None:
             from ..rendering.tonemap import save_png
 
-            save_png(outs.path(png), image, stops=stops, mask=mask)
+            save_png(outs.path(png), image, stops=png_stops, mask=mask)
             info["png"] = str(png)
         outs.commit(info)
     print(f"wrote {out} ({w}x{h}, mode {mode}; {info['render_time_s']} s render, {info['pem_time_s']} s PEMs)"
@@ -486,8 +508,10 @@ def register(sub) -> None:
                    help="pixels without geometry: the environment seen along the camera ray (default; the same "
                    "look-up a mirror reflection gets) or black")
     g.add_argument("--exposure", default="auto", metavar="auto|EV|xK",
-                   help="PNG exposure: 'auto' (default: the object's 90th-percentile luminance maps to 0.8), EV "
-                   "stops (e.g. -2), or a linear scale (e.g. x0.25)")
+                   help="PNG exposure: 'auto' (default: one exposure per environment, its solid-angle mean "
+                   "radiance maps to 0.5, so the previews of every mode and method of a scene compare by eye), "
+                   "'image' (per image: the object's 90th-percentile luminance maps to 0.8), EV stops (e.g. -2), "
+                   "or a linear scale (e.g. x0.25); the sidecar JSON records the stops and the rule")
     g.add_argument("--progress", dest="progress", action="store_true", default=True,
                    help="report progress on stderr (default): a bar on a terminal, a status line at most every "
                    "10 s in a log ($IBL_REF_PROGRESS_INTERVAL)")

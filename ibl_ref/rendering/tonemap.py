@@ -14,7 +14,7 @@ import numpy as np
 
 from ..errors import IBLError
 
-__all__ = ["srgb_encode", "reinhard", "expose", "exposure_srgb", "auto_exposure", "save_png", "backdrop", "with_backdrop"]
+__all__ = ["srgb_encode", "reinhard", "expose", "exposure_srgb", "auto_exposure", "environment_exposure", "save_png", "backdrop", "with_backdrop"]
 
 
 def srgb_encode(x) -> np.ndarray:
@@ -45,6 +45,17 @@ def auto_exposure(img, mask=None, percentile: float = 90.0, key: float = 0.8) ->
     if y.size == 0:
         return 0.0
     return float(np.log2(key) - np.log2(np.percentile(y, percentile)))  # no overflow for subnormal y
+
+
+def environment_exposure(mean_radiance: float, key: float = 0.5) -> float:
+    """Stops such that the environment's solid-angle weighted mean radiance L̄ = ∫L dω / 4π maps to ``key`` (0 if
+    L̄ ≤ 0).  A white Lambertian surface lit by a uniform environment L̄ has radiance L̄, so it maps to ``key``.  The
+    exposure depends on the environment only, not on the image: previews of the same scene rendered by different
+    methods (or modes) get the same exposure and can be compared by eye."""
+    m = float(mean_radiance)
+    if not (np.isfinite(m) and m > 0):
+        return 0.0
+    return float(np.log2(key) - np.log2(m))
 
 
 #: float64's binary exponent range (2^-1074 … 2^1023): the exposed values are kept inside it
