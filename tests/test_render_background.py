@@ -162,3 +162,4 @@ def test_environment_exposure_maps_the_mean_radiance_to_the_key():
     assert environment_exposure(3.0) == pytest.approx(np.log2(0.5 / 3.0), abs=1e-15)
     assert 2.0 ** environment_exposure(3.0, key=0.25) * 3.0 == pytest.approx(0.25, rel=1e-15)
     assert environment_exposure(0.0) == 0.0 and environment_exposure(float("nan")) == 0.0
+

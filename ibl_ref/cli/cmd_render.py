@@ -464,7 +464,10 @@ def register(sub) -> None:
     g.add_argument("--exact-backend", choices=("binned", "trimesh"), default="binned",
                    help="exact visibility for --visibility raycast: binned parallel rays (default) or trimesh")
     g.add_argument("--horizon", action="store_true",
-                   help="block lights below each triangle's tangent plane (not in the paper)")
+                   help="block lights below each triangle's tangent plane (not in the paper; the paper's method lets a "
+                   "surface receive light from below its horizon). Measured on the default view at 128x128 with the "
+                   "default materials: without --horizon the ground's mean radiance is 24.8 %% higher under the "
+                   "default sky and 65.5 %% higher under the courtyard probe (the teapot 2.7 %% / 6.3 %%)")
     g.add_argument("--vsm-res", type=int, default=256, metavar="N", help="shadow map size (default 256)")
     g.add_argument("--vsm-dtype", choices=("float16", "float32", "float64"), default="float32",
                    help="shadow-map moment storage (float16 = the paper's RG16F; default float32)")
