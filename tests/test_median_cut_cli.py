@@ -3,7 +3,6 @@
 import json
 
 import numpy as np
-import pytest
 
 from ibl_ref.cli import main
 from ibl_ref.environment.envmap import texel_solid_angles

@@ -216,7 +216,7 @@ def _geometric_tables(n: int, k: int, convention: str = "openexr"):
     if k < 0 or k > n:
         raise IBLError(f"padding width must be in 0..N (N={n}), got {k}")
     frames = envmap.face_frames(convention)
-    m, mp = n + 2 * k, n + 2
+    mp = n + 2
     idx = np.arange(-k, n + k)
     f, i, j = np.meshgrid(np.arange(6), idx, idx, indexing="ij")
     u, v = envmap.texel_coords_to_uv(j, i, n)

@@ -96,7 +96,6 @@ def render_all(st: dict, env: np.ndarray, progress: bool = False) -> dict:
     from ..lobes import kautz_mccool2000 as km
     from ..lobes import prefiltered_lobes as pl
     from ..lobes import km00_reference
-    from ..lobes.profile_convolution import profile_integral
     from ..prefilter.registry import build_prefilter
 
     T: dict = {}

@@ -125,7 +125,6 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
                     bounds = {s: np.full(len(idx), 1e-12) for s in S}
                 used = {s: "exact" for s in S}
                 t, tc = t_exact, c_exact
-                sel = slice(None)
             else:
                 t0 = time.perf_counter()
                 res = convolve(cube, s_sub, method=meth, rtol=RTOL)

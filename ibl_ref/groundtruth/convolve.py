@@ -102,7 +102,6 @@ try:
 except ImportError:  # pragma: no cover - not POSIX (no fork either)
     resource = None
 
-from ..environment import envmap
 from ..errors import IBLError
 from ..executors import resolve_executor, worker_died
 from .convolution_args import check_cube, check_exponents, check_out_size
@@ -684,6 +683,7 @@ def _route_auto(a4, s_list, rtol, out_size, normalized, info, impl="numpy", esti
     Q = a4.shape[-1] + 1
     from . import sh_convolution as shc
     from .moment_convolution import moment_leaf
+    from .sh_bounds import SH_L_MAX
 
     unit = _seconds_per_unit()
     route, plan = {}, None

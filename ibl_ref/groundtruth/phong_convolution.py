@@ -812,7 +812,7 @@ def _compiled_sources(src_dirs, rad_w, is_bright):
     M, Q = rad_w.shape
     C = Q - 1
     X, Y, Z = (np.ascontiguousarray(src_dirs[:, i]) for i in range(3))
-    groups, bright_cols = [], []
+    groups = []
     for g0 in range(0, max(C, 1), 3):
         ch = list(range(g0, min(g0 + 3, C))) + [C]
         rws = np.zeros((4, M))

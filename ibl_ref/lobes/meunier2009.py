@@ -595,7 +595,6 @@ def cap_fit_error(e, alpha) -> np.ndarray:
 
 def _cap_dE(e, alpha):
     """d/de of :func:`cap_fit_error` / 2π (for α < π/2)."""
-    m = np.cos(alpha)
     ln_m = np.log1p(-_one_minus_cos(alpha))
     m_pow = np.exp((e + 1) * ln_m)
     return 2 * (1 - m_pow) / (e + 1) ** 2 + 2 * m_pow * ln_m / (e + 1) - 2 / (2 * e + 1) ** 2

@@ -530,8 +530,6 @@ def _build_scene(mi, scene, materials, bitmap):
 
 def _render_half(mi, mscene, o, dirs, spp, seed, lanes):
     """Mean radiance (P, 3) of ``spp`` samples per ray, in passes of at most ``lanes`` wavefront lanes."""
-    import drjit as dr
-
     P = len(o)
     per_pass = max(1, min(spp, lanes // max(P, 1)))
     integ = mscene.integrator()

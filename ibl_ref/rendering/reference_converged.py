@@ -714,7 +714,7 @@ def _converge_block(job: dict) -> dict:
     cap = max(int(job["n_quad_max"]), M)
     grade = _grades(lobe, g, cand_p, cand_c, cen, rad, M)
 
-    def levels(M_):
+    def levels(M_, grade=grade):  # bound now: the arrays are freed below, with this function
         return np.minimum(M_ * 2 ** grade, max(cap, M_))
 
     prtol = float(job["pixel_rtol"])
@@ -725,7 +725,7 @@ def _converge_block(job: dict) -> dict:
     vis_su, vis_sv = np.zeros(0), np.zeros(0)
     n_rays = 0
 
-    def norm_sums(ns):
+    def norm_sums(ns, cand_p=cand_p):
         if not lobe.normalised:
             return np.ones(Pn)
         w = np.bincount(cand_p, weights=ns, minlength=Pn)
@@ -768,7 +768,7 @@ def _converge_block(job: dict) -> dict:
         Wh, nsh = Wq, nsq
         Wq, nsq = _pair_weights(env, lobe, g, cand_p, cand_c, levels(M))
     bM = levels(M)[keep]
-    del Wh, Wq, vis_key, vis_val, vis_su, vis_sv, cand_p, cand_c, grade
+    del Wh, Wq, vis_key, vis_val, vis_su, vis_sv, cand_p, cand_c, grade, levels, norm_sums
     nB = len(bp)
     nF, nI, nJ = _neighbours(cf, ci, cj, nb)
     nbr = (nF * nb + nI) * nb + nJ  # (K, 8)
