@@ -76,7 +76,7 @@ def check_cosine_lobes(out, summary):
     # Meunier Eq. 20-21: 2π/(e+1) against adaptive quadrature (scipy), to quadrature accuracy
     assert summary["integral_closed_form_max_rel_err"] < 1e-10
     # the product fit's mean error against the paper's 7.1e-4 (Sec. 4.1): within a factor 3 at the quick
-    # sampling (2 exponents per decade instead of 6; the README's full run gives 9.9e-4)
+    # sampling (2 exponents per decade instead of 6; the full run's number is pinned by test_readme_saved_runs)
     pf = summary["product_fit"]
     assert pf["paper_mean_abs_err"] == pytest.approx(7.1379e-4)
     assert pf["paper_mean_abs_err"] / 3 < pf["abs_err_sr"]["mean"] < 3 * pf["paper_mean_abs_err"]
@@ -177,7 +177,7 @@ def check_km00(out, summary):
 
 def check_km00_render(out, summary):
     # under L ≡ 1 the reference is the Ward albedo: the energy-rescaled lobes carry it (|bias| < 1 %, the
-    # interpolation in θo), the greedy minimum-profile lobes leave energy out (README: −11 % at full size)
+    # interpolation in θo), the greedy minimum-profile lobes leave energy out (full size: test_readme_saved_runs)
     r = {q["method"]: q for q in read_csv(out / "km00_render_metrics.csv")}
     assert abs(float(r["lobes3_rescaled"]["rel_bias_constant_env"])) < 0.01
     assert float(r["lobes3"]["rel_bias_constant_env"]) < -0.05
@@ -202,8 +202,8 @@ def check_lights_vs_error(out, summary):
 def check_lobe_chain(out, summary):
     rows = read_csv(out / "lobe_chain.csv")
     err = {(q["prefilter"], float(q["s_phong"])): float(q["rel_l1"]) for q in rows if q["env"] == "sky_sun"}
-    # README (64² faces): exact-lobe chain (ratio 2) ≤ 3.1 % at every s; the paper's pyramid ≥ 18.7 % at every s
-    # (sky+sun).  At the quick size (32² faces) the chain holds this up to s = 100; at s = 300 the lobe (half width
+    # the README's full run (64² faces, pinned by test_readme_saved_runs): the exact-lobe chain (ratio 2) within a
+    # few % at every s, the paper's pyramid far above (sky+sun).  At the quick size (32² faces) the chain holds this up to s = 100; at s = 300 the lobe (half width
     # acos(2^(-1/300)) = 3.9°) spans barely more than one 32² texel (2.8°), so that point is left out
     assert max(v for (p, s), v in err.items() if p == "chain-f2" and s <= 100) < 0.031
     assert min(v for (p, s), v in err.items() if p == "pyramid-sqrtcos") > 0.15
@@ -229,7 +229,7 @@ def check_mediancut(out, summary):
 
 def check_render_error(out, summary):
     # the exact-lobe chain removes the filter-shape error: its lookup alone is far closer to the reference's
-    # lobes than the paper's pyramid (README at full size: 0.75 % vs 30.0 % for the diffuse material)
+    # lobes than the paper's pyramid (the full run's numbers are pinned by test_readme_saved_runs)
     rows = read_csv(out / "render_error.csv")
     for q in rows:
         if q["material"] == "diffuse":
