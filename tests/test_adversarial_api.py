@@ -632,7 +632,34 @@ def test_side_file_rule(tmp_path):
         atomic.check_side_files(side, [tmp_path / "r_s8.exr"])
 
 
-def test_critical_section_holds_ctrl_c_until_it_ends():
+@pytest.fixture
+def sigint_default():
+    """SIGINT raises KeyboardInterrupt during the test, as in an interactive session, whatever the test process
+    inherited (a test run started as a background job of a script has SIGINT ignored); restored afterwards."""
+    import signal
+
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
+
+
+def test_an_inherited_ignored_sigint_stays_ignored():
+    # POSIX: a job started with SIGINT ignored is not meant to stop on Ctrl-C; the CLI's handler leaves it so
+    import signal
+
+    from ibl_ref.cli import interrupts
+
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with interrupts.handling():
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+            os.kill(os.getpid(), signal.SIGINT)  # ignored: nothing is raised
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN and not interrupts.interrupted()
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+def test_critical_section_holds_ctrl_c_until_it_ends(sigint_default):
     import signal
 
     done = []
@@ -645,7 +672,7 @@ def test_critical_section_holds_ctrl_c_until_it_ends():
     assert done == [1] * 100
 
 
-def test_interrupt_during_an_import_is_deferred_not_swallowed(tmp_path, monkeypatch):
+def test_interrupt_during_an_import_is_deferred_not_swallowed(tmp_path, monkeypatch, sigint_default):
     # a module that, like trimesh, guards its imports with `except BaseException`: a Ctrl-C inside is held until
     # the import is done, then raised (the guard never sees it)
     import signal
@@ -665,7 +692,7 @@ def test_interrupt_during_an_import_is_deferred_not_swallowed(tmp_path, monkeypa
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
-def test_a_resend_left_from_one_command_does_not_interrupt_the_next():
+def test_a_resend_left_from_one_command_does_not_interrupt_the_next(sigint_default):
     # in one process (a notebook, a test session) a Ctrl-C of one command arms its re-send timer; a command started
     # right after must not receive that leftover interrupt
     import signal

@@ -864,8 +864,11 @@ def _interrupt(argv, delay, cwd):
 
     env = dict(os.environ, PYTHONPATH=str(ROOT), IBL_REF_PROGRESS="0")
     code = "import sys, ibl_ref.cli as c; print('go', file=sys.stderr, flush=True); sys.exit(c.main())"
+    # the child starts with SIGINT's default disposition, as from an interactive shell, even when this test
+    # process inherited it ignored (an inherited SIG_IGN is kept by the CLI: ibl_ref.cli.interrupts)
     p = subprocess.Popen([sys.executable, "-c", code, *map(str, argv)], cwd=cwd, env=env, stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True, start_new_session=True)
+                         stderr=subprocess.PIPE, text=True, start_new_session=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     assert p.stderr.readline() == "go\n"
     time.sleep(delay)
     os.killpg(p.pid, signal.SIGINT)  # Ctrl-C on a terminal: the whole process group

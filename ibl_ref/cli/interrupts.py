@@ -19,6 +19,10 @@ command; inside it, SIGINT is handled by :func:`_on_sigint`:
   the interrupt is raised the handler terminates every live :mod:`multiprocessing` child, so that the command
   does not wait for their jobs.
 
+* **An ignored SIGINT stays ignored**: a process started with SIGINT set to ``SIG_IGN`` (a ``cmd &`` job of a
+  non-interactive shell, ``nohup``-like launchers) was told not to stop on Ctrl-C, as POSIX shells and Python's
+  own start-up respect; :func:`handling` then installs nothing.
+
 Every output is written atomically or as an :class:`ibl_ref.atomic.OutputSet`, so an interrupt leaves the
 previous files as they were and no temporary file behind; :func:`ibl_ref.cli.main` prints
 ``ibl-ref CMD: interrupted`` and returns 130 (128 + SIGINT, the shell's convention).
@@ -102,8 +106,13 @@ def _child_after_fork() -> None:
 
 @contextlib.contextmanager
 def handling():
-    """Install :func:`_on_sigint` for the block (main thread only; elsewhere a no-op)."""
+    """Install :func:`_on_sigint` for the block (main thread only, and only where SIGINT is not ignored: a
+    process that inherited ``SIG_IGN`` keeps it; elsewhere a no-op)."""
     if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        _STATE["received"] = False
         yield
         return
     try:
