@@ -337,8 +337,7 @@ _UNDEFINED_NAME_RULES = "F821,F822,F823"
 
 
 def _undefined_names(*paths) -> tuple[int, str]:
-    ruff = pytest.importorskip("ruff")  # in the test extra
-    del ruff
+    pytest.importorskip("ruff")  # in the test extra
     r = subprocess.run([sys.executable, "-m", "ruff", "check", "--isolated", "--no-cache", "--output-format", "concise",
                         "--select", _UNDEFINED_NAME_RULES, *map(str, paths)],
                        capture_output=True, text=True, timeout=300, cwd=ROOT)
