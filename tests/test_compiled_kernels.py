@@ -163,7 +163,7 @@ def test_tile_gather_collects_every_texel_of_the_cap_and_its_weights_are_within_
         caps = rng.uniform(0.02, 1.2, nt)
         acc, lm, cnt = np.zeros((nt, 4, 4)), np.zeros((nt, 4)), np.zeros(nt, dtype=np.int64)
         s_int = int(s) if float(s).is_integer() else 0
-        ck.tile_gather(cen, rows, caps, envmap.face_frames("openexr"), n, X, Y, Z, rw, np.zeros((0, 3)),
+        ck.tile_gather(cen, rows, caps, np.zeros(len(caps)), envmap.face_frames("openexr"), n, X, Y, Z, rw, np.zeros((0, 3)),
                        np.zeros((0, 4)), s, s_int, not s_int, np.exp(-700.0 / s), acc, lm, cnt)
         eta, eps = ck.weight_error(s, bool(s_int), not s_int)
         D = d.astype(np.longdouble)
@@ -179,6 +179,68 @@ def test_tile_gather_collects_every_texel_of_the_cap_and_its_weights_are_within_
                 tol = ((eta + ck.sum_error(cnt[i])) * ref
                        + eps * np.abs(rw).sum(axis=1)[None, :] * np.exp(lm[i])[:, None])
                 assert np.all(sign * (got - ref) >= -tol), (n, s, i, slack)
+
+
+def test_scratch_size_bound_holds_for_narrow_caps(ck):
+    """The scratch size of tile_gather for caps below 0.3 rad comes from a cap-area bound, not a count: it is at
+    least the number of texels collected (the count of cap_count) for random caps and centres, corner ones too."""
+    from ibl_ref.environment import envmap
+
+    fr = envmap.face_frames("openexr")
+    rng = np.random.default_rng(11)
+    for n in (8, 17, 64, 255):
+        cen = rng.normal(size=(300, 3))
+        cen[:20] = [1.0, 1.0, 1.0]  # cube corners, where texels are smallest
+        cen[20:40] = [1.0, 0.0, 1e-7]  # a face edge
+        cen /= np.linalg.norm(cen, axis=1, keepdims=True)
+        caps = rng.uniform(0.0, 0.2999, len(cen))
+        for i in range(len(cen)):
+            cnt = ck.cap_count(cen[i], caps[i], fr, n)
+            assert ck._scratch_size(caps[i : i + 1], fr, n, cen[i : i + 1]) >= cnt, (n, i, caps[i])
+
+
+def test_tile_gather_leaves_out_only_zero_weight_bright_texels(ck):
+    """Bright texels farther than acos(e^(-700/s)) + the tile radius from a tile's centre are left out of its list:
+    the sums equal those with every bright texel within the weights' error bound, and the left-out ones are counted."""
+    from ibl_ref.environment import envmap
+
+    rng = np.random.default_rng(5)
+    n = 24
+    d = envmap.texel_directions(n).reshape(-1, 3)
+    X, Y, Z = (np.ascontiguousarray(d[:, i]) for i in range(3))
+    rw = np.zeros((4, d.shape[0]))
+    rw[:3] = rng.random((3, d.shape[0]))
+    rw[3] = envmap.cube_solid_angles(n).reshape(-1)
+    nb = 300
+    bdirs = rng.normal(size=(nb, 3))
+    bdirs /= np.linalg.norm(bdirs, axis=1, keepdims=True)
+    brw = np.abs(rng.normal(size=(nb, 4))) * 1e4
+    nt = 40
+    cen = rng.normal(size=(nt, 3))
+    cen /= np.linalg.norm(cen, axis=1, keepdims=True)
+    rows = cen[:, None, :] + rng.normal(0, 0.02, (nt, 4, 3))
+    rows /= np.linalg.norm(rows, axis=2, keepdims=True)
+    arad = np.arccos(np.clip(np.einsum("tbk,tk->tb", rows, cen), -1, 1)).max(axis=1) * (1 + 1e-9)
+    caps = np.full(nt, 0.1)
+    fr = envmap.face_frames("openexr")
+    for s in (64.0, 4096.0, 777.5):
+        s_int = int(s) if float(s).is_integer() else 0
+        out = {}
+        for name, a in (("culled", arad), ("all", np.full(nt, 10.0))):  # a radius beyond π keeps every texel
+            acc, lm, cnt = np.zeros((nt, 4, 4)), np.zeros((nt, 4)), np.zeros(nt, dtype=np.int64)
+            ck.tile_gather(cen, rows, caps, a, fr, n, X, Y, Z, rw, bdirs, brw, s, s_int, False, np.exp(-700.0 / s),
+                           acc, lm, cnt)
+            out[name] = (acc, cnt)
+        eta, eps = ck.weight_error(s, bool(s_int))
+        (a1, c1), (a0, c0) = out["culled"], out["all"]
+        # the left-out texels still count in the error allowance: every cap texel and every bright texel
+        real = np.array([ck.cap_count(cen[i], caps[i], fr, n) for i in range(nt)]) + nb
+        assert np.all(c1 >= real) and np.all(c0 >= real)
+        tol = (eta + ck.sum_error(c0))[:, None, None] * a0 + eps * (nb + np.abs(rw).sum(axis=1))[None, None, :]
+        assert np.all(np.abs(a1 - a0) <= 2 * tol), s
+        if s >= 4096:  # the cut does leave texels out at narrow lobes
+            kept = (bdirs @ cen.T >= np.cos(np.arccos(np.exp(-700.0 / s)) + arad + 1e-9)).sum()
+            assert kept < 0.5 * nb * nt
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -363,6 +425,9 @@ def test_kernels_stay_within_their_arrays(tmp_path):
         ck.warm_up()
         cube = make_env("sky_sun", 12, sun_direction=SUN_NEAR_CORNER, sun_radiance=1e5)
         pc.convolve_sparse_many(cube, [64.0, 2e6, 300.5], impl="compiled")
+        # narrow caps: the scratch size from the cap-area bound, the bright texels left out far from a tile
+        pc.convolve_sparse_many(make_env("sky_sun", 48, sun_direction=SUN_NEAR_CORNER, sun_radiance=1e5),
+                                [1024.0, 4096.0], impl="compiled", n_bright=40)
         mc.convolve_moment_many(cube, [1.0, 2.0], impl="compiled")
         mc.convolve_moment_many(make_env("sky_sun", 16), [1.0, 2.0], leaf=4, impl="compiled")
         shc.convolve_sh_many(make_env("sky_sun", 16), [5.0, 20.0], impl="compiled")

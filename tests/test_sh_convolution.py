@@ -227,3 +227,20 @@ def test_envelope_integral_bounds_discrete_error_sum(s, L):
     E = shb.legendre_series_truncation_envelope(s, L, shb.texel_max_radius(n))
     assert lhs.max() <= E
     assert lhs.max() > 0.05 * E  # and not absurdly loose
+
+
+def test_band_limit_lower_bound_never_exceeds_the_tabulated_choice():
+    """The planner's table-free lower bound on the SH band limit (orthogonality: E_L ≥ max_{m>L} |c_m|) is never
+    above what the truncation tables choose, and says None only where the tables do: skipping the tables with it
+    changes no routing decision."""
+    from ibl_ref.groundtruth.sh_bounds import band_limit_lower_bound, choose_band_limit, texel_max_radius
+
+    for n in (16, 64, 256):
+        rho = texel_max_radius(n)
+        for s in (1.0, 2.0, 5.0, 16.0, 64.0, 100.0, 256.0, 1000.0, 1024.0, 4096.0):
+            for eta in (1e-2, 8e-4, 1e-5):
+                lo, L = band_limit_lower_bound(s, eta), choose_band_limit(s, eta, rho)
+                if lo is None:
+                    assert L is None, (n, s, eta)
+                else:
+                    assert L is None or L >= lo, (n, s, eta, lo, L)

@@ -7,6 +7,9 @@ the temporaries, index matrices and repeated passes of the array code, and each 
 bound of its floating-point arithmetic, which the callers add to their rigorous bounds.  Selected by
 :mod:`ibl_ref.groundtruth.kernel_choice`.
 
+Sparse route: :func:`tile_gather` (the weighted sums of every tile's cap) and :func:`tile_bounds` (the
+averages and the route's rigorous per-texel bound from those sums, the NumPy path's formula in one pass).
+
 Elementary functions (vectorisable: no calls, no branches)
     :func:`exp_` — Cody–Waite reduction ``u = k ln 2 + f``, ``|f| ≤ ln2/2``, the Taylor polynomial of degree 13
     (remainder ≤ 0.347^14/14! < 4.5e-18), ``2^k`` put into the exponent field; 0 below 2^-1021.  Relative
@@ -39,7 +42,7 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-__all__ = ["EXP_REL", "LOG_ABS", "LOG_REL", "POWI_MAX", "C0", "CACHE_NOTE", "tile_gather", "cap_count", "cone_extremes", "band_exact",
+__all__ = ["EXP_REL", "LOG_ABS", "LOG_REL", "POWI_MAX", "C0", "CACHE_NOTE", "tile_gather", "tile_bounds", "cap_count", "cone_extremes", "band_exact",
            "band_brackets", "sh_project", "sh_matrix", "SH_BLOCK",
            "point_gather", "sh_values_bounds",
            "weight_error", "sum_error", "warm_up"]
@@ -276,17 +279,23 @@ _VEC = 32
 
 
 @_jit(fastmath={"contract"})
-def _face_rows(t, k, f, frames, h, n):
+def _cone_cos(k):
+    """cos(acos(k) + atan √2) (π at most): the cap ``d·t ≥ k`` reaches a face only if t·axis is at least this."""
+    return math.cos(min(math.acos(k) + _FACE_CONE, math.pi))
+
+
+@_jit(fastmath={"contract"})
+def _face_rows(t, k, f, frames, h, n, k_cone):
     """Row range of face f touched by the cap ``{d : d·t ≥ k}`` and the numbers (a, b, c) = t·(axis, u, v):
     ``(i0, i1, a, b, c, full)`` (``full``: every column of those rows, for caps reaching the face plane's
-    horizon); i1 < i0 when the cap misses the face."""
+    horizon); i1 < i0 when the cap misses the face.  ``k_cone`` = :func:`_cone_cos` of k."""
     a = t[0] * frames[f, 0, 0] + t[1] * frames[f, 0, 1] + t[2] * frames[f, 0, 2]
     b = t[0] * frames[f, 1, 0] + t[1] * frames[f, 1, 1] + t[2] * frames[f, 1, 2]
     c = t[0] * frames[f, 2, 0] + t[1] * frames[f, 2, 1] + t[2] * frames[f, 2, 2]
     if k <= 1e-9:
         return 0, n - 1, a, b, c, True
     # the cap misses the face's bounding cone (half-angle atan √2 around the axis)
-    if a < math.cos(min(math.acos(k) + _FACE_CONE, math.pi)):
+    if a < k_cone:
         return 0, -1, a, b, c, False
     K = k * k - b * b
     if K <= 1e-9:
@@ -315,12 +324,45 @@ def cap_count(t, q, frames, n):
     h = 2.0 / n
     k = math.cos(min(q + 1e-6, 0.5 * math.pi)) if q + 1e-6 < 0.5 * math.pi else 0.0
     m = 0
+    k_cone = _cone_cos(k) if k > 1e-9 else -2.0
     for f in range(6):
-        i0, i1, a, b, c, full = _face_rows(t, k, f, frames, h, n)
+        i0, i1, a, b, c, full = _face_rows(t, k, f, frames, h, n, k_cone)
         for i in range(i0, i1 + 1):
             j0, j1 = _row_cols(a, b, c, k, (i + 0.5) * h - 1.0, h, n, full)
             if j1 >= j0:
                 m += j1 - j0 + 1
+    return m
+
+
+#: above this many entries the scratch size is counted (:func:`cap_count`) instead of bounded
+_SCRATCH_BOUND_MAX = 1 << 20
+#: caps below this angle (rad) collect only texels of the cap itself (:func:`_scratch_size`)
+_SCRATCH_BOUND_CAP = 0.3
+
+
+@_jit()
+def _scratch_size(caps, frames, n, cen):
+    """Entries enough for the texels of every cap of :func:`tile_gather`, without counting them: a texel whose
+    centre is within the widened cap (q + 1e-6 rad, ends widened by 1e-3 texel ≤ 2e-3/n rad) lies inside the
+    cap grown by its centre-to-corner angle (≤ the half-diagonal √2/n of the face plane: the gnomonic map
+    shortens distances), and the texels are disjoint with solid angle ≥ h²/3^{3/2} (h = 2/n; the
+    Jacobian (1 + u² + v²)^{-3/2} ≥ 3^{-3/2}), so the count is ≤ cap area / that.  That holds while the
+    collected texels are the cap's: caps narrower than :data:`_SCRATCH_BOUND_CAP` rad (no face-plane horizon or
+    near-tangent row, whose whole rows or faces :func:`_face_rows` takes, lies within reach of them: that needs
+    t·axis ≤ sin q and t·axis ≥ cos(q + atan √2), i.e. q ≥ (π/2 − atan √2)/2 ≈ 0.308).  Wider caps, and caps
+    whose bound exceeds :data:`_SCRATCH_BOUND_MAX`, are counted instead (the bound is up to ≈ 5× the count)."""
+    h = 2.0 / n
+    q = 0.0
+    for i in range(caps.shape[0]):
+        q = max(q, caps[i])
+    grow = 1e-6 + 1e-3 * h + 0.7072 * h
+    area = 2.0 * math.pi * (1.0 - math.cos(min(q + grow, math.pi)))
+    bound = min(int(area * 5.197 / (h * h)) + 1, 6 * n * n)
+    if q + 1e-6 < _SCRATCH_BOUND_CAP and bound <= _SCRATCH_BOUND_MAX:
+        return bound
+    m = 0
+    for i in range(caps.shape[0]):
+        m = max(m, cap_count(cen[i], caps[i], frames, n))
     return m
 
 
@@ -338,25 +380,41 @@ def _put7(SX, SY, SZ, S0, S1, S2, S3, m, x, y, z, w0, w1, w2, w3):
 
 
 @_jit(fastmath={"contract"})
-def _collect(t, q, frames, n, X, Y, Z, RW, bdirs, brw, SX, SY, SZ, S0, S1, S2, S3):
-    """Copy the source texels of the cap (angle q around t) and then the bright texels into the scratch arrays;
-    pad with zero entries to a multiple of :data:`_VEC`.  Returns the number of entries (padding included)."""
+def _collect(t, q, frames, n, X, Y, Z, RW, bdirs, brw, kb, SX, SY, SZ, S0, S1, S2, S3):
+    """Copy the source texels of the cap (angle q around t) and then the bright texels with ``t·ω ≥ kb`` into the
+    scratch arrays; pad with zero entries to a multiple of :data:`_VEC`.  Returns ``(entries (padding included),
+    bright texels left out)``."""
     h = 2.0 / n
     nn = n * n
     k = math.cos(min(q + 1e-6, 0.5 * math.pi)) if q + 1e-6 < 0.5 * math.pi else 0.0
     m = 0
+    k_cone = _cone_cos(k) if k > 1e-9 else -2.0
     for f in range(6):
-        i0, i1, a, b, c, full = _face_rows(t, k, f, frames, h, n)
+        i0, i1, a, b, c, full = _face_rows(t, k, f, frames, h, n, k_cone)
         for i in range(i0, i1 + 1):
             j0, j1 = _row_cols(a, b, c, k, (i + 0.5) * h - 1.0, h, n, full)
-            base = f * nn + i * n
-            for j in range(base + j0, base + j1 + 1):
-                m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, X[j], Y[j], Z[j], RW[0, j], RW[1, j], RW[2, j], RW[3, j])
+            if j1 < j0:
+                continue
+            lo = f * nn + i * n + j0 - m
+            # one copy loop per row interval (vectorisable: no running counter)
+            for j in range(m, m + j1 - j0 + 1):
+                SX[j] = X[lo + j]
+                SY[j] = Y[lo + j]
+                SZ[j] = Z[lo + j]
+                S0[j] = RW[0, lo + j]
+                S1[j] = RW[1, lo + j]
+                S2[j] = RW[2, lo + j]
+                S3[j] = RW[3, lo + j]
+            m += j1 - j0 + 1
+    out = 0
     for j in range(bdirs.shape[0]):
+        if t[0] * bdirs[j, 0] + t[1] * bdirs[j, 1] + t[2] * bdirs[j, 2] < kb:
+            out += 1
+            continue
         m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, bdirs[j, 0], bdirs[j, 1], bdirs[j, 2], brw[j, 0], brw[j, 1], brw[j, 2], brw[j, 3])
     while m % _VEC:
         m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-    return m
+    return m, out
 
 
 @_jit(fastmath={"contract"}, inline="always")
@@ -387,6 +445,36 @@ def _sums(rx, ry, rz, SX, SY, SZ, S0, S1, S2, S3, m, s, s_int, c_floor, lref):
 
 
 @_jit(fastmath={"contract", "reassoc"}, inline="always")
+def _sums2(R, b, SX, SY, SZ, S0, S1, S2, S3, m, s, s_int, c_floor, L, out):
+    """:func:`_sums` of the two rows ``R[b], R[b + 1]`` (reference logs ``L[0:2]``) in one pass over the scratch
+    entries, into ``out[0:2, 0:4]``: each entry is loaded once for both rows (the one-row loop is bound by
+    loading the 7 scratch streams, not by the arithmetic); every row's sum has the same terms as by
+    :func:`_sums` (the order of a vectorised sum is the compiler's either way, :func:`sum_error`)."""
+    x0, y0, z0 = R[b, 0], R[b, 1], R[b, 2]
+    x1, y1, z1 = R[b + 1, 0], R[b + 1, 1], R[b + 1, 2]
+    l0, l1 = L[0], L[1]
+    a00 = a01 = a02 = a03 = a10 = a11 = a12 = a13 = 0.0
+    if s_int > 0:
+        for j in range(m):
+            sx, sy, sz = SX[j], SY[j], SZ[j]
+            u0, u1, u2, u3 = S0[j], S1[j], S2[j], S3[j]
+            w = _weight(x0 * sx + y0 * sy + z0 * sz, s, s_int, c_floor, l0)
+            a00, a01, a02, a03 = a00 + w * u0, a01 + w * u1, a02 + w * u2, a03 + w * u3
+            w = _weight(x1 * sx + y1 * sy + z1 * sz, s, s_int, c_floor, l1)
+            a10, a11, a12, a13 = a10 + w * u0, a11 + w * u1, a12 + w * u2, a13 + w * u3
+    else:
+        for j in range(m):
+            sx, sy, sz = SX[j], SY[j], SZ[j]
+            u0, u1, u2, u3 = S0[j], S1[j], S2[j], S3[j]
+            w = _weight(x0 * sx + y0 * sy + z0 * sz, s, 0, c_floor, l0)
+            a00, a01, a02, a03 = a00 + w * u0, a01 + w * u1, a02 + w * u2, a03 + w * u3
+            w = _weight(x1 * sx + y1 * sy + z1 * sz, s, 0, c_floor, l1)
+            a10, a11, a12, a13 = a10 + w * u0, a11 + w * u1, a12 + w * u2, a13 + w * u3
+    out[0, 0], out[0, 1], out[0, 2], out[0, 3] = a00, a01, a02, a03
+    out[1, 0], out[1, 1], out[1, 2], out[1, 3] = a10, a11, a12, a13
+
+
+@_jit(fastmath={"contract", "reassoc"}, inline="always")
 def _max_cos(rx, ry, rz, SX, SY, SZ, m):
     mx = -2.0
     for j in range(m):
@@ -395,7 +483,8 @@ def _max_cos(rx, ry, rz, SX, SY, SZ, m):
 
 
 @_jit(fastmath={"contract", "reassoc"})
-def tile_gather(cen, rows, caps, frames, n, X, Y, Z, RW, bdirs, brw, s, s_int, rowmax, c_floor, acc, logmx, count):
+def tile_gather(cen, rows, caps, arad, frames, n, X, Y, Z, RW, bdirs, brw, s, s_int, rowmax, c_floor, acc, logmx,
+                count):
     """Truncated-support gather of tiles of output texels: tile i's rows ``rows[i]`` (B, 3) gather every source
     texel within the angle ``caps[i]`` of the tile centre ``cen[i]`` (plus 1e-6 rad and 1e-3 texel of slack)
     and the bright texels ``bdirs``/``brw``: ``acc[i, b] = Σ_j w_bj RW[:, j]``.
@@ -406,26 +495,48 @@ def tile_gather(cen, rows, caps, frames, n, X, Y, Z, RW, bdirs, brw, s, s_int, r
     each row the columns an interval (:func:`_interval`).  The interval ends are computed to ≈ 1e-12 in
     face-plane units, far within the 1e-3-texel widening (2e-3/n ≥ 5e-7 for n ≤ 4096), so no texel of the cap
     is missed (brute-force check in the tests).  The texels are copied to contiguous scratch arrays (with the
-    bright texels, padded with zero entries to a multiple of :data:`_VEC`), then every row runs one vectorised
-    loop over them.
+    bright texels, padded with zero entries to a multiple of :data:`_VEC`; sized by :func:`_scratch_size`), then
+    every pair of rows runs one vectorised loop over them (:func:`_sums2`: each entry loaded once for two rows).
 
     Weights: ``s_int > 0`` — ``c^s`` by :func:`powi_` (0 for c < ``c_floor``, whose weight is below e^-700;
     callers count that as underflow); else ``exp(s·(log c − log c_max))`` with ``c_max`` the row's largest
     cosine when ``rowmax`` (``logmx[i, b] = s·log c_max``), else ``c_max = 1``.  ``RW`` (4, 6n²): the rows
-    ``[L·Ω, …, Ω]`` padded to 4, zero for the bright texels.  ``count[i]``: entries of tile i's list (with the
-    bright texels and the padding: the pairs computed per row).
+    ``[L·Ω, …, Ω]`` padded to 4, zero for the bright texels.  ``arad[i]``: the largest angle between tile i's rows
+    and its centre; bright texels farther than ``acos(c_floor) + arad[i]`` from the centre are left out (every
+    row's weight of them is 0, or below e^-700 by ``exp``: within the allowance ε of :func:`weight_error`).
+    ``count[i]``: entries of tile i's list (the bright texels and the padding included: the pairs computed per
+    row) plus the bright texels left out — the pairs the callers' error allowance counts.
     """
     nt = rows.shape[0]
     B = rows.shape[1]
-    m_max = 0
-    for i in range(nt):
-        m_max = max(m_max, cap_count(cen[i], caps[i], frames, n))
+    m_max = _scratch_size(caps, frames, n, cen)
     m_max += bdirs.shape[0] + _VEC
     SX, SY, SZ, S0, S1, S2, S3 = _scratch7(m_max)
+    lr = np.zeros(2)
+    acc2 = np.zeros((2, 4))
     for i in range(nt):
-        m = _collect(cen[i], caps[i], frames, n, X, Y, Z, RW, bdirs, brw, SX, SY, SZ, S0, S1, S2, S3)
-        count[i] = m
-        for b in range(B):
+        # bright texels beyond acos(c_floor) + the tile radius (+1e-9 rad) of the centre: below c_floor from every
+        # row, weight 0 (or < e^-700 by exp), so left out; counted in count[i], which sets the error allowance
+        kb = -2.0
+        if not rowmax and c_floor > 0.0:
+            a_cut = math.acos(min(c_floor, 1.0)) + arad[i] + 1e-9
+            if a_cut < math.pi:
+                kb = math.cos(a_cut)
+        m, out = _collect(cen[i], caps[i], frames, n, X, Y, Z, RW, bdirs, brw, kb, SX, SY, SZ, S0, S1, S2, S3)
+        count[i] = m + out
+        b2 = B - B % 2
+        for b in range(0, b2, 2):
+            for r in range(2):
+                lr[r] = 0.0
+                if s_int <= 0 and rowmax:
+                    lr[r] = log_(max(_max_cos(rows[i, b + r, 0], rows[i, b + r, 1], rows[i, b + r, 2], SX, SY, SZ, m),
+                                     1e-300))
+            _sums2(rows[i], b, SX, SY, SZ, S0, S1, S2, S3, m, s, s_int, c_floor, lr, acc2)
+            for r in range(2):
+                logmx[i, b + r] = s * lr[r]
+                for q in range(4):
+                    acc[i, b + r, q] = acc2[r, q]
+        for b in range(b2, B):
             rx = rows[i, b, 0]
             ry = rows[i, b, 1]
             rz = rows[i, b, 2]
@@ -469,6 +580,57 @@ def cone_extremes(cen, q, blk_cen, alpha, blk_max, blk_min, sup_cen, sup_alpha, 
                     for ch in range(C):
                         lmax[i, ch] = max(lmax[i, ch], blk_max[b, ch])
                         lmin[i, ch] = min(lmin[i, ch], blk_min[b, ch])
+
+
+@_jit(inline="always")
+def _log_wb_at(grid, log_wb_grid, theta):
+    """The tabulated log W_b at the largest grid angle ≤ θ (+inf below the grid)."""
+    gi = np.searchsorted(grid, theta, side="right") - 1
+    return log_wb_grid[gi] if gi >= 0 else np.inf
+
+
+@_jit()
+def tile_bounds(acc, log_mx, eta, und, l_u, ang, q_t, q_far, half_margin, grid, log_wb_grid, lmax, lmin, l_max_out,
+                l_min_out, valid, idx, maps, bounds, worst):
+    """The averages and the rigorous per-texel bounds of gathered tiles, in one pass (the same formula, term
+    for term, as the NumPy expression in :func:`ibl_ref.groundtruth.phong_convolution.convolve_sparse_many`):
+    ``P = Σ w L Ω / Σ w Ω`` (``acc``), ``log W_in = log_mx + log Σ w Ω − log1p(η + und)``; the neglected texels
+    of a row at angle a beyond ``q − a`` (local extremes ``lmax``/``lmin`` up to ``q_far − a``) and beyond
+    ``q_far − a`` (global extremes), ``f = W_b(θ)/W_in`` from the tabulated ``log W_b``;
+    ``e_fp = 2η/(1−η)·P + und·(l_u + P)``;  ``b = min(f1, f2)·d_glob + max(f1 − f2, 0)·d_loc + e_fp + 1e-12·P``.
+    Valid rows are written to ``maps``/``bounds`` at ``idx`` (flat output rows); ``worst[i]`` = the largest
+    b/P of tile i's valid entries (+inf for an undefined ratio, so that the tile is retried)."""
+    nt = ang.shape[0]
+    B = ang.shape[1]
+    C = acc.shape[2] - 1
+    for i in range(nt):
+        e1 = 2.0 * eta[i] / (1.0 - eta[i])
+        l1p = math.log1p(eta[i] + und[i])
+        w = 0.0
+        for b in range(B):
+            win = acc[i, b, C]
+            log_win = log_mx[i, b] + math.log(win) - l1p
+            lw1 = _log_wb_at(grid, log_wb_grid, q_t[i] - half_margin - ang[i, b])
+            lw2 = _log_wb_at(grid, log_wb_grid, q_far[i] - half_margin - ang[i, b])
+            f1 = 0.0 if lw1 == -np.inf else math.exp(min(lw1 - log_win, 700.0))
+            f2 = 0.0 if lw2 == -np.inf else math.exp(min(lw2 - log_win, 700.0))
+            f_min = min(f1, f2)
+            f_gap = max(f1 - f2, 0.0)
+            ok = valid[i, b]
+            o = idx[i, b]
+            for c in range(C):
+                p = acc[i, b, c] / win
+                e_fp = e1 * p + und[i] * (l_u + p)
+                d_loc = max(max(lmax[i, c] - p, p - lmin[i, c]), 0.0) + e_fp
+                d_glob = max(max(l_max_out[c] - p, p - l_min_out[c]), 0.0) + e_fp
+                bb = f_min * d_glob + f_gap * d_loc + e_fp + 1e-12 * p
+                if ok:
+                    maps[o, c] = p
+                    bounds[o, c] = bb
+                    r = bb / p
+                    if not (r <= w):
+                        w = r if r == r else np.inf
+        worst[i] = w
 
 
 # ----------------------------------------------------------------------------------------------
@@ -910,17 +1072,24 @@ def warm_up(stages=STAGES):
     d = envmap.texel_directions(n).reshape(-1, 3)
     if "sparse" in todo:
         X, Y, Z = (np.ascontiguousarray(d[:, i]) for i in range(3))
+        X.flags.writeable = Y.flags.writeable = Z.flags.writeable = False  # as the callers' cached columns
         RW = np.ones((4, d.shape[0]))
         fr = envmap.face_frames("openexr")
         cen = d[:2].copy()
         rows = d[:2].reshape(2, 1, 3).copy()
         for s_int, rowmax in ((2, False), (0, True)):
-            tile_gather(cen, rows, np.full(2, 0.5), fr, n, X, Y, Z, RW, np.zeros((0, 3)), np.zeros((0, 4)), 2.0,
+            tile_gather(cen, rows, np.full(2, 0.5), np.zeros(2), fr, n, X, Y, Z, RW, np.zeros((0, 3)), np.zeros((0, 4)), 2.0,
                         s_int, rowmax, 1e-300, np.zeros((2, 1, 4)), np.zeros((2, 1)), np.zeros(2, dtype=np.int64))
         cap_count(cen[0], 0.5, fr, n)
         mem = np.array([[0, 1, -1, -1]])
         cone_extremes(cen, np.full(2, 0.5), d[:2].copy(), 0.1, np.ones((2, 3)), np.ones((2, 3)), d[:1].copy(), 0.3,
                       mem, np.zeros((2, 3)), np.zeros((2, 3)))
+        g, lg = np.array([0.0, 1.0]), np.array([0.0, -1.0])
+        g.flags.writeable = lg.flags.writeable = False  # the cached W_b tables are read-only: their signature
+        tile_bounds(np.ones((2, 1, 4)), np.zeros((2, 1)), np.zeros(2), np.zeros(2), 1.0, np.zeros((2, 1)),
+                    np.ones(2), np.ones(2), 5e-8, g, lg, np.ones((2, 3)), np.ones((2, 3)), np.ones(3), np.ones(3),
+                    np.ones((2, 1), dtype=np.bool_), np.zeros((2, 1), dtype=np.intp), np.zeros((2, 3)),
+                    np.zeros((2, 3)), np.zeros(2))
     if "moment" in todo:
         R = d[:2].reshape(2, 1, 3).copy()
         st = np.array([0, 1, 2], dtype=np.int64)

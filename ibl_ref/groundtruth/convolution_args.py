@@ -21,7 +21,8 @@ from ..environment import envmap
 from ..environment.radiance_policy import check_radiance
 from ..errors import IBLError, LayoutError
 
-__all__ = ["check_exponent", "check_exponents", "check_cube", "check_faces", "check_out_size"]
+__all__ = ["check_exponent", "check_exponents", "check_cube", "check_faces", "check_out_size", "channel_max",
+           "channel_min"]
 
 
 def check_exponent(s) -> float:
@@ -81,3 +82,21 @@ def check_out_size(out_size, n: int) -> int:
     if isinstance(out_size, bool) or not isinstance(out_size, (int, np.integer)) or out_size < 1:
         raise IBLError(f"out_size must be a positive integer, got {out_size!r}")
     return int(out_size)
+
+
+def channel_max(a: np.ndarray) -> np.ndarray:
+    """``a.max(axis=-1)`` of a (…, C) array of a convolution route (maps, bounds, radiance: C is 1–4), as C − 1
+    elementwise maxima: NumPy reduces a short last axis ≈ 15× slower, and max is exact, so the result is the
+    same, bit for bit (NaN propagates as in ``max``)."""
+    out = np.array(a[..., 0], dtype=a.dtype, copy=True)
+    for c in range(1, a.shape[-1]):
+        np.maximum(out, a[..., c], out=out)
+    return out
+
+
+def channel_min(a: np.ndarray) -> np.ndarray:
+    """``a.min(axis=-1)``, as :func:`channel_max`."""
+    out = np.array(a[..., 0], dtype=a.dtype, copy=True)
+    for c in range(1, a.shape[-1]):
+        np.minimum(out, a[..., c], out=out)
+    return out

@@ -95,7 +95,6 @@ from concurrent.futures import BrokenExecutor, ProcessPoolExecutor, ThreadPoolEx
 from dataclasses import dataclass, field
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 try:
     import resource
@@ -103,8 +102,8 @@ except ImportError:  # pragma: no cover - not POSIX (no fork either)
     resource = None
 
 from ..errors import IBLError
-from ..executors import resolve_executor, worker_died
-from .convolution_args import check_cube, check_exponents, check_out_size
+from ..executors import one_blas_thread, resolve_executor, worker_died
+from .convolution_args import channel_max, check_cube, check_exponents, check_out_size
 
 __all__ = ["ConvolutionResult", "convolve", "default_workers", "METHODS", "WORKERS_ENV"]
 
@@ -194,11 +193,11 @@ _FORK_LOCK = threading.Lock()
 
 def _call_job(key, fn, limit_blas=True):
     """Run one job, with BLAS held at one thread when ``limit_blas`` (on an executor's worker; local
-    runs are already inside :func:`convolve`'s limit, and threadpoolctl costs ≈ 8 ms per entry);
+    runs are already inside :func:`convolve`'s limit);
     returns ``(key, result, seconds)``."""
     t0 = time.perf_counter()
     if limit_blas:
-        with threadpool_limits(limits=1, user_api="blas"):
+        with one_blas_thread():
             r = fn()
     else:
         r = fn()
@@ -384,11 +383,23 @@ class ConvolutionResult:
                     "bound_kind": self.bound_kind[s],
                     "rel_bound_max": float(b.max()) if np.all(np.isfinite(b)) else None,
                     "rel_bound_mean": float(fin.mean()) if fin.size else None,
-                    "rel_bound_p99": float(np.quantile(fin, 0.99)) if fin.size else None,
+                    "rel_bound_p99": _quantile_linear(fin, 0.99) if fin.size else None,
                     "n_texels_unbounded": int(np.count_nonzero(~np.isfinite(b))),
                 }
             )
         return out
+
+
+def _quantile_linear(x: np.ndarray, q: float) -> float:
+    """``np.quantile(x, q)`` (linear interpolation between the order statistics at (n − 1)·q) by ``np.partition``:
+    ``np.quantile``'s first call in a process imports ``numpy.ma`` (≈ 10–25 ms of a small CLI run)."""
+    x = np.ravel(x)
+    h = (x.size - 1) * q
+    lo = int(math.floor(h))
+    hi = min(lo + 1, x.size - 1)
+    part = np.partition(x, [lo, hi]) if hi != lo else np.partition(x, lo)
+    a, b, w = float(part[lo]), float(part[hi]), h - lo
+    return a + (b - a) * w if w < 0.5 else b - (b - a) * (1.0 - w)
 
 
 def _s_json(s):
@@ -426,7 +437,7 @@ def _with_underflow(maps, rel, u):
         return rel
     with np.errstate(divide="ignore"):
         extra = np.where(maps > 0, u / np.where(maps > 0, maps, 1.0), np.inf)
-    extra = extra.max(axis=-1)
+    extra = channel_max(extra)
     return np.where(extra > 0, rel + extra, rel)
 
 
@@ -435,7 +446,7 @@ def _rel_from_abs(maps, abs_bound):
     with np.errstate(divide="ignore", invalid="ignore"):
         r = np.where(maps > abs_bound, abs_bound / np.maximum(maps - abs_bound, 1e-300), np.inf)
     r = np.where(abs_bound == 0, 0.0, r)
-    return r.max(axis=-1)
+    return channel_max(r)
 
 
 #: cost units (see :data:`ibl_ref.groundtruth.sh_convolution.SECONDS_PER_UNIT`) per (output texel × source texel ×
@@ -641,7 +652,7 @@ def convolve(
             raise IBLError(f"memory_limit must be positive, got {memory_limit!r}")
     kernel_note = None
     if impl == "compiled" and kernel_auto:
-        with threadpool_limits(limits=1, user_api="blas"):
+        with one_blas_thread():
             impl, kernel_note = _auto_kernel(a4, s_list, method, rtol, out_size, normalized)
     executor, owned_client = resolve_executor(executor)
     try:
@@ -826,8 +837,15 @@ def _sh_cannot_pay(finite, others, n, n_src, n_out, Q, impl="numpy", rtol=1e-3):
     a lower bound of its cost: the band limit the planner could choose is never below the one the truncation
     bound needs at the most lenient target 0.8·rtol (:func:`~ibl_ref.groundtruth.sh_bounds.choose_band_limit`).
     Spares the planner (its coarse lobe averages and bound tables) where narrow lobes go to the sparse gather."""
-    from .sh_bounds import SH_L_MAX, choose_band_limit, texel_max_radius
+    from .sh_bounds import SH_L_MAX, band_limit_lower_bound, choose_band_limit, texel_max_radius
 
+    # first without the truncation tables (≈ 10 ms per exponent): the band limit the tables give is never below
+    # band_limit_lower_bound, and the pass cost grows with L, so when the other routes are cheaper than the pass at
+    # those band limits they are cheaper than the planned pass too (the same answer as below)
+    lows = [band_limit_lower_bound(s, 0.8 * rtol, SH_L_MAX) for s in finite]
+    lb_fast = min((_sh_pass_cost(L, 0, n_src, n_out, 1, Q, impl) for L in lows if L is not None), default=np.inf)
+    if others < lb_fast:
+        return True
     rho = texel_max_radius(n)
     sh_lb = np.inf
     for s in finite:
@@ -953,7 +971,7 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
     # ---- route every exponent ----------------------------------------------------------------
     plan, finite = None, []
     if method == "auto":
-        with threadpool_limits(limits=1, user_api="blas"):
+        with one_blas_thread():
             route, plan, finite = _route_auto(a4, s_list, rtol, out_size, normalized, res.info, impl)
     else:
         route = {s: method for s in s_list}
@@ -1001,7 +1019,7 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
     # for every worker count: bit-for-bit identical results (threadpoolctl restores the limits after)
     sh_state = None  # a split SH pass: ("project", setup) then ("evaluate", setup, Be, Bo)
     sh_busy_parts = 0.0
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         while mo_set or sh_set or sparse_batches or ex_set:
             sub_plan = None
             if sh_set and method == "auto":  # re-plan only if the SH subset differs from the planned set

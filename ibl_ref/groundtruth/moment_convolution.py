@@ -65,7 +65,7 @@ import numpy as np
 
 from ..environment import envmap
 from ..errors import IBLError
-from .convolution_args import check_cube, check_faces, check_out_size
+from .convolution_args import channel_max, check_cube, check_faces, check_out_size
 
 __all__ = ["convolve_moment_many", "convolve_moment", "moment_leaf", "SUPPORTED_EXPONENTS", "ROUNDING_REL"]
 
@@ -754,7 +754,7 @@ def convolve_moment_many(
         if not np.all(np.isfinite(approx)):
             raise IBLError("moment convolution: zero lobe weight (cannot happen for a valid cube map)")
         maps[k] = approx
-        rel[k] = r.max(axis=-1) + ROUNDING_REL
+        rel[k] = channel_max(r) + ROUNDING_REL
     if squeeze:
         maps = maps[..., 0]
     return maps, rel

@@ -117,7 +117,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..environment import envmap
-from .convolution_args import check_cube, check_exponent, check_faces, check_out_size
+from .convolution_args import channel_max, check_cube, check_exponent, check_faces, check_out_size
 from ..errors import IBLError, LayoutError
 
 __all__ = [
@@ -457,19 +457,25 @@ def _log_bound_annuli(s: float, theta_c: float, rho: float) -> float:
     whose solid angle is 2π(cos(θ_i − ρ) − cos(θ_{i+1} + ρ)); their weight is at most cos^s θ_i.
     The best of a few widths Δ is taken (each is a valid bound).
     """
-    best = np.inf
-    for frac in (0.25, 0.5, 1.0, 2.0):
-        delta = max(rho * frac, 1e-6)
-        th = np.arange(theta_c, np.pi / 2, delta)
-        if th.size == 0:
-            return -np.inf
-        lo = np.maximum(th - rho, 0.0)
-        hi = np.minimum(th + delta + rho, np.pi)
-        area = 2.0 * np.pi * (np.cos(lo) - np.cos(hi))
-        with np.errstate(divide="ignore"):
-            terms = s * np.log(np.cos(th)) + np.log(area)
-        best = min(best, float(np.logaddexp.reduce(terms)))
-    return best
+    # the four widths' annuli in one array (one pass of NumPy calls; each width's sum reduced in order, as by
+    # a reduction of its own array)
+    deltas = [max(rho * frac, 1e-6) for frac in _ANNULUS_FRACS]
+    ths = [np.arange(theta_c, np.pi / 2, d) for d in deltas]
+    if min(x.size for x in ths) == 0:
+        return -np.inf
+    th = np.concatenate(ths)
+    delta = np.repeat(deltas, [x.size for x in ths])
+    lo = np.maximum(th - rho, 0.0)
+    hi = np.minimum(th + delta + rho, np.pi)
+    area = 2.0 * np.pi * (np.cos(lo) - np.cos(hi))
+    with np.errstate(divide="ignore"):
+        terms = s * np.log(np.cos(th)) + np.log(area)
+    starts = np.cumsum([0] + [x.size for x in ths[:-1]])
+    return float(np.logaddexp.reduceat(terms, starts).min())
+
+
+#: widths of the annuli of :func:`_log_bound_annuli`, in units of ρ (each gives a valid bound; the least is taken)
+_ANNULUS_FRACS = (0.25, 0.5, 1.0, 2.0)
 
 
 @functools.lru_cache(maxsize=4096)
@@ -488,12 +494,59 @@ def neglected_weight_bound(s: float, theta_c: float, rho: float) -> float:
     return b
 
 
+def _arange_rows(starts: np.ndarray, stop: float, delta: float):
+    """``np.arange(a, stop, delta)`` for every a in ``starts`` as the rows of one matrix (``-inf``-padded
+    after each row's end; row lengths returned too), element for element the values NumPy's arange gives
+    (its fill: ``a``, ``a + delta``, then ``a + i·((a + delta) − a)``)."""
+    lengths = np.maximum(np.ceil((stop - starts) / delta), 0).astype(np.intp)
+    w = int(lengths.max()) if lengths.size else 0
+    i = np.arange(w, dtype=np.float64)
+    d2 = (starts + delta) - starts
+    th = starts[:, None] + i[None, :] * d2[:, None]
+    if w > 1:
+        th[:, 1] = starts + delta
+    th[:, 0] = starts
+    return th, lengths
+
+
+def _log_bound_annuli_many(s: float, thetas: np.ndarray, rho: float) -> np.ndarray:
+    """:func:`_log_bound_annuli` at every θ of ``thetas`` (all < π/2) at once, bit for bit the same values
+    (the same terms in the same order; the padding adds −inf, which leaves ``logaddexp`` unchanged)."""
+    best = np.full(thetas.shape, np.inf)
+    for frac in _ANNULUS_FRACS:
+        delta = max(rho * frac, 1e-6)
+        th, lengths = _arange_rows(thetas, np.pi / 2, delta)
+        pad = np.arange(th.shape[1])[None, :] >= lengths[:, None]
+        lo = np.maximum(th - rho, 0.0)
+        hi = np.minimum(th + delta + rho, np.pi)
+        area = 2.0 * np.pi * (np.cos(lo) - np.cos(hi))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            terms = s * np.log(np.cos(th)) + np.log(area)
+        terms[pad] = -np.inf
+        best = np.minimum(best, np.logaddexp.reduce(terms, axis=1))
+    best[thetas >= np.pi / 2] = -np.inf
+    return best
+
+
 @functools.lru_cache(maxsize=64)
 def _wb_grid(s: float, rho: float, cap_min: float, top: float):
     """θ from cap_min to top in steps of ρ/4 (and π/2), and the running minimum of log W_b(s, θ, ρ) there
-    (:func:`convolve_sparse_many`); cached per arguments (read-only arrays)."""
+    (:func:`convolve_sparse_many`); cached per arguments (read-only arrays).
+
+    Every value is :func:`neglected_weight_bound`'s: the annulus sums at all θ at once
+    (:func:`_log_bound_annuli_many`), the integral bound only where it can be the smaller one (it is at
+    least ``log 2π + t1``, its first term, so where that is ≥ the annulus sum the minimum is the sum)."""
     grid = np.append(np.arange(cap_min, top, max(rho / 4.0, 1e-5)), np.pi / 2)
-    log_wb_grid = np.minimum.accumulate([neglected_weight_bound(s, g, rho) for g in grid])
+    log_wb = _log_bound_annuli_many(float(s), grid, float(rho))
+    log_2pi = math.log(2.0 * np.pi)
+    for i, g in enumerate(grid):
+        if g >= np.pi / 2 or g < 2.0 * rho:
+            continue
+        a = max(g - 2.0 * rho, 0.0)
+        t1 = math.log(math.cos(rho)) + (s + 1.0) * math.log(math.cos(a)) - math.log(s + 1.0)
+        if log_2pi + t1 < log_wb[i]:
+            log_wb[i] = min(log_wb[i], _log_bound_integral(s, float(g), rho))
+    log_wb_grid = np.minimum.accumulate(log_wb)
     grid.flags.writeable = False
     log_wb_grid.flags.writeable = False
     return grid, log_wb_grid
@@ -519,9 +572,13 @@ def cutoff_angle(s: float, eps: float, rho: float) -> float:
 
 #: the same two constants for the compiled gather (:func:`ibl_ref.groundtruth.compiled_kernels.tile_gather`: no
 #: Python per tile; per candidate the interval search and the copy into the scratch arrays), in units of one
-#: of its weights
-_TILE_OVERHEAD_COMPILED = 300.0
-_CAND_OVERHEAD_COMPILED = 4.0
+#: of its weights; fitted by ``python benchmarks/bench_tile_size.py --probe …/courtyard.exr`` (2026-12-04, load
+#: < 1: every width T ∈ {2…16} forced in 18 cells of sky + sun 64²–256² and the courtyard probe 128²–256², s = 64…4096;
+#: the model's choice costs 1.011× the best width on average, 1.10× at most; the best grid point, 1000 and 8, 1.008× and
+#: 1.09×; a fixed T = 4, 6, 8: 1.10×, 1.06×, 1.07×; the constants before this fit, 300 and 4, were 1.04× and 1.29× in
+#: the same cells measured once before)
+_TILE_OVERHEAD_COMPILED = 2000.0
+_CAND_OVERHEAD_COMPILED = 8.0
 
 
 def _tile_size(out_size: int, theta_c: float, m_src: int, n_bright: int, tile_overhead: float = _TILE_OVERHEAD_ELEMS,
@@ -541,8 +598,20 @@ def _tile_size(out_size: int, theta_c: float, m_src: int, n_bright: int, tile_ov
     return best
 
 
+def _column_extremes(a: np.ndarray, ok=None, axis: int = 0):
+    """``(max, min)`` of a (…, C) array over ``axis`` (not the last), one channel at a time (a contiguous
+    reduction: ≈ 25× faster than over an axis followed by a short one; exact, so the same result); entries
+    where ``ok`` is False are left out (−inf / +inf where none is left)."""
+    mx, mn = [], []
+    for c in range(a.shape[-1]):
+        x = a[..., c]
+        mx.append((x if ok is None else np.where(ok, x, -np.inf)).max(axis=axis))
+        mn.append((x if ok is None else np.where(ok, x, np.inf)).min(axis=axis))
+    return np.stack(mx, axis=-1), np.stack(mn, axis=-1)
+
+
 def _bright_set(rad: np.ndarray, omega: np.ndarray, n_bright, bright_factor: float, max_bright: int) -> np.ndarray:
-    key = rad.max(axis=1)
+    key = channel_max(rad)
     M = key.shape[0]
     if n_bright == "auto":
         mean = float(np.sum(key * omega) / np.sum(omega))
@@ -690,8 +759,7 @@ class _Sources:
         ok = (self.tex >= 0) & ~is_bright[np.maximum(self.tex, 0)]
         self._ok = ok
         r = rad[np.maximum(self.tex, 0)]  # (nb, b², C)
-        self.blk_max = np.where(ok[..., None], r, -np.inf).max(axis=1)
-        self.blk_min = np.where(ok[..., None], r, np.inf).min(axis=1)
+        self.blk_max, self.blk_min = _column_extremes(r, ok, axis=1)
 
     @functools.cached_property
     def blk_dirs(self):
@@ -805,24 +873,39 @@ class _Slabs:
         return mem[sel], np.bincount(np.repeat(ti, sel.sum(axis=1)), minlength=len(q))
 
 
-def _compiled_sources(src_dirs, rad_w, is_bright):
-    """Source arrays of :func:`ibl_ref.groundtruth.compiled_kernels.tile_gather`: directions X, Y, Z (M,), and the
-    weight rows ``[L·Ω, Ω]`` in groups of ≤ 3 channels plus Ω, padded to 4 rows (zero for the bright texels):
-    ``[(rows (4, M), (output columns, input columns)), …]`` and the bright texels' rows (nb, 4·groups)."""
-    M, Q = rad_w.shape
-    C = Q - 1
-    X, Y, Z = (np.ascontiguousarray(src_dirs[:, i]) for i in range(3))
+@functools.lru_cache(maxsize=8)
+def _direction_columns(m: int):
+    """The texel directions of the m² grid as three contiguous read-only columns X, Y, Z (M,)."""
+    d = envmap.texel_directions(m).reshape(-1, 3)
+    cols = tuple(np.ascontiguousarray(d[:, i]) for i in range(3))
+    for x in cols:
+        x.flags.writeable = False
+    return cols
+
+
+def _compiled_sources(m, rad, omega, bright):
+    """Source arrays of :func:`ibl_ref.groundtruth.compiled_kernels.tile_gather`: directions X, Y, Z (M,) of the
+    m² grid (read-only, cached), and the weight rows ``[L·Ω, Ω]`` in groups of ≤ 3 channels plus Ω, padded to 4
+    rows (zero for the bright texels ``bright``): ``[(rows (4, M), (output columns, input columns)), …]`` and the
+    bright texels' rows (nb, 4·groups).  (The products L·Ω are those of the NumPy path's ``[L, 1]·Ω``.)"""
+    M, C = rad.shape
+    X, Y, Z = _direction_columns(m)
     groups = []
     for g0 in range(0, max(C, 1), 3):
         ch = list(range(g0, min(g0 + 3, C))) + [C]
         rws = np.zeros((4, M))
-        rws[: len(ch)] = rad_w[:, ch].T
-        rws[:, is_bright] = 0.0
-        groups.append((np.ascontiguousarray(rws), (ch, slice(4 * len(groups), 4 * len(groups) + 4))))
-    bright_rw = np.zeros((int(is_bright.sum()), 4 * len(groups)))
+        for j, c in enumerate(ch):
+            if c < C:
+                np.multiply(rad[:, c], omega, out=rws[j])
+            else:
+                rws[j] = omega
+        rws[:, bright] = 0.0
+        groups.append((rws, (ch, slice(4 * len(groups), 4 * len(groups) + 4))))
+    bright_rw = np.zeros((len(bright), 4 * len(groups)))
     for gi, (_rws, (ch, _sl)) in enumerate(groups):
-        bright_rw[:, 4 * gi : 4 * gi + len(ch)] = rad_w[is_bright][:, ch]
-    return X, Y, Z, groups, np.ascontiguousarray(bright_rw)
+        for j, c in enumerate(ch):
+            bright_rw[:, 4 * gi + j] = rad[bright, c] * omega[bright] if c < C else omega[bright]
+    return X, Y, Z, groups, bright_rw
 
 
 def _padded(flat, counts, rows, width, pad):
@@ -1043,9 +1126,9 @@ def convolve_sparse_many(
     rest = np.ones(M, dtype=bool)
     rest[bright] = False
     if rest.any():
-        l_max_out = rad[rest].max(axis=0)  # (C,)
-        l_min_out = rad[rest].min(axis=0)
-        key = rad[rest].max(axis=1)
+        rad_rest = rad[rest] if bright.size else rad
+        l_max_out, l_min_out = _column_extremes(rad_rest)  # (C,)
+        key = channel_max(rad_rest)
         l_ref = float(np.sum(key * omega[rest]) / np.sum(omega[rest]))
         l_top = float(key.max())
     else:
@@ -1065,16 +1148,17 @@ def convolve_sparse_many(
     eps_far = max(_FAR_SHARE * tau * float(ratio.min()) if np.isfinite(ratio.min()) else 1.0, 1e-300)
 
     geometry = {}  # tile size → per-tile output indices, directions, centre, angles
-    rad_w = np.concatenate([rad, np.ones((M, 1))], axis=1) * omega[:, None]
     is_bright = np.zeros(M, dtype=bool)
     is_bright[bright] = True
     sources = slabs = None
-    # source directions and weights with one dummy entry (index M: direction 0 → weight 0) for the pads
-    src_dirs_pad = np.concatenate([src_dirs, np.zeros((1, 3))])
-    src_dirs_pad_t = np.ascontiguousarray(src_dirs_pad.T)
-    rad_w_pad = np.concatenate([rad_w, np.zeros((1, C + 1))])
-    bright_dirs_t = np.ascontiguousarray(src_dirs[bright].T)
-    rad_w_bright = rad_w[bright]
+    if not compiled:
+        rad_w = np.concatenate([rad, np.ones((M, 1))], axis=1) * omega[:, None]
+        # source directions and weights with one dummy entry (index M: direction 0 → weight 0) for the pads
+        src_dirs_pad = np.concatenate([src_dirs, np.zeros((1, 3))])
+        src_dirs_pad_t = np.ascontiguousarray(src_dirs_pad.T)
+        rad_w_pad = np.concatenate([rad_w, np.zeros((1, C + 1))])
+        bright_dirs_t = np.ascontiguousarray(src_dirs[bright].T)
+        rad_w_bright = rad_w[bright]
     omega_ratio = float(omega.max() / omega.min())
 
     for k, s in enumerate(s_list):
@@ -1101,8 +1185,12 @@ def convolve_sparse_many(
             infos.append(SparseInfo(s, np.pi / 2, rho, eps, -np.inf, int(bright.size), 1.0))
             continue
         # tiles of T×T output texels sharing one candidate list
-        T = (_tile_size(out_size, th, M, int(bright.size), _TILE_OVERHEAD_COMPILED, _CAND_OVERHEAD_COMPILED)
-             if compiled else _tile_size(out_size, th, M, int(bright.size)))
+        if compiled:  # the compiled gather leaves out the bright texels beyond acos(e^(-700/s)) + the tile radius
+            a_b = math.acos(math.exp(-700.0 / s)) + th
+            nb_eff = bright.size * (1.0 - math.cos(min(a_b, np.pi))) / 2.0
+            T = _tile_size(out_size, th, M, nb_eff, _TILE_OVERHEAD_COMPILED, _CAND_OVERHEAD_COMPILED)
+        else:
+            T = _tile_size(out_size, th, M, int(bright.size))
         IDX, TD, CEN, ANG, VALID, t_rad0 = (_tile_layout_of if _sample else _tile_layout)(out_size, tuple(faces), T)
         if _sample:
             pick = np.unique(np.linspace(0, len(CEN) - 1, min(_sample, len(CEN))).astype(np.intp))
@@ -1159,7 +1247,7 @@ def convolve_sparse_many(
             s_int = int(s) if (float(s).is_integer() and s <= ck.POWI_MAX and own_log >= -600.0) else 0
             eta_w, eps_w = ck.weight_error(s, bool(s_int), rowmax)
             if ("rw4",) not in geometry:
-                geometry[("rw4",)] = _compiled_sources(src_dirs, rad_w, is_bright)
+                geometry[("rw4",)] = _compiled_sources(n * supersample, rad, omega, bright)
             l_und = float(rad.max()) if rad.size else 0.0
 
         # caps per attempt: local (radiance extremes within the far cap), then local with κ ≥ 1 (an average
@@ -1217,7 +1305,8 @@ def convolve_sparse_many(
                     acc_g = np.empty((todo.size, B, 4))
                     lm_g = np.empty((todo.size, B))
                     cnt = np.empty(todo.size, dtype=np.int64)
-                    ck.tile_gather(CEN[todo], TD[todo], q_t[todo], envmap.face_frames("openexr"), n * supersample,
+                    ck.tile_gather(CEN[todo], TD[todo], q_t[todo], a_max[todo], envmap.face_frames("openexr"),
+                                   n * supersample,
                                    X, Y, Z, rws, src_dirs[bright], bright_rw[:, cols[1]], float(s), s_int, rowmax,
                                    math.exp(-700.0 / s), acc_g, lm_g, cnt)
                     acc[..., cols[0]] = acc_g[..., : len(cols[0])]
@@ -1274,10 +1363,19 @@ def convolve_sparse_many(
                     gathered += ii.size * B
             # per-texel bounds of the attempt's tiles; tiles whose bound misses rtol go to the next attempt
             tt = todo
+            if compiled:  # the same formula as below, in one compiled pass
+                worst = np.empty(tt.size)
+                ck.tile_bounds(acc, log_mx, np.broadcast_to(eta, tt.shape).astype(np.float64),
+                               np.broadcast_to(und, tt.shape).astype(np.float64), l_und, ANG[tt], q_t[tt], q_far[tt],
+                               0.5 * _ANGLE_MARGIN, grid, log_wb_grid, np.ascontiguousarray(lmax2[tt]),
+                               np.ascontiguousarray(lmin2[tt]), np.asarray(l_max_out, dtype=np.float64),
+                               np.asarray(l_min_out, dtype=np.float64), VALID[tt], IDX[tt], maps[k], bounds[k], worst)
+                todo = np.sort(tt[~(worst <= tau)])
+                continue
             p_avg = acc[..., :C] / acc[..., C:]
             # log W_in (absolute Σ cos^s Ω over the gathered set), lowered by the kernel's error bound
             log_win = log_mx + np.log(acc[..., C]) - np.log1p(eta + und)[:, None]
-            l_u = l_und if compiled else lmax2[tt][:, None, :]  # the compiled kernel's absolute terms: any texel
+            l_u = lmax2[tt][:, None, :]
             e_fp = (2.0 * eta / (1.0 - eta))[:, None, None] * p_avg + und[:, None, None] * (l_u + p_avg)
             # neglected texels of a row at angle a from the centre: beyond q − a (the near annulus up to
             # q_far − a: local extremes) and beyond q_far − a (global extremes)

@@ -163,6 +163,19 @@ def legendre_series_truncation_envelope(s: float, L: int, rho: float) -> float:
     return float(tab1[L])
 
 
+def band_limit_lower_bound(s: float, eta_target: float, L_max: int = SH_L_MAX):
+    """A band limit that :func:`choose_band_limit` never goes below, from the zonal coefficients alone (no
+    tables): the truncation error ``e_L = k − k_L`` has ``∫ e_L P_m dω = c_m`` for every m > L (Funk–Hecke,
+    orthogonality) and ``|P_m| ≤ 1``, so ``E_L ≥ ∫|e_L| dω ≥ max_{m>L} |c_m|``.  Returns the smallest L ≤ L_max
+    with ``max_{L<m≤L_max+1} |c_m| / (2π/(s+1)) ≤ 2·eta_target`` (the factor 2 covers the tables' quadrature),
+    or None when there is none (then :func:`choose_band_limit` returns None too)."""
+    d0 = 2.0 * np.pi / (float(s) + 1.0)
+    c = np.abs(zonal_coefficients(float(s), L_max + 1)) / d0
+    tail = np.maximum.accumulate(c[::-1])[::-1]  # tail[m] = max_{m' ≥ m} |c_m'| / d0 (m' ≤ L_max + 1)
+    ok = np.flatnonzero(tail[1:] <= 2.0 * eta_target)  # index L: max over m > L
+    return int(ok[0]) if ok.size else None
+
+
 def choose_band_limit(s: float, eta_target: float, rho: float, L_max: int = SH_L_MAX):
     """Smallest tabulated L ≤ L_max with ``E_L / (2π/(s+1)) ≤ eta_target``; None if none qualifies."""
     levels, tab = _envelope_table(float(s), SH_L_MAX, float(round(rho, 12)))

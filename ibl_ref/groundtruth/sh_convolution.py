@@ -93,7 +93,7 @@ import time
 import numpy as np
 
 from ..environment import envmap
-from .convolution_args import check_cube, check_exponent, check_out_size
+from .convolution_args import channel_max, check_cube, check_exponent, check_out_size
 from ..errors import IBLError
 
 __all__ = [
@@ -556,14 +556,14 @@ def _values_and_bounds(setup: ShSetup, shq, nb):
         with np.errstate(invalid="ignore", divide="ignore"):
             r = np.where(y > A, A / np.maximum(y - A, 1e-300), np.inf)
         maps[k] = y
-        rel[k] = r.max(axis=1)
+        rel[k] = channel_max(r)
         if k in est_idx:
             j = K + est_idx.index(k)
             y_half = (shq[j, :, :C] + nb[k]) / (shq[j, :, C:] if normalized else 1.0)
             with np.errstate(invalid="ignore", divide="ignore"):
                 est = np.abs(y - y_half) + 1e-12 * np.abs(y)
                 est = np.where(y > est, est / np.maximum(y - est, 1e-300), np.inf)
-            rel_est[k] = est.max(axis=1)
+            rel_est[k] = channel_max(est)
     return maps, rel, rel_est
 
 
