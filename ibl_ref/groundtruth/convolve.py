@@ -473,7 +473,10 @@ SPARSE_UNITS_PER_OUTPUT = 6.8e3
 EXACT_UNITS_PER_PAIR_COMPILED = 17.0
 EXACT_UNITS_PER_PAIR_S1_COMPILED = 6.0
 SPARSE_UNITS_PER_PAIR_COMPILED = 1.33
-SPARSE_UNITS_PER_OUTPUT_COMPILED = 2.2e3
+#: (the static sparse constants of the compiled kernel: non-negative least squares of the same 15 cells of
+#: 2026-12-04, CPU seconds against the static form: 1.34 (1.33 kept) and 800, measured / model 0.66–1.87; with 1.33 and 2.2e3,
+#: fitted to the kernels before, the cells gave 0.32–1.70)
+SPARSE_UNITS_PER_OUTPUT_COMPILED = 800.0
 SH_FACTOR = 0.37
 SH_FACTOR_COMPILED = 0.19
 SH_BRIGHT_FACTOR = 0.43
@@ -512,11 +515,13 @@ def _moment_cost(n, out_size, leaf, impl="numpy"):
 #: :func:`ibl_ref.groundtruth.phong_convolution.estimate_candidates` (its first caps on a sample of tiles), per
 #: kernel; fitted by ``benchmarks/bench_cost_models.py --only sparse --probe …/courtyard.exr`` (2026-12-02, load
 #: 1.9–2.9; sky + sun 64²–256² × s = 64…4096 and the courtyard probe at 256², s = 256…4096: measured / model
-#: 0.78–1.57 NumPy, 0.78–1.77 compiled)
+#: 0.78–1.57 NumPy; the compiled constants refitted after the fused bounds, pair-wise rows and bright-texel cut of
+#: 2026-12-04 by ``… --kernel compiled --only sparse --probe …/courtyard.exr``, load 0.3–0.9: measured / model
+#: 0.59–1.72, before 0.78–1.77 with 1.03 and 1.01e3)
 SPARSE_UNITS_PER_CAND = 5.04
 SPARSE_UNITS_PER_CAND_OUTPUT = 992.0
-SPARSE_UNITS_PER_CAND_COMPILED = 1.03
-SPARSE_UNITS_PER_CAND_OUTPUT_COMPILED = 1.01e3
+SPARSE_UNITS_PER_CAND_COMPILED = 1.24
+SPARSE_UNITS_PER_CAND_OUTPUT_COMPILED = 482.0
 #: the planner estimates the sparse candidates (≈ 0.05–2 s) only for exponents whose sparse cost by the static
 #: model is at least this many seconds (below, the choice matters little) and not SPARSE_STATIC_SLACK times their SH
 #: pass (the static model was 1.3–3.6× below the measured cost on the CC0 probes at 256², s = 256)
