@@ -429,29 +429,14 @@ def _weight(c, s, s_int, c_floor, lref):
 
 
 @_jit(fastmath={"contract", "reassoc"}, inline="always")
-def _sums(rx, ry, rz, SX, SY, SZ, S0, S1, S2, S3, m, s, s_int, c_floor, lref):
-    """Σ_j w_j·S_k[j] over the scratch entries, w = :func:`_weight` of c = r·ω_j (one loop per kind of weight:
-    a branch inside the loop would evaluate both powers)."""
-    a0 = a1 = a2 = a3 = 0.0
-    if s_int > 0:
-        for j in range(m):
-            w = _weight(rx * SX[j] + ry * SY[j] + rz * SZ[j], s, s_int, c_floor, lref)
-            a0, a1, a2, a3 = a0 + w * S0[j], a1 + w * S1[j], a2 + w * S2[j], a3 + w * S3[j]
-    else:
-        for j in range(m):
-            w = _weight(rx * SX[j] + ry * SY[j] + rz * SZ[j], s, 0, c_floor, lref)
-            a0, a1, a2, a3 = a0 + w * S0[j], a1 + w * S1[j], a2 + w * S2[j], a3 + w * S3[j]
-    return a0, a1, a2, a3
-
-
-@_jit(fastmath={"contract", "reassoc"}, inline="always")
-def _sums2(R, b, SX, SY, SZ, S0, S1, S2, S3, m, s, s_int, c_floor, L, out):
-    """:func:`_sums` of the two rows ``R[b], R[b + 1]`` (reference logs ``L[0:2]``) in one pass over the scratch
-    entries, into ``out[0:2, 0:4]``: each entry is loaded once for both rows (the one-row loop is bound by
-    loading the 7 scratch streams, not by the arithmetic); every row's sum has the same terms as by
-    :func:`_sums` (the order of a vectorised sum is the compiler's either way, :func:`sum_error`)."""
-    x0, y0, z0 = R[b, 0], R[b, 1], R[b, 2]
-    x1, y1, z1 = R[b + 1, 0], R[b + 1, 1], R[b + 1, 2]
+def _sums2(R, b0, b1, SX, SY, SZ, S0, S1, S2, S3, m, s, s_int, c_floor, L, out):
+    """``out[r, k] = Σ_j w_rj·S_k[j]`` over the m scratch entries for the two rows ``R[b0], R[b1]`` (reference logs
+    ``L[0:2]``), w = :func:`_weight` of c = r·ω_j: one pass, each entry loaded once for both rows (a one-row loop
+    is bound by loading the 7 scratch streams, not by the arithmetic); one loop per kind of weight (a branch
+    inside the loop would evaluate both powers).  The order of the vectorised sums is the compiler's
+    (:func:`sum_error` covers any order)."""
+    x0, y0, z0 = R[b0, 0], R[b0, 1], R[b0, 2]
+    x1, y1, z1 = R[b1, 0], R[b1, 1], R[b1, 2]
     l0, l1 = L[0], L[1]
     a00 = a01 = a02 = a03 = a10 = a11 = a12 = a13 = 0.0
     if s_int > 0:
@@ -524,31 +509,18 @@ def tile_gather(cen, rows, caps, arad, frames, n, X, Y, Z, RW, bdirs, brw, s, s_
                 kb = math.cos(a_cut)
         m, out = _collect(cen[i], caps[i], frames, n, X, Y, Z, RW, bdirs, brw, kb, SX, SY, SZ, S0, S1, S2, S3)
         count[i] = m + out
-        b2 = B - B % 2
-        for b in range(0, b2, 2):
+        for b in range(0, B, 2):
+            b1 = min(b + 1, B - 1)  # an odd last row is paired with itself
             for r in range(2):
                 lr[r] = 0.0
                 if s_int <= 0 and rowmax:
-                    lr[r] = log_(max(_max_cos(rows[i, b + r, 0], rows[i, b + r, 1], rows[i, b + r, 2], SX, SY, SZ, m),
-                                     1e-300))
-            _sums2(rows[i], b, SX, SY, SZ, S0, S1, S2, S3, m, s, s_int, c_floor, lr, acc2)
-            for r in range(2):
+                    br = b if r == 0 else b1
+                    lr[r] = log_(max(_max_cos(rows[i, br, 0], rows[i, br, 1], rows[i, br, 2], SX, SY, SZ, m), 1e-300))
+            _sums2(rows[i], b, b1, SX, SY, SZ, S0, S1, S2, S3, m, s, s_int, c_floor, lr, acc2)
+            for r in range(2 if b1 > b else 1):
                 logmx[i, b + r] = s * lr[r]
                 for q in range(4):
                     acc[i, b + r, q] = acc2[r, q]
-        for b in range(b2, B):
-            rx = rows[i, b, 0]
-            ry = rows[i, b, 1]
-            rz = rows[i, b, 2]
-            lref = 0.0
-            if s_int <= 0 and rowmax:
-                lref = log_(max(_max_cos(rx, ry, rz, SX, SY, SZ, m), 1e-300))
-            a0, a1, a2, a3 = _sums(rx, ry, rz, SX, SY, SZ, S0, S1, S2, S3, m, s, s_int, c_floor, lref)
-            logmx[i, b] = s * lref
-            acc[i, b, 0] = a0
-            acc[i, b, 1] = a1
-            acc[i, b, 2] = a2
-            acc[i, b, 3] = a3
 
 
 @_jit(fastmath={"contract"})
@@ -869,7 +841,7 @@ def point_gather(out_dirs, b_dirs, b_w, s_arr, s_int, res):
                 a1 = acc[k, 1]
                 a2 = acc[k, 2]
                 a3 = acc[k, 3]
-                if si > 0:  # (one loop per kind of weight, see _sums)
+                if si > 0:  # (one loop per kind of weight, see _sums2)
                     for i in range(m):
                         _acc4(a0, a1, a2, a3, i, _weight(c[i], s, si, 0.0, 0.0), w0, w1, w2, w3)
                 else:

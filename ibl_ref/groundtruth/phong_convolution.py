@@ -457,21 +457,7 @@ def _log_bound_annuli(s: float, theta_c: float, rho: float) -> float:
     whose solid angle is 2π(cos(θ_i − ρ) − cos(θ_{i+1} + ρ)); their weight is at most cos^s θ_i.
     The best of a few widths Δ is taken (each is a valid bound).
     """
-    # the four widths' annuli in one array (one pass of NumPy calls; each width's sum reduced in order, as by
-    # a reduction of its own array)
-    deltas = [max(rho * frac, 1e-6) for frac in _ANNULUS_FRACS]
-    ths = [np.arange(theta_c, np.pi / 2, d) for d in deltas]
-    if min(x.size for x in ths) == 0:
-        return -np.inf
-    th = np.concatenate(ths)
-    delta = np.repeat(deltas, [x.size for x in ths])
-    lo = np.maximum(th - rho, 0.0)
-    hi = np.minimum(th + delta + rho, np.pi)
-    area = 2.0 * np.pi * (np.cos(lo) - np.cos(hi))
-    with np.errstate(divide="ignore"):
-        terms = s * np.log(np.cos(th)) + np.log(area)
-    starts = np.cumsum([0] + [x.size for x in ths[:-1]])
-    return float(np.logaddexp.reduceat(terms, starts).min())
+    return float(_log_bound_annuli_many(float(s), np.array([float(theta_c)]), float(rho))[0])
 
 
 #: widths of the annuli of :func:`_log_bound_annuli`, in units of ρ (each gives a valid bound; the least is taken)
@@ -505,13 +491,15 @@ def _arange_rows(starts: np.ndarray, stop: float, delta: float):
     th = starts[:, None] + i[None, :] * d2[:, None]
     if w > 1:
         th[:, 1] = starts + delta
-    th[:, 0] = starts
+    if w > 0:
+        th[:, 0] = starts
     return th, lengths
 
 
 def _log_bound_annuli_many(s: float, thetas: np.ndarray, rho: float) -> np.ndarray:
-    """:func:`_log_bound_annuli` at every θ of ``thetas`` (all < π/2) at once, bit for bit the same values
-    (the same terms in the same order; the padding adds −inf, which leaves ``logaddexp`` unchanged)."""
+    """:func:`_log_bound_annuli` at every θ of ``thetas`` at once: per θ and width, the sum over the annuli that
+    ``np.arange(θ, π/2, Δ)`` starts, each θ's terms in their order (the padding after a row's end adds −inf,
+    which leaves ``logaddexp`` unchanged): the values of one sum per θ and width, bit for bit."""
     best = np.full(thetas.shape, np.inf)
     for frac in _ANNULUS_FRACS:
         delta = max(rho * frac, 1e-6)
