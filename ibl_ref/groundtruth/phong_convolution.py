@@ -442,10 +442,16 @@ def _log_integral_cos_pow(m: float, a: float) -> float:
     return min(cands)
 
 
+def _log_bound_integral_t1(s: float, theta_c: float, rho: float) -> float:
+    """The first term of :func:`_log_bound_integral` (that bound is ≥ log 2π + this)."""
+    a = max(theta_c - 2.0 * rho, 0.0)
+    return math.log(math.cos(rho)) + (s + 1.0) * math.log(math.cos(a)) - math.log(s + 1.0)
+
+
 def _log_bound_integral(s: float, theta_c: float, rho: float) -> float:
     """log W_b from the continuous integral with the exponent shifted by 2ρ (module docstring)."""
     a = max(theta_c - 2.0 * rho, 0.0)
-    t1 = math.log(math.cos(rho)) + (s + 1.0) * math.log(math.cos(a)) - math.log(s + 1.0)
+    t1 = _log_bound_integral_t1(s, theta_c, rho)
     t2 = math.log(math.sin(rho)) + _log_integral_cos_pow(s + 1.0, a) if rho > 0 else -np.inf
     return math.log(2.0 * np.pi) + float(np.logaddexp(t1, t2))
 
@@ -530,9 +536,7 @@ def _wb_grid(s: float, rho: float, cap_min: float, top: float):
     for i, g in enumerate(grid):
         if g >= np.pi / 2 or g < 2.0 * rho:
             continue
-        a = max(g - 2.0 * rho, 0.0)
-        t1 = math.log(math.cos(rho)) + (s + 1.0) * math.log(math.cos(a)) - math.log(s + 1.0)
-        if log_2pi + t1 < log_wb[i]:
+        if log_2pi + _log_bound_integral_t1(s, float(g), rho) < log_wb[i]:
             log_wb[i] = min(log_wb[i], _log_bound_integral(s, float(g), rho))
     log_wb_grid = np.minimum.accumulate(log_wb)
     grid.flags.writeable = False
