@@ -303,6 +303,52 @@ def test_sh_compiled_bound_holds_and_agrees_with_numpy(ck):
     np.testing.assert_allclose(mp, m1, rtol=1e-11, atol=0)
 
 
+def test_sparse_bright_cut_of_the_first_attempt_keeps_the_bound(ck):
+    # the first compiled attempt leaves out bright texels whose weight is below δ0 ≫ e^-700 (charged in the
+    # bound); on log-normal maps with a bright band (many bright texels) and a 1e-4 dark region (tiles that miss
+    # and are gathered again) the bound must hold against the exact gather at every texel
+    from ibl_ref.environment import envmap
+    from ibl_ref.groundtruth import phong_convolution as pc
+
+    rng = np.random.default_rng(7)
+    retried = 0
+    for n in (12, 16):
+        d = envmap.texel_directions(n)
+        cube = np.exp(rng.normal(0.0, 2.5, (6, n, n, 3)))
+        cube[np.abs(d[..., 2]) < 0.3] *= 1e3
+        cube[d[..., 0] > 0.5] *= 1e-4
+        S = [64.0, 1000.0, 4096.0, 777.5]
+        m, b, info = pc.convolve_sparse_many(cube, S, rtol=1e-3, impl="compiled", return_info=True)
+        ref = pc.convolve_exact_many(cube, S)
+        for k, s in enumerate(S):
+            assert np.all(np.abs(m[k] - ref[k]) <= b[k]), (n, s)
+        retried += sum(i.retried_tiles for i in info)
+    assert retried > 0  # the dark tiles were gathered again
+
+
+def test_sparse_threads_bit_identical_and_checked(ck):
+    from ibl_ref.groundtruth import phong_convolution as pc
+    from ibl_ref.groundtruth.convolve import convolve
+
+    cube = _sun_env(32)
+    S = [256.0, 4096.0, 777.5]
+    one = pc.convolve_sparse_many(cube, S, rtol=1e-3, impl="compiled")
+    for th in (2, 3, 64):  # more threads than half the tiles: capped
+        many = pc.convolve_sparse_many(cube, S, rtol=1e-3, impl="compiled", threads=th)
+        np.testing.assert_array_equal(many[0], one[0])
+        np.testing.assert_array_equal(many[1], one[1])
+    for bad in (0, 1.5, True, "2"):
+        with pytest.raises(IBLError, match="threads"):
+            pc.convolve_sparse_many(cube, S[:1], impl="compiled", threads=bad)
+    # a round of sparse gathers only: one job whose tiles the workers' threads share; the same numbers as serial
+    r1 = convolve(cube, S, rtol=1e-3, method="sparse", kernel="compiled", workers=1)
+    r2 = convolve(cube, S, rtol=1e-3, method="sparse", kernel="compiled", workers=2)
+    assert r2.info.get("sparse_threads") == 2 and "sparse_threads" not in r1.info
+    for s in S:
+        np.testing.assert_array_equal(r2.maps[s], r1.maps[s])
+        np.testing.assert_array_equal(r2.error_bound[s], r1.error_bound[s])
+
+
 @pytest.fixture
 def no_tiny_shortcut(monkeypatch):
     import ibl_ref.groundtruth.convolve as cv
@@ -357,6 +403,34 @@ def test_auto_kernel_keeps_numpy_for_small_work_in_a_fresh_process():
     first, second = p.stdout.strip().splitlines()
     assert first.startswith("numpy | numpy: model")  # loading the compiled kernels would cost more
     assert second == "compiled"  # once loaded, they are free to use
+
+
+def test_kernels_load_without_scipy_linalg_and_numba_blas_still_works():
+    # compiled_kernels imports numba's array registry with scipy.linalg hidden (start-up), then sets numba's BLAS
+    # flag as a normal import would: numba code elsewhere in the process must still use BLAS (np.dot, @)
+    pytest.importorskip("numba", reason="the compiled kernels need numba")
+    code = textwrap.dedent(
+        """
+        import sys
+        import numpy as np
+        from ibl_ref.groundtruth import compiled_kernels as ck
+        ck.warm_up(["moment"])
+        print("scipy.linalg" in sys.modules, ck._LAZY_SCIPY)
+        import numba
+        import numba.np.arraymath as am
+        @numba.njit
+        def dot(a, b):
+            return np.dot(a, b), a[:3].reshape(1, 3) @ b[:3].reshape(3, 1)
+        a = np.arange(1.0, 6.0)
+        v, m = dot(a, a)
+        print(am._HAVE_BLAS, v == a @ a, m[0, 0] == a[:3] @ a[:3], "scipy.linalg" in sys.modules)
+        """
+    )
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_env(), timeout=600)
+    assert p.returncode == 0, p.stderr
+    first, second = p.stdout.strip().splitlines()
+    assert first == "False True"  # loaded without scipy.linalg
+    assert second == "True True True True"  # BLAS flag as usual; numba imported scipy.linalg when it needed it
 
 
 def test_cli_kernel_flag_and_sidecar(tmp_path, ck):

@@ -100,6 +100,30 @@ def test_weight_bound_dominates_brute_force_and_is_tight(n):
                 assert w_b < 30 * w_out, (s, eps, w_b / w_out)
 
 
+def test_cutoff_angle_satisfies_its_bound_and_is_near_the_smallest_angle():
+    # the returned angle must satisfy W_b(θc) ≤ ε·2π/(s+1) (the rigorous part), and lie within the stated
+    # tolerance (ρ·2^-8) above the end a plain 60-step bisection on neglected_weight_bound reaches
+    import math
+
+    from ibl_ref.groundtruth import phong_convolution as pc
+
+    for m in (1, 3, 16, 128, 2048):
+        rho = pc._texel_extent(m)
+        for s in (1.0, 7.5, 256.0, 4096.0, 1e6):
+            for eps in (1e-300, 1e-9, 1e-3, 0.5):
+                target = math.log(eps) + math.log(2.0 * np.pi / (s + 1.0))
+                th = pc.cutoff_angle(s, eps, rho)
+                assert neglected_weight_bound(s, th, rho) <= target, (m, s, eps)
+                lo, hi = 0.0, np.pi / 2
+                if neglected_weight_bound(s, lo, rho) <= target:
+                    hi = 0.0
+                else:
+                    for _ in range(60):
+                        mid = 0.5 * (lo + hi)
+                        lo, hi = (lo, mid) if neglected_weight_bound(s, mid, rho) <= target else (mid, hi)
+                assert hi <= th <= hi + pc._CUTOFF_TOL * rho * (1.0 + 1e-12), (m, s, eps, th, hi)
+
+
 def test_sparse_many_matches_single_and_mirror():
     rng = np.random.default_rng(3)
     cube = rng.random((6, 8, 8, 2)) + 0.2

@@ -48,7 +48,10 @@ Concurrency (``workers``)
     ``workers``: ``$IBL_REF_WORKERS`` or min(2, usable CPUs).  BLAS is held at 1 thread (threadpoolctl) for the
     whole call, serial included: a multi-threaded BLAS splits the SH matrix products differently and
     changes their rounding (≈ 5e-16 relative, measured at 128²).  The jobs do not depend on the worker
-    count or back-end, so results are bit-for-bit identical for every ``workers``/``backend``.
+    count or back-end, so results are bit-for-bit identical for every ``workers``/``backend``.  With the
+    compiled kernels a round of sparse gathers only (no other route in it, no ``executor``) is one job over all
+    six faces whose tiles ``workers`` threads share (the compiled gather releases the GIL; each tile is computed
+    by one thread as in a serial call): no pool to start, the load balanced tile by tile.
     Measured (``python benchmarks/bench_convolution.py --repeat 3``, 128² faces, the 8 exponents
     {1, 2, 5, 10, 20, 50, 100, 1000}, 2-core VM, load ≈ 1.2, three runs each): 3.0–3.6 s serial;
     2.0–2.3 s wall with 2 processes, 2.4–3.0 s with 2 threads.
@@ -354,7 +357,8 @@ class ConvolutionResult:
         ``"exact"``, ``"sh"``, ``"sparse"`` (after any fallback).
     timings_s : dict
         Seconds per stage (keys ``"moment"``, ``"sh"``, ``"sparse"``, ``"exact"``: summed wall time of
-        that stage's jobs, which overlap when ``workers > 1``), ``"jobs_wall"`` (wall time of all
+        that stage's jobs, which overlap when ``workers > 1``; a compiled sparse gather shared by threads,
+        ``info["sparse_threads"]``, counts its wall time × threads), ``"jobs_wall"`` (wall time of all
         jobs), ``"total"`` (wall time of the call) and the process CPU time of the whole call
         (``"total_cpu"``, all threads; equals the unloaded serial wall time when BLAS runs
         single-threaded, the recommended setting).
@@ -884,7 +888,7 @@ def _sh_split_state(a4, sh_set, sh_plan, rtol, out_size, normalized, impl="numpy
 
 
 def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_plan, sparse_batches, parts, ex_set,
-                mo_leaf=1, sh_state=None, impl="numpy"):
+                mo_leaf=1, sh_state=None, impl="numpy", sparse_threads=1):
     """The independent jobs ``(stage, key, model cost, callable)`` of one round of :func:`convolve`.
 
     Every job computes a fixed piece of work (its exponents, its output faces) that does not depend on
@@ -927,7 +931,8 @@ def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_pla
                 pair_units * _unit("EXACT_UNITS_PER_PAIR", impl))
             jobs.append(("sparse", ("sparse", bi, pi), cost,
                          functools.partial(pc.convolve_sparse_many, a4, list(sb), rtol=min(rtol * sc, 0.5),
-                                           out_size=out_size, faces=fc, impl=impl, return_info=True)))
+                                           out_size=out_size, faces=fc, impl=impl, return_info=True,
+                                           **({"threads": sparse_threads} if sparse_threads > 1 else {}))))
     if ex_set:
         jobs.append(("exact", ("exact",), _unit("EXACT_UNITS_PER_PAIR", impl) * pair_units * len(ex_set),
                      functools.partial(pc.convolve_exact_many, a4, ex_set, normalized=normalized,
@@ -1031,8 +1036,13 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
                 sub_plan = plan if list(sh_set) == list(finite) else None
             if sh_set and sh_state is None:
                 sh_state = _sh_split_state(a4, sh_set, sub_plan, rtol, out_size, normalized, impl)
+            # a round of compiled sparse gathers only: one job over all faces whose tiles are shared by `workers`
+            # threads (the kernel releases the GIL): no pool to start, the load balanced tile by tile
+            solo = (impl == "compiled" and executor is None and workers > 1 and sparse_batches
+                    and not (mo_set or sh_set or ex_set))
+            sp_parts = (tuple(range(6)),) if solo else parts
             jobs = _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sub_plan,
-                               sparse_batches, parts, ex_set, mo_leaf, sh_state, impl)
+                               sparse_batches, sp_parts, ex_set, mo_leaf, sh_state, impl, workers if solo else 1)
             w_plan, warning = _round_workers(jobs, a4, out_size, workers, executor, memory_limit, 2.0 in mo_set)
             planned.append(w_plan)
             if warning:
@@ -1042,7 +1052,10 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
             t_par += time.perf_counter() - t0
             child_cpu += cpu_c
             for stage, key, _c, _f in jobs:
-                stage_busy[stage] += busy[key]
+                # a solo sparse job's threads count as workers: its wall time × threads
+                stage_busy[stage] += busy[key] * (workers if solo and stage == "sparse" else 1)
+            if solo:
+                res.info["sparse_threads"] = workers
             # ---- collect ----
             nxt_batches, nxt_exact = [], []
             if mo_set:
@@ -1093,13 +1106,13 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
                         nxt_exact += fb
                 sh_set = []
             for bi, (sb, sc, att) in enumerate(sparse_batches):
-                maps = np.concatenate([out[("sparse", bi, pi)][0] for pi in range(len(parts))], axis=1)
-                abs_b = np.concatenate([out[("sparse", bi, pi)][1] for pi in range(len(parts))], axis=1)
+                maps = np.concatenate([out[("sparse", bi, pi)][0] for pi in range(len(sp_parts))], axis=1)
+                abs_b = np.concatenate([out[("sparse", bi, pi)][1] for pi in range(len(sp_parts))], axis=1)
                 # (output, source texel) pairs the gathers computed (all attempts), for the benchmarks
                 n_src = 6 * n * n
                 res.info["sparse_pairs"] = res.info.get("sparse_pairs", 0.0) + sum(
                     i.gathered_fraction * len(fc) * out_size * out_size * n_src
-                    for pi, fc in enumerate(parts) for i in out[("sparse", bi, pi)][2])
+                    for pi, fc in enumerate(sp_parts) for i in out[("sparse", bi, pi)][2])
                 worst, fb = 0.0, []
                 for k, s in enumerate(sb):
                     rel = _rel_from_abs(maps[k], abs_b[k])

@@ -544,18 +544,36 @@ def _wb_grid(s: float, rho: float, cap_min: float, top: float):
     return grid, log_wb_grid
 
 
+#: :func:`cutoff_angle` stops when its bracket is narrower than this many texel extents ρ (the caps it sets are
+#: used on a grid of step ρ/4; the returned end of the bracket satisfies the bound whatever the width)
+_CUTOFF_TOL = 2.0 ** -8
+
+
+def _wb_at_most(s: float, theta: float, rho: float, target: float) -> bool:
+    """``neglected_weight_bound(s, θ, ρ) ≤ target``: the annulus sum first, the integral bound only where it can
+    decide (it is ≥ log 2π + its first term, so where that exceeds the target it cannot)."""
+    if theta >= np.pi / 2 or _log_bound_annuli(s, theta, rho) <= target:
+        return True
+    if theta < 2.0 * rho or math.log(2.0 * np.pi) + _log_bound_integral_t1(s, theta, rho) > target:
+        return False
+    return _log_bound_integral(s, theta, rho) <= target
+
+
 @functools.lru_cache(maxsize=1024)
 def cutoff_angle(s: float, eps: float, rho: float) -> float:
-    """Smallest θc ∈ (0, π/2] (bisection, W_b is non-increasing) with W_b(θc) ≤ eps · 2π/(s+1)."""
+    """Smallest θc ∈ (0, π/2] (bisection, W_b is non-increasing) with W_b(θc) ≤ eps · 2π/(s+1), to within
+    :data:`_CUTOFF_TOL`·ρ (at most 60 halvings): the returned upper end of the bracket always satisfies the
+    bound (it starts at π/2, where W_b = 0, and moves only to points that satisfy it)."""
     target = math.log(eps) + math.log(2.0 * np.pi / (s + 1.0))
     lo, hi = 0.0, np.pi / 2
-    if lo >= hi:
-        return hi
     if neglected_weight_bound(s, lo, rho) <= target:
         return lo
+    tol = _CUTOFF_TOL * rho
     for _ in range(60):
+        if hi - lo <= tol:
+            break
         mid = 0.5 * (lo + hi)
-        if neglected_weight_bound(s, mid, rho) <= target:
+        if _wb_at_most(s, mid, rho, target):
             hi = mid
         else:
             lo = mid
@@ -625,6 +643,9 @@ _CAP_BLOCK = 8
 #: share of ``rtol`` left to the far-field term of the local bound (texels beyond the far cap θ_far, bounded
 #: with the global radiance extremes); the rest goes to the near annulus and to the float32 kernel's rounding
 _FAR_SHARE = 0.1
+#: share of the accuracy target τ that the first compiled attempt's left-out bright weights may take (at the mean
+#: radiance; :func:`convolve_sparse_many`)
+_BRIGHT_CUT_SHARE = 0.05
 #: the first cap of a tile aims at this fraction of its share of ``rtol`` (the a-priori estimate of the
 #: gathered weight and average can be off; a tile whose bound misses ``rtol`` is gathered again, wider)
 _CAP_MARGIN = 0.8
@@ -697,15 +718,16 @@ def _tile_layout_of(out_size: int, faces: tuple, T: int):
     accurate near 0), VALID (n_t, B), the largest tile radius over face 0)``, computed per tile shape at once;
     cached per sizes (read-only arrays)."""
     dst = envmap.texel_directions(out_size)
-    starts = list(range(0, out_size, T))
-    order, groups = [], {}
-    for fi, f in enumerate(faces):
-        for r0 in starts:
-            for c0 in starts:
-                shape = (min(T, out_size - r0), min(T, out_size - c0))
-                groups.setdefault(shape, []).append(len(order))
-                order.append((fi, f, r0, c0))
-    order = np.array(order, dtype=np.intp).reshape(-1, 4)
+    starts = np.arange(0, out_size, T, dtype=np.intp)
+    # tiles in the order (face, first row, first column); grouped by shape (h, w) (at most four shapes)
+    fi_t, r0_t, c0_t = (x.ravel() for x in np.meshgrid(np.arange(len(faces), dtype=np.intp), starts, starts,
+                                                       indexing="ij"))
+    order = np.stack([fi_t, np.asarray(faces, dtype=np.intp).reshape(-1)[fi_t], r0_t, c0_t], axis=1)
+    h_t, w_t = np.minimum(T, out_size - r0_t), np.minimum(T, out_size - c0_t)
+    groups = {}
+    for code in np.unique(h_t * (T + 1) + w_t)[::-1].tolist():
+        h, w = divmod(code, T + 1)
+        groups[(h, w)] = np.flatnonzero((h_t == h) & (w_t == w))
     n_t = len(order)
     B = max(h * w for h, w in groups)
     IDX = np.empty((n_t, B), dtype=np.intp)
@@ -729,7 +751,7 @@ def _tile_layout_of(out_size: int, faces: tuple, T: int):
         IDX[mem, :k], TD[mem, :k], ANG[mem, :k], VALID[mem, :k], CEN[mem] = idx, td, ang, True, cen
         IDX[mem, k:], TD[mem, k:], ANG[mem, k:] = idx[:, -1:], td[:, -1:], ang[:, -1:]
     if faces and faces[0] == 0:
-        t_rad = float(ANG[: len(starts) ** 2].max())
+        t_rad = float(ANG[: starts.size ** 2].max())
     else:
         t_rad = _tile_radius(out_size, T)
     for x in (IDX, TD, ANG, CEN, VALID):
@@ -1039,6 +1061,35 @@ def _tile_batches(order, counts, B, chunk, key):
         k0 += tb.size
 
 
+def _tile_gather_threads(ck, threads, cen, rows, caps, arad, frames, m, X, Y, Z, rws, bdirs, brw, s, s_int, rowmax,
+                         c_floor, acc, logmx, count):
+    """:func:`ibl_ref.groundtruth.compiled_kernels.tile_gather` on ``threads`` threads: thread j gathers the tiles
+    j, j + threads, j + 2·threads, … (neighbouring tiles have similar caps, so the threads get similar work) into
+    its own outputs, copied back in place.  Every tile is computed by the same code on the same inputs as in one
+    call: the result does not depend on ``threads``."""
+    nt = cen.shape[0]
+    threads = max(1, min(int(threads), nt // 2))
+    if threads <= 1:
+        ck.tile_gather(cen, rows, caps, arad, frames, m, X, Y, Z, rws, bdirs, brw, s, s_int, rowmax, c_floor, acc,
+                       logmx, count)
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    sel = [np.arange(j, nt, threads) for j in range(threads)]
+    outs = [(np.empty((t.size,) + acc.shape[1:]), np.empty((t.size,) + logmx.shape[1:]),
+             np.empty(t.size, dtype=count.dtype)) for t in sel]
+
+    def run(j):
+        t = sel[j]
+        ck.tile_gather(cen[t], rows[t], caps[t], arad[t], frames, m, X, Y, Z, rws, bdirs, brw, s, s_int, rowmax,
+                       c_floor, *outs[j])
+
+    with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="ibl_tiles") as ex:
+        list(ex.map(run, range(threads)))
+    for t, (a_j, l_j, c_j) in zip(sel, outs):
+        acc[t], logmx[t], count[t] = a_j, l_j, c_j
+
+
 def convolve_sparse_many(
     cube,
     exponents,
@@ -1056,6 +1107,7 @@ def convolve_sparse_many(
     kernel: str = "auto",
     dark_floor: float = 1e-6,
     impl: str = "numpy",
+    threads: int = 1,
     _sample: int = 0,
 ):
     """Truncated-support gather of the normalised Eq. 4 lobe average, several exponents.
@@ -1069,7 +1121,13 @@ def convolve_sparse_many(
     ``impl="compiled"`` runs the gather of every tile (its cap's texels found by face-row intervals, the
     weights, the bright set) in :func:`ibl_ref.groundtruth.compiled_kernels.tile_gather` (float64; its rounding
     bound, :func:`~ibl_ref.groundtruth.compiled_kernels.weight_error`, replaces the float32 kernel's in the
-    bound); tiles, caps, attempts and the bound are the same code as for ``impl="numpy"``.
+    bound); tiles, caps, attempts and the bound are the same code as for ``impl="numpy"``, except that the first
+    attempt leaves out the bright texels whose weight from every row of the tile is below δ0 (and sets gathered weights
+    below δ0 to 0), an absolute error ≤ δ0 per (row, texel) pair that the bound charges like the rounding allowance
+    (δ0 from :data:`_BRIGHT_CUT_SHARE`; every later attempt, and every tile whose bound then misses, uses e^-700).
+    ``threads`` > 1 (compiled
+    only): the tiles are gathered by that many threads (the kernel releases the GIL; every tile's sums are computed
+    by one thread exactly as in a serial call, so the result is bit-for-bit the same for every thread count).
 
     ``_sample > 0`` (used by the planner of :func:`ibl_ref.groundtruth.convolve.convolve`, see
     :func:`estimate_candidates`): no gather; the first attempt's caps of that many evenly spaced tiles only,
@@ -1094,6 +1152,8 @@ def convolve_sparse_many(
     if impl == "compiled" and kernel == "float32":
         raise IBLError("kernel='float32' is the NumPy path's kernel; the compiled gather is float64 (kernel='auto')")
     compiled = impl == "compiled"
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+        raise IBLError(f"threads must be an integer ≥ 1, got {threads!r}")
     ck = None
     if compiled:
         from . import compiled_kernels as ck
@@ -1177,8 +1237,20 @@ def convolve_sparse_many(
             infos.append(SparseInfo(s, np.pi / 2, rho, eps, -np.inf, int(bright.size), 1.0))
             continue
         # tiles of T×T output texels sharing one candidate list
-        if compiled:  # the compiled gather leaves out the bright texels beyond acos(e^(-700/s)) + the tile radius
-            a_b = math.acos(math.exp(-700.0 / s)) + th
+        if compiled:
+            # the compiled gather's first attempt leaves out the bright texels whose weight from every row of the
+            # tile is below δ0 = e^log_d0 (beyond acos(δ0^(1/s)) + the tile radius; gathered weights below δ0 are 0):
+            # an absolute weight error ≤ δ0 per pair, charged in the allowance `und` with the rounding (below); δ0
+            # keeps that term ≤ _BRIGHT_CUT_SHARE·τ for a texel as bright as the mean radiance l_ref even if every
+            # source texel were a pair.  Tiles whose bound still misses (darker ones) are gathered again, as every
+            # later attempt, with e^-700
+            log_d0 = -700.0
+            own0 = s * math.log(max(math.cos(min(rho, np.pi / 2)), 1e-300))
+            if own0 >= -600.0 and l_ref > 0.0 and not single:  # (one cap: no second attempt)
+                l_all = float(rad.max())
+                log_d0 = max(math.log(_BRIGHT_CUT_SHARE * tau * l_ref / ((l_all + l_ref) * M * omega_ratio)) + own0,
+                             -700.0)
+            a_b = math.acos(math.exp(log_d0 / s)) + th
             nb_eff = bright.size * (1.0 - math.cos(min(a_b, np.pi))) / 2.0
             T = _tile_size(out_size, th, M, nb_eff, _TILE_OVERHEAD_COMPILED, _CAND_OVERHEAD_COMPILED)
         else:
@@ -1268,7 +1340,8 @@ def convolve_sparse_many(
         retried = 0
         caps_used = np.zeros(n_t)
         for att, caps in enumerate(attempts):
-            todo = todo[caps[todo] > prev[todo]]
+            # a tile is gathered again when its cap grows, or (attempt 1) when attempt 0 left out weights below δ0
+            todo = todo[(caps[todo] > prev[todo]) | (att == 1 and compiled and log_d0 > -700.0)]
             if todo.size == 0:
                 break
             if att > 0:
@@ -1292,23 +1365,26 @@ def convolve_sparse_many(
                 terms = np.zeros(n_t, dtype=np.intp)
             order = todo[np.lexsort((est[todo], terms[todo]))]
             if compiled:
+                log_cut = log_d0 if att == 0 else -700.0
                 X, Y, Z, groups, bright_rw = geometry[("rw4",)]
                 for rws, cols in groups:
                     acc_g = np.empty((todo.size, B, 4))
                     lm_g = np.empty((todo.size, B))
                     cnt = np.empty(todo.size, dtype=np.int64)
-                    ck.tile_gather(CEN[todo], TD[todo], q_t[todo], a_max[todo], envmap.face_frames("openexr"),
-                                   n * supersample,
-                                   X, Y, Z, rws, src_dirs[bright], bright_rw[:, cols[1]], float(s), s_int, rowmax,
-                                   math.exp(-700.0 / s), acc_g, lm_g, cnt)
+                    _tile_gather_threads(ck, threads, CEN[todo], TD[todo], q_t[todo], a_max[todo],
+                                         envmap.face_frames("openexr"), n * supersample, X, Y, Z, rws,
+                                         src_dirs[bright], bright_rw[:, cols[1]], float(s), s_int, rowmax,
+                                         math.exp(log_cut / s), acc_g, lm_g, cnt)
                     acc[..., cols[0]] = acc_g[..., : len(cols[0])]
                     log_mx = lm_g
                 m_t = cnt.astype(np.float64)
                 eta = eta_w + ck.sum_error(cnt)
                 # absolute errors of the smallest weights and of the weights left out below e^-700 (per pair ≤
-                # eps_w, relative to the weight scale 1: the row maximum or c^s with c ≤ 1), against W_in ≥ the
-                # own texel's weight · Ω_min
-                und = m_t * eps_w * math.exp(-(0.0 if rowmax else own_log)) * omega_ratio
+                # eps_w, relative to the weight scale 1: the row maximum or c^s with c ≤ 1) and, in attempt 0, of
+                # those left out or set to 0 below δ0 (≤ δ0 more per pair), against W_in ≥ the own texel's
+                # weight · Ω_min
+                eps_pair = eps_w + (math.exp(log_cut) if log_cut > -700.0 else 0.0)
+                und = m_t * eps_pair * math.exp(-(0.0 if rowmax else own_log)) * omega_ratio
                 gathered += int(cnt.sum()) * B
             elif use32:
                 # groups of tiles with the same number of series terms: their slab lists, then batches of tiles
