@@ -179,3 +179,20 @@ def test_auto_brackets_when_the_leaf_allows(monkeypatch):
         err = (np.abs(got - ref[k]) / ref[k]).max(axis=-1)
         assert np.all(err <= res.error_bound[s].ravel()[idx])
     assert any(res.bound_kind[s] == "rigorous" for s in (1.0, 2.0))
+
+
+def test_bracket_chunks_count_leaf_blocks_not_texels():
+    # with leaf > 1 the band holds (tile, leaf block) pairs; the chunk sizing must count those, not the leaf²
+    # texels in them (counting texels left 1–4 tiles per chunk at 512²–1024², and one output face of 1024²
+    # took 16 384 chunks of Python work).  The estimate must cover the pairs really left after the quadtree
+    # test (it sizes the chunk's working set) without being more than 8× above them (observed 2.4× at 128²
+    # and 256², leaf 4; the texel count would be 16× higher still)
+    import ibl_ref.groundtruth.moment_convolution as mc
+
+    n, leaf, tile = 128, 4, 8
+    convolve_moment_many(_sun_env(n), [1.0, 2.0], faces=(0,), leaf=leaf, tile=tile)
+    per_tile = mc.LAST_INFO["band_pairs"] / (n // tile) ** 2
+    est = mc.moment_band_pairs_per_tile(n, n, tile, leaf, leaf)
+    assert per_tile <= est <= 8 * per_tile, (per_tile, est)
+    assert mc.moment_tiles_per_chunk(n, n, tile, leaf, mc.MOMENT_CHUNK_PAIRS_COMPILED, leaf) * est \
+        <= mc.MOMENT_CHUNK_PAIRS_COMPILED

@@ -473,7 +473,9 @@ SPARSE_UNITS_PER_OUTPUT = 6.8e3
 #: no compiled kernel); ``SH_FACTOR*`` and ``SH_BRIGHT_FACTOR*`` scale
 #: :func:`~ibl_ref.groundtruth.sh_convolution.sh_cost` and ``bright_cost``, ``MOMENT_UNITS*`` :func:`_moment_cost`:
 #: medians of measured / model of ``benchmarks/bench_cost_models.py`` (2026-12-02, load 0.3–1.0, sky + sun 64²–256²;
-#: the moment route 64²–512²: measured / model 0.63–1.23 NumPy, 0.39–1.28 compiled)
+#: the moment route 64²–512²: measured / model 0.63–1.23 NumPy; ``MOMENT_UNITS_COMPILED`` refitted 2026-12-04 after
+#: the bracket band's chunks counted leaf blocks (``… --kernel compiled --only moment --moment-sizes 64 128 256 512
+#: 1024``, load 0.6–0.7: 42.2, measured / model 0.44–1.23, 1.07 at 1024²; before 34))
 EXACT_UNITS_PER_PAIR_COMPILED = 17.0
 EXACT_UNITS_PER_PAIR_S1_COMPILED = 6.0
 SPARSE_UNITS_PER_PAIR_COMPILED = 1.33
@@ -506,7 +508,7 @@ def _exact_cost(s, n_src, n_out, impl="numpy"):
 #: cost units of the moment route (s = 1 and 2 in one call) per (output texel × 6N/leaf): the horizon band holds
 #: O(N) source texels per output texel with the exact band (leaf 1), O(N/leaf) leaf blocks with brackets
 MOMENT_UNITS = 56.0
-MOMENT_UNITS_COMPILED = 34.0
+MOMENT_UNITS_COMPILED = 42.2
 
 
 def _moment_cost(n, out_size, leaf, impl="numpy"):

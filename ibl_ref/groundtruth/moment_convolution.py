@@ -124,7 +124,7 @@ _IU = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
 MOMENT_CHUNK_PAIRS = 1 << 22
 
 
-def moment_band_pairs_per_tile(n: int, out_size: int, tile: int, stop: int) -> float:
+def moment_band_pairs_per_tile(n: int, out_size: int, tile: int, stop: int, leaf: int = 1) -> float:
     """Estimate of the (tile, texel) pairs of one output tile's horizon band at the gather level.
 
     A tile of ``tile``² output texels (cone half-angle β ≈ tile·Δ_out/√2, Δ = π/(2·size) the texel angle
@@ -132,11 +132,15 @@ def moment_band_pairs_per_tile(n: int, out_size: int, tile: int, stop: int) -> f
     within β + α of its horizon: a band of solid angle ≈ 2π·2(β + α) holding that / (4π/(6m²)) blocks of
     ``stop²`` texels (m = n/stop blocks per face side).  Used only to size the chunks (measured: 3–8× the
     pairs left after the per-texel test at 32²–128²; the ×2 in w covers the non-uniform texel density).
+    With ``leaf > 1`` the band's pairs are (tile, leaf block) pairs (``stop = leaf``), one per block instead
+    of ``stop²`` (counting texels there cut the chunks to 1–4 tiles at 512²–1024², whose per-chunk Python
+    work then dominated: one output face of 1024², s = 1 and 2, 16 384 chunks; measured: 2.2× the pairs left
+    at 512², leaf 8).
     """
     d_out, d_src = math.pi / (2 * out_size), math.pi / (2 * n)
     w = 2.0 * (tile * d_out + stop * d_src) / math.sqrt(2.0) * 2.0
     m = max(n / stop, 1.0)
-    return 3.0 * w * m * m * stop * stop
+    return 3.0 * w * m * m * (stop * stop if leaf == 1 else 1)
 
 
 #: the same bound for the compiled band kernels (no NumPy temporaries of the band to amortise: smaller chunks,
@@ -144,10 +148,11 @@ def moment_band_pairs_per_tile(n: int, out_size: int, tile: int, stop: int) -> f
 MOMENT_CHUNK_PAIRS_COMPILED = 1 << 19
 
 
-def moment_tiles_per_chunk(n: int, out_size: int, tile: int, stop: int, pairs: int = MOMENT_CHUNK_PAIRS) -> int:
+def moment_tiles_per_chunk(n: int, out_size: int, tile: int, stop: int, pairs: int = MOMENT_CHUNK_PAIRS,
+                           leaf: int = 1) -> int:
     """Output tiles per chunk of :func:`convolve_moment_many`: the band working set ≤ ``pairs``
     (:data:`MOMENT_CHUNK_PAIRS`)."""
-    return max(1, int(pairs // max(moment_band_pairs_per_tile(n, out_size, tile, stop), 1.0)))
+    return max(1, int(pairs // max(moment_band_pairs_per_tile(n, out_size, tile, stop, leaf), 1.0)))
 
 
 #: the bracket band (``leaf > 1``) is used by :func:`moment_leaf` only from this leaf size on: at leaf 2
@@ -675,7 +680,7 @@ def convolve_moment_many(
             bright_start = np.searchsorted(blk_of[order_], np.arange(6 * mg * mg + 1))
         # output tiles in chunks of bounded working set (independent of the worker count)
         per_chunk = moment_tiles_per_chunk(n, out_size, t, stop,
-                                           MOMENT_CHUNK_PAIRS if ck is None else MOMENT_CHUNK_PAIRS_COMPILED)
+                                           MOMENT_CHUNK_PAIRS if ck is None else MOMENT_CHUNK_PAIRS_COMPILED, lf)
         for c0 in range(0, tsel.size, per_chunk):
             ch = tsel[c0 : c0 + per_chunk]
             nc = ch.size
