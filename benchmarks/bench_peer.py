@@ -258,8 +258,10 @@ FLOOR_COMMANDS = {
     "python -c 'import numpy, OpenEXR'": [sys.executable, "-c", "import numpy, OpenEXR"],
     "ibl-ref convolve --help": [sys.executable, "-m", "ibl_ref", "convolve", "--help"],
     "python -c 'import numba'": [sys.executable, "-c", "import numba"],
-    "load the compiled kernels": [sys.executable, "-c",
-                                  "from ibl_ref.groundtruth import compiled_kernels as c; c.warm_up()"],
+    "load the compiled kernels (ahead of time)": [sys.executable, "-c",
+                                                  "from ibl_ref.groundtruth import kernel_library as k; k.warm_up()"],
+    "load the compiled kernels (numba JIT cache)": [
+        sys.executable, "-c", "from ibl_ref.groundtruth import kernel_library as k; k.use('jit'); k.warm_up()"],
 }
 
 

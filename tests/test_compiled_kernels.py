@@ -103,13 +103,24 @@ def test_without_numba_auto_is_numpy_and_compiled_is_a_clear_error(tmp_path):
 # ---------------------------------------------------------------------------------------------------------------
 # elementary functions and the weight error bound
 # ---------------------------------------------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def ck():
+@pytest.fixture(scope="module", params=["aot", "jit"])
+def ck(request):
+    """The kernels through :mod:`ibl_ref.groundtruth.kernel_library` on each backend (compiled ahead of time and
+    numba's JIT: the routes' tests run on both), with numba's elementary functions and the rounding model."""
     pytest.importorskip("numba", reason="the compiled kernels need numba (pip install 'ibl_ref[fast]')")
-    from ibl_ref.groundtruth import compiled_kernels
+    from types import SimpleNamespace
 
-    compiled_kernels.warm_up()
-    return compiled_kernels
+    from ibl_ref.groundtruth import compiled_kernels as jit, kernel_library as kl, kernel_spec as spec
+
+    before = kl.BACKEND
+    kl.use(request.param)
+    kl.warm_up()
+    yield SimpleNamespace(backend=request.param, exp_=jit.exp_, log_=jit.log_, powi_=jit.powi_,
+                          _scratch_size=jit._scratch_size, tile_gather=kl.tile_gather, cap_count=kl.cap_count,
+                          weight_error=spec.weight_error, sum_error=spec.sum_error, U64=spec.U64,
+                          EXP_REL=spec.EXP_REL, LOG_ABS=spec.LOG_ABS, LOG_REL=spec.LOG_REL, POWI_MAX=spec.POWI_MAX)
+    if before is not None:
+        kl.use(before)
 
 
 def test_exp_log_powi_within_their_stated_bounds(ck):
@@ -117,13 +128,17 @@ def test_exp_log_powi_within_their_stated_bounds(ck):
     ≈ 5e-20 for these arguments) on 10⁵ seeded arguments each: the stated bounds hold."""
     from numba import njit
 
+    if ck.backend != "jit":
+        pytest.skip("the elementary functions are numba functions: tested once")
+    exp_, log_, powi_ = ck.exp_, ck.log_, ck.powi_
+
     @njit
     def apply(u, c, s):
         e, lg, p = np.empty_like(u), np.empty_like(c), np.empty_like(c)
         for i in range(u.size):
-            e[i] = ck.exp_(u[i])
-            lg[i] = ck.log_(c[i])
-            p[i] = ck.powi_(c[i], s)
+            e[i] = exp_(u[i])
+            lg[i] = log_(c[i])
+            p[i] = powi_(c[i], s)
         return e, lg, p
 
     rng = np.random.default_rng(7)
@@ -163,8 +178,8 @@ def test_tile_gather_collects_every_texel_of_the_cap_and_its_weights_are_within_
         caps = rng.uniform(0.02, 1.2, nt)
         acc, lm, cnt = np.zeros((nt, 4, 4)), np.zeros((nt, 4)), np.zeros(nt, dtype=np.int64)
         s_int = int(s) if float(s).is_integer() else 0
-        ck.tile_gather(cen, rows, caps, np.zeros(len(caps)), envmap.face_frames("openexr"), n, X, Y, Z, rw, np.zeros((0, 3)),
-                       np.zeros((0, 4)), s, s_int, not s_int, np.exp(-700.0 / s), acc, lm, cnt)
+        ck.tile_gather(cen, rows, caps, np.zeros(len(caps)), envmap.face_frames("openexr"), n, X, Y, Z, rw,
+                       np.zeros((0, 3)), np.zeros((0, 4)), s, s_int, not s_int, np.exp(-700.0 / s), acc, lm, cnt)
         eta, eps = ck.weight_error(s, bool(s_int), not s_int)
         D = d.astype(np.longdouble)
         for i in range(nt):
@@ -383,6 +398,82 @@ def test_convolve_compiled_bounds_rigorous_and_bit_identical_across_workers(ck, 
         assert np.all(d <= num.error_bound[s] + res.error_bound[s] + 1e-12), s
 
 
+def test_ahead_of_time_and_jit_backends_give_the_same_numbers(ck, no_tiny_shortcut):
+    """The kernels compiled ahead of time and numba's JIT functions are the same code: every route gives the same
+    maps and bounds, bit for bit (measured so; the bounds would allow rounding differences)."""
+    from ibl_ref.groundtruth import kernel_library as kl
+    from ibl_ref.groundtruth.convolve import convolve
+
+    cube = _sun_env(24)
+    S = [1.0, 2.0, 5.0, 64.0, 1000.0, 777.5]
+    other = "jit" if ck.backend == "aot" else "aot"
+    a = convolve(cube, S, rtol=1e-3, kernel="compiled", workers=1)
+    kl.use(other)
+    try:
+        b = convolve(cube, S, rtol=1e-3, kernel="compiled", workers=1)
+    finally:
+        kl.use(ck.backend)
+    assert {"moment", "sh", "sparse"} <= set(a.method_used.values())
+    for s in S:
+        assert a.method_used[s] == b.method_used[s]
+        np.testing.assert_array_equal(a.maps[s], b.maps[s])
+        np.testing.assert_array_equal(a.error_bound[s], b.error_bound[s])
+
+
+def test_ahead_of_time_calls_check_their_arrays(ck):
+    # a copy of a non-contiguous or mistyped output would lose what the kernel writes: refused, not converted
+    from ibl_ref.environment import envmap
+
+    if ck.backend != "aot":
+        pytest.skip("the argument check of the C callables")
+    fr = envmap.face_frames("openexr")
+    t = envmap.texel_directions(4).reshape(-1, 3)[0].copy()
+    assert ck.cap_count(t, 0.2, fr, 4) > 0
+    with pytest.raises(TypeError, match="argument 0 must be a C-contiguous float64 array of 1 dimensions"):
+        ck.cap_count(t.astype(np.float32), 0.2, fr, 4)
+    with pytest.raises(TypeError, match="argument 2"):
+        ck.cap_count(t, 0.2, np.asfortranarray(np.stack([fr[0]] * 2, axis=-1)), 4)
+
+
+def test_fresh_processes_load_the_ahead_of_time_kernels_without_numba(tmp_path):
+    """The first process builds the file (numba), later ones load it without importing numba; a damaged file is
+    built again; the symbols the code needs are all found in the process."""
+    pytest.importorskip("numba", reason="building the kernels needs numba")
+    code = textwrap.dedent(
+        """
+        import sys, numpy as np
+        import ibl_ref.groundtruth.convolve as cv
+        from ibl_ref.groundtruth.convolve import convolve
+        from ibl_ref.groundtruth import kernel_library as kl
+        from ibl_ref.synthetic.synthetic_envs import SUN_NEAR_CORNER, make_env
+        cv.AUTO_EXACT_PAIRS = cv.MOMENT_MIN_PAIRS = 0  # every route, not the exact gather of a tiny map
+        cube = make_env("sky_sun", 16, sun_direction=SUN_NEAR_CORNER, sun_radiance=1e5)
+        r = convolve(cube, [1.0, 5.0, 300.0], kernel="compiled", method="auto")
+        print(kl.BACKEND, "numba" in sys.modules, sorted(set(r.method_used.values())),
+              float(max(r.error_bound[s].max() for s in r.maps)))
+        print(kl.artifact_path())
+        """
+    )
+    env = _env({"NUMBA_CACHE_DIR": str(tmp_path / "cache")})
+    runs = []
+    for i in range(3):
+        p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=900)
+        assert p.returncode == 0, p.stderr
+        first, path = p.stdout.strip().splitlines()
+        runs.append(first)
+        if i == 1:  # damage the file: the next process builds it again
+            Path(path).write_bytes(Path(path).read_bytes()[:1000])
+    assert runs[0].startswith("aot True [") and "'sparse'" in runs[0]  # the builder imported numba
+    assert runs[1].startswith("aot False [")  # a later process did not
+    assert runs[2].startswith("aot True [")  # rebuilt after the damage
+    assert len({r.split(" ", 2)[-1] for r in runs}) == 1  # the same routes and bounds every time
+    assert Path(path).parent == tmp_path / "cache" / "ibl_ref_kernels"
+    from ibl_ref.groundtruth import kernel_library as kl
+
+    assert kl._resolve(["ibl_ref_no_such_function"], ["ibl_ref_no_such_data"]) == ["ibl_ref_no_such_function",
+                                                                                   "ibl_ref_no_such_data"]
+
+
 def test_auto_kernel_keeps_numpy_for_small_work_in_a_fresh_process():
     pytest.importorskip("numba", reason="auto chooses between the kernels only when numba is installed")
     code = textwrap.dedent(
@@ -413,8 +504,10 @@ def test_kernels_load_without_scipy_linalg_and_numba_blas_still_works():
         """
         import sys
         import numpy as np
+        from ibl_ref.groundtruth import kernel_library as kl
+        kl.use("jit")
+        kl.warm_up(["moment"])
         from ibl_ref.groundtruth import compiled_kernels as ck
-        ck.warm_up(["moment"])
         print("scipy.linalg" in sys.modules, ck._LAZY_SCIPY)
         import numba
         import numba.np.arraymath as am
@@ -493,10 +586,11 @@ def test_kernels_stay_within_their_arrays(tmp_path):
     code = textwrap.dedent(
         """
         import numpy as np
-        from ibl_ref.groundtruth import compiled_kernels as ck
+        from ibl_ref.groundtruth import kernel_library as kl
         from ibl_ref.groundtruth import moment_convolution as mc, phong_convolution as pc, sh_convolution as shc
         from ibl_ref.synthetic.synthetic_envs import SUN_NEAR_CORNER, make_env
-        ck.warm_up()
+        kl.warm_up()
+        assert kl.BACKEND == "jit"  # bounds checking is numba's: the JIT backend
         cube = make_env("sky_sun", 12, sun_direction=SUN_NEAR_CORNER, sun_radiance=1e5)
         pc.convolve_sparse_many(cube, [64.0, 2e6, 300.5], impl="compiled")
         # narrow caps: the scratch size from the cap-area bound, the bright texels left out far from a tile

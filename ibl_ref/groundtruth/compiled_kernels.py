@@ -10,23 +10,21 @@ bound of its floating-point arithmetic, which the callers add to their rigorous 
 Sparse route: :func:`tile_gather` (the weighted sums of every tile's cap) and :func:`tile_bounds` (the
 averages and the route's rigorous per-texel bound from those sums, the NumPy path's formula in one pass).
 
-Elementary functions (vectorisable: no calls, no branches)
-    :func:`exp_` — Cody–Waite reduction ``u = k ln 2 + f``, ``|f| ≤ ln2/2``, the Taylor polynomial of degree 13
-    (remainder ≤ 0.347^14/14! < 4.5e-18), ``2^k`` put into the exponent field; 0 below 2^-1021.  Relative
-    error ≤ :data:`EXP_REL` (measured: 1.22 ulp over 2·10⁶ arguments in [−745, 709]).
-    :func:`log_` — ``c = 2^e m``, ``m ∈ [√½, √2)``, ``log m = 2 atanh z``, ``z = (m−1)/(m+1)`` (|z| ≤ 0.1716, the
-    odd series to z^21, remainder < 2e-18); absolute error ≤ :data:`LOG_ABS` + |log c|·:data:`LOG_REL`
-    (measured 3.2e-16 relative).
-    :func:`powi_` — ``c^s`` for integers ``1 ≤ s ≤ 8191`` by binary powering (13 fixed steps): every result
-    is a product of s factors c formed by s − 1 roundings, relative error ≤ γ_{s−1} (Higham, *Accuracy and
-    Stability of Numerical Algorithms*, 2nd ed., Lemma 3.1 applied to the multiplication tree).
+Elementary functions (vectorisable: no calls, no branches): :func:`exp_`, :func:`log_` and :func:`powi_`; their
+error bounds (:data:`~ibl_ref.groundtruth.kernel_spec.EXP_REL`, ``LOG_ABS``/``LOG_REL``, γ_{s−1}) and the weights'
+are stated in :mod:`ibl_ref.groundtruth.kernel_spec`.
 
-Compilation and its cache
+The kernels allocate nothing: their arguments (kinds in :data:`ibl_ref.groundtruth.kernel_spec.KERNELS`) include
+their work arrays, so that they run without numba's runtime when compiled ahead of time.  Routes call them through
+:mod:`ibl_ref.groundtruth.kernel_library`, which loads them compiled ahead of time (no numba in the process) or,
+where that is not possible, calls the functions of this module (numba's JIT).
+
+Compilation and numba's cache (the JIT path)
     Every kernel is compiled on first use with ``cache=True``: the machine code is written next to this file
     (``__pycache__``) or to numba's cache folder (``$NUMBA_CACHE_DIR``) and later processes load it instead
-    of compiling (cold and warm costs are measured by ``benchmarks/bench_peer.py``).  When no cache folder
-    is writable (an explicitly given ``$NUMBA_CACHE_DIR`` that is read-only, or none of numba's locations)
-    one line goes to stderr and the kernels are compiled without a cache, in every process.
+    of compiling.  When no cache folder is writable (an explicitly given ``$NUMBA_CACHE_DIR`` that is read-only,
+    or none of numba's locations) one line goes to stderr and the kernels are compiled without a cache, in every
+    process.
 """
 
 from __future__ import annotations
@@ -41,6 +39,8 @@ import numpy as np
 from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
+
+from .kernel_spec import POINT_BLOCK, SH_BLOCK, VEC
 
 
 class _NoScipyLinalg:
@@ -88,22 +88,8 @@ def _import_arraymath_lazily() -> bool:
 
 _LAZY_SCIPY = _import_arraymath_lazily()
 
-__all__ = ["EXP_REL", "LOG_ABS", "LOG_REL", "POWI_MAX", "C0", "CACHE_NOTE", "tile_gather", "tile_bounds", "cap_count", "cone_extremes", "band_exact",
-           "band_brackets", "sh_project", "sh_matrix", "SH_BLOCK",
-           "point_gather", "sh_values_bounds",
-           "weight_error", "sum_error", "warm_up"]
-
-#: relative error bound of :func:`exp_` for results ≥ 2^-1021 (Taylor remainder 4.5e-18/e^-0.347, Horner
-#: rounding γ_26·e^{0.694} ≈ 5.8e-15, the reduction's f off by ≤ 2u·|f| + |k|·2^-60: together < 8e-15)
-EXP_REL = 8e-15
-#: absolute / relative parts of the error bound of :func:`log_` (the series ≤ 6u relative to |log m| ≤ 0.35,
-#: e·ln 2 with ln 2 split hi + lo: ≤ 2u·|e ln 2|; the final sums: u·|log c|)
-LOG_ABS = 4e-16
-LOG_REL = 4.5e-16
-#: largest integer exponent of :func:`powi_` (13 binary digits)
-POWI_MAX = 8191
-#: unit roundoff of float64
-U64 = 2.0 ** -53
+__all__ = ["CACHE_NOTE", "exp_", "log_", "powi_", "tile_scratch_size", "tile_gather", "tile_bounds", "cap_count",
+           "cone_extremes", "band_exact", "band_brackets", "point_gather", "sh_values_bounds", "sh_project", "sh_matrix"]
 
 #: what happened to the cache (None: cached as usual; else the one line printed to stderr)
 CACHE_NOTE = None
@@ -246,42 +232,6 @@ def powi_(c, s):
     return r
 
 
-#: the weights' error bound is relative for pairs with r·ω ≥ this and absolute below it
-C0 = 0.05
-
-
-def weight_error(s: float, integer: bool, reference: bool = False):
-    """``(η, ε)``: the rounding of one computed weight ``max(r·ω, 0)^s`` of :func:`tile_gather` (``(c/c_max)^s``
-    with ``reference``) is ≤ η·w for pairs with c = r·ω ≥ :data:`C0` and ≤ ε in absolute terms (the weight
-    scale is 1: c ≤ 1, or the row's largest cosine) below, including the weights left out or returned as 0
-    (below e^-700 / 2^-1021).
-
-    The cosine from two float64 unit vectors is off by Δ ≤ γ_3 + 2u (each vector's own rounding u), i.e. by
-    the factor (1 ± Δ/c)^s ≤ (1 + Δ/C0)^s in the weight; the power adds γ_{s−1} (:func:`powi_`) or, for
-    ``exp(s·log c)``, an exponent off by ≤ 2s·(:data:`LOG_ABS` + |log C0|·:data:`LOG_REL`) + 745·2u (log of c and of
-    the reference; arguments below −745 give weights below e^-745, counted in ε) and :data:`EXP_REL`.  Below C0:
-    |ĉ^s − c^s| ≤ s·Δ·(C0 + Δ)^{s−1} (mean value theorem, s ≥ 1) plus η·(C0 + Δ)^s; ĉ ≤ 0 gives 0 where the
-    true weight is ≤ Δ^s."""
-    gam3 = 3 * U64 / (1 - 3 * U64)
-    d = gam3 + 2 * U64
-    if integer:
-        n = max(int(s) - 1, 0)
-        e_f = n * U64 / (1 - n * U64)
-    else:
-        du = 2.0 * s * (LOG_ABS + abs(math.log(C0)) * LOG_REL) + 745.0 * 2 * U64
-        e_f = math.expm1(du) * (1 + EXP_REL) + EXP_REL
-    eta = math.exp(s * math.log1p(d / C0)) * (1 + e_f) - 1
-    eps = s * d * (C0 + d) ** (s - 1) * (1 + e_f) + e_f * (C0 + d) ** s + d ** s + math.exp(-700.0)
-    return eta, eps
-
-
-def sum_error(m):
-    """γ_m: relative error of a float64 sum of m non-negative terms, in any order (the kernels' reductions are
-    vectorised, so their order is the compiler's); ``m`` a number or an array."""
-    m = np.asarray(m, dtype=np.float64)
-    return m * U64 / (1 - m * U64)
-
-
 # ----------------------------------------------------------------------------------------------
 # truncated-support gather (sparse route)
 # ----------------------------------------------------------------------------------------------
@@ -317,11 +267,6 @@ def _index_range(lo, hi, h, n):
     i0 = int(math.ceil((lo + 1.0) / h - 0.5 - 1e-3))
     i1 = int(math.floor((hi + 1.0) / h - 0.5 + 1e-3))
     return max(i0, 0), min(i1, n - 1)
-
-
-#: the candidate lists are padded to a multiple of this many entries (zero weight), so that the vectorised
-#: loops never fall back to their scalar remainder (8 lanes × 4-way interleave)
-_VEC = 32
 
 
 @_jit(fastmath={"contract"})
@@ -412,6 +357,13 @@ def _scratch_size(caps, frames, n, cen):
     return m
 
 
+@_jit()
+def tile_scratch_size(caps, frames, n, cen, n_bright):
+    """Entries of the scratch lists :func:`tile_gather` needs for the tiles with centres ``cen`` and caps ``caps``
+    and ``n_bright`` bright texels (:func:`_scratch_size` + the bright texels + the padding)."""
+    return _scratch_size(caps, frames, n, cen) + n_bright + VEC
+
+
 @_jit(fastmath={"contract"}, inline="always")
 def _put7(SX, SY, SZ, S0, S1, S2, S3, m, x, y, z, w0, w1, w2, w3):
     """Entry m of the scratch arrays; returns m + 1."""
@@ -428,7 +380,7 @@ def _put7(SX, SY, SZ, S0, S1, S2, S3, m, x, y, z, w0, w1, w2, w3):
 @_jit(fastmath={"contract"})
 def _collect(t, q, frames, n, X, Y, Z, RW, bdirs, brw, kb, SX, SY, SZ, S0, S1, S2, S3):
     """Copy the source texels of the cap (angle q around t) and then the bright texels with ``t·ω ≥ kb`` into the
-    scratch arrays; pad with zero entries to a multiple of :data:`_VEC`.  Returns ``(entries (padding included),
+    scratch arrays; pad with zero entries to a multiple of :data:`~ibl_ref.groundtruth.kernel_spec.VEC`.  Returns ``(entries (padding included),
     bright texels left out)``."""
     h = 2.0 / n
     nn = n * n
@@ -458,7 +410,7 @@ def _collect(t, q, frames, n, X, Y, Z, RW, bdirs, brw, kb, SX, SY, SZ, S0, S1, S
             out += 1
             continue
         m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, bdirs[j, 0], bdirs[j, 1], bdirs[j, 2], brw[j, 0], brw[j, 1], brw[j, 2], brw[j, 3])
-    while m % _VEC:
+    while m % VEC:
         m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     return m, out
 
@@ -475,15 +427,14 @@ def _weight(c, s, s_int, c_floor, lref):
 
 
 @_jit(fastmath={"contract", "reassoc"}, inline="always")
-def _sums2(R, b0, b1, SX, SY, SZ, S0, S1, S2, S3, m, s, s_int, c_floor, L, out):
-    """``out[r, k] = Σ_j w_rj·S_k[j]`` over the m scratch entries for the two rows ``R[b0], R[b1]`` (reference logs
-    ``L[0:2]``), w = :func:`_weight` of c = r·ω_j: one pass, each entry loaded once for both rows (a one-row loop
-    is bound by loading the 7 scratch streams, not by the arithmetic); one loop per kind of weight (a branch
-    inside the loop would evaluate both powers).  The order of the vectorised sums is the compiler's
-    (:func:`sum_error` covers any order)."""
+def _sums2(R, b0, b1, SX, SY, SZ, S0, S1, S2, S3, m, s, s_int, c_floor, l0, l1):
+    """``(Σ_j w_0j·S_k[j] for k = 0…3, Σ_j w_1j·S_k[j] for k = 0…3)`` over the m scratch entries for the two rows
+    ``R[b0], R[b1]`` (reference logs ``l0``, ``l1``), w = :func:`_weight` of c = r·ω_j: one pass, each entry loaded
+    once for both rows (a one-row loop is bound by loading the 7 scratch streams, not by the arithmetic); one loop
+    per kind of weight (a branch inside the loop would evaluate both powers).  The order of the vectorised sums is
+    the compiler's (:func:`ibl_ref.groundtruth.kernel_spec.sum_error` covers any order)."""
     x0, y0, z0 = R[b0, 0], R[b0, 1], R[b0, 2]
     x1, y1, z1 = R[b1, 0], R[b1, 1], R[b1, 2]
-    l0, l1 = L[0], L[1]
     a00 = a01 = a02 = a03 = a10 = a11 = a12 = a13 = 0.0
     if s_int > 0:
         for j in range(m):
@@ -501,8 +452,7 @@ def _sums2(R, b0, b1, SX, SY, SZ, S0, S1, S2, S3, m, s, s_int, c_floor, L, out):
             a00, a01, a02, a03 = a00 + w * u0, a01 + w * u1, a02 + w * u2, a03 + w * u3
             w = _weight(x1 * sx + y1 * sy + z1 * sz, s, 0, c_floor, l1)
             a10, a11, a12, a13 = a10 + w * u0, a11 + w * u1, a12 + w * u2, a13 + w * u3
-    out[0, 0], out[0, 1], out[0, 2], out[0, 3] = a00, a01, a02, a03
-    out[1, 0], out[1, 1], out[1, 2], out[1, 3] = a10, a11, a12, a13
+    return a00, a01, a02, a03, a10, a11, a12, a13
 
 
 @_jit(fastmath={"contract", "reassoc"}, inline="always")
@@ -515,7 +465,7 @@ def _max_cos(rx, ry, rz, SX, SY, SZ, m):
 
 @_jit(fastmath={"contract", "reassoc"})
 def tile_gather(cen, rows, caps, arad, frames, n, X, Y, Z, RW, bdirs, brw, s, s_int, rowmax, c_floor, acc, logmx,
-                count):
+                count, scratch):
     """Truncated-support gather of tiles of output texels: tile i's rows ``rows[i]`` (B, 3) gather every source
     texel within the angle ``caps[i]`` of the tile centre ``cen[i]`` (plus 1e-6 rad and 1e-3 texel of slack)
     and the bright texels ``bdirs``/``brw``: ``acc[i, b] = Σ_j w_bj RW[:, j]``.
@@ -525,8 +475,9 @@ def tile_gather(cen, rows, caps, arad, frames, n, X, Y, Z, RW, bdirs, brw, s, s_
     convex: its rows are the interval of v where ``a + cv ≥ √(k² − b²) √(1 + v²)`` (the maximum over u), on
     each row the columns an interval (:func:`_interval`).  The interval ends are computed to ≈ 1e-12 in
     face-plane units, far within the 1e-3-texel widening (2e-3/n ≥ 5e-7 for n ≤ 4096), so no texel of the cap
-    is missed (brute-force check in the tests).  The texels are copied to contiguous scratch arrays (with the
-    bright texels, padded with zero entries to a multiple of :data:`_VEC`; sized by :func:`_scratch_size`), then
+    is missed (brute-force check in the tests).  The texels are copied to contiguous scratch arrays (``scratch``
+    (7, m), with the bright texels, padded with zero entries to a multiple of :data:`~ibl_ref.groundtruth.kernel_spec.VEC`; m from
+    :func:`tile_scratch_size`), then
     every pair of rows runs one vectorised loop over them (:func:`_sums2`: each entry loaded once for two rows).
 
     Weights: ``s_int > 0`` — ``c^s`` by :func:`powi_` (0 for c < ``c_floor``, whose weight is below e^-700;
@@ -534,17 +485,13 @@ def tile_gather(cen, rows, caps, arad, frames, n, X, Y, Z, RW, bdirs, brw, s, s_
     cosine when ``rowmax`` (``logmx[i, b] = s·log c_max``), else ``c_max = 1``.  ``RW`` (4, 6n²): the rows
     ``[L·Ω, …, Ω]`` padded to 4, zero for the bright texels.  ``arad[i]``: the largest angle between tile i's rows
     and its centre; bright texels farther than ``acos(c_floor) + arad[i]`` from the centre are left out (every
-    row's weight of them is 0, or below e^-700 by ``exp``: within the allowance ε of :func:`weight_error`).
+    row's weight of them is 0, or below e^-700 by ``exp``: within the allowance ε of :func:`ibl_ref.groundtruth.kernel_spec.weight_error`).
     ``count[i]``: entries of tile i's list (the bright texels and the padding included: the pairs computed per
     row) plus the bright texels left out — the pairs the callers' error allowance counts.
     """
     nt = rows.shape[0]
     B = rows.shape[1]
-    m_max = _scratch_size(caps, frames, n, cen)
-    m_max += bdirs.shape[0] + _VEC
-    SX, SY, SZ, S0, S1, S2, S3 = _scratch7(m_max)
-    lr = np.zeros(2)
-    acc2 = np.zeros((2, 4))
+    SX, SY, SZ, S0, S1, S2, S3 = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5], scratch[6]
     for i in range(nt):
         # bright texels beyond acos(c_floor) + the tile radius (+1e-9 rad) of the centre: below c_floor from every
         # row, weight 0 (or < e^-700 by exp), so left out; counted in count[i], which sets the error allowance
@@ -557,16 +504,17 @@ def tile_gather(cen, rows, caps, arad, frames, n, X, Y, Z, RW, bdirs, brw, s, s_
         count[i] = m + out
         for b in range(0, B, 2):
             b1 = min(b + 1, B - 1)  # an odd last row is paired with itself
-            for r in range(2):
-                lr[r] = 0.0
-                if s_int <= 0 and rowmax:
-                    br = b if r == 0 else b1
-                    lr[r] = log_(max(_max_cos(rows[i, br, 0], rows[i, br, 1], rows[i, br, 2], SX, SY, SZ, m), 1e-300))
-            _sums2(rows[i], b, b1, SX, SY, SZ, S0, S1, S2, S3, m, s, s_int, c_floor, lr, acc2)
-            for r in range(2 if b1 > b else 1):
-                logmx[i, b + r] = s * lr[r]
-                for q in range(4):
-                    acc[i, b + r, q] = acc2[r, q]
+            l0 = l1 = 0.0
+            if s_int <= 0 and rowmax:
+                l0 = log_(max(_max_cos(rows[i, b, 0], rows[i, b, 1], rows[i, b, 2], SX, SY, SZ, m), 1e-300))
+                l1 = log_(max(_max_cos(rows[i, b1, 0], rows[i, b1, 1], rows[i, b1, 2], SX, SY, SZ, m), 1e-300))
+            a00, a01, a02, a03, a10, a11, a12, a13 = _sums2(rows[i], b, b1, SX, SY, SZ, S0, S1, S2, S3, m, s, s_int,
+                                                            c_floor, l0, l1)
+            logmx[i, b] = s * l0
+            acc[i, b, 0], acc[i, b, 1], acc[i, b, 2], acc[i, b, 3] = a00, a01, a02, a03
+            if b1 > b:
+                logmx[i, b1] = s * l1
+                acc[i, b1, 0], acc[i, b1, 1], acc[i, b1, 2], acc[i, b1, 3] = a10, a11, a12, a13
 
 
 @_jit(fastmath={"contract"})
@@ -654,21 +602,6 @@ def tile_bounds(acc, log_mx, eta, und, l_u, ang, q_t, q_far, half_margin, grid, 
 # ----------------------------------------------------------------------------------------------
 # horizon band of the moment route (s = 1, 2)
 # ----------------------------------------------------------------------------------------------
-@_jit()
-def _scratch7(m):
-    """Seven zeroed scratch vectors of length m (directions x, y, z and 4 weight rows)."""
-    return np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m)
-
-
-@_jit()
-def _longest(starts, nt):
-    """The longest of the nt lists ``starts[i]:starts[i+1]`` plus :data:`_VEC` (scratch length)."""
-    m = 0
-    for i in range(nt):
-        m = max(m, starts[i + 1] - starts[i])
-    return m + _VEC
-
-
 @_jit(fastmath={"contract"}, inline="always")
 def _add4(arr, i, b, x0, x1, x2, x3):
     """``arr[i, b, 0:4] += (x0, x1, x2, x3)``."""
@@ -688,16 +621,16 @@ def _bracket(X, ca, sa):
 
 
 @_jit(fastmath={"contract", "reassoc"})
-def band_exact(R, starts, texels, D, Wt, do1, do2, num1, num2):
+def band_exact(R, starts, texels, D, Wt, do1, do2, num1, num2, scratch):
     """Exact gather of the horizon band (``leaf = 1`` of :mod:`ibl_ref.groundtruth.moment_convolution`): tile i's
     rows ``R[i]`` (t², 3) and its straddling source texels ``texels[starts[i]:starts[i+1]]`` (directions ``D``
     (M, 3), weights ``Wt`` (M, 4): ``[L·Ω, …, Ω]`` padded to 4): ``num1[i, b] += Σ max(r·ω, 0)·w`` (``do1``),
     ``num2[i, b] += Σ max(r·ω, 0)²·w`` (``do2``).  Float64; relative error of each sum ≤ γ_{m+2} (non-negative
-    terms, any order; the products r·ω are off by ≤ γ_3, entering x and x² to first and second order)."""
+    terms, any order; the products r·ω are off by ≤ γ_3, entering x and x² to first and second order).
+    ``scratch`` (7, m): m ≥ the longest list + :data:`~ibl_ref.groundtruth.kernel_spec.VEC`."""
     nt = R.shape[0]
     B = R.shape[1]
-    m_max = _longest(starts, nt)
-    SX, SY, SZ, S0, S1, S2, S3 = _scratch7(m_max)
+    SX, SY, SZ, S0, S1, S2, S3 = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5], scratch[6]
     for i in range(nt):
         m = 0
         for k in range(starts[i], starts[i + 1]):
@@ -705,7 +638,7 @@ def band_exact(R, starts, texels, D, Wt, do1, do2, num1, num2):
             m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, D[j, 0], D[j, 1], D[j, 2], Wt[j, 0], Wt[j, 1], Wt[j, 2], Wt[j, 3])
         if m == 0:
             continue
-        while m % _VEC:
+        while m % VEC:
             m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         for b in range(B):
             rx = R[i, b, 0]
@@ -731,7 +664,7 @@ def band_exact(R, starts, texels, D, Wt, do1, do2, num1, num2):
 
 
 @_jit(fastmath={"contract", "reassoc"})
-def band_brackets(R, starts, blocks, cb, ca, sa, M0, M1, M2, do1, do2, num1, err1, num2, err2):
+def band_brackets(R, starts, blocks, cb, ca, sa, M0, M1, M2, do1, do2, num1, err1, num2, err2, scratch):
     """Linear brackets of the clamped kernel on straddling leaf blocks (``leaf > 1`` of
     :mod:`ibl_ref.groundtruth.moment_convolution`, :func:`~ibl_ref.groundtruth.moment_convolution._band_brackets`
     for the formulas): tile i's rows ``R[i]`` and its blocks ``blocks[starts[i]:starts[i+1]]`` with cone centres
@@ -740,18 +673,17 @@ def band_brackets(R, starts, blocks, cb, ca, sa, M0, M1, M2, do1, do2, num1, err
     and the half-width of each block's interval to ``num``/``err``.  Float64 sums of ≤ m terms of bounded
     condition (the midpoints are differences only through the −a²/4 of s = 2, within the half-width).  The
     NumPy path's 1e-12 slack in v keeps the intervals valid under rounding; this kernel computes the same
-    expressions."""
+    expressions.  ``scratch`` (45, m): m ≥ the longest list + :data:`~ibl_ref.groundtruth.kernel_spec.VEC`."""
     nt = R.shape[0]
     B = R.shape[1]
-    m_max = _longest(starts, nt)
-    CX = np.zeros(m_max)
-    CY = np.zeros(m_max)
-    CZ = np.zeros(m_max)
-    CA = np.zeros(m_max)
-    SA = np.zeros(m_max)
-    W = np.zeros((4, m_max))
-    Y = np.zeros((12, m_max))
-    Z2 = np.zeros((24, m_max))
+    CX = scratch[0]
+    CY = scratch[1]
+    CZ = scratch[2]
+    CA = scratch[3]
+    SA = scratch[4]
+    W = scratch[5:9]
+    Y = scratch[9:21]
+    Z2 = scratch[21:45]
     for i in range(nt):
         m = 0
         for k in range(starts[i], starts[i + 1]):
@@ -770,7 +702,7 @@ def band_brackets(R, starts, blocks, cb, ca, sa, M0, M1, M2, do1, do2, num1, err
             m += 1
         if m == 0:
             continue
-        while m % _VEC:  # zero entries: (z-axis cone, α = 0, no weight) contribute exactly 0
+        while m % VEC:  # zero entries: (z-axis cone, α = 0, no weight) contribute exactly 0
             CX[m] = 0.0
             CY[m] = 0.0
             CZ[m] = 1.0
@@ -849,20 +781,20 @@ def _acc4(a0, a1, a2, a3, i, w, w0, w1, w2, w3):
 
 
 @_jit(fastmath={"contract"})
-def point_gather(out_dirs, b_dirs, b_w, s_arr, s_int, res):
+def point_gather(out_dirs, b_dirs, b_w, s_arr, s_int, res, scratch, acc):
     """Exact ``res[k, q, p] += Σ_b b_w[b, q]·max(r_p·ω_b, 0)^{s_k}`` (absolute weights: ``c^s`` by :func:`powi_` where
     ``s_int[k] > 0``, else ``exp(s·log c)``) — the SH route's gather from its few bright texels; blocks of 256
-    outputs, their sums in the cache.  Relative error of every term ≤ :func:`weight_error` (η for c ≥ :data:`C0`,
-    ε absolute below)."""
+    outputs, their sums in the cache.  Relative error of every term ≤
+    :func:`ibl_ref.groundtruth.kernel_spec.weight_error` (η for c ≥ C0, ε absolute below).  Work arrays:
+    ``scratch`` (4, BL) and ``acc`` (K, 4, BL), BL = :data:`~ibl_ref.groundtruth.kernel_spec.POINT_BLOCK`."""
     P = out_dirs.shape[0]
     nb = b_dirs.shape[0]
     K = s_arr.shape[0]
-    BL = 256
-    X = np.empty(BL)
-    Y = np.empty(BL)
-    Z = np.empty(BL)
-    c = np.empty(BL)
-    acc = np.zeros((K, 4, BL))
+    BL = POINT_BLOCK
+    X = scratch[0]
+    Y = scratch[1]
+    Z = scratch[2]
+    c = scratch[3]
     for p0 in range(0, P, BL):
         m = min(BL, P - p0)
         for i in range(m):
@@ -938,18 +870,6 @@ def sh_values_bounds(shq, nb, E, d_nb, tau_eff, m_rem, normalized, maps, rel):
 # ----------------------------------------------------------------------------------------------
 # spherical harmonics: projection and evaluation without the SH matrix
 # ----------------------------------------------------------------------------------------------
-#: directions per block of the fused SH passes (the Legendre rows of one block, (L+1) × 3 × 128 float64,
-#: stay in the L2 cache)
-SH_BLOCK = 128
-
-
-@_jit()
-def _sh_block_arrays(L):
-    """Work arrays of one block of the SH passes: cos θ, sin θ, √2 cos mφ, √2 sin mφ and three Legendre bands."""
-    B = SH_BLOCK
-    return np.empty(B), np.empty(B), np.empty((L + 1, B)), np.empty((L + 1, B)), np.zeros((3, L + 1, B))
-
-
 @_jit(fastmath={"contract"})
 def _sh_block_setup(reps, c0, ch, L, x, st, cm, sm):
     """cos θ, sin θ and √2·cos mφ, √2·sin mφ (m ≥ 1; cm[0] = 1, sm[0] = 0) of ``reps[c0:c0+ch]`` (polar axis +z),
@@ -1006,13 +926,18 @@ def _legendre_band(ell, x, st, ch, p1, p2, pc, a_tab, b_tab):
 
 
 @_jit(fastmath={"contract", "reassoc"})
-def _sh_rows(reps, L, row_of, cls_of, a_tab, b_tab, Wk, acc_e, acc_o, dest, out, project):
-    """Every real SH row (ℓ ≤ L, m, cos/sin) at the directions ``reps``, block by block of :data:`SH_BLOCK`
+def _sh_rows(reps, L, row_of, cls_of, a_tab, b_tab, Wk, acc_e, acc_o, dest, out, project, blk, P):
+    """Every real SH row (ℓ ≤ L, m, cos/sin) at the directions ``reps``, block by block of :data:`~ibl_ref.groundtruth.kernel_spec.SH_BLOCK`
     directions (the Legendre recurrences of :func:`_legendre_band`): ``project`` — projected at once on the
-    class-projected weights (:func:`sh_project`), else written to the matrix ``out`` (:func:`sh_matrix`)."""
+    class-projected weights (:func:`sh_project`), else written to the matrix ``out`` (:func:`sh_matrix`).  Work
+    arrays of one block: ``blk`` (2L + 4, SH_BLOCK) — cos θ, sin θ, √2 cos mφ, √2 sin mφ — and ``P`` (3, L + 1,
+    SH_BLOCK), three Legendre bands, zeroed."""
     n = reps.shape[0]
     B = SH_BLOCK
-    x, st, cm, sm, P = _sh_block_arrays(L)
+    x = blk[0]
+    st = blk[1]
+    cm = blk[2 : L + 3]
+    sm = blk[L + 3 : 2 * L + 4]
     for c0 in range(0, n, B):
         ch = min(B, n - c0)
         _sh_block_setup(reps, c0, ch, L, x, st, cm, sm)
@@ -1050,85 +975,18 @@ def _sh_rows(reps, L, row_of, cls_of, a_tab, b_tab, Wk, acc_e, acc_o, dest, out,
 
 
 @_jit()
-def sh_project(reps, Wk, L, row_of, cls_of, a_tab, b_tab, acc_e, acc_o):
+def sh_project(reps, Wk, L, row_of, cls_of, a_tab, b_tab, acc_e, acc_o, blk, P):
     """``acc[row, q] += Σ_d Y_row(reps[d]) · Wk[κ(row), q, d]`` for every real SH row of band ≤ L (even rows —
     ℓ + m even — into ``acc_e``, odd ones into ``acc_o``, at the row order of
     :func:`ibl_ref.groundtruth.sh_basis._layout`, given by ``row_of[ℓ, m, kind]``; ``cls_of`` the row's octant
     class κ; ``Wk`` (8, 4, n) the class-projected weights of the octant orbits).  The SH values are generated
     block by block and used at once: no SH matrix in memory.  Float64; each row's sum has relative error ≤ γ_n in
     the magnitudes (any order)."""
-    _sh_rows(reps, L, row_of, cls_of, a_tab, b_tab, Wk, acc_e, acc_o, np.zeros((2, 1), dtype=np.int64),
-             np.zeros((1, 1)), True)
+    _sh_rows(reps, L, row_of, cls_of, a_tab, b_tab, Wk, acc_e, acc_o, row_of[0], acc_e, True, blk, P)
 
 
 @_jit()
-def sh_matrix(reps, L, row_of, cls_of, a_tab, b_tab, dest, out):
+def sh_matrix(reps, L, row_of, cls_of, a_tab, b_tab, dest, out, blk, P):
     """The real SH values of band ≤ L at ``reps`` as rows of ``out`` (rows, n): row (ℓ, m, kind) goes to
     ``out[dest[(ℓ + m) % 2, row_of[ℓ, m, kind]]]`` (so the rows of each octant class can be contiguous)."""
-    _sh_rows(reps, L, row_of, cls_of, a_tab, b_tab, np.zeros((8, 4, 1)), np.zeros((1, 4)), np.zeros((1, 4)), dest,
-             out, False)
-
-
-#: the kernel groups :func:`warm_up` has loaded in this process
-WARM: set = set()
-#: kernel groups per route of :func:`ibl_ref.groundtruth.convolve.convolve`
-STAGES = ("sparse", "moment", "sh")
-
-
-def warm_up(stages=STAGES):
-    """Compile (or load from the cache) the kernels of ``stages`` on tiny inputs, once per process (before workers
-    are forked, so that they inherit the machine code); returns the seconds it took (0 when done already)."""
-    import time
-
-    todo = [st for st in stages if st in STAGES and st not in WARM]
-    if not todo:
-        return 0.0
-    t0 = time.perf_counter()
-    from ..environment import envmap
-
-    n = 2
-    d = envmap.texel_directions(n).reshape(-1, 3)
-    if "sparse" in todo:
-        X, Y, Z = (np.ascontiguousarray(d[:, i]) for i in range(3))
-        X.flags.writeable = Y.flags.writeable = Z.flags.writeable = False  # as the callers' cached columns
-        RW = np.ones((4, d.shape[0]))
-        fr = envmap.face_frames("openexr")
-        cen = d[:2].copy()
-        rows = d[:2].reshape(2, 1, 3).copy()
-        for s_int, rowmax in ((2, False), (0, True)):
-            tile_gather(cen, rows, np.full(2, 0.5), np.zeros(2), fr, n, X, Y, Z, RW, np.zeros((0, 3)), np.zeros((0, 4)), 2.0,
-                        s_int, rowmax, 1e-300, np.zeros((2, 1, 4)), np.zeros((2, 1)), np.zeros(2, dtype=np.int64))
-        cap_count(cen[0], 0.5, fr, n)
-        mem = np.array([[0, 1, -1, -1]])
-        cone_extremes(cen, np.full(2, 0.5), d[:2].copy(), 0.1, np.ones((2, 3)), np.ones((2, 3)), d[:1].copy(), 0.3,
-                      mem, np.zeros((2, 3)), np.zeros((2, 3)))
-        g, lg = np.array([0.0, 1.0]), np.array([0.0, -1.0])
-        g.flags.writeable = lg.flags.writeable = False  # the cached W_b tables are read-only: their signature
-        tile_bounds(np.ones((2, 1, 4)), np.zeros((2, 1)), np.zeros(2), np.zeros(2), 1.0, np.zeros((2, 1)),
-                    np.ones(2), np.ones(2), 5e-8, g, lg, np.ones((2, 3)), np.ones((2, 3)), np.ones(3), np.ones(3),
-                    np.ones((2, 1), dtype=np.bool_), np.zeros((2, 1), dtype=np.intp), np.zeros((2, 3)),
-                    np.zeros((2, 3)), np.zeros(2))
-    if "moment" in todo:
-        R = d[:2].reshape(2, 1, 3).copy()
-        st = np.array([0, 1, 2], dtype=np.int64)
-        tx = np.array([0, 1], dtype=np.int64)
-        band_exact(R, st, tx, d, np.ones((d.shape[0], 4)), True, True, np.zeros((2, 1, 4)), np.zeros((2, 1, 4)))
-        z = [np.zeros((2, 1, 4)) for _ in range(4)]
-        band_brackets(R, st, tx, d, np.ones(d.shape[0]), np.zeros(d.shape[0]), np.ones((d.shape[0], 4)),
-                      np.ones((d.shape[0], 3, 4)), np.ones((d.shape[0], 6, 4)), True, True, *z)
-    if "sh" in todo:
-        from .sh_tables import _row_layout, compiled_tables
-
-        tabs = compiled_tables(2)
-        ne, no = (r.size for r in _row_layout(2))
-        sh_project(d[:3].copy(), np.ones((8, 4, 3)), 2, *tabs, np.zeros((ne, 4)), np.zeros((no, 4)))
-        dest = np.zeros((2, ne), dtype=np.int64)
-        dest[0] = np.arange(ne)
-        dest[1, :no] = ne + np.arange(no)
-        sh_matrix(d[:3].copy(), 2, *tabs, dest, np.zeros((ne + no, 3)))
-        point_gather(d[:3].copy(), d[:2].copy(), np.ones((2, 4)), np.array([2.0, 2.5]),
-                     np.array([2, 0], dtype=np.int64), np.zeros((2, 4, 3)))
-        sh_values_bounds(np.ones((1, 2, 4)), np.ones((1, 2, 3)), np.ones(1), np.zeros((1, 2, 3)), 1.0, 0.0, True,
-                         np.zeros((1, 2, 3)), np.zeros((1, 2)))
-    WARM.update(todo)
-    return time.perf_counter() - t0
+    _sh_rows(reps, L, row_of, cls_of, a_tab, b_tab, P, out, out, dest, out, False, blk, P)

@@ -8,7 +8,8 @@ Two implementations of the same quadratures:
 ``"compiled"``
     :mod:`ibl_ref.groundtruth.compiled_kernels` — the gathers, the moment route's horizon band, the SH
     passes and the bright-texel gathers as loops compiled by numba (optional extra ``fast``:
-    ``pip install "ibl_ref[fast]"``).  Same quadratures, same rigorous bounds (each kernel's rounding is
+    ``pip install "ibl_ref[fast]"``), compiled ahead of time once per installation and loaded without numba
+    (:mod:`ibl_ref.groundtruth.kernel_library`).  Same quadratures, same rigorous bounds (each kernel's rounding is
     part of its bound); results agree with the NumPy path within the sum of the two bounds, not bit for bit.
 
 The switch: the ``kernel=`` argument of :func:`ibl_ref.groundtruth.convolve.convolve`, ``ibl-ref convolve
@@ -18,8 +19,7 @@ given.  ``"auto"`` (the default) is ``"compiled"`` when numba can be imported, e
 below the compiled one plus :data:`COMPILED_LOAD_SECONDS` in a process that has not loaded the compiled kernels yet
 (a small map in a fresh process: loading them would cost more than they save; ``info["kernel_auto"]`` says so);
 asking for ``"compiled"`` without numba is a one-line :class:`~ibl_ref.errors.IBLError`.  :func:`resolve_kernel` only
-looks numba up (``importlib.util.find_spec``); importing it (≈ 0.15 s) and loading the compiled code from
-the cache happen on first use (:func:`compiled`).
+looks numba up (``importlib.util.find_spec``); loading the compiled code happens on first use (:func:`compiled`).
 """
 
 from __future__ import annotations
@@ -36,9 +36,9 @@ __all__ = ["KERNELS", "KERNEL_ENV", "COMPILED_LOAD_SECONDS", "resolve_kernel", "
 KERNELS = ("auto", "numpy", "compiled")
 #: environment variable read when ``kernel`` is not given
 KERNEL_ENV = "IBL_REF_KERNEL"
-#: seconds a process pays once to use the compiled kernels: ``import numba`` (≈ 0.3 s) and loading every kernel
-#: from the cache (≈ 0.55 s; measured 0.80–0.92 s in fresh processes, 2-core machine, load ≈ 2.5)
-COMPILED_LOAD_SECONDS = 0.85
+#: seconds a process pays once to use the compiled kernels: loading them compiled ahead of time (``import
+#: llvmlite.binding`` ≈ 0.02 s and the machine code; :mod:`ibl_ref.groundtruth.kernel_library`)
+COMPILED_LOAD_SECONDS = 0.05
 
 
 def numba_available() -> bool:
@@ -69,13 +69,13 @@ def compiled_loaded() -> bool:
     """True when this process has loaded the compiled kernels already (:func:`compiled` and their warm-up)."""
     import sys
 
-    mod = sys.modules.get("ibl_ref.groundtruth.compiled_kernels")
-    return bool(mod is not None and getattr(mod, "WARM", None))
+    mod = sys.modules.get("ibl_ref.groundtruth.kernel_library")
+    return bool(mod is not None and mod.loaded())
 
 
 def compiled():
-    """The module of compiled kernels (imports numba; compiles or loads the cached code on first use of each
-    kernel)."""
-    from . import compiled_kernels
+    """The compiled kernels as the routes call them (:mod:`ibl_ref.groundtruth.kernel_library`; loaded on first use,
+    compiled ahead of time on the first use after an installation)."""
+    from . import kernel_library
 
-    return compiled_kernels
+    return kernel_library

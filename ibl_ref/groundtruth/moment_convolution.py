@@ -600,7 +600,9 @@ def convolve_moment_many(
         raise IBLError(f"impl must be 'numpy' or 'compiled', got {impl!r}")
     ck = None
     if impl == "compiled" and a4.shape[-1] <= 3:
-        from . import compiled_kernels as ck
+        from .kernel_choice import compiled
+
+        ck = compiled()
     C = a4.shape[-1]
     Q = C + 1  # channel Q-1: L ≡ 1 (denominator)
 

@@ -1120,7 +1120,7 @@ def convolve_sparse_many(
 
     ``impl="compiled"`` runs the gather of every tile (its cap's texels found by face-row intervals, the
     weights, the bright set) in :func:`ibl_ref.groundtruth.compiled_kernels.tile_gather` (float64; its rounding
-    bound, :func:`~ibl_ref.groundtruth.compiled_kernels.weight_error`, replaces the float32 kernel's in the
+    bound, :func:`~ibl_ref.groundtruth.kernel_spec.weight_error`, replaces the float32 kernel's in the
     bound); tiles, caps, attempts and the bound are the same code as for ``impl="numpy"``, except that the first
     attempt leaves out the bright texels whose weight from every row of the tile is below δ0 (and sets gathered weights
     below δ0 to 0), an absolute error ≤ δ0 per (row, texel) pair that the bound charges like the rounding allowance
@@ -1156,7 +1156,10 @@ def convolve_sparse_many(
         raise IBLError(f"threads must be an integer ≥ 1, got {threads!r}")
     ck = None
     if compiled:
-        from . import compiled_kernels as ck
+        from .kernel_choice import compiled
+        from .kernel_spec import POWI_MAX, sum_error, weight_error
+
+        ck = compiled()
     try:
         dark_floor = float(dark_floor)
     except (TypeError, ValueError):
@@ -1308,8 +1311,8 @@ def convolve_sparse_many(
         if compiled:
             # c^s by binary powering for integer exponents (own weight ≥ e^-600: no reference needed), else
             # exp(s·log c), relative to the row's largest cosine where the own weight may underflow
-            s_int = int(s) if (float(s).is_integer() and s <= ck.POWI_MAX and own_log >= -600.0) else 0
-            eta_w, eps_w = ck.weight_error(s, bool(s_int), rowmax)
+            s_int = int(s) if (float(s).is_integer() and s <= POWI_MAX and own_log >= -600.0) else 0
+            eta_w, eps_w = weight_error(s, bool(s_int), rowmax)
             if ("rw4",) not in geometry:
                 geometry[("rw4",)] = _compiled_sources(n * supersample, rad, omega, bright)
             l_und = float(rad.max()) if rad.size else 0.0
@@ -1378,7 +1381,7 @@ def convolve_sparse_many(
                     acc[..., cols[0]] = acc_g[..., : len(cols[0])]
                     log_mx = lm_g
                 m_t = cnt.astype(np.float64)
-                eta = eta_w + ck.sum_error(cnt)
+                eta = eta_w + sum_error(cnt)
                 # absolute errors of the smallest weights and of the weights left out below e^-700 (per pair ≤
                 # eps_w, relative to the weight scale 1: the row maximum or c^s with c ≤ 1) and, in attempt 0, of
                 # those left out or set to 0 below δ0 (≤ δ0 more per pair), against W_in ≥ the own texel's

@@ -131,9 +131,11 @@ def _bright_gather(out_dirs, b_dirs, b_w, s_list, chunk_elems=1 << 22, impl="num
     if nb == 0:
         return res
     if impl == "compiled":
-        from . import compiled_kernels as ck
+        from .kernel_choice import compiled
+        from .kernel_spec import POWI_MAX
 
-        s_int = np.array([int(s) if float(s).is_integer() and s <= ck.POWI_MAX else 0 for s in s_list], dtype=np.int64)
+        ck = compiled()
+        s_int = np.array([int(s) if float(s).is_integer() and s <= POWI_MAX else 0 for s in s_list], dtype=np.int64)
         for c0 in range(0, C, 4):
             c1 = min(C, c0 + 4)
             bw4 = np.zeros((nb, 4))
@@ -515,15 +517,17 @@ def _values_and_bounds(setup: ShSetup, shq, nb):
     rel = np.empty((K, P))
     rel_est = np.full((K, P), np.inf) if est_idx else None
     if getattr(setup, "impl", "numpy") == "compiled" and not est_idx:
-        from . import compiled_kernels as ck
+        from .kernel_choice import compiled
+        from .kernel_spec import POWI_MAX, weight_error
 
+        ck = compiled()
         E = np.array([legendre_series_truncation_envelope(s, L_use, rho)
                       + _FOUR_PI * np.finfo(float).eps * (L_use + 1) ** 2 for s in s_list])
         d_nb = np.zeros((K, P, C))
         if setup.b_w.shape[0]:
             bw = np.abs(setup.b_w).sum(axis=0)
             for k, s in enumerate(s_list):
-                e_r, e_a = ck.weight_error(s, float(s).is_integer() and s <= ck.POWI_MAX)
+                e_r, e_a = weight_error(s, float(s).is_integer() and s <= POWI_MAX)
                 d_nb[k] = e_r * nb[k] + e_a * bw
         ck.sh_values_bounds(np.ascontiguousarray(shq), np.ascontiguousarray(nb), E, d_nb, float(tau_eff),
                             float(m_rem), bool(normalized), maps, rel)
@@ -547,9 +551,9 @@ def _values_and_bounds(setup: ShSetup, shq, nb):
             A = np.full_like(y, tau_eff * E_L)
         if getattr(setup, "impl", "numpy") == "compiled" and setup.b_w.shape[0]:
             # rounding of the compiled bright gather (relative η for r·ω ≥ C0, absolute ε per weight below)
-            from . import compiled_kernels as ck
+            from .kernel_spec import POWI_MAX, weight_error
 
-            e_r, e_a = ck.weight_error(s, float(s).is_integer() and s <= ck.POWI_MAX)
+            e_r, e_a = weight_error(s, float(s).is_integer() and s <= POWI_MAX)
             d_nb = e_r * nb[k] + e_a * np.abs(setup.b_w).sum(axis=0)
             with np.errstate(invalid="ignore", divide="ignore"):
                 A = A + (np.where(den > 0, d_nb / np.where(den > 0, den, 1.0), np.inf) if normalized else d_nb)
