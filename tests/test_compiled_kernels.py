@@ -117,6 +117,7 @@ def ck(request):
     kl.warm_up()
     yield SimpleNamespace(backend=request.param, exp_=jit.exp_, log_=jit.log_, powi_=jit.powi_,
                           _scratch_size=jit._scratch_size, tile_gather=kl.tile_gather, cap_count=kl.cap_count,
+                          bright_groups=kl.bright_groups,
                           weight_error=spec.weight_error, sum_error=spec.sum_error, U64=spec.U64,
                           EXP_REL=spec.EXP_REL, LOG_ABS=spec.LOG_ABS, LOG_REL=spec.LOG_REL, POWI_MAX=spec.POWI_MAX)
     if before is not None:
@@ -228,6 +229,7 @@ def test_tile_gather_leaves_out_only_zero_weight_bright_texels(ck):
     rw[3] = envmap.cube_solid_angles(n).reshape(-1)
     nb = 300
     bdirs = rng.normal(size=(nb, 3))
+    bdirs[:200] = d[np.sort(rng.choice(d.shape[0] // 6, 200, replace=False))]  # most in clusters (face 0, by index)
     bdirs /= np.linalg.norm(bdirs, axis=1, keepdims=True)
     brw = np.abs(rng.normal(size=(nb, 4))) * 1e4
     nt = 40
@@ -248,6 +250,13 @@ def test_tile_gather_leaves_out_only_zero_weight_bright_texels(ck):
             out[name] = (acc, cnt)
         eta, eps = ck.weight_error(s, bool(s_int))
         (a1, c1), (a0, c0) = out["culled"], out["all"]
+        if ck.backend == "aot":  # the groups skipped whole leave out exactly what the per-texel test leaves out
+            gcen, galpha = ck.bright_groups(bdirs)
+            acc, lm, cnt = np.zeros((nt, 4, 4)), np.zeros((nt, 4)), np.zeros(nt, dtype=np.int64)
+            ck.tile_gather(cen, rows, caps, arad, fr, n, X, Y, Z, rw, bdirs, brw, s, s_int, False,
+                           np.exp(-700.0 / s), acc, lm, cnt, (gcen, np.full(len(galpha), 4.0)))
+            np.testing.assert_array_equal(acc, a1)
+            np.testing.assert_array_equal(cnt, c1)
         # the left-out texels still count in the error allowance: every cap texel and every bright texel
         real = np.array([ck.cap_count(cen[i], caps[i], fr, n) for i in range(nt)]) + nb
         assert np.all(c1 >= real) and np.all(c0 >= real)
@@ -316,6 +325,23 @@ def test_sh_compiled_bound_holds_and_agrees_with_numpy(ck):
     Be, Bo = shc.sh_coefficients(setup, parts)
     mp, rp, _ = shc.sh_assemble(setup, [shc.sh_evaluate_part(setup, Be, Bo, i) for i in range(3)], {})
     np.testing.assert_allclose(mp, m1, rtol=1e-11, atol=0)
+
+
+def test_sh_planner_floor_by_the_compiled_gather_equals_numpy(ck):
+    # the SH planner's estimate of the darkest output texel (exact lobe averages of a 16² copy) by the compiled
+    # bright-texel gather: NumPy's values to rounding; exponents whose nearest-texel weight could underflow keep
+    # NumPy's row-normalised gather
+    from ibl_ref.groundtruth import sh_convolution as shc
+    from ibl_ref.synthetic.synthetic_envs import make_env
+
+    rng = np.random.default_rng(2)
+    for cube in (_sun_env(32), np.exp(rng.normal(0, 2, (6, 20, 20, 3))), make_env("sky_sun", 8)[..., :1]):
+        rad = cube.reshape(-1, cube.shape[-1])
+        S = [1.0, 5.0, 64.0, 777.5, 4096.0]
+        a, b = shc._output_floor(rad, S, "numpy"), shc._output_floor(rad, S, "compiled")
+        np.testing.assert_allclose(b, a, rtol=1e-12, atol=0)
+    big = shc._output_floor(rad, [2e6], "compiled")  # e^(s log cos ρ) far below e^-600: NumPy's gather
+    np.testing.assert_array_equal(big, shc._output_floor(rad, [2e6], "numpy"))
 
 
 def test_sparse_bright_cut_of_the_first_attempt_keeps_the_bound(ck):

@@ -40,7 +40,7 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-from .kernel_spec import POINT_BLOCK, SH_BLOCK, VEC
+from .kernel_spec import BRIGHT_GROUP, POINT_BLOCK, SH_BLOCK, VEC
 
 
 class _NoScipyLinalg:
@@ -378,10 +378,15 @@ def _put7(SX, SY, SZ, S0, S1, S2, S3, m, x, y, z, w0, w1, w2, w3):
 
 
 @_jit(fastmath={"contract"})
-def _collect(t, q, frames, n, X, Y, Z, RW, bdirs, brw, kb, SX, SY, SZ, S0, S1, S2, S3):
-    """Copy the source texels of the cap (angle q around t) and then the bright texels with ``t·ω ≥ kb`` into the
-    scratch arrays; pad with zero entries to a multiple of :data:`~ibl_ref.groundtruth.kernel_spec.VEC`.  Returns ``(entries (padding included),
-    bright texels left out)``."""
+def _collect(t, q, frames, n, X, Y, Z, RW, bdirs, brw, gcen, galpha, a_cut, SX, SY, SZ, S0, S1, S2, S3):
+    """Copy the source texels of the cap (angle q around t) and then the bright texels within the angle ``a_cut`` of
+    t (``t·ω ≥ cos a_cut``; every one when ``a_cut ≥ π``) into the scratch arrays; pad with zero entries to a
+    multiple of :data:`~ibl_ref.groundtruth.kernel_spec.VEC`.  The bright texels come in groups of
+    :data:`~ibl_ref.groundtruth.kernel_spec.BRIGHT_GROUP` (``bdirs`` rows g·BRIGHT_GROUP…) with the unit centre
+    ``gcen[g]`` and the largest angle ``galpha[g]`` from it to a member: a group farther than
+    ``a_cut + galpha[g] + 1e-9`` rad from t holds no texel the test would keep, and is skipped whole (the
+    margin is ≫ the rounding of the dot products, so the texels kept, and their order, are the per-texel test's).
+    Returns ``(entries (padding included), bright texels left out)``."""
     h = 2.0 / n
     nn = n * n
     k = math.cos(min(q + 1e-6, 0.5 * math.pi)) if q + 1e-6 < 0.5 * math.pi else 0.0
@@ -405,11 +410,21 @@ def _collect(t, q, frames, n, X, Y, Z, RW, bdirs, brw, kb, SX, SY, SZ, S0, S1, S
                 S3[j] = RW[3, lo + j]
             m += j1 - j0 + 1
     out = 0
-    for j in range(bdirs.shape[0]):
-        if t[0] * bdirs[j, 0] + t[1] * bdirs[j, 1] + t[2] * bdirs[j, 2] < kb:
-            out += 1
+    nb = bdirs.shape[0]
+    kb = math.cos(a_cut) if a_cut < math.pi else -2.0
+    for g in range(gcen.shape[0]):
+        j0 = g * BRIGHT_GROUP
+        j1 = min(j0 + BRIGHT_GROUP, nb)
+        a_g = a_cut + galpha[g] + 1e-9
+        if a_g < math.pi and t[0] * gcen[g, 0] + t[1] * gcen[g, 1] + t[2] * gcen[g, 2] < math.cos(a_g):
+            out += j1 - j0
             continue
-        m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, bdirs[j, 0], bdirs[j, 1], bdirs[j, 2], brw[j, 0], brw[j, 1], brw[j, 2], brw[j, 3])
+        for j in range(j0, j1):
+            if t[0] * bdirs[j, 0] + t[1] * bdirs[j, 1] + t[2] * bdirs[j, 2] < kb:
+                out += 1
+                continue
+            m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, bdirs[j, 0], bdirs[j, 1], bdirs[j, 2], brw[j, 0], brw[j, 1],
+                      brw[j, 2], brw[j, 3])
     while m % VEC:
         m = _put7(SX, SY, SZ, S0, S1, S2, S3, m, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     return m, out
@@ -464,8 +479,8 @@ def _max_cos(rx, ry, rz, SX, SY, SZ, m):
 
 
 @_jit(fastmath={"contract", "reassoc"})
-def tile_gather(cen, rows, caps, arad, frames, n, X, Y, Z, RW, bdirs, brw, s, s_int, rowmax, c_floor, acc, logmx,
-                count, scratch):
+def tile_gather(cen, rows, caps, arad, frames, n, X, Y, Z, RW, bdirs, brw, gcen, galpha, s, s_int, rowmax, c_floor,
+                acc, logmx, count, pairs, scratch):
     """Truncated-support gather of tiles of output texels: tile i's rows ``rows[i]`` (B, 3) gather every source
     texel within the angle ``caps[i]`` of the tile centre ``cen[i]`` (plus 1e-6 rad and 1e-3 texel of slack)
     and the bright texels ``bdirs``/``brw``: ``acc[i, b] = Σ_j w_bj RW[:, j]``.
@@ -487,7 +502,8 @@ def tile_gather(cen, rows, caps, arad, frames, n, X, Y, Z, RW, bdirs, brw, s, s_
     and its centre; bright texels farther than ``acos(c_floor) + arad[i]`` from the centre are left out (every
     row's weight of them is 0, or below e^-700 by ``exp``: within the allowance ε of :func:`ibl_ref.groundtruth.kernel_spec.weight_error`).
     ``count[i]``: entries of tile i's list (the bright texels and the padding included: the pairs computed per
-    row) plus the bright texels left out — the pairs the callers' error allowance counts.
+    row) plus the bright texels left out — the pairs the callers' error allowance counts; ``pairs[i]``: the entries
+    alone (what each row computed).  ``gcen``/``galpha``: the bright texels' groups (:func:`_collect`).
     """
     nt = rows.shape[0]
     B = rows.shape[1]
@@ -495,13 +511,13 @@ def tile_gather(cen, rows, caps, arad, frames, n, X, Y, Z, RW, bdirs, brw, s, s_
     for i in range(nt):
         # bright texels beyond acos(c_floor) + the tile radius (+1e-9 rad) of the centre: below c_floor from every
         # row, weight 0 (or < e^-700 by exp), so left out; counted in count[i], which sets the error allowance
-        kb = -2.0
+        a_cut = 10.0  # (≥ π: keep every bright texel)
         if not rowmax and c_floor > 0.0:
             a_cut = math.acos(min(c_floor, 1.0)) + arad[i] + 1e-9
-            if a_cut < math.pi:
-                kb = math.cos(a_cut)
-        m, out = _collect(cen[i], caps[i], frames, n, X, Y, Z, RW, bdirs, brw, kb, SX, SY, SZ, S0, S1, S2, S3)
+        m, out = _collect(cen[i], caps[i], frames, n, X, Y, Z, RW, bdirs, brw, gcen, galpha, a_cut, SX, SY, SZ, S0, S1,
+                          S2, S3)
         count[i] = m + out
+        pairs[i] = m
         for b in range(0, B, 2):
             b1 = min(b + 1, B - 1)  # an odd last row is paired with itself
             l0 = l1 = 0.0

@@ -690,7 +690,7 @@ def _sh_pass_cost(L, n_bright, n_src, n_out, K, Q, impl):
             + _unit("SH_BRIGHT_FACTOR", impl) * shc.bright_cost(n_bright, n_out, K) + shc.SH_OVERHEAD_UNITS)
 
 
-def _route_auto(a4, s_list, rtol, out_size, normalized, info, impl="numpy", estimate=True):
+def _route_auto(a4, s_list, rtol, out_size, normalized, info, impl="numpy", estimate=True, floor_impl=None):
     """Method per exponent for ``method="auto"`` (module docstring): ``(route, SH plan or None, SH set)``.
 
     Every finite exponent gets the cheapest of its routes by the cost models of the kernel ``impl``: the exact
@@ -699,8 +699,10 @@ def _route_auto(a4, s_list, rtol, out_size, normalized, info, impl="numpy", esti
     of the exponents sorted by their planned band limit (:func:`ibl_ref.groundtruth.sh_convolution.plan_sh`) is
     tried, exponents within reach of L_max last (charged :data:`SH_RISK_SHARE`).  Returns the SH plan made for
     exactly the chosen SH set.  Writes the planning diagnostics and the model costs of the chosen plan and of every
-    single forced method into ``info`` (``route_model_costs_s``)."""
+    single forced method into ``info`` (``route_model_costs_s``).  ``floor_impl``: the kernel of the SH planner's
+    estimate of the darkest output texel (default ``impl``; the kernel choice plans without loading the kernels)."""
     n = a4.shape[1]
+    floor_impl = floor_impl or impl
     n_src, n_out = 6 * n * n, 6 * out_size * out_size
     Q = a4.shape[-1] + 1
     from . import sh_convolution as shc
@@ -731,7 +733,7 @@ def _route_auto(a4, s_list, rtol, out_size, normalized, info, impl="numpy", esti
     if not rest or _sh_cannot_pay(rest, SPARSE_STATIC_SLACK * static_other, n, n_src, n_out, Q, impl, rtol):
         info["sh_plan_skipped"] = True
     else:
-        plan = shc.plan_sh(a4, finite, rtol=rtol, out_size=out_size)
+        plan = shc.plan_sh(a4, finite, rtol=rtol, out_size=out_size, impl=floor_impl)
     # the sparse gather's real caps on this map (a sample of tiles), where its cost decides: its static model within
     # SPARSE_STATIC_SLACK of the exponent's own SH pass, or no SH pass planned for it
     big = []
@@ -795,7 +797,7 @@ def _route_auto(a4, s_list, rtol, out_size, normalized, info, impl="numpy", esti
     costs["auto"] = cost
     info["route_model_costs_s"] = {k: float(v * unit) for k, v in costs.items()}
     if grp and plan is not None and len(grp) != len(finite):
-        plan = shc.plan_sh(a4, grp, rtol=rtol, out_size=out_size)  # the plan of exactly the SH set
+        plan = shc.plan_sh(a4, grp, rtol=rtol, out_size=out_size, impl=floor_impl)  # the plan of exactly the SH set
     return route, (plan if grp else None), grp
 
 
@@ -816,7 +818,7 @@ def _auto_kernel(a4, s_list, method, rtol, out_size, normalized):
     cost = {}
     for impl in ("numpy", "compiled"):
         info = {}
-        _route_auto(a4, s_list, rtol, out_size, normalized, info, impl, estimate=False)
+        _route_auto(a4, s_list, rtol, out_size, normalized, info, impl, estimate=False, floor_impl="numpy")
         costs = info.get("route_model_costs_s", {})
         cost[impl] = costs.get("auto" if method == "auto" else method, costs.get("auto", 0.0))
     if cost["numpy"] <= cost["compiled"] + COMPILED_LOAD_SECONDS:

@@ -44,10 +44,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .kernel_spec import KERNELS, POINT_BLOCK, SH_BLOCK, VEC
+from .kernel_spec import BRIGHT_GROUP, KERNELS, POINT_BLOCK, SH_BLOCK, VEC
 
 __all__ = ["BACKEND", "BACKEND_ENV", "NOTE", "FORMAT", "artifact_path", "build", "load", "use", "loaded", "warm_up",
-           "tile_scratch_size", "tile_gather", "tile_bounds", "cone_extremes", "cap_count", "band_exact",
+           "tile_scratch_size", "bright_groups", "tile_gather", "tile_bounds", "cone_extremes", "cap_count", "band_exact",
            "band_brackets", "point_gather", "sh_values_bounds", "sh_project", "sh_matrix"]
 
 #: environment variable: ``jit`` forces numba's JIT backend, ``aot`` (or unset) the ahead-of-time one where possible
@@ -523,12 +523,34 @@ def tile_scratch_size(caps, frames, n, cen, n_bright) -> int:
     return _raw("tile_scratch_size")(caps, frames, n, cen, n_bright)
 
 
+def bright_groups(bdirs):
+    """The groups of :data:`~ibl_ref.groundtruth.kernel_spec.BRIGHT_GROUP` consecutive bright texels (rows of
+    ``bdirs`` (nb, 3), unit vectors) that :func:`tile_gather` skips whole when out of reach: unit centres (G, 3) and
+    the largest angle from each centre to a member (+1e-9 rad for the arccos)."""
+    nb = bdirs.shape[0]
+    G = -(-nb // BRIGHT_GROUP)
+    pad = np.zeros((G * BRIGHT_GROUP, 3))
+    pad[:nb] = bdirs
+    grp = pad.reshape(G, BRIGHT_GROUP, 3)
+    cen = grp.sum(axis=1)
+    norm = np.linalg.norm(cen, axis=1, keepdims=True)
+    cen = np.where(norm > 0, cen / np.where(norm > 0, norm, 1.0), np.array([0.0, 0.0, 1.0]))
+    real = (np.arange(G * BRIGHT_GROUP) < nb).reshape(G, BRIGHT_GROUP)
+    dots = np.where(real, np.einsum("gkj,gj->gk", grp, cen), 1.0)
+    alpha = np.arccos(np.clip(dots.min(axis=1), -1.0, 1.0)) + 1e-9 if G else np.zeros(0)
+    return np.ascontiguousarray(cen), np.ascontiguousarray(alpha)
+
+
 def tile_gather(cen, rows, caps, arad, frames, n, X, Y, Z, RW, bdirs, brw, s, s_int, rowmax, c_floor, acc, logmx,
-                count):
-    """:func:`ibl_ref.groundtruth.compiled_kernels.tile_gather` with its scratch lists."""
+                count, groups=None, pairs=None):
+    """:func:`ibl_ref.groundtruth.compiled_kernels.tile_gather` with its scratch lists; ``groups``: the bright
+    texels' :func:`bright_groups` (computed here if not given); ``pairs``: where to write the entries per tile."""
     m = tile_scratch_size(caps, frames, n, cen, bdirs.shape[0])
-    _raw("tile_gather")(cen, rows, caps, arad, frames, n, X, Y, Z, RW, bdirs, brw, s, s_int, rowmax, c_floor, acc,
-                        logmx, count, np.zeros((7, m)))
+    gcen, galpha = bright_groups(bdirs) if groups is None else groups
+    if pairs is None:
+        pairs = np.empty(cen.shape[0], dtype=np.int64)
+    _raw("tile_gather")(cen, rows, caps, arad, frames, n, X, Y, Z, RW, bdirs, brw, gcen, galpha, s, s_int, rowmax,
+                        c_floor, acc, logmx, count, pairs, np.zeros((7, m)))
 
 
 def tile_bounds(*args):

@@ -34,14 +34,14 @@ import math
 
 import numpy as np
 
-__all__ = ["KERNELS", "VEC", "SH_BLOCK", "POINT_BLOCK", "EXP_REL", "LOG_ABS", "LOG_REL", "POWI_MAX", "U64", "C0",
+__all__ = ["KERNELS", "VEC", "BRIGHT_GROUP", "SH_BLOCK", "POINT_BLOCK", "EXP_REL", "LOG_ABS", "LOG_REL", "POWI_MAX", "U64", "C0",
            "weight_error", "sum_error"]
 
 #: every kernel a route calls: its arguments' kinds (module docstring) in order, and the kind of its result (None:
 #: the kernel writes into its output arguments)
 KERNELS = {
     "tile_scratch_size": ("f1 f3 i f2 i", "i"),
-    "tile_gather": ("f2 f3 f1 f1 f3 i f1 f1 f1 f2 f2 f2 f i b f f3 f2 i1 f2", None),
+    "tile_gather": ("f2 f3 f1 f1 f3 i f1 f1 f1 f2 f2 f2 f2 f1 f i b f f3 f2 i1 i1 f2", None),
     "tile_bounds": ("f3 f2 f1 f1 f f2 f1 f1 f f1 f1 f2 f2 f1 f1 b2 i2 f2 f2 f1", None),
     "cone_extremes": ("f2 f1 f2 f f2 f2 f2 f i2 f2 f2", None),
     "cap_count": ("f1 f f3 i", "i"),
@@ -56,6 +56,9 @@ KERNELS = {
 #: the candidate lists of the gathers are padded to a multiple of this many entries (zero weight), so that the
 #: vectorised loops never fall back to their scalar remainder (8 lanes × 4-way interleave)
 VEC = 32
+#: bright texels per group of the sparse gather's bright list (one bounding cone per group: a tile skips the groups
+#: out of its reach without testing their texels)
+BRIGHT_GROUP = 32
 #: directions per block of the fused SH passes (the Legendre rows of one block, (L+1) × 3 × 128 float64, stay in
 #: the L2 cache)
 SH_BLOCK = 128

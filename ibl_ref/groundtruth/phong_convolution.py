@@ -1061,8 +1061,8 @@ def _tile_batches(order, counts, B, chunk, key):
         k0 += tb.size
 
 
-def _tile_gather_threads(ck, threads, cen, rows, caps, arad, frames, m, X, Y, Z, rws, bdirs, brw, s, s_int, rowmax,
-                         c_floor, acc, logmx, count):
+def _tile_gather_threads(ck, threads, cen, rows, caps, arad, frames, m, X, Y, Z, rws, bdirs, brw, groups, s, s_int,
+                         rowmax, c_floor, acc, logmx, count, pairs):
     """:func:`ibl_ref.groundtruth.compiled_kernels.tile_gather` on ``threads`` threads: thread j gathers the tiles
     j, j + threads, j + 2·threads, … (neighbouring tiles have similar caps, so the threads get similar work) into
     its own outputs, copied back in place.  Every tile is computed by the same code on the same inputs as in one
@@ -1071,23 +1071,23 @@ def _tile_gather_threads(ck, threads, cen, rows, caps, arad, frames, m, X, Y, Z,
     threads = max(1, min(int(threads), nt // 2))
     if threads <= 1:
         ck.tile_gather(cen, rows, caps, arad, frames, m, X, Y, Z, rws, bdirs, brw, s, s_int, rowmax, c_floor, acc,
-                       logmx, count)
+                       logmx, count, groups, pairs)
         return
     from concurrent.futures import ThreadPoolExecutor
 
     sel = [np.arange(j, nt, threads) for j in range(threads)]
     outs = [(np.empty((t.size,) + acc.shape[1:]), np.empty((t.size,) + logmx.shape[1:]),
-             np.empty(t.size, dtype=count.dtype)) for t in sel]
+             np.empty(t.size, dtype=count.dtype), np.empty(t.size, dtype=pairs.dtype)) for t in sel]
 
     def run(j):
         t = sel[j]
         ck.tile_gather(cen[t], rows[t], caps[t], arad[t], frames, m, X, Y, Z, rws, bdirs, brw, s, s_int, rowmax,
-                       c_floor, *outs[j])
+                       c_floor, *outs[j][:3], groups, outs[j][3])
 
     with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="ibl_tiles") as ex:
         list(ex.map(run, range(threads)))
-    for t, (a_j, l_j, c_j) in zip(sel, outs):
-        acc[t], logmx[t], count[t] = a_j, l_j, c_j
+    for t, (a_j, l_j, c_j, p_j) in zip(sel, outs):
+        acc[t], logmx[t], count[t], pairs[t] = a_j, l_j, c_j, p_j
 
 
 def convolve_sparse_many(
@@ -1370,14 +1370,17 @@ def convolve_sparse_many(
             if compiled:
                 log_cut = log_d0 if att == 0 else -700.0
                 X, Y, Z, groups, bright_rw = geometry[("rw4",)]
+                if ("bright_groups",) not in geometry:
+                    geometry[("bright_groups",)] = ck.bright_groups(np.ascontiguousarray(src_dirs[bright]))
                 for rws, cols in groups:
                     acc_g = np.empty((todo.size, B, 4))
                     lm_g = np.empty((todo.size, B))
                     cnt = np.empty(todo.size, dtype=np.int64)
+                    pairs = np.empty(todo.size, dtype=np.int64)
                     _tile_gather_threads(ck, threads, CEN[todo], TD[todo], q_t[todo], a_max[todo],
                                          envmap.face_frames("openexr"), n * supersample, X, Y, Z, rws,
-                                         src_dirs[bright], bright_rw[:, cols[1]], float(s), s_int, rowmax,
-                                         math.exp(log_cut / s), acc_g, lm_g, cnt)
+                                         src_dirs[bright], bright_rw[:, cols[1]], geometry[("bright_groups",)],
+                                         float(s), s_int, rowmax, math.exp(log_cut / s), acc_g, lm_g, cnt, pairs)
                     acc[..., cols[0]] = acc_g[..., : len(cols[0])]
                     log_mx = lm_g
                 m_t = cnt.astype(np.float64)
@@ -1388,7 +1391,7 @@ def convolve_sparse_many(
                 # weight · Ω_min
                 eps_pair = eps_w + (math.exp(log_cut) if log_cut > -700.0 else 0.0)
                 und = m_t * eps_pair * math.exp(-(0.0 if rowmax else own_log)) * omega_ratio
-                gathered += int(cnt.sum()) * B
+                gathered += int(pairs.sum()) * B  # (the pairs computed: the bright texels left out are not)
             elif use32:
                 # groups of tiles with the same number of series terms: their slab lists, then batches of tiles
                 # with similar list lengths (the batch pads to its longest list)

@@ -176,16 +176,18 @@ FLOOR_SAFETY = 0.5
 FLOOR_REACH = 10.0
 
 
-def _output_floor(rad, s_list):
+def _output_floor(rad, s_list, impl="numpy"):
     """Per exponent, an estimate of the smallest lobe average of the output (over texels and channels):
     :data:`FLOOR_SAFETY` × the minimum of the exact lobe averages of a coarse copy of the map (face size
     :data:`FLOOR_FACE`, each coarse texel the solid-angle-weighted mean of the texels whose face position falls in
     it).  On the CC0 probes at 256² it is within 0.86–1.0 of the darkest output texel of the SH route at L = 160
-    (s = 16, 256), where the band-4 SH preview used before rang below zero (probes with a dark ground)."""
+    (s = 16, 256), where the band-4 SH preview used before rang below zero (probes with a dark ground).
+    ``impl="compiled"``: the same exact sums by the compiled bright-texel gather (absolute weights c^s; where the
+    nearest texel's weight could underflow, NumPy's gather, which normalises every row by its largest weight)."""
     from .phong_convolution import convolve_exact_many
 
     M, C = rad.shape
-    key = (rad.shape, float(rad.sum()), float(rad[:: max(1, M // 997)].sum()), float(rad.max()))
+    key = (impl, rad.shape, float(rad.sum()), float(rad[:: max(1, M // 997)].sum()), float(rad.max()))
     if all((key, float(s)) in _FLOOR_CACHE for s in s_list):  # the map planned again (kernel choice, SH subset)
         return np.array([_FLOOR_CACHE[(key, float(s))] for s in s_list])
     n = int(round(math.sqrt(M / 6)))
@@ -197,7 +199,14 @@ def _output_floor(rad, s_list):
     a = rad.reshape(6, n, n, C)
     coarse = np.stack([np.bincount(flat, (a[..., c] * om).ravel(), 6 * nc * nc) for c in range(C)], axis=-1)
     coarse = (coarse / oc[:, None]).reshape(6, nc, nc, C)
-    ys = convolve_exact_many(coarse, list(s_list))
+    if impl == "compiled" and max(s_list) * math.log(math.cos(texel_max_radius(nc))) > -600.0:
+        d = envmap.texel_directions(nc).reshape(-1, 3)
+        om_c = envmap.cube_solid_angles(nc).reshape(-1)
+        sums = _bright_gather(d, d, np.concatenate([coarse.reshape(-1, C), np.ones((d.shape[0], 1))], axis=1)
+                              * om_c[:, None], list(s_list), impl="compiled")
+        ys = sums[..., :C] / sums[..., C:]
+    else:
+        ys = convolve_exact_many(coarse, list(s_list))
     out = FLOOR_SAFETY * ys.reshape(len(s_list), -1).min(axis=1)
     if len(_FLOOR_CACHE) > 64:
         _FLOOR_CACHE.clear()
@@ -209,14 +218,14 @@ def _output_floor(rad, s_list):
 _FLOOR_CACHE: dict = {}
 
 
-def _plan(rad, omega, src, n_out, s_list, rtol, rho, hybrid, tau, L_max, estimate=False):
+def _plan(rad, omega, src, n_out, s_list, rtol, rho, hybrid, tau, L_max, estimate=False, impl="numpy"):
     """Choose the sun threshold τ and band limit L from the a-priori bound and a cost model.
 
     Returns dict with ``L`` (joint band limit; None if no candidate meets rtol within L_max and
     ``estimate`` is False), ``tau``, ``L_per_s`` (band limit each exponent needs for the rigorous bound,
     None if > L_max), ``L_est`` (exponent → band limit used in estimate mode), ``reach`` (per exponent: would
     fit L_max with a :data:`FLOOR_REACH` times higher output floor), ``n_bright`` and ``cost``.  The output floor of
-    each exponent is :func:`_output_floor`.
+    each exponent is :func:`_output_floor` (computed by the kernel ``impl``).
     """
     C = rad.shape[1]
     lum = rad.max(axis=1)
@@ -228,7 +237,7 @@ def _plan(rad, omega, src, n_out, s_list, rtol, rho, hybrid, tau, L_max, estimat
     else:
         cands = _threshold_candidates(lum)
     # a-priori estimate of the darkest output texel, per exponent
-    y_lo = np.maximum(np.maximum(_output_floor(rad, s_list), m_min), 1e-300)
+    y_lo = np.maximum(np.maximum(_output_floor(rad, s_list, impl), m_min), 1e-300)
     best = None
     K = len(s_list)
     reach = [False] * K
@@ -287,11 +296,13 @@ def bright_cost(n_bright, n_out, K):
     return n_bright * n_out * (3.0 + 15.0 * K)
 
 
-def plan_sh(cube, exponents, *, rtol=1e-3, out_size=None, hybrid=True, L_max=SH_L_MAX, estimate=False):
+def plan_sh(cube, exponents, *, rtol=1e-3, out_size=None, hybrid=True, L_max=SH_L_MAX, estimate=False,
+            impl="numpy"):
     """A-priori plan of the hybrid SH route: band limit each exponent needs and the model cost.
 
     Returns dict ``L`` (joint band limit or None), ``tau``, ``L_per_s`` (list, None = would need more
-    than L_max), ``cost`` (model units, comparable with :func:`sh_cost`).
+    than L_max), ``cost`` (model units, comparable with :func:`sh_cost`).  ``impl``: the kernel of the estimate of
+    the darkest output texel (the plan of the route that runs with that kernel).
     """
     a, _ = check_cube(cube)
     n = a.shape[1]
@@ -301,7 +312,7 @@ def plan_sh(cube, exponents, *, rtol=1e-3, out_size=None, hybrid=True, L_max=SH_
     omega = np.ascontiguousarray(envmap.cube_solid_angles(n)).reshape(-1)
     rad = a.reshape(-1, a.shape[-1])
     return _plan(rad, omega, src, 6 * out_size * out_size, s_list, rtol, texel_max_radius(n), hybrid, None, L_max,
-                 estimate)
+                 estimate, impl)
 
 
 
@@ -407,7 +418,7 @@ def sh_setup(cube, exponents, *, rtol: float = 1e-3, L: int | None = None, hybri
     # --- threshold / band limit -----------------------------------------------------------
     if L is None:
         if plan is None:
-            plan = _plan(rad, omega, src, out_dirs.shape[0], s_list, rtol, rho, hybrid, tau, L_max, estimate)
+            plan = _plan(rad, omega, src, out_dirs.shape[0], s_list, rtol, rho, hybrid, tau, L_max, estimate, impl)
         L_use, tau_use = plan["L"], plan["tau"]
         est_idx = [k for k, x in enumerate(plan["L_per_s"]) if x is None] if estimate else []
         if L_use is None:  # nothing meets rtol within L_max: use L_max with the largest bright set
