@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import IBLError
 from .kernel_spec import BRIGHT_GROUP, KERNELS, POINT_BLOCK, SH_BLOCK, VEC
 
 __all__ = ["BACKEND", "BACKEND_ENV", "NOTE", "FORMAT", "artifact_path", "build", "load", "use", "loaded", "warm_up",
@@ -276,17 +277,17 @@ def build(path: Path) -> Path:
 
 
 def _load_file(path: Path) -> dict:
-    """The kernels' entry addresses from the ahead-of-time file ``path`` (ValueError if it is not one)."""
+    """The kernels' entry addresses from the ahead-of-time file ``path`` (:class:`IBLError` if it is not one)."""
     import llvmlite.binding as llvm
 
     data = path.read_bytes()
     n = int.from_bytes(data[:8], "little")
     head = json.loads(data[8 : 8 + n])
     if head.get("format") != FORMAT or set(head.get("symbols", {})) != set(KERNELS):
-        raise ValueError(f"{path}: not an ahead-of-time kernel file of this version")
+        raise IBLError(f"{path}: not an ahead-of-time kernel file of this version")
     missing = _resolve(head["functions"], head["data"])
     if missing:
-        raise ValueError(f"{path}: symbols not found in this process: {missing[:5]}")
+        raise IBLError(f"{path}: symbols not found in this process: {missing[:5]}")
     tm = _target_machine()
     helpers = llvm.parse_assembly(_HELPERS_IR)
     engine = llvm.create_mcjit_compiler(helpers, tm)
@@ -295,11 +296,11 @@ def _load_file(path: Path) -> dict:
         engine.add_object_file(llvm.ObjectFileRef.from_data(data[off : off + size]))
         off += size
     if off != len(data):
-        raise ValueError(f"{path}: truncated or padded ({len(data)} bytes, expected {off})")
+        raise IBLError(f"{path}: truncated or padded ({len(data)} bytes, expected {off})")
     engine.finalize_object()
     addr = {k: engine.get_function_address(v) for k, v in head["symbols"].items()}
     if not all(addr.values()):
-        raise ValueError(f"{path}: missing entry points")
+        raise IBLError(f"{path}: missing entry points")
     _KEEP.append(engine)
     return addr
 
@@ -311,7 +312,8 @@ _DT = {"f": np.dtype(np.float64), "i": np.dtype(np.int64), "b": np.dtype(np.bool
 
 def _caller(name: str, address: int):
     """A Python callable for the C callable of kernel ``name`` at ``address``: checks the arrays (dtype, number of
-    dimensions, C order — a copy would lose what the kernel writes), packs pointers, shapes and scalars."""
+    dimensions, C order — a copy would lose what the kernel writes; :class:`IBLError` otherwise), packs pointers,
+    shapes and scalars."""
     kinds, result = KERNELS[name]
     slots, (nf, ni, nb, nd, nfs, nis) = _layout(kinds, result)
     fn = _CFUNC(address)
@@ -321,7 +323,7 @@ def _caller(name: str, address: int):
 
     def call(*args):
         if len(args) != n_arg:
-            raise TypeError(f"{name}() takes {n_arg} arguments, got {len(args)}")
+            raise IBLError(f"{name}() takes {n_arg} arguments, got {len(args)}")
         P = {"f": ptr_t["f"](), "i": ptr_t["i"](), "b": ptr_t["b"]()}
         dims = np.empty(max(nd, 1), dtype=np.int64)
         fs = np.empty(max(nfs, 1), dtype=np.float64)
@@ -335,7 +337,7 @@ def _caller(name: str, address: int):
                 nd_k = int(k[1:])
                 if not (isinstance(a, np.ndarray) and a.dtype == _DT[k[0]] and a.ndim == nd_k
                         and a.flags.c_contiguous):
-                    raise TypeError(f"{name}(): argument {i} must be a C-contiguous {_DT[k[0]]} array of "
+                    raise IBLError(f"{name}(): argument {i} must be a C-contiguous {_DT[k[0]]} array of "
                                     f"{nd_k} dimensions, got {getattr(a, 'dtype', type(a))} "
                                     f"{getattr(a, 'shape', '')}")
                 P[k[0]][slot] = a.ctypes.data
@@ -430,8 +432,6 @@ def use(backend: str) -> None:
     """Make ``backend`` (``"aot"`` or ``"jit"``) the one this process calls from now on (tests and benchmarks compare
     the two); :class:`~ibl_ref.errors.IBLError` if the ahead-of-time kernels cannot be had here."""
     global BACKEND, _RAW
-    from ..errors import IBLError
-
     if backend not in ("aot", "jit"):
         raise IBLError(f"backend must be 'aot' or 'jit', got {backend!r}")
     if backend == BACKEND:
