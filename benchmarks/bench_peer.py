@@ -40,11 +40,13 @@ median repeated call too); process — the better kernel's whole process ≤ cmf
 cmft + the cell's interpreter floor (:data:`IO_FLOOR`: start Python, import NumPy and OpenEXR, read the input EXR
 and write one of the same size, measured per face size in the same run).
 
-Also measured: the start-up floor (``python -S``, ``import numpy``, ``import numpy, OpenEXR``, ``import numba`` and
-loading the compiled kernels, ``ibl-ref convolve --help``); the compiled kernels' cold (first run after install:
-an empty numba cache) and warm whole-process cost on one cell; the machine's compiled peak (a tight multiply-add
-loop and a dot product, per core) against the pairs (output × source texel) per second per core the sparse gather
-achieves in the in-process cells; with ``--native`` the 512² and 1024² runs of the 8 exponents (whole process,
+Also measured: the start-up floor (``python -S``, ``import numpy``, ``import numpy, OpenEXR``, ``import numba``,
+loading the compiled kernels as the lab does (compiled ahead of time, :mod:`ibl_ref.groundtruth.kernel_library`) and
+through numba's JIT cache, ``ibl-ref convolve --help``); the compiled kernels' cold (first run after install: an empty
+cache folder, ``$NUMBA_CACHE_DIR``, so numba compiles and the ahead-of-time file is built) and warm whole-process cost
+on one cell; the machine's compiled peak (a tight multiply-add loop and a dot product, per core) against the pairs
+(output × source texel) per second per core the sparse gather computes in the in-process cells (the bright texels a
+tile leaves out are not counted); with ``--native`` the 512² and 1024² runs of the 8 exponents (whole process,
 peak RSS by ``/usr/bin/time -v``).  The face mapping between the two conventions is verified on a smooth pattern
 first.  Output: progress lines, then markdown tables (``--markdown`` writes them to a file too) headed by the
 command, the commit and the load average at start and end.  The binaries are not part of the project.
