@@ -23,8 +23,7 @@ Where the ahead-of-time path is not possible — no writable folder, llvmlite un
 bounds checking on (``NUMBA_BOUNDSCHECK``, a test mode), or ``$IBL_REF_KERNEL_BACKEND=jit`` — the kernels are
 numba's JIT functions of :mod:`~ibl_ref.groundtruth.compiled_kernels` with numba's own cache (one line on stderr
 says why, unless numba's cache note says it already).  Both backends run the same kernels and give the same
-numbers within the rounding the bounds already allow (the tests compare them); :data:`BACKEND` says which one
-runs.
+numbers (bit for bit in the tests, which run every compiled check on both); :data:`BACKEND` says which one runs.
 
 Routes call the functions of this module (:func:`tile_gather`, …, with the arguments of the kernels of the same
 name minus their work arrays, which are allocated here); :func:`ibl_ref.groundtruth.kernel_choice.compiled` loads
@@ -39,6 +38,7 @@ import importlib.util
 import json
 import os
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -352,12 +352,6 @@ def _caller(name: str, address: int):
 # ----------------------------------------------------------------------------------------------------------------
 # choosing and loading the backend
 # ----------------------------------------------------------------------------------------------------------------
-def _note(text: str) -> None:
-    global NOTE
-    NOTE = text
-    print(text, file=sys.stderr)
-
-
 def _load_aot() -> dict | None:
     """The raw kernels from the ahead-of-time file, building it first where needed; None (with :data:`NOTE` set)
     where that is not possible."""
@@ -405,6 +399,8 @@ def _load_jit() -> dict:
 
 #: the raw kernels of each backend loaded in this process
 _LOADED: dict = {}
+#: one thread loads (or builds) the kernels; others wait for it (threads of a sparse gather call kernels at once)
+_LOCK = threading.Lock()
 
 
 def load() -> float:
@@ -414,6 +410,12 @@ def load() -> float:
     global BACKEND, _RAW
     if BACKEND is not None:
         return 0.0
+    with _LOCK:
+        return 0.0 if BACKEND is not None else _load_locked()
+
+
+def _load_locked() -> float:
+    global BACKEND, _RAW
     t0 = time.perf_counter()
     raw = _load_aot()
     if raw is not None:
@@ -434,6 +436,12 @@ def use(backend: str) -> None:
     global BACKEND, _RAW
     if backend not in ("aot", "jit"):
         raise IBLError(f"backend must be 'aot' or 'jit', got {backend!r}")
+    with _LOCK:
+        _use_locked(backend)
+
+
+def _use_locked(backend: str) -> None:
+    global BACKEND, _RAW
     if backend == BACKEND:
         return
     if backend == "aot":
