@@ -1370,8 +1370,10 @@ def convolve_sparse_many(
             if compiled:
                 log_cut = log_d0 if att == 0 else -700.0
                 X, Y, Z, groups, bright_rw = geometry[("rw4",)]
-                if ("bright_groups",) not in geometry:
-                    geometry[("bright_groups",)] = ck.bright_groups(np.ascontiguousarray(src_dirs[bright]))
+                if ("bright_groups",) not in geometry:  # the bright texels' directions and groups, once per call
+                    bdirs = np.ascontiguousarray(src_dirs[bright])
+                    geometry[("bright_groups",)] = bdirs, ck.bright_groups(bdirs)
+                bdirs, bgroups = geometry[("bright_groups",)]
                 for rws, cols in groups:
                     acc_g = np.empty((todo.size, B, 4))
                     lm_g = np.empty((todo.size, B))
@@ -1379,7 +1381,7 @@ def convolve_sparse_many(
                     pairs = np.empty(todo.size, dtype=np.int64)
                     _tile_gather_threads(ck, threads, CEN[todo], TD[todo], q_t[todo], a_max[todo],
                                          envmap.face_frames("openexr"), n * supersample, X, Y, Z, rws,
-                                         src_dirs[bright], bright_rw[:, cols[1]], geometry[("bright_groups",)],
+                                         bdirs, bright_rw[:, cols[1]], bgroups,
                                          float(s), s_int, rowmax, math.exp(log_cut / s), acc_g, lm_g, cnt, pairs)
                     acc[..., cols[0]] = acc_g[..., : len(cols[0])]
                     log_mx = lm_g
