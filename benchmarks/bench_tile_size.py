@@ -28,7 +28,7 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 
 WIDTHS = (2, 3, 4, 6, 8, 12, 16)
-TILE_GRID = (100, 300, 1000, 2000, 4000, 8000, 16000)
+TILE_GRID = (100, 300, 1000, 1500, 2000, 4000, 8000, 16000)
 CAND_GRID = (0, 2, 4, 8, 16, 32, 64)
 
 

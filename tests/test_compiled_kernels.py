@@ -462,8 +462,10 @@ def test_ahead_of_time_calls_check_their_arrays(ck):
 
 
 def test_fresh_processes_load_the_ahead_of_time_kernels_without_numba(tmp_path):
-    """The first process builds the file (numba), later ones load it without importing numba; a damaged file is
-    built again; the symbols the code needs are all found in the process."""
+    """The first process builds the file (numba), later ones load it without importing numba (and, where a C
+    compiler linked the shared library, without llvmlite); the file's machine code through llvmlite's MCJIT gives
+    the same numbers when the shared library is gone; a damaged file is built again; the symbols the code needs
+    are all found in the process."""
     pytest.importorskip("numba", reason="building the kernels needs numba")
     code = textwrap.dedent(
         """
@@ -476,23 +478,33 @@ def test_fresh_processes_load_the_ahead_of_time_kernels_without_numba(tmp_path):
         cube = make_env("sky_sun", 16, sun_direction=SUN_NEAR_CORNER, sun_radiance=1e5)
         r = convolve(cube, [1.0, 5.0, 300.0], kernel="compiled", method="auto")
         print(kl.BACKEND, "numba" in sys.modules, sorted(set(r.method_used.values())),
-              float(max(r.error_bound[s].max() for s in r.maps)))
-        print(kl.artifact_path())
+              repr(float(max(r.error_bound[s].max() for s in r.maps))),
+              repr(float(sum(float(np.sum(r.maps[s])) for s in r.maps))))
+        print(kl.artifact_path(), "llvmlite" in sys.modules)
         """
     )
     env = _env({"NUMBA_CACHE_DIR": str(tmp_path / "cache")})
-    runs = []
-    for i in range(3):
+    runs, llvm = [], []
+    from ibl_ref.groundtruth import kernel_library as kl
+
+    for i in range(4):
         p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=900)
         assert p.returncode == 0, p.stderr
-        first, path = p.stdout.strip().splitlines()
+        first, second = p.stdout.strip().splitlines()
+        path, used_llvm = second.rsplit(" ", 1)
         runs.append(first)
-        if i == 1:  # damage the file: the next process builds it again
+        llvm.append(used_llvm == "True")
+        if i == 1 and kl._shared_path(Path(path)).is_file():  # the machine code without the shared library
+            kl._shared_path(Path(path)).unlink()
+        if i == 2:  # damage the file: the next process builds it again
             Path(path).write_bytes(Path(path).read_bytes()[:1000])
     assert runs[0].startswith("aot True [") and "'sparse'" in runs[0]  # the builder imported numba
-    assert runs[1].startswith("aot False [")  # a later process did not
-    assert runs[2].startswith("aot True [")  # rebuilt after the damage
-    assert len({r.split(" ", 2)[-1] for r in runs}) == 1  # the same routes and bounds every time
+    assert runs[1].startswith("aot False [") and runs[2].startswith("aot False [")  # later processes did not
+    assert runs[3].startswith("aot True [")  # rebuilt after the damage
+    assert len({r.split(" ", 2)[-1] for r in runs}) == 1  # the same routes, bounds and maps every time
+    if kl._linker() is not None:  # a shared library was linked: loading it needs no llvmlite; the MCJIT route does
+        assert kl._shared_path(Path(path)).is_file()
+        assert llvm[1:3] == [False, True]
     assert Path(path).parent == tmp_path / "cache" / "ibl_ref_kernels"
     from ibl_ref.groundtruth import kernel_library as kl
 

@@ -179,12 +179,28 @@ def face_uv_to_direction(face, u, v, convention: str = "openexr", normalize: boo
         raise LayoutError("face indices must be integers in 0..5")
     u = np.asarray(u, dtype=np.float64)
     v = np.asarray(v, dtype=np.float64)
+    if face.ndim == 0:  # one face: its frame's rows, no (..., 3, 3) gather (the same operations, the same numbers)
+        u, v = np.broadcast_arrays(u, v)
+        return _plane_directions(frames[int(face)], u, v, normalize)
     face, u, v = np.broadcast_arrays(face, u, v)
     f = frames[face]  # (..., 3, 3)
     d = f[..., 0, :] + u[..., None] * f[..., 1, :] + v[..., None] * f[..., 2, :]
     if normalize:
         d = d / np.linalg.norm(d, axis=-1, keepdims=True)
     return d
+
+
+def _plane_directions(f, u, v, normalize: bool, out=None) -> np.ndarray:
+    """Directions ``f[0] + u·f[1] + v·f[2]`` (optionally unit) of one face's frame ``f`` (3, 3) at the points
+    ``u``, ``v`` (same shape), into ``out`` if given: the expression of :func:`face_uv_to_direction`, evaluated
+    in the same order."""
+    d = f[0] + u[..., None] * f[1] + v[..., None] * f[2]
+    if normalize:
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    if out is None:
+        return d
+    out[...] = d
+    return out
 
 
 def unit_directions(v, name: str = "directions", min_norm: float = 0.0) -> np.ndarray:
@@ -277,8 +293,10 @@ def face_plane_grid(n: int):
 @functools.lru_cache(maxsize=32)
 def _texel_directions_cached(n: int, convention: str, normalize: bool) -> np.ndarray:
     u, v = face_plane_grid(n)
-    faces = np.arange(6)[:, None, None]
-    d = face_uv_to_direction(faces, u[None], v[None], convention, normalize=normalize)
+    frames = face_frames(convention)
+    d = np.empty((6, n, n, 3))
+    for k in range(6):  # face by face (≈ 7× faster than one (6, n, n, 3, 3) gather at 256²; the same numbers)
+        _plane_directions(frames[k], u, v, normalize, out=d[k])
     d.setflags(write=False)
     return d
 

@@ -227,6 +227,12 @@ def assess(values, name: str = "radiance", weights=None, negative: str = "auto",
     nmin = 0.0
     for sl in _chunks(a):
         blk = a[sl]
+        w = _weights_for(a, weights, sl)
+        if blk.size and a.dtype.kind == "f":
+            lo, hi = blk.min(), blk.max()
+            if lo >= 0 and hi < np.inf:  # (False for NaN) finite and non-negative: nothing to count
+                abs_int += float(np.sum(blk * w, dtype=np.float64))
+                continue
         fin = np.isfinite(blk)
         if not fin.all():
             nan = np.isnan(blk)
@@ -240,7 +246,6 @@ def assess(values, name: str = "radiance", weights=None, negative: str = "auto",
                 idx[0] += sl.start
                 first = tuple(int(i) for i in idx)
             blk = np.where(fin, blk, 0)
-        w = _weights_for(a, weights, sl)
         neg = blk < 0
         k = int(neg.sum())
         absb = np.abs(blk, dtype=np.float64)

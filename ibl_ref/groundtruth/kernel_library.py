@@ -9,14 +9,18 @@ once per installation and machine, and later processes load them without numba:
    :data:`ibl_ref.groundtruth.kernel_spec.KERNELS` is compiled by numba as a C callable (``numba.cfunc``) that
    takes its arrays as pointers and shapes; the optimised LLVM module of each is turned into machine code for this
    CPU (llvmlite's target machine, the options of numba's JIT) and written, with the symbol names, into one file
-   (atomically).  That is the compile cost a user pays once (cold and warm costs: ``benchmarks/bench_peer.py``).
-2. **Load** (every process, the builder included): llvmlite's MCJIT links that machine code into the process
-   (≈ 0.02 s for ``import llvmlite.binding``, a few ms for the code), and each kernel is called through ctypes,
-   which releases the GIL during the call, so threads run kernels in parallel as with numba's ``nogil``.
+   (atomically); where a C compiler driver is installed (``$CC``, ``cc``, ``gcc`` or ``clang``, Linux/BSD) the
+   same modules are also linked, as position-independent code, into a shared library beside it.  That is the
+   compile cost a user pays once (cold and warm costs: ``benchmarks/bench_peer.py``).
+2. **Load** (every process, the builder included): the shared library is opened with ctypes (≈ 1–5 ms, no
+   llvmlite); without one, llvmlite's MCJIT links the file's machine code into the process (≈ 0.02 s for
+   ``import llvmlite.binding``, a few ms for the code).  Each kernel is called through ctypes, which releases the
+   GIL during the call, so threads run kernels in parallel as with numba's ``nogil``.
 
-The file is keyed by the kernel sources, the numba and llvmlite versions, the Python version and the CPU (name
-and features): an edit of a kernel, an upgrade or another machine builds a new file; a file that does not load
-(damaged, foreign) is built again.  It lives in ``$NUMBA_CACHE_DIR/ibl_ref_kernels`` when that variable is set,
+The files are keyed by the kernel sources, the numba and llvmlite versions, the Python version and the CPU (as
+``/proc/cpuinfo`` reports it, else llvmlite's host CPU name and features): an edit of a kernel, an upgrade or
+another machine builds new files; a file that does not load (damaged, foreign) is built again, a shared library
+that does not open is passed over for the file's machine code.  It lives in ``$NUMBA_CACHE_DIR/ibl_ref_kernels`` when that variable is set,
 else in ``__pycache__`` next to this module, else in ``$XDG_CACHE_HOME/ibl_ref`` (``~/.cache/ibl_ref``).
 
 Where the ahead-of-time path is not possible — no writable folder, llvmlite unable to load the code, numba's
@@ -143,23 +147,49 @@ def _cfunc_source(name: str) -> str:
     return f"def _c_{name}(F, I, Bp, dims, fs, is_):\n{body}"
 
 
+def _cpu_identity() -> str | None:
+    """This CPU as the operating system reports it without llvmlite (Linux: vendor, family, model and the feature
+    flags of the first processor in ``/proc/cpuinfo``); None where there is no such report."""
+    try:
+        text = Path("/proc/cpuinfo").read_text(errors="replace")
+    except OSError:
+        return None
+    first = text.split("\n\n", 1)[0]
+    keep = ("vendor_id", "cpu family", "model", "model name", "flags", "features", "cpu", "isa", "cpu part")
+    fields = [ln.split(":", 1) for ln in first.splitlines() if ":" in ln]
+    ident = [f"{k.strip()}={v.strip()}" for k, v in fields if k.strip().lower() in keep]
+    return "\n".join(ident) if any(x.startswith(("flags=", "Features=", "isa=")) for x in ident) else None
+
+
+def _package_version_file(name: str) -> bytes:
+    spec = importlib.util.find_spec(name)  # (finds the package; does not import it)
+    if spec is None or not spec.origin:
+        raise ImportError(f"{name} is not installed")
+    return (Path(spec.origin).parent / "_version.py").read_bytes()
+
+
 def _key() -> str:
-    """The key of the ahead-of-time file (sources, versions, Python, CPU)."""
-    import llvmlite
-    import llvmlite.binding as llvm
+    """The key of the ahead-of-time files (sources, numba and llvmlite versions, Python, CPU).  The CPU is
+    identified by the operating system's report (:func:`_cpu_identity`: no llvmlite import, ≈ 20 ms of a process),
+    else by llvmlite's host CPU name and features."""
+    import platform
 
     h = hashlib.sha256(FORMAT.encode())
     for f in _SOURCES:
         h.update((_HERE / f).read_bytes())
-    spec = importlib.util.find_spec("numba")
-    if spec is None or not spec.origin:
-        raise ImportError("numba is not installed")
-    h.update((Path(spec.origin).parent / "_version.py").read_bytes())
-    h.update(llvmlite.__version__.encode())
+    h.update(_package_version_file("numba"))
+    h.update(_package_version_file("llvmlite"))
     h.update(sys.version.encode())
-    h.update(llvm.get_process_triple().encode())
-    h.update(llvm.get_host_cpu_name().encode())
-    h.update(llvm.get_host_cpu_features().flatten().encode())
+    h.update(platform.machine().encode())
+    ident = _cpu_identity()
+    if ident is not None:
+        h.update(ident.encode())
+    else:
+        import llvmlite.binding as llvm
+
+        h.update(llvm.get_process_triple().encode())
+        h.update(llvm.get_host_cpu_name().encode())
+        h.update(llvm.get_host_cpu_features().flatten().encode())
     return h.hexdigest()[:24]
 
 
@@ -200,15 +230,20 @@ def artifact_path(key: str | None = None, for_writing: bool = False) -> Path | N
     return None
 
 
-def _target_machine():
+def _target_machine(shared: bool = False):
+    """llvmlite's target machine for this CPU: numba's JIT options, or (``shared``) position-independent code for a
+    shared library."""
     import llvmlite.binding as llvm
 
     llvm.initialize_native_target()
     llvm.initialize_native_asmprinter()
     target = llvm.Target.from_triple(llvm.get_process_triple())
+    cpu, features = llvm.get_host_cpu_name(), llvm.get_host_cpu_features().flatten()
+    if shared:
+        return target.create_target_machine(cpu=cpu, features=features, opt=3, reloc="pic", codemodel="default")
     reloc = "static" if target.name.startswith("x86") else "pic" if target.name.startswith("ppc") else "default"
-    return target.create_target_machine(cpu=llvm.get_host_cpu_name(), features=llvm.get_host_cpu_features().flatten(),
-                                        opt=3, reloc=reloc, codemodel="jitdefault", jit=True)
+    return target.create_target_machine(cpu=cpu, features=features, opt=3, reloc=reloc, codemodel="jitdefault",
+                                        jit=True)
 
 
 def _external_symbols(mod) -> tuple[list, list]:
@@ -254,7 +289,7 @@ def build(path: Path) -> Path:
                      types.CPointer(types.CPointer(types.boolean)), types.CPointer(types.int64),
                      types.CPointer(types.float64), types.CPointer(types.int64))
     tm = _target_machine()
-    blobs, symbols, ext_f, ext_d = [], {}, set(), set()
+    blobs, symbols, ext_f, ext_d, mods = [], {}, set(), set(), []
     for name in KERNELS:
         ns = {"ck": ck, "carray": carray}
         exec(compile(_cfunc_source(name), f"<ibl_ref kernel {name}>", "exec"), ns)
@@ -268,30 +303,109 @@ def build(path: Path) -> Path:
         ext_f.update(funcs)
         ext_d.update(data)
         blobs.append(tm.emit_object(mod))
+        mods.append(mod)
         symbols[name] = cf.native_name
     head = json.dumps({"format": FORMAT, "symbols": symbols, "sizes": [len(b) for b in blobs],
                        "functions": sorted(ext_f), "data": sorted(ext_d)}).encode()
     with atomic_write(path, "wb") as fh:
         fh.write(len(head).to_bytes(8, "little") + head + b"".join(blobs))
+    _link_shared(mods, _shared_path(path))
     return path
 
 
-def _load_file(path: Path) -> dict:
-    """The kernels' entry addresses from the ahead-of-time file ``path`` (:class:`IBLError` if it is not one)."""
-    import llvmlite.binding as llvm
+def _shared_path(path: Path) -> Path:
+    return path.with_suffix(".so")
 
+
+def _linker() -> str | None:
+    """The C compiler driver that links the shared library (``$CC``, else ``cc``, ``gcc`` or ``clang``); None if
+    there is none or the platform is not an ELF one."""
+    import shutil
+
+    if not sys.platform.startswith(("linux", "freebsd")):
+        return None
+    for cand in (os.environ.get("CC", "").split()[:1] or []) + ["cc", "gcc", "clang"]:
+        found = shutil.which(cand)
+        if found:
+            return found
+    return None
+
+
+def _link_shared(mods, out: Path) -> bool:
+    """Link the kernels' modules ``mods`` (with :data:`_HELPERS_IR`) into the shared library ``out``, which later
+    processes open with ctypes alone (no llvmlite: ≈ 0.03 s less per process than linking the machine code with
+    llvmlite's MCJIT).  Optional: returns False (nothing written) when there is no C compiler driver or the link
+    fails; the ahead-of-time file then loads through llvmlite."""
+    import llvmlite.binding as llvm
+    import subprocess
+    import tempfile
+
+    cc = _linker()
+    if cc is None:
+        return False
+    tm = _target_machine(shared=True)
+    try:
+        with tempfile.TemporaryDirectory(prefix=".link-", dir=out.parent) as td:
+            objs = []
+            for i, mod in enumerate(mods + [llvm.parse_assembly(_HELPERS_IR)]):
+                o = Path(td) / f"k{i}.o"
+                o.write_bytes(tm.emit_object(mod))
+                objs.append(str(o))
+            tmp_so = Path(td) / "kernels.so"
+            p = subprocess.run([cc, "-shared", "-Wl,-Bsymbolic", "-o", str(tmp_so), *objs, "-lm"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, timeout=120)
+            if p.returncode != 0 or not tmp_so.is_file():
+                return False
+            os.replace(tmp_so, out)  # (atomic: the same folder)
+        return True
+    except (OSError, subprocess.SubprocessError):
+        return False
+
+
+def _read_head(path: Path) -> tuple[dict, bytes, int]:
     data = path.read_bytes()
     n = int.from_bytes(data[:8], "little")
-    head = json.loads(data[8 : 8 + n])
-    if head.get("format") != FORMAT or set(head.get("symbols", {})) != set(KERNELS):
+    try:
+        head = json.loads(data[8 : 8 + n])
+    except ValueError:
+        raise IBLError(f"{path}: not an ahead-of-time kernel file") from None
+    if not isinstance(head, dict) or head.get("format") != FORMAT or set(head.get("symbols", {})) != set(KERNELS):
         raise IBLError(f"{path}: not an ahead-of-time kernel file of this version")
+    return head, data, 8 + n
+
+
+def _load_shared(path: Path, head: dict) -> dict | None:
+    """The kernels' entry addresses from the shared library beside ``path`` (:func:`_link_shared`), opened with
+    ctypes; None when there is none or it does not open (the MCJIT route then)."""
+    so = _shared_path(path)
+    if not so.is_file():
+        return None
+    try:
+        lib = ctypes.CDLL(str(so))
+        addr = {k: ctypes.cast(lib[v], ctypes.c_void_p).value for k, v in head["symbols"].items()}
+    except (OSError, AttributeError):
+        return None
+    if not all(addr.values()):
+        return None
+    _KEEP.append(lib)
+    return addr
+
+
+def _load_file(path: Path) -> dict:
+    """The kernels' entry addresses from the ahead-of-time file ``path`` (:class:`IBLError` if it is not one): from
+    its shared library where there is one (ctypes only), else its machine code linked by llvmlite's MCJIT."""
+    head, data, off = _read_head(path)
+    addr = _load_shared(path, head)
+    if addr is not None:
+        return addr
+    import llvmlite.binding as llvm
+
     missing = _resolve(head["functions"], head["data"])
     if missing:
         raise IBLError(f"{path}: symbols not found in this process: {missing[:5]}")
     tm = _target_machine()
     helpers = llvm.parse_assembly(_HELPERS_IR)
     engine = llvm.create_mcjit_compiler(helpers, tm)
-    off = 8 + n
     for size in head["sizes"]:
         engine.add_object_file(llvm.ObjectFileRef.from_data(data[off : off + size]))
         off += size

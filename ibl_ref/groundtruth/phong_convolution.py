@@ -582,13 +582,13 @@ def cutoff_angle(s: float, eps: float, rho: float) -> float:
 
 #: the same two constants for the compiled gather (:func:`ibl_ref.groundtruth.compiled_kernels.tile_gather`: no
 #: Python per tile; per candidate the interval search and the copy into the scratch arrays), in units of one
-#: of its weights; fitted by ``python benchmarks/bench_tile_size.py --probe …/courtyard.exr`` (2026-12-04, load
-#: < 1: every width T ∈ {2…16} forced in 18 cells of sky + sun 64²–256² and the courtyard probe 128²–256², s = 64…4096;
-#: the model's choice costs 1.011× the best width on average, 1.10× at most; the best grid point, 1000 and 8, 1.008× and
-#: 1.09×; a fixed T = 4, 6, 8: 1.10×, 1.06×, 1.07×; the constants before this fit, 300 and 4, were 1.04× and 1.29× in
-#: the same cells measured once before)
-_TILE_OVERHEAD_COMPILED = 2000.0
-_CAND_OVERHEAD_COMPILED = 8.0
+#: of its weights; fitted by ``python benchmarks/bench_tile_size.py --probe …/courtyard.exr`` (2026-12-05, the
+#: kernels compiled ahead of time; every width T ∈ {2…16} forced in 15 cells of sky + sun 64²–256² and the courtyard
+#: probe 128²–256², s = 64…4096): the model's choice costs 1.002× the best width on average, 1.03× at most; a fixed
+#: T = 4, 6, 8: 1.013×, 1.08×, 1.13×.  The constants before (2000 and 8, fitted on 2026-12-04 for numba's JIT
+#: functions) chose T = 6–8 in the wider of these cells, where 4 was best
+_TILE_OVERHEAD_COMPILED = 1000.0
+_CAND_OVERHEAD_COMPILED = 4.0
 
 
 def _tile_size(out_size: int, theta_c: float, m_src: int, n_bright: int, tile_overhead: float = _TILE_OVERHEAD_ELEMS,
@@ -725,7 +725,7 @@ def _tile_layout_of(out_size: int, faces: tuple, T: int):
     order = np.stack([fi_t, np.asarray(faces, dtype=np.intp).reshape(-1)[fi_t], r0_t, c0_t], axis=1)
     h_t, w_t = np.minimum(T, out_size - r0_t), np.minimum(T, out_size - c0_t)
     groups = {}
-    for code in np.unique(h_t * (T + 1) + w_t)[::-1].tolist():
+    for code in sorted(set((h_t * (T + 1) + w_t).tolist()), reverse=True):
         h, w = divmod(code, T + 1)
         groups[(h, w)] = np.flatnonzero((h_t == h) & (w_t == w))
     n_t = len(order)
@@ -1084,8 +1084,11 @@ def _tile_gather_threads(ck, threads, cen, rows, caps, arad, frames, m, X, Y, Z,
         ck.tile_gather(cen[t], rows[t], caps[t], arad[t], frames, m, X, Y, Z, rws, bdirs, brw, s, s_int, rowmax,
                        c_floor, *outs[j][:3], groups, outs[j][3])
 
-    with ThreadPoolExecutor(max_workers=threads, thread_name_prefix="ibl_tiles") as ex:
-        list(ex.map(run, range(threads)))
+    with ThreadPoolExecutor(max_workers=threads - 1, thread_name_prefix="ibl_tiles") as ex:
+        futures = [ex.submit(run, j) for j in range(1, threads)]  # the other threads' shares …
+        run(0)  # … while this thread computes the first one
+        for fut in futures:
+            fut.result()
     for t, (a_j, l_j, c_j, p_j) in zip(sel, outs):
         acc[t], logmx[t], count[t], pairs[t] = a_j, l_j, c_j, p_j
 
@@ -1260,7 +1263,9 @@ def convolve_sparse_many(
             T = _tile_size(out_size, th, M, int(bright.size))
         IDX, TD, CEN, ANG, VALID, t_rad0 = (_tile_layout_of if _sample else _tile_layout)(out_size, tuple(faces), T)
         if _sample:
-            pick = np.unique(np.linspace(0, len(CEN) - 1, min(_sample, len(CEN))).astype(np.intp))
+            # (sorted distinct indices; not np.unique, whose first call imports numpy.ma: ≈ 10 ms of a process)
+            pick = np.array(sorted(set(np.linspace(0, len(CEN) - 1, min(_sample, len(CEN))).astype(np.intp).tolist())),
+                            dtype=np.intp)
             IDX, TD, CEN, ANG, VALID = IDX[pick], TD[pick], CEN[pick], ANG[pick], VALID[pick]
         n_t, B = IDX.shape
         a_max = ANG.max(axis=1)
