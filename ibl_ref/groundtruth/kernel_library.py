@@ -289,12 +289,13 @@ def build(path: Path) -> Path:
                      types.CPointer(types.CPointer(types.boolean)), types.CPointer(types.int64),
                      types.CPointer(types.float64), types.CPointer(types.int64))
     tm = _target_machine()
-    blobs, symbols, ext_f, ext_d, mods = [], {}, set(), set(), []
+    blobs, symbols, ext_f, ext_d, irs = [], {}, set(), set(), []
     for name in KERNELS:
         ns = {"ck": ck, "carray": carray}
         exec(compile(_cfunc_source(name), f"<ibl_ref kernel {name}>", "exec"), ns)
         cf = cfunc(sig, nogil=True, error_model="numpy")(ns[f"_c_{name}"])
-        mod = llvm.parse_assembly(cf.inspect_llvm())
+        ir = cf.inspect_llvm()
+        mod = llvm.parse_assembly(ir)
         mod.verify()
         funcs, data = _external_symbols(mod)
         bad = _resolve(funcs, data)
@@ -303,13 +304,13 @@ def build(path: Path) -> Path:
         ext_f.update(funcs)
         ext_d.update(data)
         blobs.append(tm.emit_object(mod))
-        mods.append(mod)
+        irs.append(ir)
         symbols[name] = cf.native_name
     head = json.dumps({"format": FORMAT, "symbols": symbols, "sizes": [len(b) for b in blobs],
                        "functions": sorted(ext_f), "data": sorted(ext_d)}).encode()
     with atomic_write(path, "wb") as fh:
         fh.write(len(head).to_bytes(8, "little") + head + b"".join(blobs))
-    _link_shared(mods, _shared_path(path))
+    _link_shared(irs, _shared_path(path))
     return path
 
 
@@ -331,8 +332,9 @@ def _linker() -> str | None:
     return None
 
 
-def _link_shared(mods, out: Path) -> bool:
-    """Link the kernels' modules ``mods`` (with :data:`_HELPERS_IR`) into the shared library ``out``, which later
+def _link_shared(irs, out: Path) -> bool:
+    """Link the kernels' LLVM modules (their IR texts ``irs``, parsed again: code generation may change a module it
+    emits) with :data:`_HELPERS_IR` into the shared library ``out``, which later
     processes open with ctypes alone (no llvmlite: ≈ 0.03 s less per process than linking the machine code with
     llvmlite's MCJIT).  Optional: returns False (nothing written) when there is no C compiler driver or the link
     fails; the ahead-of-time file then loads through llvmlite."""
@@ -347,9 +349,9 @@ def _link_shared(mods, out: Path) -> bool:
     try:
         with tempfile.TemporaryDirectory(prefix=".link-", dir=out.parent) as td:
             objs = []
-            for i, mod in enumerate(mods + [llvm.parse_assembly(_HELPERS_IR)]):
+            for i, ir in enumerate(irs + [_HELPERS_IR]):
                 o = Path(td) / f"k{i}.o"
-                o.write_bytes(tm.emit_object(mod))
+                o.write_bytes(tm.emit_object(llvm.parse_assembly(ir)))
                 objs.append(str(o))
             tmp_so = Path(td) / "kernels.so"
             p = subprocess.run([cc, "-shared", "-Wl,-Bsymbolic", "-o", str(tmp_so), *objs, "-lm"],
