@@ -244,3 +244,18 @@ def test_band_limit_lower_bound_never_exceeds_the_tabulated_choice():
                     assert L is None, (n, s, eta)
                 else:
                     assert L is None or L >= lo, (n, s, eta, lo, L)
+
+
+def test_band_limit_with_a_cap_is_the_full_tables_choice_capped():
+    """``choose_band_limit(…, L_max=cap)`` computes the truncation tables only up to ``cap`` (the router's test of
+    whether SH can pay); its answer must be the full table's answer where that is ≤ cap, else None."""
+    from ibl_ref.groundtruth.sh_bounds import SH_L_MAX, choose_band_limit, texel_max_radius
+
+    for n in (16, 64, 256):
+        rho = texel_max_radius(n)
+        for s in (1.0, 5.0, 16.0, 100.0, 256.0, 1024.0, 4096.0):
+            for eta in (1e-2, 8e-4, 1e-5):
+                full = choose_band_limit(s, eta, rho, SH_L_MAX)
+                for cap in (0, 3, 23, 24, 26, 47, 100, SH_L_MAX - 1):
+                    want = full if full is not None and full <= cap else None
+                    assert choose_band_limit(s, eta, rho, cap) == want, (n, s, eta, cap)

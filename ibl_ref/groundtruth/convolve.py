@@ -859,12 +859,20 @@ def _sh_cannot_pay(finite, others, n, n_src, n_out, Q, impl="numpy", rtol=1e-3):
     lb_fast = min((_sh_pass_cost(L, 0, n_src, n_out, 1, Q, impl) for L in lows if L is not None), default=np.inf)
     if others < lb_fast:
         return True
+    # then the tables, only up to L_cap, the largest band limit whose pass costs no more than the other routes (a
+    # band limit above it cannot pay whatever its table says; the tables to L_cap give the same band limits as the
+    # full ones: sh_bounds.choose_band_limit)
+    cost = [_sh_pass_cost(L, 0, n_src, n_out, 1, Q, impl) for L in range(SH_L_MAX + 1)]
+    payable = [L for L in range(SH_L_MAX + 1) if cost[L] <= others]
+    if not payable:
+        return True
+    L_cap = payable[-1]
     rho = texel_max_radius(n)
     sh_lb = np.inf
     for s in finite:
-        L = choose_band_limit(s, 0.8 * rtol, rho, SH_L_MAX)
+        L = choose_band_limit(s, 0.8 * rtol, rho, L_cap)
         if L is not None:
-            sh_lb = min(sh_lb, _sh_pass_cost(L, 0, n_src, n_out, 1, Q, impl))
+            sh_lb = min(sh_lb, cost[L])
     return others < sh_lb
 
 

@@ -177,8 +177,14 @@ def band_limit_lower_bound(s: float, eta_target: float, L_max: int = SH_L_MAX):
 
 
 def choose_band_limit(s: float, eta_target: float, rho: float, L_max: int = SH_L_MAX):
-    """Smallest tabulated L ≤ L_max with ``E_L / (2π/(s+1)) ≤ eta_target``; None if none qualifies."""
-    levels, tab = _envelope_table(float(s), SH_L_MAX, float(round(rho, 12)))
+    """Smallest tabulated L ≤ L_max with ``E_L / (2π/(s+1)) ≤ eta_target``; None if none qualifies.
+
+    The levels are those of the table to :data:`SH_L_MAX`; for ``L_max`` < SH_L_MAX the table is computed only to
+    ``L_max`` (cheaper): its grid does not depend on its last level (40·L ≤ 8 000 grid points for L ≤ 200) and its
+    values at a level are computed by the same operations, so the answer is the one of the full table."""
+    L_tab = SH_L_MAX if L_max >= SH_L_MAX else max(int(L_max), 0)
+    _, tab = _envelope_table(float(s), L_tab, float(round(rho, 12)))
+    levels = _envelope_levels(SH_L_MAX)
     d0 = 2.0 * np.pi / (s + 1.0)
     for L in levels:
         if L > L_max:
