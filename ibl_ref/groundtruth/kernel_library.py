@@ -20,8 +20,9 @@ once per installation and machine, and later processes load them without numba:
 The files are keyed by the kernel sources, the numba and llvmlite versions, the Python version and the CPU (as
 ``/proc/cpuinfo`` reports it, else llvmlite's host CPU name and features): an edit of a kernel, an upgrade or
 another machine builds new files; a file that does not load (damaged, foreign) is built again, a shared library
-that does not open is passed over for the file's machine code.  It lives in ``$NUMBA_CACHE_DIR/ibl_ref_kernels`` when that variable is set,
-else in ``__pycache__`` next to this module, else in ``$XDG_CACHE_HOME/ibl_ref`` (``~/.cache/ibl_ref``).
+that does not open is passed over for the file's machine code.  They live in ``$NUMBA_CACHE_DIR/ibl_ref_kernels``
+when that variable is set, else in ``__pycache__`` next to this module, else in ``$XDG_CACHE_HOME/ibl_ref``
+(``~/.cache/ibl_ref``).
 
 Where the ahead-of-time path is not possible — no writable folder, llvmlite unable to load the code, numba's
 bounds checking on (``NUMBA_BOUNDSCHECK``, a test mode), or ``$IBL_REF_KERNEL_BACKEND=jit`` — the kernels are
