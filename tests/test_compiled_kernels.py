@@ -161,11 +161,12 @@ def test_exp_log_powi_within_their_stated_bounds(ck):
 def test_tile_gather_collects_every_texel_of_the_cap_and_its_weights_are_within_the_bound(ck):
     """Brute force: the kernel's sums are at least the exact (extended-precision) sums over the texels within the
     cap and, for narrow caps, at most those over the cap widened by its stated slack (1e-6 rad + 1e-3 texel), within
-    the weight error bound."""
+    the weight error bound; for each of the kernel's weight loops (s = 2^k by squarings, other integers by binary
+    powering, a fraction by exp/log)."""
     from ibl_ref.environment import envmap
 
     rng = np.random.default_rng(3)
-    for n, s in ((16, 7.0), (17, 64.0), (32, 300.5), (33, 4096.0)):
+    for n, s in ((16, 7.0), (17, 64.0), (18, 1.0), (32, 300.5), (33, 4096.0)):  # (2^k: the squaring loop)
         d = envmap.texel_directions(n).reshape(-1, 3)
         rw = np.zeros((4, d.shape[0]))
         rw[:3] = rng.random((3, d.shape[0]))

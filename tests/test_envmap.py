@@ -254,3 +254,24 @@ def test_rect_solid_angle_matches_the_solid_angle_integral():
         np.testing.assert_allclose(rect_solid_angle(u0, u1, v0, v1), q, rtol=1e-6)
     # a whole face is 4π/6
     np.testing.assert_allclose(rect_solid_angle(-1.0, 1.0, -1.0, 1.0), 4 * np.pi / 6, rtol=1e-14)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 5, 8, 9, 16, 33, 64])
+def test_texel_max_radius_is_the_brute_force_maximum_over_every_texel_of_every_face(n):
+    """texel_max_radius evaluates one quadrant in face-plane coordinates; the reference takes every texel of
+    every face, its unit centre and unit corner directions through face_uv_to_direction, and the angle
+    atan2(|a × b|, a·b).  Both are accurate to a few ulp of the angle (atan2 of well-conditioned arguments), so
+    they agree to 1e-13 relative; n = 1: the face centre to a face corner, atan √2 (closed form)."""
+    e = np.linspace(-1.0, 1.0, n + 1)
+    c = E.texel_center_uv(n)
+    worst = 0.0
+    for f in range(6):
+        cen = E.face_uv_to_direction(f, c[None, :], c[:, None])
+        for dr in (0, 1):
+            for dc in (0, 1):
+                k = E.face_uv_to_direction(f, e[None, dc : dc + n], e[dr : dr + n, None])
+                ang = np.arctan2(np.linalg.norm(np.cross(cen, k), axis=-1), np.sum(cen * k, axis=-1))
+                worst = max(worst, float(ang.max()))
+    assert E.texel_max_radius(n) == pytest.approx(worst, rel=1e-13)
+    if n == 1:
+        assert E.texel_max_radius(1) == pytest.approx(np.arctan(np.sqrt(2.0)), rel=1e-14)

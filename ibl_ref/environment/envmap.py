@@ -72,6 +72,7 @@ __all__ = [
     "texel_coords_to_uv",
     "texel_center_uv",
     "texel_directions",
+    "texel_max_radius",
     "direction_to_texel",
     "direction_to_texel_coords",
     "texel_solid_angles",
@@ -288,6 +289,30 @@ def face_plane_grid(n: int):
     c = texel_center_uv(n)
     v, u = np.meshgrid(c, c, indexing="ij")
     return u, v
+
+
+@functools.lru_cache(maxsize=32)
+def texel_max_radius(n: int) -> float:
+    """Largest angle (rad) between a texel centre and one of its corners on a cube face of size n (the same on
+    every face: the faces are rotations of one another).
+
+    In the face plane a centre (1, u, v) and a corner (1, u', v') make the angle ``atan2(|p × q|, p·q)`` with
+    ``p × q = (u v' − v u', v − v', u' − u)`` and ``p·q = 1 + u u' + v v'`` (no normalisation; accurate for small
+    angles, unlike an arccos of the dot product).  The face is symmetric under u → −u, v → −v, so the texels with
+    u, v ≥ 0 (and the middle row and column) hold the maximum; only they are evaluated."""
+    n = check_face_size(n)
+    e = np.linspace(-1.0, 1.0, n + 1)
+    c = texel_center_uv(n)
+    k = (n - 1) // 2  # texels k…n−1: the mirror image m−1−j of every texel j < k is among them
+    u, v = c[None, k:], c[k:, None]
+    worst = 0.0
+    for dr in (0, 1):
+        for dc in (0, 1):
+            u2, v2 = e[k + dc : n + dc][None, :], e[k + dr : n + dr][:, None]
+            cx, cy, cz = u * v2 - v * u2, v - v2, u2 - u
+            ang = np.arctan2(np.sqrt(cx * cx + cy * cy + cz * cz), 1.0 + u * u2 + v * v2)
+            worst = max(worst, float(ang.max()))
+    return worst
 
 
 @functools.lru_cache(maxsize=32)

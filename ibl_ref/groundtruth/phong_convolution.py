@@ -393,21 +393,10 @@ class SparseInfo:
     kernel: str = "float64"
 
 
-@functools.lru_cache(maxsize=32)
 def _texel_extent(m: int) -> float:
-    """Max angle between a texel centre and its corners on a face of size m (same for all faces)."""
-    e = np.linspace(-1.0, 1.0, m + 1)
-    cen = envmap.texel_center_uv(m)
-    dc = envmap.face_uv_to_direction(0, cen[None, :], cen[:, None])  # (m, m, 3) [row, col]
-    worst = 0.0
-    for dr in (0, 1):
-        for dcn in (0, 1):
-            cu = e[dcn : dcn + m][None, :]
-            cv = e[dr : dr + m][:, None]
-            dk = envmap.face_uv_to_direction(0, cu, cv)
-            ang = np.arctan2(np.linalg.norm(np.cross(dc, dk), axis=-1), np.sum(dc * dk, axis=-1))
-            worst = max(worst, float(ang.max()))
-    return worst * (1.0 + 1e-9) + 1e-12
+    """Max angle between a texel centre and its corners on a face of size m (same for all faces), widened by
+    1e-9 relative and 1e-12 rad for the rounding of :func:`ibl_ref.environment.envmap.texel_max_radius`."""
+    return envmap.texel_max_radius(m) * (1.0 + 1e-9) + 1e-12
 
 
 #: steps of the upper Riemann sum in :func:`_log_integral_cos_pow` and the drop of log cos^m it covers
@@ -745,8 +734,11 @@ def _tile_layout_of(out_size: int, faces: tuple, T: int):
         idx = ((fi[:, None, None] * out_size + rr) * out_size + cc).reshape(len(members), h * w)
         cen = td.sum(axis=1)
         cen /= np.linalg.norm(cen, axis=1, keepdims=True)
-        cr = np.cross(td, cen[:, None, :])
-        ang = np.arctan2(np.linalg.norm(cr, axis=2), np.einsum("gbk,gk->gb", td, cen))
+        # atan2(|d × c|, d·c), by components (np.cross and norm make several temporaries: 3× slower)
+        dx, dy, dz = td[..., 0], td[..., 1], td[..., 2]
+        ex, ey, ez = cen[:, None, 0], cen[:, None, 1], cen[:, None, 2]
+        cx, cy, cz = dy * ez - dz * ey, dz * ex - dx * ez, dx * ey - dy * ex
+        ang = np.arctan2(np.sqrt(cx * cx + cy * cy + cz * cz), dx * ex + dy * ey + dz * ez)
         k = h * w
         IDX[mem, :k], TD[mem, :k], ANG[mem, :k], VALID[mem, :k], CEN[mem] = idx, td, ang, True, cen
         IDX[mem, k:], TD[mem, k:], ANG[mem, k:] = idx[:, -1:], td[:, -1:], ang[:, -1:]
@@ -1061,6 +1053,10 @@ def _tile_batches(order, counts, B, chunk, key):
         k0 += tb.size
 
 
+#: fewest tiles per thread of :func:`_tile_gather_threads`
+_TILES_PER_THREAD_MIN = 32
+
+
 def _tile_gather_threads(ck, threads, cen, rows, caps, arad, frames, m, X, Y, Z, rws, bdirs, brw, groups, s, s_int,
                          rowmax, c_floor, acc, logmx, count, pairs):
     """:func:`ibl_ref.groundtruth.compiled_kernels.tile_gather` on ``threads`` threads: thread j gathers the tiles
@@ -1068,7 +1064,8 @@ def _tile_gather_threads(ck, threads, cen, rows, caps, arad, frames, m, X, Y, Z,
     its own outputs, copied back in place.  Every tile is computed by the same code on the same inputs as in one
     call: the result does not depend on ``threads``."""
     nt = cen.shape[0]
-    threads = max(1, min(int(threads), nt // 2))
+    # (a few tiles, e.g. a later attempt's: starting a thread costs more than their gather)
+    threads = max(1, min(int(threads), nt // _TILES_PER_THREAD_MIN))
     if threads <= 1:
         ck.tile_gather(cen, rows, caps, arad, frames, m, X, Y, Z, rws, bdirs, brw, s, s_int, rowmax, c_floor, acc,
                        logmx, count, groups, pairs)

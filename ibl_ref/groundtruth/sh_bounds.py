@@ -84,18 +84,9 @@ def zonal_coefficients(s: float, L: int) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 @functools.lru_cache(maxsize=32)
 def texel_max_radius(n: int) -> float:
-    """Largest angle (rad) between a texel centre and one of its corners on a cube face of size n."""
-    c = envmap.texel_center_uv(n)
-    e = np.linspace(-1.0, 1.0, n + 1)
-    centre = envmap.face_uv_to_direction(0, c[None, :], c[:, None])  # (n, n, 3)
-    corners = envmap.face_uv_to_direction(0, e[None, :], e[:, None])  # (n+1, n+1, 3)
-    best = 0.0
-    for dr in (0, 1):
-        for dc in (0, 1):
-            k = corners[dr : dr + n, dc : dc + n]
-            cosang = np.clip(np.sum(centre * k, axis=-1), -1.0, 1.0)
-            best = max(best, float(np.max(np.arccos(cosang))))
-    return best
+    """Largest angle (rad) between a texel centre and one of its corners on a cube face of size n
+    (:func:`ibl_ref.environment.envmap.texel_max_radius`)."""
+    return envmap.texel_max_radius(n)
 
 
 def _sliding_max(a: np.ndarray, half: int) -> np.ndarray:
