@@ -47,7 +47,6 @@ import io
 import json
 import os
 import re
-import secrets
 import shutil
 import stat
 from pathlib import Path
@@ -262,7 +261,7 @@ def clean_stale_temps(folder, name: str) -> list:
 
 
 def _temp_name(name: str, suffix: str) -> str:
-    return f".{name}{TEMP_TAG}{os.getpid()}-{secrets.token_hex(4)}{suffix}"
+    return f".{name}{TEMP_TAG}{os.getpid()}-{os.urandom(4).hex()}{suffix}"
 
 
 def _fsync_path(p, directory: bool = False) -> None:

@@ -89,12 +89,10 @@ from __future__ import annotations
 
 import functools
 import math
-import multiprocessing
 import os
 import sys
 import threading
 import time
-from concurrent.futures import BrokenExecutor, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -284,9 +282,15 @@ def _resolve_backend(backend, workers):
         # fork only a single-threaded process (a fork copies no other thread; locks they hold would
         # stay locked in the child), only on Linux (macOS system libraries are not fork-safe), and not
         # from a daemonic process (multiprocessing forbids it children); otherwise threads
-        fork_ok = (sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
-                   and threading.active_count() == 1 and not multiprocessing.current_process().daemon)
+        # (multiprocessing is imported only to fork: ≈ 6 ms of every process otherwise.  A daemonic process is
+        # a multiprocessing child, so multiprocessing is already imported there; on Linux "fork" is always
+        # among the start methods)
+        mp = sys.modules.get("multiprocessing")
+        fork_ok = (sys.platform.startswith("linux") and threading.active_count() == 1
+                   and not (mp is not None and mp.current_process().daemon))
         return "process" if fork_ok else "thread"
+    import multiprocessing
+
     if backend == "process" and "fork" not in multiprocessing.get_all_start_methods():
         raise IBLError("backend 'process' needs the 'fork' start method (POSIX); use 'thread'")
     if backend == "process" and multiprocessing.current_process().daemon:
@@ -304,10 +308,13 @@ def _run_jobs(jobs, workers, backend="thread", executor=None):
     NumPy releases the GIL inside large array operations, so the jobs overlap partly.
     """
     global _FORK_JOBS
+    # (concurrent.futures imported where used: its process pool imports multiprocessing, ≈ 12 ms of a process)
     order = sorted(jobs, key=lambda j: -min(float(j[2]), 1e300))
     out, busy = {}, {}
     child_cpu = 0.0
     if executor is not None:  # any concurrent.futures.Executor (jobs and inputs are pickled)
+        from concurrent.futures import BrokenExecutor
+
         futs = [executor.submit(_call_job, j[1], j[3]) for j in order]
         try:
             done = [f.result() for f in futs]
@@ -320,6 +327,9 @@ def _run_jobs(jobs, workers, backend="thread", executor=None):
             r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
             _FORK_JOBS = order
             try:
+                import multiprocessing
+                from concurrent.futures import BrokenExecutor, ProcessPoolExecutor
+
                 ctx = multiprocessing.get_context("fork")
                 with ProcessPoolExecutor(max_workers=min(workers, len(order)), mp_context=ctx) as ex:
                     futs = [ex.submit(_run_forked_job, i) for i in range(len(order))]
@@ -332,6 +342,8 @@ def _run_jobs(jobs, workers, backend="thread", executor=None):
             r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
         child_cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     else:
+        from concurrent.futures import ThreadPoolExecutor
+
         with ThreadPoolExecutor(max_workers=min(workers, len(order)), thread_name_prefix="ibl_convolve") as ex:
             futs = [ex.submit(_run_job, j) for j in order]
             done = [f.result() for f in futs]

@@ -38,7 +38,6 @@ the backend first.
 from __future__ import annotations
 
 import ctypes
-import hashlib
 import importlib.util
 import json
 import os
@@ -173,15 +172,18 @@ def _key() -> str:
     """The key of the ahead-of-time files (sources, numba and llvmlite versions, Python, CPU).  The CPU is
     identified by the operating system's report (:func:`_cpu_identity`: no llvmlite import, ≈ 20 ms of a process),
     else by llvmlite's host CPU name and features."""
-    import platform
+    try:  # (CPython's own BLAKE2: `import hashlib` loads OpenSSL first, ≈ 5–8 ms of a process)
+        from _blake2 import blake2b
+    except ImportError:  # pragma: no cover - other interpreters
+        from hashlib import blake2b
 
-    h = hashlib.sha256(FORMAT.encode())
+    h = blake2b(FORMAT.encode(), digest_size=16)
     for f in _SOURCES:
         h.update((_HERE / f).read_bytes())
     h.update(_package_version_file("numba"))
     h.update(_package_version_file("llvmlite"))
     h.update(sys.version.encode())
-    h.update(platform.machine().encode())
+    h.update((os.uname().machine if hasattr(os, "uname") else __import__("platform").machine()).encode())
     ident = _cpu_identity()
     if ident is not None:
         h.update(ident.encode())

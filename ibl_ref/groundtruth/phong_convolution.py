@@ -1070,22 +1070,34 @@ def _tile_gather_threads(ck, threads, cen, rows, caps, arad, frames, m, X, Y, Z,
         ck.tile_gather(cen, rows, caps, arad, frames, m, X, Y, Z, rws, bdirs, brw, s, s_int, rowmax, c_floor, acc,
                        logmx, count, groups, pairs)
         return
-    from concurrent.futures import ThreadPoolExecutor
+    import threading
 
     sel = [np.arange(j, nt, threads) for j in range(threads)]
     outs = [(np.empty((t.size,) + acc.shape[1:]), np.empty((t.size,) + logmx.shape[1:]),
              np.empty(t.size, dtype=count.dtype), np.empty(t.size, dtype=pairs.dtype)) for t in sel]
 
+    errors = [None] * threads
+
     def run(j):
         t = sel[j]
-        ck.tile_gather(cen[t], rows[t], caps[t], arad[t], frames, m, X, Y, Z, rws, bdirs, brw, s, s_int, rowmax,
-                       c_floor, *outs[j][:3], groups, outs[j][3])
+        try:
+            ck.tile_gather(cen[t], rows[t], caps[t], arad[t], frames, m, X, Y, Z, rws, bdirs, brw, s, s_int, rowmax,
+                           c_floor, *outs[j][:3], groups, outs[j][3])
+        except BaseException as exc:  # re-raised on the calling thread
+            errors[j] = exc
 
-    with ThreadPoolExecutor(max_workers=threads - 1, thread_name_prefix="ibl_tiles") as ex:
-        futures = [ex.submit(run, j) for j in range(1, threads)]  # the other threads' shares …
+    # plain threads (no executor: concurrent.futures costs a process ≈ 1–5 ms of imports)
+    others = [threading.Thread(target=run, args=(j,), name=f"ibl_tiles_{j}", daemon=True) for j in range(1, threads)]
+    for th in others:  # the other threads' shares …
+        th.start()
+    try:
         run(0)  # … while this thread computes the first one
-        for fut in futures:
-            fut.result()
+    finally:
+        for th in others:
+            th.join()
+    for exc in errors:
+        if exc is not None:
+            raise exc
     for t, (a_j, l_j, c_j, p_j) in zip(sel, outs):
         acc[t], logmx[t], count[t], pairs[t] = a_j, l_j, c_j, p_j
 
