@@ -672,15 +672,20 @@ def _source_blocks(src_dirs, m, b=_CAP_BLOCK):
 
 @functools.lru_cache(maxsize=16)
 def _source_blocks_cached(m, b):
-    src_dirs = envmap.texel_directions(m).reshape(-1, 3)
+    src = envmap.texel_directions(m)
     nbk = -(-m // b)
     idx = np.full((6, nbk * b, nbk * b), -1, dtype=np.intp)
     idx[:, :m, :m] = np.arange(6 * m * m).reshape(6, m, m)
     tex = idx.reshape(6, nbk, b, nbk, b).transpose(0, 1, 3, 2, 4).reshape(-1, b * b)
-    d = np.where((tex >= 0)[..., None], src_dirs[np.maximum(tex, 0)], 0.0)
+    if m % b == 0:  # whole blocks: the same array by a transposed copy (a gather and a select cost 3× more)
+        d = src.reshape(6, nbk, b, nbk, b, 3).transpose(0, 1, 3, 2, 4, 5).reshape(-1, b * b, 3)
+    else:
+        d = np.where((tex >= 0)[..., None], src.reshape(-1, 3)[np.maximum(tex, 0)], 0.0)
     c = d.sum(axis=1)
     c /= np.linalg.norm(c, axis=1, keepdims=True)
-    dots = np.where(tex >= 0, np.einsum("bjk,bk->bj", d, c), 1.0)
+    dots = np.einsum("bjk,bk->bj", d, c)
+    if m % b:
+        dots = np.where(tex >= 0, dots, 1.0)
     alpha = float(np.arccos(np.clip(dots.min(), -1.0, 1.0))) + 1e-9
     c.flags.writeable = False
     tex.flags.writeable = False
