@@ -427,7 +427,11 @@ def test_convolve_compiled_bounds_rigorous_and_bit_identical_across_workers(ck, 
 
 def test_ahead_of_time_and_jit_backends_give_the_same_numbers(ck, no_tiny_shortcut):
     """The kernels compiled ahead of time and numba's JIT functions are the same code: every route gives the same
-    maps and bounds, bit for bit (measured so; the bounds would allow rounding differences)."""
+    maps and bounds up to the order of the float64 sums (the ahead-of-time code may use wider vectors: 512 bits on
+    AVX-512 CPUs, numba's JIT 256).  A sum of m non-negative terms is within γ_m = m·u/(1 − m·u) of its exact value
+    in any order, so two orders differ by ≤ 2γ_m relative; a map value is a ratio of such sums over at most the
+    6·24² source texels (plus the bright set, counted again): ≤ 2·(2γ_m) relative, m = 2·6·24².  A bound is
+    tested the same way, with room for its few further operations (×10)."""
     from ibl_ref.groundtruth import kernel_library as kl
     from ibl_ref.groundtruth.convolve import convolve
 
@@ -441,10 +445,12 @@ def test_ahead_of_time_and_jit_backends_give_the_same_numbers(ck, no_tiny_shortc
     finally:
         kl.use(ck.backend)
     assert {"moment", "sh", "sparse"} <= set(a.method_used.values())
+    m = 2 * 6 * 24**2
+    g = m * 2.0**-53 / (1 - m * 2.0**-53)
     for s in S:
         assert a.method_used[s] == b.method_used[s]
-        np.testing.assert_array_equal(a.maps[s], b.maps[s])
-        np.testing.assert_array_equal(a.error_bound[s], b.error_bound[s])
+        np.testing.assert_allclose(a.maps[s], b.maps[s], rtol=4 * g, atol=0)
+        np.testing.assert_allclose(a.error_bound[s], b.error_bound[s], rtol=40 * g, atol=0)
 
 
 def test_ahead_of_time_calls_check_their_arrays(ck):
@@ -463,7 +469,7 @@ def test_ahead_of_time_calls_check_their_arrays(ck):
 
 
 def test_fresh_processes_load_the_ahead_of_time_kernels_without_numba(tmp_path):
-    """The first process builds the file (numba), later ones load it without importing numba (and, where a C
+    """The first process builds the file (numba, in it or in a child), later ones load it without importing numba (and, where a C
     compiler linked the shared library, without llvmlite); the file's machine code through llvmlite's MCJIT gives
     the same numbers when the shared library is gone; a damaged file is built again; the symbols the code needs
     are all found in the process."""
@@ -477,8 +483,9 @@ def test_fresh_processes_load_the_ahead_of_time_kernels_without_numba(tmp_path):
         from ibl_ref.synthetic.synthetic_envs import SUN_NEAR_CORNER, make_env
         cv.AUTO_EXACT_PAIRS = cv.MOMENT_MIN_PAIRS = 0  # every route, not the exact gather of a tiny map
         cube = make_env("sky_sun", 16, sun_direction=SUN_NEAR_CORNER, sun_radiance=1e5)
+        built = not kl.artifact_path().is_file()
         r = convolve(cube, [1.0, 5.0, 300.0], kernel="compiled", method="auto")
-        print(kl.BACKEND, "numba" in sys.modules, sorted(set(r.method_used.values())),
+        print(kl.BACKEND, built, "numba" in sys.modules, sorted(set(r.method_used.values())),
               repr(float(max(r.error_bound[s].max() for s in r.maps))),
               repr(float(sum(float(np.sum(r.maps[s])) for s in r.maps))))
         print(kl.artifact_path(), "llvmlite" in sys.modules)
@@ -499,10 +506,12 @@ def test_fresh_processes_load_the_ahead_of_time_kernels_without_numba(tmp_path):
             kl._shared_path(Path(path)).unlink()
         if i == 2:  # damage the file: the next process builds it again
             Path(path).write_bytes(Path(path).read_bytes()[:1000])
-    assert runs[0].startswith("aot True [") and "'sparse'" in runs[0]  # the builder imported numba
-    assert runs[1].startswith("aot False [") and runs[2].startswith("aot False [")  # later processes did not
-    assert runs[3].startswith("aot True [")  # rebuilt after the damage
-    assert len({r.split(" ", 2)[-1] for r in runs}) == 1  # the same routes, bounds and maps every time
+    # the first process built the files (numba compiled the kernels, here or in a child process: see
+    # kernel_library._kernel_irs); later processes loaded them without importing numba
+    assert runs[0].startswith("aot True ") and "'sparse'" in runs[0]
+    assert runs[1].startswith("aot False False [") and runs[2].startswith("aot False False [")
+    assert runs[3].startswith("aot ") and Path(path).stat().st_size > 1000  # rebuilt after the damage (cut to 1000)
+    assert len({r.split(" ", 3)[-1] for r in runs}) == 1  # the same routes, bounds and maps every time
     if kl._linker() is not None:  # a shared library was linked: loading it needs no llvmlite; the MCJIT route does
         assert kl._shared_path(Path(path)).is_file()
         assert llvm[1:3] == [False, True]

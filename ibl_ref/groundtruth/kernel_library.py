@@ -7,8 +7,10 @@ once per installation and machine, and later processes load them without numba:
 
 1. **Build** (the first process that needs them, with numba installed): every kernel of
    :data:`ibl_ref.groundtruth.kernel_spec.KERNELS` is compiled by numba as a C callable (``numba.cfunc``) that
-   takes its arrays as pointers and shapes; the optimised LLVM module of each is turned into machine code for this
-   CPU (llvmlite's target machine, the options of numba's JIT) and written, with the symbol names, into one file
+   takes its arrays as pointers and shapes (optimised for this CPU's features, with 512-bit vectors where it has
+   AVX-512: :func:`_features`; numba then compiles them in a child process, as only its start-up configuration
+   sets that); the optimised LLVM module of each is turned into machine code for this CPU (llvmlite's target
+   machine, the options of numba's JIT) and written, with the symbol names, into one file
    (atomically); where a C compiler driver is installed (``$CC``, ``cc``, ``gcc`` or ``clang``, Linux/BSD) the
    same modules are also linked, as position-independent code, into a shared library beside it.  That is the
    compile cost a user pays once (cold and warm costs: ``benchmarks/bench_peer.py``).
@@ -28,7 +30,8 @@ Where the ahead-of-time path is not possible — no writable folder, llvmlite un
 bounds checking on (``NUMBA_BOUNDSCHECK``, a test mode), or ``$IBL_REF_KERNEL_BACKEND=jit`` — the kernels are
 numba's JIT functions of :mod:`~ibl_ref.groundtruth.compiled_kernels` with numba's own cache (one line on stderr
 says why, unless numba's cache note says it already).  Both backends run the same kernels and give the same
-numbers (bit for bit in the tests, which run every compiled check on both); :data:`BACKEND` says which one runs.
+numbers up to the order of the float64 sums (the ahead-of-time code may use wider vectors; the tests, which run
+every compiled check on both, hold them within that rounding); :data:`BACKEND` says which one runs.
 
 Routes call the functions of this module (:func:`tile_gather`, …, with the arguments of the kernels of the same
 name minus their work arrays, which are allocated here); :func:`ibl_ref.groundtruth.kernel_choice.compiled` loads
@@ -58,7 +61,7 @@ __all__ = ["BACKEND", "BACKEND_ENV", "NOTE", "FORMAT", "artifact_path", "build",
 #: environment variable: ``jit`` forces numba's JIT backend, ``aot`` (or unset) the ahead-of-time one where possible
 BACKEND_ENV = "IBL_REF_KERNEL_BACKEND"
 #: version of the file format and of the generated C callables (part of the key)
-FORMAT = "ibl_ref-kernels-1"
+FORMAT = "ibl_ref-kernels-2"
 #: ``"aot"`` or ``"jit"`` once :func:`load` has run, else None
 BACKEND = None
 #: why the JIT backend runs instead of the ahead-of-time one (None: no reason to note)
@@ -180,6 +183,7 @@ def _key() -> str:
     h = blake2b(FORMAT.encode(), digest_size=16)
     for f in _SOURCES:
         h.update((_HERE / f).read_bytes())
+    h.update(os.environ.get("NUMBA_CPU_FEATURES", "").strip().encode())  # (:func:`_features`)
     h.update(_package_version_file("numba"))
     h.update(_package_version_file("llvmlite"))
     h.update(sys.version.encode())
@@ -233,15 +237,31 @@ def artifact_path(key: str | None = None, for_writing: bool = False) -> Path | N
     return None
 
 
+def _features() -> str:
+    """The CPU features the kernels are compiled for ahead of time: ``$NUMBA_CPU_FEATURES`` where set, else this
+    CPU's, plus ``-prefer-256-bit`` where it has AVX-512 (LLVM's tuning for such CPUs keeps vectors at 256 bits;
+    the kernels are arithmetic-bound loops over contiguous float64 arrays, and 512-bit vectors gather 1.3–1.45×
+    faster on this project's machines: ``benchmarks/bench_peer.py``)."""
+    import llvmlite.binding as llvm
+
+    env = os.environ.get("NUMBA_CPU_FEATURES", "").strip()
+    if env:
+        return env
+    features = llvm.get_host_cpu_features().flatten()
+    if "+avx512f" in features.split(",") and "prefer-256-bit" not in features:
+        features += ",-prefer-256-bit"
+    return features
+
+
 def _target_machine(shared: bool = False):
-    """llvmlite's target machine for this CPU: numba's JIT options, or (``shared``) position-independent code for a
-    shared library."""
+    """llvmlite's target machine for this CPU (:func:`_features`): numba's JIT options, or (``shared``)
+    position-independent code for a shared library."""
     import llvmlite.binding as llvm
 
     llvm.initialize_native_target()
     llvm.initialize_native_asmprinter()
     target = llvm.Target.from_triple(llvm.get_process_triple())
-    cpu, features = llvm.get_host_cpu_name(), llvm.get_host_cpu_features().flatten()
+    cpu, features = llvm.get_host_cpu_name(), _features()
     if shared:
         return target.create_target_machine(cpu=cpu, features=features, opt=3, reloc="pic", codemodel="default")
     reloc = "static" if target.name.startswith("x86") else "pic" if target.name.startswith("ppc") else "default"
@@ -283,21 +303,12 @@ def build(path: Path) -> Path:
     needed; about as long as numba's first compilation of the kernels).  Raises ``RuntimeError`` if a kernel needs
     more than libm, the Python C API and numba's C-callable error path (:data:`_HELPERS_IR`)."""
     import llvmlite.binding as llvm
-    from numba import carray, cfunc, types
 
-    from . import compiled_kernels as ck
     from ..atomic import atomic_write
 
-    sig = types.void(types.CPointer(types.CPointer(types.float64)), types.CPointer(types.CPointer(types.int64)),
-                     types.CPointer(types.CPointer(types.boolean)), types.CPointer(types.int64),
-                     types.CPointer(types.float64), types.CPointer(types.int64))
     tm = _target_machine()
     blobs, symbols, ext_f, ext_d, irs = [], {}, set(), set(), []
-    for name in KERNELS:
-        ns = {"ck": ck, "carray": carray}
-        exec(compile(_cfunc_source(name), f"<ibl_ref kernel {name}>", "exec"), ns)
-        cf = cfunc(sig, nogil=True, error_model="numpy")(ns[f"_c_{name}"])
-        ir = cf.inspect_llvm()
+    for name, (ir, native_name) in _kernel_irs().items():
         mod = llvm.parse_assembly(ir)
         mod.verify()
         funcs, data = _external_symbols(mod)
@@ -308,13 +319,61 @@ def build(path: Path) -> Path:
         ext_d.update(data)
         blobs.append(tm.emit_object(mod))
         irs.append(ir)
-        symbols[name] = cf.native_name
+        symbols[name] = native_name
     head = json.dumps({"format": FORMAT, "symbols": symbols, "sizes": [len(b) for b in blobs],
                        "functions": sorted(ext_f), "data": sorted(ext_d)}).encode()
     with atomic_write(path, "wb") as fh:
         fh.write(len(head).to_bytes(8, "little") + head + b"".join(blobs))
     _link_shared(irs, _shared_path(path))
     return path
+
+
+def _kernel_irs_here() -> dict:
+    """``{kernel: (optimised LLVM IR, symbol)}``: every kernel compiled by numba, in this process, as a C callable
+    that takes its arrays as pointers and shapes."""
+    from numba import carray, cfunc, types
+
+    from . import compiled_kernels as ck
+
+    sig = types.void(types.CPointer(types.CPointer(types.float64)), types.CPointer(types.CPointer(types.int64)),
+                     types.CPointer(types.CPointer(types.boolean)), types.CPointer(types.int64),
+                     types.CPointer(types.float64), types.CPointer(types.int64))
+    out = {}
+    for name in KERNELS:
+        ns = {"ck": ck, "carray": carray}
+        exec(compile(_cfunc_source(name), f"<ibl_ref kernel {name}>", "exec"), ns)
+        cf = cfunc(sig, nogil=True, error_model="numpy")(ns[f"_c_{name}"])
+        out[name] = (cf.inspect_llvm(), cf.native_name)
+    return out
+
+
+def _kernel_irs() -> dict:
+    """:func:`_kernel_irs_here` optimised for :func:`_features`: numba optimises (and vectorises) for the features
+    its configuration had when it started, which only ``$NUMBA_CPU_FEATURES`` sets; so where they differ from
+    numba's default a child process compiles the kernels with that variable set (this process's numba, and the
+    user's own numba code, are left as they are).  If the child fails, this process compiles them as numba
+    configures it."""
+    import subprocess
+
+    import llvmlite.binding as llvm
+
+    features = _features()
+    if features == llvm.get_host_cpu_features().flatten() or "numba" in sys.modules and \
+            getattr(sys.modules["numba"].config, "CPU_FEATURES", None) == features:
+        return _kernel_irs_here()
+    root = str(Path(__file__).resolve().parents[2])
+    code = ("import json, sys; sys.path.insert(0, sys.argv[1]); "
+            "from ibl_ref.groundtruth import kernel_library as k; json.dump(k._kernel_irs_here(), sys.stdout)")
+    try:
+        p = subprocess.run([sys.executable, "-c", code, root], env={**os.environ, "NUMBA_CPU_FEATURES": features},
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, timeout=1800)
+        if p.returncode == 0:
+            got = json.loads(p.stdout)
+            if set(got) == set(KERNELS):
+                return {k: tuple(v) for k, v in got.items()}
+    except (OSError, ValueError, subprocess.SubprocessError):
+        pass
+    return _kernel_irs_here()
 
 
 def _shared_path(path: Path) -> Path:
