@@ -1064,10 +1064,10 @@ _TILES_PER_THREAD_MIN = 32
 
 def _tile_gather_threads(ck, threads, cen, rows, caps, arad, frames, m, X, Y, Z, rws, bdirs, brw, groups, s, s_int,
                          rowmax, c_floor, acc, logmx, count, pairs):
-    """:func:`ibl_ref.groundtruth.compiled_kernels.tile_gather` on ``threads`` threads: thread j gathers the tiles
-    j, j + threads, j + 2·threads, … (neighbouring tiles have similar caps, so the threads get similar work) into
-    its own outputs, copied back in place.  Every tile is computed by the same code on the same inputs as in one
-    call: the result does not depend on ``threads``."""
+    """:func:`ibl_ref.groundtruth.compiled_kernels.tile_gather` on ``threads`` threads: the tiles in runs of
+    consecutive ones (views of the inputs and outputs: nothing copied), which each thread takes in turn as it
+    becomes free (tiles differ in work, e.g. near the bright texels).  Every tile is computed by the same code on
+    the same inputs as in one call: the result does not depend on ``threads`` or on which thread took a run."""
     nt = cen.shape[0]
     # (a few tiles, e.g. a later attempt's: starting a thread costs more than their gather)
     threads = max(1, min(int(threads), nt // _TILES_PER_THREAD_MIN))
@@ -1077,34 +1077,38 @@ def _tile_gather_threads(ck, threads, cen, rows, caps, arad, frames, m, X, Y, Z,
         return
     import threading
 
-    sel = [np.arange(j, nt, threads) for j in range(threads)]
-    outs = [(np.empty((t.size,) + acc.shape[1:]), np.empty((t.size,) + logmx.shape[1:]),
-             np.empty(t.size, dtype=count.dtype), np.empty(t.size, dtype=pairs.dtype)) for t in sel]
+    run_len = max(2 * _TILES_PER_THREAD_MIN, -(-nt // (8 * threads)))  # ≈ 8 runs per thread
+    starts = list(range(0, nt, run_len))
+    lock = threading.Lock()
+    nxt = [0]
+    errors = []
 
-    errors = [None] * threads
-
-    def run(j):
-        t = sel[j]
+    def work():
         try:
-            ck.tile_gather(cen[t], rows[t], caps[t], arad[t], frames, m, X, Y, Z, rws, bdirs, brw, s, s_int, rowmax,
-                           c_floor, *outs[j][:3], groups, outs[j][3])
+            while True:
+                with lock:
+                    if errors or nxt[0] >= len(starts):
+                        return
+                    a = starts[nxt[0]]
+                    nxt[0] += 1
+                b = min(a + run_len, nt)
+                ck.tile_gather(cen[a:b], rows[a:b], caps[a:b], arad[a:b], frames, m, X, Y, Z, rws, bdirs, brw, s,
+                               s_int, rowmax, c_floor, acc[a:b], logmx[a:b], count[a:b], groups, pairs[a:b])
         except BaseException as exc:  # re-raised on the calling thread
-            errors[j] = exc
+            with lock:
+                errors.append(exc)
 
     # plain threads (no executor: concurrent.futures costs a process ≈ 1–5 ms of imports)
-    others = [threading.Thread(target=run, args=(j,), name=f"ibl_tiles_{j}", daemon=True) for j in range(1, threads)]
-    for th in others:  # the other threads' shares …
+    others = [threading.Thread(target=work, name=f"ibl_tiles_{j}", daemon=True) for j in range(1, threads)]
+    for th in others:  # the other threads …
         th.start()
     try:
-        run(0)  # … while this thread computes the first one
+        work()  # … and this one
     finally:
         for th in others:
             th.join()
-    for exc in errors:
-        if exc is not None:
-            raise exc
-    for t, (a_j, l_j, c_j, p_j) in zip(sel, outs):
-        acc[t], logmx[t], count[t], pairs[t] = a_j, l_j, c_j, p_j
+    if errors:
+        raise errors[0]
 
 
 def convolve_sparse_many(
