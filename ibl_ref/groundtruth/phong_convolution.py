@@ -735,7 +735,12 @@ def _tile_layout_of(out_size: int, faces: tuple, T: int):
         fi, f, r0, c0 = (order[mem, j] for j in range(4))
         rr = r0[:, None, None] + np.arange(h)[None, :, None]
         cc = c0[:, None, None] + np.arange(w)[None, None, :]
-        td = dst[f[:, None, None], rr, cc].reshape(len(members), h * w, 3)
+        if len(groups) == 1:  # T divides the face: the tiles by a transposed copy (the same array as the gather)
+            nb = out_size // T
+            td = (dst[list(faces)].reshape(len(faces), nb, T, nb, T, 3).transpose(0, 1, 3, 2, 4, 5)
+                  .reshape(n_t, B, 3))
+        else:
+            td = dst[f[:, None, None], rr, cc].reshape(len(members), h * w, 3)
         idx = ((fi[:, None, None] * out_size + rr) * out_size + cc).reshape(len(members), h * w)
         cen = td.sum(axis=1)
         cen /= np.linalg.norm(cen, axis=1, keepdims=True)
@@ -745,6 +750,10 @@ def _tile_layout_of(out_size: int, faces: tuple, T: int):
         cx, cy, cz = dy * ez - dz * ey, dz * ex - dx * ez, dx * ey - dy * ex
         ang = np.arctan2(np.sqrt(cx * cx + cy * cy + cz * cz), dx * ex + dy * ey + dz * ez)
         k = h * w
+        if len(groups) == 1:  # (every tile, in order: the arrays themselves)
+            IDX, TD, ANG, CEN = idx, td, ang, cen
+            VALID[:] = True
+            continue
         IDX[mem, :k], TD[mem, :k], ANG[mem, :k], VALID[mem, :k], CEN[mem] = idx, td, ang, True, cen
         IDX[mem, k:], TD[mem, k:], ANG[mem, k:] = idx[:, -1:], td[:, -1:], ang[:, -1:]
     if faces and faces[0] == 0:
