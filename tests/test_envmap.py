@@ -275,3 +275,17 @@ def test_texel_max_radius_is_the_brute_force_maximum_over_every_texel_of_every_f
     assert E.texel_max_radius(n) == pytest.approx(worst, rel=1e-13)
     if n == 1:
         assert E.texel_max_radius(1) == pytest.approx(np.arctan(np.sqrt(2.0)), rel=1e-14)
+
+
+def test_face_blocks_are_the_blocks_by_explicit_indices():
+    """face_blocks against an explicit gather: block (f, I, J), texel (i, j) is a[f, I·b + i, J·b + j]; a trailing
+    channel axis rides along; blocks that do not tile the face raise LayoutError."""
+    rng = np.random.default_rng(0)
+    for F, m, b, rest in ((6, 8, 4, ()), (2, 6, 3, (3,)), (1, 5, 5, (2, 2)), (6, 4, 1, ())):
+        a = rng.random((F, m, m) + rest)
+        nb = m // b
+        ref = np.array([[a[f, I * b + i, J * b + j] for i in range(b) for j in range(b)]
+                        for f in range(F) for I in range(nb) for J in range(nb)])
+        np.testing.assert_array_equal(E.face_blocks(a, b), ref)
+    with pytest.raises(LayoutError):
+        E.face_blocks(np.zeros((6, 6, 6)), 4)

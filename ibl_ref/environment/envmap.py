@@ -73,6 +73,7 @@ __all__ = [
     "texel_center_uv",
     "texel_directions",
     "texel_max_radius",
+    "face_blocks",
     "direction_to_texel",
     "direction_to_texel_coords",
     "texel_solid_angles",
@@ -289,6 +290,18 @@ def face_plane_grid(n: int):
     c = texel_center_uv(n)
     v, u = np.meshgrid(c, c, indexing="ij")
     return u, v
+
+
+def face_blocks(a, b: int) -> np.ndarray:
+    """The b×b blocks of texels of every face: ``a`` (F, m, m, …) with b dividing m → (F·(m/b)², b², …), blocks in
+    the order (face, block row, block column), the texels of a block row-major (a copy; no gather)."""
+    a = np.asarray(a)
+    F, m = a.shape[0], a.shape[1]
+    if m % b or a.shape[2] != m:
+        raise LayoutError(f"face_blocks: blocks of {b} do not tile faces of {a.shape[1]}x{a.shape[2]}")
+    nb, rest = m // b, a.shape[3:]
+    t = a.reshape((F, nb, b, nb, b) + rest).transpose((0, 1, 3, 2, 4) + tuple(range(5, 5 + len(rest))))
+    return t.reshape((F * nb * nb, b * b) + rest)
 
 
 @functools.lru_cache(maxsize=32)

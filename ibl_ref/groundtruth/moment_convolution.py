@@ -626,7 +626,7 @@ def convolve_moment_many(
     nt = -(-out_size // t)
     od = envmap.texel_directions(out_size)[list(faces)]
     od = np.pad(od, ((0, 0), (0, nt * t - out_size), (0, nt * t - out_size), (0, 0)), mode="edge")
-    R = od.reshape(nF, nt, t, nt, t, 3).transpose(0, 1, 3, 2, 4, 5).reshape(nF * nt * nt, t * t, 3)
+    R = envmap.face_blocks(od, t)
     T = R.shape[0]
     cT = R.sum(axis=1)
     cT /= np.linalg.norm(cT, axis=-1, keepdims=True)

@@ -676,9 +676,9 @@ def _source_blocks_cached(m, b):
     nbk = -(-m // b)
     idx = np.full((6, nbk * b, nbk * b), -1, dtype=np.intp)
     idx[:, :m, :m] = np.arange(6 * m * m).reshape(6, m, m)
-    tex = idx.reshape(6, nbk, b, nbk, b).transpose(0, 1, 3, 2, 4).reshape(-1, b * b)
+    tex = envmap.face_blocks(idx, b)
     if m % b == 0:  # whole blocks: the same array by a transposed copy (a gather and a select cost 3× more)
-        d = src.reshape(6, nbk, b, nbk, b, 3).transpose(0, 1, 3, 2, 4, 5).reshape(-1, b * b, 3)
+        d = envmap.face_blocks(src, b)
     else:
         d = np.where((tex >= 0)[..., None], src.reshape(-1, 3)[np.maximum(tex, 0)], 0.0)
     c = d.sum(axis=1)
@@ -736,9 +736,7 @@ def _tile_layout_of(out_size: int, faces: tuple, T: int):
         rr = r0[:, None, None] + np.arange(h)[None, :, None]
         cc = c0[:, None, None] + np.arange(w)[None, None, :]
         if len(groups) == 1:  # T divides the face: the tiles by a transposed copy (the same array as the gather)
-            nb = out_size // T
-            td = (dst[list(faces)].reshape(len(faces), nb, T, nb, T, 3).transpose(0, 1, 3, 2, 4, 5)
-                  .reshape(n_t, B, 3))
+            td = envmap.face_blocks(dst[list(faces)], T)
         else:
             td = dst[f[:, None, None], rr, cc].reshape(len(members), h * w, 3)
         idx = ((fi[:, None, None] * out_size + rr) * out_size + cc).reshape(len(members), h * w)
@@ -814,7 +812,7 @@ class _Sources:
             nk = -(-nside // k)
             mem = np.full((6, nk * k, nk * k), -1, dtype=np.intp)
             mem[:, :nside, :nside] = np.arange(nb).reshape(6, nside, nside)
-            mem = mem.reshape(6, nk, k, nk, k).transpose(0, 1, 3, 2, 4).reshape(-1, k * k)
+            mem = envmap.face_blocks(mem, k)
             mem = mem[(mem >= 0).any(axis=1)]
             valid = mem >= 0
             c = np.where(valid[..., None], self.cen[np.maximum(mem, 0)], 0.0).sum(axis=1)
@@ -875,7 +873,7 @@ class _Slabs:
         nk = -(-nb // k)
         mem = np.full((6, nk * k, nk * k), -1, dtype=np.intp)
         mem[:, :nb, :nb] = np.arange(ns).reshape(6, nb, nb)
-        self.sup_mem = mem.reshape(6, nk, k, nk, k).transpose(0, 1, 3, 2, 4).reshape(-1, k * k)
+        self.sup_mem = envmap.face_blocks(mem, k)
         # super-block centre: normalised mean of its slab centres; radius: farthest texel of its slabs
         valid = self.sup_mem >= 0
         c = np.where(valid[..., None], self.cen[np.maximum(self.sup_mem, 0)], 0.0).sum(axis=1)
