@@ -469,10 +469,10 @@ def test_ahead_of_time_calls_check_their_arrays(ck):
 
 
 def test_fresh_processes_load_the_ahead_of_time_kernels_without_numba(tmp_path):
-    """The first process builds the file (numba, in it or in a child), later ones load it without importing numba (and, where a C
-    compiler linked the shared library, without llvmlite); the file's machine code through llvmlite's MCJIT gives
-    the same numbers when the shared library is gone; a damaged file is built again; the symbols the code needs
-    are all found in the process."""
+    """The first process builds the file (numba, in it or in a child), later ones load it without importing numba
+    (and, where a C compiler linked the shared library, without llvmlite); the file's machine code through llvmlite's
+    MCJIT gives the same numbers when the shared library is gone; a damaged file is built again; the symbols the
+    code needs are all found in the process."""
     pytest.importorskip("numba", reason="building the kernels needs numba")
     code = textwrap.dedent(
         """

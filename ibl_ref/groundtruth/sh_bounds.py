@@ -82,11 +82,9 @@ def zonal_coefficients(s: float, L: int) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 # truncation-error envelope
 # ----------------------------------------------------------------------------------------------
-@functools.lru_cache(maxsize=32)
-def texel_max_radius(n: int) -> float:
-    """Largest angle (rad) between a texel centre and one of its corners on a cube face of size n
-    (:func:`ibl_ref.environment.envmap.texel_max_radius`)."""
-    return envmap.texel_max_radius(n)
+#: largest angle (rad) between a texel centre and one of its corners on a cube face of size n: the texel radius ρ
+#: of the envelope, :func:`ibl_ref.environment.envmap.texel_max_radius` itself (cached there)
+texel_max_radius = envmap.texel_max_radius
 
 
 def _sliding_max(a: np.ndarray, half: int) -> np.ndarray:
