@@ -13,6 +13,7 @@ import os
 import signal
 import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -889,6 +890,30 @@ def test_ctrl_c_at_any_moment_is_130_one_line_no_partial_output(delay, tmp_path)
         assert err.strip().splitlines() == ["ibl-ref render: interrupted"]
     assert names in ([], ["r.exr", "r.json", "r.png"]), names  # the output set entirely, or nothing
     assert rc == 130 or names, "exit 0 without outputs"
+
+
+def test_ctrl_c_handler_imports_nothing_so_it_can_land_inside_any_import():
+    """The SIGINT handler may run while a module is half-imported, e.g. ``pathlib`` during the first command's
+    imports (a fresh, non-editable installation imports it late); an import made by the handler itself would then
+    fail (``cannot import name 'Path' from partially initialized module 'pathlib'``, a traceback instead of exit
+    130; seen once in the timing test above).  Here ``pathlib`` is replaced by a half-initialised stand-in before
+    ``ibl_ref.atomic`` was imported: the handler must raise KeyboardInterrupt and import nothing."""
+    code = textwrap.dedent("""
+        import signal, sys, types
+        from ibl_ref.cli import interrupts
+        assert "ibl_ref.atomic" not in sys.modules
+        real = sys.modules.pop("pathlib", None)
+        sys.modules["pathlib"] = types.ModuleType("pathlib")  # half-initialised: no Path yet
+        try:
+            interrupts._on_sigint(signal.SIGINT, None)
+        except KeyboardInterrupt:
+            print("KeyboardInterrupt", "ibl_ref.atomic" in sys.modules)
+        finally:
+            sys.modules["pathlib"] = real
+    """)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0 and p.stdout.split() == ["KeyboardInterrupt", "False"], (p.stdout, p.stderr)
 
 
 def test_ctrl_c_stops_forked_workers(tmp_path, monkeypatch):

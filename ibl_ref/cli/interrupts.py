@@ -33,6 +33,7 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import sys
 import threading
 
 __all__ = ["handling", "interrupted", "in_import"]
@@ -83,11 +84,17 @@ def _stop_children() -> None:
                 child.terminate()
 
 
-def _on_sigint(signum, frame) -> None:
-    from .. import atomic
+def _in_critical_section() -> bool:
+    """:func:`ibl_ref.atomic.in_critical_section`, without importing anything: the handler may run in the middle of
+    an import (e.g. of ``pathlib``, which :mod:`ibl_ref.atomic` imports), where a nested import of a half-initialised
+    module fails; before :mod:`ibl_ref.atomic` is imported no critical section can be open."""
+    atomic = sys.modules.get("ibl_ref.atomic")
+    return atomic is not None and atomic.in_critical_section()
 
+
+def _on_sigint(signum, frame) -> None:
     _STATE["received"] = True
-    if in_import(frame) or atomic.in_critical_section():
+    if in_import(frame) or _in_critical_section():
         if not _STATE["pending"]:
             _STATE["pending"] = True
             _later(_RETRY_S)
