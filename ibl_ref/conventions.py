@@ -20,7 +20,7 @@ import numpy as np
 
 from .errors import IBLError
 
-__all__ = ["phong_exponent", "lobe_half_angle", "ggx_alpha"]
+__all__ = ["phong_exponent", "lobe_half_angle", "ggx_alpha", "GGX_ROUGHNESS_MIN"]
 
 
 def phong_exponent(g):
@@ -53,6 +53,12 @@ def lobe_half_angle(s) -> np.ndarray:
     return np.arccos(np.power(2.0, -1.0 / s))
 
 
+#: smallest GGX roughness accepted (α = 2^-20, α² = 2^-40): the peak of D = α²/(π((n·h)²(α²−1)+1)²) has the
+#: bracket α², formed from (n·h)² whose float64 rounding near 1 is 2^-53, so its relative rounding is 2^-53/α²
+#: (2^-13 ≈ 1.2e-4 at the floor); below α² = 2^-53 it rounds to 0 and D is α²/0
+GGX_ROUGHNESS_MIN = 2.0 ** -10
+
+
 def ggx_alpha(roughness):
     """GGX width ``α = roughness²`` (Karis 2013; the one place this convention is defined).
 
@@ -63,13 +69,20 @@ def ggx_alpha(roughness):
     Raises
     ------
     IBLError
-        If any roughness is NaN, infinite or outside (0, 1].
+        If any roughness is not a number, NaN, or outside [:data:`GGX_ROUGHNESS_MIN`, 1].
     """
-    r = np.asarray(roughness, dtype=np.float64)
+    try:
+        r = np.asarray(roughness, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise IBLError(f"GGX roughness must be a number in (0, 1], got {roughness!r}") from None
     if r.size == 0:
         raise IBLError("roughness is empty; roughness must be in (0, 1]")
     bad = ~np.isfinite(r) | (r <= 0) | (r > 1)
     if np.any(bad):
         raise IBLError(f"GGX roughness must be in (0, 1] (0 would be a perfect mirror), got {r[bad].ravel()[0]!r}")
+    if np.any(r < GGX_ROUGHNESS_MIN):
+        raise IBLError(f"GGX roughness {r[r < GGX_ROUGHNESS_MIN].ravel()[0]!r} is below the floor "
+                       f"{GGX_ROUGHNESS_MIN:.4g} (2^-10): float64 cannot resolve the peak of D below alpha^2 = 2^-40 "
+                       "(conventions.GGX_ROUGHNESS_MIN); use the mirror (Phong g = 1) for a perfect mirror")
     a = r * r
     return float(a) if a.ndim == 0 else a
