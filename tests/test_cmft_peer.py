@@ -129,3 +129,91 @@ def test_cmft_maps_against_the_exact_lobe_average(cmft):
     with pytest.raises(IBLError) as exc:
         build_prefilter(cube, "cmft", exponents=[12], binary=cmft)
     assert "2^K" in _one_line(exc)
+
+
+# ---- a peer that misbehaves: stand-in programs (Python scripts) in the place of cmft -----------------------------
+_FAKE = """#!{python}
+import sys, time
+import numpy as np
+a = sys.argv
+inp, base = a[a.index("--input") + 1], a[a.index("--output0") + 1]
+mode = {mode!r}
+if mode == "hang":
+    time.sleep(3600)
+raw = open(inp, "rb").read()
+head, data = raw[:128], np.frombuffer(raw[128:], dtype="<f4").copy()
+if mode == "nan":
+    data[5] = np.nan
+elif mode == "black":
+    data[:] = 0.0
+open(base + ".dds", "wb").write(head + data.tobytes())
+"""
+
+
+def _fake_cmft(tmp_path, mode):
+    import sys
+
+    exe = tmp_path / f"cmft_{mode}"
+    exe.write_text(_FAKE.format(python=sys.executable, mode=mode))
+    exe.chmod(0o755)
+    return exe
+
+
+def test_a_peer_that_hangs_is_stopped_at_the_timeout_naming_the_binary(tmp_path, monkeypatch):
+    exe = _fake_cmft(tmp_path, "hang")
+    monkeypatch.setenv(cp.TIMEOUT_ENV_VAR, "0.5")
+    with pytest.raises(cp.CmftUnavailable) as e:
+        cp.run_cmft(se.env_constant(4), [4], binary=exe)
+    msg = _one_line(e)
+    assert str(exe) in msg and "0.5 s" in msg and cp.TIMEOUT_ENV_VAR in msg
+    monkeypatch.delenv(cp.TIMEOUT_ENV_VAR)
+    with pytest.raises(cp.CmftUnavailable, match="within 0.25 s"):  # the argument wins over the default
+        build_prefilter(se.env_constant(4), "cmft", exponents=[4], binary=exe, timeout=0.25, verify=False)
+
+
+@pytest.mark.parametrize("bad", [0, -1, float("nan"), float("inf"), "abc", True, "1e400"])
+def test_timeout_values_are_checked(bad, monkeypatch):
+    with pytest.raises(IBLError) as e:
+        cp.cmft_timeout(bad)
+    assert "timeout" in _one_line(e)
+    if isinstance(bad, str):
+        monkeypatch.setenv(cp.TIMEOUT_ENV_VAR, bad)
+        with pytest.raises(IBLError) as e:
+            cp.cmft_timeout()
+        assert cp.TIMEOUT_ENV_VAR in _one_line(e)
+    monkeypatch.delenv(cp.TIMEOUT_ENV_VAR, raising=False)
+    assert cp.cmft_timeout() == cp.DEFAULT_TIMEOUT_S and cp.cmft_timeout(2) == 2.0
+
+
+@pytest.mark.parametrize("mode, words", [("nan", "NaN/Inf"), ("black", "black map")])
+def test_nan_or_black_output_is_refused_as_the_programs(tmp_path, mode, words):
+    exe = _fake_cmft(tmp_path, mode)
+    with pytest.raises(cp.CmftUnavailable) as e:
+        cp.run_cmft(se.env_constant(4), [4], binary=exe)
+    msg = _one_line(e)
+    assert words in msg and str(exe) in msg and "convention" not in msg
+
+
+def test_a_peer_that_returns_its_input_unfiltered_fails_the_face_check(tmp_path):
+    exe = _fake_cmft(tmp_path, "copy")
+    res = cp.check_face_mapping(exe)
+    # the pattern itself is 14 % off its s = 16 lobe average (module docstring): far outside the check's 5 %
+    assert res["max_rel_error_unfiltered"] > 2 * cp.FACE_CHECK_RTOL
+    assert res["max_rel_error"] == pytest.approx(res["max_rel_error_unfiltered"], rel=1e-5)
+    with pytest.raises(cp.CmftUnavailable) as e:
+        build_prefilter(cp.face_check_pattern(8), "cmft", exponents=[4], binary=exe)
+    assert "unfiltered" in _one_line(e) and "convention" not in str(e.value)
+
+
+def test_the_face_check_pattern_is_far_from_its_own_lobe_average():
+    # what makes the check refuse an unfiltered map, without running any program
+    pat = cp.face_check_pattern(16)
+    ref = lobe_average(pat, envmap.texel_directions(16), cp.FACE_CHECK_S)
+    assert np.max(np.abs(pat - ref) / ref) > 2 * cp.FACE_CHECK_RTOL
+
+
+@pytest.mark.parametrize("s", ["abc", float("inf"), float("nan"), True, 0.5])
+def test_bad_exponents_are_one_line_errors(s):
+    with pytest.raises(IBLError) as e:
+        cp.cmft_command("cmft", "in.dds", "out", s)
+    assert "2^K" in _one_line(e)

@@ -28,10 +28,15 @@ Per exponent s_k (default: s = 1, 4, 16, … while the lobe still spans a texel,
 The maps are stacked over the input (the mirror) as the ``km00-lobes`` and ``kan2015`` prefilters are
 (:func:`~ibl_ref.prefilter.level_chain.exponent_stack`): the look-up is seam-aware bilinear in direction and linear
 in log s between stored exponents.  The face mapping is checked once per binary (``verify=True``,
-:func:`check_face_mapping`): cmft's map of a smooth, strongly asymmetric pattern at s = 64 on 16² faces must be
-within 5 % of the lab's exact lobe average (a face in the wrong orientation gives errors of order 1 there; cmft's
-own truncation error on a smooth pattern is far below 5 %).  Radiance is stored as float32 in the files, so the
-look-up carries a relative rounding of ≈ 6e-8.  No error bound.
+:func:`check_face_mapping`): cmft's map of a smooth, strongly asymmetric pattern at s = 16 on 16² faces must be
+within 5 % of the lab's exact lobe average (a face in the wrong orientation gives errors of order 1 there; the
+released cmft is 0.97 % off; the unfiltered pattern itself is 14 % off, so a program that returns its input
+unfiltered fails too).  Radiance is stored as float32 in the files, so the look-up carries a relative rounding of
+≈ 6e-8.  No error bound.
+
+**What comes back is checked** (:func:`run_cmft`): every map must be finite and non-negative, and not black where
+the input is not (one line naming the binary and the exponent); a run longer than the timeout (``timeout=``,
+``$IBL_REF_CMFT_TIMEOUT`` or :data:`DEFAULT_TIMEOUT_S`) is stopped and reported, naming the binary.
 """
 
 from __future__ import annotations
@@ -51,12 +56,19 @@ from ..errors import IBLError
 from .level_chain import LevelChainPrefilter, check_exponents, exponent_stack
 
 __all__ = ["CmftUnavailable", "CmftRadiance", "cmft_binary", "cmft_command", "run_cmft", "write_dds_cube",
-           "read_dds_cube", "check_face_mapping", "ENV_VAR", "FACE_CHECK_RTOL"]
+           "read_dds_cube", "check_face_mapping", "cmft_timeout", "ENV_VAR", "TIMEOUT_ENV_VAR", "DEFAULT_TIMEOUT_S",
+           "FACE_CHECK_RTOL", "FACE_CHECK_S"]
 
 #: environment variable naming the cmft binary
 ENV_VAR = "IBL_REF_CMFT"
+#: environment variable bounding one run of cmft (seconds; :func:`cmft_timeout`)
+TIMEOUT_ENV_VAR = "IBL_REF_CMFT_TIMEOUT"
+#: default bound of one run of cmft (s): far above a 1024² run of the released build (≈ 10 s, README's peer bench)
+DEFAULT_TIMEOUT_S = 600.0
 #: largest relative error of cmft against the exact lobe average on the face-mapping pattern (module docstring)
 FACE_CHECK_RTOL = 0.05
+#: exponent of the face-mapping check: wide enough that the unfiltered pattern is 14 % off (module docstring)
+FACE_CHECK_S = 16.0
 
 # DDS layout: "DDS " + a 124-byte DDS_HEADER (+ a 20-byte DDS_HEADER_DXT10 when the FourCC is "DX10")
 _DDSD_FLAGS = 0x1 | 0x2 | 0x4 | 0x8 | 0x1000  # CAPS | HEIGHT | WIDTH | PITCH | PIXELFORMAT
@@ -68,7 +80,8 @@ _CAPS2_CUBEMAP_ALL_FACES = 0x200 | 0x400 | 0x800 | 0x1000 | 0x2000 | 0x4000 | 0x
 
 
 class CmftUnavailable(IBLError):
-    """The cmft binary is not given or cannot be run."""
+    """The cmft binary is not given or cannot be run, or what it returned is refused (a timeout, a failed run,
+    NaN / negative / black maps, a failed face-mapping check): the peer is not available for a comparison."""
 
 
 def cmft_binary(binary=None) -> Path:
@@ -139,7 +152,11 @@ def read_dds_cube(path) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 def _gloss_scale(s) -> int:
     """log2 s for an exponent s = 2^K (K ≥ 0 integer), else a one-line IBLError."""
-    k = math.log2(float(s)) if s >= 1 else -1.0
+    try:
+        v = float(s) if not isinstance(s, bool) else float("nan")
+    except (TypeError, ValueError):
+        v = float("nan")
+    k = math.log2(v) if math.isfinite(v) and v >= 1 else -1.0
     if k < 0 or abs(k - round(k)) > 1e-12:
         raise IBLError(f"cmft filters only Phong exponents s = 2^K (K = 0, 1, 2, …), got {s!r}")
     return int(round(k))
@@ -160,14 +177,53 @@ def _check_threads(threads) -> int:
     return int(threads)
 
 
-def run_cmft(cube, exponents, *, binary=None, threads: int = 2, timeout: float = 600.0) -> list:
+def cmft_timeout(timeout=None) -> float:
+    """Seconds one run of cmft may take: ``timeout``, else ``$IBL_REF_CMFT_TIMEOUT``, else :data:`DEFAULT_TIMEOUT_S`;
+    a finite number > 0, or a one-line :class:`IBLError` naming where the value came from."""
+    where, value = "timeout", timeout
+    if timeout is None:
+        where, value = f"${TIMEOUT_ENV_VAR}", os.environ.get(TIMEOUT_ENV_VAR, "")
+        if value.strip() == "":
+            return DEFAULT_TIMEOUT_S
+    if isinstance(value, bool):
+        value = None  # True is not a number of seconds
+    try:
+        t = float(value)
+    except (TypeError, ValueError):
+        t = float("nan")
+    if not (math.isfinite(t) and t > 0):
+        raise IBLError(f"{where}: the cmft timeout must be a finite number of seconds > 0, got {value!r}")
+    return t
+
+
+def _check_map(got, exe, s, a) -> None:
+    """One map read back from cmft: finite, non-negative, and not black where the input is not (one line naming the
+    binary: NaN, Inf or black output is the program's, not a matter of the cube convention)."""
+    bad = ~np.isfinite(got)
+    if bad.any():
+        raise CmftUnavailable(f"cmft {str(exe)!r} wrote {int(bad.sum())} NaN/Inf value(s) at s = {s:g} (a broken "
+                              "build or a wrong binary; the lab refuses its map)")
+    if np.min(got) < 0:
+        raise CmftUnavailable(f"cmft {str(exe)!r} wrote negative radiance (down to {float(np.min(got)):g}) at "
+                              f"s = {s:g}; the lab refuses its map")
+    if np.max(got) == 0 and np.max(a) > 0:
+        raise CmftUnavailable(f"cmft {str(exe)!r} wrote a black map at s = {s:g} from a non-black input; the lab "
+                              "refuses it")
+
+
+def run_cmft(cube, exponents, *, binary=None, threads: int = 2, timeout: float | None = None) -> list:
     """cmft's radiance maps of ``cube`` (6, N, N, C; lab convention) at ``exponents`` (each 2^K), read back from its
-    DDS outputs: a list of (6, N, N, 3) float64 in the lab convention (module docstring, steps 1–3)."""
+    DDS outputs: a list of (6, N, N, 3) float64 in the lab convention (module docstring, steps 1–3).
+
+    ``timeout``: seconds per run of the program (:func:`cmft_timeout`: default ``$IBL_REF_CMFT_TIMEOUT`` or
+    :data:`DEFAULT_TIMEOUT_S`).  Every map read back is checked (finite, ≥ 0, not black for a non-black input).
+    """
     from ..groundtruth.convolution_args import check_cube
 
     a, _ = check_cube(cube)
     if a.shape[3] not in (1, 3):
         raise IBLError(f"cmft takes 1 or 3 channels, got {a.shape[3]}")
+    timeout = cmft_timeout(timeout)
     exe = cmft_binary(binary)
     threads = _check_threads(threads)
     for s in exponents:
@@ -180,18 +236,25 @@ def run_cmft(cube, exponents, *, binary=None, threads: int = 2, timeout: float =
             base = tmp / f"out{k}"
             cmd = cmft_command(exe, tmp / "in.dds", base, s, threads)
             try:
-                res = subprocess.run(cmd, capture_output=True, text=True, timeout=float(timeout), cwd=tmp)
+                res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=tmp)
             except subprocess.TimeoutExpired:
-                raise IBLError(f"cmft did not finish within {timeout:g} s (s = {s:g}, face {a.shape[1]})") from None
+                raise CmftUnavailable(f"cmft {str(exe)!r} did not finish within {timeout:g} s (s = {s:g}, face "
+                                      f"{a.shape[1]}); stopped (a longer bound: timeout= or "
+                                      f"${TIMEOUT_ENV_VAR})") from None
             except OSError as exc:
                 raise CmftUnavailable(f"cannot run cmft {str(exe)!r}: {exc.strerror or exc}") from None
             dds = base.with_suffix(".dds")
             if res.returncode != 0 or not dds.is_file():
                 last = (res.stderr or res.stdout or "").strip().splitlines()
-                raise IBLError(f"cmft failed (exit {res.returncode}, s = {s:g}): {last[-1] if last else 'no output'}")
-            got = read_dds_cube(dds)
+                raise CmftUnavailable(f"cmft {str(exe)!r} failed (exit {res.returncode}, s = {s:g}): "
+                                      f"{last[-1] if last else 'no output'}")
+            try:
+                got = read_dds_cube(dds)
+            except IBLError as exc:
+                raise CmftUnavailable(f"cmft {str(exe)!r} wrote an unreadable map at s = {s:g}: {exc}") from None
             if got.shape[1] != a.shape[1]:
-                raise IBLError(f"cmft wrote faces of {got.shape[1]}², expected {a.shape[1]}²")
+                raise CmftUnavailable(f"cmft {str(exe)!r} wrote faces of {got.shape[1]}², expected {a.shape[1]}²")
+            _check_map(got, exe, s, a)
             got = envmap.convert_convention(got, "opengl", "openexr")
             out.append(got if a.shape[3] == 3 else got[..., :1])
     return out
@@ -206,26 +269,38 @@ def face_check_pattern(n: int = 16) -> np.ndarray:
     return base[..., None] * np.array([1.0, 0.5, 0.25])
 
 
-def check_face_mapping(binary=None, *, n: int = 16, s: float = 64.0, threads: int = 2) -> dict:
+def check_face_mapping(binary=None, *, n: int = 16, s: float = FACE_CHECK_S, threads: int = 2,
+                       timeout: float | None = None) -> dict:
     """cmft's map of :func:`face_check_pattern` at ``s`` against the lab's exact lobe average, read back with and
-    without the convention change: ``{"max_rel_error", "max_rel_error_unconverted"}`` (the first must be below
-    :data:`FACE_CHECK_RTOL`, the second far above it)."""
+    without the convention change, and the unfiltered pattern's own distance to it: ``{"max_rel_error",
+    "max_rel_error_unconverted", "max_rel_error_unfiltered", "max_rel_change"}`` (the first must be below
+    :data:`FACE_CHECK_RTOL`, the next two far above it; the last is the map's change from the pattern)."""
     from ..groundtruth.phong_convolution import lobe_average
 
     pat = face_check_pattern(n)
-    got = run_cmft(pat, [s], binary=binary, threads=threads)[0]
+    got = run_cmft(pat, [s], binary=binary, threads=threads, timeout=timeout)[0]
     ref = lobe_average(pat, envmap.texel_directions(n), s)
     raw = envmap.convert_convention(got, "openexr", "opengl")  # what a reader without the re-orientation gets
     return {"max_rel_error": float(np.max(np.abs(got - ref) / ref)),
-            "max_rel_error_unconverted": float(np.max(np.abs(raw - ref) / ref))}
+            "max_rel_error_unconverted": float(np.max(np.abs(raw - ref) / ref)),
+            "max_rel_error_unfiltered": float(np.max(np.abs(pat - ref) / ref)),
+            "max_rel_change": float(np.max(np.abs(got - pat) / pat))}
 
 
 @functools.lru_cache(maxsize=8)
-def _verified(path: str, mtime: float) -> float:
-    err = check_face_mapping(path)["max_rel_error"]
+def _verified(path: str, mtime: float, timeout: float) -> float:
+    res = check_face_mapping(path, timeout=timeout)
+    err = res["max_rel_error"]
     if not err < FACE_CHECK_RTOL:
-        raise IBLError(f"cmft {path!r}: its map of the face-mapping pattern is {100 * err:.1f} % off the exact lobe "
-                       f"average (> {100 * FACE_CHECK_RTOL:g} %): the cube convention does not match")
+        if res["max_rel_change"] < 1e-3:  # float32 files: an unfiltered input comes back to ≈ 6e-8
+            why = "it returned its input unfiltered"
+        elif res["max_rel_error_unconverted"] < err:
+            why = "the cube convention does not match"
+        else:
+            why = "its filter is not the Phong lobe average the lab compares against"
+        raise CmftUnavailable(f"cmft {path!r}: its map of the face-mapping pattern at s = {FACE_CHECK_S:g} is "
+                              f"{100 * err:.1f} % off the exact lobe average (> {100 * FACE_CHECK_RTOL:g} %): {why}; "
+                              "the lab refuses it")
     return err
 
 
@@ -233,15 +308,16 @@ class CmftRadiance(LevelChainPrefilter):
     """cmft's released radiance prefilter (Phong lobe, s = 2^K) run as a program, blended in log s between maps.
 
     Parameters: ``exponents`` (powers of two ≥ 1; default s = 1, 4, 16, …), ``binary`` (default
-    ``$IBL_REF_CMFT``), ``threads`` (cmft worker threads), ``timeout`` (s per run), ``verify`` (check the face
-    mapping once per binary, :func:`check_face_mapping`).
+    ``$IBL_REF_CMFT``), ``threads`` (cmft worker threads), ``timeout`` (s per run; default
+    ``$IBL_REF_CMFT_TIMEOUT`` or :data:`DEFAULT_TIMEOUT_S`), ``verify`` (check the face mapping once per binary,
+    :func:`check_face_mapping`).
     """
 
     lobe = "phong"
     paper = ("cmft (Manesku, github.com/dariomanesku/cmft): radiance filter, Phong lighting model, "
              "sum of L·Ω·(r·ω)^s / sum of Ω·(r·ω)^s over source texels, s = 2^K (an outside peer)")
 
-    def __init__(self, cube, *, exponents=None, binary=None, threads: int = 2, timeout: float = 600.0,
+    def __init__(self, cube, *, exponents=None, binary=None, threads: int = 2, timeout: float | None = None,
                  verify: bool = True):
         from ..groundtruth.convolution_args import check_cube
 
@@ -249,8 +325,9 @@ class CmftRadiance(LevelChainPrefilter):
         self.exponents = check_exponents(exponents, a.shape[1])
         for s in self.exponents:
             _gloss_scale(s)
+        timeout = cmft_timeout(timeout)
         exe = cmft_binary(binary)
         self.binary = str(exe)
-        self.face_check_error = _verified(self.binary, exe.stat().st_mtime) if verify else None
+        self.face_check_error = _verified(self.binary, exe.stat().st_mtime, timeout) if verify else None
         maps = run_cmft(a, self.exponents, binary=exe, threads=threads, timeout=timeout)
         self.pyramid, self.calibration = exponent_stack(a, self.exponents, maps, "cmft")
