@@ -1,0 +1,747 @@
+"""Write the result pages of the documentation site from the saved run data.
+
+Every measured number of the site lives in a data file under ``tests/data/readme_runs/<name>/`` (CSV with units in
+the column names, and ``run.json``: the command, commit, date, load and wall time of the run that wrote them, and
+``source`` where the numbers were transcribed from an earlier README).  This script renders each folder into
+``docs/results/<name>.md`` through the template ``docs/page_templates/<name>.md``: tables are rendered from the
+CSV files, numbers in the prose are ``{{key}}`` placeholders computed here from the data, and the provenance section
+comes from ``run.json``.  So prose and numbers cannot drift apart: ``tests/test_docs_pages.py`` regenerates every
+page and compares it with the committed file byte for byte, and pins the numbers to the data.
+
+Usage::
+
+    python docs/make_results.py            # rewrite docs/results/*.md and docs/concepts.md
+    python docs/make_results.py --check    # exit 1 (naming the files) if a committed page differs
+
+Standard library only (csv, json), so it runs without the package installed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import re
+import statistics
+import sys
+from pathlib import Path
+
+DOCS = Path(__file__).resolve().parent
+ROOT = DOCS.parent
+DATA = ROOT / "tests" / "data" / "readme_runs"
+TEMPLATES = DOCS / "page_templates"
+RESULTS = DOCS / "results"
+CONCEPTS_CSV = DOCS / "concepts.csv"
+MIB = 1024.0 * 1024.0
+
+
+# ---- reading ----------------------------------------------------------------------------------------------------
+def read_csv(path: Path) -> list[dict]:
+    """The rows of a CSV file as dicts (``#`` comment lines skipped, as ``ibl_ref.atomic.read_csv`` reads them)."""
+    with open(path, newline="", encoding="utf-8") as fh:
+        return list(csv.DictReader(ln for ln in fh if not ln.startswith("#")))
+
+
+def read_json(path: Path):
+    return json.loads(Path(path).read_text(encoding="utf-8"))
+
+
+# ---- formatting -------------------------------------------------------------------------------------------------
+def fixed(value: float, decimals: int) -> str:
+    """``value`` with ``decimals`` digits after the point."""
+    return f"{value:.{decimals}f}"
+
+
+def pct(frac: float, decimals: int) -> str:
+    """A fraction as a percentage with ``decimals`` digits (no % sign)."""
+    return fixed(100.0 * frac, decimals)
+
+
+def sci(value: float, digits: int = 2) -> str:
+    """``value`` in the README's scientific style: 5.9e-5 (``digits`` significant digits, no exponent padding)."""
+    mantissa, exponent = f"{value:.{digits - 1}e}".split("e")
+    return f"{mantissa}e{int(exponent)}"
+
+
+def duration(seconds: float) -> str:
+    """Whole seconds as '2 min 4 s' (or '58 s')."""
+    m, s = divmod(int(round(seconds)), 60)
+    return f"{m} min {s} s" if m else f"{s} s"
+
+
+def signed(text: str) -> str:
+    """A signed number as printed: '+0.008', '−0.003' (typographic minus)."""
+    return ("−" + text[1:]) if text.startswith("-") else (text if text.startswith("+") else "+" + text)
+
+
+def opt(text: str, decimals: int) -> str:
+    """A CSV cell with ``decimals`` digits, or '—' where the run left it empty."""
+    return fixed(float(text), decimals) if text else "—"
+
+
+def md_table(header: list[str], rows: list[list[str]]) -> str:
+    """A markdown table."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for r in rows:
+        assert len(r) == len(header), (header, r)
+        lines.append("| " + " | ".join(str(c) for c in r) + " |")
+    return "\n".join(lines)
+
+
+# ---- pages ------------------------------------------------------------------------------------------------------
+PAGES: dict[str, object] = {}
+
+
+def page(name: str):
+    """Register the function that computes the placeholders of page ``name`` from its data folder."""
+
+    def deco(fn):
+        PAGES[name] = fn
+        return fn
+
+    return deco
+
+
+_NUMBERS: dict[str, object] = {}
+
+
+def numbers(name: str):
+    """Register the function that computes the named numbers of data folder ``name`` (used by its page and by the
+    claims table)."""
+
+    def deco(fn):
+        _NUMBERS[name] = fn
+        return fn
+
+    return deco
+
+
+def run_numbers(name: str) -> dict[str, str]:
+    return _NUMBERS[name](DATA / name)
+
+
+# ---- render-error ------------------------------------------------------------------------------------------------
+def render_error_rows(folder: Path) -> dict[str, dict]:
+    """The 96-light, 256² VSM rows of render_error.csv by material."""
+    rows = read_csv(folder / "render_error.csv")
+    return {q["material"]: q for q in rows if q["lights"] == "96" and q["vsm_resolution"] == "256"}
+
+
+@numbers("render-error")
+def render_error_numbers(folder: Path) -> dict[str, str]:
+    data = render_error_rows(folder)
+    out = {}
+    for mat in ("diffuse", "g0.9", "g0.99"):
+        out[f"ours_{mat}"] = pct(float(data[mat]["rel_l1_ours"]), 1)
+        out[f"lookup_{mat}"] = pct(float(data[mat]["rel_l1_lookup_unoccluded"]), 1)
+        out[f"chain_{mat}"] = pct(float(data[mat]["rel_l1_chain"]), 2 if mat == "diffuse" else 1)
+    out["chain_MiB"] = fixed(float(data["diffuse"]["chain_MiB"]), 0)
+    out["pem_MiB"] = fixed(float(data["diffuse"]["pem_MiB"]), 0)
+    return out
+
+
+@page("render-error")
+def render_error_page(folder: Path) -> dict[str, str]:
+    rows = read_csv(folder / "render_error.csv")
+    table = md_table(
+        ["material", "lights", "VSM", "Eq. 5 (pyramid) rel. L1", "pyramid look-up alone", "Eq. 5 with the exact-lobe chain",
+         "chain look-up alone", "PEMs (MiB)", "chain (MiB)"],
+        [[q["material"], q["lights"], q["vsm_resolution"] + "²", pct(float(q["rel_l1_ours"]), 1) + " %",
+          pct(float(q["rel_l1_lookup_unoccluded"]), 1) + " %", pct(float(q["rel_l1_chain"]), 2) + " %",
+          pct(float(q["rel_l1_chain_lookup_unoccluded"]), 2) + " %", fixed(float(q["pem_MiB"]), 1),
+          fixed(float(q["chain_MiB"]), 1)] for q in rows])
+    return {**render_error_numbers(folder), "claims_row": claims_text("render-error"), "table": table}
+
+
+# ---- lobe-chain --------------------------------------------------------------------------------------------------
+def lobe_chain_rows(folder: Path) -> dict[tuple, list[dict]]:
+    out: dict[tuple, list[dict]] = {}
+    for q in read_csv(folder / "lobe_chain.csv"):
+        out.setdefault((q["env"], q["prefilter"]), []).append(q)
+    return out
+
+
+@numbers("lobe-chain")
+def lobe_chain_numbers(folder: Path) -> dict[str, str]:
+    data = lobe_chain_rows(folder)
+
+    def col(env, pf, name="rel_l1"):
+        return [100 * float(q[name]) for q in data[(env, pf)]]
+
+    out = {}
+    for env in ("sky_sun", "studio"):
+        v = col(env, "pyramid-sqrtcos")
+        out[f"pyramid_min_{env}"], out[f"pyramid_max_{env}"] = fixed(min(v), 0), fixed(max(v), 0)
+        best = col(env, "pyramid-sqrtcos", "rel_l1_best_level")
+        out[f"best_s1_{env}"] = fixed(best[0], 1)
+        out[f"best_min_{env}"] = fixed(min(best), 1)
+        for pf, key in (("chain-f2", "f2"), ("chain-f1.41", "f141")):
+            out[f"chain_{key}_max_{env}"] = fixed(max(col(env, pf)), 1)
+    v = col("sky_sun", "pyramid-sqrtcos-solid-angle")
+    out["solid_angle_min"], out["solid_angle_max"] = fixed(min(v), 0), fixed(max(v), 0)
+    pyr = float(data[("sky_sun", "pyramid-sqrtcos")][0]["memory_MiB"])
+    for pf, key in (("chain-f2", "f2"), ("chain-f1.41", "f141")):
+        out[f"memory_ratio_{key}"] = fixed(float(data[("sky_sun", pf)][0]["memory_MiB"]) / pyr, 1)
+    return out
+
+
+@page("lobe-chain")
+def lobe_chain_page(folder: Path) -> dict[str, str]:
+    rows = []
+    for (env, pf), qs in lobe_chain_rows(folder).items():
+        rel = [100 * float(q["rel_l1"]) for q in qs]
+        best = [100 * float(q["rel_l1_best_level"]) for q in qs]
+        rows.append([env, pf, str(len(qs)), f"{fixed(float(qs[0]['s_phong']), 0)} … {fixed(float(qs[-1]['s_phong']), 0)}",
+                     f"{fixed(min(rel), 1)} … {fixed(max(rel), 1)} %", f"{fixed(min(best), 1)} … {fixed(max(best), 1)} %",
+                     fixed(float(qs[0]["memory_MiB"]), 2)])
+    table = md_table(["env", "prefilter", "exponents", "s", "rel. L1 (min … max over s)",
+                      "best constant level (min … max)", "memory (MiB)"], rows)
+    return {**lobe_chain_numbers(folder), "claims_row": claims_text("lobe-chain"), "table": table}
+
+
+# ---- speed-accuracy ----------------------------------------------------------------------------------------------
+@numbers("speed-accuracy")
+def speed_accuracy_numbers(folder: Path) -> dict[str, str]:
+    rows = read_csv(folder / "speed_accuracy.csv")
+    out = {}
+    for n in (32, 64, 128):
+        auto = [q for q in rows if q["method"] == "auto" and int(q["face_size_texels"]) == n]
+        worst = max(auto, key=lambda q: float(q["rel_err_max"]))
+        out[f"worst_{n}"] = sci(float(worst["rel_err_max"]))
+        out[f"worst_s_{n}"] = fixed(float(worst["s_phong"]), 0)
+        out[f"worst_route_{n}"] = worst["method_used"]
+        out[f"reference_texels_{n}"] = worst["n_reference_texels"]
+    out["bound_violations"] = str(sum(int(q["bound_violations"]) for q in rows))
+    return out
+
+
+@page("speed-accuracy")
+def speed_accuracy_page(folder: Path) -> dict[str, str]:
+    rows = read_csv(folder / "speed_accuracy.csv")
+    body = [[q["face_size_texels"] + "²", q["method"], fixed(float(q["s_phong"]), 0), q["method_used"], q["kernel"],
+             sci(float(q["rel_err_max"])) if q["rel_err_max"] else "—",
+             sci(float(q["rel_bound_max"])) if q.get("rel_bound_max") else "—", q["bound_violations"]]
+            for q in rows]
+    table = md_table(["face", "method", "s", "route", "kernel", "max rel. error", "largest bound", "texels above the bound"],
+                     body)
+    return {**speed_accuracy_numbers(folder), "claims_row": claims_text("speed-accuracy"), "table": table}
+
+
+# ---- km00-render -------------------------------------------------------------------------------------------------
+@numbers("km00-render")
+def km00_render_numbers(folder: Path) -> dict[str, str]:
+    q = {r["method"]: r for r in read_csv(folder / "km00_render_metrics.csv")}
+
+    def p(method, col="rel_l1", d=1):
+        return pct(float(q[method][col]), d)
+
+    conv = {(r["k_multiplier_from"], r["k_multiplier_to"]): r
+            for r in read_csv(folder / "km00_render_reference_convergence.csv")}
+    return {"single": p("single", d=2), "single2d": p("single2d"), "lobes3": p("lobes3"),
+            "lobes3_unfitted": pct(-float(q["lobes3"]["rel_bias_constant_env"]), 0),
+            "rescaled": p("lobes3_rescaled", d=2), "rescaled_median": p("lobes3_rescaled", "rel_err_median", 2),
+            "single_median": p("single", "rel_err_median", 2), "pyramid3": p("pyramid3"), "pyramid1": p("pyramid1"),
+            "reference_convergence": sci(float(conv[("2", "4")]["rel_l1"]))}
+
+
+@page("km00-render")
+def km00_render_page(folder: Path) -> dict[str, str]:
+    rows = read_csv(folder / "km00_render_metrics.csv")
+    table = md_table(["method", "rel. L1", "median pixel error", "95th percentile", "rel. L1 under L ≡ 1",
+                      "bias under L ≡ 1", "time (s)"],
+                     [[q["method"], pct(float(q["rel_l1"]), 2) + " %", pct(float(q["rel_err_median"]), 2) + " %",
+                       pct(float(q["rel_err_p95"]), 2) + " %", pct(float(q["rel_l1_constant_env"]), 2) + " %",
+                       pct(float(q["rel_bias_constant_env"]), 2) + " %", fixed(float(q["time_s"]), 1)] for q in rows])
+    conv = md_table(["supersampling from", "to", "rel. L1", "rel. L1 (θo ≤ 80°)"],
+                    [["×" + q["k_multiplier_from"], "×" + q["k_multiplier_to"], sci(float(q["rel_l1"])),
+                      sci(float(q["rel_l1_in_range"]))]
+                     for q in read_csv(folder / "km00_render_reference_convergence.csv")])
+    return {**km00_render_numbers(folder), "claims_row": claims_text("km00-render"), "table": table,
+            "convergence_table": conv}
+
+
+# ---- fig8 (sparse PEMs) ------------------------------------------------------------------------------------------
+@numbers("fig8")
+def fig8_numbers(folder: Path) -> dict[str, str]:
+    rows = [q for q in read_csv(folder / "fig8_sparse.csv") if q["env"] == "sky_sun"]
+    ratio = {(int(q["face_size"]), int(q["regions"])): float(q["ratio_lossless"]) for q in rows}
+    return {f"ratio_{n}_{r}": fixed(ratio[(n, r)], 1) for n in (128, 256) for r in (12, 96)}
+
+
+@page("fig8")
+def fig8_page(folder: Path) -> dict[str, str]:
+    rows = read_csv(folder / "fig8_sparse.csv")
+    table = md_table(["env", "face", "regions", "dense (MiB)", "sparse lossless (MiB)", "lossless ×", "rtol 1e-6 ×",
+                      "scene's levels only ×", "tiles"],
+                     [[q["env"], q["face_size"] + "²", q["regions"], fixed(float(q["dense_MiB"]), 2),
+                       fixed(float(q["sparse_lossless_MiB"]), 3), fixed(float(q["ratio_lossless"]), 1),
+                       fixed(float(q["ratio_rtol1e-6"]), 1), fixed(float(q["ratio_scene_g_levels"]), 1), q["tiles"]]
+                      for q in rows])
+    return {**fig8_numbers(folder), "claims_row": claims_text("fig8"), "table": table}
+
+
+# ---- cosine-lobes ------------------------------------------------------------------------------------------------
+@numbers("cosine-lobes")
+def cosine_lobes_numbers(folder: Path) -> dict[str, str]:
+    pf = read_json(folder / "summary.json")["product_fit"]
+    return {"product_fit_mean": sci(pf["abs_err_sr"]["mean"]), "paper_mean": sci(pf["paper_mean_abs_err"]),
+            "paper_variance": sci(pf["paper_variance_abs_err"])}
+
+
+@page("cosine-lobes")
+def cosine_lobes_page(folder: Path) -> dict[str, str]:
+    pf = read_json(folder / "summary.json")["product_fit"]
+    rows = [["mean", sci(pf["abs_err_sr"]["mean"]), sci(pf["paper_mean_abs_err"])],
+            ["variance", sci(pf["abs_err_sr"]["variance"]), sci(pf["paper_variance_abs_err"])],
+            ["median", sci(pf["abs_err_sr"]["median"]), "0"],
+            ["max", sci(pf["abs_err_sr"]["max"]), "—"]]
+    table = md_table(["absolute error of the product fit (sr)", "this run", "Meunier et al. 2009, Sec. 4.1"], rows)
+    return {**cosine_lobes_numbers(folder), "claims_row": claims_text("cosine-lobes"), "table": table,
+            "fits": str(pf["n_fits"]), "per_interval": str(pf["per_interval"])}
+
+
+# ---- kan-table1 --------------------------------------------------------------------------------------------------
+@numbers("kan-table1")
+def kan_table1_numbers(folder: Path) -> dict[str, str]:
+    rows = {int(q["face_size_texels"]): q for q in read_csv(folder / "kan_table1.csv")}
+    out = {}
+    for n in (32, 64, 128, 256):
+        out[f"kan_{n}"] = f"{float(rows[n]['kan2015_time_s']):.3g}"  # the published times, 3 significant digits
+        out[f"auto_{n}"] = fixed(float(rows[n]["time_auto_s"]), 2)
+    bound = max(float(rows[n]["auto_rel_bound_max"]) for n in (32, 64, 128, 256))
+    out["bound_e4"] = fixed(math.ceil(bound * 1e5) / 10, 1)  # rounded up: "every bound ≤ …"
+    out["exact_32"], out["exact_64"] = fixed(float(rows[32]["time_exact_s"]), 2), fixed(float(rows[64]["time_exact_s"]), 2)
+    return out
+
+
+@page("kan-table1")
+def kan_table1_page(folder: Path) -> dict[str, str]:
+    rows = read_csv(folder / "kan_table1.csv")
+    table = md_table(["face", "exponents", "`auto` wall (s)", "`auto` CPU (s)", "exact gather wall (s)",
+                      "largest bound", "routes", "Kán et al. Table 1 (s)"],
+                     [[q["face_size_texels"] + "²", q["n_exponents"], opt(q["time_auto_s"], 2), opt(q["cpu_time_auto_s"], 2),
+                       opt(q["time_exact_s"], 2), sci(float(q["auto_rel_bound_max"])) if q["auto_rel_bound_max"] else "—",
+                       q["auto_methods"] or "—", q["kan2015_time_s"]] for q in rows])
+    return {**kan_table1_numbers(folder), "claims_row": claims_text("kan-table1"), "table": table}
+
+
+# ---- error-budget ------------------------------------------------------------------------------------------------
+def budget_walks(folder: Path, order: str = "default") -> dict[tuple, list[dict]]:
+    """The walks of error_budget.csv in one order, keyed by (env, material, regions), steps in order."""
+    walks: dict[tuple, list[dict]] = {}
+    for q in read_csv(folder / "error_budget.csv"):
+        if q["order"] == order:
+            walks.setdefault((q["env"], q["material"], q["regions"]), []).append(q)
+    return {k: sorted(v, key=lambda q: int(q["step_index"])) for k, v in walks.items()}
+
+
+def _step(walk: list[dict], step: str) -> dict:
+    return next(q for q in walk if q["step"] == step)
+
+
+def _inc_share(q: dict) -> str:
+    return f"{pct(float(q['rel_l1_increment_frac']), 1)} % ({pct(float(q['share_of_increments_frac']), 0)} %)"
+
+
+@numbers("error-budget")
+def error_budget_numbers(folder: Path) -> dict[str, str]:
+    walks = budget_walks(folder)
+    swapped = budget_walks(folder, "swap vsm<->prefilter")
+    out = {}
+
+    def share(case, steps):
+        return 100 * sum(float(q["share_of_increments_frac"]) for q in walks[case] if q["step"] in steps)
+
+    a = [share(("sky_sun", t, r), ("prefilter", "gloss_lookup")) for t in ("diffuse", "g0.9") for r in ("6", "24", "96")]
+    b = [share(("sky_sun", "g0.99", r), ("regions", "vsm")) for r in ("6", "24", "96")]
+    out["pyramid_share_min"], out["pyramid_share_max"] = fixed(min(a), 0), fixed(max(a), 0)
+    out["regions_vsm_share_min"], out["regions_vsm_share_max"] = fixed(min(b), 0), fixed(max(b), 0)
+    for r in ("6", "96"):
+        out[f"g099_final_{r}"] = pct(float(walks[("sky_sun", "g0.99", r)][-1]["rel_l1_vs_ref_frac"]), 1)
+        out[f"probe_vsm_{r}"] = pct(float(_step(walks[("probe", "diffuse", r)], "vsm")["rel_l1_increment_frac"]), 0)
+    horizon = {r: pct(float(_step(walks[("sky_sun", "g0.9", r)], "horizon")["rel_l1_increment_frac"]), 0)
+               for r in ("6", "24", "96")}
+    assert horizon["6"] == horizon["96"], horizon  # the text gives one number for both
+    out["horizon_24"], out["horizon_6_96"] = horizon["24"], horizon["6"]
+    # the swap paragraph
+    for case, key in ((("sky_sun", "g0.9", "24"), "sky"), (("probe", "diffuse", "24"), "probe")):
+        for walk, which in ((walks[case], "default"), (swapped[case], "swap")):
+            for q in walk[1:]:
+                out[f"swap_{key}_{which}_{q['step']}"] = _inc_share(q)
+        out[f"swap_{key}_final"] = pct(float(walks[case][-1]["rel_l1_vs_ref_frac"]), 1)
+    # the texel-limit paragraph
+    trows = {(q["env"], q["material"], q["face_size_texels"]): q
+             for q in read_csv(folder / "error_budget_texel_limit.csv")}
+    rel = {k: 100 * float(q["rel_l1_vs_ref_frac"]) for k, q in trows.items()}
+    est = {k: 100 * float(q["ref_err_estimate_frac"]) for k, q in trows.items()}
+    cases = [(e, t) for e in ("sky_sun", "probe") for t in ("diffuse", "g0.9", "g0.99")]
+    drop = [rel[(e, t, "32")] / rel[(e, t, "64")] for e, t in cases]
+    rest = [(e, t, "64") for e, t in cases if (e, t) != ("probe", "g0.99")]
+    out["texel_drop_min"], out["texel_drop_max"] = fixed(min(drop), 1), fixed(max(drop), 1)
+    out["texel_64_min"], out["texel_64_max"] = fixed(min(rel[k] for k in rest), 2), fixed(max(rel[k] for k in rest), 2)
+    out["texel_probe_g099_32"] = fixed(rel[("probe", "g0.99", "32")], 2)
+    out["texel_probe_g099_64"] = fixed(rel[("probe", "g0.99", "64")], 2)
+    out["texel_estimate_min"] = fixed(min(est[k] for k in rest), 2)
+    out["texel_estimate_max"] = fixed(max(est[k] for k in rest), 2)
+    return out
+
+
+@page("error-budget")
+def error_budget_page(folder: Path) -> dict[str, str]:
+    walks = budget_walks(folder)
+    steps = [q["step"] for q in next(iter(walks.values()))[1:]]
+    rows = []
+    for (env, mat, regions), walk in walks.items():
+        total = sum(float(q["rel_l1_increment_frac"]) for q in walk[1:])
+        rows.append([env, mat, regions, f"**{pct(float(walk[-1]['rel_l1_vs_ref_frac']), 1)} %**"]
+                    + [_inc_share(q) for q in walk[1:]] + [pct(total, 1) + " %"])
+    table = md_table(["env", "material", "regions", "Eq. 5 vs ref."] + steps + ["Σ increments"], rows)
+    texel = md_table(["env", "material", "one region per texel at face size", "regions", "rel. L1 vs ref.",
+                      "reference's own estimate"],
+                     [[q["env"], q["material"], q["face_size_texels"] + "²", q["regions"],
+                       pct(float(q["rel_l1_vs_ref_frac"]), 2) + " %", pct(float(q["ref_err_estimate_frac"]), 2) + " %"]
+                      for q in read_csv(folder / "error_budget_texel_limit.csv")])
+    return {**error_budget_numbers(folder), "budget_table": table, "texel_table": texel}
+
+
+# ---- method-zoo --------------------------------------------------------------------------------------------------
+ZOO_MATERIALS = ("diffuse", "ggx0.1", "ggx0.3", "ggx0.6", "phong1", "phong16", "phong256")
+
+
+def zoo_means(folder: Path) -> dict[tuple, tuple]:
+    """(scene, method, material) → mean (rel. L1, p99, memory bytes) over the environments, applicable cases only."""
+    acc: dict[tuple, list] = {}
+    for q in read_csv(folder / "method_zoo.csv"):
+        if q["applicable"] == "True":
+            acc.setdefault((q["scene"], q["method"], q["material"]), []).append(
+                (float(q["rel_l1_frac"]), float(q["p99_rel_error_frac"]), float(q["memory_bytes"])))
+    return {k: tuple(statistics.fmean(c) for c in zip(*v)) for k, v in acc.items()}
+
+
+def mib(value_bytes: float) -> str:
+    """Memory in MiB as the method-zoo tables print it: 3 significant digits, at most 4 decimals."""
+    v = value_bytes / MIB
+    return f"{v:.3g}" if v >= 0.01 else fixed(v, 4)
+
+
+@numbers("method-zoo")
+def method_zoo_numbers(folder: Path) -> dict[str, str]:
+    rows = read_csv(folder / "method_zoo_karis.csv")
+    teapot = [float(q["n_v_r_over_split_sum"]) for q in rows if q["scene"] == "teapot"]
+    sphere = [float(q["n_v_r_over_split_sum"]) for q in rows if q["scene"] == "sphere"]
+    out = {"karis_cases": str(len(rows)), "karis_holds": str(sum(q["n_v_r_larger"] == "True" for q in rows)),
+           "teapot_ratio_min": fixed(min(teapot), 1), "teapot_ratio_max": fixed(max(teapot), 1),
+           "sphere_ratio_max": fixed(max(sphere), 1), "sphere_ratio_min": fixed(min(sphere), 2)}
+    for mat in ("ggx0.1", "ggx0.3", "ggx0.6"):
+        v = [100 * float(q["n_v_r_rel_l1_frac"]) for q in rows if q["scene"] == "teapot" and q["material"] == mat]
+        out[f"teapot_nvr_min_{mat}"], out[f"teapot_nvr_max_{mat}"] = fixed(min(v), 1), fixed(max(v), 1)
+    return out
+
+
+@page("method-zoo")
+def method_zoo_page(folder: Path) -> dict[str, str]:
+    means = zoo_means(folder)
+    build = {(q["scene"], q["method"]): q["build_s"] for q in read_csv(folder / "build_time_as_printed.csv")}
+    out = {}
+    for scene in ("sphere", "teapot"):
+        methods = [m for (s, m) in build if s == scene]
+        rows = []
+        for method in methods:
+            cells = []
+            for mat in ZOO_MATERIALS:
+                v = means.get((scene, method, mat))
+                cells.append(f"{pct(v[0], 1)} % ({pct(v[1], 0)} %)" if v else "n/a")
+            mem = statistics.fmean(v[2] for (s, m, _), v in means.items() if s == scene and m == method)
+            rows.append([method] + cells + [build[(scene, method)], mib(mem)])
+        out[f"{scene}_table"] = md_table(["method", *ZOO_MATERIALS, "build (s)", "memory (MiB)"], rows)
+    return {**method_zoo_numbers(folder), **out}
+
+
+# ---- transcribed runs: tables as printed -------------------------------------------------------------------------
+@page("reference-renderer")
+def reference_renderer_page(folder: Path) -> dict[str, str]:
+    est = md_table(["case", "rel. L1 estimated", "actual", "p99 estimated", "actual p99", "pixels above their bound"],
+                   [[q["case"], q["rel_l1_estimated_pct"] + " %", q["rel_l1_actual_pct"] + " %",
+                     q["p99_estimated_pct"] + " %", q["p99_actual_pct"] + " %", q["pixels_above_bound_pct"] + " %"]
+                    for q in read_csv(folder / "estimate_check.csv")])
+    cost = md_table(["case", "wall", "CPU", "rays", "finest cells per face", "quadrature M per block", "est. rel. L1",
+                     "p99", "peak memory main (cumulative) / worker", "load"],
+                    [[q["case"], q["wall_s"] + " s", q["cpu_s"] + " s", q["rays_millions"] + " M",
+                      q["finest_cells_per_face"], q["quadrature_M_per_block"], q["est_rel_l1_pct"] + " %",
+                      q["p99_pct"] + " %", f"{q['peak_memory_main_MB']} / {q['peak_memory_worker_MB']} MB",
+                      q["load_1min"]] for q in read_csv(folder / "cost.csv")])
+    return {"estimate_table": est, "cost_table": cost}
+
+
+@page("cross-validate")
+def cross_validate_page(folder: Path) -> dict[str, str]:
+    rows = []
+    for q in read_csv(folder / "cross_validate.csv"):
+        rows.append([q["scene"], q["env"], q["material"], q["mitsuba_bsdf"], q["smith"], q["rel_l1_pct"] + " %",
+                     signed(q["bias_pct"]) + " %", q["mitsuba_noise_pct"] + " %", signed(q["excess_pct"]) + " %",
+                     q["ref_err_estimate_pct"] + " %", q["smith_term_pct"] + " %" if q["smith_term_pct"] else "",
+                     q["ref_time_s"] or "(same)"])
+    return {"table": md_table(["scene", "env", "material", "Mitsuba BSDF", "Smith", "rel. L1 ref vs Mitsuba", "bias",
+                               "Mitsuba noise", "excess", "reference's own estimate", "Smith term", "ref. time (s)"],
+                              rows)}
+
+
+@page("big-probes")
+def big_probes_page(folder: Path) -> dict[str, str]:
+    rows = []
+    for q in read_csv(folder / "probe_sizes.csv"):
+        rss = (q["peak_rss_MiB"] + " MiB" if q["peak_rss_MiB"] else q["peak_rss_GiB"] + " GiB" if q["peak_rss_GiB"]
+               else "—")
+        if q["peak_rss_times_input"]:
+            rss += f" ({q['peak_rss_times_input']}× input)"
+        rows.append([f"{q['probe']} {q['input']}", q["step"], q["load_1min"] or "11.7–16.4 (the whole run)", q["wall_s"],
+                     q["cpu_s"] or "—", rss, q["goal"] or "—"])
+    return {"table": md_table(["probe (lat-long, float32 RGB, DWAB)", "step", "load", "wall s", "CPU s",
+                               "peak RSS (process)", "goal"], rows)}
+
+
+def _cell(q: dict | None, err: bool = False) -> str:
+    """One tool's cell of the bench_peer tables as the bench prints it."""
+    if q is None:
+        return "—"
+    if q["status"] == "killed":
+        return "—" if err else "> 60 (killed)"
+    return q["max_rel_err"] if err else f"{q['wall_s']} / {q['cpu_s']}"
+
+
+@page("bench-peer")
+def bench_peer_page(folder: Path) -> dict[str, str]:
+    cells = {(q["scene"], q["face_size_texels"], q["exponents"], q["tool"], q["mode"]): q
+             for q in read_csv(folder / "cells.csv")}
+    out = {}
+    for scene, key in (("sky + sun", "sky"), ("courtyard", "courtyard")):
+        rows = []
+        for v in read_csv(folder / "verdicts.csv"):
+            if v["scene"] != scene:
+                continue
+            k = (scene, v["face_size_texels"], v["exponents"])
+
+            def c(tool, mode="process", err=False):
+                return _cell(cells.get(k + (tool, mode)), err)
+
+            rows.append([v["face_size_texels"] + "²", "8 exponents" if v["exponents"] == "set8" else v["exponents"],
+                         c("lab numpy", "in-process"), c("lab numpy"), c("lab numpy", "in-process", True),
+                         c("lab compiled", "in-process"), c("lab compiled"), c("lab compiled", "in-process", True),
+                         c("cmft"), c("cmft", err=True), c("cmft fixed"), c("cmft fixed", err=True),
+                         v["in_process_compiled_le_cmft"], v["process_better_kernel_le_cmft"]])
+        out[f"{key}_table"] = md_table(
+            ["face", "s", "lab numpy in-process", "lab numpy process", "lab numpy err", "lab compiled in-process",
+             "lab compiled process", "lab compiled err", "cmft", "cmft err", "cmft fixed", "cmft fixed err",
+             "in-process (compiled) ≤ cmft", "process (better kernel) ≤ cmft"], rows)
+    out["startup_floor"] = "; ".join(f"{q['what']} {q['wall_s']} s wall / {q['cpu_s']} s CPU"
+                                     for q in read_csv(folder / "startup_floor.csv"))
+    cc = {q["run"]: q for q in read_csv(folder / "compile_cost.csv")}
+    out["compile_cost"] = (f"cold {cc['cold']['wall_s']} s wall / {cc['cold']['cpu_s']} s CPU; warm "
+                           f"{cc['warm 1']['wall_s']} / {cc['warm 1']['cpu_s']} s and "
+                           f"{cc['warm 2']['wall_s']} / {cc['warm 2']['cpu_s']} s")
+    out["native_table"] = md_table(
+        ["face", "kernel", "wall s", "CPU s", "peak RSS (largest process) GiB", "routes", "largest bound"],
+        [[q["face_size_texels"] + "²", q["kernel"], q["wall_s"], q["cpu_s"], q["peak_rss_largest_process_GiB"],
+          q["routes"], q["largest_bound"]] for q in read_csv(folder / "native_8_exponents.csv")])
+    out["interpreter_floor"] = "; ".join(f"{q['scene']} {q['face_size_texels']}² {q['wall_s']} s"
+                                         for q in read_csv(folder / "interpreter_floor.csv"))
+    peak = {q["what"]: q["giga_per_s"] for q in read_csv(folder / "machine_peak.csv")}
+    out["peak_tight"], out["peak_dot"] = peak["multiply-adds, tight loop"], peak["multiply-adds, dot product in L1"]
+    out["pairs_per_second"] = "; ".join(
+        f"{q['scene']} {q['face_size_texels']}² s={'8 exponents' if q['exponents'] == 'set8' else q['exponents']} "
+        f"{q['kernel']} {q['giga_pairs_per_s_per_core']} G" for q in read_csv(folder / "pairs_per_second.csv"))
+    out["native_quiet_table"] = md_table(
+        ["face", "kernel", "wall", "CPU (user + sys)", "peak RSS", "routes", "largest bound"],
+        [[q["face_size_texels"] + "²", q["kernel"], q["wall"], q["cpu_user_plus_sys"], q["peak_rss"], q["routes"],
+          q["largest_bound"]] for q in read_csv(folder / "native_8_exponents_2026-12-02.csv")])
+    out["probes_table"] = md_table(
+        ["probe", "`auto` NumPy wall / CPU s", "`auto` compiled", "forced `sh` (misses rtol) NumPy / compiled wall",
+         "split NumPy / compiled wall", "auto ÷ split", "auto ÷ forced sh"],
+        [[q["probe"], f"{q['auto_numpy_wall_s']} / {q['auto_numpy_cpu_s']}",
+          f"{q['auto_compiled_wall_s']} / {q['auto_compiled_cpu_s']}",
+          f"{q['forced_sh_numpy_wall_s']} / {q['forced_sh_compiled_wall_s']} ({q['forced_sh_bound']})",
+          f"{q['split_numpy_wall_s']} / {q['split_compiled_wall_s']}",
+          f"{q['auto_over_split_numpy']} / {q['auto_over_split_compiled']}",
+          f"{q['auto_over_forced_sh_numpy']} / {q['auto_over_forced_sh_compiled']}"]
+         for q in read_csv(folder / "probes_native_2026-12-02.csv")])
+    return out
+
+
+@page("bench-small-cells")
+def bench_small_cells_page(folder: Path) -> dict[str, str]:
+    out = {}
+    for scene, key in (("sky + sun", "sky"), ("courtyard", "courtyard")):
+        out[f"{key}_table"] = md_table(
+            ["face", "s", "cmft", "IO floor", "process target", "lab floor", "floor > target", "lab process",
+             "first call", "repeated call", "kernels", "Python"],
+            [[q["face_size_texels"] + "²", q["s_phong"], q["cmft_ms"], q["io_floor_ms"], q["process_target_ms"],
+              q["lab_floor_ms"], q["floor_exceeds_target"], q["lab_process_ms"], q["first_call_ms"],
+              q["repeated_call_ms"], q["kernels_ms"], q["python_ms"]]
+             for q in read_csv(folder / "small_cells.csv") if q["scene"] == scene])
+    return out
+
+
+@page("quick-start")
+def quick_start_page(folder: Path) -> dict[str, str]:
+    rows = read_csv(folder / "runs.csv")
+    table = md_table(["run", "command", "commit", "date", "wall", "load at the start", "peak", "passed", "skipped",
+                      "note"],
+                     [[q["run"], f"`{q['command']}`", f"`{q['commit']}`", q["date"] or "—", duration(float(q["wall_s"])),
+                       q["load_1min"] or "—", q["peak_GB"] + " GB" if q["peak_GB"] else "—", q["passed"] or "—",
+                       q["skipped"] or "—", q["note"]] for q in rows])
+    by = {q["run"]: q for q in rows}
+    rep, suite, whole = by["reproduce --quick"], by["test suite"], by["CI: the whole .ci/run"]
+    out = {"table": table, "reproduce_wall": duration(float(rep["wall_s"])), "reproduce_load": rep["load_1min"],
+           "reproduce_peak": rep["peak_GB"], "reproduce_commit": rep["commit"], "reproduce_date": rep["date"],
+           "suite_passed": suite["passed"], "suite_skipped": suite["skipped"],
+           "suite_wall": duration(float(suite["wall_s"])), "suite_load": suite["load_1min"],
+           "suite_commit": suite["commit"], "ci_commit": whole["commit"], "ci_date": whole["date"],
+           "ci_wall": duration(float(whole["wall_s"]))}
+    for k in (1, 2, 3):
+        q = next(r for r in rows if r["run"].startswith(f"CI phase {k}"))
+        out[f"ci{k}_passed"], out[f"ci{k}_skipped"], out[f"ci{k}_wall"] = (q["passed"], q["skipped"],
+                                                                           duration(float(q["wall_s"])))
+    return out
+
+
+@page("cluster-sweeps")
+def cluster_sweeps_page(folder: Path) -> dict[str, str]:
+    rows = read_csv(folder / "runs.csv")
+
+    def t(v):
+        return duration(float(v)) if v and float(v) >= 60 else (v + " s" if v else "—")
+
+    table = md_table(["command", "jobs", "wall", "CPU", "load", "peak", "note"],
+                     [[f"`{q['command']}`", q["jobs"], t(q["wall_s"]), t(q["cpu_s"]), q["load_1min"],
+                       q["peak_GB"] + " GB" if q["peak_GB"] else "—", q["note"]] for q in rows])
+    return {"table": table}
+
+
+# ---- the claims table --------------------------------------------------------------------------------------------
+_PLACEHOLDER = re.compile(r"\{\{\s*([\w.\-]+)\s*\}\}")
+
+
+def fill(text: str, values: dict[str, str], where: str) -> tuple[str, set[str]]:
+    """Replace every ``{{key}}`` of ``text``; a key without a value is an error.  Returns the text and the keys
+    used."""
+    used = set()
+
+    def sub(m):
+        key = m.group(1)
+        if key not in values:
+            raise KeyError(f"{where}: no value for {{{{{key}}}}}")
+        used.add(key)
+        return values[key]
+
+    return _PLACEHOLDER.sub(sub, text), used
+
+
+def claims_rows() -> list[dict]:
+    return read_csv(DATA / "claims" / "claims.csv")
+
+
+def claims_text(run: str) -> str:
+    """The 'measured' cell of the claims row whose numbers come from run folder ``run``, filled from its data."""
+    rows = [q for q in claims_rows() if q["data_run"] == run]
+    assert len(rows) == 1, (run, len(rows))
+    return fill(rows[0]["measured"], run_numbers(run), f"claims.csv ({run})")[0]
+
+
+@page("claims")
+def claims_page(folder: Path) -> dict[str, str]:
+    rows = []
+    for q in claims_rows():
+        values = run_numbers(q["data_run"]) if q["data_run"] else {}
+        statement, measured = (fill(q[c], values, f"claims.csv ({q['data_run'] or q['statement'][:30]})")[0]
+                               for c in ("statement", "measured"))
+        where = f"[{q['data_run']}]({q['data_run']}.md)" if q["data_run"] else "—"
+        rows.append([statement, measured, q["command"], where])
+    return {"table": md_table(["statement", "measured", "command", "page (data)"], rows)}
+
+
+# ---- the concept table ---------------------------------------------------------------------------------------------
+def concept_rows() -> list[dict]:
+    """The rows of ``docs/concepts.csv`` (also read by ``tests/test_layout.py``)."""
+    return read_csv(CONCEPTS_CSV)
+
+
+def concepts_page() -> str:
+    head = (TEMPLATES / "concepts.md").read_text(encoding="utf-8")
+    table = md_table(["concept", "paper, equation", "module", "entry points"],
+                     [[q["concept"], q["paper_equation"], q["module"], q["entry_points"]] for q in concept_rows()])
+    text, _ = fill(head, {"table": table}, "concepts.md")
+    return GENERATED.format(source="docs/concepts.csv", template="docs/page_templates/concepts.md") + text
+
+
+# ---- assembling a page -------------------------------------------------------------------------------------------
+GENERATED = ("<!-- Generated by docs/make_results.py from {source} and {template}: edit those and run "
+             "`python docs/make_results.py`; tests/test_docs_pages.py checks that this file is up to date. -->\n\n")
+
+
+def provenance(name: str) -> str:
+    """The 'where these numbers come from' section of a page, from the folder's ``run.json``."""
+    meta = read_json(DATA / name / "run.json")
+    parts = ["## Where these numbers come from", ""]
+    for run in meta["runs"]:
+        files = ", ".join(f"[`{f}`](../../tests/data/readme_runs/{name}/{f})" for f in run["files"])
+        parts.append(f"**{files}**" + (f" — {run['what']}" if run.get("what") else ""))
+        parts.append("")
+        if run.get("command"):
+            parts += ["```bash", run["command"], "```", ""]
+        facts = [(k, run[k]) for k in ("commit", "date", "wall", "cpu", "peak_memory", "load", "machine")
+                 if run.get(k)]
+        label = {"commit": "commit", "date": "date", "wall": "wall time", "cpu": "CPU time",
+                 "peak_memory": "peak memory", "load": "load average", "machine": "machine"}
+        parts += [f"- {label[k]}: {f'`{v}`' if k == 'commit' else v}" for k, v in facts]
+        if run.get("note"):
+            parts.append(f"- {run['note']}")
+        if run.get("source"):
+            parts.append(f"- source: {run['source']}")
+        parts.append("")
+    return "\n".join(parts).rstrip() + "\n"
+
+
+def build_page(name: str) -> str:
+    """The markdown of ``docs/results/<name>.md``."""
+    template = (TEMPLATES / f"{name}.md").read_text(encoding="utf-8")
+    values = PAGES[name](DATA / name)
+    text, used = fill(template, values, f"{name}.md")
+    unused = set(values) - used - set(_NUMBERS.get(name) and run_numbers(name) or ())
+    if unused:
+        raise KeyError(f"{name}.md: values computed but not used in the template: {sorted(unused)}")
+    head = GENERATED.format(source=f"tests/data/readme_runs/{name}/", template=f"docs/page_templates/{name}.md")
+    return head + text.rstrip() + "\n\n" + provenance(name)
+
+
+def outputs() -> dict[Path, str]:
+    """Every generated file and its text."""
+    out = {RESULTS / f"{name}.md": build_page(name) for name in PAGES}
+    out[DOCS / "concepts.md"] = concepts_page()
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--check", action="store_true", help="only compare with the committed pages")
+    args = parser.parse_args(argv)
+    stale = []
+    for path, text in outputs().items():
+        old = path.read_text(encoding="utf-8") if path.exists() else None
+        if old != text:
+            stale.append(path.relative_to(ROOT))
+            if not args.check:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                tmp = path.with_name(f".{path.name}.tmp")
+                tmp.write_text(text, encoding="utf-8")
+                tmp.replace(path)
+    if args.check and stale:
+        print("out of date (run python docs/make_results.py): " + ", ".join(map(str, stale)), file=sys.stderr)
+        return 1
+    for p in stale if not args.check else ():
+        print(f"wrote {p}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
