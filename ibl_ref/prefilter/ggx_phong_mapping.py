@@ -286,7 +286,7 @@ class GGXPhongMapping:
         d = unit_directions(directions, "directions")
         lead = d.shape[:-1]
         d = d.reshape(-1, 3)
-        r = np.broadcast_to(check_lobe_param(self.lobe, roughness), lead).reshape(-1)
+        r = np.broadcast_to(check_lobe_param(self.lobe, roughness, directions), lead).reshape(-1)
         out = None
         for rv in np.unique(r):
             sel = r == rv

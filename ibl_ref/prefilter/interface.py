@@ -104,29 +104,56 @@ class RegionPrefilters(Protocol):
         ...
 
 
-def check_lobe_param(lobe: str, param) -> np.ndarray:
+def _leading_shape(directions) -> tuple:
+    """``directions.shape[:-1]`` of a direction array (..., 3); a one-line :class:`IBLError` for anything else."""
+    try:
+        d = np.asarray(directions, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise IBLError(f"directions must be an array of shape (..., 3), got {type(directions).__name__}") from None
+    if d.ndim == 0 or d.shape[-1] != 3:
+        raise IBLError(f"directions must have shape (..., 3), got {d.shape}")
+    return d.shape[:-1]
+
+
+def check_lobe_param(lobe: str, param, directions=None) -> np.ndarray:
     """The look-up parameter of lobe family ``lobe`` as a float64 array, or a one-line :class:`IBLError`.
 
     ``"phong"``: Phong exponents s ≥ 1 (``np.inf`` allowed: the mirror); ``"ggx"``: perceptual roughness in (0, 1]
-    (:func:`ibl_ref.conventions.ggx_alpha` checks it); ``"cosine"``: 1 or ``None`` (the lobe has no parameter).
+    above :data:`ibl_ref.conventions.GGX_ROUGHNESS_MIN` (:func:`ibl_ref.conventions.ggx_alpha` checks it);
+    ``"cosine"``: 1 or ``None`` (the lobe has no parameter).  With ``directions`` (..., 3), the parameter must also
+    broadcast to their leading shape (a scalar, or one value per direction); the array is returned as given.
     """
+    if lobe not in LOBES:
+        raise IBLError(f"unknown lobe family {lobe!r}; choose one of {', '.join(LOBES)}")
+    value = 1.0 if lobe == "cosine" and param is None else param
+    try:
+        if isinstance(value, (bool, np.bool_)) or (isinstance(value, np.ndarray) and value.dtype == bool):
+            raise TypeError
+        p = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise IBLError(f"the {lobe} look-up parameter must be a number or an array of numbers, got {param!r}") from None
+    if directions is not None:
+        lead = _leading_shape(directions)
+        try:
+            ok = np.broadcast_shapes(p.shape, lead) == lead
+        except ValueError:
+            ok = False
+        if not ok:
+            raise IBLError(f"the {lobe} look-up parameter has shape {p.shape}, which does not broadcast to the "
+                           f"directions' leading shape {lead} (give one value, or one per direction)")
     if lobe == "cosine":
-        p = np.asarray(1.0 if param is None else param, dtype=np.float64)
         if np.any(p != 1.0):
             bad = p[p != 1.0].ravel()[0]
             raise IBLError(f"the cosine lobe (irradiance) has no parameter: pass 1 (its Phong exponent) or None, "
                            f"got {bad!r}")
         return p
-    p = np.asarray(param, dtype=np.float64)
     if lobe == "phong":
         if np.any(np.isnan(p)) or np.any(p < 1.0):
             bad = p[np.isnan(p) | (p < 1.0)].ravel()[0]
             raise IBLError(f"Phong exponent s must be >= 1 (np.inf: mirror; from a glossiness g: s = 1/(1 - g)), "
                            f"got {bad!r}")
         return p
-    if lobe == "ggx":
-        from ..conventions import ggx_alpha
+    from ..conventions import ggx_alpha
 
-        ggx_alpha(p)
-        return p
-    raise IBLError(f"unknown lobe family {lobe!r}; choose one of {', '.join(LOBES)}")
+    ggx_alpha(p)
+    return p

@@ -804,7 +804,7 @@ class SplitSum:
         """Prefiltered radiance ``P(r, roughness)`` (..., C): the chain's trilinear look-up."""
         from .interface import check_lobe_param
 
-        return self.chain.lookup(directions, check_lobe_param(self.lobe, roughness))
+        return self.chain.lookup(directions, check_lobe_param(self.lobe, roughness, directions))
 
     def shade(self, normals, views, roughness, f0) -> np.ndarray:
         """Specular radiance of Eq. 7, ``P(r, roughness)·(F0·A + B)`` (:func:`shade`)."""

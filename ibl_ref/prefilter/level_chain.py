@@ -45,7 +45,7 @@ class LevelChainPrefilter:
 
     def lookup(self, directions, s) -> np.ndarray:
         """Trilinear look-up at ℓ(s) → radiance (..., C) (Knuth Sec. 3.2: "hardware trilinear interpolation")."""
-        return self.lookup_at_level(directions, self.level_of(s))
+        return self.lookup_at_level(directions, self.level_of(check_lobe_param(self.lobe, s, directions)))
 
     def lookup_at_level(self, directions, level) -> np.ndarray:
         """The look-up at a given continuous level instead of ℓ(s) (the error budget's best-level step)."""

@@ -188,7 +188,7 @@ class SH9Irradiance:
         from .interface import check_lobe_param
 
         out = irradiance(self.coeffs, directions) / np.pi  # normalises and checks the directions
-        np.broadcast_to(check_lobe_param(self.lobe, param), out.shape[:-1])
+        check_lobe_param(self.lobe, param, np.broadcast_to(np.zeros(3), out.shape[:-1] + (3,)))
         return out
 
     def shade(self, normals, kd=1.0) -> np.ndarray:

@@ -4,6 +4,14 @@
 :func:`build_prefilter` builds one from a cube map, :func:`build_region_prefilters` builds one per median-cut
 region (the PEMs of Eq. 5), :func:`prefilter_methods` lists them (lobe family, paper, parameters) for ``--help``
 and experiments.  Adding a method: its module in this package and one line here (package docstring).
+
+Examples
+--------
+>>> from ibl_ref.prefilter.registry import PREFILTER_METHODS, prefilter_methods
+>>> list(PREFILTER_METHODS)[:3]
+['pyramid', 'exact-lobe', 'km00-lobes']
+>>> sorted({m.lobe for m in prefilter_methods()})
+['cosine', 'ggx', 'phong']
 """
 
 from __future__ import annotations
@@ -25,7 +33,8 @@ from .ramamoorthi_hanrahan2001 import SH9Irradiance
 __all__ = ["PREFILTER_METHODS", "PrefilterMethod", "prefilter_methods", "get_method", "region_params",
            "build_prefilter", "build_region_prefilters", "resolve_method_params"]
 
-#: method name → prefilter class
+#: method name → prefilter class (each satisfies :class:`~ibl_ref.prefilter.interface.Prefilter`; its ``lobe``
+#: says what the look-up parameter means: Phong exponent s, GGX roughness, or none for the cosine lobe)
 PREFILTER_METHODS = {
     "pyramid": Knuth2014Pyramid,
     "exact-lobe": ExactLobeChain,
@@ -67,8 +76,35 @@ def _params(fn) -> dict:
 def prefilter_methods(lobe: str | None = None) -> list:
     """The registered methods (optionally of one lobe family) as :class:`PrefilterMethod` rows, in registry order.
 
-    ``params`` are the keyword parameters of the full-map build (``Method(cube, **params)``).
+    Parameters
+    ----------
+    lobe : str, optional
+        Only the methods of this lobe family (``"phong"``, ``"ggx"`` or ``"cosine"``); default: every method.
+
+    Returns
+    -------
+    list of PrefilterMethod
+        ``(name, lobe, paper, summary, params)``; ``params`` are the keyword parameters of the full-map build
+        (``Method(cube, **params)``) with their defaults.
+
+    Raises
+    ------
+    IBLError
+        If ``lobe`` is not a lobe family.
+
+    Examples
+    --------
+    >>> from ibl_ref.prefilter.registry import prefilter_methods
+    >>> [m.name for m in prefilter_methods("cosine")]
+    ['sh9']
+    >>> pyramid = prefilter_methods("phong")[0]
+    >>> pyramid.name, pyramid.params["kernel"]
+    ('pyramid', 'sqrtcos')
     """
+    from .interface import LOBES
+
+    if lobe is not None and lobe not in LOBES:
+        raise IBLError(f"unknown lobe family {lobe!r}; choose one of {', '.join(LOBES)}")
     rows = []
     for name, cls in PREFILTER_METHODS.items():
         if lobe is None or cls.lobe == lobe:
@@ -89,10 +125,59 @@ def resolve_method_params(params: dict) -> dict:
     return {k: (get_method(v) if k.endswith("_method") and isinstance(v, str) else v) for k, v in params.items()}
 
 
+def _check_params(method: str, accepted: dict, params: dict, what: str) -> None:
+    """A one-line :class:`IBLError` for a keyword the method's build does not take (instead of Python's TypeError)."""
+    unknown = sorted(set(params) - set(accepted))
+    if unknown:
+        raise IBLError(f"prefilter {method!r}: unknown parameter(s) {', '.join(map(repr, unknown))} of its {what}; "
+                       f"it takes {', '.join(accepted) or 'no parameters'}")
+
+
 def build_prefilter(cube, method: str = "pyramid", **params):
-    """``PREFILTER_METHODS[method](cube, **params)``: the prefilter of a cube map (6, N, N, C); parameters
-    ``*_method`` may name a registered method (:func:`resolve_method_params`)."""
-    return get_method(method)(cube, **resolve_method_params(params))
+    """The prefilter ``PREFILTER_METHODS[method](cube, **params)`` of a cube map.
+
+    Parameters
+    ----------
+    cube : array (6, N, N, C)
+        Radiance of the environment (finite, ≥ 0; the radiance policy of
+        :func:`ibl_ref.environment.radiance_policy.check_radiance` applies).
+    method : str
+        A name of :data:`PREFILTER_METHODS` (default ``"pyramid"``, the paper's filter pyramid).
+    **params
+        The method's own keyword parameters (:func:`prefilter_methods` lists them with their defaults); a
+        parameter ``*_method`` may name a registered method (:func:`resolve_method_params`).
+
+    Returns
+    -------
+    Prefilter
+        The built method: ``lookup(directions, param)``, ``nbytes``, ``error_bound``, ``lobe``, ``paper``
+        (:class:`~ibl_ref.prefilter.interface.Prefilter`).
+
+    Raises
+    ------
+    IBLError
+        An unknown method or parameter, a bad cube, or a bad parameter value (one line each).
+
+    Examples
+    --------
+    A constant environment is its own lobe average, for every lobe:
+
+    >>> import numpy as np
+    >>> from ibl_ref.prefilter.registry import build_prefilter
+    >>> cube = np.full((6, 8, 8, 3), 0.5)
+    >>> pf = build_prefilter(cube, "exact-lobe")
+    >>> pf.lobe
+    'phong'
+    >>> np.round(pf.lookup(np.array([[0.0, 0.0, 1.0]]), 16.0), 6)
+    array([[0.5, 0.5, 0.5]])
+    >>> build_prefilter(cube, "sh9", order=2)
+    Traceback (most recent call last):
+    ...
+    ibl_ref.errors.IBLError: prefilter 'sh9': unknown parameter(s) 'order' of its build; it takes no parameters
+    """
+    cls = get_method(method)
+    _check_params(method, _params(cls.__init__), params, "build")
+    return cls(cube, **resolve_method_params(params))
 
 
 def build_region_prefilters(cube, lights=None, method: str = "pyramid", *, n_lights: int | None = None,
@@ -114,6 +199,7 @@ def build_region_prefilters(cube, lights=None, method: str = "pyramid", *, n_lig
         from ..knuth2014.median_cut import median_cut
 
         lights = median_cut(cube, n_lights, variant)
+    _check_params(method, region_params(method), params, "region build")
     from .regions import build_region_set
 
     return build_region_set(cls, cube, lights, **params)
