@@ -1,4 +1,4 @@
-"""Input validation shared by the library and the CLI: integer sizes and allocation limits.
+"""Input validation shared by the library and the CLI: integer sizes, allocation limits and tolerances.
 
 Every size a user passes (a face size, an image height, a shadow-map resolution, a size claimed by a
 file header) is checked here *before* anything is allocated:
@@ -8,7 +8,9 @@ file header) is checked here *before* anything is allocated:
 * :func:`check_allocation` — the bytes an array would take are compared with the machine's physical
   memory (``os.sysconf``; the environment variable ``IBL_REF_MAX_BYTES`` lowers the limit, e.g. for
   tests), so ``--size 1000000000`` fails at once instead of after minutes of swapping;
-* :func:`check_cube_size` — both, for one float64 RGB cube map ``(6, N, N, 3)`` (24·6·N² bytes).
+* :func:`check_cube_size` — both, for one float64 RGB cube map ``(6, N, N, 3)`` (24·6·N² bytes);
+* :func:`check_rtol` — a relative tolerance in [:data:`RTOL_MIN`, 1): the floor is what float64 quadrature sums can
+  verify (the constant's comment gives the derivation).
 
 Errors are :class:`SizeError` (an :class:`~ibl_ref.errors.IBLError`) naming the parameter or flag.
 """
@@ -21,7 +23,8 @@ import os
 
 from .errors import IBLError
 
-__all__ = ["SizeError", "as_size", "memory_limit_bytes", "check_allocation", "check_cube_size", "cube_nbytes"]
+__all__ = ["SizeError", "as_size", "memory_limit_bytes", "check_allocation", "check_cube_size", "cube_nbytes",
+           "RTOL_MIN", "check_rtol"]
 
 
 class SizeError(IBLError):
@@ -84,3 +87,27 @@ def check_cube_size(value, name: str, channels: int = 3) -> int:
     n = as_size(value, name)
     check_allocation(cube_nbytes(n, channels), f"a {n}x{n}-face float64 cube map", name)
     return n
+
+
+#: smallest relative tolerance accepted anywhere (2^-26 ≈ 1.5e-8): the float64 rounding of a quadrature sum of K
+#: non-negative terms is bounded by γ_K ≈ K·2^-53 (Higham 2002, Accuracy and Stability of Numerical Algorithms,
+#: §4.2, recursive summation), and the lab's largest sums hold up to 2^27 terms (the reference's GGX quadrature cap,
+#: 6·4096² texels): a tolerance below K·2^-53 = 2^-26 cannot be verified by the sums that estimate the error
+RTOL_MIN = 2.0 ** -26
+
+
+def check_rtol(value, name: str = "rtol") -> float:
+    """A relative tolerance in [:data:`RTOL_MIN`, 1) as a float; a one-line :class:`SizeError` naming ``name``
+    otherwise (not a number, NaN, ≤ 0, below the float64 floor, ≥ 1: a relative error of 100 % checks nothing)."""
+    if isinstance(value, bool):
+        raise SizeError(f"{name}: expected a number, got {value!r}")
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise SizeError(f"{name}: expected a number, got {value!r}") from None
+    if not (math.isfinite(v) and 0 < v < 1):
+        raise SizeError(f"{name}: a relative tolerance must be a number in (0, 1), got {value!r}")
+    if v < RTOL_MIN:
+        raise SizeError(f"{name}: {v:g} is below {RTOL_MIN:.2g} (2^-26), the float64 rounding of the lab's largest "
+                        "quadrature sums (2^27 terms x 2^-53): a smaller tolerance cannot be verified")
+    return v

@@ -22,8 +22,9 @@ def _material(mat, option):
 def check_args(args) -> None:
     """Cheap flag checks before any rendering."""
     if args.mode == "reference" and args.ref_rtol is not None:
-        if not (np.isfinite(args.ref_rtol) and args.ref_rtol > 0):
-            raise IBLError(f"--ref-rtol must be a finite number > 0 (e.g. 1e-2 for a quick look), got {args.ref_rtol}")
+        from ..limits import check_rtol
+
+        check_rtol(args.ref_rtol, "--ref-rtol")
     if getattr(args, "workers", None) is not None and args.workers < 1:
         raise IBLError(f"--workers must be a positive integer (1 = serial), got {args.workers}")
     if args.mode == "mitsuba" and (args.spp < 2 or args.spp % 2):

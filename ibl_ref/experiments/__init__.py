@@ -40,6 +40,7 @@ progress lines (:mod:`ibl_ref.progress`) and timings; :func:`describe` is the ``
 from __future__ import annotations
 
 import importlib
+import math
 import pkgutil
 import time
 from dataclasses import dataclass
@@ -63,26 +64,109 @@ class Param:
     default: Any
     quick: Any = None
     help: str = ""
+    #: what the computation needs of a value beyond its type: a function ``check(value) -> value`` raising
+    #: :class:`~ibl_ref.errors.IBLError` (default: :data:`VALUE_CHECKS` by name; see :meth:`check`)
+    check_value: Any = None
 
     def value(self, quick: bool):
         return self.quick if quick and self.quick is not None else self.default
 
     def parse(self, text: str):
-        """Convert a command-line string to this parameter's type (the type of ``default``)."""
+        """Convert a command-line string to this parameter's type (the type of ``default``) and :meth:`check` it."""
         from ..errors import IBLError
 
         proto = self.default
         try:
             if isinstance(proto, (tuple, list)):
                 item = type(proto[0]) if len(proto) else str
-                return tuple(_scalar(item, t.strip()) for t in text.split(",") if t.strip())
-            return _scalar(type(proto), text)
-        except ValueError:
+                value = tuple(_scalar(item, t.strip()) for t in text.split(",") if t.strip())
+            else:
+                value = _scalar(type(proto), text)
+        except (ValueError, OverflowError):
             raise IBLError(f"--{self.flag}: expected {_kind(proto)}, got {text!r}") from None
+        return self.check(value)
+
+    def check(self, value):
+        """``value`` if the computation can use it, else a one-line :class:`IBLError` naming ``--FLAG``.
+
+        Every number by its type — an integer (a size, a count, a factor) must be >= 1 and, where the name says
+        it is a size, its float64 cube map must fit in memory (:func:`ibl_ref.limits.check_cube_size`); a float
+        must be finite — then by what it is (:attr:`check_value`, else :data:`VALUE_CHECKS` by name: tolerances
+        above the float64 floor, Phong exponents >= 1, glossiness and F0 in [0, 1], …).
+        """
+        from ..errors import IBLError
+        from ..limits import as_size, check_cube_size
+
+        items = value if isinstance(value, (tuple, list)) else (value,)
+        try:
+            for v in items:
+                if isinstance(v, bool) or not isinstance(v, (int, float)):
+                    continue
+                if isinstance(v, int):
+                    (check_cube_size if "size" in self.name else as_size)(v, f"--{self.flag}")
+                elif not math.isfinite(v):
+                    raise IBLError(f"--{self.flag}: must be a finite number, got {v!r}")
+            check = self.check_value or VALUE_CHECKS.get(self.name)
+            if check is not None:
+                for v in items:
+                    check(v)
+        except IBLError as exc:
+            msg = str(exc)
+            raise IBLError(msg if msg.startswith(f"--{self.flag}") else f"--{self.flag}: {msg}") from None
+        return value
 
     @property
     def flag(self) -> str:
         return self.name.replace("_", "-")
+
+
+def _in_range(lo: float, hi: float, what: str):
+    def check(v):
+        from ..errors import IBLError
+
+        if not (lo <= v <= hi):
+            raise IBLError(f"{what} must be in [{lo:g}, {hi:g}], got {v!r}")
+        return v
+    return check
+
+
+def _exponent(v):
+    from ..errors import IBLError
+
+    if not v >= 1:
+        raise IBLError(f"a Phong exponent must be >= 1, got {v!r}")
+    return v
+
+
+def _rtol(v):
+    from ..limits import check_rtol
+
+    return check_rtol(v, "tolerance")
+
+
+def _greater_than_one(v):
+    from ..errors import IBLError
+
+    if not v > 1:
+        raise IBLError(f"must be > 1, got {v!r}")
+    return v
+
+
+def power_of_two(v):
+    """A face size the filter pyramid takes (a power of two), else a one-line :class:`IBLError`."""
+    from ..errors import IBLError
+
+    if v < 1 or v & (v - 1):
+        raise IBLError(f"must be a power of two (the filter pyramid's face sizes: 2, 4, 8, ...), got {v!r}")
+    return v
+
+
+#: what the experiments' parameters of these names must be, beyond a finite number or an integer >= 1
+VALUE_CHECKS = {"rtol": _rtol, "ref_rtol": _rtol, "tail_rtol": _rtol, "ref_eps": _rtol,
+                "s_values": _exponent, "gloss": _in_range(0.0, 1.0, "a glossiness g"),
+                "g": _in_range(0.0, 1.0, "a glossiness g"), "ggx_f0": _in_range(0.0, 1.0, "F0"),
+                "chain_factor": _greater_than_one,
+                "ref_samples_per_hwhm": _in_range(1e-3, 1e3, "sub-texels per half width")}
 
 
 def _scalar(kind, text: str):
@@ -109,15 +193,16 @@ def _fmt(v) -> str:
 SETTING_HELP = {'size': 'image width = height (pixels)', 'n_lights': 'median-cut lights (PEMs)', 'vsm_resolution': 'VSM resolution (texels)', 'env_size': 'environment cube face size (texels)', 'g': 'glossiness g of the material (s = 1/(1-g))', 'lights': 'light counts', 'materials': 'materials (diffuse, g0.9, g0.99)', 'vsm': 'VSM resolutions at 96 lights', 'vsm_default': 'VSM resolution of the light-count sweep', 'chain_factor': 'exact-lobe chain exponent ratio'}
 
 
-def params_from_settings(settings, helps: dict | None = None) -> tuple:
+def params_from_settings(settings, helps: dict | None = None, checks: dict | None = None) -> tuple:
     """:class:`Param` s from an experiment's ``settings(quick) -> dict`` (full values as defaults).
 
-    Lists become tuples; ``helps`` maps a name to its help text.
+    Lists become tuples; ``helps`` maps a name to its help text, ``checks`` to its :attr:`Param.check_value`.
     """
     full, quick = settings(False), settings(True)
     tup = lambda v: tuple(v) if isinstance(v, list) else v  # noqa: E731
     helps = {**SETTING_HELP, **(helps or {})}
-    return tuple(Param(k, tup(v), tup(quick.get(k)) if quick.get(k) != v else None, helps.get(k, ""))
+    checks = checks or {}
+    return tuple(Param(k, tup(v), tup(quick.get(k)) if quick.get(k) != v else None, helps.get(k, ""), checks.get(k))
                  for k, v in full.items())
 
 
@@ -142,13 +227,14 @@ def resolve_params(mod: ModuleType, quick: bool, overrides: dict | None = None) 
     if isinstance(mod, str):
         mod = sys.modules[mod]
 
-    params = {p.name: p.value(quick) for p in getattr(mod, "PARAMS", ())}
+    declared = {p.name: p for p in getattr(mod, "PARAMS", ())}
+    params = {k: p.value(quick) for k, p in declared.items()}
     for k, v in (overrides or {}).items():
         if k not in params:
             raise IBLError(f"experiment {mod.NAME}: unknown parameter {k!r}; parameters: "
                            f"{', '.join(params) or '(none)'}")
         if v is not None:
-            params[k] = v
+            params[k] = declared[k].check(v)
     return params
 
 

@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_path, atomic_write, read_csv, write_csv, write_json
-from . import params_from_settings, settings_with
+from . import params_from_settings, settings_with, power_of_two
 
 NAME = "error-budget"
 DESCRIPTION = "error budget of the paper's method: reference -> Eq. 5 one approximation at a time, share per step"
@@ -85,7 +85,8 @@ PARAMS = params_from_settings(settings, {
     "figure_regions": "region count shown in the difference figures",
     "level_dirs": "seeded uniform directions the best pyramid level is fitted on (as lobe-chain's n_dirs)",
     "prefilter": "how the PEMs are prefiltered: a level-chain method of the prefilter registry (pyramid = the "
-                 "paper's; exact-lobe, km00-lobes, kan2015)"})
+                 "paper's; exact-lobe, km00-lobes, kan2015)"},
+    checks={"env_size": power_of_two})
 
 
 def _scene(size: int):

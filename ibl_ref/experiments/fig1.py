@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import write_json
-from . import images_from_json, images_to_json, params_from_settings, settings_with
+from . import images_from_json, images_to_json, params_from_settings, settings_with, power_of_two
 
 NAME = "fig1"
 DESCRIPTION = "Knuth 2014 Fig. 1: diffuse-to-mirror gallery (g = 0 … 1) under sky_sun and studio, our method"
@@ -36,7 +36,7 @@ def settings(quick: bool) -> dict:
     return dict(size=128, n_lights=96, vsm_resolution=512, env_size=128)
 
 
-PARAMS = params_from_settings(settings)
+PARAMS = params_from_settings(settings, checks={"env_size": power_of_two})
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import read_csv, write_csv, write_json
-from . import images_from_json, images_to_json, params_from_settings, settings_with
+from . import images_from_json, images_to_json, params_from_settings, settings_with, power_of_two
 
 NAME = "fig6"
 DESCRIPTION = "Knuth 2014 Fig. 6: no occlusion / AO / AO+color / ours / ray-traced reference on a glossy teapot"
@@ -39,7 +39,7 @@ def settings(quick: bool) -> dict:
     return dict(size=128, n_lights=96, vsm_resolution=256, env_size=64, g=0.9)
 
 
-PARAMS = params_from_settings(settings)
+PARAMS = params_from_settings(settings, checks={"env_size": power_of_two})
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import params_from_settings, settings_with
+from . import params_from_settings, settings_with, power_of_two
 from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 
@@ -38,7 +38,7 @@ def settings(quick: bool) -> dict:
     return dict(lights=[6, 12, 24, 48, 96, 192], size=128, vsm_resolution=256, env_size=64)
 
 
-PARAMS = params_from_settings(settings)
+PARAMS = params_from_settings(settings, checks={"env_size": power_of_two})
 
 
 def fit_line(x, y) -> dict:

@@ -49,7 +49,7 @@ import numpy as np
 from ..atomic import read_csv, write_csv, write_json
 from ..lobes.lobe_render import THETA_MAX_DEG, reference_supersample
 from ..rendering.km00_render import teapot_gbuffer as _gbuffer
-from . import params_from_settings, settings_with
+from . import params_from_settings, settings_with, power_of_two
 
 NAME = "km00-render"
 DESCRIPTION = ("Kautz & McCool 2000 renders: Ward teapot by per-pixel exact filtering vs 3 lobes / single lobe / "
@@ -87,7 +87,8 @@ PARAMS = params_from_settings(settings, {
     "map_supersample": "3D-map supersampling ('auto' or an integer)", "map_out_size": "3D-map face size",
     "tail_rtol": "profile tail cut", "ref_samples_per_hwhm": "reference sub-texels per BRDF half width",
     "ref_k_multipliers": "reference supersampling multipliers (last = reference)",
-    "ref_max_supersample": "reference supersampling cap", "ref_eps": "reference cone cut (epsilon)"})
+    "ref_max_supersample": "reference supersampling cap", "ref_eps": "reference cone cut (epsilon)"},
+    checks={"env_size": power_of_two})
 
 
 def render_all(st: dict, env: np.ndarray, progress: bool = False) -> dict:

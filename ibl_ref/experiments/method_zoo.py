@@ -53,7 +53,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_path, atomic_write, read_csv, write_csv, write_json
-from . import params_from_settings, settings_with
+from . import params_from_settings, settings_with, power_of_two
 
 NAME = "method-zoo"
 DESCRIPTION = ("GGX-era IBL methods (split sum with exact / importance / filtered importance sampling, SH9, the "
@@ -133,7 +133,8 @@ PARAMS = params_from_settings(settings, {
     "rtol": "tolerance of the sphere reference and of the budget's exact integrals (estimated rel. L1)",
     "ref_rtol": "tolerance of the teapot's converged reference", "ggx_f0": "Fresnel F0 of the GGX materials",
     "figure_env": "environment of the image figure", "cmft": "cmft binary (default $IBL_REF_CMFT or the peers folder)",
-    "probe_dir": "folder of the probe EXRs (default $IBL_REF_PROBE_DIR or ../shared/probes beside the project)"})
+    "probe_dir": "folder of the probe EXRs (default $IBL_REF_PROBE_DIR or ../shared/probes beside the project)"},
+    checks={"env_size": power_of_two})
 
 
 # ------------------------------------------------------------------------------------------------------------------

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import params_from_settings, settings_with
+from . import params_from_settings, settings_with, power_of_two
 from ..atomic import read_csv, write_csv, write_json
 
 NAME = "render-error"
@@ -55,7 +55,7 @@ def settings(quick: bool) -> dict:
                 vsm_default=256, chain_factor=2.0)
 
 
-PARAMS = params_from_settings(settings)
+PARAMS = params_from_settings(settings, checks={"env_size": power_of_two})
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:

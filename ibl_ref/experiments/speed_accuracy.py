@@ -37,7 +37,7 @@ import numpy as np
 from ..environment import envmap
 from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
-from . import Param, resolve_params
+from . import Param, resolve_params, VALUE_CHECKS
 
 NAME = "speed-accuracy"
 DESCRIPTION = "time vs max/mean relative error of exact / SH-hybrid / sparse / auto Phong convolution"
@@ -52,7 +52,7 @@ RTOL = 1e-3
 SUBSET = 2000
 SEED = 20140
 PARAMS = (Param("face_sizes", (32, 64, 128), (16, 32), "cube face sizes N"),
-          Param("exponents", EXPONENTS, QUICK_EXPONENTS, "Phong exponents s"))
+          Param("exponents", EXPONENTS, QUICK_EXPONENTS, "Phong exponents s", VALUE_CHECKS["s_values"]))
 
 
 def environment(n: int) -> np.ndarray:

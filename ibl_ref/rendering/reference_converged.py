@@ -1170,9 +1170,9 @@ def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *
             raise IBLError(f"{name} must be finite non-zero vectors")
         arrs.append(x / ln)
     nrm, fn, v = arrs
-    rtol = float(rtol)
-    if not (rtol > 0 and np.isfinite(rtol)):
-        raise IBLError(f"rtol must be a finite number > 0, got {rtol}")
+    from ..limits import check_rtol
+
+    rtol = check_rtol(rtol, "rtol")
     n_quad_max = lobe.n_quad_max if n_quad_max is None else n_quad_max
     for name, val in (("n_vis_start", n_vis_start), ("n_vis_max", n_vis_max), ("n_quad_max", n_quad_max),
                       ("block_pixels", block_pixels), ("max_cells", max_cells)):
@@ -1187,6 +1187,7 @@ def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *
         depth += 1
     M0 = quadrature_start(theta, N, nb)
     n_quad_max = max(int(n_quad_max), M0)
+    lobe.check_resolved(n_quad_max)  # a lobe narrower than the finest quadrature texel: refused before any work
     nP = len(P)
     nblk = max(1, -(-nP // int(block_pixels)))
     jobs = []

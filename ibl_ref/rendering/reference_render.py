@@ -198,11 +198,10 @@ def _mirror_shading(scene, P, fn, r, a, ray_backend):
 
 
 def _check_rtol(rtol) -> float:
-    rtol = DEFAULT_RTOL if rtol is None else float(rtol)
-    if not (rtol > 0 and np.isfinite(rtol)):
-        raise IBLError(f"rtol must be a finite number > 0, got {rtol} (the reference always converges to a "
-                       "tolerance; 1e-2 gives a quick look)")
-    return rtol
+    """``rtol`` (default :data:`DEFAULT_RTOL`) checked by :func:`ibl_ref.limits.check_rtol`: in [2^-26, 1)."""
+    from ..limits import check_rtol
+
+    return check_rtol(DEFAULT_RTOL if rtol is None else rtol, "rtol")
 
 
 def reference_shading(scene, points, normals, face_normals, views, cube, material, *, rtol: float | None = None,
