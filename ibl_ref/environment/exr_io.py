@@ -70,6 +70,7 @@ from ..atomic import atomic_path
 from ..errors import (EnvMapFileError, FormatRangeWarning, IBLError, LayoutError, RadianceError, as_path,
                       check_input_file)
 from .radiance_policy import check_radiance
+from .validated import Environment, adopt
 
 __all__ = [
     "HALF_MAX",
@@ -89,6 +90,7 @@ __all__ = [
     "read_map",
     "read_image",
     "load_cube",
+    "load_environment",
     "write_pyramid",
     "read_pyramid",
     "infer_layout",
@@ -204,7 +206,8 @@ def _simple(v):
 
 
 def _prepare(data, layout: str, where: str):
-    """Validate a cube/latlong array; return (strip (H, W, C) float64, C)."""
+    """Validate a cube/latlong array (an :class:`~ibl_ref.environment.validated.Environment`'s radiance was checked
+    when it was made: not again); return the strip (H, W, C) float64."""
     if layout not in _LAYOUTS:
         raise LayoutError(f"{where}: unknown layout {layout!r}; choose one of {_LAYOUTS}")
     a = np.asarray(data)
@@ -221,7 +224,8 @@ def _prepare(data, layout: str, where: str):
             raise LayoutError(f"{where}: lat-long maps must have shape (H, 2H[, C]), got {np.shape(data)}")
         strip = a
     _channel_names(strip.shape[2], where)
-    check_radiance(strip, f"{where}: radiance")
+    if not isinstance(data, Environment):
+        check_radiance(strip, f"{where}: radiance")
     return strip.astype(np.float64, copy=False)
 
 
@@ -948,35 +952,8 @@ def _rgb(data: np.ndarray) -> np.ndarray:
     return data[..., :3]
 
 
-def load_cube(path, size: int | None = None, layout: str | None = None, convention: str | None = None,
-              negative: str = "auto", nonfinite: str = "error", return_report: bool = False):
-    """Load any supported environment-map file as a ``(6, N, N, 3)`` float64 cube map.
-
-    Supported: OpenEXR CUBE strips and LATLONG maps (attribute or aspect ratio), Radiance ``.hdr`` /
-    ``.pic`` (lat-long), horizontal (4N × 3N) and vertical (3N × 4N) crosses in either file format
-    (layout in :mod:`ibl_ref.environment.resample`).  Y files are replicated to RGB, alpha is dropped.
-    ``path``: str, bytes or os.PathLike (file names need not be UTF-8).
-
-    Parameters
-    ----------
-    size : int, optional
-        Face size of the result.  Default: the file's face size (cube, cross) or ``H // 2`` for an
-        ``H × 2H`` lat-long map (same texel count around the equator).  Resampling conserves ∫L dω
-        (:mod:`ibl_ref.environment.resample`).
-    layout : {"cube", "latlong", "hcross", "vcross"}, optional
-        Override the layout (otherwise from the ``envmap`` attribute or the aspect ratio).
-    convention : {"openexr", "opengl"}, optional
-        Face orientation of a cube strip in the file (see :func:`read_envmap`).
-    negative, nonfinite : str
-        Radiance policy (:mod:`ibl_ref.environment.radiance_policy`; default: clamp the negligible negatives of lossy
-        compression, refuse NaN/Inf).  A repair is reported in the returned report and warned once
-        (:class:`~ibl_ref.errors.RadianceWarning`, the line the CLI prints).
-    return_report : bool
-        Return ``(cube, RadianceReport)`` instead of the cube.
-
-    EXR pixels are read as float32 (exact for half and float files; half the memory of a big probe) and
-    the result is float64.
-    """
+def _load_cube(path, size, layout, convention, negative, nonfinite):
+    """``(cube (6, N, N, 3) float64, RadianceReport)``: the work of :func:`load_cube` (the cube is the caller's)."""
     from . import resample
     from .radiance_policy import warn_repaired
 
@@ -987,13 +964,121 @@ def load_cube(path, size: int | None = None, layout: str | None = None, conventi
         size = check_cube_size(size, "size")
     # float32 holds every half/float pixel exactly and halves the memory of big probes
     m = _read_map(path, layout, convention, negative, nonfinite, np.float32)
-    warn_repaired(m.radiance)
+    warn_repaired(m.radiance, stacklevel=4)
     if m.layout == "cube":
         cube = _rgb(m.data)
-        if size is not None and int(size) != cube.shape[1]:
-            cube = resample.cube_to_cube(cube, int(size))
+        if size is not None and int(size) != cube.shape[1]:  # radiance checked by the read: not again
+            cube = resample.cube_to_cube(adopt(cube, m.radiance), int(size))
         cube = np.ascontiguousarray(cube, dtype=np.float64)
     else:
         n = int(size) if size is not None else max(1, m.data.shape[0] // 2)
         cube = resample.latlong_to_cube(_rgb(m.data), n)
-    return (cube, m.radiance) if return_report else cube
+    return cube, m.radiance
+
+
+def load_cube(path, size: int | None = None, layout: str | None = None, convention: str | None = None,
+              negative: str = "auto", nonfinite: str = "error", return_report: bool = False):
+    """Load any supported environment-map file as a ``(6, N, N, 3)`` float64 cube map.
+
+    Supported: OpenEXR CUBE strips and LATLONG maps (attribute or aspect ratio), Radiance ``.hdr`` /
+    ``.pic`` (lat-long), horizontal (4N × 3N) and vertical (3N × 4N) crosses in either file format
+    (layout in :mod:`ibl_ref.environment.resample`).  Y files are replicated to RGB, alpha is dropped.
+    EXR pixels are read as float32 (exact for half and float files; half the memory of a big probe) and
+    the result is float64.  :func:`load_environment` reads the same cube as a validated
+    :class:`~ibl_ref.environment.validated.Environment`.
+
+    Parameters
+    ----------
+    path : str, bytes or os.PathLike
+        The file (names need not be UTF-8).
+    size : int, optional
+        Face size of the result.  Default: the file's face size (cube, cross) or ``H // 2`` for an
+        ``H × 2H`` lat-long map (same texel count around the equator).  Resampling conserves ∫L dω
+        (:mod:`ibl_ref.environment.resample`).
+    layout : {"cube", "latlong", "hcross", "vcross"}, optional
+        Override the layout (otherwise from the ``envmap`` attribute or the aspect ratio).
+    convention : {"openexr", "opengl"}, optional
+        Face orientation of a cube strip in the file (see :func:`read_envmap`).
+    negative, nonfinite : str, optional
+        Radiance policy (:mod:`ibl_ref.environment.radiance_policy`; default: clamp the negligible negatives of lossy
+        compression, refuse NaN/Inf).  A repair is reported in the returned report and warned once
+        (:class:`~ibl_ref.errors.RadianceWarning`, the line the CLI prints).
+    return_report : bool, optional
+        Return ``(cube, RadianceReport)`` instead of the cube.
+
+    Returns
+    -------
+    cube : ndarray, float64, shape (6, N, N, 3)
+        OpenEXR face order and orientation (:mod:`ibl_ref.environment.envmap`).
+    report : RadianceReport
+        Only with ``return_report=True``.
+
+    Raises
+    ------
+    EnvMapFileError
+        The file is missing, not an image or truncated.
+    LayoutError
+        An aspect ratio that is no layout, a missing colour channel, an unknown layout or convention.
+    RadianceError
+        NaN/Inf values, or negatives carrying more than 1e-4 of ∫|L| dω (under the default policy).
+    SizeError
+        A ``size`` that is not a positive integer or does not fit in memory.
+
+    Examples
+    --------
+    Write a constant cube map and read it back, also at a smaller face size (block averages keep the constant):
+
+    >>> import os, tempfile
+    >>> import numpy as np
+    >>> from ibl_ref.environment.exr_io import load_cube, write_envmap
+    >>> folder = tempfile.TemporaryDirectory()
+    >>> path = os.path.join(folder.name, "grey.exr")
+    >>> report = write_envmap(path, np.full((6, 8, 8, 3), 0.25))
+    >>> cube = load_cube(path)
+    >>> cube.shape, cube.dtype, float(cube.min()), float(cube.max())
+    ((6, 8, 8, 3), dtype('float64'), 0.25, 0.25)
+    >>> cube, report = load_cube(path, size=4, return_report=True)
+    >>> cube.shape, float(cube.max()), report.clean
+    ((6, 4, 4, 3), 0.25, True)
+    >>> folder.cleanup()
+    """
+    cube, rep = _load_cube(path, size, layout, convention, negative, nonfinite)
+    return (cube, rep) if return_report else cube
+
+
+def load_environment(path, size: int | None = None, layout: str | None = None, convention: str | None = None,
+                     negative: str = "auto", nonfinite: str = "error"):
+    """Load an environment-map file as a validated :class:`~ibl_ref.environment.validated.Environment`.
+
+    The cube of :func:`load_cube` (same files, same parameters), checked once by the read: the stages that take
+    an environment (median cut, PEMs, filter pyramids, …) trust it and do not check it again.
+
+    Parameters
+    ----------
+    path, size, layout, convention, negative, nonfinite
+        As :func:`load_cube`.
+
+    Returns
+    -------
+    Environment
+        Read-only float64 ``(6, N, N, 3)`` radiance (``.data``) with the report of the read (``.radiance``).
+
+    Raises
+    ------
+    EnvMapFileError, LayoutError, RadianceError, SizeError
+        As :func:`load_cube`.
+
+    Examples
+    --------
+    >>> import os, tempfile
+    >>> import numpy as np
+    >>> from ibl_ref.environment.exr_io import load_environment, write_envmap
+    >>> folder = tempfile.TemporaryDirectory()
+    >>> path = os.path.join(folder.name, "grey.exr")
+    >>> report = write_envmap(path, np.full((6, 8, 8, 3), 0.25))
+    >>> env = load_environment(path)
+    >>> env.face_size, env.channels, env.data.flags.writeable
+    (8, 3, False)
+    >>> folder.cleanup()
+    """
+    return adopt(*_load_cube(path, size, layout, convention, negative, nonfinite))

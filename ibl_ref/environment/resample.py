@@ -78,6 +78,7 @@ import numpy as np
 from . import envmap
 from ..errors import IBLError, LayoutError
 from .radiance_policy import check_radiance
+from .validated import environment_array
 
 __all__ = [
     "latlong_to_cube_cost",
@@ -811,8 +812,8 @@ def cube_to_latlong(cube, h: int, *, method: str = "conservative", k: int | None
     Parameters as :func:`latlong_to_cube`; the ``conservative`` method applies the transpose of the same
     balanced kernel (each lat-long texel is the hat-weighted average of the cube over the texel).
     """
-    n = envmap.check_cube_shape(cube)
-    a, squeeze = _prep(cube, "cube map", 4)
+    a, squeeze = environment_array(cube, "cube map")
+    n = a.shape[1]
     _check_interp(interpolation)
     _check_method(method)
     h = envmap.check_face_size(h)
@@ -830,8 +831,8 @@ def cube_to_cube(cube, n: int, *, k: int | None = None, interpolation: str = "bi
     When ``n`` divides the source size N the result is the exact area-weighted block average
     (Σ Ω_s L_s / Σ Ω_s over each block of (N/n)² texels), which conserves ∫L dω to rounding.
     """
-    big = envmap.check_cube_shape(cube)
-    a, squeeze = _prep(cube, "cube map", 4)
+    a, squeeze = environment_array(cube, "cube map")
+    big = a.shape[1]
     _check_interp(interpolation)
     n = envmap.check_face_size(n)
     if n == big:

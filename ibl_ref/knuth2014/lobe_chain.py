@@ -46,8 +46,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..environment.envmap import check_cube_shape, texel_directions
-from ..environment.radiance_policy import check_radiance
+from ..environment.envmap import texel_directions
+from ..environment.validated import as_environment
 from ..errors import IBLError, LayoutError
 from ..conventions import lobe_half_angle
 
@@ -123,14 +123,6 @@ def exponent_calibration(s_phong, base_size: int, kernel: str = KERNEL_NAME):
     return Calibration(s, lev, kernel, "exact", "exact", int(base_size), "exact", "lobe_chain", K)
 
 
-def _prepare(cube):
-    check_cube_shape(cube, "environment")
-    a = np.asarray(check_radiance(cube, "environment"), dtype=np.float64)
-    if a.ndim == 3:
-        a = a[..., None]
-    return a
-
-
 def _tile_angles(n: int, tile: int):
     """Output directions grouped in tiles: list of (flat indices, centre (3,), radius rad)."""
     d = np.asarray(texel_directions(n)).reshape(6, n, n, 3)
@@ -158,8 +150,8 @@ def lobe_average_regions(cube, labels, n_regions: int, s: float, out_size: int, 
     """
     from ..groundtruth.phong_convolution import lobe_average
 
-    a = _prepare(cube)
-    C = a.shape[3]
+    env = as_environment(cube, "environment")
+    C = env.channels
     s = float(s)
     if not (np.isfinite(s) and s >= 1.0):
         raise IBLError(f"Phong exponent must be finite and >= 1, got {s!r}")
@@ -172,19 +164,19 @@ def lobe_average_regions(cube, labels, n_regions: int, s: float, out_size: int, 
     dst = np.asarray(texel_directions(n)).reshape(-1, 3)[ids]
     out = np.zeros((6 * n * n, n_regions, C))
     bound = np.zeros(6 * n * n)
-    out[ids], bound[ids] = lobe_average(a, dst, s, labels=labels, n_regions=n_regions, weight_eps=weight_eps,
+    out[ids], bound[ids] = lobe_average(env, dst, s, labels=labels, n_regions=n_regions, weight_eps=weight_eps,
                                         group=t * t, return_bound=True)  # the exact Eq. 4 lobe average
     return out.reshape(6, n, n, n_regions, C), bound.reshape(6, n, n)
 
 
-def _chain_levels(a, labels, R, spec, weight_eps, tile, progress):
+def _chain_levels(env, labels, R, spec, weight_eps, tile, progress):
     levels = [None]
     bounds = []
     from ..progress import track
 
     for s, n in track(list(zip(spec.s_phong, spec.face_sizes[1:])), "exact-lobe chain", unit="level",
                       enabled=progress):
-        lev, b = lobe_average_regions(a, labels, R, s, n, weight_eps=weight_eps, tile=tile)
+        lev, b = lobe_average_regions(env, labels, R, s, n, weight_eps=weight_eps, tile=tile)
         levels.append(lev)
         bounds.append(float(b.max()))
     return levels, bounds
@@ -199,12 +191,12 @@ def build_lobe_chain(cube, *, s_min: float = 1.0, factor: float = 4.0, texels_pe
     """
     from .pyramid import Pyramid
 
-    a = _prepare(cube)
-    N = a.shape[1]
+    env = as_environment(cube, "environment")
+    N = env.face_size
     spec = chain_spec(N, s_min=s_min, factor=factor, texels_per_halfwidth=texels_per_halfwidth, n_min=n_min)
     labels = np.zeros((6, N, N), dtype=np.intp)
-    levels, bounds = _chain_levels(a, labels, 1, spec, weight_eps, 8, progress)
-    levels = [a.astype(dtype)] + [lev[:, :, :, 0, :].astype(dtype) for lev in levels[1:]]
+    levels, bounds = _chain_levels(env, labels, 1, spec, weight_eps, 8, progress)
+    levels = [env.data.astype(dtype)] + [lev[:, :, :, 0, :].astype(dtype) for lev in levels[1:]]
     pyr = Pyramid(levels=levels, kernel=KERNEL_NAME, order="exact", seam="exact", base_size=N)
     pyr.truncation_bounds = bounds
     pyr.spec = spec
@@ -221,14 +213,14 @@ def build_lobe_chain_pems(cube, lights=None, *, n_lights: int | None = None, var
     """
     from .pem import PEMSet, partial_maps, prepare_pem_input
 
-    N, a, lights = prepare_pem_input(cube, lights, n_lights, variant, "build_lobe_chain_pems")
+    N, env, lights = prepare_pem_input(cube, lights, n_lights, variant, "build_lobe_chain_pems")
     dt = np.dtype(dtype)
     if not np.issubdtype(dt, np.floating):
         raise IBLError(f"PEM dtype must be a float type, got {dt}")
     spec = chain_spec(N, s_min=s_min, factor=factor, texels_per_halfwidth=texels_per_halfwidth, n_min=n_min)
     R = len(lights)
-    levels, bounds = _chain_levels(a, lights.labels, R, spec, weight_eps, 8, progress)
-    levels[0] = partial_maps(a, lights.labels, 0, R)  # level 0: the masked copies themselves (mirror)
+    levels, bounds = _chain_levels(env, lights.labels, R, spec, weight_eps, 8, progress)
+    levels[0] = partial_maps(env.data, lights.labels, 0, R)  # level 0: the masked copies themselves (mirror)
     for lev in levels:
         if dt.itemsize < 8 and np.any(np.abs(lev) > np.finfo(dt).max):
             raise IBLError(f"PEM values exceed the range of {dt}; use a wider dtype")

@@ -66,7 +66,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..environment.envmap import check_cube_shape, texel_directions, texel_solid_angles, FACE_NAMES
-from ..environment.radiance_policy import check_radiance
+from ..environment.validated import as_environment
 from ..errors import IBLError, LayoutError
 
 __all__ = [
@@ -443,7 +443,7 @@ def median_cut(cube, n_lights: int, variant: str = "per-face", *, luminance_weig
                          "median cut input")
     except SizeError as exc:
         raise IBLError(f"{exc}; cut a smaller cube. Resample the map first (e.g. ibl_ref.environment.resample)") from None
-    cube = np.asarray(check_radiance(cube, "median cut input"), dtype=np.float64)
+    cube = as_environment(cube, "median cut input").data
     if isinstance(n_lights, bool) or not isinstance(n_lights, (int, np.integer)):
         raise IBLError(f"n_lights must be an integer, got {n_lights!r}")
     n_lights = int(n_lights)
@@ -495,10 +495,8 @@ def texel_lights(cube, *, luminance_weights=None) -> LightSet:
     Eq. 5 with exact per-region visibility approaches the exact visibility-weighted lobe average as the texels
     shrink (``ibl_ref.rendering.error_budget``).  ``variant`` is ``"texel"``.
     """
-    n = check_cube_shape(cube, "texel lights input")
-    cube = np.asarray(check_radiance(cube, "texel lights input"), dtype=np.float64)
-    if cube.ndim == 3:
-        cube = cube[..., None]
+    cube = as_environment(cube, "texel lights input").data
+    n = cube.shape[1]
     k = _overflow_exponent(cube)
     scaled = np.ldexp(cube, -k) if k else cube
     w = luminance(scaled, luminance_weights) * texel_solid_angles(n)[None]

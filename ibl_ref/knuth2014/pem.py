@@ -27,8 +27,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..environment.envmap import check_cube_shape
-from ..environment.radiance_policy import check_radiance
+from ..environment.validated import adopt, as_environment
 from ..errors import IBLError, LayoutError
 from .median_cut import LightSet, median_cut
 
@@ -44,10 +43,11 @@ def partial_maps(cube, labels, a: int, b: int) -> np.ndarray:
     """The partial environment maps of regions a..b−1, stacked: (6, N, N, b−a, C) (Sec. 4: "a plain copy of the
     original environment map" with "all texels that do not belong to the current PEM" blackened).
 
-    ``cube``: (6, N, N, C); ``labels``: (6, N, N) region index per texel (:attr:`LightSet.labels`).
+    ``cube``: (6, N, N, C) array or :class:`~ibl_ref.environment.validated.Environment`; ``labels``: (6, N, N)
+    region index per texel (:attr:`LightSet.labels`).
     """
     mask = np.asarray(labels)[..., None] == np.arange(a, b)[None, None, None, :]  # (6, N, N, k)
-    return cube[:, :, :, None, :] * mask[..., None]
+    return np.asarray(cube)[:, :, :, None, :] * mask[..., None]
 
 
 def iter_pem_chunks(cube, labels, n_regions, *, kernel="sqrtcos", order="shrink_then_filter", seam="neighbour",
@@ -55,13 +55,28 @@ def iter_pem_chunks(cube, labels, n_regions, *, kernel="sqrtcos", order="shrink_
     """Yield ``(a, b, levels)`` for regions a..b−1: the filtered masked copies, levels (6, n, n, b−a, C) float64.
 
     The masked copies of a chunk are stacked along the channel axis and filtered in one pyramid call
-    (the pyramid filters every channel independently).
+    (the pyramid filters every channel independently), each chunk handed to ``pyramid_builder`` as an
+    :class:`~ibl_ref.environment.validated.Environment` (masked copies of a valid map are valid: not checked again).
+
+    Parameters
+    ----------
+    cube : Environment or array (6, N, N[, C])
+        The environment (checked once here unless it is an :class:`~ibl_ref.environment.validated.Environment`).
+    labels : int array (6, N, N)
+        Region index of every texel (:attr:`ibl_ref.knuth2014.median_cut.LightSet.labels`).
+    n_regions : int
+        Number of regions L.
+    kernel, order, seam : pyramid configuration (:func:`ibl_ref.knuth2014.pyramid.build_pyramid`).
+    pyramid_builder : callable(cube, kernel=, order=, seam=) → object with ``.levels``, optional
+        Default :func:`ibl_ref.knuth2014.pyramid.build_pyramid`.
+    chunk : int, optional
+        Regions per pyramid call (default :func:`default_chunk`).
+    progress : bool
+        Report progress over the chunks (:mod:`ibl_ref.progress`).
     """
     if pyramid_builder is None:
         from .pyramid import build_pyramid as pyramid_builder
-    cube = np.asarray(cube, dtype=np.float64)
-    if cube.ndim == 3:
-        cube = cube[..., None]
+    cube = as_environment(cube, "PEM input").data
     n, C = cube.shape[1], cube.shape[3]
     chunk = default_chunk(n_regions, C) if chunk is None else int(chunk)
     from ..progress import track
@@ -69,7 +84,7 @@ def iter_pem_chunks(cube, labels, n_regions, *, kernel="sqrtcos", order="shrink_
     for a in track(range(0, n_regions, chunk), "PEM pyramids", unit="chunk", enabled=progress):
         b = min(a + chunk, n_regions)
         k = b - a
-        masked = partial_maps(cube, labels, a, b).reshape(6, n, n, k * C)
+        masked = adopt(partial_maps(cube, labels, a, b).reshape(6, n, n, k * C), name="PEM input")
         pyr = pyramid_builder(masked, kernel=kernel, order=order, seam=seam)
         yield a, b, [np.asarray(lev, dtype=np.float64).reshape(lev.shape[:3] + (k, C)) for lev in pyr.levels]
 
@@ -212,19 +227,18 @@ class PEMSet:
 
 
 def prepare_pem_input(cube, lights, n_lights, variant, caller: str):
-    """Validate the map as float64 (6, N, N, C) and return ``(N, cube, lights)``, median-cutting it
-    into ``n_lights`` regions when no ``lights`` are given (shared by the dense and sparse builders)."""
-    n = check_cube_shape(cube, "PEM input")
-    cube = np.asarray(check_radiance(cube, "PEM input"), dtype=np.float64)
-    if cube.ndim == 3:
-        cube = cube[..., None]
+    """The map as an :class:`~ibl_ref.environment.validated.Environment` (checked once, as ``"PEM input"``, unless it
+    is one) and its lights: ``(N, env, lights)``, median-cutting it into ``n_lights`` regions when no ``lights`` are
+    given (shared by the dense, sparse and lobe-chain builders)."""
+    env = as_environment(cube, "PEM input")
+    n = env.face_size
     if lights is None:
         if n_lights is None:
             raise IBLError(f"{caller}: give either lights (a LightSet) or n_lights")
-        lights = median_cut(cube, n_lights, variant)
+        lights = median_cut(env, n_lights, variant)
     if lights.labels.shape != (6, n, n):
         raise LayoutError(f"lights were made for face size {lights.face_size}, map has {n}")
-    return n, cube, lights
+    return n, env, lights
 
 
 def build_pems(cube, lights: LightSet | None = None, *, n_lights: int | None = None, variant: str = "per-face",
@@ -250,13 +264,13 @@ def build_pems(cube, lights: LightSet | None = None, *, n_lights: int | None = N
     chunk : regions per pyramid call (default: ≤ 48 stacked channels).
     progress : report progress over the pyramid calls (:mod:`ibl_ref.progress`: a bar on a terminal, status lines in a log).
     """
-    n, cube, lights = prepare_pem_input(cube, lights, n_lights, variant, "build_pems")
+    n, env, lights = prepare_pem_input(cube, lights, n_lights, variant, "build_pems")
     dt = np.dtype(dtype)
     if not np.issubdtype(dt, np.floating):
         raise IBLError(f"PEM dtype must be a float type, got {dt}")
-    L, C = len(lights), cube.shape[3]
+    L, C = len(lights), env.channels
     levels = None
-    for a, b, levs in iter_pem_chunks(cube, lights.labels, L, kernel=kernel, order=order, seam=seam,
+    for a, b, levs in iter_pem_chunks(env, lights.labels, L, kernel=kernel, order=order, seam=seam,
                                       pyramid_builder=pyramid_builder, chunk=chunk, progress=progress):
         if levels is None:
             levels = [np.empty(lev.shape[:3] + (L, C), dtype=dt) for lev in levs]

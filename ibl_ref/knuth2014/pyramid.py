@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..environment.envmap import check_cube_shape, texel_solid_angles
-from ..environment.radiance_policy import check_radiance
+from ..environment.validated import as_environment
 from ..errors import IBLError, LayoutError
 from .filters import check_seam, filter_cube, kernel_taps
 
@@ -174,21 +174,19 @@ def shrink_2x2_solid_angle(cube: np.ndarray) -> np.ndarray:
 
 
 def _check_input(cube, dtype):
+    """``(N, radiance (6, N, N, C) in the working dtype)``: the layout, a power-of-two N, the radiance (once, unless
+    ``cube`` is an :class:`~ibl_ref.environment.validated.Environment`); the default dtype is the input's."""
     n = check_cube_shape(cube)
     if n & (n - 1):
         raise LayoutError(
             f"filter pyramids support power-of-two face sizes only (1, 2, 4, ..., 512, ...); got {n}. "
             "Resample the map first (e.g. ibl_ref.environment.resample)."
         )
-    a = np.asarray(cube)
-    check_radiance(a, "environment map")
     if dtype is None:
-        dtype = a.dtype if np.issubdtype(a.dtype, np.floating) else np.float64
-    a = a.astype(dtype, copy=False)
-    squeeze = a.ndim == 3
-    if squeeze:
-        a = a[..., None]
-    return n, a, squeeze
+        dtype = getattr(cube, "dtype", None)
+    env = as_environment(cube, "environment map")
+    dtype = dtype if dtype is not None and np.issubdtype(dtype, np.floating) else np.float64
+    return n, env.data.astype(dtype, copy=False)
 
 
 def build_pyramid(cube, kernel="sqrtcos", order: str = "shrink_then_filter", seam: str = "neighbour",
@@ -221,7 +219,7 @@ def build_pyramid(cube, kernel="sqrtcos", order: str = "shrink_then_filter", sea
     check_seam(seam)
     if shrink not in SHRINKS:
         raise IBLError(f"unknown shrink {shrink!r}; choose one of {', '.join(SHRINKS)}")
-    n, a, _ = _check_input(cube, dtype)
+    n, a = _check_input(cube, dtype)
     kname = kernel if isinstance(kernel, str) else "custom"
     levels = [a.copy()]
     cur = levels[0]

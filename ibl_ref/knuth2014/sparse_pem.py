@@ -302,16 +302,16 @@ def build_sparse_pems(cube, lights: LightSet | None = None, *, n_lights: int | N
     from .pem import iter_pem_chunks, prepare_pem_input
 
     rtol = _check_rtol(rtol)
-    n, cube, lights = prepare_pem_input(cube, lights, n_lights, variant, "build_sparse_pems")
+    n, env, lights = prepare_pem_input(cube, lights, n_lights, variant, "build_sparse_pems")
     if pyramid_builder is None:
         from .pyramid import build_pyramid as pyramid_builder
-    full = pyramid_builder(cube, kernel=kernel, order=order, seam=seam)
+    full = pyramid_builder(env, kernel=kernel, order=order, seam=seam)
     full_levels = [np.asarray(lev, dtype=np.float64) for lev in full.levels]
     dt = np.dtype(dtype)
     stored = _stored_levels(g_values, n, len(full_levels), lookup_fn, calibration, kernel, order, seam)
     L = len(lights)
     tiles = [dict() for _ in range(L)]
-    for a, b, levs in iter_pem_chunks(cube, lights.labels, L, kernel=kernel, order=order, seam=seam,
+    for a, b, levs in iter_pem_chunks(env, lights.labels, L, kernel=kernel, order=order, seam=seam,
                                       pyramid_builder=pyramid_builder, chunk=chunk, progress=progress):
         for l in stored:
             src = levs[l]
@@ -321,5 +321,5 @@ def build_sparse_pems(cube, lights: LightSet | None = None, *, n_lights: int | N
             for j, i in enumerate(range(a, b)):
                 tiles[i][l] = _tiles_of(stored_l[:, :, :, j, :], _keep_mask(stored_l[:, :, :, j, :], full_levels[l], rtol, L))
     kname = kernel if isinstance(kernel, str) else "custom"
-    return SparsePEMSet(lights, tiles, [lev.shape[1] for lev in full_levels], cube.shape[3], dt, stored, rtol,
+    return SparsePEMSet(lights, tiles, [lev.shape[1] for lev in full_levels], env.channels, dt, stored, rtol,
                         kname, order, seam, calibration, lookup_fn, g_values)

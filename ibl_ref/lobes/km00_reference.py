@@ -21,7 +21,7 @@ import numpy as np
 
 from ..environment import envmap
 from ..errors import IBLError
-from ..groundtruth.convolution_args import check_cube
+from ..environment.validated import environment_array
 from .profile_convolution import BLOCK_ELEMS, positive_int
 
 __all__ = ["render_reference", "brdf_min_hwhm", "ward_cut_angle", "ward_neglected_bound"]
@@ -97,7 +97,7 @@ def render_reference(cube, n, wo, brdf, *, supersample: int = 1, cut_angle: floa
     """
     from scipy.spatial import cKDTree
 
-    a, squeeze = check_cube(cube)
+    a, squeeze = environment_array(cube, "environment cube map")
     nb = positive_int("bucket_size", bucket_size)
     nn = envmap.unit_directions(n, "n").reshape(-1, 3)
     vv = envmap.unit_directions(wo, "wo").reshape(-1, 3)

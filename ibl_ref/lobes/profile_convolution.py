@@ -29,7 +29,7 @@ import math
 import numpy as np
 
 from ..environment import envmap
-from ..groundtruth.convolution_args import check_cube
+from ..environment.validated import environment_array
 from ..errors import IBLError
 
 __all__ = ["ProfileError", "check_profile", "profile_integral", "support_angle", "convolve_profiles",
@@ -259,7 +259,7 @@ def convolve_profiles(cube, gamma, profiles, *, out_size: int | None = None, sup
     -------
     ndarray (P, 6, n, n, C) (or (6, n, n, C) for a 1-D ``profiles``; C dropped for a 3-d cube)[, info].
     """
-    a, squeeze = check_cube(cube)
+    a, squeeze = environment_array(cube, "environment cube map")
     g, p = check_profile(gamma, profiles)
     single = p.ndim == 1
     p = np.atleast_2d(p)

@@ -115,9 +115,9 @@ def render_modes(meshes, camera, env, modes=MODES, *, pems=None, n_lights: int =
         raise IBLError(f"ao_color_variant must be one of {AO_COLOR_VARIANTS}, got {ao_color_variant!r}")
     if ao_visibility not in ("vsm", "raycast"):
         raise IBLError(f"ao_visibility must be 'vsm' or 'raycast', got {ao_visibility!r}")
-    from .reference_converged import check_environment
+    from ..environment.validated import as_environment
 
-    env = check_environment(env)
+    env = as_environment(env, "environment")
     T: dict = {}
     sc = prepare_scene(meshes, warn=False)
     t0 = time.perf_counter()

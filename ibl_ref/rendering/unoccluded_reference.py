@@ -488,10 +488,10 @@ def integrate(cube, lobe, normals, views, *, rtol: float = 1e-3, floor: float = 
     chunk_cells : cells per chunk of pixels (memory ≈ 200 bytes × chunk_cells × 5)
     max_cells_per_pixel : refinement stops there (``info["converged"]`` False)
     """
-    from ..groundtruth.convolution_args import check_cube
+    from ..environment.validated import as_environment
     from ..progress import track
 
-    a, _ = check_cube(cube)
+    a = as_environment(cube, "environment cube map").data
     n_face = a.shape[1]
     C = a.shape[-1]
     k0 = 0  # the top level: blocks of 2^−k0 texels, as many halvings as the face size has (≤ coarse_levels)

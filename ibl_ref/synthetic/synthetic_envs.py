@@ -41,7 +41,8 @@ from pathlib import Path
 import numpy as np
 
 from ..environment import envmap
-from ..environment.radiance_policy import check_radiance
+from ..environment.radiance_policy import apply_policy
+from ..environment.validated import adopt
 from ..errors import IBLError
 
 __all__ = [
@@ -53,6 +54,7 @@ __all__ = [
     "SUN_NEAR_CORNER",
     "SUN_SOLID_ANGLE",
     "make_env",
+    "make_environment",
     "env_constant",
     "env_delta",
     "env_gradient",
@@ -646,13 +648,8 @@ def _param_names(fn) -> list[str]:
     return [p for p in inspect.signature(fn).parameters if p != "n"]
 
 
-def make_env(name: str, n: int = 64, **params) -> np.ndarray:
-    """Generate the synthetic environment ``name`` as a (6, n, n, 3) float64 cube map.
-
-    ``name`` ∈ :data:`ENV_NAMES`; ``params`` are the keyword parameters of the generator
-    ``env_<name>`` (see their docstrings or :func:`generator_help`).  Raises :class:`IBLError` for an
-    unknown name or parameter and for invalid values.  The result is checked finite and non-negative.
-    """
+def _make(name: str, n, params: dict):
+    """``(cube (6, n, n, 3) float64, RadianceReport)`` of generator ``name``: the work of :func:`make_env`."""
     fn = _generator(name)
     n = _face_size(n)
     allowed = _param_names(fn)
@@ -661,8 +658,85 @@ def make_env(name: str, n: int = 64, **params) -> np.ndarray:
         raise IBLError(f"{name}: unknown parameter(s) {unknown}; allowed: {', '.join(allowed)}")
     cube = np.ascontiguousarray(fn(n, **params), dtype=np.float64)
     assert cube.shape == (6, n, n, 3)
-    check_radiance(cube, f"synthetic environment {name!r}")
-    return cube
+    _, rep = apply_policy(cube, f"synthetic environment {name!r}", negative="error", nonfinite="error")
+    return cube, rep
+
+
+def make_env(name: str, n: int = 64, **params) -> np.ndarray:
+    """Generate the synthetic environment ``name`` as a (6, n, n, 3) float64 cube map.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`ENV_NAMES`: ``"constant"``, ``"delta"``, ``"gradient"``, ``"sky_sun"``, ``"studio"``,
+        ``"checker"`` (module docstring).
+    n : int, optional
+        Face size (default 64).
+    **params
+        The keyword parameters of the generator ``env_<name>`` (their docstrings, or :func:`generator_help`).
+
+    Returns
+    -------
+    ndarray, float64, shape (6, n, n, 3)
+        Radiance in the OpenEXR cube layout (:mod:`ibl_ref.environment.envmap`), checked finite and non-negative.
+        :func:`make_environment` returns the same map as a validated
+        :class:`~ibl_ref.environment.validated.Environment`.
+
+    Raises
+    ------
+    IBLError
+        An unknown name or parameter, an invalid value.
+
+    Examples
+    --------
+    A constant map: its integral over the sphere, Σ L·Ω with the exact texel solid angles, is 4π·L:
+
+    >>> import numpy as np
+    >>> from ibl_ref.environment.envmap import texel_solid_angles
+    >>> from ibl_ref.synthetic.synthetic_envs import make_env
+    >>> cube = make_env("constant", 8, value=2.0)
+    >>> cube.shape
+    (6, 8, 8, 3)
+    >>> np.einsum("fijc,ij->c", cube, texel_solid_angles(8)) / np.pi
+    array([8., 8., 8.])
+
+    A normalised one-texel light carries exactly the radiance asked for, whatever texel it lands on:
+
+    >>> delta = make_env("delta", 8, direction=(0.3, 1.0, 0.2), radiance=5.0, normalize=True)
+    >>> float(np.einsum("fijc,ij->", delta[..., :1], texel_solid_angles(8)))
+    5.0
+    """
+    return _make(name, n, params)[0]
+
+
+def make_environment(name: str, n: int = 64, **params):
+    """:func:`make_env` as a validated :class:`~ibl_ref.environment.validated.Environment` (checked once, when made).
+
+    Parameters
+    ----------
+    name, n, **params
+        As :func:`make_env`.
+
+    Returns
+    -------
+    Environment
+        Read-only float64 ``(6, n, n, 3)`` radiance, trusted by every stage that takes an environment.
+
+    Raises
+    ------
+    IBLError
+        As :func:`make_env`.
+
+    Examples
+    --------
+    >>> from ibl_ref.synthetic.synthetic_envs import make_environment
+    >>> env = make_environment("sky_sun", 16)
+    >>> env
+    Environment(face_size=16, channels=3, name="synthetic environment 'sky_sun'")
+    >>> env.data.flags.writeable
+    False
+    """
+    return adopt(*_make(name, n, params))
 
 
 #: environments of the renders and experiments: the synthetic generators plus ``"probe"``
