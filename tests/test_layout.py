@@ -132,7 +132,7 @@ def test_import_scan_sees_lazy_and_relative_imports(tmp_path):
     # the scanner itself: a function-level relative import is found and resolved
     f = ROOT / "ibl_ref" / "knuth2014" / "pem.py"
     found = _imports(f)
-    assert ("ibl_ref.environment.envmap.check_cube_shape", "<module>") in found
+    assert ("ibl_ref.environment.validated.as_environment", "<module>") in found
     assert ("ibl_ref.knuth2014.pyramid", "iter_pem_chunks") in found
 
 
