@@ -1,8 +1,9 @@
-"""The package layout: every concept has one home, the README's concept table matches the code, no old names linger.
+"""The package layout: every concept has one home, the concept table matches the code, no old names linger.
 
-The README's table "Where each concept lives" lists, per paper concept, the module file and its public entry
-points; this test parses that table and checks that each file exists, each entry point is defined *in that
-module* (not re-exported from elsewhere), and that the package keeps no aliases of old module names.
+The concept table "Where each concept lives" (``docs/concepts.csv``, rendered into ``docs/concepts.md``) lists, per
+paper concept, the module file and its public entry points; this test reads that table and checks that each file
+exists, each entry point is defined *in that module* (not re-exported from elsewhere), and that the package keeps no
+aliases of old module names.
 """
 
 import ast
@@ -15,22 +16,19 @@ from pathlib import Path
 import pytest
 
 import ibl_ref
+from ibl_ref.atomic import read_csv
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
 def _concept_rows():
-    text = (ROOT / "README.md").read_text()
-    start = text.index("## Where each concept lives")
-    end = text.index("\n## ", start + 5)
     rows = []
-    for line in text[start:end].splitlines():
-        cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) < 4 or not cells[2].startswith("`ibl_ref/"):
+    for q in read_csv(ROOT / "docs" / "concepts.csv"):
+        if not q["module"].startswith("`ibl_ref/"):
             continue
-        paths = re.findall(r"`(ibl_ref/[\w/]+\.py)`", cells[2])
-        names = re.findall(r"`([A-Za-z_][A-Za-z0-9_]*)`", cells[3])
-        rows.append((cells[0], paths, names))
+        paths = re.findall(r"`(ibl_ref/[\w/]+\.py)`", q["module"])
+        names = re.findall(r"`([A-Za-z_][A-Za-z0-9_]*)`", q["entry_points"])
+        rows.append((q["concept"], paths, names))
     return rows
 
 
