@@ -23,13 +23,19 @@ Every file ibl_ref writes goes through :func:`atomic_path` / :func:`atomic_write
   outputs and manifest exactly as they were.
 * **Inputs are never outputs**: :func:`refuse_overwriting_inputs` rejects an output path that names
   the same file as an input (``render --env X --out X``), before any work.
-* **Side files never destroy a file the user did not name** (:func:`check_side_files`).  A command writes
-  the paths the user named, the documented files inside an output folder the user named (``pem --out DIR``,
-  experiments), and *side files* next to a named file: the JSON manifest ``OUT.json`` of ``render``,
-  ``km00-render`` and ``convolve``, ``convolve``'s ``OUT_s{S}.exr``, ``km00-render --png``'s ``OUT.png``.  A side
-  file is written only where no file of its name exists, or over a file that the previous run for the same
-  output wrote: the manifest of an ibl_ref output set (a JSON object listing its files) and the files it
-  lists.  Anything else is refused before any work, naming the file.
+* **Side files never destroy a file the lab did not write** (:func:`check_side_files`, enforced again by
+  :class:`OutputSet`).  A command writes the paths the user named, and *side files*: the JSON manifest ``OUT.json``
+  of ``render``, ``km00-render`` and ``convolve``, ``convolve``'s ``OUT_s{S}.exr``, ``km00-render --png``'s
+  ``OUT.png``, the files inside an output folder the user named (``pem --out DIR``'s ``pems.json`` and
+  ``pem_NNN.exr``, an experiment's files and its manifest ``NAME_outputs.json``).  A side file is written only where
+  no file of its name exists, or over a file that the previous run for the same output wrote: the manifest of an
+  ibl_ref output set — recognised by the marker :data:`MANIFEST_MARKER` that :meth:`OutputSet.commit` puts in every
+  manifest, not by its shape (a user's JSON with an ``"outputs"`` list is the user's) — and the files it lists.
+  Anything else is refused with one line naming the file, before any work where the command knows its files up
+  front.
+* **Concurrent commits of one output set do not mix**: :meth:`OutputSet.commit` holds an exclusive lock
+  (``flock``) on the manifest's folder while it reads the previous manifest, moves the files and removes the stale
+  ones, so of two runs into one folder the later commit replaces the earlier one's set whole.
 * OS errors while writing (``ENOSPC``, ``EROFS``, ``EACCES`` …) become :class:`OutputError` naming the
   file and the reason.
 * **Folders created for an output that failed are removed** (when still empty): a failed or interrupted run
@@ -68,11 +74,15 @@ __all__ = [
     "resolve_output",
     "output_folder",
     "check_side_files",
+    "MANIFEST_MARKER",
     "critical_section",
     "in_critical_section",
 ]
 
 TEMP_TAG = ".ibl-tmp-"  #: marker in every temporary file / staging folder name (followed by the PID)
+#: key that :meth:`OutputSet.commit` puts first in every manifest it writes (value: the manifest format, 1): the lab
+#: replaces a manifest, and the files it lists, only where this marker says the lab wrote it
+MANIFEST_MARKER = "ibl_ref_manifest"
 
 
 class OutputError(IBLError):
@@ -361,39 +371,76 @@ def refuse_overwriting_inputs(inputs: dict, outputs: dict) -> None:
                                   "the input (choose another output path)")
 
 
-def _manifest_names(path: Path, owned_key: str):
-    """Base names listed under ``owned_key`` by the JSON manifest at ``path``; None if it is not such a manifest."""
+def _entry(e, relative: bool):
+    """A manifest entry as the name it stands for: its base name, or (``relative``) its path relative to the
+    manifest's folder (POSIX, no ``..``, not absolute, no temporary name); None if it is none."""
+    if not isinstance(e, str) or not e:
+        return None
+    if not relative:
+        name = Path(e).name
+        return name if name not in ("", ".", "..") and TEMP_TAG not in name else None
+    parts = Path(e).parts
+    if Path(e).is_absolute() or not parts or any(q in ("", ".", "..") or TEMP_TAG in q for q in parts):
+        return None
+    return Path(*parts).as_posix()
+
+
+def _manifest_names(path: Path, owned_key: str, relative: bool = False):
+    """Names listed under ``owned_key`` by the lab's JSON manifest at ``path`` (base names, or paths relative to its
+    folder); None if it is not a manifest the lab wrote (no :data:`MANIFEST_MARKER`, or no list under the key)."""
     try:
         data = json.loads(Path(path).read_text())
     except (OSError, ValueError):
         return None
-    entries = data.get(owned_key) if isinstance(data, dict) else None
+    if not isinstance(data, dict) or data.get(MANIFEST_MARKER) != 1:
+        return None
+    entries = data.get(owned_key)
     if not isinstance(entries, list):
         return None
-    return {Path(e).name for e in entries if isinstance(e, str) and e}
+    return {n for n in (_entry(e, relative) for e in entries) if n is not None}
 
 
-def check_side_files(manifest, side=(), owned_key: str = "outputs", label: str = "--out") -> None:
-    """Refuse (:class:`OutputError`) to replace a file the user did not name (module docstring), before any work.
+def _foreign_manifest(manifest: Path, label: str) -> OutputError:
+    return OutputError(f"{label}: {manifest} exists and was not written by ibl_ref for this output (no "
+                       f"'{MANIFEST_MARKER}' marker); refusing to replace it (move it away or choose another output "
+                       "name)")
+
+
+def _foreign_file(f: Path, manifest: Path, label: str) -> OutputError:
+    return OutputError(f"{label}: {f} exists and was not written by the previous run for this output (not listed in "
+                       f"{manifest.name}); refusing to replace a file you did not name (move it away or choose another "
+                       "output name)")
+
+
+def check_side_files(manifest, side=(), owned_key: str = "outputs", label: str = "--out",
+                     relative: bool = False) -> None:
+    """Refuse (:class:`OutputError`) to replace a file the lab did not write (module docstring), before any work.
 
     ``manifest``: the side-file JSON manifest of the output set (e.g. ``OUT.json``); ``side``: the other side
-    files the run will write.  Each may exist only if it is that manifest (a JSON object with a list under
-    ``owned_key``) or a file the manifest lists.  ``label`` names the option of the output in the message.
+    files the run will write.  Each may exist only if it is that manifest (a JSON object with the lab's
+    :data:`MANIFEST_MARKER` and a list under ``owned_key``) or a file the manifest lists (by base name, or with
+    ``relative`` by its path relative to the manifest's folder).  ``label`` names the option of the output.
     """
     manifest = Path(manifest)
     listed = None
     if manifest.exists() or manifest.is_symlink():
-        listed = _manifest_names(manifest, owned_key)
+        listed = _manifest_names(manifest, owned_key, relative)
         if listed is None:
-            raise OutputError(f"{label}: the settings file {manifest} that this command writes beside its output "
-                              f"exists and was not written by ibl_ref for it; refusing to replace it (move it "
-                              f"away or choose another output name)")
+            raise _foreign_manifest(manifest, label)
     for f in side:
         f = Path(f)
-        if (f.exists() or f.is_symlink()) and (listed is None or f.name not in listed):
-            raise OutputError(f"{label}: {f} exists and was not written by the previous run for this output "
-                              f"(not listed in {manifest.name}); refusing to replace a file you did not name "
-                              f"(move it away or choose another output name)")
+        if (f.exists() or f.is_symlink()) and (listed is None or _listed_name(f, manifest, relative) not in listed):
+            raise _foreign_file(f, manifest, label)
+
+
+def _listed_name(f: Path, manifest: Path, relative: bool) -> str:
+    """The name under which a manifest lists the file ``f``."""
+    if not relative:
+        return f.name
+    try:
+        return Path(os.path.relpath(os.path.abspath(f), os.path.abspath(manifest.parent))).as_posix()
+    except ValueError:  # pragma: no cover - another drive (Windows)
+        return f.name
 
 
 def write_csv(path, rows, columns=None, comment: str | None = None):
@@ -454,6 +501,27 @@ def read_csv(path):
     return list(csv.DictReader(lines))
 
 
+@contextlib.contextmanager
+def _folder_lock(folder: Path):
+    """An exclusive ``flock`` on ``folder`` for the block (best effort: where the file system has no locks, none)."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    try:
+        fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        yield
+        return
+    try:
+        with contextlib.suppress(OSError):
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
 class OutputSet:
     """Several output files committed as a unit; the JSON manifest is written last.
 
@@ -465,24 +533,37 @@ class OutputSet:
             outs.commit({"files": [...], ...})                              # move into place, manifest last
 
     :meth:`path` returns a staging path inside ``.MANIFEST.ibl-tmp-PID-RANDOM/`` in the final file's
-    folder.  :meth:`commit` writes the manifest into the staging folder too (so every write that needs
-    disk space happens before anything is replaced), fsyncs the staged files, renames them over their
-    final names and the manifest last, then deletes the files the previous manifest listed under ``owned_key``
-    (base names, looked up in the manifest's folder) that this run did not produce, except the paths in
-    ``keep`` (e.g. the inputs).  Leaving the block without :meth:`commit` (an exception) removes the
-    staging folders and leaves the previous outputs and manifest untouched.
+    folder; :meth:`staging_folder` returns that folder of the manifest's own folder for a writer that writes many
+    files (an experiment): everything in it is committed, subfolders included, under the same relative paths.
+    :meth:`commit` writes the manifest (with :data:`MANIFEST_MARKER`) into the staging folder too (so every write
+    that needs disk space happens before anything is replaced), fsyncs the staged files, and — holding a lock on the
+    manifest's folder (concurrent commits of one set do not mix) — renames them over their final names and the
+    manifest last, then deletes the files the previous manifest listed under ``owned_key`` that this run did not
+    produce, except the paths in ``keep`` (e.g. the inputs).  Leaving the block without :meth:`commit` (an
+    exception) removes the staging folders and leaves the previous outputs and manifest untouched.
+
+    A file is replaced only if the user named it (``named``) or the previous manifest — one the lab wrote, with
+    its marker — lists it; a manifest without the marker is never replaced (module docstring).  Manifest entries
+    are base names looked up in the manifest's folder, or with ``relative=True`` paths relative to it.
     """
 
-    def __init__(self, manifest, owned_key: str = "files", keep=(), remove_stale: bool = True):
+    def __init__(self, manifest, owned_key: str = "files", keep=(), remove_stale: bool = True, named=(),
+                 relative: bool = False, label: str = "--out"):
         self.manifest = Path(manifest)
         self.owned_key = owned_key
         self.remove_stale = remove_stale  # False: never delete files of the previous run (render's OUT.json)
+        self.relative = relative
+        self.label = label
         self._real_manifest = resolve_output(self.manifest)
+        if (self.manifest.exists() or self.manifest.is_symlink()) and self._previous_names() is None:
+            raise _foreign_manifest(self.manifest, label)
         self._created: list = []  # folders made for this set: removed again (if empty) when it fails
         self.folder = _check_dir(self._real_manifest, self._created)
         self.keep = [Path(k) for k in keep if k is not None]
+        self.named = {Path(os.path.realpath(n)) for n in named if n is not None}
         self._staged: dict = {}  # real final path -> (staged path, given path)
         self._stage_dirs: dict = {}  # folder -> staging folder
+        self._adopt = None  # staging folder whose whole content is committed (staging_folder)
         self.committed = False
         self.removed_stale: list = []
 
@@ -494,6 +575,8 @@ class OutputSet:
             msg = exc.args[0]  # name the final file, not its staging path
             for staged, given in self._staged.values():
                 msg = msg.replace(str(staged), str(given))
+            if self._adopt is not None:
+                msg = msg.replace(str(self._adopt), str(self.manifest.parent))
             exc.args = (msg,) + exc.args[1:]
         with critical_section():  # a repeated Ctrl-C waits for the clean-up
             self._cleanup()
@@ -518,12 +601,23 @@ class OutputSet:
             self._stage_dirs[key] = d
         return self._stage_dirs[key]
 
+    def _previous_names(self):
+        return _manifest_names(self._real_manifest, self.owned_key, self.relative)
+
+    def _check_replace(self, real: Path, given: Path, listed) -> None:
+        """Refuse to replace an existing file that the user did not name and the previous manifest does not list."""
+        if not (given.exists() or given.is_symlink()) or Path(os.path.realpath(real)) in self.named:
+            return
+        if listed is None or _listed_name(given, self.manifest, self.relative) not in listed:
+            raise _foreign_file(given, self.manifest, self.label)
+
     def path(self, final) -> Path:
         """Staging path for the output file ``final`` (pass it to any writer)."""
         if self.committed:
             raise OutputError(f"{self.manifest}: output set already committed")
         final = Path(final)
         real = resolve_output(final)
+        self._check_replace(real, final, self._previous_names())
         folder = _check_dir(real, self._created)
         clean_stale_temps(folder, real.name)
         key = Path(os.path.realpath(real))
@@ -533,27 +627,70 @@ class OutputSet:
         self._staged[key] = (staged, final)
         return staged
 
+    def staging_folder(self) -> Path:
+        """A staging folder for the manifest's folder: every file written into it (subfolders too) is committed into
+        the manifest's folder under the same relative path (entries of the manifest: relative paths)."""
+        if self.committed:
+            raise OutputError(f"{self.manifest}: output set already committed")
+        self._adopt = self._stage_dir(self.folder)
+        return self._adopt
+
+    def _adopt_staged(self, staged_manifest: Path) -> list:
+        """Register every file of :meth:`staging_folder` as staged; returns their paths relative to the folder."""
+        rel = []
+        if self._adopt is None:
+            return rel
+        owned = {s for s, g in self._staged.values()} | {staged_manifest}
+        for root, dirs, files in os.walk(self._adopt):
+            dirs.sort()
+            for name in sorted(files):
+                src = Path(root) / name
+                if src in owned:
+                    continue
+                r = src.relative_to(self._adopt)
+                given = self.manifest.parent / r
+                self._staged[Path(os.path.realpath(self.folder / r))] = (src, given)
+                rel.append(r.as_posix())
+        return rel
+
     def commit(self, manifest_data) -> Path:
-        """Move the staged files into place, write ``manifest_data`` as the manifest, delete stale files."""
-        old_owned = self._previous_owned() if self.remove_stale else []
+        """Move the staged files into place, write ``manifest_data`` as the manifest (with :data:`MANIFEST_MARKER`
+        first; a dict), delete stale files."""
         missing = [str(g) for s, g in self._staged.values() if not s.exists()]
         if missing:
             raise OutputError(f"{self.manifest}: output file(s) were never written: {', '.join(missing)}")
         # everything that needs disk space happens in the staging folder: a full disk fails here
         staged_manifest = self._stage_dir(self.folder) / self._real_manifest.name
-        write_json(staged_manifest, manifest_data)
-        try:
+        adopted = self._adopt_staged(staged_manifest)
+        data = {MANIFEST_MARKER: 1, **(manifest_data or {})}
+        if adopted and self.owned_key not in data:
+            data[self.owned_key] = adopted
+        write_json(staged_manifest, data)
+        with _folder_lock(self.folder):  # a concurrent commit of the same set waits for this one
+            listed = self._previous_names()
+            if (self.manifest.exists() or self.manifest.is_symlink()) and listed is None:
+                raise _foreign_manifest(self.manifest, self.label)
             for real, (staged, given) in self._staged.items():
-                _fsync_path(staged)
-            with critical_section():  # Ctrl-C: every file moved into place, or none
+                self._check_replace(real, given, listed)
+            old_owned = sorted(listed or ()) if self.remove_stale else []
+            try:
                 for real, (staged, given) in self._staged.items():
-                    os.replace(staged, real)
-                os.replace(staged_manifest, self._real_manifest)  # the manifest last
-                self.committed = True
-            for folder in {real.parent for real in self._staged} | {self.folder}:
-                _fsync_path(folder, directory=True)
-        except OSError as exc:
-            raise OutputError(f"{self.manifest}: cannot move the outputs into place: {_reason(exc)}") from exc
+                    _fsync_path(staged)
+                    real.parent.mkdir(parents=True, exist_ok=True)  # a subfolder of an adopted staging folder
+                with critical_section():  # Ctrl-C: every file moved into place, or none
+                    for real, (staged, given) in self._staged.items():
+                        os.replace(staged, real)
+                    os.replace(staged_manifest, self._real_manifest)  # the manifest last
+                    self.committed = True
+                for folder in {real.parent for real in self._staged} | {self.folder}:
+                    _fsync_path(folder, directory=True)
+            except OSError as exc:
+                raise OutputError(f"{self.manifest}: cannot move the outputs into place: {_reason(exc)}") from exc
+            self._remove_stale(old_owned)
+        self._cleanup()
+        return self.manifest
+
+    def _remove_stale(self, old_owned) -> None:
         produced = set(self._staged) | {Path(os.path.realpath(self._real_manifest))}
         protected = {Path(os.path.realpath(k)) for k in self.keep}
         owner = self.manifest.parent  # names are relative to the manifest as given (not its symlink target)
@@ -565,10 +702,7 @@ class OutputSet:
             with contextlib.suppress(OSError):
                 os.unlink(cand)
                 self.removed_stale.append(cand)
-        self._cleanup()
-        return self.manifest
-
-    def _previous_owned(self) -> list:
-        """Base names listed under ``owned_key`` by the manifest of the previous run (empty if none/unreadable)."""
-        names = _manifest_names(self._real_manifest, self.owned_key) or ()
-        return sorted(n for n in names if n not in ("", ".", "..") and TEMP_TAG not in n)
+                for d in cand.parents:  # a subfolder the stale files emptied (relative entries)
+                    if d == owner or owner not in d.parents:
+                        break
+                    d.rmdir()

@@ -363,7 +363,8 @@ def test_output_set_ignores_a_tampered_manifest(tmp_path):
     outside.write_text("precious")
     sub = tmp_path / "out"
     sub.mkdir()
-    (sub / "manifest.json").write_text(json.dumps({"files": [str(outside), "../keep.txt", "..", ""]}))
+    (sub / "manifest.json").write_text(json.dumps({atomic.MANIFEST_MARKER: 1,
+                                                   "files": [str(outside), "../keep.txt", "..", ""]}))
     _outset_run(sub, ["x.exr"], b"x")
     assert outside.read_text() == "precious"  # only base names inside the manifest's folder are owned
 
@@ -624,7 +625,10 @@ def test_side_file_rule(tmp_path):
     side.write_text("[1, 2]")
     with pytest.raises(atomic.OutputError, match="not written by ibl_ref"):
         atomic.check_side_files(side)
-    side.write_text(json.dumps({"outputs": ["r_s4.exr"]}))
+    side.write_text(json.dumps({"outputs": ["r_s4.exr"]}))  # a user's JSON of the same shape, without the marker
+    with pytest.raises(atomic.OutputError, match="not written by ibl_ref"):
+        atomic.check_side_files(side)
+    side.write_text(json.dumps({atomic.MANIFEST_MARKER: 1, "outputs": ["r_s4.exr"]}))
     (tmp_path / "r_s4.exr").write_bytes(b"x")
     (tmp_path / "r_s8.exr").write_bytes(b"y")
     atomic.check_side_files(side, [tmp_path / "r_s4.exr"])  # listed by the previous run: ours

@@ -8,6 +8,7 @@ Each test states the rule and checks it where the mechanism lives (the parameter
 """
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -154,3 +155,197 @@ def test_every_tolerance_has_the_float64_floor(bad):
     assert check_rtol(RTOL_MIN) == RTOL_MIN and check_rtol(0.5) == 0.5
     # the floor is what the sums can verify: 2^27 terms (6·4096², the GGX cap) of rounding 2^-53 each
     assert RTOL_MIN == 6 * 4096 ** 2 / 1.5 * 2.0 ** -53 or RTOL_MIN == 2.0 ** 27 * 2.0 ** -53
+
+
+# ---- class 4: side files never replace a file the lab did not write --------------------------------------------
+def _env(tmp_path):
+    from ibl_ref.environment.exr_io import write_envmap
+    from ibl_ref.synthetic.synthetic_envs import make_env
+
+    p = tmp_path / "env.exr"
+    write_envmap(p, make_env("sky_sun", n=8), layout="cube")
+    return p
+
+
+def _refused(capsys, argv, victim, content):
+    from ibl_ref.cli import main
+
+    assert main([str(a) for a in argv]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(victim) in err and "refusing" in err, err
+    assert victim.read_text() == content  # untouched
+
+
+def _user_json(path):
+    text = json.dumps({"outputs": [path.stem + ".exr", "other.exr"], "mine": True})
+    path.write_text(text)
+    return text
+
+
+def test_render_side_file_of_the_user_is_refused(tmp_path, capsys):
+    from ibl_ref.cli import main
+
+    out = tmp_path / "r.exr"
+    side = tmp_path / "r.json"
+    text = _user_json(side)  # even one that lists this very output: no marker, not the lab's
+    argv = ["render", "--size", "8", "--env-size", "8", "--lights", "6", "--vsm-res", "16", "--no-progress",
+            "--out", out]
+    _refused(capsys, argv, side, text)
+    assert not out.exists()
+    side.unlink()
+    assert main([str(a) for a in argv]) == 0 and main([str(a) for a in argv]) == 0  # its own: replaced
+    assert json.loads(side.read_text())["ibl_ref_manifest"] == 1
+
+
+def test_km00_render_side_files_of_the_user_are_refused(tmp_path, capsys):
+    out = tmp_path / "k.exr"
+    argv = ["km00-render", "--size", "8", "--env-size", "8", "--n-theta", "3", "--quiet", "--out", out, "--png"]
+    text = _user_json(tmp_path / "k.json")
+    _refused(capsys, argv, tmp_path / "k.json", text)
+    (tmp_path / "k.json").unlink()
+    (tmp_path / "k.png").write_text("my picture")
+    _refused(capsys, argv, tmp_path / "k.png", "my picture")
+
+
+def test_convolve_side_files_of_the_user_are_refused(tmp_path, capsys):
+    from ibl_ref.cli import main
+
+    env = _env(tmp_path)
+    argv = ["convolve", env, tmp_path / "c.exr", "--exponent", "4"]
+    text = _user_json(tmp_path / "c.json")
+    _refused(capsys, argv, tmp_path / "c.json", text)
+    (tmp_path / "c.json").unlink()
+    (tmp_path / "c_s4.exr").write_text("mine")
+    _refused(capsys, argv, tmp_path / "c_s4.exr", "mine")
+    (tmp_path / "c_s4.exr").unlink()
+    assert main([str(a) for a in argv]) == 0 and main([str(a) for a in argv]) == 0
+
+
+@pytest.mark.parametrize("victim", ["pems.json", "pem_000.exr", "pem_005.exr"])
+def test_pem_files_of_the_user_in_its_folder_are_refused(tmp_path, capsys, victim):
+    from ibl_ref.cli import main
+
+    env = _env(tmp_path)
+    folder = tmp_path / "pems"
+    folder.mkdir()
+    (folder / victim).write_text("mine")
+    argv = ["pem", env, "--lights", "6", "--out", folder]
+    _refused(capsys, argv, folder / victim, "mine")
+    (folder / victim).unlink()
+    assert main([str(a) for a in argv]) == 0 and main([str(a) for a in argv]) == 0  # its own: replaced
+    assert len(list(folder.glob("pem_*.exr"))) == 6
+
+
+# ---- class 5: an experiment's outputs are replaced as a set ---------------------------------------------------
+def _toy(tmp_path, tag, materials, fail_in=None):
+    """A stand-in experiment: one CSV and one figure per material (as method-zoo's pareto_MATERIAL.png)."""
+    import types
+
+    mod = types.ModuleType("toy")
+    mod.NAME, mod.OUTPUTS, mod.PARAMS = "toy", ("toy.csv", "toy_MATERIAL.png", "toy_diff/MATERIAL.txt"), ()
+    calls = []
+
+    def run(out_dir, quick=False):
+        calls.append(out_dir)
+        (out_dir / "toy.csv").write_text(f"run,{tag}\n")
+        (out_dir / "toy_diff").mkdir()
+        for m in materials:
+            (out_dir / "toy_diff" / f"{m}.txt").write_text(tag)
+        if fail_in == "run":
+            raise KeyboardInterrupt
+        return {"materials": list(materials)}
+
+    def plot(out_dir):
+        figs = []
+        for m in materials:
+            (out_dir / f"toy_{m}.png").write_text(tag)
+            figs.append(out_dir / f"toy_{m}.png")
+        if fail_in == "plot":
+            raise KeyboardInterrupt  # Ctrl-C late: after every data file and some figures were written
+        return figs
+
+    mod.run, mod.plot = run, plot
+    return mod, calls
+
+
+def _files(folder):
+    return {p.relative_to(folder).as_posix(): p.read_text() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_a_rerun_replaces_the_set_and_removes_its_stale_outputs(tmp_path):
+    from ibl_ref.experiments import run_experiment
+
+    out = tmp_path / "toy"
+    out.mkdir()
+    (out / "notes.txt").write_text("the user's")
+    mod, _ = _toy(tmp_path, "first", ["a", "b"])
+    res = run_experiment(mod, out, quick=True)
+    assert res["figures"] == [str(out / "toy_a.png"), str(out / "toy_b.png")]
+    first = _files(out)
+    assert {"toy.csv", "toy_a.png", "toy_b.png", "toy_diff/a.txt", "toy_diff/b.txt", "notes.txt"} < set(first)
+    mod, _ = _toy(tmp_path, "second", ["c"])
+    run_experiment(mod, out, quick=True)
+    now = _files(out)
+    # the earlier run's toy_a.png / toy_b.png (materials the data no longer has) are gone, the user's file stays
+    assert set(now) == {"toy.csv", "toy_c.png", "toy_diff/c.txt", "notes.txt", "toy_outputs.json"}
+    assert now["toy.csv"] == "run,second\n" and now["notes.txt"] == "the user's"
+    assert json.loads(now["toy_outputs.json"])["files"] == ["toy.csv", "toy_c.png", "toy_diff/c.txt"]
+
+
+@pytest.mark.parametrize("where", ["run", "plot"])
+def test_an_interrupted_rerun_leaves_the_previous_set_whole(tmp_path, where):
+    from ibl_ref.experiments import run_experiment
+
+    out = tmp_path / "toy"
+    mod, _ = _toy(tmp_path, "first", ["a", "b"])
+    run_experiment(mod, out, quick=True)
+    before = _files(out)
+    mod, _ = _toy(tmp_path, "second", ["c"], fail_in=where)
+    with pytest.raises(KeyboardInterrupt):
+        run_experiment(mod, out, quick=True)
+    assert _files(out) == before  # no mixed folder, no staging folder left
+    assert [p.name for p in out.iterdir() if ".ibl-tmp-" in p.name] == []
+
+
+def test_files_of_the_experiments_names_that_the_lab_did_not_write_are_refused_before_any_work(tmp_path):
+    from ibl_ref.atomic import OutputError
+    from ibl_ref.experiments import run_experiment
+
+    out = tmp_path / "toy"
+    out.mkdir()
+    (out / "toy_x.png").write_text("the user's")
+    mod, calls = _toy(tmp_path, "first", ["a"])
+    with pytest.raises(OutputError) as e:
+        run_experiment(mod, out, quick=True)
+    assert "toy_x.png" in _one_line(e) and calls == []  # nothing computed
+    (out / "toy_x.png").unlink()
+    (out / "toy_outputs.json").write_text(json.dumps({"files": ["toy.csv"]}))  # no marker: the user's
+    with pytest.raises(OutputError, match="toy_outputs.json"):
+        run_experiment(mod, out, quick=True)
+    assert calls == []
+
+
+def test_two_runs_into_one_folder_at_once_leave_one_whole_set(tmp_path):
+    # two processes: the commits hold a lock on the folder, so the later one replaces the earlier one's set whole
+    import subprocess
+    import sys
+
+    out = tmp_path / "toy"
+    script = tmp_path / "run_toy.py"
+    script.write_text(
+        "import sys, time, types\n"
+        "sys.path.insert(0, %r)\n"
+        "from test_adversarial_round3 import _toy\n"
+        "from ibl_ref.experiments import run_experiment\n"
+        "from pathlib import Path\n"
+        "mod, _ = _toy(Path('.'), sys.argv[1], sys.argv[2].split(','))\n"
+        "run_experiment(mod, Path(sys.argv[3]), quick=True)\n" % str(Path(__file__).parent))
+    procs = [subprocess.Popen([sys.executable, str(script), tag, mats, str(out)])
+             for tag, mats in (("one", "a,b,c"), ("two", "d"))]
+    assert [p.wait(timeout=120) for p in procs] == [0, 0]
+    files = _files(out)
+    tag = files["toy.csv"].split(",")[1].strip()
+    mats = {"one": "abc", "two": "d"}[tag]
+    assert set(files) == ({"toy.csv", "toy_outputs.json"} | {f"toy_{m}.png" for m in mats}
+                          | {f"toy_diff/{m}.txt" for m in mats})
+    assert all(v == tag for k, v in files.items() if k.endswith((".png", ".txt")))

@@ -64,7 +64,7 @@ def run(args) -> int:
                 "n_theta": args.n_theta, "rescale_lobes": bool(args.rescale_lobes), "exposure_stops": png_stops,
                 "exposure_rule": exposure_rule,
                 "time_s": info.get("time_s"), "outputs": [out.name] + ([png.name] if png else [])}
-    with OutputSet(side, owned_key="outputs", remove_stale=False) as outs:
+    with OutputSet(side, owned_key="outputs", remove_stale=False, named=[out]) as outs:
         write_image_exr(outs.path(out), img)
         if png is not None:
             from ..rendering.tonemap import save_png

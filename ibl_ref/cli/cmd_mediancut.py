@@ -92,6 +92,10 @@ def cmd_pem(args) -> int:
     except IBLError as exc:
         raise IBLError(f"--kernel: {exc}") from None
     check_lights(args.lights, args.variant)  # before the file is read and converted
+    from ..atomic import check_side_files
+
+    # pems.json and pem_NNN.exr inside --out: replaced only where the previous pem run wrote them
+    check_side_files(out / "pems.json", [out / f"pem_{i:03d}.exr" for i in range(args.lights)], "files", "--out")
     cube, radiance = _load(args.input, args.size, args)
     with step(f"median cut of {cube.shape[1]}² faces into {args.lights} regions"):
         ls = median_cut(cube, args.lights, args.variant)

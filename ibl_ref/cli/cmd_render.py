@@ -333,8 +333,8 @@ def cmd_render(args) -> int:
                        "--material / --ground-material weights or write .npz (float64)")
 
     # ---- outputs (image, --png and the JSON sidecar committed together, the JSON last) -----------------------
-    info["outputs"] = [out.name]  # marks OUT.json as this output's manifest (ibl_ref.atomic.check_side_files)
-    with OutputSet(out.with_suffix(".json"), owned_key="outputs", remove_stale=False) as outs:
+    info["outputs"] = [out.name]  # OUT.json: this output's manifest (the marker is ibl_ref.atomic.OutputSet's)
+    with OutputSet(out.with_suffix(".json"), owned_key="outputs", remove_stale=False, named=[out, png]) as outs:
         if out.suffix.lower() == ".exr":
             from ..rendering.image_io import write_image_exr
 

@@ -34,7 +34,16 @@ ADDRESS``).
 Data flows one way: ``run`` never plots and ``plot`` never computes.  Shared scenes and environments come
 from the library (:func:`ibl_ref.synthetic.synthetic_envs.make_env`, :mod:`ibl_ref.synthetic.synthetic_meshes`,
 :mod:`ibl_ref.rendering.sphere_render`), never from another experiment.  :func:`run_experiment` runs both steps with
-progress lines (:mod:`ibl_ref.progress`) and timings; :func:`describe` is the ``--help`` text.
+progress lines (:mod:`ibl_ref.progress`) and timings, into a staging folder whose files then replace the previous
+run's as a set (its manifest ``NAME_outputs.json`` lists them); :func:`describe` is the ``--help`` text.
+
+Examples
+--------
+>>> from ibl_ref import experiments
+>>> "method-zoo" in experiments.available()
+True
+>>> experiments.resolve_params(experiments.get("fig3"), quick=True)["face_size"]
+64
 """
 
 from __future__ import annotations
@@ -251,7 +260,8 @@ def describe(mod: ModuleType) -> str:
         lines.append("Not part of 'ibl-ref reproduce --quick' (too slow); run it on its own.")
     outs = getattr(mod, "OUTPUTS", ())
     if outs:
-        lines.append("Outputs (in OUT/NAME): " + ", ".join(outs))
+        lines.append("Outputs (in OUT/NAME): " + ", ".join(outs) + f"; their list {manifest_name(mod)} (a rerun "
+                     "replaces them as a set and removes those it did not write again)")
     if takes_jobs(mod):
         lines.append("Its cases are independent jobs: --workers N runs them on N local processes, --scheduler "
                      "ADDRESS on a Dask cluster (the data files are bit-for-bit those of a serial run).")
@@ -279,6 +289,35 @@ def available() -> dict[str, ModuleType]:
 
 
 def get(name: str) -> ModuleType:
+    """The experiment module registered as ``name`` (its ``NAME``).
+
+    Parameters
+    ----------
+    name : str
+        An experiment name, as ``ibl-ref experiment --list`` shows them.
+
+    Returns
+    -------
+    module
+        The experiment: ``NAME``, ``DESCRIPTION``, ``PAPER``, ``PARAMS``, ``OUTPUTS``, ``run``, ``plot`` (module
+        docstring).
+
+    Raises
+    ------
+    IBLError
+        An unknown name (the message lists the experiments).
+
+    Examples
+    --------
+    >>> from ibl_ref import experiments
+    >>> mod = experiments.get("fig3")
+    >>> mod.NAME, [p.name for p in mod.PARAMS]
+    ('fig3', ['face_size', 'pixels', 'gloss', 'environment'])
+    >>> experiments.get("fig2")
+    Traceback (most recent call last):
+    ...
+    ibl_ref.errors.IBLError: unknown experiment 'fig2'; available: ...
+    """
     exps = available()
     if name not in exps:
         from ..errors import IBLError
@@ -287,14 +326,114 @@ def get(name: str) -> ModuleType:
     return exps[name]
 
 
+def manifest_name(mod: ModuleType) -> str:
+    """The file that lists an experiment's outputs in its folder: ``NAME_outputs.json``."""
+    return f"{mod.NAME}_outputs.json"
+
+
+def _output_patterns(mod: ModuleType) -> list:
+    """Regular expressions of the declared ``OUTPUTS`` (placeholders ``<n>`` and capitalised words such as
+    ``MATERIAL`` match any text): the names an earlier run of the experiment may have left in its folder."""
+    import re
+
+    pats = []
+    for o in getattr(mod, "OUTPUTS", ()):
+        parts = re.split(r"(<[^>]+>|[A-Z]{3,})", o)
+        pats.append(re.compile("".join(".+" if i % 2 else re.escape(s) for i, s in enumerate(parts)) + r"\Z"))
+    return pats
+
+
+def _check_folder(mod: ModuleType, out: Path) -> None:
+    """Before any work: the files of ``out`` that this experiment may write must be the lab's — listed by the
+    experiment's manifest (:func:`manifest_name`, with the lab's marker); otherwise one line naming the first."""
+    import os
+
+    from ..atomic import OutputError, check_side_files
+
+    manifest = out / manifest_name(mod)
+    check_side_files(manifest, (), "files", "--out", relative=True)  # a manifest without the marker: refused
+    if not out.is_dir():
+        return
+    pats = _output_patterns(mod)
+    found = []
+    for root, dirs, files in os.walk(out):
+        dirs[:] = sorted(d for d in dirs if ".ibl-tmp-" not in d)
+        for f in sorted(files):
+            rel = (Path(root) / f).relative_to(out).as_posix()
+            if any(p.match(rel) for p in pats):
+                found.append(Path(root) / f)
+    try:
+        check_side_files(manifest, found, "files", "--out", relative=True)
+    except OutputError as exc:
+        raise OutputError(f"{exc} [experiment {mod.NAME}: {len(found)} file(s) of its names in {out}; a folder of a "
+                          "run before the lab listed its outputs must be moved away once]") from None
+
+
+def _rebase(obj, old: str, new: str):
+    """``obj`` (a JSON-like summary) with the staging folder's path ``old`` replaced by the final folder ``new``."""
+    if isinstance(obj, str):
+        return obj.replace(old, new)
+    if isinstance(obj, Path):
+        return Path(str(obj).replace(old, new))
+    if isinstance(obj, dict):
+        return {k: _rebase(v, old, new) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_rebase(v, old, new) for v in obj)
+    return obj
+
+
 def run_experiment(mod: ModuleType, out: Path, quick: bool, overrides: dict | None = None, *, executor=None,
                    workers: int = 1) -> dict:
-    """Compute step then plot step of ``mod`` into ``out``, with a status line per step and timings.
+    """Compute step then plot step of an experiment into ``out``, with a status line per step and timings; the
+    outputs replace those of an earlier run as a set.
 
-    ``executor`` / ``workers``: where the experiment's independent cases run (:func:`ibl_ref.executors.map_jobs`);
-    only for experiments that split into jobs (:func:`takes_jobs`), an error otherwise.
+    The two steps write into a staging folder inside ``out``; only when both succeeded are the files moved into
+    ``out`` together (:class:`ibl_ref.atomic.OutputSet`, the experiment's manifest ``NAME_outputs.json`` last, with
+    the lab's marker) and the files of the previous run of the same experiment that this run did not write are
+    removed; files the lab did not write are left alone.  An error or Ctrl-C leaves the previous run's files as they
+    were; of two runs into one folder at once, the later commit replaces the earlier one's set whole.
+
+    Parameters
+    ----------
+    mod : module
+        The experiment (:func:`get`).
+    out : path
+        Its output folder (created if needed; a folder this call created is removed again if the run fails).
+    quick : bool
+        The parameters' quick values (seconds to a minute) instead of the full run's.
+    overrides : dict, optional
+        Parameter name → value (checked as on the command line, :meth:`Param.check`); ``None`` keeps the default.
+    executor, workers
+        Where the experiment's independent cases run (:func:`ibl_ref.executors.map_jobs`); only for experiments
+        that split into jobs (:func:`takes_jobs`), an error otherwise.
+
+    Returns
+    -------
+    dict
+        ``experiment``, ``quick``, ``params``, ``compute_time_s``, ``plot_time_s``, ``figures`` (final paths),
+        ``summary`` (what ``run`` returned).
+
+    Raises
+    ------
+    IBLError
+        A bad parameter, an output folder that cannot be written, a file in it of the experiment's names that the
+        lab did not write (before any work), or an error of the experiment itself.
+
+    Examples
+    --------
+    >>> import json, tempfile
+    >>> from pathlib import Path
+    >>> from ibl_ref import experiments
+    >>> out = Path(tempfile.mkdtemp())
+    >>> res = experiments.run_experiment(experiments.get("fig3"), out, quick=True,
+    ...                                  overrides={"face_size": 8, "pixels": 4, "gloss": (1.0, 0.0)})
+    >>> res["params"]["gloss"], [Path(f).name for f in res["figures"]]
+    ([1.0, 0.0], ['fig3.png'])
+    >>> json.loads((out / "fig3_outputs.json").read_text())["files"]
+    ['fig3.png', 'fig3_spheres.json']
     """
     from .. import progress
+    from ..atomic import OutputSet, output_folder
 
     out = Path(out)
     params = resolve_params(mod, quick, overrides)
@@ -307,19 +446,23 @@ def run_experiment(mod: ModuleType, out: Path, quick: bool, overrides: dict | No
             raise IBLError(f"experiment {mod.NAME} does not split into independent jobs (--workers / --scheduler "
                            f"apply to {names}; 'ibl-ref reproduce --workers N' runs whole experiments in parallel)")
         jobs = dict(executor=executor, workers=workers)
-    from ..atomic import output_folder
-
     with output_folder(out, "experiment output folder", remove_tree=True):  # a failed run leaves no folder of its own
-        t0 = time.perf_counter()
-        with progress.step(f"{mod.NAME}: compute", announce=False):
-            summary = mod.run(out, quick=quick, **params, **jobs) or {}
-        t1 = time.perf_counter()
-        with progress.step(f"{mod.NAME}: plot", announce=False):
-            figs = mod.plot(out) or []
-        t2 = time.perf_counter()
-    return {"experiment": mod.NAME, "quick": quick, "params": {k: _jsonable(v) for k, v in params.items()},
-            "compute_time_s": round(t1 - t0, 3), "plot_time_s": round(t2 - t1, 3),
-            "figures": [str(f) for f in figs], "summary": summary}
+        _check_folder(mod, out)
+        with OutputSet(out / manifest_name(mod), owned_key="files", relative=True) as outs:
+            stage = outs.staging_folder()
+            t0 = time.perf_counter()
+            with progress.step(f"{mod.NAME}: compute", announce=False):
+                summary = mod.run(stage, quick=quick, **params, **jobs) or {}
+            t1 = time.perf_counter()
+            with progress.step(f"{mod.NAME}: plot", announce=False):
+                figs = mod.plot(stage) or []
+            t2 = time.perf_counter()
+            res = {"experiment": mod.NAME, "quick": quick, "params": {k: _jsonable(v) for k, v in params.items()},
+                   "compute_time_s": round(t1 - t0, 3), "plot_time_s": round(t2 - t1, 3),
+                   "figures": [str(f) for f in figs], "summary": summary}
+            res = _rebase(res, str(stage), str(out))
+            outs.commit({k: res[k] for k in ("experiment", "quick", "params")})  # no timings: the same every run
+    return res
 
 
 def _jsonable(v):
