@@ -134,9 +134,23 @@ _FRAMES = {
 
 
 def face_frames(convention: str) -> np.ndarray:
-    """(6, 3, 3) face frames of ``convention``: per face (rows in :data:`FACE_NAMES` order) the major axis, the
-    u axis and the v axis, so that the face-plane point (u, v) has the unnormalised direction
-    ``F[0] + u·F[1] + v·F[2]``."""
+    """The face frames of a cube-map convention.
+
+    Parameters
+    ----------
+    convention : {"openexr", "opengl"}
+
+    Returns
+    -------
+    ndarray, float64, shape (6, 3, 3)
+        Per face (in :data:`FACE_NAMES` order) the major axis, the u axis and the v axis: the face-plane point
+        (u, v) has the unnormalised direction ``F[0] + u·F[1] + v·F[2]``.
+
+    Raises
+    ------
+    LayoutError
+        An unknown convention.
+    """
     try:
         return _FRAMES[convention]
     except KeyError:
@@ -146,7 +160,22 @@ def face_frames(convention: str) -> np.ndarray:
 
 
 def check_face_size(n) -> int:
-    """``n`` as an int if it is a positive integer (not a bool or a float), else :class:`~ibl_ref.limits.SizeError`."""
+    """A face size as an int.
+
+    Parameters
+    ----------
+    n : int
+        A positive integer (not a bool, not a float).
+
+    Returns
+    -------
+    int
+
+    Raises
+    ------
+    SizeError
+        Anything else (:class:`ibl_ref.limits.SizeError`).
+    """
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or int(n) < 1:
         from ..limits import SizeError
 
@@ -173,7 +202,22 @@ def face_uv_to_direction(face, u, v, convention: str = "openexr", normalize: boo
 
     Returns
     -------
-    ndarray, shape ``broadcast(face, u, v).shape + (3,)``, float64.
+    ndarray, float64, shape ``broadcast(face, u, v).shape + (3,)``
+
+    Raises
+    ------
+    LayoutError
+        A face index outside 0..5 or an unknown convention.
+
+    Examples
+    --------
+    The centre of the +Z face (index 4) looks along +Z; a point of the +X face, on the cube's surface:
+
+    >>> from ibl_ref.environment.envmap import face_uv_to_direction
+    >>> face_uv_to_direction(4, 0.0, 0.0)
+    array([0., 0., 1.])
+    >>> face_uv_to_direction(0, 0.5, -0.5, normalize=False)
+    array([1. , 0.5, 0.5])
     """
     frames = face_frames(convention)
     face = np.asarray(face)
@@ -206,8 +250,25 @@ def _plane_directions(f, u, v, normalize: bool, out=None) -> np.ndarray:
 
 
 def unit_directions(v, name: str = "directions", min_norm: float = 0.0) -> np.ndarray:
-    """``v`` (..., 3) normalised to unit length; IBLError (naming ``name``) for a wrong shape, NaN/Inf or a vector
-    of length ≤ ``min_norm`` (default: exactly zero)."""
+    """Directions normalised to unit length.
+
+    Parameters
+    ----------
+    v : array_like, shape (..., 3)
+    name : str, optional
+        What the argument is called in error messages.
+    min_norm : float, optional
+        Vectors of this length or shorter are refused (default 0: only exactly zero ones).
+
+    Returns
+    -------
+    ndarray, float64, shape (..., 3)
+
+    Raises
+    ------
+    IBLError
+        A wrong shape, NaN/Inf, or a vector of length ≤ ``min_norm``.
+    """
     v = np.asarray(v, dtype=np.float64)
     if v.shape[-1:] != (3,):
         raise IBLError(f"{name} must be (..., 3) directions, got shape {v.shape}")
@@ -220,7 +281,23 @@ def unit_directions(v, name: str = "directions", min_norm: float = 0.0) -> np.nd
 
 
 def as_directions(d) -> np.ndarray:
-    """``d`` as a float64 array of finite non-zero 3-vectors (trailing axis 3), else :class:`IBLError`."""
+    """Directions as a float64 array of finite non-zero 3-vectors (not normalised).
+
+    Parameters
+    ----------
+    d : array_like, shape (..., 3)
+
+    Returns
+    -------
+    ndarray, float64, shape (..., 3)
+
+    Raises
+    ------
+    LayoutError
+        No trailing axis of length 3.
+    IBLError
+        Not numeric, NaN/Inf, or a zero vector.
+    """
     try:
         d = np.asarray(d, dtype=np.float64)
     except (TypeError, ValueError) as exc:
@@ -243,13 +320,21 @@ def direction_to_face_uv(d, convention: str = "openexr"):
 
     Parameters
     ----------
-    d : array (..., 3)
+    d : array_like, shape (..., 3)
         Directions, need not be normalised.
+    convention : {"openexr", "opengl"}
 
     Returns
     -------
-    face : int array (...)
-    u, v : float64 arrays (...), in [-1, 1]
+    face : int array, shape (...)
+    u, v : float64 arrays, shape (...), in [-1, 1]
+
+    Examples
+    --------
+    >>> from ibl_ref.environment.envmap import direction_to_face_uv
+    >>> face, u, v = direction_to_face_uv([0.5, 0.25, 1.0])
+    >>> int(face), float(u), float(v)
+    (4, -0.5, -0.25)
     """
     frames = face_frames(convention)
     d = as_directions(d)
@@ -268,33 +353,102 @@ def direction_to_face_uv(d, convention: str = "openexr"):
 # texel addressing
 # ----------------------------------------------------------------------------------------------
 def uv_to_texel_coords(u, v, n: int):
-    """Continuous texel coordinates (x = column, y = row) with texel centres on integers."""
+    """Continuous texel coordinates of face-plane points.
+
+    Parameters
+    ----------
+    u, v : float or array_like
+        Face-plane coordinates, [-1, 1] on the face.
+    n : int
+        Face size.
+
+    Returns
+    -------
+    x, y : float64 arrays
+        Column and row, texel centres on integers: ``x = (u + 1)/2·n − ½``.
+    """
     n = check_face_size(n)
     return (np.asarray(u) + 1.0) * 0.5 * n - 0.5, (np.asarray(v) + 1.0) * 0.5 * n - 0.5
 
 
 def texel_coords_to_uv(x, y, n: int):
-    """Inverse of :func:`uv_to_texel_coords`."""
+    """Face-plane coordinates of continuous texel coordinates (the inverse of :func:`uv_to_texel_coords`).
+
+    Parameters
+    ----------
+    x, y : float or array_like
+        Column and row, texel centres on integers.
+    n : int
+        Face size.
+
+    Returns
+    -------
+    u, v : float64 arrays
+    """
     n = check_face_size(n)
     return (np.asarray(x, dtype=np.float64) + 0.5) / n * 2.0 - 1.0, (np.asarray(y, dtype=np.float64) + 0.5) / n * 2.0 - 1.0
 
 
 def texel_center_uv(n: int) -> np.ndarray:
-    """Face-plane coordinate of the texel centres 0..n-1: ``(i + ½)/n·2 − 1``."""
+    """Face-plane coordinate of the texel centres 0..n−1, ``(i + ½)/n·2 − 1``.
+
+    Parameters
+    ----------
+    n : int
+        Face size.
+
+    Returns
+    -------
+    ndarray, float64, shape (n,)
+
+    Examples
+    --------
+    >>> from ibl_ref.environment.envmap import texel_center_uv
+    >>> texel_center_uv(4)
+    array([-0.75, -0.25,  0.25,  0.75])
+    """
     n = check_face_size(n)
     return (np.arange(n, dtype=np.float64) + 0.5) / n * 2.0 - 1.0
 
 
 def face_plane_grid(n: int):
-    """``(u, v)`` arrays of shape (n, n) (indexed [row, col]) of the texel centres of one face."""
+    """Face-plane coordinates of the texel centres of one face.
+
+    Parameters
+    ----------
+    n : int
+        Face size.
+
+    Returns
+    -------
+    u, v : float64 arrays, shape (n, n)
+        Indexed ``[row, col]``.
+    """
     c = texel_center_uv(n)
     v, u = np.meshgrid(c, c, indexing="ij")
     return u, v
 
 
 def face_blocks(a, b: int) -> np.ndarray:
-    """The b×b blocks of texels of every face: ``a`` (F, m, m, …) with b dividing m → (F·(m/b)², b², …), blocks in
-    the order (face, block row, block column), the texels of a block row-major (a copy; no gather)."""
+    """The b×b blocks of texels of every face (a copy; no gather).
+
+    Parameters
+    ----------
+    a : array_like, shape (F, m, m, ...)
+        Faces of size m.
+    b : int
+        Block size; must divide m.
+
+    Returns
+    -------
+    ndarray, shape (F·(m/b)², b², ...)
+        Blocks in the order (face, block row, block column), the texels of a block row-major.
+
+    Raises
+    ------
+    LayoutError
+        ``b`` does not divide the faces, or the faces are not square.
+    """
     a = np.asarray(a)
     F, m = a.shape[0], a.shape[1]
     if m % b or a.shape[2] != m:
@@ -309,6 +463,18 @@ def texel_max_radius(n: int) -> float:
     """Largest angle (rad) between a texel centre and one of its corners on a cube face of size n (the same on
     every face: the faces are rotations of one another).
 
+    Parameters
+    ----------
+    n : int
+        Face size.
+
+    Returns
+    -------
+    float
+        Radians; the corner texels of n = 1 reach the cube corners: ``atan(√2) ≈ 0.9553``.
+
+    Notes
+    -----
     In the face plane a centre (1, u, v) and a corner (1, u', v') make the angle ``atan2(|p × q|, p·q)`` with
     ``p × q = (u v' − v u', v − v', u' − u)`` and ``p·q = 1 + u u' + v v'`` (no normalisation; accurate for small
     angles, unlike an arccos of the dot product).  The face is symmetric under u → −u, v → −v, so the texels with
@@ -349,14 +515,57 @@ def _check_grid(n, per_texel_bytes: int, what: str) -> int:
 
 
 def texel_directions(n: int, convention: str = "openexr", normalize: bool = True) -> np.ndarray:
-    """Directions of all texel centres, shape (6, n, n, 3), float64 (read-only, cached)."""
+    """Directions of the centres of every texel of a cube map.
+
+    Parameters
+    ----------
+    n : int
+        Face size.
+    convention : {"openexr", "opengl"}
+    normalize : bool
+        Unit vectors (default) or the points on the cube's surface.
+
+    Returns
+    -------
+    ndarray, float64, shape (6, n, n, 3)
+        ``[face, row, col]``; read-only and cached (copy it to change it).
+
+    Raises
+    ------
+    SizeError
+        ``n`` not a positive integer, or the array would not fit in memory.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from ibl_ref.environment.envmap import texel_directions
+    >>> d = texel_directions(4)
+    >>> d.shape
+    (6, 4, 4, 3)
+    >>> d[4, 1, 2]  # +Z face, row 1, column 2: up (+Y) and to the left (−X)
+    array([-0.2357,  0.2357,  0.9428])
+    >>> bool(np.allclose(np.linalg.norm(d, axis=-1), 1.0))
+    True
+    """
     return _texel_directions_cached(_check_grid(n, 6 * 3 * 8 * 3, "texel directions"), convention, bool(normalize))
 
 
 def direction_to_texel_coords(d, n: int, convention: str = "openexr"):
-    """Face and continuous texel coordinates (x = column, y = row) of directions.
+    """Face and continuous texel coordinates of directions.
 
-    Returns ``face`` (int), ``x``, ``y`` (float64) with x, y ∈ [−½, n−½]; integers are texel centres.
+    Parameters
+    ----------
+    d : array_like, shape (..., 3)
+        Directions, need not be normalised.
+    n : int
+        Face size.
+    convention : {"openexr", "opengl"}
+
+    Returns
+    -------
+    face : int array, shape (...)
+    x, y : float64 arrays, shape (...)
+        Column and row in [−½, n−½]; integers are texel centres.
     """
     face, u, v = direction_to_face_uv(d, convention)
     x, y = uv_to_texel_coords(u, v, n)
@@ -364,7 +573,29 @@ def direction_to_texel_coords(d, n: int, convention: str = "openexr"):
 
 
 def direction_to_texel(d, n: int, convention: str = "openexr"):
-    """Face, row and column of the texel containing each direction (nearest-texel addressing)."""
+    """Face, row and column of the texel containing each direction (nearest-texel addressing).
+
+    Parameters
+    ----------
+    d : array_like, shape (..., 3)
+        Directions, need not be normalised.
+    n : int
+        Face size.
+    convention : {"openexr", "opengl"}
+
+    Returns
+    -------
+    face, row, col : int arrays, shape (...)
+
+    Examples
+    --------
+    +X lies on face 0, −Y on face 3, both at the centre of their face:
+
+    >>> from ibl_ref.environment.envmap import direction_to_texel
+    >>> face, row, col = direction_to_texel([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0]], 8)
+    >>> face.tolist(), row.tolist(), col.tolist()
+    ([0, 3], [4, 4], [4, 4])
+    """
     face, x, y = direction_to_texel_coords(d, n, convention)
     col = np.clip(np.floor(x + 0.5), 0, n - 1).astype(np.intp)
     row = np.clip(np.floor(y + 0.5), 0, n - 1).astype(np.intp)
@@ -376,13 +607,45 @@ def direction_to_texel(d, n: int, convention: str = "openexr"):
 # ----------------------------------------------------------------------------------------------
 def area_primitive(x, y):
     """A(x, y) = atan2(x·y, √(x² + y² + 1)): solid angle (sr) of the rectangle [0,x]×[0,y] of the plane at
-    distance 1 seen from the origin (signed: odd in x and in y).  Every exact solid angle of the package is a
-    sum of four of these (:func:`rect_solid_angle`)."""
+    distance 1 seen from the origin (signed: odd in x and in y).
+
+    Every exact solid angle of the package is a sum of four of these (:func:`rect_solid_angle`).
+
+    Parameters
+    ----------
+    x, y : float or array_like
+        Plane coordinates (arrays broadcast).
+
+    Returns
+    -------
+    float64 or ndarray
+        Steradians; ``A(1, 1) = π/6``, a quarter of one face.
+    """
     return np.arctan2(x * y, np.sqrt(x * x + y * y + 1.0))
 
 
 def rect_solid_angle(u0, u1, v0, v1):
-    """Exact solid angle (sr) of the face-plane rectangle [u0, u1] × [v0, v1] (any face; arrays broadcast)."""
+    """Exact solid angle (sr) of the face-plane rectangle [u0, u1] × [v0, v1] (any face).
+
+    Parameters
+    ----------
+    u0, u1, v0, v1 : float or array_like
+        The rectangle's edges in face-plane coordinates (arrays broadcast).
+
+    Returns
+    -------
+    float64 or ndarray
+        Steradians.
+
+    Examples
+    --------
+    One whole face is a sixth of the sphere:
+
+    >>> import numpy as np
+    >>> from ibl_ref.environment.envmap import rect_solid_angle
+    >>> float(rect_solid_angle(-1.0, 1.0, -1.0, 1.0) / np.pi)
+    0.6667
+    """
     return area_primitive(u1, v1) - area_primitive(u0, v1) - area_primitive(u1, v0) + area_primitive(u0, v0)
 
 
@@ -397,16 +660,51 @@ def _texel_solid_angles_cached(n: int) -> np.ndarray:
 
 
 def texel_solid_angles(n: int) -> np.ndarray:
-    """Exact solid angle (sr) of every texel of one face, shape (n, n), float64, read-only.
+    """Exact solid angle (sr) of every texel of one face.
 
     The same for all six faces and both conventions.  Σ over 6 faces = 4π to rounding (the sum
     telescopes to 6 · 4 · atan2(1, √3) = 4π).
+
+    Parameters
+    ----------
+    n : int
+        Face size.
+
+    Returns
+    -------
+    ndarray, float64, shape (n, n)
+        ``[row, col]``, read-only and cached.
+
+    Raises
+    ------
+    SizeError
+        ``n`` not a positive integer, or the array would not fit in memory.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from ibl_ref.environment.envmap import texel_solid_angles
+    >>> om = texel_solid_angles(4)
+    >>> float(6 * om.sum() / np.pi)  # the six faces cover the sphere, 4π sr
+    4.0
+    >>> float(om.max() / om.min())  # a centre texel against a corner texel
+    2.472
     """
     return _texel_solid_angles_cached(_check_grid(n, 8 * 4, "texel solid angles"))
 
 
 def cube_solid_angles(n: int) -> np.ndarray:
-    """Exact texel solid angles of a whole cube map, shape (6, n, n) (a broadcast view)."""
+    """Exact texel solid angles of a whole cube map (a read-only broadcast view of :func:`texel_solid_angles`).
+
+    Parameters
+    ----------
+    n : int
+        Face size.
+
+    Returns
+    -------
+    ndarray, float64, shape (6, n, n)
+    """
     om = texel_solid_angles(n)
     return np.broadcast_to(om, (6,) + om.shape)
 
@@ -415,6 +713,33 @@ def convert_convention(cube: np.ndarray, src: str, dst: str) -> np.ndarray:
     """Re-orient the faces of a cube map from convention ``src`` to ``dst``.
 
     The result holds, at every texel of the ``dst`` layout, the radiance of the same direction.
+
+    Parameters
+    ----------
+    cube : array_like, shape (6, N, N) or (6, N, N, C)
+    src, dst : {"openexr", "opengl"}
+
+    Returns
+    -------
+    ndarray
+        A copy, shaped as ``cube``.
+
+    Raises
+    ------
+    LayoutError
+        A wrong shape or an unknown convention.
+
+    Examples
+    --------
+    Each texel keeps its direction: the value of the texel containing a direction is the same in both layouts.
+
+    >>> import numpy as np
+    >>> from ibl_ref.environment.envmap import convert_convention, direction_to_texel
+    >>> cube = np.arange(6 * 4 * 4, dtype=float).reshape(6, 4, 4)
+    >>> gl = convert_convention(cube, "openexr", "opengl")
+    >>> d = [0.2, 0.9, -0.3]
+    >>> float(cube[direction_to_texel(d, 4)]), float(gl[direction_to_texel(d, 4, "opengl")])
+    (42.0, 42.0)
     """
     check_cube_shape(cube)
     face_frames(src), face_frames(dst)
@@ -430,7 +755,25 @@ def convert_convention(cube: np.ndarray, src: str, dst: str) -> np.ndarray:
 
 
 def check_cube_shape(cube, name: str = "cube map") -> int:
-    """Validate the (6, N, N[, C]) layout and return N."""
+    """The face size of a cube map after checking its layout (no value is read).
+
+    Parameters
+    ----------
+    cube : array_like
+        Expected shape (6, N, N) or (6, N, N, C).
+    name : str, optional
+        What the array is called in the error message.
+
+    Returns
+    -------
+    int
+        N.
+
+    Raises
+    ------
+    LayoutError
+        Any other shape (one line, naming ``name`` and the shape).
+    """
     shape = np.shape(cube)
     if len(shape) not in (3, 4) or shape[0] != 6 or shape[1] != shape[2] or shape[1] < 1:
         raise LayoutError(f"{name}: expected an array of shape (6, N, N) or (6, N, N, C), got {shape}")
@@ -462,21 +805,44 @@ class MipLevel:
     mean_texel_solid_angle: float
 
     def directions(self, convention: str = "openexr") -> np.ndarray:
+        """:func:`texel_directions` of this level."""
         return texel_directions(self.face_size, convention)
 
     def solid_angles(self) -> np.ndarray:
+        """:func:`texel_solid_angles` of this level."""
         return texel_solid_angles(self.face_size)
 
 
 def mip_levels(n: int) -> list[MipLevel]:
-    """Levels N, N/2, …, 1 of a cube-map pyramid; N must be a power of two."""
+    """The levels N, N/2, …, 1 of a cube-map pyramid.
+
+    Parameters
+    ----------
+    n : int
+        Face size of level 0, a power of two.
+
+    Returns
+    -------
+    list of MipLevel
+
+    Raises
+    ------
+    LayoutError
+        ``n`` is not a power of two.
+
+    Examples
+    --------
+    >>> from ibl_ref.environment.envmap import mip_levels
+    >>> [level.face_size for level in mip_levels(8)]
+    [8, 4, 2, 1]
+    """
     n = check_face_size(n)
     if n & (n - 1):
         raise LayoutError(f"MIP pyramids need a power-of-two face size, got {n}")
     out = []
     lvl, m = 0, n
     while True:
-        out.append(MipLevel(lvl, m, 2.0 * np.arctan(1.0 / m), 4.0 * np.pi / (6.0 * m * m)))
+        out.append(MipLevel(lvl, m, float(2.0 * np.arctan(1.0 / m)), 4.0 * np.pi / (6.0 * m * m)))
         if m == 1:
             break
         m //= 2
@@ -496,7 +862,25 @@ def _check_latlong_size(h, w):
 
 
 def latlong_angles(h: int, w: int):
-    """Latitude (per row) and longitude (per column) of the texel centres, radians."""
+    """Latitude (per row) and longitude (per column) of the texel centres of a lat-long map.
+
+    Parameters
+    ----------
+    h, w : int
+        Height and width, ``w = 2h``.
+
+    Returns
+    -------
+    lat : ndarray, float64, shape (h,)
+        Radians, from near +π/2 (top row) down.
+    lon : ndarray, float64, shape (w,)
+        Radians, from near +π (left column) down.
+
+    Raises
+    ------
+    LayoutError
+        ``w ≠ 2h``.
+    """
     h, w = _check_latlong_size(h, w)
     lat = np.pi / 2 - np.pi * (np.arange(h) + 0.5) / h
     lon = np.pi - 2 * np.pi * (np.arange(w) + 0.5) / w
@@ -504,7 +888,22 @@ def latlong_angles(h: int, w: int):
 
 
 def latlong_directions(h: int, w: int) -> np.ndarray:
-    """Unit directions of the texel centres of an H x W lat-long map, shape (H, W, 3)."""
+    """Unit directions of the texel centres of a lat-long map.
+
+    Parameters
+    ----------
+    h, w : int
+        Height and width, ``w = 2h``.
+
+    Returns
+    -------
+    ndarray, float64, shape (h, w, 3)
+
+    Raises
+    ------
+    LayoutError
+        ``w ≠ 2h``.
+    """
     lat, lon = latlong_angles(h, w)
     cl = np.cos(lat)[:, None]
     return np.stack(
@@ -513,9 +912,32 @@ def latlong_directions(h: int, w: int) -> np.ndarray:
 
 
 def latlong_solid_angles(h: int, w: int) -> np.ndarray:
-    """Exact solid angle of every lat-long texel, shape (H, 1) (constant along a row).
+    """Exact solid angle (sr) of every lat-long texel.
 
     A row between latitudes φ0 < φ1 and a column of width Δλ subtends Δλ·(sin φ1 − sin φ0).
+
+    Parameters
+    ----------
+    h, w : int
+        Height and width, ``w = 2h``.
+
+    Returns
+    -------
+    ndarray, float64, shape (h, 1)
+        Constant along a row (broadcasts against an (h, w) image).
+
+    Raises
+    ------
+    LayoutError
+        ``w ≠ 2h``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from ibl_ref.environment.envmap import latlong_solid_angles
+    >>> om = latlong_solid_angles(4, 8)
+    >>> om.shape, float(8 * om.sum() / np.pi)
+    ((4, 1), 4.0)
     """
     h, w = _check_latlong_size(h, w)
     edges = np.pi / 2 - np.pi * np.arange(h + 1) / h
@@ -524,9 +946,28 @@ def latlong_solid_angles(h: int, w: int) -> np.ndarray:
 
 
 def direction_to_latlong(d, h: int, w: int):
-    """Continuous lat-long texel coordinates (x = column, y = row; centres on integers).
+    """Continuous lat-long texel coordinates of directions (texel centres on integers).
 
-    x ∈ [−½, W−½) wraps around in longitude; y ∈ [−½, H−½].
+    Parameters
+    ----------
+    d : array_like, shape (..., 3)
+        Directions, need not be normalised.
+    h, w : int
+        Height and width of the map, ``w = 2h``.
+
+    Returns
+    -------
+    x, y : float64 arrays, shape (...)
+        Column x ∈ [−½, w−½) (wraps around in longitude) and row y ∈ [−½, h−½].
+
+    Examples
+    --------
+    +Z is longitude 0 on the equator, the middle of the map:
+
+    >>> from ibl_ref.environment.envmap import direction_to_latlong
+    >>> x, y = direction_to_latlong([0.0, 0.0, 1.0], 4, 8)
+    >>> float(x), float(y)
+    (3.5, 1.5)
     """
     h, w = _check_latlong_size(h, w)
     d = as_directions(d)

@@ -230,12 +230,34 @@ def _prepare(data, layout: str, where: str):
 
 
 def to_pixel_type(strip: np.ndarray, pixel_type: str, clamp_half: bool, where: str, weights=None):
-    """Cast (H, W, C) float64 radiance to float32/float16 without silent overflow or underflow for
-    :func:`write_exr`; returns (array, clamped_count, clamped_max).
+    """Cast radiance to float32/float16 for :func:`write_exr` without silent overflow or underflow.
 
-    ``weights``: per-pixel solid angles broadcastable to the strip's (H, W) (None: pixel sums) for the share of
-    ∫L dω that values below the pixel type's normal range would change
-    (:func:`ibl_ref.environment.radiance_policy.check_format_range`).
+    Parameters
+    ----------
+    strip : ndarray, float64, shape (H, W, C)
+        Checked radiance.
+    pixel_type : {"float", "half"}
+    clamp_half : bool
+        With ``"half"``: clamp values above :data:`HALF_MAX` (warned) instead of refusing them.
+    where : str
+        Names the file in messages.
+    weights : array_like, optional
+        Per-pixel solid angles broadcastable to (H, W) (None: pixel sums) for the share of ∫L dω that values below
+        the pixel type's normal range would change (:func:`ibl_ref.environment.radiance_policy.check_format_range`).
+
+    Returns
+    -------
+    pixels : ndarray, float16 or float32, shape (H, W, C)
+    clamped_count : int
+    clamped_max : float
+        The largest clamped value (0 if none).
+
+    Raises
+    ------
+    IBLError
+        Values that overflow the pixel type (unless clamped), an unknown pixel type.
+    RadianceError
+        Values below the normal range that carry more than 1e-4 of ∫L dω.
     """
     from .radiance_policy import check_format_range
 
@@ -301,12 +323,24 @@ def _binding_path(path) -> "str | bytes":
 
 
 def write_exr(path, parts, compression: str = "zip") -> Path:
-    """The one OpenEXR writer: ``parts`` (an :class:`ExrPart` or a list of them) → ``path``, atomically.
+    """The one OpenEXR writer: ``parts`` → ``path``, atomically.
 
     Header policy (module docstring): scanline, ``compression`` (one of :data:`COMPRESSIONS`, default ZIP),
     each part's attributes; several parts (or a named one) make a multi-part file.  Pixels are written as
     given: the callers check radiance and range (:func:`write_envmap`, :func:`write_pyramid`,
     :func:`ibl_ref.rendering.image_io.write_image_exr`).
+
+    Parameters
+    ----------
+    path : str, bytes or os.PathLike
+    parts : ExrPart or list of ExrPart
+    compression : str, optional
+        One of :data:`COMPRESSIONS` (default ``"zip"``, lossless).
+
+    Returns
+    -------
+    pathlib.Path
+        The file written.
 
     Raises
     ------
@@ -372,9 +406,10 @@ def write_envmap(
     ----------
     path : str, bytes or os.PathLike
         Destination file (any name; ``.exr`` recommended).
-    data : array
+    data : array_like or Environment
         ``(6, N, N[, C])`` for ``layout="cube"`` in OpenEXR face orientation, ``(H, 2H[, C])`` for
-        ``"latlong"``; C ∈ {1, 3, 4} → channels Y / RGB / RGBA.
+        ``"latlong"``; C ∈ {1, 3, 4} → channels Y / RGB / RGBA.  The radiance of a validated
+        :class:`~ibl_ref.environment.validated.Environment` is not checked again.
     layout : {"cube", "latlong"}
     pixel_type : {"float", "half"}
     clamp_half : bool
@@ -396,6 +431,28 @@ def write_envmap(
         Wrong shape or channel count.
     IBLError
         Values that do not fit the pixel type.
+
+    Examples
+    --------
+    A lat-long map of 1e5 does not fit half floats unless clamped (then the report counts the clamped values):
+
+    >>> import os, tempfile, warnings
+    >>> import numpy as np
+    >>> from ibl_ref.environment.exr_io import read_envmap, write_envmap
+    >>> folder = tempfile.TemporaryDirectory()
+    >>> path = os.path.join(folder.name, "sun.exr")
+    >>> img = np.ones((4, 8, 3))
+    >>> img[1, 2] = 1e5
+    >>> write_envmap(path, img, layout="latlong", pixel_type="half")
+    Traceback (most recent call last):
+    ...
+    ibl_ref.errors.IBLError: ...: 3 value(s) exceed the largest finite half (65504); max value 100000; ...
+    >>> with warnings.catch_warnings():
+    ...     warnings.simplefilter("ignore")
+    ...     report = write_envmap(path, img, layout="latlong", pixel_type="half", clamp_half=True)
+    >>> report.clamped_count, float(read_envmap(path).data.max())
+    (3, 65504.0)
+    >>> folder.cleanup()
     """
     ox = _openexr()
     path = as_path(path, "OpenEXR output")
@@ -424,8 +481,24 @@ def write_pyramid(path, levels, pixel_type: str = "float", clamp_half: bool = Fa
     """Write a list of cube maps (a MIP pyramid, level 0 first) as a multi-part EXR (through :func:`write_exr`).
 
     One part per level, named ``level{i}``, each an OpenEXR CUBE strip (see module docstring).
-    All levels must have the same channel count.  Returns a :class:`WriteReport` (``shape`` is the
-    list of level shapes; clamping counts are summed over levels).
+
+    Parameters
+    ----------
+    path : str, bytes or os.PathLike
+    levels : sequence of array_like, each (6, n, n[, C])
+        The same channel count C on every level.
+    pixel_type, clamp_half
+        As :func:`write_envmap`.
+
+    Returns
+    -------
+    WriteReport
+        ``shape`` is the list of level shapes; clamping counts are summed over levels.
+
+    Raises
+    ------
+    LayoutError, RadianceError, IBLError
+        As :func:`write_envmap`, per level; no level, or levels with different channel counts.
     """
     ox = _openexr()
     path = as_path(path, "OpenEXR output")
@@ -641,7 +714,25 @@ def _open(path: Path):
 
 
 def cube_convention(header: dict, override=None, where: str = "image") -> str:
-    """Cube face convention: ``override`` or the file's ``iblref_convention`` attribute, validated."""
+    """The face convention of a cube strip: ``override`` or the file's ``iblref_convention`` attribute.
+
+    Parameters
+    ----------
+    header : dict
+        The file's header (:attr:`EnvMap.header`).
+    override : {"openexr", "opengl"}, optional
+    where : str, optional
+        Names the file in messages.
+
+    Returns
+    -------
+    str
+
+    Raises
+    ------
+    LayoutError
+        An unknown convention.
+    """
     conv = override if override is not None else header.get("iblref_convention", "openexr")
     if not isinstance(conv, str) or conv not in envmap.CONVENTIONS:
         src = "convention" if override is not None else "iblref_convention attribute"
@@ -718,10 +809,29 @@ def read_exr(path, part: int = 0, dtype=np.float64, channels: str = "colour") ->
 
     The header is parsed by ibl_ref first (deep files, impossible data windows and sizes beyond memory are
     refused before the binding allocates anything); the binding's own error text for corrupt or truncated
-    files becomes the one-line :class:`~ibl_ref.errors.EnvMapFileError`.  ``channels="colour"`` (default)
-    reads ``R, G, B`` (+ ``A``) or ``Y`` and refuses parts with neither (:class:`LayoutError`);
-    ``"all"`` reads every channel, colour first, and refuses nothing a decoder can read (``ibl-ref info``).
-    ``dtype``: float64 (default) or float32 (exact for half and float files, half the memory).
+    files becomes the one-line :class:`~ibl_ref.errors.EnvMapFileError`.
+
+    Parameters
+    ----------
+    path : str, bytes or os.PathLike
+    part : int, optional
+        Part index (0 = first).
+    dtype : numpy dtype, optional
+        float64 (default) or float32 (exact for half and float files, half the memory).
+    channels : {"colour", "all"}, optional
+        ``"colour"`` reads ``R, G, B`` (+ ``A``) or ``Y`` and refuses parts with neither (:class:`LayoutError`);
+        ``"all"`` reads every channel, colour first, and refuses nothing a decoder can read (``ibl-ref info``).
+
+    Returns
+    -------
+    ExrImage
+
+    Raises
+    ------
+    EnvMapFileError
+        A missing, corrupt, truncated or deep file; a part that does not exist.
+    LayoutError
+        No colour channels (``channels="colour"``), subsampled channels.
     """
     path = as_path(path, "OpenEXR file")
     if channels not in ("colour", "all"):
@@ -735,7 +845,24 @@ def read_exr(path, part: int = 0, dtype=np.float64, channels: str = "colour") ->
 
 
 def header_dict(part, where: str) -> dict:
-    """A part's header as plain Python values; a corrupt attribute is an :class:`EnvMapFileError` naming it."""
+    """A part's header as plain Python values.
+
+    Parameters
+    ----------
+    part : OpenEXR.Part
+        A part of a file opened by the binding.
+    where : str
+        Names the file in messages.
+
+    Returns
+    -------
+    dict
+
+    Raises
+    ------
+    EnvMapFileError
+        A corrupt attribute (naming it).
+    """
     header = {}
     for k, v in part.header.items():
         try:
@@ -784,7 +911,31 @@ def infer_layout(h: int, w: int, declared=None, where: str = "image") -> str:
     """Layout of an ``h × w`` image: the declared one (checked) or inferred from the aspect ratio.
 
     ``6N × N`` (height × width) → ``"cube"`` strip, ``H × 2H`` → ``"latlong"``, ``3N × 4N`` → ``"hcross"``,
-    ``4N × 3N`` → ``"vcross"``; anything else raises :class:`LayoutError`.
+    ``4N × 3N`` → ``"vcross"``.
+
+    Parameters
+    ----------
+    h, w : int
+        Height and width of the image.
+    declared : {"cube", "latlong", "hcross", "vcross"}, optional
+        A layout to check instead of inferring one.
+    where : str, optional
+        Names the image in messages.
+
+    Returns
+    -------
+    str
+
+    Raises
+    ------
+    LayoutError
+        No layout has this aspect ratio, or the declared one does not.
+
+    Examples
+    --------
+    >>> from ibl_ref.environment.exr_io import infer_layout
+    >>> infer_layout(48, 8), infer_layout(256, 512), infer_layout(96, 128)
+    ('cube', 'latlong', 'hcross')
     """
     need = {"cube": h == 6 * w, "latlong": w == 2 * h, "hcross": 4 * h == 3 * w and w % 4 == 0,
             "vcross": 3 * h == 4 * w and w % 3 == 0}
@@ -806,7 +957,25 @@ def infer_layout(h: int, w: int, declared=None, where: str = "image") -> str:
 
 
 def declared_layout(header: dict, where: str = "image"):
-    """Layout named by a header's ``envmap`` attribute (``"cube"`` / ``"latlong"``), None without one."""
+    """Layout named by a header's ``envmap`` attribute.
+
+    Parameters
+    ----------
+    header : dict
+        A file's header (:func:`header_dict`).
+    where : str, optional
+        Names the file in messages.
+
+    Returns
+    -------
+    {"cube", "latlong"} or None
+        None when the header has no ``envmap`` attribute.
+
+    Raises
+    ------
+    LayoutError
+        An ``envmap`` value other than CUBE or LATLONG.
+    """
     env = header.get("envmap")
     if env is None:
         return None
@@ -819,13 +988,50 @@ def declared_layout(header: dict, where: str = "image"):
 
 def read_image(path, part: int = 0, negative: str = "auto", nonfinite: str = "error", return_report: bool = False,
                dtype=np.float64):
-    """Read one part of an EXR file as ``(image (H, W, C), channels, pixel_type, header)``.
+    """Read one part of an OpenEXR file as an image, its radiance checked; the layout is not interpreted.
 
-    Radiance is checked and repaired under ``negative`` / ``nonfinite`` (:mod:`ibl_ref.environment.radiance_policy`;
-    solid-angle weights of the layout from the ``envmap`` attribute or the aspect ratio, uniform if
-    neither applies; a repair warns once, :class:`~ibl_ref.errors.RadianceWarning`); the layout is not otherwise
-    interpreted.  ``return_report=True`` appends the :class:`~ibl_ref.environment.radiance_policy.RadianceReport`
-    to the tuple.  ``dtype``: float64 (default) or float32 (half the memory for big probes).
+    Parameters
+    ----------
+    path : str, bytes or os.PathLike
+    part : int, optional
+        Part index (0 = first).
+    negative, nonfinite : str, optional
+        Radiance policy (:mod:`ibl_ref.environment.radiance_policy`; solid-angle weights of the layout from the
+        ``envmap`` attribute or the aspect ratio, uniform if neither applies); a repair warns once
+        (:class:`~ibl_ref.errors.RadianceWarning`).
+    return_report : bool, optional
+        Also return the :class:`~ibl_ref.environment.radiance_policy.RadianceReport`.
+    dtype : numpy dtype, optional
+        float64 (default) or float32 (half the memory for big probes).
+
+    Returns
+    -------
+    image : ndarray, shape (H, W, C)
+    channels : tuple of str
+        ``("R", "G", "B")``, ``("R", "G", "B", "A")`` or ``("Y",)``.
+    pixel_type : str
+        ``"half"``, ``"float"``, ``"uint"`` or ``"mixed"``.
+    header : dict
+    report : RadianceReport
+        Only with ``return_report=True``.
+
+    Raises
+    ------
+    EnvMapFileError, LayoutError, RadianceError
+        As :func:`read_exr`; radiance refused by the policy.
+
+    Examples
+    --------
+    >>> import os, tempfile
+    >>> import numpy as np
+    >>> from ibl_ref.environment.exr_io import read_image, write_envmap
+    >>> folder = tempfile.TemporaryDirectory()
+    >>> path = os.path.join(folder.name, "strip.exr")
+    >>> report = write_envmap(path, np.full((6, 4, 4, 1), 3.0))
+    >>> image, channels, pixel_type, header = read_image(path)
+    >>> image.shape, channels, pixel_type, header["envmap"]
+    ((24, 4, 1), ('Y',), 'float', 'ENVMAP_CUBE')
+    >>> folder.cleanup()
     """
     from .radiance_policy import warn_repaired
 
@@ -880,13 +1086,29 @@ def _read_map(path, layout, convention, negative, nonfinite, dtype, part=0, cros
 
 def read_map(path, layout: str | None = None, convention: str | None = None, negative: str = "auto",
              nonfinite: str = "error", dtype=np.float64) -> EnvMap:
-    """Read any supported environment-map file without resampling → :class:`EnvMap`.
+    """Read any supported environment-map file without resampling.
 
     OpenEXR (first part) or Radiance ``.hdr`` / ``.pic``; a cube strip or a cross becomes a ``(6, N, N, C)``
     cube in OpenEXR orientation (``EnvMap.source_layout`` says which it was), a lat-long map stays ``(H, 2H, C)``.
-    ``layout`` overrides the ``envmap`` attribute / aspect ratio (``"cube"``, ``"latlong"``, ``"hcross"``,
-    ``"vcross"``); ``convention``, ``negative``, ``nonfinite`` as in :func:`read_envmap`; a repair of the radiance
-    warns once (:class:`~ibl_ref.errors.RadianceWarning`).
+
+    Parameters
+    ----------
+    path : str, bytes or os.PathLike
+    layout : {"cube", "latlong", "hcross", "vcross"}, optional
+        Overrides the ``envmap`` attribute / aspect ratio.
+    convention, negative, nonfinite
+        As :func:`read_envmap`; a repair of the radiance warns once (:class:`~ibl_ref.errors.RadianceWarning`).
+    dtype : numpy dtype, optional
+        float64 (default) or float32.
+
+    Returns
+    -------
+    EnvMap
+
+    Raises
+    ------
+    EnvMapFileError, LayoutError, RadianceError
+        As :func:`read_envmap` and :func:`ibl_ref.environment.hdr_io.read_hdr`.
     """
     from .radiance_policy import warn_repaired
 
@@ -917,6 +1139,33 @@ def read_envmap(path, layout: str | None = None, convention: str | None = None, 
     Returns
     -------
     EnvMap
+
+    Raises
+    ------
+    EnvMapFileError
+        A missing, corrupt or truncated file; a part that does not exist.
+    LayoutError
+        An aspect ratio that is no layout (crosses: :func:`read_map`), missing colour channels.
+    RadianceError
+        Radiance refused by the policy.
+
+    Examples
+    --------
+    A lat-long file keeps its layout; the map's integral over the sphere is Σ L·Ω:
+
+    >>> import os, tempfile
+    >>> import numpy as np
+    >>> from ibl_ref.environment.envmap import latlong_solid_angles
+    >>> from ibl_ref.environment.exr_io import read_envmap, write_envmap
+    >>> folder = tempfile.TemporaryDirectory()
+    >>> path = os.path.join(folder.name, "sky.exr")
+    >>> report = write_envmap(path, np.full((8, 16, 3), 0.5), layout="latlong")
+    >>> m = read_envmap(path)
+    >>> m.layout, m.data.shape, m.channels
+    ('latlong', (8, 16, 3), ('R', 'G', 'B'))
+    >>> float((m.data[..., 0] * latlong_solid_angles(8, 16)).sum() / np.pi)  # 4π · 0.5
+    2.0
+    >>> folder.cleanup()
     """
     from .radiance_policy import warn_repaired
 
@@ -929,7 +1178,22 @@ def read_envmap(path, layout: str | None = None, convention: str | None = None, 
 
 
 def read_pyramid(path) -> list:
-    """Read a multi-part pyramid written by :func:`write_pyramid` → list of ``(6, n, n, C)`` float64."""
+    """Read a multi-part pyramid written by :func:`write_pyramid`.
+
+    Parameters
+    ----------
+    path : str, bytes or os.PathLike
+
+    Returns
+    -------
+    list of ndarray, float64, each (6, n, n, C)
+        Level 0 first; radiance under the default policy (negligible negatives clamped, NaN/Inf refused).
+
+    Raises
+    ------
+    EnvMapFileError, LayoutError, RadianceError
+        As :func:`read_envmap`, per part; a part that is not a cube strip.
+    """
     path = as_path(path, "OpenEXR file")
     _, parts = _open(path)
     levels = []

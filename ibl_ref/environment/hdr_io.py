@@ -45,7 +45,25 @@ _RES_RE = re.compile(rb"^([-+])([XY]) (\d+) ([-+])([XY]) (\d+)$")
 
 
 def rgbe_to_float(rgbe: np.ndarray) -> np.ndarray:
-    """Decode (..., 4) uint8 RGBE to (..., 3) float64: ``(m + ½)·2^(E−136)``, 0 where E = 0."""
+    """Decode RGBE pixels: ``(m + ½)·2^(E−136)``, 0 where E = 0 (Radiance's ``colr_color``).
+
+    Parameters
+    ----------
+    rgbe : array_like, uint8, shape (..., 4)
+
+    Returns
+    -------
+    ndarray, float64, shape (..., 3)
+
+    Examples
+    --------
+    >>> from ibl_ref.environment.hdr_io import float_to_rgbe, rgbe_to_float
+    >>> rgbe = float_to_rgbe([1.0, 0.5, 0.0])
+    >>> rgbe.tolist()
+    [128, 64, 0, 129]
+    >>> rgbe_to_float(rgbe)  # within half a mantissa step (1/256) of the input
+    array([1.0039, 0.5039, 0.0039])
+    """
     rgbe = np.asarray(rgbe, dtype=np.uint8)
     e = rgbe[..., 3].astype(np.int32)
     scale = np.where(e > 0, np.ldexp(1.0, e - 136), 0.0)
@@ -53,7 +71,22 @@ def rgbe_to_float(rgbe: np.ndarray) -> np.ndarray:
 
 
 def float_to_rgbe(rgb: np.ndarray) -> np.ndarray:
-    """Encode (..., 3) non-negative floats to (..., 4) uint8 RGBE (Radiance ``setcolr``)."""
+    """Encode non-negative floats as RGBE pixels (Radiance's ``setcolr``; module docstring).
+
+    Parameters
+    ----------
+    rgb : array_like, shape (..., 3)
+        Finite, non-negative; pixels whose largest channel is below :data:`RGBE_MIN` become (0, 0, 0, 0).
+
+    Returns
+    -------
+    ndarray, uint8, shape (..., 4)
+
+    Raises
+    ------
+    EnvMapFileError
+        A value too large for RGBE (≈ 1.7e38).
+    """
     rgb = np.asarray(rgb, dtype=np.float64)
     m = rgb.max(axis=-1)
     frac, ex = np.frexp(m)  # m = frac * 2**ex, frac in [0.5, 1)
@@ -131,7 +164,23 @@ def _check_claimed_size(n_major: int, n_minor: int, n_data: int, path, res: byte
 
 
 def read_hdr_header(path) -> dict:
-    """Header of a Radiance file: ``format``, ``exposure`` (product), ``lines``, orientation and size."""
+    """The header of a Radiance file.
+
+    Parameters
+    ----------
+    path : str, bytes or os.PathLike
+
+    Returns
+    -------
+    dict
+        ``format``, ``exposure`` (the product of the EXPOSURE lines), ``lines`` (the header lines), the orientation
+        and the size.
+
+    Raises
+    ------
+    EnvMapFileError
+        A missing file, not a Radiance file, an unsupported format or orientation.
+    """
     path = as_path(path, "Radiance file")
     with _open(path) as fh:
         buf = fh.read(65536)
@@ -225,7 +274,7 @@ def read_hdr(path, apply_exposure: bool = False, negative: str = "auto", nonfini
 
     Parameters
     ----------
-    path : str or Path
+    path : str, bytes or os.PathLike
     apply_exposure : bool
         Divide by the product of the header's EXPOSURE values (recovering Radiance's original
         radiance).  Off by default, like most HDR loaders (see module docstring).
@@ -237,6 +286,36 @@ def read_hdr(path, apply_exposure: bool = False, negative: str = "auto", nonfini
     dtype : float64 (default) or float32
         Of the result; RGBE values (8-bit mantissas) are exact in float32.  Decoding runs in row blocks,
         so a big probe needs the file, its (H, W, 4) bytes and the result only.
+
+    Returns
+    -------
+    image : ndarray, shape (H, W, 3)
+    report : RadianceReport
+        Only with ``return_report=True``.
+
+    Raises
+    ------
+    EnvMapFileError
+        A missing, corrupt or truncated file; an unsupported format (XYZE) or orientation.
+
+    Examples
+    --------
+    A lat-long sky written and read back: RGBE keeps 8 mantissa bits, so every value comes back within 2⁻⁸ of its
+    size (module docstring):
+
+    >>> import os, tempfile
+    >>> import numpy as np
+    >>> from ibl_ref.environment.hdr_io import read_hdr, write_hdr
+    >>> folder = tempfile.TemporaryDirectory()
+    >>> path = os.path.join(folder.name, "sky.hdr")
+    >>> sky = np.linspace(0.1, 2.0, 16 * 32 * 3).reshape(16, 32, 3)
+    >>> path = write_hdr(path, sky)
+    >>> img = read_hdr(path)
+    >>> img.shape, img.dtype
+    ((16, 32, 3), dtype('float64'))
+    >>> bool(np.all(np.abs(img - sky) <= sky.max(axis=-1, keepdims=True) / 256))
+    True
+    >>> folder.cleanup()
     """
     path = as_path(path, "Radiance file")
     with _open(path) as fh:
@@ -322,11 +401,30 @@ def write_hdr(path, img, rle: bool = True, exposure: float | None = None) -> Pat
 
     Parameters
     ----------
+    path : str, bytes or os.PathLike
+    img : array_like, shape (H, W, 3) or (H, W)
+        Finite, non-negative radiance.
     rle : bool
         New-style run-length encoding (needs 8 ≤ W ≤ 32767; otherwise flat scanlines are written).
     exposure : float, optional
         Written as an ``EXPOSURE=`` header line (pixels are stored as given).
 
+    Returns
+    -------
+    pathlib.Path
+        The file written.
+
+    Raises
+    ------
+    LayoutError
+        Not an (H, W, 3) or (H, W) image.
+    RadianceError
+        NaN, Inf or negative values; values below :data:`RGBE_MIN` carrying more than 1e-4 of ∫L dω.
+    EnvMapFileError
+        Radiance above ≈ 1.7e38.
+
+    Notes
+    -----
     Values that RGBE cannot hold are never lost silently: radiance above ≈ 1.7e38 is refused, pixels below
     :data:`RGBE_MIN` (stored as 0) are measured as a share of ∫L dω and refused above 1e-4 or reported
     (:func:`ibl_ref.environment.radiance_policy.check_format_range`; lat-long solid angles for W = 2H images).
