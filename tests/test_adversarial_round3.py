@@ -349,3 +349,44 @@ def test_two_runs_into_one_folder_at_once_leave_one_whole_set(tmp_path):
     assert set(files) == ({"toy.csv", "toy_outputs.json"} | {f"toy_{m}.png" for m in mats}
                           | {f"toy_diff/{m}.txt" for m in mats})
     assert all(v == tag for k, v in files.items() if k.endswith((".png", ".txt")))
+
+
+# ---- class 6: one clear line -------------------------------------------------------------------------------------
+@pytest.mark.parametrize("argv", [["experiment", "method-zoo", "--workers", "abc"],
+                                  ["experiment", "fig3", "--bogus", "1"],
+                                  ["experiment", "fig3", "--face-size", "abc"]])
+def test_experiment_usage_errors_are_one_line(argv, capsys):
+    from ibl_ref.cli import main
+
+    try:
+        rc = main(argv)
+    except SystemExit as exc:
+        rc = exc.code
+    assert rc in (1, 2)
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "usage" not in err, err
+
+
+def test_method_zoo_env_size_that_is_no_power_of_two_is_one_line(capsys):
+    from ibl_ref.cli import main
+
+    assert main(["experiment", "method-zoo", "--quick", "--env-size", "3", "--out", "/nonexistent/x"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--env-size" in err and "power of two" in err
+
+
+@pytest.mark.parametrize("lib", ["libLLVM-14.so.1", "libLLVM-19.so"])
+def test_a_wrong_drjit_libllvm_path_is_one_line(tmp_path, lib, mitsuba_llvm):
+    import os
+    import subprocess
+    import sys
+
+    bad = tmp_path / lib
+    bad.write_bytes(b"not a library")
+    env = dict(os.environ, DRJIT_LIBLLVM_PATH=str(bad))
+    r = subprocess.run([sys.executable, "-m", "ibl_ref", "render", "--mode", "mitsuba", "--size", "4", "--env-size",
+                        "4", "--spp", "2", "--out", str(tmp_path / "m.exr"), "--no-progress"],
+                       capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 1
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(bad) in lines[0], r.stderr

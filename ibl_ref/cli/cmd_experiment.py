@@ -49,8 +49,10 @@ def _add_job_options(p, d=None, note=None) -> None:
 def experiment_parser(mod, defaults=None) -> argparse.ArgumentParser:
     """The parser of ``ibl-ref experiment NAME``: common options plus one ``--PARAM`` per parameter."""
     d = defaults or {}
-    e = argparse.ArgumentParser(prog=f"ibl-ref experiment {mod.NAME}", description=experiments.describe(mod),
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    from . import _Parser  # the one usage-error path of the command line: one line naming the flag
+
+    e = _Parser(prog=f"ibl-ref experiment {mod.NAME}", description=experiments.describe(mod),
+                formatter_class=argparse.RawDescriptionHelpFormatter)
     e.add_argument("--out", default=d.get("out", "results"), help="output folder (default: results)")
     e.add_argument("--quick", action="store_true", default=d.get("quick", False),
                    help="quick sizes (the parameters' quick values) for a fast run")

@@ -62,6 +62,7 @@ and, on Debian, ``apt-get install libllvm19``.
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import os
 import re
@@ -127,6 +128,41 @@ def find_libllvm(min_major: int = MIN_LLVM_MAJOR) -> str | None:
     return None if best is None else best[1]
 
 
+@contextlib.contextmanager
+def _captured_stderr():
+    """Hold what native code writes to file descriptor 2 in the block; yields a function returning its lines.  On
+    success the text is written to stderr afterwards (nothing is lost); on an error the caller puts it in the message.
+    """
+    import sys
+    import tempfile
+
+    lines = []
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no fd 2 (an embedded interpreter): nothing to hold
+        yield lambda: lines
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        ok = False
+        try:
+            def said():
+                tmp.seek(0)
+                lines[:] = [ln.strip() for ln in tmp.read().decode(errors="replace").splitlines() if ln.strip()]
+                return lines
+            yield said
+            ok = True
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            if ok:
+                tmp.seek(0)
+                text = tmp.read().decode(errors="replace")
+                if text:
+                    sys.stderr.write(text)
+
+
 def select_variant(prefer: str = "auto") -> str:
     """Import Mitsuba and select its ``llvm_ad_rgb`` variant once per process (``prefer``: ``"auto"`` or
     ``"llvm"``, the same thing).  Raises :class:`MitsubaUnavailable` when Mitsuba is not installed or no
@@ -137,21 +173,28 @@ def select_variant(prefer: str = "auto") -> str:
     if "variant" in _STATE:
         return _STATE["variant"]
     lib = find_libllvm()
+    env = os.environ.get("DRJIT_LIBLLVM_PATH")
+    if lib is None and env:
+        raise MitsubaUnavailable(f"DRJIT_LIBLLVM_PATH={env}: not an existing libLLVM >= {MIN_LLVM_MAJOR} file (the "
+                                 "version is read from its name, e.g. libLLVM-19.so.1); unset it to let the lab look "
+                                 "for one")
     if lib is None:
         raise MitsubaUnavailable(
             f"Mitsuba's llvm_ad_rgb variant needs libLLVM >= {MIN_LLVM_MAJOR} and none was found (Debian: "
             "apt-get install libllvm19; or set DRJIT_LIBLLVM_PATH to a libLLVM-17+ file); the scalar variants "
             "cannot run the lab's array-based Mitsuba code")
     os.environ["DRJIT_LIBLLVM_PATH"] = lib
-    try:
-        import mitsuba as mi
-    except ImportError as exc:
-        raise MitsubaUnavailable('Mitsuba 3 is not installed: pip install ".[mitsuba]"') from exc
     variant = "llvm_ad_rgb"
-    try:
-        mi.set_variant(variant)
-    except (ImportError, AttributeError, RuntimeError) as exc:
-        raise MitsubaUnavailable(f"Mitsuba 3 could not select {variant} with {lib}: {exc}") from None
+    with _captured_stderr() as said:  # Dr.Jit reports a library it cannot load on the C stderr: into the message
+        try:
+            import mitsuba as mi
+        except ImportError as exc:
+            raise MitsubaUnavailable('Mitsuba 3 is not installed: pip install ".[mitsuba]"') from exc
+        try:
+            mi.set_variant(variant)
+        except (ImportError, AttributeError, RuntimeError) as exc:
+            why = " ".join(said()[:1]) or str(exc)
+            raise MitsubaUnavailable(f"Mitsuba 3 could not select {variant} with {lib}: {why}") from None
     mi.set_log_level(mi.LogLevel.Error)  # e.g. multijitter's "sample count rounded up" (recorded in info["spp"])
     _register_bsdf(mi)
     _STATE["variant"] = variant
