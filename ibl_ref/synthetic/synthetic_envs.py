@@ -209,9 +209,23 @@ def texel_mean_directions(n: int) -> np.ndarray:
     straight lines on the face plane, hence great-circle arcs on the sphere, so the formula is exact.
     Dividing by the exact texel solid angle (:func:`ibl_ref.environment.envmap.texel_solid_angles`) gives the mean.
 
+    Parameters
+    ----------
+    n : int
+        Face size.
+
     Returns
     -------
-    ndarray (6, n, n, 3), float64.  Its norm is < 1 (≈ 1 − O(1/n²)).
+    ndarray, float64, shape (6, n, n, 3)
+        Its norm is < 1 (≈ 1 − O(1/n²)): the mean of unit vectors over a texel.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from ibl_ref.synthetic.synthetic_envs import texel_mean_directions
+    >>> norms = np.linalg.norm(texel_mean_directions(8), axis=-1)
+    >>> bool(0.99 < norms.min() and norms.max() < 1.0)
+    True
     """
     n = _face_size(n)
     e = np.linspace(-1.0, 1.0, n + 1)
@@ -246,6 +260,11 @@ def env_constant(n: int = 64, value=1.0) -> np.ndarray:
         Face size.
     value : float or 3 floats
         Radiance per channel (≥ 0).  ∫L dω = 4π·value.
+
+    Returns
+    -------
+    ndarray, float64, shape (6, n, n, 3)
+        Radiance in the OpenEXR cube layout (:mod:`ibl_ref.environment.envmap`).
     """
     return _fill(_face_size(n), _rgb(value, "value"))
 
@@ -266,6 +285,16 @@ def env_delta(n: int = 64, texel=None, direction=None, radiance=1.0, normalize: 
         Texel value, or with ``normalize=True`` the target ∫L dω.
     normalize : bool
         If True the texel value is ``radiance / Ω_texel`` (exact texel solid angle), so ∫L dω = radiance.
+
+    Returns
+    -------
+    ndarray, float64, shape (6, n, n, 3)
+        Radiance in the OpenEXR cube layout (:mod:`ibl_ref.environment.envmap`).
+
+    Raises
+    ------
+    IBLError
+        Both ``texel`` and ``direction``, or a texel outside the cube.
     """
     n = _face_size(n)
     rgb = _rgb(radiance, "radiance")
@@ -303,6 +332,16 @@ def env_gradient(n: int = 64, a=1.0, b=(0.0, 0.5, 0.0), sample: str = "average")
         ``"average"`` (default): exact texel average a + b·ω̄ with ω̄ from
         :func:`texel_mean_directions` (closed form, exact to rounding).  ``"center"``: value at the
         texel-centre direction (differs from the average by O(1/n²)).
+
+    Returns
+    -------
+    ndarray, float64, shape (6, n, n, 3)
+        Radiance in the OpenEXR cube layout (:mod:`ibl_ref.environment.envmap`).
+
+    Raises
+    ------
+    IBLError
+        |b_c| > a_c for a channel (negative radiance somewhere), an unknown ``sample``.
 
     Notes
     -----
@@ -356,11 +395,26 @@ def gradient_lobe_average(r, s, a=1.0, b=(0.0, 0.5, 0.0)) -> np.ndarray:
         Lobe axes (normalised internally).
     s : float or array broadcastable to r.shape[:-1]
         Phong exponent(s) ≥ 0; ``np.inf`` allowed.
-    a, b : as in :func:`env_gradient`.
+    a, b : float or 3 floats, 3 floats or (3, 3)
+        As in :func:`env_gradient`.
 
     Returns
     -------
-    ndarray (..., 3), float64.
+    ndarray, float64, shape (..., 3)
+        One value per channel.
+
+    Raises
+    ------
+    IBLError
+        Non-finite or zero-length axes, a negative or NaN exponent.
+
+    Examples
+    --------
+    Looking straight up the default gradient (b = 0.5 +Y) with s = 2: 1 + 0.5·3/4:
+
+    >>> from ibl_ref.synthetic.synthetic_envs import gradient_lobe_average
+    >>> gradient_lobe_average([0.0, 1.0, 0.0], 2.0)
+    array([1.375, 1.375, 1.375])
     """
     a_rgb = _rgb(a, "a")
     b_arr = _gradient_b(b)
@@ -393,6 +447,24 @@ def sun_disc_coverage(n: int, sun_direction=None, sun_solid_angle: float = SUN_S
     k = clip(ceil(samples_across / (2θ_s·n/2)), 2, max_subdivision), i.e. about ``samples_across``
     sub-cells across the disc diameter at the face centre.  The achieved ∫cov dω vs Ω is reported by
     :func:`sun_coverage_relative_error`.
+
+    Parameters
+    ----------
+    n : int
+        Face size.
+    sun_direction : 3 floats, optional
+        Default :data:`DEFAULT_SUN_DIRECTION`.
+    sun_solid_angle : float
+        Ω_sun in sr (≤ 2π).
+    samples_across : int
+        Sub-cells across the disc's diameter (≥ 2).
+    max_subdivision : int
+        Largest k.
+
+    Returns
+    -------
+    ndarray, float64, shape (6, n, n)
+        Coverage fractions in [0, 1].
     """
     n = _face_size(n)
     s_dir = DEFAULT_SUN_DIRECTION if sun_direction is None else _direction(sun_direction, "sun_direction")
@@ -413,7 +485,23 @@ def sun_disc_coverage(n: int, sun_direction=None, sun_solid_angle: float = SUN_S
 
 
 def sun_coverage_relative_error(n: int, sun_direction=None, sun_solid_angle: float = SUN_SOLID_ANGLE, **kw) -> float:
-    """(Σ coverage·Ω_texel − Ω_sun) / Ω_sun for :func:`sun_disc_coverage` (its quadrature error)."""
+    """The quadrature error of :func:`sun_disc_coverage`, (Σ coverage·Ω_texel − Ω_sun) / Ω_sun.
+
+    Parameters
+    ----------
+    n, sun_direction, sun_solid_angle, **kw
+        As :func:`sun_disc_coverage`.
+
+    Returns
+    -------
+    float
+
+    Examples
+    --------
+    >>> from ibl_ref.synthetic.synthetic_envs import sun_coverage_relative_error
+    >>> abs(sun_coverage_relative_error(32)) < 2e-3
+    True
+    """
     cov = sun_disc_coverage(n, sun_direction, sun_solid_angle, **kw)
     return float((np.sum(cov * envmap.cube_solid_angles(n)) - sun_solid_angle) / sun_solid_angle)
 
@@ -453,6 +541,11 @@ def env_sky_sun(
         e-folding width of the ground's brightening towards the horizon (in ω_y).
     samples_across : int
         Sub-cells across the sun's diameter for the coverage supersampling.
+
+    Returns
+    -------
+    ndarray, float64, shape (6, n, n, 3)
+        Radiance in the OpenEXR cube layout (:mod:`ibl_ref.environment.envmap`).
     """
     n = _face_size(n)
     zen, hor, gnd = _rgb(sky_zenith, "sky_zenith"), _rgb(sky_horizon, "sky_horizon"), _rgb(ground, "ground")
@@ -483,7 +576,26 @@ def _rect_frame(direction):
 
 
 def rect_light_solid_angle(width_deg: float, height_deg: float) -> float:
-    """Exact solid angle of a gnomonic rectangle: 4·A(tan(w/2), tan(h/2)), A(x,y)=atan2(xy, √(x²+y²+1))."""
+    """Exact solid angle (sr) of a gnomonic rectangle: 4·A(tan(w/2), tan(h/2)), A(x,y)=atan2(xy, √(x²+y²+1)).
+
+    Parameters
+    ----------
+    width_deg, height_deg : float
+        Angular width and height through the centre, degrees.
+
+    Returns
+    -------
+    float
+
+    Examples
+    --------
+    A 90° × 90° rectangle is one cube face, a sixth of the sphere:
+
+    >>> import numpy as np
+    >>> from ibl_ref.synthetic.synthetic_envs import rect_light_solid_angle
+    >>> rect_light_solid_angle(90.0, 90.0) / np.pi
+    0.6667
+    """
     tw, th = np.tan(np.radians(width_deg) / 2), np.tan(np.radians(height_deg) / 2)
     return float(4.0 * envmap.area_primitive(tw, th))
 
@@ -518,6 +630,22 @@ def rect_light_coverage(n: int, direction, width_deg: float, height_deg: float, 
     great-circle arcs, so a texel whose four corners are all inside is fully inside (coverage 1), and one
     whose corners are all outside the same bounding hemisphere is fully outside (0), exactly; only the
     remaining texels (those the light's edges cross) are supersampled k × k.
+
+    Parameters
+    ----------
+    n : int
+        Face size.
+    direction : 3 floats
+        Centre c of the light.
+    width_deg, height_deg : float
+        Angular size through the centre, degrees (< 170).
+    supersample : int
+        k.
+
+    Returns
+    -------
+    ndarray, float64, shape (6, n, n)
+        Coverage fractions in [0, 1].
     """
     n = _face_size(n)
     k = _int_param(supersample, "supersample", 1, 256)
@@ -555,6 +683,11 @@ def env_studio(n: int = 64, lights=None, background=0.02, floor=0.05, supersampl
         Radiance of the floor (ω_y < 0, decided at the texel centre).
     supersample : int
         k for the k × k coverage supersampling of the light edges.
+
+    Returns
+    -------
+    ndarray, float64, shape (6, n, n, 3)
+        Radiance in the OpenEXR cube layout (:mod:`ibl_ref.environment.envmap`).
 
     Notes
     -----
@@ -597,6 +730,11 @@ def env_checker(n: int = 64, cells: int = 16, low=0.1, high=1.0, mode: str = "la
         k for ``mode="latlong"``.
     cell_texels : int
         Block size for ``mode="face"``.
+
+    Returns
+    -------
+    ndarray, float64, shape (6, n, n, 3)
+        Radiance in the OpenEXR cube layout (:mod:`ibl_ref.environment.envmap`).
     """
     n = _face_size(n)
     lo, hi = _rgb(low, "low"), _rgb(high, "high")
@@ -744,9 +882,26 @@ SCENE_ENV_NAMES = ENV_NAMES + ("probe",)
 
 
 def scene_environment(name: str, n: int) -> np.ndarray:
-    """The (6, n, n, 3) environment of a render case: a :func:`make_env` map, or ``"probe"`` — the probe-like
+    """The environment of a render case: a :func:`make_env` map, or ``"probe"`` — the probe-like
     lat-long map of :func:`ibl_ref.environment.probe_files.probe_cube` (sky gradient, textured ground with a
-    black strip, a 1.5° sun of 3e4) resampled to the cube with the integral-preserving kernel."""
+    black strip, a 1.5° sun of 3e4) resampled to the cube with the integral-preserving kernel.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`SCENE_ENV_NAMES`.
+    n : int
+        Face size.
+
+    Returns
+    -------
+    ndarray, float64, shape (6, n, n, 3)
+
+    Raises
+    ------
+    IBLError
+        An unknown name.
+    """
     if name == "probe":
         from ..environment.probe_files import probe_cube
 
@@ -757,7 +912,17 @@ def scene_environment(name: str, n: int) -> np.ndarray:
 
 
 def generator_help(name: str | None = None) -> str:
-    """Parameter list with defaults and the first docstring paragraph of one or all generators."""
+    """Parameter list with defaults and the first docstring paragraph of one or all generators.
+
+    Parameters
+    ----------
+    name : str, optional
+        One of :data:`ENV_NAMES` (default: all).
+
+    Returns
+    -------
+    str
+    """
     names = ENV_NAMES if name is None else (name,)
     out = []
     for nm in names:
@@ -770,7 +935,13 @@ def generator_help(name: str | None = None) -> str:
 
 
 def cache_dir() -> Path:
-    """Cache folder: ``$IBL_REF_CACHE`` if set, else ``data_synthetic/cache`` under the current directory."""
+    """The cache folder of :func:`cached_env`.
+
+    Returns
+    -------
+    pathlib.Path
+        ``$IBL_REF_CACHE`` if set, else ``data_synthetic/cache`` under the current directory.
+    """
     return Path(os.environ.get("IBL_REF_CACHE") or Path("data_synthetic") / "cache")
 
 
@@ -794,7 +965,18 @@ def cached_env(name: str, n: int = 64, cache: str | os.PathLike | None = None, *
     """:func:`make_env` with an on-disk ``.npy`` cache (atomic writes).
 
     The file name ``<name>_n<n>_<hash>.npy`` hashes the generator version, name, size and parameters.
-    ``cache`` overrides :func:`cache_dir`.  A cached file with the wrong shape is regenerated.
+    A cached file with the wrong shape is regenerated.
+
+    Parameters
+    ----------
+    name, n, **params
+        As :func:`make_env`.
+    cache : str or os.PathLike, optional
+        The folder (default :func:`cache_dir`).
+
+    Returns
+    -------
+    ndarray, float64, shape (6, n, n, 3)
     """
     from ..atomic import atomic_path
 

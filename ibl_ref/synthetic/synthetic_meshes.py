@@ -127,6 +127,11 @@ def mesh_sphere_on_plane(radius: float = 1.0, subdivisions: int = 4, plane_size:
         Plane grid segments per side (2·plane_res² triangles).
     gap : float
         Height of the sphere's lowest point above the plane.
+
+    Returns
+    -------
+    trimesh.Trimesh
+        Validated (:func:`validate_mesh`), with ``metadata["part_faces"]``.
     """
     import trimesh
 
@@ -153,6 +158,11 @@ def mesh_torus(major_radius: float = 1.0, minor_radius: float = 0.35, major_sect
         Ring radius and tube radius (minor < major).
     major_sections, minor_sections : int
         Segments around the ring and around the tube (default 96 × 48 → 9216 triangles).
+
+    Returns
+    -------
+    trimesh.Trimesh
+        Validated (:func:`validate_mesh`), with ``metadata["part_faces"]``.
     """
     import trimesh
 
@@ -220,7 +230,17 @@ def bezier_patch_grid(control_points: np.ndarray, m: int) -> np.ndarray:
     """Evaluate bicubic Bézier patches on an (m+1) × (m+1) parameter grid.
 
     S(u, v) = Σ_i Σ_j B_i(u) B_j(v) P_ij with u along the first control-point axis.
-    ``control_points`` (..., 4, 4, 3) → points (..., m+1, m+1, 3).
+
+    Parameters
+    ----------
+    control_points : array_like, shape (..., 4, 4, 3)
+    m : int
+        Segments per parameter.
+
+    Returns
+    -------
+    ndarray, float64, shape (..., m+1, m+1, 3)
+        The patch corners are the corner control points (a Bézier patch interpolates them).
     """
     b = _bernstein(np.linspace(0.0, 1.0, m + 1))
     return np.einsum("ui,vj,...ijk->...uvk", b, b, control_points)
@@ -250,6 +270,11 @@ def mesh_teapot(subdiv: int = 16, y_up: bool = True, close_lid_gap: bool = True)
         on: 2·4·subdiv triangles (128 at subdiv = 16) joining the lid's outer edge to the rim's inner edge
         (the two edge loops have the same 4·subdiv angles, since both patches sample the same circle), with
         their own vertices and the exact normal of the plane (+y); ``False`` keeps the original open data.
+
+    Returns
+    -------
+    trimesh.Trimesh
+        Validated (:func:`validate_mesh`), with ``metadata["part_faces"]``.
 
     Notes
     -----
@@ -393,6 +418,18 @@ def mesh_cloth(n_around: int = 128, n_down: int = 64, body_radii=(0.5, 0.8, 0.3)
         Selects the fold phases (deterministic, no RNG).
     include_body : bool
         Add the torso ellipsoid (icosphere with ``body_subdivisions``) as a second part.
+    body_subdivisions : int
+        Icosphere subdivisions of the torso.
+
+    Returns
+    -------
+    trimesh.Trimesh
+        Validated (:func:`validate_mesh`), with ``metadata["part_faces"]``.
+
+    Raises
+    ------
+    IBLError
+        A parameter out of range (e.g. ``fold_amplitude > flare``, a neckline outside the torso's upper half).
     """
     import trimesh
 
@@ -459,7 +496,38 @@ MESH_NAMES = tuple(_MESHES)
 
 
 def make_mesh(name: str, **params) -> trimesh.Trimesh:
-    """Generate the test mesh ``name`` ∈ :data:`MESH_NAMES` (parameters: see ``mesh_<name>``)."""
+    """Generate a deterministic test mesh.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`MESH_NAMES`: ``"sphere_on_plane"``, ``"torus"``, ``"teapot"``, ``"cloth"`` (module
+        docstring).
+    **params
+        The keyword parameters of the generator ``mesh_<name>`` (their docstrings, or :func:`mesh_help`).
+
+    Returns
+    -------
+    trimesh.Trimesh
+        +Y up, standing on y = 0, outward face normals; ``metadata["part_faces"]`` maps part names to
+        ``[start, stop)`` face ranges.
+
+    Raises
+    ------
+    IBLError
+        An unknown name or parameter, an invalid value.
+
+    Examples
+    --------
+    A unit sphere (subdivided twice: 20·4² triangles) resting on a 6 × 6 plane of 2·4² triangles:
+
+    >>> from ibl_ref.synthetic.synthetic_meshes import make_mesh
+    >>> mesh = make_mesh("sphere_on_plane", subdivisions=2, plane_res=4)
+    >>> len(mesh.faces), mesh.metadata["part_faces"]
+    (352, {'sphere': [0, 320], 'plane': [320, 352]})
+    >>> mesh.bounds.tolist()
+    [[-3.0, 0.0, -3.0], [3.0, 2.0, 3.0]]
+    """
     try:
         fn = _MESHES[name]
     except (KeyError, TypeError):
@@ -472,7 +540,17 @@ def make_mesh(name: str, **params) -> trimesh.Trimesh:
 
 
 def mesh_help(name: str | None = None) -> str:
-    """Parameters with defaults and the first docstring paragraph of one or all mesh generators."""
+    """Parameters with defaults and the first docstring paragraph of one or all mesh generators.
+
+    Parameters
+    ----------
+    name : str, optional
+        One of :data:`MESH_NAMES` (default: all).
+
+    Returns
+    -------
+    str
+    """
     out = []
     for nm in (MESH_NAMES if name is None else (name,)):
         fn = _MESHES[nm]
@@ -490,7 +568,23 @@ def validate_mesh(mesh, name: str = "mesh", area_eps: float = 0.0) -> trimesh.Tr
     """Check a mesh is usable: faces present, finite vertices of magnitude <= :data:`MAX_COORDINATE`, valid
     indices, not all degenerate.
 
-    Raises :class:`MeshError` naming ``name``.  Returns the mesh unchanged.
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+    name : str, optional
+        Names the mesh in messages.
+    area_eps : float, optional
+        Triangles of at most this area count as degenerate.
+
+    Returns
+    -------
+    trimesh.Trimesh
+        ``mesh`` unchanged.
+
+    Raises
+    ------
+    MeshError
+        Naming ``name`` and the problem.
     """
     import trimesh
 
@@ -568,8 +662,25 @@ def load_mesh(path_or_name, **params) -> trimesh.Trimesh:
 
     Files are read with ``trimesh.load(path, force="mesh", process=False)`` (scenes are flattened into
     one mesh), validated with :func:`validate_mesh` (before trimesh's processing, which would silently
-    drop NaN vertices), then processed (duplicate vertices merged); unreadable files raise
-    :class:`MeshError`.
+    drop NaN vertices), then processed (duplicate vertices merged).
+
+    Parameters
+    ----------
+    path_or_name : str or os.PathLike
+        A name in :data:`MESH_NAMES` or a mesh file (OBJ, PLY, STL, … as trimesh reads them).
+    **params
+        Generator parameters (names only).
+
+    Returns
+    -------
+    trimesh.Trimesh
+
+    Raises
+    ------
+    MeshError
+        A missing, unreadable, empty or invalid file (one line naming it).
+    IBLError
+        Parameters given with a file.
     """
     import trimesh
 
