@@ -195,23 +195,19 @@ def _ao_render_mode():
     return render_mode
 
 
-def cmd_render(args) -> int:
-    import time
-
+def _checked(args):
+    """Every check that needs no file read, before the expensive parts: outputs, size, exposure, lights, materials,
+    mode-specific flags → the settings of the run (a namespace)."""
     import numpy as np
 
-    from ..atomic import atomic_path
-    from ..rendering.render import Material, render_pem
-    from ..rendering.scenes import teapot_on_ground
-
-    # ---- validate everything cheap before the expensive parts ----------------------------------------------
-    from ..atomic import OutputSet, check_side_files, refuse_overwriting_inputs
+    from ..atomic import check_side_files, refuse_overwriting_inputs
+    from ..rendering.render import Material
 
     out = _check_output(Path(args.out), OUT_EXTS, "--out")
     png = _check_output(Path(args.png), (".png",), "--png") if args.png else None
     refuse_overwriting_inputs({"--env": args.env, "--mesh": args.mesh, "--gmap": args.gmap},
                               {"--out": out, "--png": png, "--out (.json sidecar)": out.with_suffix(".json")})
-    check_side_files(out.with_suffix(".json"), (), "outputs", "--out")  # never replace a file the user did not name
+    check_side_files(out.with_suffix(".json"), (), "outputs", "--out")  # never replace a file the lab did not write
     w, h = _size(args.size)
     stops = parse_exposure(args.exposure)
     mode = args.mode
@@ -245,11 +241,22 @@ def cmd_render(args) -> int:
                                     or np.ndim(gmat.kd) or np.ndim(gmat.ks)):
             raise IBLError("--mode reference: the ray-traced reference takes scalar kd, ks and one g per "
                            "material; RGB weights and --gmap work with the other modes")
-    progress = args.progress
+    from types import SimpleNamespace
 
-    # ---- scene (the mesh first: it is cheaper to check than a big environment map) -------------------------
+    return SimpleNamespace(out=out, png=png, w=w, h=h, stops=stops, mode=mode, mat=mat, gmat=gmat,
+                           visibility=visibility, render_mode=render_mode)
+
+
+def _scene(args, run):
+    """The mesh (first: cheaper to check than a big map), the camera and the environment; refuses weights that
+    overflow float64 in Eq. 5's sum (L+1 terms, each at most weight × max radiance) → (meshes, camera, cube,
+    radiance information)."""
+    import numpy as np
+
+    from ..rendering.scenes import teapot_on_ground
+
     meshes = teapot_on_ground(args.mesh, ground=args.ground)
-    if getattr(mat, "g_map", None) is not None:  # NaN/Inf UVs of a mesh file: refused before any rendering
+    if getattr(run.mat, "g_map", None) is not None:  # NaN/Inf UVs of a mesh file: refused before any rendering
         from ..rendering.render import mesh_uv
 
         mesh_uv(meshes[0][0], f"--mesh {args.mesh}")
@@ -263,76 +270,75 @@ def cmd_render(args) -> int:
         from ..synthetic.synthetic_envs import make_env
 
         cube = make_env(args.synthetic, n=args.env_size)
-    # Eq. 5 sums L+1 terms, each at most weight x max radiance: refuse weights that overflow float64
-    wmax = max(_weight_max(mat), _weight_max(gmat))
+    wmax = max(_weight_max(run.mat), _weight_max(run.gmat))
     if wmax * float(np.max(cube)) * (args.lights + 1) > np.finfo(np.float64).max:
         raise IBLError(f"--material / --ground-material: weights up to {wmax:g} times radiance up to "
                        f"{float(np.max(cube)):g} overflow float64 in the shading sum; use smaller weights")
+    return meshes, cam, cube, radiance
 
-    png_stops, exposure_rule = _preview_exposure(stops, cube)
-    t0 = time.perf_counter()
-    info = {"out": str(out), "mode": mode, "size": [w, h], "fov_y_deg": args.fov,
-            "camera_eye": cam.eye.tolist(), "camera_target": cam.target.tolist(),
-            "background": args.background, "exposure_stops": png_stops, "exposure_rule": exposure_rule,
-            "material": _material_info(mat, args.gmap),
-            "ground_material": (_material_info(gmat) if args.ground else None),
-            "radiance": radiance}
-    pems = None
-    if mode not in _EXACT_MODES:
-        from ..prefilter.registry import build_region_prefilters, region_params
 
-        accepted = region_params(args.prefilter)
-        params = {"progress": progress} if "progress" in accepted else {}
-        if "calibration" in accepted:
-            from ..knuth2014.gloss_calibration import calibration_for
+def _region_prefilters(args, cube, info):
+    """The PEMs of Eq. 5 with ``--prefilter`` (modes other than reference / mitsuba); records them in ``info``."""
+    from ..prefilter.registry import build_region_prefilters, region_params
 
-            # the g → level table of the paper's pyramid (shipped, or computed for sizes without one)
-            params["calibration"] = calibration_for(cube.shape[1], progress=progress)
-        pems = build_region_prefilters(cube, method=args.prefilter, n_lights=args.lights, variant=args.median_cut,
-                                       **params)
-        info["lights"] = len(pems.lights.directions)
-        info["median_cut"] = args.median_cut
-        info["prefilter"] = args.prefilter
-    t1 = time.perf_counter()
-    extra = {}
+    accepted = region_params(args.prefilter)
+    params = {"progress": args.progress} if "progress" in accepted else {}
+    if "calibration" in accepted:
+        from ..knuth2014.gloss_calibration import calibration_for
+
+        # the g → level table of the paper's pyramid (shipped, or computed for sizes without one)
+        params["calibration"] = calibration_for(cube.shape[1], progress=args.progress)
+    pems = build_region_prefilters(cube, method=args.prefilter, n_lights=args.lights, variant=args.median_cut,
+                                   **params)
+    info["lights"] = len(pems.lights.directions)
+    info["median_cut"] = args.median_cut
+    info["prefilter"] = args.prefilter
+    return pems
+
+
+def _render_image(args, run, meshes, cam, cube, pems, info):
+    """The image of ``--mode`` → (image (H, W, C) float64, mask (H, W), the .npz's extra buffers)."""
+    import numpy as np
+
+    mat, gmat, mode, progress = run.mat, run.gmat, run.mode, args.progress
     if mode in _EXACT_MODES:
+        from ..rendering.render import apply_background
         from .exact_modes import render_exact
 
-        from ..rendering.render import apply_background
-
         image, mask, more = render_exact(mode, meshes, cam, cube, mat, gmat if args.ground else None, args, progress)
-        image = apply_background(np.array(image, dtype=np.float64), mask, cam, cube, args.background)
         info.update(more)
-    elif render_mode is None:
-        res = render_pem(meshes, cam, pems, materials={0: mat, 1: gmat}, visibility=visibility,
+        return apply_background(np.array(image, dtype=np.float64), mask, cam, cube, args.background), mask, {}
+    if run.render_mode is None:
+        from ..rendering.render import render_pem
+
+        res = render_pem(meshes, cam, pems, materials={0: mat, 1: gmat}, visibility=run.visibility,
                          vsm_resolution=args.vsm_res, vsm_dtype=args.vsm_dtype, exact_backend=args.exact_backend,
                          horizon=args.horizon, background=args.background, progress=progress)
-        image, mask = res.image, res.mask
-        extra = dict(unshadowed=res.unshadowed, visibility=res.visibility, depth=res.gbuffer.depth,
-                     diffuse=res.diffuse, specular=res.specular, glossiness=res.glossiness)
-        info["visibility"] = visibility
-    else:
-        kw = dict(camera=cam, materials={0: mat, 1: gmat}, vsm_resolution=args.vsm_res, vsm_dtype=args.vsm_dtype,
-                  background=args.background, progress=progress)
-        if pems is not None:
-            kw["pems"] = pems
-        try:
-            image = np.asarray(render_mode(meshes, cube, mode, **kw), dtype=np.float64)
-        except TypeError as exc:
-            raise IBLError(f"ibl_ref.rendering.ao_modes.render_mode does not accept the arguments of this CLI "
-                           f"({exc}); the two modules are out of step") from exc
-        from ..rendering.raster import rasterize
+        info["visibility"] = run.visibility
+        return res.image, res.mask, dict(unshadowed=res.unshadowed, visibility=res.visibility,
+                                         depth=res.gbuffer.depth, diffuse=res.diffuse, specular=res.specular,
+                                         glossiness=res.glossiness)
+    kw = dict(camera=cam, materials={0: mat, 1: gmat}, vsm_resolution=args.vsm_res, vsm_dtype=args.vsm_dtype,
+              background=args.background, progress=progress)
+    if pems is not None:
+        kw["pems"] = pems
+    try:
+        image = np.asarray(run.render_mode(meshes, cube, mode, **kw), dtype=np.float64)
+    except TypeError as exc:
+        raise IBLError(f"ibl_ref.rendering.ao_modes.render_mode does not accept the arguments of this CLI "
+                       f"({exc}); the two modules are out of step") from exc
+    from ..rendering.raster import rasterize
 
-        mask = rasterize(meshes, cam, warn=False).mask  # coverage (the image holds the backdrop elsewhere)
-    t2 = time.perf_counter()
-    if image.shape[:2] != (h, w):
-        raise IBLError(f"renderer returned an image of shape {image.shape}, expected ({h}, {w}, C)")
-    top = float(np.max(image)) if image.size else 0.0
-    if out.suffix.lower() == ".exr" and top > float(np.finfo(np.float32).max):  # name the flags, not the file format
-        raise IBLError(f"--out {out}: the image reaches {top:.3g}, beyond float32 (3.4e+38) of an .exr; use smaller "
-                       "--material / --ground-material weights or write .npz (float64)")
+    return image, rasterize(meshes, cam, warn=False).mask, {}  # coverage (the image holds the backdrop elsewhere)
 
-    # ---- outputs (image, --png and the JSON sidecar committed together, the JSON last) -----------------------
+
+def _write_outputs(run, image, mask, extra, info, png_stops, times) -> None:
+    """The image, ``--png`` and the JSON sidecar (``info`` with ``times``) committed together, the JSON last."""
+    import numpy as np
+
+    from ..atomic import OutputSet, atomic_path
+
+    out, png = run.out, run.png
     info["outputs"] = [out.name]  # OUT.json: this output's manifest (the marker is ibl_ref.atomic.OutputSet's)
     with OutputSet(out.with_suffix(".json"), owned_key="outputs", remove_stale=False, named=[out, png]) as outs:
         if out.suffix.lower() == ".exr":
@@ -345,15 +351,46 @@ def cmd_render(args) -> int:
             with atomic_path(outs.path(out), suffix=".npz") as tmp:
                 with open(tmp, "wb") as fh:
                     np.savez_compressed(fh, **arrays)
-        info.update({"pem_time_s": round(t1 - t0, 3), "render_time_s": round(t2 - t1, 3)})
+        info.update(times)
         if png is not None:
             from ..rendering.tonemap import save_png
 
             save_png(outs.path(png), image, stops=png_stops, mask=mask)
             info["png"] = str(png)
         outs.commit(info)
-    print(f"wrote {out} ({w}x{h}, mode {mode}; {info['render_time_s']} s render, {info['pem_time_s']} s PEMs)"
-          + (f" and {png}" if png is not None else ""))
+
+
+def cmd_render(args) -> int:
+    """``ibl-ref render``: checks (:func:`_checked`), scene (:func:`_scene`), PEMs (:func:`_region_prefilters`),
+    the image of the mode (:func:`_render_image`), outputs (:func:`_write_outputs`)."""
+    import time
+
+    import numpy as np
+
+    run = _checked(args)
+    meshes, cam, cube, radiance = _scene(args, run)
+    png_stops, exposure_rule = _preview_exposure(run.stops, cube)
+    t0 = time.perf_counter()
+    info = {"out": str(run.out), "mode": run.mode, "size": [run.w, run.h], "fov_y_deg": args.fov,
+            "camera_eye": cam.eye.tolist(), "camera_target": cam.target.tolist(),
+            "background": args.background, "exposure_stops": png_stops, "exposure_rule": exposure_rule,
+            "material": _material_info(run.mat, args.gmap),
+            "ground_material": (_material_info(run.gmat) if args.ground else None),
+            "radiance": radiance}
+    pems = None if run.mode in _EXACT_MODES else _region_prefilters(args, cube, info)
+    t1 = time.perf_counter()
+    image, mask, extra = _render_image(args, run, meshes, cam, cube, pems, info)
+    t2 = time.perf_counter()
+    if image.shape[:2] != (run.h, run.w):
+        raise IBLError(f"renderer returned an image of shape {image.shape}, expected ({run.h}, {run.w}, C)")
+    top = float(np.max(image)) if image.size else 0.0
+    if run.out.suffix.lower() == ".exr" and top > float(np.finfo(np.float32).max):  # name the flags, not the format
+        raise IBLError(f"--out {run.out}: the image reaches {top:.3g}, beyond float32 (3.4e+38) of an .exr; use "
+                       "smaller --material / --ground-material weights or write .npz (float64)")
+    _write_outputs(run, image, mask, extra, info, png_stops,
+                   {"pem_time_s": round(t1 - t0, 3), "render_time_s": round(t2 - t1, 3)})
+    print(f"wrote {run.out} ({run.w}x{run.h}, mode {run.mode}; {info['render_time_s']} s render, "
+          f"{info['pem_time_s']} s PEMs)" + (f" and {run.png}" if run.png is not None else ""))
     return 0
 
 
