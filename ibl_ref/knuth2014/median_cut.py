@@ -171,10 +171,25 @@ class LightSet:
 # inputs
 # ----------------------------------------------------------------------------------------------
 def luminance(cube: np.ndarray, luminance_weights=None) -> np.ndarray:
-    """Luminance Y of every texel, shape (6, N, N).
+    """Luminance Y of every texel.
 
-    RGB maps use :data:`REC709` unless ``luminance_weights`` (length C) is given; one-channel maps are
-    their own luminance.
+    Parameters
+    ----------
+    cube : array_like, shape (6, N, N, C) or (6, N, N)
+    luminance_weights : sequence of C floats, optional
+        Finite, non-negative, positive sum; default :data:`REC709` for RGB, 1 for one channel (a one-channel map
+        is its own luminance).
+
+    Returns
+    -------
+    ndarray, float64, shape (6, N, N)
+
+    Raises
+    ------
+    LayoutError
+        Neither 1 nor 3 channels and no weights.
+    IBLError
+        Invalid weights.
     """
     cube = np.asarray(cube, dtype=np.float64)
     if cube.ndim == 3:
@@ -219,6 +234,26 @@ def region_angular_extent(row0, row1, col0, col1, n: int):
     Measured as the angle between the directions through the midpoints of opposite edges: e.g. the
     width is the angle between (u0, v_mid, 1) and (u1, v_mid, 1) in face coordinates (the face
     orientation does not matter for an angle).
+
+    Parameters
+    ----------
+    row0, row1, col0, col1 : int or array_like
+        Texel bounds (row1, col1 exclusive).
+    n : int
+        Face size.
+
+    Returns
+    -------
+    width, height : float64 or ndarray
+
+    Examples
+    --------
+    A whole face spans 90° both ways:
+
+    >>> import numpy as np
+    >>> from ibl_ref.knuth2014.median_cut import region_angular_extent
+    >>> [round(float(np.degrees(a)), 6) for a in region_angular_extent(0, 8, 0, 8, 8)]
+    [90.0, 90.0]
     """
     u0, u1 = _edge_coord(col0, n), _edge_coord(col1, n)
     v0, v1 = _edge_coord(row0, n), _edge_coord(row1, n)
@@ -337,7 +372,21 @@ def _split(tab: _Tables, reg, cut: str):
 
 
 def per_face_counts(n_lights: int) -> int:
-    """Regions per face m = N/6 of the ``per-face`` variant (raises for N not a multiple of 6)."""
+    """Regions per face m = N/6 of the ``per-face`` variant.
+
+    Parameters
+    ----------
+    n_lights : int
+
+    Returns
+    -------
+    int
+
+    Raises
+    ------
+    IBLError
+        ``n_lights`` is not a multiple of 6 (naming the two nearest that are).
+    """
     if n_lights % 6:
         raise IBLError(
             f"per-face median cut gives a multiple of 6 lights (the paper's rule, Sec. 4); got {n_lights}. "
@@ -412,8 +461,9 @@ def median_cut(cube, n_lights: int, variant: str = "per-face", *, luminance_weig
 
     Parameters
     ----------
-    cube : array (6, N, N, C) or (6, N, N)
-        Radiance, finite and non-negative, OpenEXR cube layout (:mod:`ibl_ref.environment.envmap`).
+    cube : Environment or array_like, shape (6, N, N, C) or (6, N, N)
+        Radiance, finite and non-negative, OpenEXR cube layout (:mod:`ibl_ref.environment.envmap`); checked once
+        unless it is a validated :class:`~ibl_ref.environment.validated.Environment`.
     n_lights : int
         Exact number of lights returned.  ≥ 6; a multiple of 6 for ``per-face``.
     variant : {"per-face", "global", "variance"}
@@ -432,6 +482,24 @@ def median_cut(cube, n_lights: int, variant: str = "per-face", *, luminance_weig
         Wrong shape; NaN/Inf/negative radiance; zero-energy map; N < 6; N not a multiple of 6
         (``per-face``); more lights than texels (``per-face``) or than lit texels + dark faces
         (``global``/``variance``).
+
+    Examples
+    --------
+    Four regions per face of a sky with a sun; the regions partition the sphere (Eq. 1), so their solid angles
+    sum to 4π and their colours to ∫L dω of the map:
+
+    >>> import numpy as np
+    >>> from ibl_ref.environment.resample import integral_cube
+    >>> from ibl_ref.knuth2014.median_cut import median_cut
+    >>> from ibl_ref.synthetic.synthetic_envs import make_environment
+    >>> sky = make_environment("sky_sun", 16)
+    >>> lights = median_cut(sky, 24)
+    >>> len(lights), lights.directions.shape, lights.rgb.shape
+    (24, (24, 3), (24, 3))
+    >>> float(lights.solid_angle.sum() / np.pi)
+    4.0
+    >>> bool(np.allclose(lights.rgb.sum(axis=0), integral_cube(sky), rtol=1e-12))
+    True
     """
     if variant not in VARIANTS:
         raise IBLError(f"unknown median-cut variant {variant!r}; choose one of {VARIANTS}")
@@ -493,7 +561,24 @@ def texel_lights(cube, *, luminance_weights=None) -> LightSet:
     Region j is texel j alone, so its light direction is the texel centre, its colour L_j·Ω_j and its solid
     angle Ω_j (the same :class:`LightSet` quantities as :func:`median_cut`, exact sums over the region).  With it,
     Eq. 5 with exact per-region visibility approaches the exact visibility-weighted lobe average as the texels
-    shrink (``ibl_ref.rendering.error_budget``).  ``variant`` is ``"texel"``.
+    shrink (``ibl_ref.rendering.error_budget``).
+
+    Parameters
+    ----------
+    cube : Environment or array_like, shape (6, N, N, C) or (6, N, N)
+        Radiance (checked once unless it is an :class:`~ibl_ref.environment.validated.Environment`).
+    luminance_weights : sequence of C floats, optional
+        As :func:`median_cut`.
+
+    Returns
+    -------
+    LightSet
+        6N² lights, ``variant == "texel"``.
+
+    Raises
+    ------
+    LayoutError, RadianceError
+        Wrong shape; NaN/Inf/negative radiance.
     """
     cube = as_environment(cube, "texel lights input").data
     n = cube.shape[1]
@@ -565,10 +650,18 @@ def _lights_from_regions(cube, w, regions, variant, luminance_weights) -> LightS
 def check_partition(lights: LightSet, cube) -> dict:
     """Residuals of the partition identities of Eq. 1.
 
-    Returns a dict with ``uncovered`` / ``overlapping`` texel counts (from the rectangles, independent
-    of the label map), ``labels_match`` (label map = rectangles), and the relative errors
-    ``rgb_sum_rel_err`` (Σ_i rgb_i vs ∫L dω of the map, per channel max) and
-    ``solid_angle_sum_err`` (Σ_i Ω_i − 4π).
+    Parameters
+    ----------
+    lights : LightSet
+    cube : array_like or Environment, shape (6, N, N[, C])
+        The map the lights were cut from.
+
+    Returns
+    -------
+    dict
+        ``uncovered`` / ``overlapping`` texel counts (from the rectangles, independent of the label map),
+        ``labels_match`` (label map = rectangles), and the relative errors ``rgb_sum_rel_err`` (Σ_i rgb_i vs
+        ∫L dω of the map, per channel max) and ``solid_angle_sum_err`` (Σ_i Ω_i − 4π).
     """
     cube = np.asarray(cube, dtype=np.float64)
     n = lights.face_size
@@ -595,8 +688,15 @@ def check_partition(lights: LightSet, cube) -> dict:
 def energy_spread(lights: LightSet) -> dict:
     """How equal the region energies are (the paper's "equally important" requirement).
 
-    Returns ``max_over_min`` (over regions with energy > 0), ``cv`` (standard deviation / mean of all
-    region energies), ``n_zero_energy`` (regions without energy, e.g. dark faces in ``per-face``).
+    Parameters
+    ----------
+    lights : LightSet
+
+    Returns
+    -------
+    dict
+        ``max_over_min`` (over regions with energy > 0), ``cv`` (standard deviation / mean of all region
+        energies), ``n_zero_energy`` (regions without energy, e.g. dark faces in ``per-face``).
     """
     e = np.asarray(lights.energy, dtype=np.float64)
     e = np.ldexp(e, -_overflow_exponent(e))  # the statistics are scale-invariant; avoid overflow in std()

@@ -35,7 +35,19 @@ __all__ = ["PEMSet", "build_pems", "iter_pem_chunks", "default_chunk", "partial_
 
 
 def default_chunk(n_regions: int, channels: int, max_channels: int = 48) -> int:
-    """Regions built per pyramid call: at most ``max_channels`` stacked channels (memory bound)."""
+    """Regions built per pyramid call: at most ``max_channels`` stacked channels (memory bound).
+
+    Parameters
+    ----------
+    n_regions, channels : int
+        L and C.
+    max_channels : int, optional
+
+    Returns
+    -------
+    int
+        Between 1 and ``n_regions``.
+    """
     return max(1, min(n_regions, max_channels // max(channels, 1)))
 
 
@@ -43,8 +55,17 @@ def partial_maps(cube, labels, a: int, b: int) -> np.ndarray:
     """The partial environment maps of regions a..b−1, stacked: (6, N, N, b−a, C) (Sec. 4: "a plain copy of the
     original environment map" with "all texels that do not belong to the current PEM" blackened).
 
-    ``cube``: (6, N, N, C) array or :class:`~ibl_ref.environment.validated.Environment`; ``labels``: (6, N, N)
-    region index per texel (:attr:`LightSet.labels`).
+    Parameters
+    ----------
+    cube : array_like or Environment, shape (6, N, N, C)
+    labels : int array, shape (6, N, N)
+        Region index per texel (:attr:`~ibl_ref.knuth2014.median_cut.LightSet.labels`).
+    a, b : int
+        The regions a..b−1.
+
+    Returns
+    -------
+    ndarray, shape (6, N, N, b−a, C)
     """
     mask = np.asarray(labels)[..., None] == np.arange(a, b)[None, None, None, :]  # (6, N, N, k)
     return np.asarray(cube)[:, :, :, None, :] * mask[..., None]
@@ -249,20 +270,61 @@ def build_pems(cube, lights: LightSet | None = None, *, n_lights: int | None = N
 
     Parameters
     ----------
-    cube : array (6, N, N, C)
-        Radiance; N a power of two (pyramid requirement).
+    cube : Environment or array_like, shape (6, N, N, C) or (6, N, N)
+        Radiance; N a power of two (pyramid requirement).  Checked once (as ``"PEM input"``) unless it is a
+        validated :class:`~ibl_ref.environment.validated.Environment`.
     lights : LightSet, optional
         Regions to use (from :func:`ibl_ref.knuth2014.median_cut.median_cut` on the same map).
-    n_lights, variant : passed to :func:`median_cut` when ``lights`` is None.
-    kernel, order, seam : filter-pyramid configuration (:func:`ibl_ref.knuth2014.pyramid.build_pyramid`).
-    dtype : storage dtype (default float32).
+    n_lights, variant : int, str
+        Passed to :func:`~ibl_ref.knuth2014.median_cut.median_cut` when ``lights`` is None.
+    kernel, order, seam : str
+        Filter-pyramid configuration (:func:`ibl_ref.knuth2014.pyramid.build_pyramid`).
+    dtype : numpy dtype
+        Storage dtype (default float32).
     calibration : :class:`ibl_ref.knuth2014.gloss_lookup.Calibration`, optional
     pyramid_builder : callable(cube, kernel=, order=, seam=) → object with ``.levels``, optional
-        Default :func:`ibl_ref.knuth2014.pyramid.build_pyramid` (must be linear for the PEM identity to hold).
+        Default :func:`ibl_ref.knuth2014.pyramid.build_pyramid` (must be linear for the PEM identity to hold); it
+        receives each chunk of masked copies as an :class:`~ibl_ref.environment.validated.Environment`.
     lookup_fn : callable(pyramid, dirs, g, calibration=) → (..., C), optional
         Default :func:`ibl_ref.knuth2014.gloss_lookup.lookup`.
-    chunk : regions per pyramid call (default: ≤ 48 stacked channels).
-    progress : report progress over the pyramid calls (:mod:`ibl_ref.progress`: a bar on a terminal, status lines in a log).
+    chunk : int, optional
+        Regions per pyramid call (default: ≤ 48 stacked channels).
+    progress : bool
+        Report progress over the pyramid calls (:mod:`ibl_ref.progress`: a bar on a terminal, status lines in a
+        log).
+
+    Returns
+    -------
+    PEMSet
+
+    Raises
+    ------
+    LayoutError, RadianceError
+        A wrong shape (or a face size that is no power of two); NaN/Inf/negative radiance; lights of another
+        face size.
+    IBLError
+        Neither ``lights`` nor ``n_lights``; a non-float dtype; values beyond the storage dtype's range.
+
+    Examples
+    --------
+    Six PEMs of a sky (one region per face).  The pyramid and the lookup are linear, so the PEMs' lookups sum to
+    the lookup of the whole map's pyramid (Sec. 3.1), here to the float32 rounding of the stored levels:
+
+    >>> import numpy as np
+    >>> from ibl_ref.knuth2014.gloss_lookup import lookup
+    >>> from ibl_ref.knuth2014.pem import build_pems
+    >>> from ibl_ref.knuth2014.pyramid import build_pyramid
+    >>> from ibl_ref.synthetic.synthetic_envs import make_environment
+    >>> sky = make_environment("sky_sun", 16)
+    >>> pems = build_pems(sky, n_lights=6)
+    >>> pems.n_regions, pems.n_levels, pems.levels[0].shape, pems.levels[0].dtype
+    (6, 5, (6, 16, 16, 6, 3), dtype('float32'))
+    >>> dirs = [[0.0, 1.0, 0.0], [0.3, 0.2, 0.9]]
+    >>> per_region = pems.lookup_all(dirs, 0.8)  # (L, directions, C)
+    >>> per_region.shape
+    (6, 2, 3)
+    >>> bool(np.allclose(per_region.sum(axis=0), lookup(build_pyramid(sky), dirs, 0.8), rtol=1e-6))
+    True
     """
     n, env, lights = prepare_pem_input(cube, lights, n_lights, variant, "build_pems")
     dt = np.dtype(dtype)

@@ -142,7 +142,22 @@ class FaceCentreSampler:
 
 
 def shrink_2x2(cube: np.ndarray) -> np.ndarray:
-    """Classical 2×2 mean (MIP decimation) of every face; N must be even."""
+    """Classical 2×2 mean (MIP decimation) of every face.
+
+    Parameters
+    ----------
+    cube : array_like, shape (6, N, N[, ...])
+        N even.
+
+    Returns
+    -------
+    ndarray, shape (6, N/2, N/2[, ...])
+
+    Raises
+    ------
+    LayoutError
+        A wrong shape or an odd N.
+    """
     n = check_cube_shape(cube)
     if n % 2:
         raise LayoutError(f"2x2 shrink needs an even face size, got {n}")
@@ -160,6 +175,20 @@ def shrink_2x2_solid_angle(cube: np.ndarray) -> np.ndarray:
 
     Not in the paper (which uses "the classical 2×2 pixel mean"); offered to quantify the energy drift
     of the plain mean (:func:`pyramid_energy`).
+
+    Parameters
+    ----------
+    cube : array_like, shape (6, N, N[, ...])
+        N even.
+
+    Returns
+    -------
+    ndarray, shape (6, N/2, N/2[, ...])
+
+    Raises
+    ------
+    LayoutError
+        A wrong shape or an odd N.
     """
     n = check_cube_shape(cube)
     if n % 2:
@@ -195,8 +224,9 @@ def build_pyramid(cube, kernel="sqrtcos", order: str = "shrink_then_filter", sea
 
     Parameters
     ----------
-    cube : array (6, N, N) or (6, N, N, C)
-        Radiance, finite and non-negative; N a power of two.
+    cube : Environment or array_like, shape (6, N, N) or (6, N, N, C)
+        Radiance, finite and non-negative; N a power of two.  Checked once unless it is a validated
+        :class:`~ibl_ref.environment.validated.Environment`.
     kernel : str or 5 taps
         ``none, box, gauss, cos, sqrtcos`` or ``cos^k`` (:mod:`ibl_ref.knuth2014.filters`).
     order : {"shrink_then_filter", "filter_then_shrink"}
@@ -212,6 +242,30 @@ def build_pyramid(cube, kernel="sqrtcos", order: str = "shrink_then_filter", sea
     -------
     Pyramid
         ``levels[0]`` is a copy of the input (always 4-D: a trailing channel axis is added to 3-D input).
+
+    Raises
+    ------
+    LayoutError
+        A wrong shape or a face size that is no power of two.
+    RadianceError
+        NaN/Inf/negative radiance.
+    IBLError
+        An unknown kernel, order, seam mode or shrink.
+
+    Examples
+    --------
+    The filters are normalised, so a constant map stays constant on every level and every glossiness looks it
+    up exactly; the face size halves down to 1:
+
+    >>> from ibl_ref.knuth2014.gloss_lookup import lookup
+    >>> from ibl_ref.knuth2014.pyramid import build_pyramid
+    >>> from ibl_ref.synthetic.synthetic_envs import make_environment
+    >>> pyr = build_pyramid(make_environment("constant", 16, value=2.0))
+    >>> [level.shape[1] for level in pyr.levels]
+    [16, 8, 4, 2, 1]
+    >>> lookup(pyr, [[0.0, 1.0, 0.0], [1.0, 1.0, 1.0]], 0.9)
+    array([[2., 2., 2.],
+           [2., 2., 2.]])
     """
     taps = kernel_taps(kernel)
     if order not in ORDERS:
@@ -237,18 +291,33 @@ def build_pyramid(cube, kernel="sqrtcos", order: str = "shrink_then_filter", sea
 
 
 def build_mip_chain(cube, dtype=None) -> Pyramid:
-    """Plain 2×2-mean MIP chain (the baseline; same as ``build_pyramid(cube, kernel="none")``)."""
+    """Plain 2×2-mean MIP chain (the baseline; same as ``build_pyramid(cube, kernel="none")``).
+
+    Parameters
+    ----------
+    cube : Environment or array_like, shape (6, N, N[, C])
+    dtype : numpy dtype, optional
+
+    Returns
+    -------
+    Pyramid
+    """
     return build_pyramid(cube, kernel="none", dtype=dtype)
 
 
 def pyramid_energy(pyr: Pyramid) -> list[dict]:
     """∫L dω = Σ L·Ω (exact solid angles) of every level, and its drift relative to level 0.
 
+    Parameters
+    ----------
+    pyr : Pyramid
+
     Returns
     -------
-    list of dict, one per level: ``level``, ``face_size``, ``energy`` (tuple per channel, radiance×sr),
-    ``rel_drift`` (per channel, (E_level − E_0)/E_0; NaN-free: 0 where E_0 = 0 and E_level = 0),
-    ``rel_drift_step`` (relative to the previous level).
+    list of dict
+        One per level: ``level``, ``face_size``, ``energy`` (tuple per channel, radiance×sr), ``rel_drift`` (per
+        channel, (E_level − E_0)/E_0; NaN-free: 0 where E_0 = 0 and E_level = 0), ``rel_drift_step`` (relative to
+        the previous level).
     """
     rows = []
     e0 = prev = None
