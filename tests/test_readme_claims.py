@@ -1,12 +1,14 @@
-"""The numbers of the README's "Claims and measured numbers" table (and the other experiment numbers of the README)
-that no other test pins.  Each is recomputed by an independent route where one exists (brute force, a closed form,
-a second implementation, quadrature) and compared with the README's number; where the number can only come from
-the lab's own code (a fit's RMS, a count on a G-buffer) the test says so and pins it as a regression check.
+"""The numbers of the "Claims and measured numbers" table (``docs/results/claims.md``, from
+``tests/data/readme_runs/claims/claims.csv``; the README of commit 537f533 held it) and the other experiment
+numbers of the documentation that no other test pins.  Each is recomputed by an independent route where one exists
+(brute force, a closed form, a second implementation, quadrature) and compared with the number as printed; where
+the number can only come from the lab's own code (a fit's RMS, a count on a G-buffer) the test says so and pins it
+as a regression check.
 
-Where each README number is pinned (benchmark timings are measured in ``benchmarks/``, never in tests):
+Where each number is pinned (benchmark timings are measured in ``benchmarks/``, never in tests):
 
 ========================================================  =====================================================
-README number                                              test
+number (as printed)                                        test
 ========================================================  =====================================================
 box filter s = 1: 15.3 % / 19.4 % at 64², never ≈ 4 %      :func:`test_box_filter_s1_error_under_every_reading` (also
                                                            ``check_fig4``/``check_fig5`` of test_experiments_quick)
@@ -41,8 +43,8 @@ solid angles sum to 4π within 1.1e-14 (1 … 2048)          :func:`test_solid_a
 DWAB negatives 42 … 2382, f = 1.5e-10 … 3.7e-9             :func:`test_dwab_negatives_of_the_probe_like_files`
 ========================================================  =====================================================
 
-``check_*`` are in tests/test_experiments_quick.py.  Tolerances: where a number is reproduced at the README's own
-size, the README's rounding (half a unit of its last digit); where only a smaller size is affordable, the measured
+``check_*`` are in tests/test_experiments_quick.py.  Tolerances: where a number is reproduced at the printed number's own
+size, the printed rounding (half a unit of its last digit); where only a smaller size is affordable, the measured
 difference between the two sizes is stated.
 """
 
@@ -133,9 +135,9 @@ class WhiteTexelLobe:
 
 
 def test_box_filter_s1_error_under_every_reading():
-    # README: "box ... its error is 15.3 % (∫f dω volume) / 19.4 % (⅓∫f³ dω volume) at 64², not 4 %; no reading
+    # Quoted: "box ... its error is 15.3 % (∫f dω volume) / 19.4 % (⅓∫f³ dω volume) at 64², not 4 %; no reading
     # tried gives 4 %".  Both pyramid orders × both volume definitions (white texel at a face centre, target on the
-    # texel's direction); ±0.05 %-points is the README's rounding.  "Roughly 4 %" would be within a factor 2
+    # texel's direction); ±0.05 %-points is the printed rounding.  "Roughly 4 %" would be within a factor 2
     # (2–8 %): every reading is above 8 % (measured 15.3 / 19.4 / 22.2 / 23.0 %)
     errs = {}
     for order in ("shrink_then_filter", "filter_then_shrink"):
@@ -148,10 +150,10 @@ def test_box_filter_s1_error_under_every_reading():
 
 
 def test_cosine_filter_exceeds_10_percent_before_level_1():
-    # README: "cosine filter always below 10 %": not reproduced (26 % before the lookup reaches level 1), from
+    # Quoted: "cosine filter always below 10 %": not reproduced (26 % before the lookup reaches level 1), from
     # `ibl-ref experiment claims` at its full size: 128² faces, 40 exponents from 1 to the texel limit
     # (lobe_analysis.s_grid), the "mid range" 2 ≤ s with a fitted level ≥ 1, volume ∫f dω, shrink-then-filter.
-    # Recomputed here by brute force on the same exponents; ±0.5 %-points is the README's rounding.  The maximum
+    # Recomputed here by brute force on the same exponents; ±0.5 %-points is the printed rounding.  The maximum
     # sits on the spike where the level approaches 1, so it depends on the sampled exponents (25.3 % on the quick
     # run's 24 exponents at 64²)
     from ibl_ref.knuth2014.lobe_analysis import s_grid
@@ -169,9 +171,9 @@ def test_cosine_filter_exceeds_10_percent_before_level_1():
 
 # ---- Knuth Fig. 8 and Sec. 3.1: sparse PEM storage ----------------------------------------------------------------
 def test_sparse_pem_storage_at_128():
-    # README: "lossless 10.8× (12 regions) … 64.5× (96) at 128²" (sky+sun; 12 and 96 are the ends of the sweep).
+    # Quoted: "lossless 10.8× (12 regions) … 64.5× (96) at 128²" (sky+sun; 12 and 96 are the ends of the sweep).
     # Dense bytes in closed form (float32 RGB, full MIP chain: L · 3 · 4 B · 6 · Σ n_l²); sparse bytes recounted from
-    # the stored tiles (data + 20 B of metadata each); ratios to the README's rounding (±0.05)
+    # the stored tiles (data + 20 B of metadata each); ratios to the printed rounding (±0.05)
     from ibl_ref.knuth2014.sparse_pem import build_sparse_pems
     from ibl_ref.synthetic.synthetic_envs import make_env
 
@@ -187,11 +189,11 @@ def test_sparse_pem_storage_at_128():
 
 # ---- Sec. 1: point lights alone fail for glossy surfaces ----------------------------------------------------------
 def test_point_lights_fail_for_glossy_lobes():
-    # README: "24 median-cut point lights: rel. L1 0.017 at s = 1, 0.80 at s = 1000 (sky+sun)", from
+    # Quoted: "24 median-cut point lights: rel. L1 0.017 at s = 1, 0.80 at s = 1000 (sky+sun)", from
     # `ibl-ref experiment lights-vs-error` at 64² faces and a 128² px sphere (measured again this session: 0.0173,
     # 0.802; 4 min).  Here at its quick size (32², 48² px), with the exact lobe average as a dense sum written out
     # here (not the experiment's brute force) on the 2× supersampled map: 0.0169 and 0.821.  Tolerances: the
-    # README's rounding plus the measured size effect, ±0.001 at s = 1 (0.0004) and ±0.03 at s = 1000 (0.019)
+    # printed rounding plus the measured size effect, ±0.001 at s = 1 (0.0004) and ±0.03 at s = 1000 (0.019)
     from ibl_ref.knuth2014.median_cut import median_cut
     from ibl_ref.rendering.sphere_render import orthographic_sphere
     from ibl_ref.synthetic.synthetic_envs import make_env
@@ -213,12 +215,12 @@ def test_point_lights_fail_for_glossy_lobes():
 # ---- the exact-lobe chain: memory (render-error, lobe-chain) ------------------------------------------------------
 @pytest.mark.parametrize("factor,ratio", [(2.0, 4.3), (np.sqrt(2.0), 7.7)])
 def test_exact_lobe_chain_memory(factor, ratio):
-    # README: "chain: 153 MiB vs 36 MiB for 96 PEMs at 64²" (render-error, factor 2) and "4.3× (7.7×) the memory"
-    # (lobe-chain, factor 2 (√2); the README said 7.8× from MiB rounded to two decimals, 2.90 / 0.37).  Level sizes
+    # Quoted: "chain: 153 MiB vs 36 MiB for 96 PEMs at 64²" (render-error, factor 2) and "4.3× (7.7×) the memory"
+    # (lobe-chain, factor 2 (√2); the README once said 7.8× from MiB rounded to two decimals, 2.90 / 0.37).  Level sizes
     # by the chain's rule, written out here: level exponents s = 1·f^k up to the last whose half-width
     # arccos(2^(−1/s)) still spans a 64² texel (2/64 rad), each level the smallest power of two ≥ 8 texels with
     # 2 texels (2/n rad) per half-width, at most 64; plus level 0 (the input).  The pyramid: 64², 32², …, 1².
-    # float32 RGB.  Ratios and MiB to the README's rounding
+    # float32 RGB.  Ratios and MiB to the printed rounding
     from ibl_ref.knuth2014.lobe_chain import chain_spec
 
     s = [1.0]
@@ -240,11 +242,11 @@ def test_exact_lobe_chain_memory(factor, ratio):
 
 
 def test_pyramid_floor_at_s1():
-    # README (lobe-chain, 64², 4000 random directions): "the best constant level (any glossiness calibration) does not
+    # Quoted (lobe-chain, 64², 4000 random directions): "the best constant level (any glossiness calibration) does not
     # fix it: 28.9 % / 20.0 % at s = 1" (sky+sun / studio), and the paper's sqrt-cos pyramid lies in 20–52 % / 8–22 %.
     # The exact s = 1 lobe average by a dense sum written out here (dense_lobe_average); the
     # best level on the experiment's grid (step 0.05) of (1 − t)·B_k + t·B_{k+1}; the same directions
-    # (default_rng(20141)).  ±0.05 %-points: the README's rounding
+    # (default_rng(20141)).  ±0.05 %-points: the printed rounding
     from ibl_ref.knuth2014.gloss_lookup import lookup
     from ibl_ref.knuth2014.pyramid import build_pyramid
     from ibl_ref.synthetic.synthetic_envs import make_env
@@ -267,11 +269,11 @@ def test_pyramid_floor_at_s1():
 
 # ---- the ground-truth convolution: speed-accuracy and Kán Table 1 --------------------------------------------------
 def test_auto_convolution_error_at_32():
-    # README: "auto convolution at rtol 1e-3 (1e5 sun near a corner): max rel. error ... 8.9e-7 at 32²; 0 texels
+    # Quoted: "auto convolution at rtol 1e-3 (1e5 sun near a corner): max rel. error ... 8.9e-7 at 32²; 0 texels
     # anywhere above a method's reported bound" (speed-accuracy, 7 exponents; at 32² its reference is every texel)
-    # and Kán's 8 exponents (kan-table1; its README numbers are pinned by test_readme_saved_runs).  At 32², against the dense
+    # and Kán's 8 exponents (kan-table1; its numbers are pinned by test_readme_saved_runs).  At 32², against the dense
     # exact sum (phong_convolution.convolve_exact_many, float64): the largest relative error of the speed-accuracy sweep
-    # to the README's rounding (±0.05e-6), every texel within its reported bound (plus 1e-12 of float64 rounding in
+    # to the printed rounding (±0.05e-6), every texel within its reported bound (plus 1e-12 of float64 rounding in
     # the 6N²-term reference sums, as the experiment allows); every bound of both sweeps within the requested rtol
     from ibl_ref.experiments.kan_table1 import EXPONENTS as KAN_EXPONENTS
     from ibl_ref.experiments.speed_accuracy import EXPONENTS, environment
@@ -293,9 +295,9 @@ def test_auto_convolution_error_at_32():
 
 # ---- Kautz & McCool 2000: greedy lobes vs one lobe -----------------------------------------------------------------
 def test_greedy_lobes_have_lower_brdf_rms():
-    # README (km00-render): "the greedy minimum-profile lobes ... although their BRDF RMS is lower, 0.32 vs 0.43":
+    # Quoted (km00-render): "the greedy minimum-profile lobes ... although their BRDF RMS is lower, 0.32 vs 0.43":
     # Ward kd 0, ks 0.8, α 0.04 at the full run's 16 view elevations 0 … 80°, default profile sampling; the relative
-    # RMS of the fit over the hemisphere (kautz_mccool2000.rms_error), to the README's rounding (±0.005).  And what
+    # RMS of the fit over the hemisphere (kautz_mccool2000.rms_error), to the printed rounding (±0.005).  And what
     # the greedy construction guarantees: each lobe is fitted to what the previous ones left, so 3 lobes are never
     # worse than the first alone
     from ibl_ref.lobes import brdfs, kautz_mccool2000 as km
@@ -311,7 +313,7 @@ def test_greedy_lobes_have_lower_brdf_rms():
 
 # ---- Meunier et al. 2009 -----------------------------------------------------------------------------------------
 def test_equivalent_lobes_of_median_cut_regions():
-    # README: "sky+sun 128², per-face cut: 24 regions 2.9 … 323 (median 10.8), 96 regions 9.2 … 70 492 (median 61;
+    # Quoted: "sky+sun 128², per-face cut: 24 regions 2.9 … 323 (median 10.8), 96 regions 9.2 … 70 492 (median 61;
     # the smallest region holds the sun); studio, 96 regions: 3.4 … 1 140 (median 106)", at the README's size,
     # to its rounding.  The exponents of the two extreme regions of each cut are recomputed from Meunier Eq. 32
     # by brute force: the cap of the region's solid angle, then the e minimising ∫(cap − max(cos β, 0)^e)² dω by
@@ -353,7 +355,7 @@ def test_equivalent_lobes_of_median_cut_regions():
 
 
 def test_meunier_published_statistics_are_inconsistent():
-    # README: "the paper's own statistics are inconsistent: median 0 with variance 1.2e-8 < mean²".  For a
+    # Quoted: "the paper's own statistics are inconsistent: median 0 with variance 1.2e-8 < mean²".  For a
     # non-negative error X with median 0, P(X > 0) ≤ ½, so by Cauchy–Schwarz E[X]² = E[X·1{X>0}]² ≤ E[X²]·½, i.e.
     # Var X = E[X²] − E[X]² ≥ E[X]²: the published variance would have to be at least the squared mean
     from ibl_ref.experiments.cosine_lobes import PAPER_MEAN_ABS_ERR, PAPER_VAR_ABS_ERR
@@ -364,7 +366,7 @@ def test_meunier_published_statistics_are_inconsistent():
 
 # ---- the reference renderer's default view ------------------------------------------------------------------------
 def test_back_facing_pixels_of_the_default_view():
-    # README (reference at 128²): the view of `ibl-ref render --mode reference --size 128` has pixels whose shading
+    # Quoted (reference at 128²): the view of `ibl-ref render --mode reference --size 128` has pixels whose shading
     # normal faces away from the viewer (n·v ≤ 0), black under the one-sided convention: 3 with the teapot's lid
     # ledge (the run quoted there, on the teapot before the ledge, had 24).  The CLI's own camera from its parser
     # defaults; counted on the G-buffer
@@ -383,7 +385,7 @@ def test_back_facing_pixels_of_the_default_view():
 
 # ---- conventions and real probes ---------------------------------------------------------------------------------
 def test_solid_angles_sum_to_4pi_within_the_readme_bound():
-    # README (Conventions): exact texel solid angles "sum to 4π within 1.1e-14 at every face size tested from 1 to
+    # Quoted (Conventions): exact texel solid angles "sum to 4π within 1.1e-14 at every face size tested from 1 to
     # 2048" (tests/test_envmap.py checks each size against 1e-12; this pins the README's number, measured 1.07e-14)
     from ibl_ref.environment.envmap import cube_solid_angles as omega
 
@@ -392,10 +394,10 @@ def test_solid_angles_sum_to_4pi_within_the_readme_bound():
 
 
 def test_dwab_negatives_of_the_probe_like_files(tmp_path):
-    # README (Real light probes) / docs/background.md §6: DWAB's ringing leaves "42 … 2382 negatives at H = 32 … 512
+    # Quoted (Real light probes) / docs/background.md §6: DWAB's ringing leaves "42 … 2382 negatives at H = 32 … 512
     # (minimum ≈ −5e-6, f = 1.5e-10 … 3.7e-9)" on probe_files.sky_sun_latlong written with the OpenEXR binding
     # (3.5 here: a different DWAB codec may ring differently), suns 1e4 … 6e4.  Counts exact; f, the removed share of
-    # ∫|L| dω, to the README's rounding; every minimum of the order the README's "≈ −5e-6" states, in [−1e-5, −1e-6]
+    # ∫|L| dω, to the printed rounding; every minimum of the order the README's "≈ −5e-6" states, in [−1e-5, −1e-6]
     # (measured −1.7e-6 at H = 32 … −7.7e-6 at H = 128)
     from ibl_ref.environment import exr_io
     from ibl_ref.environment.probe_files import sky_sun_latlong, write_probe_exr

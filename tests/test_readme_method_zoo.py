@@ -1,13 +1,14 @@
-"""The README's method-zoo numbers, pinned to the full run they come from.
+"""The method-zoo numbers, pinned to the full run they come from.
 
 The full run (both scenes, five environments, every method; 16.8 min on 2 workers) is too long for a test, so its
-two data files are kept in ``tests/data/readme_runs/method-zoo/`` (command, commit and date in the README there).
-Three checks:
+two data files are kept in ``tests/data/readme_runs/method-zoo/`` (command, commit and date in its ``run.json``); the
+page ``docs/results/method-zoo.md`` is generated from them.  Three checks:
 
-* every cell of the README's two tables (mean rel. L1 and mean p99 over the environments, memory) is what the
-  saved ``method_zoo.csv`` gives, to the README's rounding;
-* the README's Karis statements (the n = v = r step larger than the split-sum separation in all 30 GGX cases,
-  the ratio ranges) are what the saved ``method_zoo_karis.csv`` gives, to the README's rounding;
+* every cell of the two tables as the README of commit 537f533 printed them (mean rel. L1 and mean p99 over the
+  environments, memory; transcribed in ``expected_tables.csv``) is what the saved ``method_zoo.csv`` gives, to
+  their rounding;
+* the Karis statements (the n = v = r step larger than the split-sum separation in all 30 GGX cases, the ratio
+  ranges) are what the saved ``method_zoo_karis.csv`` gives, to their rounding;
 * one case of that run, re-run here at the full run's settings (sphere, city probe, the diffuse and GGX 0.3
   materials, the exact split sum and SH9), reproduces its saved rows: the experiment is deterministic, so the
   tolerance is float64 rounding (1e-9 relative, which also absorbs a different BLAS thread count).
@@ -15,7 +16,6 @@ Three checks:
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import numpy as np
@@ -28,32 +28,12 @@ SAVED = ROOT / "tests" / "data" / "readme_runs" / "method-zoo"
 MIB = 1024.0 * 1024.0
 
 
-def _readme_zoo_section() -> str:
-    text = (ROOT / "README.md").read_text()
-    start = text.index("## The method zoo")
-    return text[start:text.index("\n## ", start + 5)]
-
-
-def _readme_tables():
-    """{scene: {(method, material): (rel_l1 %, p99 %)}, ...} and {scene: {method: memory MiB}} from the README."""
-    sec = _readme_zoo_section()
-    heads = {"sphere": sec.index("**Sphere**"), "teapot": sec.index("**Teapot on the ground**")}
+def _expected_tables():
+    """{scene: {(method, material): (rel_l1 %, p99 %)}, ...} and {scene: {method: memory MiB}} as printed."""
     cells, memory = {}, {}
-    for scene, at in heads.items():
-        block = sec[sec.index("| method |", at):]
-        lines = block.split("\n\n")[0].splitlines()
-        cols = [c.strip() for c in lines[0].strip("|").split("|")]
-        cells[scene], memory[scene] = {}, {}
-        for line in lines[2:]:
-            row = [c.strip() for c in line.strip("|").split("|")]
-            method = row[0]
-            for mat, cell in zip(cols[1:8], row[1:8]):
-                m = re.fullmatch(r"([\d.]+) % \(([\d.]+) %\)", cell)
-                if m:
-                    cells[scene][(method, mat)] = (float(m.group(1)), float(m.group(2)))
-                else:
-                    assert cell == "n/a", (scene, method, mat, cell)
-            memory[scene][method] = float(row[cols.index("memory (MiB)")])
+    for q in read_csv(SAVED / "expected_tables.csv"):
+        cells.setdefault(q["scene"], {})[(q["method"], q["material"])] = (float(q["rel_l1_pct"]), float(q["p99_pct"]))
+        memory.setdefault(q["scene"], {})[q["method"]] = float(q["memory_MiB"])
     return cells, memory
 
 
@@ -67,9 +47,9 @@ def _saved_means():
 
 
 def test_readme_tables_are_the_saved_run():
-    cells, memory = _readme_tables()
+    cells, memory = _expected_tables()
     means = _saved_means()
-    # the README lists every applicable (scene, method, material) of the run and nothing else
+    # the tables list every applicable (scene, method, material) of the run and nothing else
     assert {(s, meth, mat) for s in cells for (meth, mat) in cells[s]} == set(means)
     assert sum(len(v) for v in cells.values()) == 2 * 45  # 7 split-sum variants × 3 GGX, 3 + 4 + 4 × 4 + 1 others
     for scene, tab in cells.items():
@@ -85,21 +65,17 @@ def test_readme_tables_are_the_saved_run():
 
 
 def test_readme_karis_statements_are_the_saved_run():
-    sec = _readme_zoo_section()
     rows = read_csv(SAVED / "method_zoo_karis.csv")
+    # "Karis's "n = v = r is the larger error" holds in all 30 GGX cases"
     assert len(rows) == 30 and all(q["n_v_r_larger"] == "True" for q in rows)
-    assert "holds** in all 30 GGX cases" in sec
     teapot = [float(q["n_v_r_over_split_sum"]) for q in rows if q["scene"] == "teapot"]
     sphere = [float(q["n_v_r_over_split_sum"]) for q in rows if q["scene"] == "sphere"]
-    # README: "on the teapot the ratio is 1.2–7.2"; sphere: largest 26.8, smallest 1.08 (README's rounding)
-    assert "the ratio is 1.2–7.2" in sec
+    # "on the teapot the ratio is 1.2–7.2"; sphere: largest 26.8, smallest 1.08 (to their rounding)
     assert abs(min(teapot) - 1.2) <= 0.05 and abs(max(teapot) - 7.2) <= 0.05
-    assert "(26.8 at roughness 0.1)" in sec and "(1.08)" in sec
     assert abs(max(sphere) - 26.8) <= 0.05 and abs(min(sphere) - 1.08) <= 0.005
-    # README: teapot n = v = r step 0.3–6.8 % at roughness 0.1, 4.2–33.0 % at 0.3, 19.9–48.3 % at 0.6
+    # teapot n = v = r step "0.3–6.8 % at roughness 0.1, 4.2–33.0 % at 0.3, 19.9–48.3 % at 0.6"
     for mat, lo, hi in (("ggx0.1", 0.3, 6.8), ("ggx0.3", 4.2, 33.0), ("ggx0.6", 19.9, 48.3)):
         v = [100 * float(q["n_v_r_rel_l1_frac"]) for q in rows if q["scene"] == "teapot" and q["material"] == mat]
-        assert f"{lo}–{hi} % at" in sec.replace("\n  ", " ").replace("\n", " ")
         assert abs(min(v) - lo) <= 0.05 and abs(max(v) - hi) <= 0.05, (mat, min(v), max(v))
 
 
