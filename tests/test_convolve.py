@@ -23,8 +23,8 @@ def no_tiny_shortcut(monkeypatch):
     import ibl_ref.groundtruth.convolve as cv
 
     monkeypatch.setattr(cv, "AUTO_EXACT_PAIRS", 0)
-    monkeypatch.setattr(cv, "EXACT_UNITS_PER_PAIR", 1e6)  # exact only as the bound-driven fallback
-    monkeypatch.setattr(cv, "EXACT_UNITS_PER_PAIR_S1", 1e6)
+    orig = cv._unit  # exact only as the bound-driven fallback (1e6 units per pair)
+    monkeypatch.setattr(cv, "_unit", lambda name, impl: 1e6 if name.startswith("EXACT_UNITS") else orig(name, impl))
 
 
 def test_auto_tiny_map_uses_exact():

@@ -24,6 +24,14 @@ def _sun_env(n):
     return make_env("sky_sun", n, sun_direction=SUN_NEAR_CORNER, sun_radiance=1e5)
 
 
+def _scaled_costs(monkeypatch, **factors):
+    """Scale the planner's cost constants ``name=factor`` of every kernel (the registry entries are read-only)."""
+    import ibl_ref.groundtruth.convolve as cv
+
+    orig = cv._unit
+    monkeypatch.setattr(cv, "_unit", lambda name, impl: orig(name, impl) * factors.get(name, 1.0))
+
+
 @pytest.fixture
 def routed_like_large(monkeypatch):
     """Route a small map like a 128² one: moment for s = 1, 2, SH / sparse for the rest."""
@@ -31,13 +39,11 @@ def routed_like_large(monkeypatch):
 
     monkeypatch.setattr(cv, "AUTO_EXACT_PAIRS", 0)
     monkeypatch.setattr(cv, "MOMENT_MIN_PAIRS", 0)
-    monkeypatch.setattr(cv, "EXACT_UNITS_PER_PAIR", 1e6)  # exact only as the bound-driven fallback
-    monkeypatch.setattr(cv, "EXACT_UNITS_PER_PAIR_S1", 1e6)
     monkeypatch.setattr(cv, "PARALLEL_MIN_SECONDS", 0.0)  # tiny jobs still go to the pool
-    # at 16² the sparse gather is cheap even for s = 10; cost it 4× higher so that s = 10 goes to SH
-    # as it does at 128² (three routes in one call)
-    monkeypatch.setattr(cv, "SPARSE_UNITS_PER_PAIR", 4 * cv.SPARSE_UNITS_PER_PAIR)
-    monkeypatch.setattr(cv, "SPARSE_UNITS_PER_OUTPUT", 4 * cv.SPARSE_UNITS_PER_OUTPUT)
+    # exact only as the bound-driven fallback (1e6 units per pair); at 16² the sparse gather is cheap even for
+    # s = 10: cost it 4× higher so that s = 10 goes to SH as it does at 128² (three routes in one call)
+    _scaled_costs(monkeypatch, EXACT_UNITS_PER_PAIR=1e6 / 17.0, EXACT_UNITS_PER_PAIR_S1=1e6 / 6.0,
+                  SPARSE_UNITS_PER_PAIR=4.0, SPARSE_UNITS_PER_OUTPUT=4.0)
 
 
 def test_results_bit_identical_for_any_worker_count(routed_like_large):

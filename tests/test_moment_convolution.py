@@ -194,5 +194,5 @@ def test_bracket_chunks_count_leaf_blocks_not_texels():
     per_tile = mc.LAST_INFO["band_pairs"] / (n // tile) ** 2
     est = mc.moment_band_pairs_per_tile(n, n, tile, leaf, leaf)
     assert per_tile <= est <= 8 * per_tile, (per_tile, est)
-    assert mc.moment_tiles_per_chunk(n, n, tile, leaf, mc.MOMENT_CHUNK_PAIRS_COMPILED, leaf) * est \
-        <= mc.MOMENT_CHUNK_PAIRS_COMPILED
+    for pairs in (mc.MOMENT_CHUNK_PAIRS, 1 << 19):  # the NumPy band's chunks and the compiled band's
+        assert mc.moment_tiles_per_chunk(n, n, tile, leaf, pairs, leaf) * est <= pairs

@@ -301,12 +301,13 @@ def test_float32_kernel_sums_within_rounding_bound_dense_sample(n, s):
     # with float64 weights cos^s (exp(s·log cos)) over the same candidates.  Bound: η·S + (weights below
     # 2^-126, off by < 2^-125 each) m·2^-125·max(LΩ).
     from ibl_ref.groundtruth import phong_convolution as pc
+    from ibl_ref.groundtruth.kernels import numpy_backend as nk
 
     rng = np.random.default_rng(5)
     cube = np.exp(rng.normal(0.0, 1.0, (6, n, n, 3)))
     src, omega, rad = pc._sources(cube, 1)
     rad_w = np.concatenate([rad, np.ones((rad.shape[0], 1))], axis=1) * omega[:, None]
-    slabs = pc._Slabs(src, rad_w, np.zeros(rad.shape[0], dtype=bool), n)
+    slabs = nk._Slabs(src, rad_w, np.zeros(rad.shape[0], dtype=bool), n)
     T = 8
     IDX, TD, CEN, ANG, VALID, _ = pc._tile_layout(n, (0, 1, 2, 3, 4, 5), T)
     tiles = rng.choice(len(CEN), size=min(300, len(CEN)), replace=False)
@@ -314,24 +315,24 @@ def test_float32_kernel_sums_within_rounding_bound_dense_sample(n, s):
     q = np.full(tiles.size, pc.cutoff_angle(s, 1e-5, pc._texel_extent(n))) + a_max
     r_b = q + 2.0 * slabs.alpha
     r_all = a_max + r_b
-    K = pc._series_terms(s, 1.0 - np.cos(r_all) + pc._gamma(8, pc._U32) * r_all**2)
+    K = nk._series_terms(s, 1.0 - np.cos(r_all) + nk._gamma(8, nk._U32) * r_all**2)
     assert np.all(K > 0)
     flat, cnt = slabs.cap_slabs(CEN[tiles], q)
     worst = 0.0
     for kt in np.unique(K):
         sel = np.flatnonzero(K == kt)
-        per = pc._KC // pc._SLAB**2
+        per = nk._KC // nk._SLAB**2
         width = int(-(-cnt[sel].max() // per) * per)
-        si = pc._padded(flat, cnt, sel, width, slabs.pad)
+        si = nk._padded(flat, cnt, sel, width, slabs.pad)
         coef = (-s / np.arange(1, kt + 1)).astype(np.float32)
-        got = pc._gather_batch32(CEN[tiles[sel]], TD[tiles[sel]], si, slabs, coef)
+        got = nk._gather_batch32(CEN[tiles[sel]], TD[tiles[sel]], si, slabs, coef)
         d = slabs.dirs[si].reshape(sel.size, -1, 3)
         rw = slabs.rw[si].reshape(sel.size, -1, 4).astype(np.float64)  # the float32-rounded L·Ω, Ω
         c = np.clip(np.einsum("gbk,gmk->gbm", TD[tiles[sel]], d), 0.0, None)
         with np.errstate(divide="ignore"):
             w = np.exp(s * np.log(c))
         ref = np.einsum("gbm,gmq->gbq", w, rw)
-        eta = pc._kernel32_eta(s, int(kt), a_max[sel], r_b[sel], r_all[sel])[:, None, None]
+        eta = nk._kernel32_eta(s, int(kt), a_max[sel], r_b[sel], r_all[sel])[:, None, None]
         # (rw already holds the float32 rounding of L·Ω; it is in η as well, so this is conservative)
         allow = eta * ref + d.shape[1] * 2.0**-125 * rw.max(axis=1)[:, None, :]
         e = np.abs(got - ref)
@@ -380,7 +381,7 @@ def test_tabulated_weight_bound_is_the_pointwise_bound_bit_for_bit():
 
     for n in (8, 64, 300):
         rho = pc._texel_extent(n)
-        cap_min = rho + pc._ANGLE_MARGIN
+        cap_min = rho + pc.ANGLE_MARGIN
         for s in (1.0, 2.5, 16.0, 256.0, 1000.0, 4096.0):
             for top in (0.4, math.pi / 2):
                 grid, log_wb = pc._wb_grid.__wrapped__(s, rho, cap_min, top)

@@ -22,7 +22,7 @@ needs_probes = pytest.mark.skipif(not FILES, reason=f"no real probes in {PROBES}
 
 
 def _kernels():
-    from ibl_ref.groundtruth.kernel_choice import numba_available
+    from ibl_ref.groundtruth.kernels import numba_available
 
     return ["numpy", "compiled"] if numba_available() else ["numpy"]
 

@@ -32,9 +32,9 @@ literal Eq. 4 sum (``normalized=False``) at every output texel ``r``, by one of
     an exponent within reach of L_max may join it when that stays cheaper should it fail.
 
 Kernels (``kernel``)
-    ``"numpy"`` or ``"compiled"`` (numba, :mod:`ibl_ref.groundtruth.kernel_choice`,
-    :mod:`ibl_ref.groundtruth.compiled_kernels`): the same routes and bounds; ``"auto"`` takes the compiled
-    kernels when numba is installed and the call pays for loading them (:func:`_auto_kernel`).
+    ``"numpy"`` or ``"compiled"`` (numba; :mod:`ibl_ref.groundtruth.kernels`): the same routes and bounds;
+    ``"auto"`` takes the compiled kernels when numba is installed and the call pays for loading them
+    (:func:`_auto_kernel`).
 
 Concurrency (``workers``)
     The work is cut into independent jobs — the moment and sparse routes per fixed group of output
@@ -105,6 +105,7 @@ except ImportError:  # pragma: no cover - not POSIX (no fork either)
 from ..errors import IBLError
 from ..executors import one_blas_thread, resolve_executor, worker_died
 from .convolution_args import channel_max, check_cube, check_exponents, check_out_size
+from .kernels import KERNEL_ENV, KERNEL_METHODS, get_kernels, kernels_loaded, resolve_kernel
 
 __all__ = ["ConvolutionResult", "convolve", "default_workers", "METHODS", "WORKERS_ENV"]
 
@@ -465,45 +466,10 @@ def _rel_from_abs(maps, abs_bound):
     return channel_max(r)
 
 
-#: cost units (see :data:`ibl_ref.groundtruth.sh_convolution.SECONDS_PER_UNIT`) per (output texel × source texel ×
-#: exponent) of the exact gather: 17 (≈ 1.35e-8 s CPU, s = 16 at 64²), 6 for s = 1 (no power needed;
-#: 46.7 s CPU at 128²)
-EXACT_UNITS_PER_PAIR = 17.0
-EXACT_UNITS_PER_PAIR_S1 = 6.0
-#: same for the candidate texels of the sparse gather (source texels within the lobe's cap at 1e-2·rtol of
-#: its weight), plus a cost per output texel (tiles, cap searches, the tile halo).  Refitted (non-negative
-#: least squares, relative residuals) to 12 measured cells: process CPU time of ``convolve(method="sparse",
-#: workers=1)``, the sky + 1e5 sun of ``benchmarks/bench_peer.py``, rtol 1e-3, 64² / 128² / 256² faces ×
-#: s = 64 / 256 / 1024 / 4096 (0.43 / 0.18 / 0.18 / 0.17 s; 6.2 / 1.41 / 0.78 / 0.55 s; 90 / 17.6 / 4.5 /
-#: 3.4 s, load < 1).  The model is within 0.69–1.39× of every cell; a halo term ∝ 1/N (the previous model,
-#: 2/N of the sphere per output) got no weight in the fit, and without it the model no longer
-#: over-estimates narrow lobes 2–3× (256², s = 4096: 9.1 s modelled before) — which had sent 128², s = 256 to
-#: the SH route at 1.8 s instead of the sparse gather's 1.4 s.
-SPARSE_UNITS_PER_PAIR = 6.0
-SPARSE_UNITS_PER_OUTPUT = 6.8e3
-#: the same constants for ``kernel="compiled"`` (:mod:`ibl_ref.groundtruth.compiled_kernels`; the exact gather has
-#: no compiled kernel); ``SH_FACTOR*`` and ``SH_BRIGHT_FACTOR*`` scale
-#: :func:`~ibl_ref.groundtruth.sh_convolution.sh_cost` and ``bright_cost``, ``MOMENT_UNITS*`` :func:`_moment_cost`:
-#: medians of measured / model of ``benchmarks/bench_cost_models.py`` (2026-12-02, load 0.3–1.0, sky + sun 64²–256²;
-#: the moment route 64²–512²: measured / model 0.63–1.23 NumPy; ``MOMENT_UNITS_COMPILED`` refitted 2026-12-04 after
-#: the bracket band's chunks counted leaf blocks (``… --kernel compiled --only moment --moment-sizes 64 128 256 512
-#: 1024``, load 0.6–0.7: 42.2, measured / model 0.44–1.23, 1.07 at 1024²; before 34))
-EXACT_UNITS_PER_PAIR_COMPILED = 17.0
-EXACT_UNITS_PER_PAIR_S1_COMPILED = 6.0
-SPARSE_UNITS_PER_PAIR_COMPILED = 1.33
-#: (the static sparse constants of the compiled kernel: non-negative least squares of the same 15 cells of
-#: 2026-12-04, CPU seconds against the static form: 1.34 (1.33 kept) and 800, measured / model 0.66–1.87; with 1.33 and 2.2e3,
-#: fitted to the kernels before, the cells gave 0.32–1.70)
-SPARSE_UNITS_PER_OUTPUT_COMPILED = 800.0
-SH_FACTOR = 0.37
-SH_FACTOR_COMPILED = 0.19
-SH_BRIGHT_FACTOR = 0.43
-SH_BRIGHT_FACTOR_COMPILED = 0.23
-
-
 def _unit(name, impl):
-    """The cost-model constant ``name`` of the kernel ``impl`` (read at call time)."""
-    return globals()[name + ("_COMPILED" if impl == "compiled" else "")]
+    """The cost-model constant ``name`` of the kernel ``impl`` (its :data:`~ibl_ref.groundtruth.kernels.KERNEL_METHODS`
+    entry; read at call time)."""
+    return KERNEL_METHODS[impl].costs[name]
 
 
 def _seconds_per_unit():
@@ -517,29 +483,12 @@ def _exact_cost(s, n_src, n_out, impl="numpy"):
     return n_out * n_src * _unit("EXACT_UNITS_PER_PAIR_S1" if s == 1.0 else "EXACT_UNITS_PER_PAIR", impl)
 
 
-#: cost units of the moment route (s = 1 and 2 in one call) per (output texel × 6N/leaf): the horizon band holds
-#: O(N) source texels per output texel with the exact band (leaf 1), O(N/leaf) leaf blocks with brackets
-MOMENT_UNITS = 56.0
-MOMENT_UNITS_COMPILED = 42.2
-
-
 def _moment_cost(n, out_size, leaf, impl="numpy"):
     """Cost model of :func:`ibl_ref.groundtruth.moment_convolution.convolve_moment_many` for s = 1 and 2 (units of
     :func:`_seconds_per_unit`)."""
     return _unit("MOMENT_UNITS", impl) * 6.0 * out_size * out_size * 6.0 * n / max(leaf, 1)
 
 
-#: sparse cost per (output texel × candidate source texel per output) and per output texel, with the candidates of
-#: :func:`ibl_ref.groundtruth.phong_convolution.estimate_candidates` (its first caps on a sample of tiles), per
-#: kernel; fitted by ``benchmarks/bench_cost_models.py --only sparse --probe …/courtyard.exr`` (2026-12-02, load
-#: 1.9–2.9; sky + sun 64²–256² × s = 64…4096 and the courtyard probe at 256², s = 256…4096: measured / model
-#: 0.78–1.57 NumPy; the compiled constants refitted after the fused bounds, pair-wise rows and bright-texel cut of
-#: 2026-12-04 by ``… --kernel compiled --only sparse --probe …/courtyard.exr``, load 0.3–0.9: measured / model
-#: 0.59–1.72, before 0.78–1.77 with 1.03 and 1.01e3)
-SPARSE_UNITS_PER_CAND = 5.04
-SPARSE_UNITS_PER_CAND_OUTPUT = 992.0
-SPARSE_UNITS_PER_CAND_COMPILED = 1.24
-SPARSE_UNITS_PER_CAND_OUTPUT_COMPILED = 482.0
 #: the planner estimates the sparse candidates (≈ 0.05–2 s) only for exponents whose sparse cost by the static
 #: model is at least this many seconds (below, the choice matters little) and not SPARSE_STATIC_SLACK times their SH
 #: pass (the static model was 1.3–3.6× below the measured cost on the CC0 probes at 256², s = 256)
@@ -619,7 +568,7 @@ def convolve(
         do not change.  A worker process that dies anyway (killed for lack of memory) raises
         :class:`~ibl_ref.errors.IBLError`.
     kernel : {"auto", "numpy", "compiled"}, optional
-        Implementation of the inner loops (:mod:`ibl_ref.groundtruth.kernel_choice`): the NumPy reference or
+        Implementation of the inner loops (:mod:`ibl_ref.groundtruth.kernels`): the NumPy reference or
         the numba-compiled kernels (extra ``fast``).  Default ``$IBL_REF_KERNEL`` or ``"auto"``.  Both give
         rigorous bounds; their maps agree within the sum of the two bounds.  ``info["kernel"]`` records the one
         used.
@@ -660,11 +609,7 @@ def convolve(
         raise IBLError("method 'sparse' computes the normalised lobe average only; use 'sh' or 'exact'")
     workers = _resolve_workers(workers)
     backend = _resolve_backend(backend, workers)
-    from .kernel_choice import resolve_kernel
-
     impl = resolve_kernel(kernel)
-    from .kernel_choice import KERNEL_ENV
-
     kernel_auto = (kernel if kernel is not None else os.environ.get(KERNEL_ENV, "").strip().lower() or "auto") == "auto"
     if memory_limit is not None:
         try:
@@ -674,7 +619,7 @@ def convolve(
         if not memory_limit > 0:
             raise IBLError(f"memory_limit must be positive, got {memory_limit!r}")
     kernel_note = None
-    if impl == "compiled" and kernel_auto:
+    if kernel_auto and KERNEL_METHODS[impl].load_seconds > 0:  # (a backend that costs a load: is it worth it here?)
         with one_blas_thread():
             impl, kernel_note = _auto_kernel(a4, s_list, method, rtol, out_size, normalized)
     executor, owned_client = resolve_executor(executor)
@@ -821,11 +766,10 @@ AUTO_COMPILED_PAIRS = 2e11
 def _auto_kernel(a4, s_list, method, rtol, out_size, normalized):
     """``kernel="auto"`` with numba installed: ``("compiled", None)`` when the compiled kernels are loaded in this
     process already or the work is large, else the kernel whose model cost plus load time
-    (:data:`~ibl_ref.groundtruth.kernel_choice.COMPILED_LOAD_SECONDS`) is smaller, with a note why."""
-    from .kernel_choice import COMPILED_LOAD_SECONDS, compiled_loaded
-
+    (:attr:`~ibl_ref.groundtruth.kernels.KernelMethod.load_seconds`) is smaller, with a note why."""
     n = a4.shape[1]
-    if compiled_loaded() or 36 * n * n * out_size * out_size * len(s_list) >= AUTO_COMPILED_PAIRS:
+    load_s = KERNEL_METHODS["compiled"].load_seconds
+    if kernels_loaded("compiled") or 36 * n * n * out_size * out_size * len(s_list) >= AUTO_COMPILED_PAIRS:
         return "compiled", None
     cost = {}
     for impl in ("numpy", "compiled"):
@@ -833,9 +777,9 @@ def _auto_kernel(a4, s_list, method, rtol, out_size, normalized):
         _route_auto(a4, s_list, rtol, out_size, normalized, info, impl, estimate=False, floor_impl="numpy")
         costs = info.get("route_model_costs_s", {})
         cost[impl] = costs.get("auto" if method == "auto" else method, costs.get("auto", 0.0))
-    if cost["numpy"] <= cost["compiled"] + COMPILED_LOAD_SECONDS:
+    if cost["numpy"] <= cost["compiled"] + load_s:
         return "numpy", (f"numpy: model {cost['numpy']:.2f} s vs compiled {cost['compiled']:.2f} s + "
-                         f"{COMPILED_LOAD_SECONDS:.2f} s to load it")
+                         f"{load_s:.2f} s to load it")
     return "compiled", None
 
 
@@ -845,8 +789,6 @@ def plan_routes(cube, exponents, *, rtol: float = 1e-3, out_size: int | None = N
     "model_costs_s": {"auto": …, "exact": …, "sparse": …, "sh": …}}`` (model seconds of the chosen plan and of
     each method forced for every finite exponent; "sh" only when some exponent can be planned), ``"kernel"`` and
     the planning diagnostics of ``info``."""
-    from .kernel_choice import resolve_kernel
-
     a4, _ = check_cube(cube)
     a4, _k = _power_of_two_scaled(a4)
     s_list = check_exponents(exponents)
@@ -1010,12 +952,9 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
     else:
         route = {s: method for s in s_list}
 
-    if impl == "compiled":  # load the kernels of the routes taken (before any worker is forked)
-        from .kernel_choice import compiled
-
-        stages = {"sparse": "sparse", "moment": "moment", "sh": "sh", "exact": "sparse"}
-        need = {stages[m] for m in route.values()} | ({"sparse"} if "sh" in route.values() else set())  # fallback
-        res.info["kernel_load_s"] = compiled().warm_up(sorted(need))
+    # the loops of the routes taken, ready before any worker is forked (the sparse gather is every route's fallback)
+    stages = {"sparse", "moment", "sh"} & (set(route.values()) | {"sparse"})
+    res.info["kernel_load_s"] = get_kernels(impl).warm_up(sorted(stages))
 
     # ---- execute: rounds of independent jobs (route × output-face part, :func:`_round_jobs`) --------
     results = {}
@@ -1060,9 +999,9 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
                 sub_plan = plan if list(sh_set) == list(finite) else None
             if sh_set and sh_state is None:
                 sh_state = _sh_split_state(a4, sh_set, sub_plan, rtol, out_size, normalized, impl)
-            # a round of compiled sparse gathers only: one job over all faces whose tiles are shared by `workers`
-            # threads (the kernel releases the GIL): no pool to start, the load balanced tile by tile
-            solo = (impl == "compiled" and executor is None and workers > 1 and sparse_batches
+            # a round of sparse gathers only, with a gather that shares its tiles between threads (the compiled one
+            # releases the GIL): one job over all faces on `workers` threads, no pool to start, balanced tile by tile
+            solo = (get_kernels(impl).gather_threads and executor is None and workers > 1 and sparse_batches
                     and not (mo_set or sh_set or ex_set))
             sp_parts = (tuple(range(6)),) if solo else parts
             jobs = _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sub_plan,

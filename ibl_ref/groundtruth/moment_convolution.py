@@ -66,6 +66,8 @@ import numpy as np
 from ..environment import envmap
 from ..errors import IBLError
 from .convolution_args import channel_max, check_cube, check_faces, check_out_size
+from .kernels import check_impl, get_kernels
+from .kernels.numpy_backend import MOMENT_CHUNK_PAIRS, SYM_PAIRS
 
 __all__ = ["convolve_moment_many", "convolve_moment", "moment_leaf", "SUPPORTED_EXPONENTS", "ROUNDING_REL"]
 
@@ -116,12 +118,6 @@ def _kernel(x, s):
     return x if s == 1.0 else x * x
 
 
-#: index pairs of the 6 distinct entries of the symmetric second moment ω ωᵀ
-_IU = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
-#: bound on the (tile, source texel) pairs one chunk of output tiles may hold in the band gather of
-#: ``leaf = 1`` (≈ 10 float64/bool arrays of this length: ≈ 0.3 GB); the chunks are fixed by the sizes
-#: alone, so every worker count computes the same pieces
-MOMENT_CHUNK_PAIRS = 1 << 22
 
 
 def moment_band_pairs_per_tile(n: int, out_size: int, tile: int, stop: int, leaf: int = 1) -> float:
@@ -141,11 +137,6 @@ def moment_band_pairs_per_tile(n: int, out_size: int, tile: int, stop: int, leaf
     w = 2.0 * (tile * d_out + stop * d_src) / math.sqrt(2.0) * 2.0
     m = max(n / stop, 1.0)
     return 3.0 * w * m * m * (stop * stop if leaf == 1 else 1)
-
-
-#: the same bound for the compiled band kernels (no NumPy temporaries of the band to amortise: smaller chunks,
-#: less memory; 4 MB of pairs)
-MOMENT_CHUNK_PAIRS_COMPILED = 1 << 19
 
 
 def moment_tiles_per_chunk(n: int, out_size: int, tile: int, stop: int, pairs: int = MOMENT_CHUNK_PAIRS,
@@ -204,7 +195,7 @@ def _texel_moments(dP, wP, Q, need2):
     P = dP.shape[1]
     F = [(dP[..., :, None] * wP[..., None, :]).reshape(6, P, P, 3 * Q)]
     if need2:
-        dd = dP[..., _IU[0]] * dP[..., _IU[1]]  # (6,P,P,6)
+        dd = dP[..., SYM_PAIRS[0]] * dP[..., SYM_PAIRS[1]]  # (6,P,P,6)
         F.append((dd[..., :, None] * wP[..., None, :]).reshape(6, P, P, 6 * Q))
     return np.concatenate(F, axis=-1)
 
@@ -227,7 +218,7 @@ def _leaf_moments(dP, wP, Q, need2, b, drop=None):
         wB = blocks(w)
         out[f, ..., : 3 * Q] = np.matmul(blocks(dP[f]).swapaxes(-1, -2), wB).reshape(m, m, 3 * Q)
         if need2:
-            dd = dP[f][..., _IU[0]] * dP[f][..., _IU[1]]
+            dd = dP[f][..., SYM_PAIRS[0]] * dP[f][..., SYM_PAIRS[1]]
             out[f, ..., 3 * Q :] = np.matmul(blocks(dd).swapaxes(-1, -2), wB).reshape(m, m, 6 * Q)
     return out
 
@@ -310,194 +301,6 @@ def _classify(levels, cT, betaT, sinB, cosB, nK, stop, leaf, dP, real, F, P, n):
     return S, tiles, blk
 
 
-def _band_exact(Rc, tiles, blk, bdT, bw_pad, s_list, num, chunk_elems):
-    """Exact gather of the straddling texels ``blk`` for their tiles (``leaf = 1``), into ``num``.
-
-    ``bdT`` (3, M+1) and ``bw_pad`` (M+1, Q): source directions and weights with a zero dummy last entry.
-    """
-    for tc, idx in _padded_batches(tiles, blk, Rc.shape[0], Rc.shape[1], chunk_elems, 1):
-        R = Rc[tc]
-        # segments of the band small enough for the cache (the gather is memory-bound)
-        seg = max(64, chunk_elems // (len(tc) * Rc.shape[1]))
-        acc = {s_: 0.0 for s_ in s_list}
-        for m0 in range(0, idx.shape[1], seg):
-            ii = idx[:, m0 : m0 + seg]
-            dzT = np.stack([bdT[k][ii] for k in range(3)], axis=1)  # (tc, 3, m), pads → 0
-            wz = bw_pad[ii]  # (tc, m, Q)
-            X = np.matmul(R, dzT)  # (tc, t², m)
-            np.maximum(X, 0.0, out=X)
-            for s in s_list:
-                if s == 1.0:
-                    acc[s] = acc[s] + np.matmul(X, wz)
-                else:
-                    np.multiply(X, X, out=X)  # s = 2 last (sorted)
-                    acc[s] = acc[s] + np.matmul(X, wz)
-        for s in s_list:
-            num[s][tc] += acc[s]
-
-
-def _band_brackets(Rc, tiles, blk, cb_leaf, ab_leaf, M0, M1, M2, s_list, num, err, chunk_elems):
-    """Linear brackets of the clamped kernel on the straddling leaf blocks (``leaf > 1``), per output texel.
-
-    For an output texel ``r`` and a leaf block (cone ``(c, α)`` around its texel centres) every
-    ``x = r·ω_j`` lies in ``[x_lo, x_hi] = [cos(θ+α), cos(max(θ−α, 0))]``, θ = ∠(r, c).  With
-    ``x_lo < 0 < x_hi`` and ``A = x_hi/(x_hi − x_lo)``:
-
-    * s = 1:  ``A x ≤ max(x,0) ≤ A x + B``, ``B = −A x_lo`` (a line through 0 below, the chord above);
-    * s = 2:  ``a x − a²/4 ≤ max(x,0)² ≤ a (x − x_lo)``, ``a = x_hi²/(x_hi − x_lo)`` (the tangent of
-      slope a below, the chord above),
-
-    so summed over the block's texels with weights ``L Ω`` the contribution lies in an interval whose
-    ends are linear in the block moments ``W = Σ L Ω`` and ``y = r·Σ L Ω ω``: the midpoint and the
-    half-width accumulate into ``num``/``err`` by matrix products.  Blocks entirely on the positive
-    side of this ``r`` (``x_lo ≥ 0``) are exact (``y``, or ``rᵀ M2 r`` for s = 2), those on the negative
-    side contribute 0.  The half-width is at most ``W sin α / 4`` (s = 1), ``≈ 0.28 W sin² α`` (s = 2).
-    """
-    Q = M0.shape[1]
-    if ab_leaf.size and float(ab_leaf.max()) >= 0.25 * math.pi:
-        raise IBLError("leaf blocks too large for the bracket band (cone half-angle ≥ π/4); use a smaller leaf")
-    # With α < π/4: θ < α ⇒ x_lo = cos(θ+α) > 0 (exact), θ > π − α ⇒ x_hi < 0 (zero), so
-    # cos(θ ∓ α) = X cos α ± sin θ sin α needs no case split.  ``1e-12`` (in v) covers the rounding
-    # of X, sin θ and the products (≲ 1e-15).
-    cz_all = np.concatenate([cb_leaf, np.array([[0.0, 0.0, 1.0]])])
-    ca_all = np.concatenate([np.cos(ab_leaf), [1.0]])
-    sa_all = np.concatenate([np.sin(ab_leaf), [0.0]])
-    M0z = np.concatenate([M0, np.zeros((1, Q))])
-    M1z = np.concatenate([M1.reshape(-1, 3 * Q), np.zeros((1, 3 * Q))])
-    M2z = None if M2 is None else np.concatenate([M2.reshape(-1, 6 * Q), np.zeros((1, 6 * Q))])
-    wts = np.array([1.0, 2.0, 2.0, 1.0, 2.0, 1.0])
-
-    def rsum(Z, RR, k):  # Σ_k r_k Z_kq per texel: (tc, t², k·Q) → (tc, t², Q)
-        return np.einsum("cik,cikq->ciq", RR, Z.reshape(Z.shape[0], Z.shape[1], k, Q))
-
-    for tc, idx in _padded_batches(tiles, blk, Rc.shape[0], Rc.shape[1], chunk_elems, 4):
-        R = Rc[tc]
-        X = np.matmul(R, cz_all[idx].transpose(0, 2, 1))  # (tc, t², m): r·c = cos θ
-        ca, sa = ca_all[idx][:, None, :], sa_all[idx][:, None, :]
-        v = np.multiply(X, X)
-        np.subtract(1.0, v, out=v)
-        np.maximum(v, 0.0, out=v)
-        np.sqrt(v, out=v)
-        v *= sa
-        v += 1e-12  # v = sin θ sin α + slack:  x_lo = u − v,  x_hi = u + v
-        X *= ca  # u = X cos α
-        # A = x_hi/(x_hi − x_lo) clipped to [0, 1]: 1 on positive pairs, 0 on negative ones
-        A = np.add(X, v)
-        A /= 2.0 * v
-        np.clip(A, 0.0, 1.0, out=A)
-        nlo = np.subtract(v, X)  # −x_lo
-        W = M0z[idx]  # (tc, m, Q)
-        Y1 = M1z[idx]  # (tc, m, 3Q)
-        for s in s_list:
-            if s == 1.0:
-                H = np.maximum(nlo, 0.0)
-                H *= A
-                H *= 0.5  # B/2 = A·(−x_lo)/2 (0 unless straddling)
-                HW = np.matmul(H, W)
-                num[s][tc] += rsum(np.matmul(A, Y1), R, 3) + HW
-                err[s][tc] += HW
-            else:
-                # a = x_hi²/(x_hi − x_lo) = A²·(x_hi − x_lo) = 2v·A² on straddling pairs (0 ≤ A < 1;
-                # A = 0 gives 0), 0 on positive ones (A = 1: exact by rᵀ M2 r)
-                P = A >= 1.0
-                a = np.multiply(A, A)
-                a *= v
-                a *= 2.0
-                a[P] = 0.0
-                av = a * nlo  # a·(−x_lo)
-                a2 = np.multiply(a, a)
-                a2 *= 0.25
-                a2 += av  # 2·half-width = a·(−x_lo) + a²/4;  midpoint = a·(−x_lo) − half-width
-                half_W = 0.5 * np.matmul(a2, W)
-                RR = R[..., _IU[0]] * R[..., _IU[1]] * wts
-                num[s][tc] += (rsum(np.matmul(a, Y1), R, 3) + np.matmul(av, W) - half_W
-                               + rsum(np.matmul(P.astype(float), M2z[idx]), RR, 6))
-                err[s][tc] += half_W
-
-
-def _csr(tiles, items, T):
-    """``(starts (T+1,), items sorted by tile)``: the (tile, item) pairs grouped per tile (stable order)."""
-    order = np.argsort(tiles, kind="stable")
-    counts = np.bincount(tiles, minlength=T)
-    return np.concatenate([[0], np.cumsum(counts)]).astype(np.int64), np.ascontiguousarray(items[order], dtype=np.int64)
-
-
-def _pad4(x, Q):
-    """The last axis (Q ≤ 4 channels, the last one L ≡ 1) padded with zeros to 4."""
-    if Q == 4:
-        return np.ascontiguousarray(x)
-    out = np.zeros(x.shape[:-1] + (4,))
-    out[..., :Q] = x
-    return out
-
-
-def _band_exact_compiled(ck, Rc, tiles, blk, D, W4, s_list, num):
-    """:func:`_band_exact` by :func:`ibl_ref.groundtruth.compiled_kernels.band_exact` (``D`` (M+1, 3), ``W4``
-    (M+1, 4): the last entry the zero dummy of the pads)."""
-    T, B = Rc.shape[0], Rc.shape[1]
-    Q = next(iter(num.values())).shape[-1]
-    starts, items = _csr(tiles, np.where(blk < 0, D.shape[0] - 1, blk), T)
-    n1 = np.zeros((T, B, 4))
-    n2 = np.zeros((T, B, 4))
-    ck.band_exact(np.ascontiguousarray(Rc), starts, items, D, W4, 1.0 in s_list, 2.0 in s_list, n1, n2)
-    for s, acc in ((1.0, n1), (2.0, n2)):
-        if s in num:
-            num[s] += acc[..., :Q]
-
-
-def _brackets_prep(cb_leaf, ab_leaf, M0, M1, M2):
-    """The leaf blocks' cones and moments as :func:`ibl_ref.groundtruth.compiled_kernels.band_brackets` takes them
-    (once per pass, not per chunk of tiles)."""
-    Q = M0.shape[1]
-    if ab_leaf.size and float(ab_leaf.max()) >= 0.25 * math.pi:
-        raise IBLError("leaf blocks too large for the bracket band (cone half-angle ≥ π/4); use a smaller leaf")
-    nbk = M0.shape[0]
-    m1 = _pad4(M1.reshape(nbk, 3, Q), Q)
-    m2 = _pad4(M2.reshape(nbk, 6, Q), Q) if M2 is not None else np.zeros((nbk, 6, 4))
-    return (np.ascontiguousarray(cb_leaf), np.cos(ab_leaf), np.sin(ab_leaf), _pad4(M0, Q), m1, m2, Q)
-
-
-def _band_brackets_compiled(ck, Rc, tiles, blk, prep, s_list, num, err):
-    """:func:`_band_brackets` by :func:`ibl_ref.groundtruth.compiled_kernels.band_brackets` (``prep``:
-    :func:`_brackets_prep`)."""
-    T, B = Rc.shape[0], Rc.shape[1]
-    Q = prep[-1]
-    starts, items = _csr(tiles, blk, T)
-    acc = [np.zeros((T, B, 4)) for _ in range(4)]
-    ck.band_brackets(np.ascontiguousarray(Rc), starts, items, *prep[:-1], 1.0 in s_list, 2.0 in s_list, *acc)
-    for s, (nn, ee) in ((1.0, acc[:2]), (2.0, acc[2:])):
-        if s in num:
-            num[s] += nn[..., :Q]
-            err[s] += ee[..., :Q]
-
-
-def _padded_batches(tiles, blk, T, tt, chunk_elems, per_elem):
-    """Yield ``(tile indices, padded index matrix)`` batches of tiles sorted by band size (pads = −1)."""
-    order = np.argsort(tiles, kind="stable")
-    tiles, blk = tiles[order], blk[order]
-    counts = np.bincount(tiles, minlength=T)
-    starts = np.concatenate([[0], np.cumsum(counts)])
-    tord = np.argsort(counts, kind="stable")
-    if not T or int(counts.max()) == 0:
-        return
-    k0 = 0
-    while k0 < T:
-        k1 = k0 + 1
-        # grow the batch while the padded working set fits
-        while k1 < T and (k1 - k0 + 1) * max(int(counts[tord[k1]]), 1) * tt * per_elem <= chunk_elems:
-            k1 += 1
-        tc = tord[k0:k1]
-        mmax = int(counts[tc].max())
-        k0 = k1
-        if mmax == 0:
-            continue
-        ar = np.arange(mmax)
-        okm = ar[None, :] < counts[tc][:, None]
-        pos_ = np.where(okm, starts[tc][:, None] + ar[None, :], 0)
-        yield tc, np.where(okm, blk[pos_], -1)
-
-
-
 def _ratio_bound(N_, E_, C, normalized):
     """Value and per-channel relative bound from sums ``N_`` (…, Q) and their absolute bounds ``E_``
     (channel Q−1: the denominator, L ≡ 1): ``max(approx − lo, hi − approx)/lo`` (inf where lo = 0)."""
@@ -568,9 +371,9 @@ def convolve_moment_many(
         split the work between workers; results agree with the full call up to float64 rounding of
         the band sums, whose batching depends on the tile set).
     impl : {"numpy", "compiled"}
-        ``"compiled"``: the horizon band (exact gather or brackets, and the bright texels of straddling leaf
-        blocks) by :mod:`ibl_ref.groundtruth.compiled_kernels` (up to 3 colour channels; the same sums in another
-        order: equal to the NumPy path up to float64 rounding).
+        The kernel backend of the horizon band (exact gather or brackets, and the bright texels of straddling
+        leaf blocks; :mod:`ibl_ref.groundtruth.kernels`): the compiled one sums the same terms in another order
+        (equal to the NumPy path up to float64 rounding).
 
     Returns
     -------
@@ -596,13 +399,7 @@ def convolve_moment_many(
     faces = check_faces(faces)
     nF = len(faces)
     need2 = 2.0 in s_list
-    if impl not in ("numpy", "compiled"):
-        raise IBLError(f"impl must be 'numpy' or 'compiled', got {impl!r}")
-    ck = None
-    if impl == "compiled" and a4.shape[-1] <= 3:
-        from .kernel_choice import compiled
-
-        ck = compiled()
+    kern = get_kernels(check_impl(impl))
     C = a4.shape[-1]
     Q = C + 1  # channel Q-1: L ≡ 1 (denominator)
 
@@ -648,10 +445,8 @@ def convolve_moment_many(
     if brP.size:  # the bright texels' own weights; the denominator (L ≡ 1) stays in the blocks
         bw_bright = np.zeros_like(bw_pad)
         bw_bright[brP, :C] = bw_pad[brP, :C]
-    if ck is not None and bdT is not None:
-        bD = np.ascontiguousarray(bdT.T)
-        bW4 = _pad4(bw_pad, Q)
-        bB4 = _pad4(bw_bright, Q) if bw_bright is not None else None
+    band_src = kern.band_sources(bdT, bw_pad) if bdT is not None else None
+    bright_src = kern.band_sources(bdT, bw_bright) if bw_bright is not None else None
 
     def run_pass(lf, tsel):
         """num/err of the output tiles ``tsel`` with leaf size ``lf`` (1: exact band)."""
@@ -681,8 +476,7 @@ def convolve_moment_many(
             bright_sorted = brP[order_]
             bright_start = np.searchsorted(blk_of[order_], np.arange(6 * mg * mg + 1))
         # output tiles in chunks of bounded working set (independent of the worker count)
-        per_chunk = moment_tiles_per_chunk(n, out_size, t, stop,
-                                           MOMENT_CHUNK_PAIRS if ck is None else MOMENT_CHUNK_PAIRS_COMPILED, lf)
+        per_chunk = moment_tiles_per_chunk(n, out_size, t, stop, kern.moment_chunk_pairs(Q), lf)
         for c0 in range(0, tsel.size, per_chunk):
             ch = tsel[c0 : c0 + per_chunk]
             nc = ch.size
@@ -700,22 +494,16 @@ def convolve_moment_many(
                     num_c[s_] = np.einsum("tik,tkq->tiq", Rc, S1)
                 else:
                     S2 = S[:, 3 * Q :].reshape(nc, 6, Q)
-                    rr = Rc[..., _IU[0]] * Rc[..., _IU[1]] * np.array([1.0, 2.0, 2.0, 1.0, 2.0, 1.0])
+                    rr = Rc[..., SYM_PAIRS[0]] * Rc[..., SYM_PAIRS[1]] * np.array([1.0, 2.0, 2.0, 1.0, 2.0, 1.0])
                     num_c[s_] = np.einsum("tik,tkq->tiq", rr, S2)
                 err_c[s_] = np.zeros_like(num_c[s_])
             _t0 = time.perf_counter()
-            if lf == 1 and ck is not None:
-                _band_exact_compiled(ck, Rc, tiles, blk, bD, bW4, s_list, num_c)
-            elif lf == 1:
-                _band_exact(Rc, tiles, blk, bdT, bw_pad, s_list, num_c, chunk_elems)
+            if lf == 1:
+                kern.band_exact(Rc, tiles, blk, band_src, s_list, num_c, chunk_elems)
             else:
-                if ck is not None:
-                    if prep is None:
-                        prep = _brackets_prep(levels[-1][2], levels[-1][3], M0, M1, M2)
-                    _band_brackets_compiled(ck, Rc, tiles, blk, prep, s_list, num_c, err_c)
-                else:
-                    _band_brackets(Rc, tiles, blk, levels[-1][2], levels[-1][3], M0, M1, M2, s_list, num_c, err_c,
-                                   chunk_elems)
+                if prep is None:
+                    prep = kern.brackets_prep(levels[-1][2], levels[-1][3], M0, M1, M2)
+                kern.band_brackets(Rc, tiles, blk, prep, s_list, num_c, err_c, chunk_elems)
                 nb = bright_start[blk + 1] - bright_start[blk]
                 if nb.any():  # bright texels of straddling leaf blocks: exact gather
                     sel = np.flatnonzero(nb)
@@ -723,10 +511,7 @@ def convolve_moment_many(
                     first = np.repeat(bright_start[blk[sel]], nb[sel])
                     within = np.arange(bt.size) - np.repeat(np.cumsum(nb[sel]) - nb[sel], nb[sel])
                     btex = bright_sorted[first + within]
-                    if ck is not None:
-                        _band_exact_compiled(ck, Rc, bt, btex, bD, bB4, s_list, num_c)
-                    else:
-                        _band_exact(Rc, bt, btex, bdT, bw_bright, s_list, num_c, chunk_elems)
+                    kern.band_exact(Rc, bt, btex, bright_src, s_list, num_c, chunk_elems)
             for s_ in s_list:
                 num[s_][ch] = num_c[s_]
                 err[s_][ch] = err_c[s_]

@@ -117,8 +117,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..environment import envmap
-from .convolution_args import channel_max, check_cube, check_exponent, check_faces, check_out_size
 from ..errors import IBLError, LayoutError
+from .convolution_args import channel_max, check_cube, check_exponent, check_faces, check_out_size
+from .kernels import check_impl, get_kernels
+from .kernels.numpy_backend import ANGLE_MARGIN, column_extremes
 
 __all__ = [
     "phong_lobe_integral",
@@ -136,13 +138,6 @@ __all__ = [
 
 #: target size of one chunk's weight matrix, in float64 elements (2 MB: the passes stay in cache)
 _CHUNK_ELEMS = 1 << 18
-#: cost model of the sparse gather, in units of one weight-matrix element (≈ 40 ns under load):
-#: per tile ≈ 0.7 ms, per candidate source texel ≈ 1.2 µs (least-squares fit to timings at 64²,
-#: s ∈ {256, 4096}, tiles of 2…16 texels)
-_TILE_OVERHEAD_ELEMS = 1.7e4
-_CAND_OVERHEAD_ELEMS = 30.0
-#: angular safety margin (rad) for chord/angle round-off in the cap test of the sparse gather
-_ANGLE_MARGIN = 1e-7
 #: below this argument np.exp returns exactly 0.0 in float64 (smallest subnormal ≈ exp(−744.4))
 _EXP_UNDERFLOW = -746.0
 
@@ -569,20 +564,10 @@ def cutoff_angle(s: float, eps: float, rho: float) -> float:
     return hi
 
 
-#: the same two constants for the compiled gather (:func:`ibl_ref.groundtruth.compiled_kernels.tile_gather`: no
-#: Python per tile; per candidate the interval search and the copy into the scratch arrays), in units of one
-#: of its weights; fitted by ``python benchmarks/bench_tile_size.py --probe …/courtyard.exr`` (2026-12-05, the
-#: kernels compiled ahead of time; every width T ∈ {2…16} forced in 15 cells of sky + sun 64²–256² and the courtyard
-#: probe 128²–256², s = 64…4096): the model's choice costs 1.002× the best width on average, 1.03× at most; a fixed
-#: T = 4, 6, 8: 1.013×, 1.08×, 1.13×.  The constants before (2000 and 8, fitted on 2026-12-04 for numba's JIT
-#: functions) chose T = 6–8 in the wider of these cells, where 4 was best
-_TILE_OVERHEAD_COMPILED = 1000.0
-_CAND_OVERHEAD_COMPILED = 4.0
-
-
-def _tile_size(out_size: int, theta_c: float, m_src: int, n_bright: int, tile_overhead: float = _TILE_OVERHEAD_ELEMS,
-               cand_overhead: float = _CAND_OVERHEAD_ELEMS) -> int:
-    """Output tile width T minimising n_tiles·overhead + Σ T²·|candidates| (cost model)."""
+def _tile_size(out_size: int, theta_c: float, m_src: int, n_bright: float, tile_overhead: float,
+               cand_overhead: float) -> int:
+    """Output tile width T minimising n_tiles·overhead + Σ T²·|candidates| (cost model; the overheads are the
+    gather's, :class:`ibl_ref.groundtruth.kernels.numpy_backend.SparseGather`)."""
     best, best_cost = 1, np.inf
     delta = (np.pi / 2) / out_size  # texel angle at a face centre
     for T in sorted({1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, out_size}):
@@ -595,18 +580,6 @@ def _tile_size(out_size: int, theta_c: float, m_src: int, n_bright: int, tile_ov
         if cost < best_cost:
             best, best_cost = T, cost
     return best
-
-
-def _column_extremes(a: np.ndarray, ok=None, axis: int = 0):
-    """``(max, min)`` of a (…, C) array over ``axis`` (not the last), one channel at a time (a contiguous
-    reduction: ≈ 25× faster than over an axis followed by a short one; exact, so the same result); entries
-    where ``ok`` is False are left out (−inf / +inf where none is left)."""
-    mx, mn = [], []
-    for c in range(a.shape[-1]):
-        x = a[..., c]
-        mx.append((x if ok is None else np.where(ok, x, -np.inf)).max(axis=axis))
-        mn.append((x if ok is None else np.where(ok, x, np.inf)).min(axis=axis))
-    return np.stack(mx, axis=-1), np.stack(mn, axis=-1)
 
 
 def _bright_set(rad: np.ndarray, omega: np.ndarray, n_bright, bright_factor: float, max_bright: int) -> np.ndarray:
@@ -625,71 +598,12 @@ def _bright_set(rad: np.ndarray, omega: np.ndarray, n_bright, bright_factor: flo
     return np.sort(np.argpartition(-key, k - 1)[:k])
 
 
-#: side (texels) of the source blocks whose bounding cones :func:`convolve_sparse_many` tests first when it
-#: looks for a tile's cap (then only those blocks' texels): a two-level search in NumPy, no KD-tree.  The
-#: same blocks carry the per-channel radiance extremes of the local bound.
-_CAP_BLOCK = 8
 #: share of ``rtol`` left to the far-field term of the local bound (texels beyond the far cap θ_far, bounded
-#: with the global radiance extremes); the rest goes to the near annulus and to the float32 kernel's rounding
+#: with the global radiance extremes); the rest goes to the near annulus and to the kernel's rounding
 _FAR_SHARE = 0.1
-#: share of the accuracy target τ that the first compiled attempt's left-out bright weights may take (at the mean
-#: radiance; :func:`convolve_sparse_many`)
-_BRIGHT_CUT_SHARE = 0.05
 #: the first cap of a tile aims at this fraction of its share of ``rtol`` (the a-priori estimate of the
 #: gathered weight and average can be off; a tile whose bound misses ``rtol`` is gathered again, wider)
 _CAP_MARGIN = 0.8
-#: float32 lobe kernel (:func:`_kernel32`): unit roundoff, relative error allowed for one float32 ``np.exp`` —
-#: NumPy's SIMD float32 exp states a largest relative error of 2.13e-7 measured over every float32 input
-#: (``numpy/_core/src/umath/loops_exponent_log.dispatch.c.src``), a libm ``expf`` is within one ulp
-#: (1.2e-7); 2^-20 = 9.5e-7 is 4.5× that (checked on a dense sample in the tests)
-_U32 = 2.0 ** -24
-_EXP32_REL = 2.0 ** -20
-#: candidates per float32 partial sum of the float32 kernel (relative error ≤ γ_kc each; summed in float64)
-_KC = 64
-#: the float32 kernel is used only where every pair has x = 1 − cos θ ≤ this (the series of −log(1 − x) is
-#: then short), where the series needs at most :data:`_SERIES_MAX` terms for a relative weight error
-#: ≤ :data:`_SERIES_TOL`, and where no output texel's largest weight is below e^:data:`_OWN_LOG_MIN`
-_X32_MAX = 0.3
-_SERIES_MAX = 12
-_SERIES_TOL = 2.0 ** -15
-_OWN_LOG_MIN = -40.0
-#: float32 kernel: elements of one batch's weight array (4 MB)
-_CHUNK32 = 1 << 20
-
-
-def _gamma(n: int, u: float) -> float:
-    """γ_n = n·u/(1 − n·u): relative error bound of a sum or dot product of n terms in any order."""
-    return n * u / (1.0 - n * u)
-
-
-def _source_blocks(src_dirs, m, b=_CAP_BLOCK):
-    """Blocks of b×b source texels per face (the last ones partial): unit centres (nb, 3), flat texel
-    indices (nb, b²; −1 = none) and the largest angle between a block's centre and its texel centres
-    (with a 1e-9 rad margin for the arccos).  Cached per (m, b) (read-only arrays): ``src_dirs`` is always the
-    texel grid of m."""
-    return _source_blocks_cached(m, b)
-
-
-@functools.lru_cache(maxsize=16)
-def _source_blocks_cached(m, b):
-    src = envmap.texel_directions(m)
-    nbk = -(-m // b)
-    idx = np.full((6, nbk * b, nbk * b), -1, dtype=np.intp)
-    idx[:, :m, :m] = np.arange(6 * m * m).reshape(6, m, m)
-    tex = envmap.face_blocks(idx, b)
-    if m % b == 0:  # whole blocks: the same array by a transposed copy (a gather and a select cost 3× more)
-        d = envmap.face_blocks(src, b)
-    else:
-        d = np.where((tex >= 0)[..., None], src.reshape(-1, 3)[np.maximum(tex, 0)], 0.0)
-    c = d.sum(axis=1)
-    c /= np.linalg.norm(c, axis=1, keepdims=True)
-    dots = np.einsum("bjk,bk->bj", d, c)
-    if m % b:
-        dots = np.where(tex >= 0, dots, 1.0)
-    alpha = float(np.arccos(np.clip(dots.min(), -1.0, 1.0))) + 1e-9
-    c.flags.writeable = False
-    tex.flags.writeable = False
-    return c, tex, alpha
 
 
 @functools.lru_cache(maxsize=4)
@@ -763,359 +677,76 @@ def _tile_layout_of(out_size: int, faces: tuple, T: int):
     return IDX, TD, CEN, ANG, VALID, t_rad
 
 
-class _Sources:
-    """Source texels of one :func:`convolve_sparse_many` call, arranged for the cap searches.
+@dataclass(frozen=True)
+class _SparseSetup:
+    """What every exponent of one :func:`convolve_sparse_many` call shares: the source texels (M on the (N·k)² grid,
+    ``m`` per face side), the bright set, the radiance extremes and mean of the rest, the tolerances."""
 
-    ``blk_dirs`` (nb, b², 3): directions of the texels of every block (NaN for the block's missing texels and
-    for the bright set, so that no cap test selects them); ``blk_max``/``blk_min`` (nb, C): per-channel
-    radiance extremes of the block's texels outside the bright set (−inf/+inf when there are none).
-    """
-
-    def __init__(self, src_dirs, rad, is_bright, m):
-        self.dirs = src_dirs
-        self.cen, self.tex, self.alpha = _source_blocks(src_dirs, m)
-        ok = (self.tex >= 0) & ~is_bright[np.maximum(self.tex, 0)]
-        self._ok = ok
-        r = rad[np.maximum(self.tex, 0)]  # (nb, b², C)
-        self.blk_max, self.blk_min = _column_extremes(r, ok, axis=1)
-
-    @functools.cached_property
-    def blk_dirs(self):
-        return np.where(self._ok[..., None], self.dirs[np.maximum(self.tex, 0)], np.nan)
-
-    def hits(self, cen, q):
-        """(tile, block) index pairs, tile-major: blocks whose cone reaches the cap of radius q[i] around
-        cen[i] (the block's centre within q + α)."""
-        cos_qb = np.cos(np.minimum(q + self.alpha, np.pi))
-        return np.nonzero((cen @ self.cen.T) >= cos_qb[:, None])
-
-    def local_extremes(self, cen, q, rows=256):
-        """Per-channel max and min of the non-bright radiance over the blocks that reach the caps (cen[i],
-        q[i]): a superset of the texels within q[i] of cen[i]."""
-        n_t = len(q)
-        C = self.blk_max.shape[1]
-        lmax, lmin = np.empty((n_t, C)), np.empty((n_t, C))
-        for i0 in range(0, n_t, rows):
-            ti, bi = self.hits(cen[i0 : i0 + rows], q[i0 : i0 + rows])
-            starts = np.flatnonzero(np.r_[True, ti[1:] != ti[:-1]])
-            # every cap holds the block of its own centre (q ≥ 0, α > 0): no tile is without hits
-            lmax[i0 : i0 + rows] = np.maximum.reduceat(self.blk_max[bi], starts, axis=0)
-            lmin[i0 : i0 + rows] = np.minimum.reduceat(self.blk_min[bi], starts, axis=0)
-        return lmax, lmin
-
-    def local_extremes_compiled(self, ck, cen, q, k=8):
-        """:meth:`local_extremes` by :func:`ibl_ref.groundtruth.compiled_kernels.cone_extremes` (super-blocks of
-        k × k blocks)."""
-        if not hasattr(self, "_sup"):
-            nb = len(self.cen)
-            nside = int(round(math.sqrt(nb / 6)))
-            nk = -(-nside // k)
-            mem = np.full((6, nk * k, nk * k), -1, dtype=np.intp)
-            mem[:, :nside, :nside] = np.arange(nb).reshape(6, nside, nside)
-            mem = envmap.face_blocks(mem, k)
-            mem = mem[(mem >= 0).any(axis=1)]
-            valid = mem >= 0
-            c = np.where(valid[..., None], self.cen[np.maximum(mem, 0)], 0.0).sum(axis=1)
-            c /= np.linalg.norm(c, axis=1, keepdims=True)
-            dots = np.where(valid, np.einsum("skj,sj->sk", self.cen[np.maximum(mem, 0)], c), 1.0)
-            sup_alpha = float(np.arccos(np.clip(dots.min(), -1.0, 1.0))) + self.alpha + 1e-9
-            self._sup = (np.ascontiguousarray(c), sup_alpha, np.ascontiguousarray(mem.astype(np.int64)))
-        sc, sa, sm = self._sup
-        C = self.blk_max.shape[1]
-        lmax, lmin = np.empty((len(q), C)), np.empty((len(q), C))
-        ck.cone_extremes(np.array(cen, dtype=np.float64), np.array(q, dtype=np.float64), np.array(self.cen),
-                         float(self.alpha), self.blk_max, self.blk_min, sc, sa, sm, lmax, lmin)  # writeable copies: one
-        # compiled signature (the cached geometry is read-only)
-        return lmax, lmin
-
-    def cap_lists(self, cen, q, pad, multiple=1):
-        """Non-bright source texels within q[i] of cen[i] for every tile i (block order), as a padded index
-        matrix (g, m) (m a multiple of ``multiple``; pads = ``pad``) and the counts (g,)."""
-        ti, bi = self.hits(cen, q)
-        dots = np.einsum("hkj,hj->hk", self.blk_dirs[bi], cen[ti])  # NaN (missing, bright) compares False
-        sel = dots >= np.cos(np.minimum(q, np.pi))[ti, None]
-        tex = self.tex[bi][sel]
-        tile = np.repeat(ti, sel.sum(axis=1))
-        counts = np.bincount(tile, minlength=len(q))
-        m = int(counts.max()) if counts.size else 0
-        m = max(multiple, -(-m // multiple) * multiple)
-        ii = np.full((len(q), m), pad, dtype=np.intp)
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        ii[tile, np.arange(tex.size) - starts[tile]] = tex
-        return ii, counts
+    dirs: np.ndarray
+    omega: np.ndarray
+    rad: np.ndarray
+    m: int
+    bright: np.ndarray
+    l_max_out: np.ndarray
+    l_min_out: np.ndarray
+    l_ref: float
+    eps: float
+    eps_far: float
+    rho: float
+    tau: float
+    floor: float
 
 
-#: the float32 kernel gathers whole slabs of b×b source texels (contiguous copies, no per-texel indexing),
-#: found by a two-level cone search (super-blocks of :data:`_SLAB_SUPER` × :data:`_SLAB_SUPER` slabs)
-_SLAB = 4
-_SLAB_SUPER = 4
-
-
-class _Slabs:
-    """Source texels in slabs of b×b (b = :data:`_SLAB`) for the float32 kernel.
-
-    ``dirs`` (ns + 1, b², 3) float64 directions and ``rw`` (ns + 1, b², Q) float32 rows [L·Ω, Ω] per slab, zero
-    for missing texels (partial slabs), for the bright set (gathered separately) and for the padding slab ns;
-    slab centres ``cen`` and the largest centre-to-texel angle ``alpha``; super-blocks of slabs (``sup_cen``,
-    ``sup_alpha``, member slabs ``sup_mem`` (nsup, k²), −1 = none).
-    """
-
-    def __init__(self, src_dirs, rad_w, is_bright, m, b=_SLAB, k=_SLAB_SUPER):
-        self.cen, tex, self.alpha = _source_blocks(src_dirs, m, b)
-        ok = (tex >= 0) & ~is_bright[np.maximum(tex, 0)]
-        ns = len(self.cen)
-        self.pad = ns
-        self.dirs = np.zeros((ns + 1, b * b, 3))
-        self.dirs[:ns] = np.where((tex >= 0)[..., None], src_dirs[np.maximum(tex, 0)], 0.0)
-        self.rw = np.zeros((ns + 1, b * b, rad_w.shape[1]), dtype=np.float32)
-        self.rw[:ns] = np.where(ok[..., None], rad_w[np.maximum(tex, 0)], 0.0)
-        nb = -(-m // b)  # slabs per face side
-        nk = -(-nb // k)
-        mem = np.full((6, nk * k, nk * k), -1, dtype=np.intp)
-        mem[:, :nb, :nb] = np.arange(ns).reshape(6, nb, nb)
-        self.sup_mem = envmap.face_blocks(mem, k)
-        # super-block centre: normalised mean of its slab centres; radius: farthest texel of its slabs
-        valid = self.sup_mem >= 0
-        c = np.where(valid[..., None], self.cen[np.maximum(self.sup_mem, 0)], 0.0).sum(axis=1)
-        self.sup_cen = c / np.linalg.norm(c, axis=1, keepdims=True)
-        dots = np.where(valid, np.einsum("skj,sj->sk", self.cen[np.maximum(self.sup_mem, 0)], self.sup_cen), 1.0)
-        self.sup_alpha = float(np.arccos(np.clip(dots.min(), -1.0, 1.0))) + self.alpha + 1e-9
-
-    def cap_slabs(self, cen, q):
-        """Slabs whose centre lies within q[i] + α of cen[i] (so every texel within q[i] is in one) for every
-        tile i, in super-block then member order: ``(slabs of all tiles (concatenated), counts (g,))``."""
-        ti, si = np.nonzero((cen @ self.sup_cen.T) >= np.cos(np.minimum(q + self.sup_alpha, np.pi))[:, None])
-        mem = self.sup_mem[si]  # (h, k²)
-        d = np.einsum("hkj,hj->hk", self.cen[np.maximum(mem, 0)], cen[ti])
-        sel = (mem >= 0) & (d >= np.cos(np.minimum(q + self.alpha, np.pi))[ti, None])
-        return mem[sel], np.bincount(np.repeat(ti, sel.sum(axis=1)), minlength=len(q))
-
-
-@functools.lru_cache(maxsize=8)
-def _direction_columns(m: int):
-    """The texel directions of the m² grid as three contiguous read-only columns X, Y, Z (M,)."""
-    d = envmap.texel_directions(m).reshape(-1, 3)
-    cols = tuple(np.ascontiguousarray(d[:, i]) for i in range(3))
-    for x in cols:
-        x.flags.writeable = False
-    return cols
-
-
-def _compiled_sources(m, rad, omega, bright):
-    """Source arrays of :func:`ibl_ref.groundtruth.compiled_kernels.tile_gather`: directions X, Y, Z (M,) of the
-    m² grid (read-only, cached), and the weight rows ``[L·Ω, Ω]`` in groups of ≤ 3 channels plus Ω, padded to 4
-    rows (zero for the bright texels ``bright``): ``[(rows (4, M), (output columns, input columns)), …]`` and the
-    bright texels' rows (nb, 4·groups).  (The products L·Ω are those of the NumPy path's ``[L, 1]·Ω``.)"""
+def _sparse_setup(a, supersample, n_bright, bright_factor, max_bright, rtol, dark_floor) -> _SparseSetup:
+    src_dirs, omega, rad = _sources(a, supersample)
     M, C = rad.shape
-    X, Y, Z = _direction_columns(m)
-    groups = []
-    for g0 in range(0, max(C, 1), 3):
-        ch = list(range(g0, min(g0 + 3, C))) + [C]
-        rws = np.zeros((4, M))
-        for j, c in enumerate(ch):
-            if c < C:
-                np.multiply(rad[:, c], omega, out=rws[j])
-            else:
-                rws[j] = omega
-        rws[:, bright] = 0.0
-        groups.append((rws, (ch, slice(4 * len(groups), 4 * len(groups) + 4))))
-    bright_rw = np.zeros((len(bright), 4 * len(groups)))
-    for gi, (_rws, (ch, _sl)) in enumerate(groups):
-        for j, c in enumerate(ch):
-            bright_rw[:, 4 * gi + j] = rad[bright, c] * omega[bright] if c < C else omega[bright]
-    return X, Y, Z, groups, bright_rw
-
-
-def _padded(flat, counts, rows, width, pad):
-    """Rows ``rows`` of a ragged list (``flat`` concatenated, ``counts`` per row) as a (len(rows), width) matrix
-    filled with ``pad``."""
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    c = counts[rows]
-    out = np.full((rows.size, width), pad, dtype=flat.dtype)
-    r = np.repeat(np.arange(rows.size), c)
-    j = np.arange(r.size) - np.repeat(np.cumsum(c) - c, c)
-    out[r, j] = flat[np.repeat(starts[rows], c) + j]
-    return out
-
-
-def _series_terms(s, x_max):
-    """Terms K of the series −log(1 − x) = Σ_k x^k/k whose remainder bound s·x^{K+1}/((K+1)(1 − x)) is
-    ≤ :data:`_SERIES_TOL` for x ≤ x_max (array; 0 where more than :data:`_SERIES_MAX` terms or x_max ≥ 1)."""
-    x = np.minimum(np.asarray(x_max, dtype=np.float64), 0.999)
-    out = np.zeros(x.shape, dtype=np.intp)
-    for K in range(_SERIES_MAX, 1, -1):
-        ok = (s * x ** (K + 1) / ((K + 1) * (1.0 - x)) <= _SERIES_TOL) & (np.asarray(x_max) < 1.0)
-        out = np.where(ok, K, out)
-    return out
-
-
-def _kernel32_eta(s, K, r_a, r_b, ang_max):
-    """Relative error bound η of the float32 kernel's sums Σ w_j L_j Ω_j and Σ w_j Ω_j (arrays broadcast).
-
-    x = 1 − r·ω = |a|²/2 + |b|²/2 − a·b with a = r − t, b = ω − t (t the tile centre: |a| ≤ r_a, |b| ≤ r_b,
-    angles bounding chords), every pair within the angle ang_max.
-    Error sources (u = 2^-24, γ_n = nu/(1 − nu)):
-
-    * x in float32 from float32-rounded a, b, |a|²/2, |b|²/2 by one 5-term dot product:
-      |x̂ − x| ≤ γ_8·(|a| + |b|)²/2 =: Δx;
-    * u = −s·p(x̂), p the K-term series of −log(1 − x), by Horner in float32: |û + s·p(x̂)| ≤ γ_{2K+1}·s·p(X)
-      with X = 1 − cos(ang_max) + Δx ≥ |x̂|; |p(x̂) − p(x)| ≤ Δx/(1 − X); the series remainder
-      0 ≤ −log(1 − x) − p(x) ≤ X^{K+1}/((K+1)(1 − X));
-    * float32 exp: relative :data:`_EXP32_REL` (weights ≥ 2^-126; smaller ones: the absolute term of
-      :func:`_kernel32_underflow`);
-    * L·Ω and Ω rounded to float32 (u), partial sums of :data:`_KC` non-negative terms (γ_kc), their float64
-      sum (≤ 1e-12).
-    """
-    dx = _gamma(8, _U32) * (r_a + r_b) ** 2 / 2.0
-    X = 1.0 - np.cos(np.minimum(ang_max, np.pi)) + dx
-    p = -np.log1p(-np.minimum(X, 0.999))
-    # first Horner stage c_K·x + c_{K−1} from its own 5-term product (|c_k| = s/k), propagated by x^{K−1}
-    e1 = (_gamma(7, _U32) * (s / K * (r_a + r_b) ** 2 / 2.0 + s / (K - 1)) + s / K * dx) * X ** (K - 1)
-    du = s * (_gamma(2 * K + 1, _U32) * p + dx / (1.0 - X) + X ** (K + 1) / ((K + 1) * (1.0 - X))) + e1
-    delta = np.expm1(du) * (1.0 + _EXP32_REL) + _EXP32_REL
-    return (1.0 + delta) * (1.0 + _U32) * (1.0 + _gamma(_KC, _U32)) * (1.0 + 1e-12) - 1.0
-
-
-def _kernel32_underflow(m, own_log, omega_ratio):
-    """Absolute error of the float32 kernel's average from weights below 2^-126 (float32 exp returns them
-    as subnormals or 0: each off by < 2^-125), relative to the largest neglected-or-gathered radiance:
-    m·2^-125 / (smallest own weight e^{own_log} · Ω_min/Ω_max)."""
-    return m * 2.0 ** -125 * math.exp(-own_log) * omega_ratio
-
-
-def _gather_batch32(cen, TD, si, slabs, coef):
-    """Float32 kernel for tiles with centres ``cen`` (g, 3), rows ``TD`` (g, B, 3) and slab matrix ``si``
-    (g, ms) (:meth:`_Slabs.cap_slabs`, ms·b² a multiple of :data:`_KC`).
-
-    With a = r − t, b = ω − t (t the tile centre): x = 1 − r·ω = [a, |a|²/2, 1]·[−b, 1, |b|²/2] in float32,
-    u = x·(c_1 + x·(c_2 + …)) by Horner (``coef`` = −s/k, the series of s·log(1 − x)), w = exp(u); sums of
-    :data:`_KC` candidates in float32 (matrix products over chunks), added over the chunks in float64.
-    Zero rows (missing texels, the bright set, pads) add exactly 0.  Returns the sums (g, B, Q) float64
-    (:func:`_kernel32_eta` bounds their relative error)."""
-    g = si.shape[0]
-    a = TD - cen[:, None, :]  # (g, B, 3)
-    B = a.shape[1]
-    ha = 0.5 * np.einsum("gbk,gbk->gb", a, a)
-    # rows 0…B−1 give x, rows B…2B−1 the first Horner stage c_K·x + c_{K−1} directly
-    cK, cK1 = float(coef[-1]), float(coef[-2])
-    TA = np.empty((g, 1, 2 * B, 5), dtype=np.float32)
-    TA[:, 0, :B, :3] = a
-    TA[:, 0, :B, 3] = ha
-    TA[:, 0, :B, 4] = 1.0
-    TA[:, 0, B:, :3] = cK * a
-    TA[:, 0, B:, 3] = cK * ha + cK1
-    TA[:, 0, B:, 4] = cK
-    b = slabs.dirs[si].reshape(g, -1, 3) - cen[:, None, :]  # (g, m, 3)
-    m = b.shape[1]
-    nch = m // _KC
-    DB = np.empty((g, nch, 5, _KC), dtype=np.float32)
-    DB[:, :, :3] = -b.reshape(g, nch, _KC, 3).transpose(0, 1, 3, 2)
-    DB[:, :, 3] = 1.0
-    DB[:, :, 4] = (0.5 * np.einsum("gmk,gmk->gm", b, b)).reshape(g, nch, _KC)
-    xu = np.matmul(TA, DB)  # (g, nch, 2B, kc)
-    x, u = xu[:, :, :B], xu[:, :, B:]
-    u *= x
-    for c in coef[-3::-1]:
-        u += c
-        u *= x
-    np.exp(u, out=u)
-    part = np.matmul(u, slabs.rw[si].reshape(g, nch, _KC, -1))  # (g, nch, B, Q) float32 partial sums
-    return np.add.reduce(part.astype(np.float64), axis=1)
-
-
-def _gather_batch64(tb, ii, TD, src_dirs_pad, rad_w_pad, s, rowmax):
-    """Float64 kernel (log/exp of the cosines) for the tiles ``tb`` with candidates ``ii`` (g, m): returns
-    the sums (g, B, Q) and the per-row log of the reference cosine (0 unless ``rowmax``)."""
-    c = np.matmul(TD[tb], src_dirs_pad[:, ii].transpose(1, 0, 2))  # (g, B, m) cosines
-    np.maximum(c, 0.0, out=c)
-    with np.errstate(divide="ignore"):
-        np.log(c, out=c)  # −inf behind the lobe (and at the pads) → weight exactly 0
-    if rowmax:
-        mx = c.max(axis=2, keepdims=True)
-        c -= mx
+    bright = _bright_set(rad, omega, n_bright, bright_factor, max_bright)
+    rest = np.ones(M, dtype=bool)
+    rest[bright] = False
+    if rest.any():
+        rad_rest = rad[rest] if bright.size else rad
+        l_max_out, l_min_out = column_extremes(rad_rest)  # (C,)
+        key = channel_max(rad_rest)
+        l_ref = float(np.sum(key * omega[rest]) / np.sum(omega[rest]))
+        l_top = float(key.max())
     else:
-        mx = np.zeros(c.shape[:2] + (1,))
-    c *= s
-    np.exp(c, out=c)  # (c / c_ref)^s ≤ 1
-    return np.matmul(c, rad_w_pad[ii]), mx  # Ω folded into rad_w: [Σ w L Ω, Σ w Ω]
+        l_max_out = l_min_out = np.zeros(C)
+        l_ref = l_top = 0.0
+    # the single-cap rule (local=False, or theta_c given): ε·L_max,out ≈ rtol·(typical radiance), i.e. relative
+    # error ≈ rtol where P ≈ mean radiance; also the typical cap that sets the tile size
+    eps = max(rtol * (min(1.0, l_ref / l_top) if l_top > 0 else 1.0), 1e-300)
+    tau = rtol / (1.0 + rtol)  # abs ≤ τ·P ⇔ abs/(P − abs) ≤ rtol (the relative bound of convolve())
+    floor = dark_floor * l_ref
+    lo = np.maximum(l_min_out, floor)
+    span = l_max_out - lo
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(span > 0, lo / np.where(span > 0, span, 1.0), np.inf)
+    eps_far = max(_FAR_SHARE * tau * float(ratio.min()) if np.isfinite(ratio.min()) else 1.0, 1e-300)
+    m = a.shape[1] * supersample
+    return _SparseSetup(src_dirs, omega, rad, m, bright, l_max_out, l_min_out, l_ref, eps, eps_far, _texel_extent(m),
+                        tau, floor)
 
 
-def _bright_sums(TD_tb, bright_dirs_t, rad_w_bright, s):
-    """Exact float64 sums of the bright set for the rows TD_tb (g, B, 3): (g, B, Q), weights relative to 1."""
-    c = np.matmul(TD_tb, bright_dirs_t)
-    np.maximum(c, 0.0, out=c)
-    with np.errstate(divide="ignore"):
-        np.log(c, out=c)
-    c *= s
-    np.exp(c, out=c)
-    return np.matmul(c, rad_w_bright)
-
-
-def _tile_batches(order, counts, B, chunk, key):
-    """Batches of tile indices (consecutive in ``order``, with equal ``key``; ``counts`` an estimate of each
-    tile's candidate count) whose weight arrays (g·B·m) stay within ``chunk`` elements (at least one tile)."""
-    k0 = 0
-    while k0 < len(order):
-        g = max(1, chunk // (B * max(int(counts[order[k0]]), 1)))
-        tb = order[k0 : k0 + g]
-        tb = tb[key[tb] == key[tb[0]]]  # (order is sorted by key: a prefix)
-        while tb.size > 1 and tb.size * B * int(counts[tb].max()) > chunk:
-            tb = tb[: max(1, tb.size // 2)]
-        yield tb
-        k0 += tb.size
-
-
-#: fewest tiles per thread of :func:`_tile_gather_threads`
-_TILES_PER_THREAD_MIN = 32
-
-
-def _tile_gather_threads(ck, threads, cen, rows, caps, arad, frames, m, X, Y, Z, rws, bdirs, brw, groups, s, s_int,
-                         rowmax, c_floor, acc, logmx, count, pairs):
-    """:func:`ibl_ref.groundtruth.compiled_kernels.tile_gather` on ``threads`` threads: the tiles in runs of
-    consecutive ones (views of the inputs and outputs: nothing copied), which each thread takes in turn as it
-    becomes free (tiles differ in work, e.g. near the bright texels).  Every tile is computed by the same code on
-    the same inputs as in one call: the result does not depend on ``threads`` or on which thread took a run."""
-    nt = cen.shape[0]
-    # (a few tiles, e.g. a later attempt's: starting a thread costs more than their gather)
-    threads = max(1, min(int(threads), nt // _TILES_PER_THREAD_MIN))
-    if threads <= 1:
-        ck.tile_gather(cen, rows, caps, arad, frames, m, X, Y, Z, rws, bdirs, brw, s, s_int, rowmax, c_floor, acc,
-                       logmx, count, groups, pairs)
-        return
-    import threading
-
-    run_len = max(2 * _TILES_PER_THREAD_MIN, -(-nt // (8 * threads)))  # ≈ 8 runs per thread
-    starts = list(range(0, nt, run_len))
-    lock = threading.Lock()
-    nxt = [0]
-    errors = []
-
-    def work():
-        try:
-            while True:
-                with lock:
-                    if errors or nxt[0] >= len(starts):
-                        return
-                    a = starts[nxt[0]]
-                    nxt[0] += 1
-                b = min(a + run_len, nt)
-                ck.tile_gather(cen[a:b], rows[a:b], caps[a:b], arad[a:b], frames, m, X, Y, Z, rws, bdirs, brw, s,
-                               s_int, rowmax, c_floor, acc[a:b], logmx[a:b], count[a:b], groups, pairs[a:b])
-        except BaseException as exc:  # re-raised on the calling thread
-            with lock:
-                errors.append(exc)
-
-    # plain threads (no executor: concurrent.futures costs a process ≈ 1–5 ms of imports)
-    others = [threading.Thread(target=work, name=f"ibl_tiles_{j}", daemon=True) for j in range(1, threads)]
-    for th in others:  # the other threads …
-        th.start()
+def _sparse_args(exponents, rtol, dark_floor, threads):
+    """The checked exponents, rtol and dark floor of :func:`convolve_sparse_many`."""
+    s_list = [check_exponent(s) for s in np.atleast_1d(np.asarray(exponents, dtype=object))]
+    if not s_list:
+        raise IBLError("no Phong exponents given")
     try:
-        work()  # … and this one
-    finally:
-        for th in others:
-            th.join()
-    if errors:
-        raise errors[0]
+        rtol = float(rtol)
+    except (TypeError, ValueError):
+        raise IBLError(f"rtol must be a positive number, got {rtol!r}") from None
+    if not (0.0 < rtol < 1.0):
+        raise IBLError(f"rtol must be in (0, 1), got {rtol!r}")
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+        raise IBLError(f"threads must be an integer ≥ 1, got {threads!r}")
+    try:
+        dark_floor = float(dark_floor)
+    except (TypeError, ValueError):
+        raise IBLError(f"dark_floor must be a number in [0, 1], got {dark_floor!r}") from None
+    if not (0.0 <= dark_floor <= 1.0):
+        raise IBLError(f"dark_floor must be in [0, 1], got {dark_floor!r}")
+    return s_list, rtol, dark_floor
 
 
 def convolve_sparse_many(
@@ -1146,16 +777,11 @@ def convolve_sparse_many(
     computed independently, so the result on a face is bit-for-bit the same as in the full call
     (used by :func:`ibl_ref.groundtruth.convolve.convolve` to split the work between workers).
 
-    ``impl="compiled"`` runs the gather of every tile (its cap's texels found by face-row intervals, the
-    weights, the bright set) in :func:`ibl_ref.groundtruth.compiled_kernels.tile_gather` (float64; its rounding
-    bound, :func:`~ibl_ref.groundtruth.kernel_spec.weight_error`, replaces the float32 kernel's in the
-    bound); tiles, caps, attempts and the bound are the same code as for ``impl="numpy"``, except that the first
-    attempt leaves out the bright texels whose weight from every row of the tile is below δ0 (and sets gathered weights
-    below δ0 to 0), an absolute error ≤ δ0 per (row, texel) pair that the bound charges like the rounding allowance
-    (δ0 from :data:`_BRIGHT_CUT_SHARE`; every later attempt, and every tile whose bound then misses, uses e^-700).
-    ``threads`` > 1 (compiled
-    only): the tiles are gathered by that many threads (the kernel releases the GIL; every tile's sums are computed
-    by one thread exactly as in a serial call, so the result is bit-for-bit the same for every thread count).
+    ``impl``: the kernel backend of the gather (:mod:`ibl_ref.groundtruth.kernels`): ``"numpy"`` (the float32 or
+    float64 kernel, ``kernel``) or ``"compiled"`` (:class:`ibl_ref.groundtruth.kernels.numba_backend.CompiledSparseGather`:
+    float64, its rounding bound replacing the float32 kernel's; its first attempt may leave out far bright texels,
+    charged in the bound).  Tiles, caps, attempts and the bound are the same for both.  ``threads`` > 1 (compiled
+    only): the tiles are gathered by that many threads; the result is bit-for-bit the same for every thread count.
 
     ``_sample > 0`` (used by the planner of :func:`ibl_ref.groundtruth.convolve.convolve`, see
     :func:`estimate_candidates`): no gather; the first attempt's caps of that many evenly spaced tiles only,
@@ -1164,99 +790,29 @@ def convolve_sparse_many(
     a, squeeze = check_cube(cube)
     n = a.shape[1]
     out_size, supersample = _check_sizes(out_size, n, supersample)
-    s_list = [check_exponent(s) for s in np.atleast_1d(np.asarray(exponents, dtype=object))]
-    if not s_list:
-        raise IBLError("no Phong exponents given")
-    try:
-        rtol = float(rtol)
-    except (TypeError, ValueError):
-        raise IBLError(f"rtol must be a positive number, got {rtol!r}") from None
-    if not (0.0 < rtol < 1.0):
-        raise IBLError(f"rtol must be in (0, 1), got {rtol!r}")
+    s_list, rtol, dark_floor = _sparse_args(exponents, rtol, dark_floor, threads)
     if kernel not in ("auto", "float32", "float64"):
         raise IBLError(f"kernel must be 'auto', 'float32' or 'float64', got {kernel!r}")
-    if impl not in ("numpy", "compiled"):
-        raise IBLError(f"impl must be 'numpy' or 'compiled', got {impl!r}")
-    if impl == "compiled" and kernel == "float32":
-        raise IBLError("kernel='float32' is the NumPy path's kernel; the compiled gather is float64 (kernel='auto')")
-    compiled = impl == "compiled"
-    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
-        raise IBLError(f"threads must be an integer ≥ 1, got {threads!r}")
-    ck = None
-    if compiled:
-        from .kernel_choice import compiled
-        from .kernel_spec import POWI_MAX, sum_error, weight_error
-
-        ck = compiled()
-    try:
-        dark_floor = float(dark_floor)
-    except (TypeError, ValueError):
-        raise IBLError(f"dark_floor must be a number in [0, 1], got {dark_floor!r}") from None
-    if not (0.0 <= dark_floor <= 1.0):
-        raise IBLError(f"dark_floor must be in [0, 1], got {dark_floor!r}")
-    C = a.shape[-1]
-    K = len(s_list)
+    kern = get_kernels(check_impl(impl))
+    C, K = a.shape[-1], len(s_list)
     faces = check_faces(faces)
-    nF = len(faces)
-    P = nF * out_size * out_size
+    P = len(faces) * out_size * out_size
     maps = np.empty((K, P, C))
     bounds = np.zeros((K, P, C))
     infos = []
-
-    src_dirs, omega, rad = _sources(a, supersample)
-    M = src_dirs.shape[0]
-    bright = _bright_set(rad, omega, n_bright, bright_factor, max_bright)
-    rest = np.ones(M, dtype=bool)
-    rest[bright] = False
-    if rest.any():
-        rad_rest = rad[rest] if bright.size else rad
-        l_max_out, l_min_out = _column_extremes(rad_rest)  # (C,)
-        key = channel_max(rad_rest)
-        l_ref = float(np.sum(key * omega[rest]) / np.sum(omega[rest]))
-        l_top = float(key.max())
-    else:
-        l_max_out = l_min_out = np.zeros(C)
-        l_ref = l_top = 0.0
-    # the single-cap rule (local=False, or theta_c given): ε·L_max,out ≈ rtol·(typical radiance), i.e. relative
-    # error ≈ rtol where P ≈ mean radiance; also the typical cap that sets the tile size
-    eps = rtol * (min(1.0, l_ref / l_top) if l_top > 0 else 1.0)
-    eps = max(eps, 1e-300)
-    rho = _texel_extent(n * supersample)
-    tau = rtol / (1.0 + rtol)  # abs ≤ τ·P ⇔ abs/(P − abs) ≤ rtol (the relative bound of convolve())
-    floor = dark_floor * l_ref
-    lo = np.maximum(l_min_out, floor)
-    span = l_max_out - lo
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(span > 0, lo / np.where(span > 0, span, 1.0), np.inf)
-    eps_far = max(_FAR_SHARE * tau * float(ratio.min()) if np.isfinite(ratio.min()) else 1.0, 1e-300)
-
-    geometry = {}  # tile size → per-tile output indices, directions, centre, angles
-    is_bright = np.zeros(M, dtype=bool)
-    is_bright[bright] = True
-    sources = slabs = None
-    if not compiled:
-        rad_w = np.concatenate([rad, np.ones((M, 1))], axis=1) * omega[:, None]
-        # source directions and weights with one dummy entry (index M: direction 0 → weight 0) for the pads
-        src_dirs_pad = np.concatenate([src_dirs, np.zeros((1, 3))])
-        src_dirs_pad_t = np.ascontiguousarray(src_dirs_pad.T)
-        rad_w_pad = np.concatenate([rad_w, np.zeros((1, C + 1))])
-        bright_dirs_t = np.ascontiguousarray(src_dirs[bright].T)
-        rad_w_bright = rad_w[bright]
-    omega_ratio = float(omega.max() / omega.min())
-
+    src = _sparse_setup(a, supersample, n_bright, bright_factor, max_bright, rtol, dark_floor)
+    gather = kern.sparse_gather(src.dirs, src.omega, src.rad, src.bright, src.m, kernel, threads)
+    M = src.dirs.shape[0]
     for k, s in enumerate(s_list):
         if not np.isfinite(s):
             if _sample:
                 infos.append(1.0)
                 continue
             maps[k] = _mirror(a, out_size)[list(faces)].reshape(-1, C)
-            infos.append(SparseInfo(s, 0.0, rho, 0.0, -np.inf, 0, 1.0 / M))
+            infos.append(SparseInfo(s, 0.0, src.rho, 0.0, -np.inf, 0, 1.0 / M))
             continue
         single = theta_c is not None or not local
-        if theta_c is None:
-            th = cutoff_angle(s, eps, rho)
-        else:
-            th = float(min(max(theta_c, 0.0), np.pi / 2))
+        th = cutoff_angle(s, src.eps, src.rho) if theta_c is None else float(min(max(theta_c, 0.0), np.pi / 2))
         if (1.0 - math.cos(min(th, np.pi))) / 2.0 > 0.4:
             # the cap covers most of the lobe's hemisphere: the dense exact gather is cheaper
             if _sample:
@@ -1265,251 +821,87 @@ def convolve_sparse_many(
             ex = convolve_exact_many(a, [s], supersample=supersample, out_size=out_size)[0][list(faces)].reshape(-1, C)
             maps[k] = ex
             bounds[k] = 1e-12 * ex
-            infos.append(SparseInfo(s, np.pi / 2, rho, eps, -np.inf, int(bright.size), 1.0))
+            infos.append(SparseInfo(s, np.pi / 2, src.rho, src.eps, -np.inf, int(src.bright.size), 1.0))
             continue
-        # tiles of T×T output texels sharing one candidate list
-        if compiled:
-            # the compiled gather's first attempt leaves out the bright texels whose weight from every row of the
-            # tile is below δ0 = e^log_d0 (beyond acos(δ0^(1/s)) + the tile radius; gathered weights below δ0 are 0):
-            # an absolute weight error ≤ δ0 per pair, charged in the allowance `und` with the rounding (below); δ0
-            # keeps that term ≤ _BRIGHT_CUT_SHARE·τ for a texel as bright as the mean radiance l_ref even if every
-            # source texel were a pair.  Tiles whose bound still misses (darker ones) are gathered again, as every
-            # later attempt, with e^-700
-            log_d0 = -700.0
-            own0 = s * math.log(max(math.cos(min(rho, np.pi / 2)), 1e-300))
-            if own0 >= -600.0 and l_ref > 0.0 and not single:  # (one cap: no second attempt)
-                l_all = float(rad.max())
-                log_d0 = max(math.log(_BRIGHT_CUT_SHARE * tau * l_ref / ((l_all + l_ref) * M * omega_ratio)) + own0,
-                             -700.0)
-            a_b = math.acos(math.exp(log_d0 / s)) + th
-            nb_eff = bright.size * (1.0 - math.cos(min(a_b, np.pi))) / 2.0
-            T = _tile_size(out_size, th, M, nb_eff, _TILE_OVERHEAD_COMPILED, _CAND_OVERHEAD_COMPILED)
-        else:
-            T = _tile_size(out_size, th, M, int(bright.size))
-        IDX, TD, CEN, ANG, VALID, t_rad0 = (_tile_layout_of if _sample else _tile_layout)(out_size, tuple(faces), T)
-        if _sample:
-            # (sorted distinct indices; not np.unique, whose first call imports numpy.ma: ≈ 10 ms of a process)
-            pick = np.array(sorted(set(np.linspace(0, len(CEN) - 1, min(_sample, len(CEN))).astype(np.intp).tolist())),
-                            dtype=np.intp)
-            IDX, TD, CEN, ANG, VALID = IDX[pick], TD[pick], CEN[pick], ANG[pick], VALID[pick]
-        n_t, B = IDX.shape
-        a_max = ANG.max(axis=1)
-        # the largest tile radius, from face 0 whatever the face subset (all faces have the same tiles): the kernel
-        # choice below is the same for every subset
-        t_rad = t_rad0 * (1.0 + 1e-9)
-        # every cap reaches ρ beyond its tile's texels: each row's own source texel (within ρ) is gathered
-        cap_min = rho + _ANGLE_MARGIN
-        th_far = max(th if single else cutoff_angle(s, eps_far, rho), cap_min)
-        log_lobe = math.log(2.0 * np.pi / (s + 1.0))
-        # W_b tabulated from cap_min to beyond every θ a bound looks up (step ρ/4), made non-increasing by a
-        # running minimum (W_b(θ') bounds every texel beyond θ ≥ θ': valid); a texel uses the grid angle ≤ its θ
-        top = min(th_far + t_rad + 2.0 * _ANGLE_MARGIN, np.pi / 2)
-        grid, log_wb_grid = _wb_grid(float(s), float(rho), float(cap_min), float(top))
-
-        def cap_for(eps_t):
-            i = np.searchsorted(-log_wb_grid, -(np.log(eps_t) + log_lobe), side="left")
-            return np.minimum(grid[np.minimum(i, grid.size - 1)], th_far)
-
-        def log_wb_at(theta):
-            gi = np.searchsorted(grid, theta, side="right") - 1
-            return np.where(gi >= 0, log_wb_grid[np.maximum(gi, 0)], 0.0 * theta + np.inf)
-
-        if sources is None:
-            sources = _Sources(src_dirs, rad, is_bright, n * supersample)
-        # kernel: float32 where its rounding bound is small (decided from bounds valid for every face subset):
-        # a row and a candidate are within a + q, q ≤ θ_far + t_rad
-        # (slab texels lie within the slab's plane diagonal (b−1)·√2·2/m of each other: the gnomonic map from
-        # the face plane to the sphere shortens distances)
-        al_slab = (_SLAB - 1) * math.sqrt(2.0) * 2.0 / (n * supersample)
-        q_top = th_far + t_rad + _ANGLE_MARGIN + 2.0 * al_slab
-        x_glob = 1.0 - math.cos(min(q_top + t_rad, np.pi))
-        own_log = s * math.log(max(math.cos(min(rho, np.pi / 2)), 1e-300))
-        n_terms = int(_series_terms(s, x_glob + _gamma(8, _U32) * (q_top + t_rad) ** 2))
-        use32 = (not compiled and kernel != "float64" and n_terms > 0 and x_glob <= _X32_MAX
-                 and own_log >= _OWN_LOG_MIN)
-        if use32:  # its rounding bound at the typical cap (first attempt) takes ≤ 20 % of rtol
-            q_typ = th + t_rad + _ANGLE_MARGIN + 2.0 * al_slab
-            eta_typ = float(_kernel32_eta(s, n_terms, t_rad, q_typ, t_rad + q_typ))
-            use32 = kernel == "float32" or 2.2 * eta_typ <= 0.2 * tau
-        if kernel == "float32" and not use32:
-            raise IBLError(f"the float32 kernel cannot bound s = {s:g} on this grid (cap too wide or lobe narrower "
-                           "than a texel); use kernel='auto'")
-        fp_share = 2.2 * eta_typ if use32 else 0.0
-        if use32 and slabs is None:
-            slabs = _Slabs(src_dirs, rad_w, is_bright, n * supersample)
-        rowmax = (not use32) and own_log < -600.0
-        if compiled:
-            # c^s by binary powering for integer exponents (own weight ≥ e^-600: no reference needed), else
-            # exp(s·log c), relative to the row's largest cosine where the own weight may underflow
-            s_int = int(s) if (float(s).is_integer() and s <= POWI_MAX and own_log >= -600.0) else 0
-            eta_w, eps_w = weight_error(s, bool(s_int), rowmax)
-            if ("rw4",) not in geometry:
-                geometry[("rw4",)] = _compiled_sources(n * supersample, rad, omega, bright)
-            l_und = float(rad.max()) if rad.size else 0.0
-
-        # caps per attempt: local (radiance extremes within the far cap), then local with κ ≥ 1 (an average
-        # above the local maximum, e.g. next to the bright set), then the far cap
-        q_far = th_far + a_max + _ANGLE_MARGIN
-        if single:
-            lmax2, lmin2 = np.broadcast_to(l_max_out, (n_t, C)), np.broadcast_to(l_min_out, (n_t, C))
-            attempts = [np.full(n_t, th_far)]
-        else:
-            lmax2, lmin2 = (sources.local_extremes_compiled(ck, CEN, q_far) if compiled
-                            else sources.local_extremes(CEN, q_far))
-            with np.errstate(invalid="ignore", divide="ignore"):
-                kap = np.where(lmax2 > lmin2, (lmax2 - lmin2) / np.maximum(lmin2, max(floor, 1e-300)), 0.0).max(axis=1)
-            tau_near = max(tau * (1.0 - _FAR_SHARE) - fp_share, 1e-3 * tau)
-            with np.errstate(divide="ignore"):
-                eps1 = np.minimum(_CAP_MARGIN * tau_near / np.maximum(kap, 1e-12), 0.5)
-                eps2 = np.minimum(_CAP_MARGIN * tau_near / np.maximum(kap, 1.0), 0.5)
-            attempts = [cap_for(eps1), cap_for(eps2), np.full(n_t, th_far)]
-        if _sample:
-            q0 = attempts[0] + a_max + _ANGLE_MARGIN
-            infos.append(float(np.mean((1.0 - np.cos(np.minimum(q0, np.pi))) / 2.0 * M)) + bright.size)
-            continue
-        todo = np.arange(n_t)
-        prev = np.full(n_t, -1.0)
-        gathered = 0
-        retried = 0
-        caps_used = np.zeros(n_t)
-        for att, caps in enumerate(attempts):
-            # a tile is gathered again when its cap grows, or (attempt 1) when attempt 0 left out weights below δ0
-            todo = todo[(caps[todo] > prev[todo]) | (att == 1 and compiled and log_d0 > -700.0)]
-            if todo.size == 0:
-                break
-            if att > 0:
-                retried += todo.size
-            prev[todo] = caps[todo]
-            caps_used[todo] = caps[todo]
-            q_t = caps + a_max + _ANGLE_MARGIN
-            acc = np.empty((todo.size, B, C + 1))
-            log_mx = np.zeros((todo.size, B))
-            eta = np.full(todo.size, 1e-12)
-            und = np.zeros(todo.size)
-            pos = np.empty(n_t, dtype=np.intp)
-            pos[todo] = np.arange(todo.size)
-            est = np.minimum(M, (1.0 - np.cos(np.minimum(q_t + sources.alpha, np.pi))) / 2.0 * M * 1.5 + _KC)
-            if use32:
-                # series terms per tile (from the tile's own largest x: the same in every face subset); a batch
-                # holds tiles with the same number of terms
-                r_all = a_max + q_t + 2.0 * slabs.alpha
-                terms = _series_terms(s, 1.0 - np.cos(np.minimum(r_all, np.pi)) + _gamma(8, _U32) * r_all**2)
-            else:
-                terms = np.zeros(n_t, dtype=np.intp)
-            order = todo[np.lexsort((est[todo], terms[todo]))]
-            if compiled:
-                log_cut = log_d0 if att == 0 else -700.0
-                X, Y, Z, groups, bright_rw = geometry[("rw4",)]
-                if ("bright_groups",) not in geometry:  # the bright texels' directions and groups, once per call
-                    bdirs = np.ascontiguousarray(src_dirs[bright])
-                    geometry[("bright_groups",)] = bdirs, ck.bright_groups(bdirs)
-                bdirs, bgroups = geometry[("bright_groups",)]
-                for rws, cols in groups:
-                    acc_g = np.empty((todo.size, B, 4))
-                    lm_g = np.empty((todo.size, B))
-                    cnt = np.empty(todo.size, dtype=np.int64)
-                    pairs = np.empty(todo.size, dtype=np.int64)
-                    _tile_gather_threads(ck, threads, CEN[todo], TD[todo], q_t[todo], a_max[todo],
-                                         envmap.face_frames("openexr"), n * supersample, X, Y, Z, rws,
-                                         bdirs, bright_rw[:, cols[1]], bgroups,
-                                         float(s), s_int, rowmax, math.exp(log_cut / s), acc_g, lm_g, cnt, pairs)
-                    acc[..., cols[0]] = acc_g[..., : len(cols[0])]
-                    log_mx = lm_g
-                m_t = cnt.astype(np.float64)
-                eta = eta_w + sum_error(cnt)
-                # absolute errors of the smallest weights and of the weights left out below e^-700 (per pair ≤
-                # eps_w, relative to the weight scale 1: the row maximum or c^s with c ≤ 1) and, in attempt 0, of
-                # those left out or set to 0 below δ0 (≤ δ0 more per pair), against W_in ≥ the own texel's
-                # weight · Ω_min
-                eps_pair = eps_w + (math.exp(log_cut) if log_cut > -700.0 else 0.0)
-                und = m_t * eps_pair * math.exp(-(0.0 if rowmax else own_log)) * omega_ratio
-                gathered += int(pairs.sum()) * B  # (the pairs computed: the bright texels left out are not)
-            elif use32:
-                # groups of tiles with the same number of series terms: their slab lists, then batches of tiles
-                # with similar list lengths (the batch pads to its longest list)
-                per = _KC // _SLAB**2
-                for grp in _tile_batches(order, est, 1, 512 * int(est.max()), terms):
-                    flat, cnt = slabs.cap_slabs(CEN[grp], q_t[grp])
-                    width = -(-cnt // per) * per
-                    srt = np.argsort(width, kind="stable")
-                    kt = int(terms[grp[0]])
-                    coef = (-s / np.arange(1, kt + 1)).astype(np.float32)
-                    i0 = 0
-                    while i0 < grp.size:
-                        w = int(width[srt[i0]])
-                        g = max(1, _CHUNK32 // (B * w * _SLAB**2))
-                        sel = srt[i0 : i0 + g]
-                        wmax = int(width[sel].max())
-                        while sel.size > 1 and sel.size * B * wmax * _SLAB**2 > _CHUNK32:
-                            sel = sel[: sel.size // 2]
-                            wmax = int(width[sel].max())
-                        tb = grp[sel]
-                        r = pos[tb]
-                        si = _padded(flat, cnt, sel, wmax, slabs.pad)
-                        acc[r] = _gather_batch32(CEN[tb], TD[tb], si, slabs, coef)
-                        r_b = q_t[tb] + 2.0 * slabs.alpha
-                        eta[r] = _kernel32_eta(s, kt, a_max[tb], r_b, a_max[tb] + r_b)
-                        und[r] = _kernel32_underflow(wmax * _SLAB**2 + bright.size, own_log, omega_ratio)
-                        if bright.size:
-                            acc[r] += _bright_sums(TD[tb], bright_dirs_t, rad_w_bright, s)
-                        gathered += si.size * _SLAB**2 * B
-                        i0 += sel.size
-            else:
-                # (batches sized by the texels within q at the mean density: the lists are built per batch)
-                est64 = np.maximum((1.0 - np.cos(np.minimum(q_t, np.pi))) / 2.0 * M, 1.0)
-                for tb in _tile_batches(order, est64, B, _CHUNK_ELEMS, terms):
-                    r = pos[tb]
-                    ii, _cnt = sources.cap_lists(CEN[tb], q_t[tb], M)
-                    if rowmax and bright.size:  # the row maxima include the bright set
-                        ii = np.concatenate([ii, np.broadcast_to(bright, (tb.size, bright.size))], axis=1)
-                    acc[r], mx = _gather_batch64(tb, ii, TD, src_dirs_pad_t, rad_w_pad, s, rowmax)
-                    log_mx[r] = s * mx[..., 0]
-                    if bright.size and not rowmax:
-                        acc[r] += _bright_sums(TD[tb], bright_dirs_t, rad_w_bright, s)
-                    gathered += ii.size * B
-            # per-texel bounds of the attempt's tiles; tiles whose bound misses rtol go to the next attempt
-            tt = todo
-            if compiled:  # the same formula as below, in one compiled pass
-                worst = np.empty(tt.size)
-                ck.tile_bounds(acc, log_mx, np.broadcast_to(eta, tt.shape).astype(np.float64),
-                               np.broadcast_to(und, tt.shape).astype(np.float64), l_und, ANG[tt], q_t[tt], q_far[tt],
-                               0.5 * _ANGLE_MARGIN, grid, log_wb_grid, np.ascontiguousarray(lmax2[tt]),
-                               np.ascontiguousarray(lmin2[tt]), np.asarray(l_max_out, dtype=np.float64),
-                               np.asarray(l_min_out, dtype=np.float64), VALID[tt], IDX[tt], maps[k], bounds[k], worst)
-                todo = np.sort(tt[~(worst <= tau)])
-                continue
-            p_avg = acc[..., :C] / acc[..., C:]
-            # log W_in (absolute Σ cos^s Ω over the gathered set), lowered by the kernel's error bound
-            log_win = log_mx + np.log(acc[..., C]) - np.log1p(eta + und)[:, None]
-            l_u = lmax2[tt][:, None, :]
-            e_fp = (2.0 * eta / (1.0 - eta))[:, None, None] * p_avg + und[:, None, None] * (l_u + p_avg)
-            # neglected texels of a row at angle a from the centre: beyond q − a (the near annulus up to
-            # q_far − a: local extremes) and beyond q_far − a (global extremes)
-            ang = ANG[tt]
-            lw1 = log_wb_at(q_t[tt][:, None] - 0.5 * _ANGLE_MARGIN - ang)
-            lw2 = log_wb_at(q_far[tt][:, None] - 0.5 * _ANGLE_MARGIN - ang)
-            with np.errstate(over="ignore", invalid="ignore"):
-                f1 = np.where(np.isneginf(lw1), 0.0, np.exp(np.minimum(lw1 - log_win, 700.0)))
-                f2 = np.where(np.isneginf(lw2), 0.0, np.exp(np.minimum(lw2 - log_win, 700.0)))
-            d_loc = np.maximum(np.maximum(lmax2[tt][:, None, :] - p_avg, p_avg - lmin2[tt][:, None, :]), 0.0) + e_fp
-            d_glob = np.maximum(np.maximum(l_max_out - p_avg, p_avg - l_min_out), 0.0) + e_fp
-            b_abs = (np.minimum(f1, f2)[..., None] * d_glob + np.maximum(f1 - f2, 0.0)[..., None] * d_loc
-                     + e_fp + 1e-12 * p_avg)
-            vt = VALID[tt]
-            maps[k, IDX[tt][vt]] = p_avg[vt]
-            bounds[k, IDX[tt][vt]] = b_abs[vt]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                worst = np.where(vt[..., None], b_abs / p_avg, 0.0).reshape(tt.size, -1).max(axis=1)
-            todo = np.sort(tt[~(worst <= tau)])
-        infos.append(SparseInfo(s, float(caps_used.max()), rho, eps_far if not single else eps,
-                                float(neglected_weight_bound(s, float(caps_used.max()), rho)), int(bright.size),
-                                gathered / (P * M), float(caps_used.min()), int(retried),
-                                "compiled" if compiled else ("float32" if use32 else "float64")))
+        infos.append(_sparse_exponent(gather, src, s, th, single, out_size, faces, maps[k], bounds[k], _sample))
     if _sample:
         return infos
-    shape = (K, nF, out_size, out_size) + (() if squeeze else (C,))
+    shape = (K, len(faces), out_size, out_size) + (() if squeeze else (C,))
     out = (maps.reshape(shape), bounds.reshape(shape))
     return out + (infos,) if return_info else out
+
+
+def _sparse_exponent(gather, src: _SparseSetup, s, th, single, out_size, faces, maps_k, bounds_k, sample):
+    """One exponent of :func:`convolve_sparse_many`: the tiles and their caps per attempt (local radiance extremes,
+    then local with κ ≥ 1 — an average above the local maximum, e.g. next to the bright set —, then the far cap),
+    the gathers and bounds into ``maps_k``/``bounds_k``; returns its :class:`SparseInfo` (with ``sample``: the
+    first attempt's mean candidates per output texel)."""
+    M, C, rho, tau = src.dirs.shape[0], src.rad.shape[1], src.rho, src.tau
+    # tiles of T×T output texels sharing one candidate list
+    log_d0 = gather.bright_cut(s, rho, src.l_ref, tau, single)
+    T = _tile_size(out_size, th, M, *gather.tile_costs(s, th, log_d0))
+    IDX, TD, CEN, ANG, VALID, t_rad0 = (_tile_layout_of if sample else _tile_layout)(out_size, tuple(faces), T)
+    if sample:
+        # (sorted distinct indices; not np.unique, whose first call imports numpy.ma: ≈ 10 ms of a process)
+        pick = np.array(sorted(set(np.linspace(0, len(CEN) - 1, min(sample, len(CEN))).astype(np.intp).tolist())),
+                        dtype=np.intp)
+        IDX, TD, CEN, ANG, VALID = IDX[pick], TD[pick], CEN[pick], ANG[pick], VALID[pick]
+    n_t = IDX.shape[0]
+    a_max = ANG.max(axis=1)
+    # the largest tile radius, from face 0 whatever the face subset (all faces have the same tiles): the kernel
+    # choice below is the same for every subset
+    t_rad = t_rad0 * (1.0 + 1e-9)
+    # every cap reaches ρ beyond its tile's texels: each row's own source texel (within ρ) is gathered
+    cap_min = rho + ANGLE_MARGIN
+    th_far = max(th if single else cutoff_angle(s, src.eps_far, rho), cap_min)
+    log_lobe = math.log(2.0 * np.pi / (s + 1.0))
+    # W_b tabulated from cap_min to beyond every θ a bound looks up (step ρ/4), made non-increasing by a
+    # running minimum (W_b(θ') bounds every texel beyond θ ≥ θ': valid); a texel uses the grid angle ≤ its θ
+    top = min(th_far + t_rad + 2.0 * ANGLE_MARGIN, np.pi / 2)
+    grid, log_wb_grid = _wb_grid(float(s), float(rho), float(cap_min), float(top))
+    own_log = s * math.log(max(math.cos(min(rho, np.pi / 2)), 1e-300))
+    fp_share = gather.prepare(s, th, th_far, t_rad, rho, tau, own_log)
+    q_far = th_far + a_max + ANGLE_MARGIN
+    if single:
+        lmax2, lmin2 = np.broadcast_to(src.l_max_out, (n_t, C)), np.broadcast_to(src.l_min_out, (n_t, C))
+        attempts = [np.full(n_t, th_far)]
+    else:
+        lmax2, lmin2 = gather.local_extremes(CEN, q_far)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            kap = np.where(lmax2 > lmin2, (lmax2 - lmin2) / np.maximum(lmin2, max(src.floor, 1e-300)), 0.0).max(axis=1)
+        tau_near = max(tau * (1.0 - _FAR_SHARE) - fp_share, 1e-3 * tau)
+        with np.errstate(divide="ignore"):
+            eps1 = np.minimum(_CAP_MARGIN * tau_near / np.maximum(kap, 1e-12), 0.5)
+            eps2 = np.minimum(_CAP_MARGIN * tau_near / np.maximum(kap, 1.0), 0.5)
+        i1 = np.searchsorted(-log_wb_grid, -(np.log(eps1) + log_lobe), side="left")
+        i2 = np.searchsorted(-log_wb_grid, -(np.log(eps2) + log_lobe), side="left")
+        attempts = [np.minimum(grid[np.minimum(i, grid.size - 1)], th_far) for i in (i1, i2)] + [np.full(n_t, th_far)]
+    if sample:
+        q0 = attempts[0] + a_max + ANGLE_MARGIN
+        return float(np.mean((1.0 - np.cos(np.minimum(q0, np.pi))) / 2.0 * M)) + src.bright.size
+    todo = np.arange(n_t)
+    prev = np.full(n_t, -1.0)
+    retried = 0
+    caps_used = np.zeros(n_t)
+    for att, caps in enumerate(attempts):
+        # a tile is gathered again when its cap grows, or (attempt 1) when attempt 0 left out weights below δ0
+        todo = todo[(caps[todo] > prev[todo]) | (att == 1 and log_d0 > -700.0)]
+        if todo.size == 0:
+            break
+        if att > 0:
+            retried += todo.size
+        prev[todo] = caps[todo]
+        caps_used[todo] = caps[todo]
+        q_t = caps + a_max + ANGLE_MARGIN
+        sums = gather.gather(todo, att, log_d0 if att == 0 else -700.0, CEN, TD, q_t, a_max)
+        # per-texel bounds of the attempt's tiles; tiles whose bound misses rtol go to the next attempt
+        worst = gather.bounds(sums, todo, ANG, q_t, q_far, 0.5 * ANGLE_MARGIN, grid, log_wb_grid, lmax2, lmin2,
+                              src.l_max_out, src.l_min_out, VALID, IDX, maps_k, bounds_k)
+        todo = np.sort(todo[~(worst <= tau)])
+    P = len(faces) * out_size * out_size
+    return SparseInfo(s, float(caps_used.max()), rho, src.eps_far if not single else src.eps,
+                      float(neglected_weight_bound(s, float(caps_used.max()), rho)), int(src.bright.size),
+                      gather.gathered / (P * M), float(caps_used.min()), int(retried), gather.label)
 
 
 def estimate_candidates(cube, exponents, *, rtol: float = 1e-3, out_size: int | None = None, impl: str = "numpy",

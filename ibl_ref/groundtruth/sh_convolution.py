@@ -107,6 +107,7 @@ __all__ = [
 _FOUR_PI = 4.0 * np.pi
 
 # the basis (with the grid symmetries) and the zonal coefficients / truncation bounds live in their own modules
+from .kernels import get_kernels  # noqa: E402
 from .sh_basis import sh_lobe_convolve  # noqa: E402
 from .sh_bounds import (  # noqa: E402
     SH_L_MAX,
@@ -120,43 +121,6 @@ from .sh_bounds import (  # noqa: E402
 # ----------------------------------------------------------------------------------------------
 # hybrid SH convolution with bound
 # ----------------------------------------------------------------------------------------------
-def _bright_gather(out_dirs, b_dirs, b_w, s_list, chunk_elems=1 << 22, impl="numpy"):
-    """Exact Σ_b w_b max(r·ω_b, 0)^s for every r (K, P, C) (``impl="compiled"``:
-    :func:`ibl_ref.groundtruth.compiled_kernels.point_gather`)."""
-    P = out_dirs.shape[0]
-    K = len(s_list)
-    C = b_w.shape[1]
-    res = np.zeros((K, P, C))
-    nb = b_dirs.shape[0]
-    if nb == 0:
-        return res
-    if impl == "compiled":
-        from .kernel_choice import compiled
-        from .kernel_spec import POWI_MAX
-
-        ck = compiled()
-        s_int = np.array([int(s) if float(s).is_integer() and s <= POWI_MAX else 0 for s in s_list], dtype=np.int64)
-        for c0 in range(0, C, 4):
-            c1 = min(C, c0 + 4)
-            bw4 = np.zeros((nb, 4))
-            bw4[:, : c1 - c0] = b_w[:, c0:c1]
-            acc = np.zeros((K, 4, P))
-            ck.point_gather(np.ascontiguousarray(out_dirs), np.ascontiguousarray(b_dirs), bw4,
-                            np.array(s_list, dtype=np.float64), s_int, acc)
-            res[:, :, c0:c1] = acc[:, : c1 - c0].transpose(0, 2, 1)
-        return res
-    chunk = max(1, chunk_elems // nb)
-    for i0 in range(0, P, chunk):
-        i1 = min(P, i0 + chunk)
-        c = out_dirs[i0:i1] @ b_dirs.T
-        pos = c > 0
-        logc = np.full(c.shape, -np.inf)
-        np.log(c, out=logc, where=pos)
-        for k, s in enumerate(s_list):
-            res[k, i0:i1] = np.exp(s * logc) @ b_w
-    return res
-
-
 def _threshold_candidates(lum):
     order = np.sort(lum.ravel())[::-1]
     cands = []
@@ -182,8 +146,8 @@ def _output_floor(rad, s_list, impl="numpy"):
     :data:`FLOOR_FACE`, each coarse texel the solid-angle-weighted mean of the texels whose face position falls in
     it).  On the CC0 probes at 256² it is within 0.86–1.0 of the darkest output texel of the SH route at L = 160
     (s = 16, 256), where the band-4 SH preview used before rang below zero (probes with a dark ground).
-    ``impl="compiled"``: the same exact sums by the compiled bright-texel gather (absolute weights c^s; where the
-    nearest texel's weight could underflow, NumPy's gather, which normalises every row by its largest weight)."""
+    The exact sums by the bright-texel gather of the kernel ``impl`` (absolute weights c^s); where the nearest
+    texel's weight could underflow, by the exact gather, which normalises every row by its largest weight."""
     from .phong_convolution import convolve_exact_many
 
     M, C = rad.shape
@@ -199,11 +163,11 @@ def _output_floor(rad, s_list, impl="numpy"):
     a = rad.reshape(6, n, n, C)
     coarse = np.stack([np.bincount(flat, (a[..., c] * om).ravel(), 6 * nc * nc) for c in range(C)], axis=-1)
     coarse = (coarse / oc[:, None]).reshape(6, nc, nc, C)
-    if impl == "compiled" and max(s_list) * math.log(math.cos(texel_max_radius(nc))) > -600.0:
+    if max(s_list) * math.log(math.cos(texel_max_radius(nc))) > -600.0:
         d = envmap.texel_directions(nc).reshape(-1, 3)
         om_c = envmap.cube_solid_angles(nc).reshape(-1)
-        sums = _bright_gather(d, d, np.concatenate([coarse.reshape(-1, C), np.ones((d.shape[0], 1))], axis=1)
-                              * om_c[:, None], list(s_list), impl="compiled")
+        sums = get_kernels(impl).bright_gather(d, d, np.concatenate([coarse.reshape(-1, C), np.ones((d.shape[0], 1))],
+                                                                    axis=1) * om_c[:, None], list(s_list))
         ys = sums[..., :C] / sums[..., C:]
     else:
         ys = convolve_exact_many(coarse, list(s_list))
@@ -362,8 +326,8 @@ def convolve_sh_many(
     plan : dict, optional
         Result of :func:`plan_sh` for the same cube/exponents/rtol (avoids planning twice).
     impl : {"numpy", "compiled"}
-        ``"compiled"``: the SH passes without an SH matrix and the bright gather by
-        :mod:`ibl_ref.groundtruth.compiled_kernels` (the gather's rounding bound is added to the bound).
+        The kernel backend (:mod:`ibl_ref.groundtruth.kernels`) of the SH passes and the bright gather (the compiled
+        one without an SH matrix; its gather's rounding bound is added to the bound).
 
     Returns
     -------
@@ -375,9 +339,10 @@ def convolve_sh_many(
     setup = sh_setup(cube, exponents, rtol=rtol, L=L, hybrid=hybrid, tau=tau, out_size=out_size,
                      normalized=normalized, L_max=L_max, estimate=estimate, plan=plan, impl=impl)
     t_plan = time.perf_counter()
-    shq = sh_lobe_convolve(setup.src, setup.Wq, setup.out_dirs, setup.kcoef, impl=impl)  # (K, P, C+1)
+    kern = get_kernels(setup.impl)
+    shq = sh_lobe_convolve(setup.src, setup.Wq, setup.out_dirs, setup.kcoef, kern)  # (K, P, C+1)
     t_sh = time.perf_counter()
-    nb = _bright_gather(setup.out_dirs, setup.b_dirs, setup.b_w, setup.s_list, impl=impl)  # exact part
+    nb = kern.bright_gather(setup.out_dirs, setup.b_dirs, setup.b_w, setup.s_list)  # exact part
     t_gather = time.perf_counter()
     return sh_finish(setup, shq, nb, {"time_plan_s": t_plan - setup.t0, "time_sh_s": t_sh - t_plan,
                                       "time_bright_s": t_gather - t_sh})
@@ -466,7 +431,7 @@ def sh_project_part(setup: ShSetup, part: int):
     ``(a_even, a_odd)``; :func:`sh_coefficients` adds the parts in order."""
     from .sh_basis import project_part
 
-    return project_part(setup.src, setup.Wq, setup.sym_src, part, getattr(setup, "impl", "numpy"))
+    return project_part(setup.src, setup.Wq, setup.sym_src, part, get_kernels(setup.impl))
 
 
 def sh_coefficients(setup: ShSetup, parts):
@@ -487,11 +452,11 @@ def sh_evaluate_part(setup: ShSetup, Be, Bo, part: int):
     for the outputs ``idx`` (:func:`sh_assemble` puts the parts together)."""
     from .sh_basis import evaluate_part
 
-    impl = getattr(setup, "impl", "numpy")
-    idx, vals = evaluate_part(setup.out_dirs, Be, Bo, setup.sym_out, part, impl)
+    kern = get_kernels(setup.impl)
+    idx, vals = evaluate_part(setup.out_dirs, Be, Bo, setup.sym_out, part, kern)
     K = setup.kcoef.shape[0]
     shq = vals.reshape(-1, K, setup.Wq.shape[1]).transpose(1, 0, 2)
-    nb = _bright_gather(setup.out_dirs[idx], setup.b_dirs, setup.b_w, setup.s_list, impl=impl)
+    nb = kern.bright_gather(setup.out_dirs[idx], setup.b_dirs, setup.b_w, setup.s_list)
     return (idx,) + _values_and_bounds(setup, shq, nb)
 
 
@@ -527,22 +492,7 @@ def _values_and_bounds(setup: ShSetup, shq, nb):
     maps = np.empty((K, P, C))
     rel = np.empty((K, P))
     rel_est = np.full((K, P), np.inf) if est_idx else None
-    if getattr(setup, "impl", "numpy") == "compiled" and not est_idx:
-        from .kernel_choice import compiled
-        from .kernel_spec import POWI_MAX, weight_error
-
-        ck = compiled()
-        E = np.array([legendre_series_truncation_envelope(s, L_use, rho)
-                      + _FOUR_PI * np.finfo(float).eps * (L_use + 1) ** 2 for s in s_list])
-        d_nb = np.zeros((K, P, C))
-        if setup.b_w.shape[0]:
-            bw = np.abs(setup.b_w).sum(axis=0)
-            for k, s in enumerate(s_list):
-                e_r, e_a = weight_error(s, float(s).is_integer() and s <= POWI_MAX)
-                d_nb[k] = e_r * nb[k] + e_a * bw
-        ck.sh_values_bounds(np.ascontiguousarray(shq), np.ascontiguousarray(nb), E, d_nb, float(tau_eff),
-                            float(m_rem), bool(normalized), maps, rel)
-        return maps, rel, None
+    d_nb = get_kernels(setup.impl).bright_gather_error(nb, setup.b_w, s_list)
     for k, s in enumerate(s_list):
         E_L = legendre_series_truncation_envelope(s, L_use, rho)
         E_L += _FOUR_PI * np.finfo(float).eps * (L_use + 1) ** 2  # rounding of the O(L²) SH sums
@@ -560,14 +510,9 @@ def _values_and_bounds(setup: ShSetup, shq, nb):
         else:
             y = num
             A = np.full_like(y, tau_eff * E_L)
-        if getattr(setup, "impl", "numpy") == "compiled" and setup.b_w.shape[0]:
-            # rounding of the compiled bright gather (relative η for r·ω ≥ C0, absolute ε per weight below)
-            from .kernel_spec import POWI_MAX, weight_error
-
-            e_r, e_a = weight_error(s, float(s).is_integer() and s <= POWI_MAX)
-            d_nb = e_r * nb[k] + e_a * np.abs(setup.b_w).sum(axis=0)
+        if d_nb is not None:  # the bright gather's rounding (the compiled kernels': relative and absolute parts)
             with np.errstate(invalid="ignore", divide="ignore"):
-                A = A + (np.where(den > 0, d_nb / np.where(den > 0, den, 1.0), np.inf) if normalized else d_nb)
+                A = A + (np.where(den > 0, d_nb[k] / np.where(den > 0, den, 1.0), np.inf) if normalized else d_nb[k])
         with np.errstate(invalid="ignore", divide="ignore"):
             r = np.where(y > A, A / np.maximum(y - A, 1e-300), np.inf)
         maps[k] = y

@@ -1,7 +1,7 @@
 """Index tables of the real spherical harmonics of :mod:`ibl_ref.groundtruth.sh_basis`.
 
 The row layout of the SH matrices (split by the parity of l+m), the associated-Legendre recurrence
-coefficients and the tables that the compiled SH passes of :mod:`ibl_ref.groundtruth.compiled_kernels`
+coefficients and the tables that the compiled SH passes of :mod:`ibl_ref.groundtruth.kernels.numba_loops`
 take.  Pure index bookkeeping, no numerics beyond the recurrence coefficients
 
     a_lm = sqrt((4l² − 1) / (l² − m²)),   b_lm = sqrt(((l − 1)² − m²) / (4(l − 1)² − 1)),
@@ -49,7 +49,7 @@ def _recurrence_coeffs(ell):
 
 @functools.lru_cache(maxsize=16)
 def compiled_tables(L):
-    """Tables of the compiled SH passes (:func:`ibl_ref.groundtruth.compiled_kernels.sh_project` /
+    """Tables of the compiled SH passes (:func:`ibl_ref.groundtruth.kernels.numba_loops.sh_project` /
     ``sh_matrix``): ``row_of[ℓ, m, kind]`` (the row in the even or odd matrix of :func:`_layout`; kind 0 =
     cos, 1 = sin), ``cls_of[ℓ, m, kind]`` (its octant class κ, :func:`_octant_row_classes`) and the Legendre
     recurrence coefficients ``a[ℓ, m]``, ``b[ℓ, m]`` (:func:`_recurrence_coeffs`)."""

@@ -1,30 +1,20 @@
-"""Compiled inner loops of the Phong-lobe convolution (Knuth et al. 2014, Sec. 3.2, Eq. 4), written for numba.
+"""The compiled backend's loops (numba ``@njit``) of the Phong-lobe convolution (Knuth et al. 2014, Sec. 3.2, Eq. 4).
 
-The NumPy implementation in :mod:`ibl_ref.groundtruth.phong_convolution`, :mod:`~ibl_ref.groundtruth.sh_basis`,
-:mod:`~ibl_ref.groundtruth.sh_convolution` and :mod:`~ibl_ref.groundtruth.moment_convolution` stays the
-reference; these loops compute the same quadratures (the weights ``max(r·ω_j, 0)^s Ω_j`` of Eq. 4) without
-the temporaries, index matrices and repeated passes of the array code, and each states the relative error
-bound of its floating-point arithmetic, which the callers add to their rigorous bounds.  Selected by
-:mod:`ibl_ref.groundtruth.kernel_choice`.
+The NumPy backend (:mod:`ibl_ref.groundtruth.kernels.numpy_backend`) is the reference; these loops compute the
+same quadratures (the weights ``max(r·ω_j, 0)^s Ω_j`` of Eq. 4) without the temporaries, index matrices and
+repeated passes of the array code.  Each states the rounding of its float64 arithmetic, which
+:mod:`ibl_ref.groundtruth.kernels.rounding` bounds and the routes add to their rigorous bounds.  Nothing here is
+called directly: :class:`ibl_ref.groundtruth.kernels.numba_backend.CompiledKernels` implements the kernel
+interface with them.
 
-Sparse route: :func:`tile_gather` (the weighted sums of every tile's cap) and :func:`tile_bounds` (the
-averages and the route's rigorous per-texel bound from those sums, the NumPy path's formula in one pass).
+Sparse route: :func:`tile_gather` (the weighted sums of every tile's cap), :func:`tile_bounds` (the averages and
+the route's rigorous per-texel bound from those sums) and :func:`cone_extremes`.  Moment route: :func:`band_exact`,
+:func:`band_brackets`.  SH route: :func:`point_gather`, :func:`sh_project`, :func:`sh_matrix`.  Elementary
+functions (vectorisable: no calls, no branches): :func:`exp_`, :func:`log_`, :func:`powi_`.
 
-Elementary functions (vectorisable: no calls, no branches): :func:`exp_`, :func:`log_` and :func:`powi_`; their
-error bounds (:data:`~ibl_ref.groundtruth.kernel_spec.EXP_REL`, ``LOG_ABS``/``LOG_REL``, γ_{s−1}) and the weights'
-are stated in :mod:`ibl_ref.groundtruth.kernel_spec`.
-
-The kernels allocate nothing: their arguments (kinds in :data:`ibl_ref.groundtruth.kernel_spec.KERNELS`) include
-their work arrays, so that they run without numba's runtime when compiled ahead of time.  Routes call them through
-:mod:`ibl_ref.groundtruth.kernel_library`, which loads them compiled ahead of time (no numba in the process) or,
-where that is not possible, calls the functions of this module (numba's JIT).
-
-Compilation and numba's cache (the JIT path)
-    Every kernel is compiled on first use with ``cache=True``: the machine code is written next to this file
-    (``__pycache__``) or to numba's cache folder (``$NUMBA_CACHE_DIR``) and later processes load it instead
-    of compiling.  When no cache folder is writable (an explicitly given ``$NUMBA_CACHE_DIR`` that is read-only,
-    or none of numba's locations) one line goes to stderr and the kernels are compiled without a cache, in every
-    process.
+Every function is ``numba.njit(cache=True, nogil=True, error_model="numpy")``: compiled on first use and kept in
+numba's cache (``__pycache__`` next to this file, or ``$NUMBA_CACHE_DIR``).  ``IBL_REF_NUMBA_CACHE=0`` compiles
+without the cache (the backend sets it when the cache cannot be written or read, after one line on stderr).
 """
 
 from __future__ import annotations
@@ -32,7 +22,6 @@ from __future__ import annotations
 import math
 import os
 import sys
-import tempfile
 
 import numba
 import numpy as np
@@ -40,98 +29,30 @@ from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-from .kernel_spec import BRIGHT_GROUP, POINT_BLOCK, SH_BLOCK, VEC
+from .rounding import BRIGHT_GROUP, POINT_BLOCK, SH_BLOCK, VEC
 
+__all__ = ["exp_", "log_", "powi_", "tile_gather", "tile_bounds", "cap_count", "cone_extremes", "band_exact",
+           "band_brackets", "point_gather", "sh_project", "sh_matrix"]
 
-class _NoScipyLinalg:
-    """Import finder that makes ``scipy.linalg`` unimportable while it is on ``sys.meta_path``."""
-
-    @staticmethod
-    def find_spec(name, path=None, target=None):
-        if name == "scipy.linalg" or name.startswith("scipy.linalg."):
-            raise ImportError("scipy.linalg is not imported while numba loads its registries (ibl_ref)")
-        return None
-
-
-def _import_arraymath_lazily() -> bool:
-    """Import ``numba.np.arraymath`` without importing ``scipy.linalg``; True when that was done.
-
-    numba's first compilation or cache load imports ``numba.np.arraymath``, which imports ``scipy.linalg`` (≈ 0.14 s
-    of a fresh process here, ≈ a quarter of loading the kernels) only to set a flag, ``_HAVE_BLAS``, that tells its
-    ``np.dot``-style inner products to use BLAS.  The kernels here use no BLAS.  The import is made with
-    ``scipy.linalg`` hidden and the flag then set as a normal import would set it (scipy is a dependency of
-    ibl_ref, so BLAS is available): numba code elsewhere in the process behaves as usual, and imports
-    ``scipy.linalg`` when it first needs BLAS (numba's ``ensure_blas``).  Nothing is done when ``scipy.linalg`` is
-    imported already or numba's module has no such flag (another numba version)."""
-    if "scipy.linalg" in sys.modules or "numba.np.arraymath" in sys.modules:
-        return False
-    import importlib.util
-
-    if importlib.util.find_spec("scipy") is None:
-        return False
-    sys.meta_path.insert(0, _NoScipyLinalg)
-    try:
-        import numba.np.arraymath as _am
-    except Exception:  # noqa: BLE001 - any failure: import it normally below
-        _am = None
-    finally:
-        sys.meta_path.remove(_NoScipyLinalg)
-        for k in [k for k in sys.modules if k == "scipy.linalg" or k.startswith("scipy.linalg.")]:
-            if sys.modules[k] is None:
-                del sys.modules[k]
-    if _am is None or not hasattr(_am, "_HAVE_BLAS"):
-        import numba.np.arraymath  # noqa: F401
-        return False
-    _am._HAVE_BLAS = True
-    return True
-
-
-_LAZY_SCIPY = _import_arraymath_lazily()
-
-__all__ = ["CACHE_NOTE", "exp_", "log_", "powi_", "tile_scratch_size", "tile_gather", "tile_bounds", "cap_count",
-           "cone_extremes", "band_exact", "band_brackets", "point_gather", "sh_values_bounds", "sh_project", "sh_matrix"]
-
-#: what happened to the cache (None: cached as usual; else the one line printed to stderr)
-CACHE_NOTE = None
-
-
-def _cache_usable() -> bool:
-    """False (after one line on stderr) when ``$NUMBA_CACHE_DIR`` is given but cannot be written."""
-    global CACHE_NOTE
-    d = os.environ.get("NUMBA_CACHE_DIR", "").strip()
-    if not d:
-        return True
-    try:
-        os.makedirs(d, exist_ok=True)
-        tempfile.TemporaryFile(dir=d).close()
-        return True
-    except OSError as exc:
-        CACHE_NOTE = (f"ibl_ref: NUMBA_CACHE_DIR={d} is not writable ({exc.strerror or exc}); the compiled kernels "
-                      "are compiled without a cache in this process")
-        print(CACHE_NOTE, file=sys.stderr)
-        return False
-
-
-_CACHE = _cache_usable()
+#: numba's cache for these functions (``IBL_REF_NUMBA_CACHE=0``: none)
+CACHE = os.environ.get("IBL_REF_NUMBA_CACHE", "1").strip() != "0"
 
 
 def _jit(**kw):
-    """``numba.njit(cache=True, nogil=True, error_model="numpy", **kw)``, without the cache (one line on stderr)
-    when numba finds no writable cache location."""
-    global _CACHE, CACHE_NOTE
+    """``numba.njit(cache=CACHE, nogil=True, error_model="numpy", **kw)``; without the cache (one line on stderr) where
+    numba finds no folder it can write it to."""
+    global CACHE
 
     def deco(fn):
-        global _CACHE, CACHE_NOTE
-        opts = dict(nogil=True, error_model="numpy")
-        opts.update(kw)
-        if _CACHE:
+        global CACHE
+        if CACHE:
             try:
-                return numba.njit(cache=True, **opts)(fn)
+                return numba.njit(cache=True, nogil=True, error_model="numpy", **kw)(fn)
             except RuntimeError as exc:  # "cannot cache function ...: no locator available"
-                _CACHE = False
-                CACHE_NOTE = f"ibl_ref: no writable numba cache folder ({exc}); compiling the kernels without a cache"
-                print(CACHE_NOTE, file=sys.stderr)
-        return numba.njit(cache=False, **opts)(fn)
+                CACHE = False
+                print(f"ibl_ref: no writable folder for numba's cache ({exc}); the kernels are compiled in every "
+                      "process", file=sys.stderr)
+        return numba.njit(cache=False, nogil=True, error_model="numpy", **kw)(fn)
 
     return deco
 
@@ -368,13 +289,6 @@ def _scratch_size(caps, frames, n, cen):
     return m
 
 
-@_jit()
-def tile_scratch_size(caps, frames, n, cen, n_bright):
-    """Entries of the scratch lists :func:`tile_gather` needs for the tiles with centres ``cen`` and caps ``caps``
-    and ``n_bright`` bright texels (:func:`_scratch_size` + the bright texels + the padding)."""
-    return _scratch_size(caps, frames, n, cen) + n_bright + VEC
-
-
 @_jit(fastmath={"contract"}, inline="always")
 def _put7(SX, SY, SZ, S0, S1, S2, S3, m, x, y, z, w0, w1, w2, w3):
     """Entry m of the scratch arrays; returns m + 1."""
@@ -392,8 +306,8 @@ def _put7(SX, SY, SZ, S0, S1, S2, S3, m, x, y, z, w0, w1, w2, w3):
 def _collect(t, q, frames, n, X, Y, Z, RW, bdirs, brw, gcen, galpha, a_cut, SX, SY, SZ, S0, S1, S2, S3):
     """Copy the source texels of the cap (angle q around t) and then the bright texels within the angle ``a_cut`` of
     t (``t·ω ≥ cos a_cut``; every one when ``a_cut ≥ π``) into the scratch arrays; pad with zero entries to a
-    multiple of :data:`~ibl_ref.groundtruth.kernel_spec.VEC`.  The bright texels come in groups of
-    :data:`~ibl_ref.groundtruth.kernel_spec.BRIGHT_GROUP` (``bdirs`` rows g·BRIGHT_GROUP…) with the unit centre
+    multiple of :data:`~ibl_ref.groundtruth.kernels.rounding.VEC`.  The bright texels come in groups of
+    :data:`~ibl_ref.groundtruth.kernels.rounding.BRIGHT_GROUP` (``bdirs`` rows g·BRIGHT_GROUP…) with the unit centre
     ``gcen[g]`` and the largest angle ``galpha[g]`` from it to a member: a group farther than
     ``a_cut + galpha[g] + 1e-9`` rad from t holds no texel the test would keep, and is skipped whole (the
     margin is ≫ the rounding of the dot products, so the texels kept, and their order, are the per-texel test's).
@@ -478,7 +392,7 @@ def _sums2(R, b0, b1, SX, SY, SZ, S0, S1, S2, S3, m, s, s_int, c_floor, l0, l1):
     per kind of weight (a branch inside the loop would evaluate both powers): ``exp(s·log c)``, :func:`powi_`,
     and for s = 2^k :func:`_pow2k` (the same weights; k ≥ 6 a constant of its own loop, so the squarings unroll
     without selects: 1.5–1.9× faster gathers at s = 256…4096).  The order of the vectorised sums is the
-    compiler's (:func:`ibl_ref.groundtruth.kernel_spec.sum_error` covers any order)."""
+    compiler's (:func:`ibl_ref.groundtruth.kernels.rounding.sum_error` covers any order)."""
     x0, y0, z0 = R[b0, 0], R[b0, 1], R[b0, 2]
     x1, y1, z1 = R[b1, 0], R[b1, 1], R[b1, 2]
     a00 = a01 = a02 = a03 = a10 = a11 = a12 = a13 = 0.0
@@ -531,7 +445,7 @@ def _max_cos(rx, ry, rz, SX, SY, SZ, m):
 
 @_jit(fastmath={"contract", "reassoc"})
 def tile_gather(cen, rows, caps, arad, frames, n, X, Y, Z, RW, bdirs, brw, gcen, galpha, s, s_int, rowmax, c_floor,
-                acc, logmx, count, pairs, scratch):
+                acc, logmx, count, pairs):
     """Truncated-support gather of tiles of output texels: tile i's rows ``rows[i]`` (B, 3) gather every source
     texel within the angle ``caps[i]`` of the tile centre ``cen[i]`` (plus 1e-6 rad and 1e-3 texel of slack)
     and the bright texels ``bdirs``/``brw``: ``acc[i, b] = Σ_j w_bj RW[:, j]``.
@@ -541,9 +455,9 @@ def tile_gather(cen, rows, caps, arad, frames, n, X, Y, Z, RW, bdirs, brw, gcen,
     convex: its rows are the interval of v where ``a + cv ≥ √(k² − b²) √(1 + v²)`` (the maximum over u), on
     each row the columns an interval (:func:`_interval`).  The interval ends are computed to ≈ 1e-12 in
     face-plane units, far within the 1e-3-texel widening (2e-3/n ≥ 5e-7 for n ≤ 4096), so no texel of the cap
-    is missed (brute-force check in the tests).  The texels are copied to contiguous scratch arrays (``scratch``
-    (7, m), with the bright texels, padded with zero entries to a multiple of :data:`~ibl_ref.groundtruth.kernel_spec.VEC`; m from
-    :func:`tile_scratch_size`), then
+    is missed (brute-force check in the tests).  The texels are copied to contiguous scratch arrays (7 rows, with
+    the bright texels, padded with zero entries to a multiple of :data:`~ibl_ref.groundtruth.kernels.rounding.VEC`;
+    sized by :func:`_scratch_size`), then
     every pair of rows runs one vectorised loop over them (:func:`_sums2`: each entry loaded once for two rows).
 
     Weights: ``s_int > 0`` — ``c^s`` by :func:`powi_` (0 for c < ``c_floor``, whose weight is below e^-700;
@@ -551,13 +465,14 @@ def tile_gather(cen, rows, caps, arad, frames, n, X, Y, Z, RW, bdirs, brw, gcen,
     cosine when ``rowmax`` (``logmx[i, b] = s·log c_max``), else ``c_max = 1``.  ``RW`` (4, 6n²): the rows
     ``[L·Ω, …, Ω]`` padded to 4, zero for the bright texels.  ``arad[i]``: the largest angle between tile i's rows
     and its centre; bright texels farther than ``acos(c_floor) + arad[i]`` from the centre are left out (every
-    row's weight of them is 0, or below e^-700 by ``exp``: within the allowance ε of :func:`ibl_ref.groundtruth.kernel_spec.weight_error`).
+    row's weight of them is 0, or below e^-700 by ``exp``: within the allowance ε of :func:`ibl_ref.groundtruth.kernels.rounding.weight_error`).
     ``count[i]``: entries of tile i's list (the bright texels and the padding included: the pairs computed per
     row) plus the bright texels left out — the pairs the callers' error allowance counts; ``pairs[i]``: the entries
     alone (what each row computed).  ``gcen``/``galpha``: the bright texels' groups (:func:`_collect`).
     """
     nt = rows.shape[0]
     B = rows.shape[1]
+    scratch = np.empty((7, _scratch_size(caps, frames, n, cen) + bdirs.shape[0] + VEC))
     SX, SY, SZ, S0, S1, S2, S3 = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5], scratch[6]
     for i in range(nt):
         # bright texels beyond acos(c_floor) + the tile radius (+1e-9 rad) of the centre: below c_floor from every
@@ -626,7 +541,7 @@ def _log_wb_at(grid, log_wb_grid, theta):
 def tile_bounds(acc, log_mx, eta, und, l_u, ang, q_t, q_far, half_margin, grid, log_wb_grid, lmax, lmin, l_max_out,
                 l_min_out, valid, idx, maps, bounds, worst):
     """The averages and the rigorous per-texel bounds of gathered tiles, in one pass (the same formula, term
-    for term, as the NumPy expression in :func:`ibl_ref.groundtruth.phong_convolution.convolve_sparse_many`):
+    for term, as the NumPy expression in :func:`ibl_ref.groundtruth.kernels.numpy_backend.tile_bounds`):
     ``P = Σ w L Ω / Σ w Ω`` (``acc``), ``log W_in = log_mx + log Σ w Ω − log1p(η + und)``; the neglected texels
     of a row at angle a beyond ``q − a`` (local extremes ``lmax``/``lmin`` up to ``q_far − a``) and beyond
     ``q_far − a`` (global extremes), ``f = W_b(θ)/W_in`` from the tabulated ``log W_b``;
@@ -678,6 +593,15 @@ def _add4(arr, i, b, x0, x1, x2, x3):
     arr[i, b, 3] += x3
 
 
+@_jit(inline="always")
+def _longest(starts):
+    """The longest list of a CSR ``starts`` array."""
+    m = 0
+    for i in range(starts.shape[0] - 1):
+        m = max(m, starts[i + 1] - starts[i])
+    return m
+
+
 @_jit(fastmath={"contract"}, inline="always")
 def _bracket(X, ca, sa):
     """For x = r·c = X and a block cone of half-angle α (cos, sin): the half-width v = sin θ sin α (+1e-12 slack),
@@ -688,15 +612,15 @@ def _bracket(X, ca, sa):
 
 
 @_jit(fastmath={"contract", "reassoc"})
-def band_exact(R, starts, texels, D, Wt, do1, do2, num1, num2, scratch):
+def band_exact(R, starts, texels, D, Wt, do1, do2, num1, num2):
     """Exact gather of the horizon band (``leaf = 1`` of :mod:`ibl_ref.groundtruth.moment_convolution`): tile i's
     rows ``R[i]`` (t², 3) and its straddling source texels ``texels[starts[i]:starts[i+1]]`` (directions ``D``
     (M, 3), weights ``Wt`` (M, 4): ``[L·Ω, …, Ω]`` padded to 4): ``num1[i, b] += Σ max(r·ω, 0)·w`` (``do1``),
     ``num2[i, b] += Σ max(r·ω, 0)²·w`` (``do2``).  Float64; relative error of each sum ≤ γ_{m+2} (non-negative
-    terms, any order; the products r·ω are off by ≤ γ_3, entering x and x² to first and second order).
-    ``scratch`` (7, m): m ≥ the longest list + :data:`~ibl_ref.groundtruth.kernel_spec.VEC`."""
+    terms, any order; the products r·ω are off by ≤ γ_3, entering x and x² to first and second order)."""
     nt = R.shape[0]
     B = R.shape[1]
+    scratch = np.empty((7, _longest(starts) + VEC))
     SX, SY, SZ, S0, S1, S2, S3 = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5], scratch[6]
     for i in range(nt):
         m = 0
@@ -731,7 +655,7 @@ def band_exact(R, starts, texels, D, Wt, do1, do2, num1, num2, scratch):
 
 
 @_jit(fastmath={"contract", "reassoc"})
-def band_brackets(R, starts, blocks, cb, ca, sa, M0, M1, M2, do1, do2, num1, err1, num2, err2, scratch):
+def band_brackets(R, starts, blocks, cb, ca, sa, M0, M1, M2, do1, do2, num1, err1, num2, err2):
     """Linear brackets of the clamped kernel on straddling leaf blocks (``leaf > 1`` of
     :mod:`ibl_ref.groundtruth.moment_convolution`, :func:`~ibl_ref.groundtruth.moment_convolution._band_brackets`
     for the formulas): tile i's rows ``R[i]`` and its blocks ``blocks[starts[i]:starts[i+1]]`` with cone centres
@@ -740,9 +664,10 @@ def band_brackets(R, starts, blocks, cb, ca, sa, M0, M1, M2, do1, do2, num1, err
     and the half-width of each block's interval to ``num``/``err``.  Float64 sums of ≤ m terms of bounded
     condition (the midpoints are differences only through the −a²/4 of s = 2, within the half-width).  The
     NumPy path's 1e-12 slack in v keeps the intervals valid under rounding; this kernel computes the same
-    expressions.  ``scratch`` (45, m): m ≥ the longest list + :data:`~ibl_ref.groundtruth.kernel_spec.VEC`."""
+    expressions."""
     nt = R.shape[0]
     B = R.shape[1]
+    scratch = np.empty((45, _longest(starts) + VEC))
     CX = scratch[0]
     CY = scratch[1]
     CZ = scratch[2]
@@ -848,16 +773,17 @@ def _acc4(a0, a1, a2, a3, i, w, w0, w1, w2, w3):
 
 
 @_jit(fastmath={"contract"})
-def point_gather(out_dirs, b_dirs, b_w, s_arr, s_int, res, scratch, acc):
+def point_gather(out_dirs, b_dirs, b_w, s_arr, s_int, res):
     """Exact ``res[k, q, p] += Σ_b b_w[b, q]·max(r_p·ω_b, 0)^{s_k}`` (absolute weights: ``c^s`` by :func:`powi_` where
     ``s_int[k] > 0``, else ``exp(s·log c)``) — the SH route's gather from its few bright texels; blocks of 256
     outputs, their sums in the cache.  Relative error of every term ≤
-    :func:`ibl_ref.groundtruth.kernel_spec.weight_error` (η for c ≥ C0, ε absolute below).  Work arrays:
-    ``scratch`` (4, BL) and ``acc`` (K, 4, BL), BL = :data:`~ibl_ref.groundtruth.kernel_spec.POINT_BLOCK`."""
+    :func:`ibl_ref.groundtruth.kernels.rounding.weight_error` (η for c ≥ C0, ε absolute below)."""
     P = out_dirs.shape[0]
     nb = b_dirs.shape[0]
     K = s_arr.shape[0]
     BL = POINT_BLOCK
+    scratch = np.empty((4, BL))
+    acc = np.empty((K, 4, BL))
     X = scratch[0]
     Y = scratch[1]
     Z = scratch[2]
@@ -896,42 +822,6 @@ def point_gather(out_dirs, b_dirs, b_w, s_arr, s_int, res, scratch, acc):
             for q in range(4):
                 for i in range(m):
                     res[k, q, p0 + i] += acc[k, q, i]
-
-
-@_jit(fastmath={"contract"})
-def sh_values_bounds(shq, nb, E, d_nb, tau_eff, m_rem, normalized, maps, rel):
-    """The lobe averages and rigorous relative bounds of the SH route per texel (the formulas of
-    :func:`ibl_ref.groundtruth.sh_convolution._values_and_bounds`, in one pass): ``shq`` (K', p, C+1) the SH sums
-    (the last column the weight), ``nb`` (K, p, C) the bright gather, ``E`` (K,) the truncation envelopes with the
-    rounding allowance, ``d_nb`` (K, p, C) the bright gather's own error bound (absolute)."""
-    K = nb.shape[0]
-    P = nb.shape[1]
-    C = nb.shape[2]
-    for k in range(K):
-        EL = E[k]
-        for p in range(P):
-            den = shq[k, p, C]
-            worst = 0.0
-            for c in range(C):
-                num = shq[k, p, c] + nb[k, p, c]
-                if normalized:
-                    y = num / den if den > 0.0 else 0.0
-                    if den > EL and den > 0.0:
-                        eta = EL / den
-                        if eta < 1.0:
-                            A = max((tau_eff - m_rem) * eta, max(y - m_rem, 0.0) * eta / max(1.0 - eta, 1e-300))
-                        else:
-                            A = np.inf
-                    else:
-                        A = np.inf
-                    A = A + (d_nb[k, p, c] / den if den > 0.0 else np.inf)
-                else:
-                    y = num
-                    A = tau_eff * EL + d_nb[k, p, c]
-                r = A / max(y - A, 1e-300) if y > A else np.inf
-                worst = max(worst, r)
-                maps[k, p, c] = y
-            rel[k, p] = worst
 
 
 # ----------------------------------------------------------------------------------------------
@@ -994,7 +884,7 @@ def _legendre_band(ell, x, st, ch, p1, p2, pc, a_tab, b_tab):
 
 @_jit(fastmath={"contract", "reassoc"})
 def _sh_rows(reps, L, row_of, cls_of, a_tab, b_tab, Wk, acc_e, acc_o, dest, out, project, blk, P):
-    """Every real SH row (ℓ ≤ L, m, cos/sin) at the directions ``reps``, block by block of :data:`~ibl_ref.groundtruth.kernel_spec.SH_BLOCK`
+    """Every real SH row (ℓ ≤ L, m, cos/sin) at the directions ``reps``, block by block of :data:`~ibl_ref.groundtruth.kernels.rounding.SH_BLOCK`
     directions (the Legendre recurrences of :func:`_legendre_band`): ``project`` — projected at once on the
     class-projected weights (:func:`sh_project`), else written to the matrix ``out`` (:func:`sh_matrix`).  Work
     arrays of one block: ``blk`` (2L + 4, SH_BLOCK) — cos θ, sin θ, √2 cos mφ, √2 sin mφ — and ``P`` (3, L + 1,
@@ -1041,19 +931,27 @@ def _sh_rows(reps, L, row_of, cls_of, a_tab, b_tab, Wk, acc_e, acc_o, dest, out,
                     acc[row, 3] += s3
 
 
+@_jit(inline="always")
+def _sh_blocks(L):
+    """Work arrays of one block of :func:`_sh_rows` (zeroed)."""
+    return np.zeros((2 * L + 4, SH_BLOCK)), np.zeros((3, L + 1, SH_BLOCK))
+
+
 @_jit()
-def sh_project(reps, Wk, L, row_of, cls_of, a_tab, b_tab, acc_e, acc_o, blk, P):
+def sh_project(reps, Wk, L, row_of, cls_of, a_tab, b_tab, acc_e, acc_o):
     """``acc[row, q] += Σ_d Y_row(reps[d]) · Wk[κ(row), q, d]`` for every real SH row of band ≤ L (even rows —
     ℓ + m even — into ``acc_e``, odd ones into ``acc_o``, at the row order of
     :func:`ibl_ref.groundtruth.sh_basis._layout`, given by ``row_of[ℓ, m, kind]``; ``cls_of`` the row's octant
     class κ; ``Wk`` (8, 4, n) the class-projected weights of the octant orbits).  The SH values are generated
     block by block and used at once: no SH matrix in memory.  Float64; each row's sum has relative error ≤ γ_n in
     the magnitudes (any order)."""
+    blk, P = _sh_blocks(L)
     _sh_rows(reps, L, row_of, cls_of, a_tab, b_tab, Wk, acc_e, acc_o, row_of[0], acc_e, True, blk, P)
 
 
 @_jit()
-def sh_matrix(reps, L, row_of, cls_of, a_tab, b_tab, dest, out, blk, P):
+def sh_matrix(reps, L, row_of, cls_of, a_tab, b_tab, dest, out):
     """The real SH values of band ≤ L at ``reps`` as rows of ``out`` (rows, n): row (ℓ, m, kind) goes to
     ``out[dest[(ℓ + m) % 2, row_of[ℓ, m, kind]]]`` (so the rows of each octant class can be contiguous)."""
+    blk, P = _sh_blocks(L)
     _sh_rows(reps, L, row_of, cls_of, a_tab, b_tab, P, out, out, dest, out, False, blk, P)

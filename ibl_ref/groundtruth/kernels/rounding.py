@@ -1,15 +1,8 @@
-"""The contract of the compiled kernels of the Phong-lobe convolution (Knuth et al. 2014, Sec. 3.2, Eq. 4):
-their arguments, their work arrays and the rounding error of their float64 arithmetic.
+"""The rounding of the compiled kernels of the Phong-lobe convolution (Knuth et al. 2014, Sec. 3.2, Eq. 4), which
+the routes add to their rigorous bounds, and the block sizes the kernels share with their callers.
 
-:mod:`ibl_ref.groundtruth.compiled_kernels` holds the kernels (numba source); :mod:`ibl_ref.groundtruth.kernel_library`
-loads them (compiled ahead of time, or by numba's JIT) and calls them.  Both follow :data:`KERNELS`: the argument
-kinds of every kernel a route calls.  This module imports neither numba nor the kernels, so the routes compute
-their bounds the same way whichever way the kernels were loaded.
-
-Arguments (:data:`KERNELS`)
-    ``f1``…``f3``: a C-contiguous float64 array of that many dimensions; ``i1``…``i3``: int64; ``b2``: bool; ``f``,
-    ``i``, ``b``: a float, an integer, a bool.  Work arrays (``scratch`` and the like) are arguments too: the kernels
-    allocate nothing (compiled ahead of time they run without numba's runtime).
+:mod:`ibl_ref.groundtruth.kernels.numba_loops` holds the kernels; this module imports neither numba nor them, so
+the routes compute their bounds the same way whether or not numba is installed.
 
 Rounding
     The kernels compute the weights ``max(r·ω, 0)^s`` with their own elementary functions (``exp_``, ``log_``,
@@ -34,24 +27,8 @@ import math
 
 import numpy as np
 
-__all__ = ["KERNELS", "VEC", "BRIGHT_GROUP", "SH_BLOCK", "POINT_BLOCK", "EXP_REL", "LOG_ABS", "LOG_REL", "POWI_MAX", "U64", "C0",
+__all__ = ["VEC", "BRIGHT_GROUP", "SH_BLOCK", "POINT_BLOCK", "EXP_REL", "LOG_ABS", "LOG_REL", "POWI_MAX", "U64", "C0",
            "weight_error", "sum_error"]
-
-#: every kernel a route calls: its arguments' kinds (module docstring) in order, and the kind of its result (None:
-#: the kernel writes into its output arguments)
-KERNELS = {
-    "tile_scratch_size": ("f1 f3 i f2 i", "i"),
-    "tile_gather": ("f2 f3 f1 f1 f3 i f1 f1 f1 f2 f2 f2 f2 f1 f i b f f3 f2 i1 i1 f2", None),
-    "tile_bounds": ("f3 f2 f1 f1 f f2 f1 f1 f f1 f1 f2 f2 f1 f1 b2 i2 f2 f2 f1", None),
-    "cone_extremes": ("f2 f1 f2 f f2 f2 f2 f i2 f2 f2", None),
-    "cap_count": ("f1 f f3 i", "i"),
-    "band_exact": ("f3 i1 i1 f2 f2 b b f3 f3 f2", None),
-    "band_brackets": ("f3 i1 i1 f2 f1 f1 f2 f3 f3 b b f3 f3 f3 f3 f2", None),
-    "point_gather": ("f2 f2 f2 f1 i1 f3 f2 f3", None),
-    "sh_values_bounds": ("f3 f3 f1 f3 f f b f3 f2", None),
-    "sh_project": ("f2 f3 i i3 i3 f2 f2 f2 f2 f2 f3", None),
-    "sh_matrix": ("f2 i i3 i3 f2 f2 i2 f2 f2 f3", None),
-}
 
 #: the candidate lists of the gathers are padded to a multiple of this many entries (zero weight), so that the
 #: vectorised loops never fall back to their scalar remainder (8 lanes × 4-way interleave)
@@ -65,32 +42,30 @@ SH_BLOCK = 128
 #: output directions per block of the bright-texel gather of the SH route (their sums stay in the cache)
 POINT_BLOCK = 256
 
-#: relative error bound of :func:`ibl_ref.groundtruth.compiled_kernels.exp_` for results ≥ 2^-1021 (Taylor remainder 4.5e-18/e^-0.347, Horner
+#: relative error bound of :func:`ibl_ref.groundtruth.kernels.numba_loops.exp_` for results ≥ 2^-1021 (Taylor remainder 4.5e-18/e^-0.347, Horner
 #: rounding γ_26·e^{0.694} ≈ 5.8e-15, the reduction's f off by ≤ 2u·|f| + |k|·2^-60: together < 8e-15)
 EXP_REL = 8e-15
-#: absolute / relative parts of the error bound of :func:`ibl_ref.groundtruth.compiled_kernels.log_` (the series ≤ 6u relative to |log m| ≤ 0.35,
+#: absolute / relative parts of the error bound of :func:`ibl_ref.groundtruth.kernels.numba_loops.log_` (the series ≤ 6u relative to |log m| ≤ 0.35,
 #: e·ln 2 with ln 2 split hi + lo: ≤ 2u·|e ln 2|; the final sums: u·|log c|)
 LOG_ABS = 4e-16
 LOG_REL = 4.5e-16
-#: largest integer exponent of :func:`ibl_ref.groundtruth.compiled_kernels.powi_` (13 binary digits)
+#: largest integer exponent of :func:`ibl_ref.groundtruth.kernels.numba_loops.powi_` (13 binary digits)
 POWI_MAX = 8191
 #: unit roundoff of float64
 U64 = 2.0 ** -53
-
-
 
 #: the weights' error bound is relative for pairs with r·ω ≥ this and absolute below it
 C0 = 0.05
 
 
 def weight_error(s: float, integer: bool, reference: bool = False):
-    """``(η, ε)``: the rounding of one computed weight ``max(r·ω, 0)^s`` of :func:`ibl_ref.groundtruth.compiled_kernels.tile_gather` (``(c/c_max)^s``
+    """``(η, ε)``: the rounding of one computed weight ``max(r·ω, 0)^s`` of :func:`ibl_ref.groundtruth.kernels.numba_loops.tile_gather` (``(c/c_max)^s``
     with ``reference``) is ≤ η·w for pairs with c = r·ω ≥ :data:`C0` and ≤ ε in absolute terms (the weight
     scale is 1: c ≤ 1, or the row's largest cosine) below, including the weights left out or returned as 0
     (below e^-700 / 2^-1021).
 
     The cosine from two float64 unit vectors is off by Δ ≤ γ_3 + 2u (each vector's own rounding u), i.e. by
-    the factor (1 ± Δ/c)^s ≤ (1 + Δ/C0)^s in the weight; the power adds γ_{s−1} (:func:`ibl_ref.groundtruth.compiled_kernels.powi_`) or, for
+    the factor (1 ± Δ/c)^s ≤ (1 + Δ/C0)^s in the weight; the power adds γ_{s−1} (:func:`ibl_ref.groundtruth.kernels.numba_loops.powi_`) or, for
     ``exp(s·log c)``, an exponent off by ≤ 2s·(:data:`LOG_ABS` + |log C0|·:data:`LOG_REL`) + 745·2u (log of c and of
     the reference; arguments below −745 give weights below e^-745, counted in ε) and :data:`EXP_REL`.  Below C0:
     |ĉ^s − c^s| ≤ s·Δ·(C0 + Δ)^{s−1} (mean value theorem, s ≥ 1) plus η·(C0 + Δ)^s; ĉ ≤ 0 gives 0 where the
