@@ -107,8 +107,23 @@ class RenderResult:
 def glossiness_image(material_id: np.ndarray, glossiness) -> np.ndarray:
     """Per-pixel g from per-pixel material ids.
 
-    ``glossiness`` is a float (all materials) or a mapping ``{material_id: g}``; every material id present on
-    screen must be in the mapping.  Values must lie in [0, 1] (g = 1: mirror, Eq. 3).
+    Parameters
+    ----------
+    material_id : int array, shape (H, W)
+        Material id per pixel, negative on background.
+    glossiness : float or dict
+        One g for all materials, or ``{material_id: g}`` covering every id present on screen; values in [0, 1]
+        (g = 1: mirror, Eq. 3).
+
+    Returns
+    -------
+    ndarray, float64, shape (H, W)
+        0 on background.
+
+    Raises
+    ------
+    IBLError
+        A missing material id, a value outside [0, 1].
     """
     mid = np.asarray(material_id)
     out = np.zeros(mid.shape, dtype=np.float64)
@@ -225,7 +240,22 @@ def _as_material(m, key) -> Material:
 
 
 def resolve_materials(materials) -> dict:
-    """{material_id: Material} from a Material, a (kd, ks, g) tuple (all ids: key None) or a mapping."""
+    """Materials as ``{material_id: Material}``.
+
+    Parameters
+    ----------
+    materials : Material, (kd, ks, g) tuple, dict of Material parameters, or mapping
+        A single material applies to every id (key None); a mapping ``{material_id: material}`` names each.
+
+    Returns
+    -------
+    dict
+
+    Raises
+    ------
+    IBLError
+        Keys that are not integers, values that are not materials, invalid material parameters.
+    """
     if isinstance(materials, (Material, tuple, list)) or (isinstance(materials, dict) and "g" in materials):
         return {None: _as_material(materials, "*")}
     if not isinstance(materials, dict):
@@ -246,11 +276,34 @@ def _wrap_index(i, n, wrap):
 
 
 def sample_g_map(g_map, uv, filter: str = "bilinear", wrap: str = "repeat") -> np.ndarray:
-    """Sample a 2D g map at texture coordinates ``uv`` (..., 2) → (...,).
+    """Sample a 2D g map at texture coordinates.
 
     Convention (OpenGL / trimesh): u → columns left to right, v → rows bottom to top; texel (i, j) centre at
-    (u, v) = ((j+½)/w, 1 − (i+½)/h).  ``filter`` ``"bilinear"`` or ``"nearest"``; ``wrap`` ``"repeat"`` or
-    ``"clamp"``.  A bilinear blend of values in [0, 1] stays in [0, 1].
+    (u, v) = ((j+½)/w, 1 − (i+½)/h).  A bilinear blend of values in [0, 1] stays in [0, 1].
+
+    Parameters
+    ----------
+    g_map : array_like, shape (h, w) or (h, w, 1)
+    uv : array_like, shape (..., 2)
+    filter : {"bilinear", "nearest"}
+    wrap : {"repeat", "clamp"}
+
+    Returns
+    -------
+    ndarray, float64, shape (...)
+
+    Raises
+    ------
+    IBLError
+        A g map that is not 2D, an unknown filter.
+
+    Examples
+    --------
+    The bottom row of a 2 × 2 map is v = 0.25, its left column u = 0.25:
+
+    >>> from ibl_ref.rendering.render import sample_g_map
+    >>> sample_g_map([[0.0, 0.2], [0.6, 1.0]], [[0.25, 0.25], [0.5, 0.25], [0.75, 0.75]])
+    array([0.6, 0.8, 0.2])
     """
     gm = np.asarray(g_map, dtype=np.float64)
     if gm.ndim == 3 and gm.shape[2] == 1:
@@ -277,8 +330,24 @@ def sample_g_map(g_map, uv, filter: str = "bilinear", wrap: str = "repeat") -> n
 
 
 def mesh_uv(mesh, name="mesh 0"):
-    """(V, 2) per-vertex UVs of a trimesh mesh, or None; NaN/Inf UVs are an :class:`IBLError` (broken data, not
-    missing UVs: no silent fallback)."""
+    """Per-vertex texture coordinates of a trimesh mesh.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+    name : str, optional
+        Names the mesh in messages.
+
+    Returns
+    -------
+    ndarray, float64, shape (V, 2), or None
+        None when the mesh has no (complete) UVs.
+
+    Raises
+    ------
+    IBLError
+        NaN/Inf UVs (broken data, not missing UVs: no silent fallback).
+    """
     uv = getattr(getattr(mesh, "visual", None), "uv", None)
     if uv is None:
         return None
@@ -294,11 +363,31 @@ def mesh_uv(mesh, name="mesh 0"):
 
 
 def surface_uv(meshes, scene, gbuffer, pixels, fallback: str = "planar_xz") -> np.ndarray:
-    """Texture coordinates (n, 2) of the covered pixels ``pixels`` (a boolean (H, W) mask inside ``gbuffer.mask``).
+    """Texture coordinates of covered pixels.
 
     Meshes with UVs (trimesh ``visual.uv``): perspective-correct interpolation of the per-vertex UVs with the
     G-buffer's barycentrics.  Others: ``fallback`` (module docstring) from the pixel's world position, with the
-    bounding box of the mesh the pixel belongs to; ``"error"`` raises :class:`IBLError`.
+    bounding box of the mesh the pixel belongs to.
+
+    Parameters
+    ----------
+    meshes : mesh(es) as given to :func:`render_pem`
+    scene : :class:`ibl_ref.rendering.raster.Scene`
+        The prepared scene of ``meshes``.
+    gbuffer : :class:`ibl_ref.rendering.raster.GBuffer`
+    pixels : bool array, shape (H, W)
+        Pixels inside ``gbuffer.mask``.
+    fallback : {"planar_xz", "spherical", "error"}
+
+    Returns
+    -------
+    ndarray, float64, shape (n, 2)
+        In row-major order of ``pixels``.
+
+    Raises
+    ------
+    IBLError
+        A mesh without UVs with ``fallback="error"``, NaN UVs, an unknown fallback.
     """
     from .raster import mesh_list
 
@@ -341,9 +430,25 @@ def surface_uv(meshes, scene, gbuffer, pixels, fallback: str = "planar_xz") -> n
 
 
 def material_images(meshes, scene, gbuffer, materials: dict):
-    """Per-pixel kd (n, K), ks (n, K) and g (n,) of the covered pixels (K = 1 or 3), in ``gbuffer.mask`` order.
+    """Per-pixel material weights and glossiness of the covered pixels, in ``gbuffer.mask`` order.
 
-    ``materials`` as returned by :func:`resolve_materials` (key None = every material id).
+    Parameters
+    ----------
+    meshes, scene, gbuffer
+        As :func:`surface_uv`.
+    materials : dict
+        As returned by :func:`resolve_materials` (key None = every material id).
+
+    Returns
+    -------
+    kd, ks : ndarray, shape (n, K)
+        K = 1, or 3 when a material has RGB weights.
+    g : ndarray, shape (n,)
+
+    Raises
+    ------
+    IBLError
+        A material id on screen without a material.
     """
     m = gbuffer.mask
     mid = gbuffer.material_id[m]
@@ -385,21 +490,46 @@ def light_visibilities(scene, points, face_normals, lights, *, method: str = "vs
     Parameters
     ----------
     scene : meshes or a prepared :class:`ibl_ref.rendering.raster.Scene`
-    points, face_normals : (P, 3) surface points and the geometric normals of their triangles
-    lights : anything with ``.directions`` (L, 3) and ``.solid_angle`` (L,) (a median-cut ``LightSet``)
-    method : ``"vsm"`` — one variance shadow map per light, blurred from its solid angle
+    points, face_normals : array_like, shape (P, 3)
+        Surface points and the geometric normals of their triangles.
+    lights : LightSet
+        Anything with ``.directions`` (L, 3) and ``.solid_angle`` (L,) (a median-cut ``LightSet``).
+    method : {"vsm", "raycast", "none"}
+        ``"vsm"`` — one variance shadow map per light, blurred from its solid angle
         (:func:`ibl_ref.rendering.vsm.build_vsm`, ``vsm_resolution``, ``vsm_dtype`` and ``**vsm_kw``: ``occluder_distance``,
         ``depth_bias``, ``min_variance``, ``bleed_reduction``); ``"raycast"`` — exact binary visibility of the same
         directional lights (``exact_backend="binned"``: :func:`ibl_ref.rendering.raycast.parallel_visibility`;
         ``"trimesh"``: :func:`ibl_ref.rendering.raycast.visibility_to_directions`); ``"none"`` — VIS_i = 1.
-    horizon : the receiver's own surface (a light at or below the receiving triangle's plane, n_face·ω_i ≤ 0).
+    vsm_resolution : int
+        Shadow-map size.
+    vsm_dtype : str
+        Shadow-map storage dtype.
+    exact_backend : {"binned", "trimesh"}
+        Ray caster of ``"raycast"``.
+    horizon : bool or None
+        The receiver's own surface (a light at or below the receiving triangle's plane, n_face·ω_i ≤ 0).
         ``None`` (default): each method's own behaviour — the exact casters include it (a ray from the surface
         finds the surface), a shadow map and ``"none"`` do not; ``True``: multiply every VIS_i by
         [n_face·ω_i > 0] for every method; ``False``: the binned caster counts only *other* geometry, like a
         shadow map (the trimesh route always includes the receiver: its rays start on it).
-    timings : dict, optional — adds seconds per stage: ``shadow_maps`` (depth rendering), ``blur`` (moments and
-        Gaussian blur), ``visibility`` (look-ups or ray casts)
-    progress : report progress over lights (:mod:`ibl_ref.progress`)
+    timings : dict, optional
+        Adds seconds per stage: ``shadow_maps`` (depth rendering), ``blur`` (moments and Gaussian blur),
+        ``visibility`` (look-ups or ray casts).
+    progress : bool
+        Report progress over lights (:mod:`ibl_ref.progress`).
+    **vsm_kw
+        ``occluder_distance``, ``depth_bias``, ``min_variance``, ``bleed_reduction`` of
+        :func:`ibl_ref.rendering.vsm.build_vsm`.
+
+    Returns
+    -------
+    ndarray, float64, shape (L, P)
+        VIS_i at every point, in [0, 1].
+
+    Raises
+    ------
+    IBLError
+        An unknown method or backend.
     """
     import time
 
@@ -450,8 +580,18 @@ def light_visibilities(scene, points, face_normals, lights, *, method: str = "vs
 
 
 def horizon_term(face_normals, directions) -> np.ndarray:
-    """[n_face·ω_i > 0] (L, P) float64: 1 where light i is above the receiving triangle's plane (``horizon=True``
-    of :func:`light_visibilities` multiplies every VIS_i by it; module docstring "Horizon")."""
+    """[n_face·ω_i > 0]: 1 where light i is above the receiving triangle's plane (``horizon=True`` of
+    :func:`light_visibilities` multiplies every VIS_i by it; module docstring "Horizon").
+
+    Parameters
+    ----------
+    face_normals : array_like, shape (P, 3)
+    directions : array_like, shape (L, 3)
+
+    Returns
+    -------
+    ndarray, float64, shape (L, P)
+    """
     fn = np.asarray(face_normals, dtype=np.float64).reshape(-1, 3)
     d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
     return (fn @ d.T > 0).T.astype(np.float64)
@@ -461,9 +601,30 @@ def eq5_lookups(pems, normals, reflect, g, kd, ks):
     """The PEM look-ups of Eq. 5: ``(PEM_i(n, g=0), PEM_i(r, g))``, each (L, P, C) float64 or None.
 
     "We can use the same sample vector for each PEM" (Sec. 3.4): the diffuse lobe through the normal n at
-    g = 0 (s_Phong = 1, Eq. 3), the glossy lobe through the reflection vector r at the material's g (scalar or
-    (P,) per pixel).  A term is looked up only where its weight (kd, ks: scalars or (P, K) arrays) is non-zero
-    somewhere; with kd = ks = 0 the glossy one is looked up anyway (black image, but the channel count is kept).
+    g = 0 (s_Phong = 1, Eq. 3), the glossy lobe through the reflection vector r at the material's g.  A term is
+    looked up only where its weight is non-zero somewhere; with kd = ks = 0 the glossy one is looked up anyway
+    (black image, but the channel count is kept).
+
+    Parameters
+    ----------
+    pems : region set
+        ``.lights`` and ``.lookup_all(dirs, g) -> (L, P, C)`` (:class:`ibl_ref.prefilter.interface.RegionPrefilters`).
+    normals, reflect : array_like, shape (P, 3)
+        Shading normals n and reflection vectors r.
+    g : float or array_like, shape (P,)
+        Glossiness of the glossy lobe.
+    kd, ks : float or array_like, shape (P, K)
+        Material weights.
+
+    Returns
+    -------
+    pem_n, pem_r : ndarray, shape (L, P, C), or None
+        None for a term that is not looked up.
+
+    Raises
+    ------
+    IBLError
+        ``lookup_all`` returned another shape.
     """
     L = len(np.asarray(pems.lights.directions).reshape(-1, 3))
     n_px = len(np.asarray(reflect).reshape(-1, 3))
@@ -482,8 +643,20 @@ def eq5_lookups(pems, normals, reflect, g, kd, ks):
 def eq5_terms(vis, pem_n, pem_r, kd, ks):
     """The two terms of Eq. 5, Σ_i VIS_i·kd·PEM_i(n, 0) and Σ_i VIS_i·ks·PEM_i(r, g), each (P, C) or None.
 
-    vis (L, P); pem_* (L, P, C) or None (term absent); kd, ks scalars or per-pixel (P, K) weights (K = 1 or C).
     The weights do not depend on the light, so kd·Σ_i VIS_i PEM_i = Σ_i VIS_i kd PEM_i.
+
+    Parameters
+    ----------
+    vis : array_like, shape (L, P)
+        VIS_i per light and pixel.
+    pem_n, pem_r : array_like, shape (L, P, C), or None
+        The look-ups (:func:`eq5_lookups`); None: the term is absent.
+    kd, ks : float or array_like, shape (P, K)
+        Material weights (K = 1 or C).
+
+    Returns
+    -------
+    diffuse, specular : ndarray, shape (P, C), or None
     """
     diffuse = None if pem_n is None else kd * np.einsum("lp,lpc->pc", vis, pem_n)
     specular = None if pem_r is None else ks * np.einsum("lp,lpc->pc", vis, pem_r)
@@ -491,10 +664,38 @@ def eq5_terms(vis, pem_n, pem_r, kd, ks):
 
 
 def shade_eq5(vis, pem_n, pem_r, kd, ks) -> np.ndarray:
-    """Eq. 5 with a kd/ks material: c = Σ_i VIS_i · (kd·PEM_i(n, 0) + ks·PEM_i(r, g)) → (P, C).
+    """Eq. 5 with a kd/ks material: c = Σ_i VIS_i · (kd·PEM_i(n, 0) + ks·PEM_i(r, g)).
 
-    vis (L, P), pem_* (L, P, C) (a term whose weight is 0 may be None); kd, ks scalars or (P, K) arrays.
     The one implementation of Eq. 5: :func:`render_pem` and every mode of :mod:`ibl_ref.rendering.ao_modes` call it.
+
+    Parameters
+    ----------
+    vis : array_like, shape (L, P)
+        Visibility VIS_i of light i at pixel p, in [0, 1].
+    pem_n, pem_r : array_like, shape (L, P, C), or None
+        PEM_i(n, 0) and PEM_i(r, g) (:func:`eq5_lookups`); a term whose weight is 0 may be None.
+    kd, ks : float or array_like, shape (P, K)
+        Diffuse and glossy weights (K = 1 or C).
+
+    Returns
+    -------
+    ndarray, shape (P, C)
+        The shaded colour c.
+
+    Examples
+    --------
+    Two lights, three pixels; the first pixel sees both lights, the others one each:
+
+    >>> import numpy as np
+    >>> from ibl_ref.rendering.render import shade_eq5
+    >>> vis = np.array([[1.0, 0.0, 1.0],
+    ...                 [1.0, 1.0, 0.0]])
+    >>> pem_n = np.full((2, 3, 1), 0.5)  # the diffuse look-up of each light's PEM
+    >>> pem_r = np.full((2, 3, 1), 2.0)  # the glossy look-up
+    >>> shade_eq5(vis, pem_n, pem_r, kd=0.2, ks=0.8)  # per light 0.2·0.5 + 0.8·2 = 1.7
+    array([[3.4],
+           [1.7],
+           [1.7]])
     """
     kd_on = pem_n is not None and np.any(np.asarray(kd) > 0)
     ks_on = pem_r is not None and np.any(np.asarray(ks) > 0)
@@ -506,7 +707,17 @@ def shade_eq5(vis, pem_n, pem_r, kd, ks) -> np.ndarray:
 
 
 def unshadowed_eq5(pem_n, pem_r, kd, ks) -> np.ndarray:
-    """Eq. 5 with VIS ≡ 1: kd·Σ_i PEM_i(n, 0) + ks·Σ_i PEM_i(r, g) (= the full map's look-ups, Sec. 3.1) → (P, C)."""
+    """Eq. 5 with VIS ≡ 1: kd·Σ_i PEM_i(n, 0) + ks·Σ_i PEM_i(r, g) (= the full map's look-ups, Sec. 3.1).
+
+    Parameters
+    ----------
+    pem_n, pem_r, kd, ks
+        As :func:`shade_eq5`.
+
+    Returns
+    -------
+    ndarray, shape (P, C)
+    """
     parts = [w * p.sum(axis=0) for w, p in ((kd, pem_n), (ks, pem_r)) if p is not None and np.any(np.asarray(w) > 0)]
     if not parts:
         ref = pem_r if pem_r is not None else pem_n
@@ -521,6 +732,17 @@ def background_image(camera, source, shape=None) -> np.ndarray:
     or a PEM set (Σ_i PEM_i(d, g = 1): the pyramid's mirror look-up, level 0 bilinear, which by linearity is the
     same look-up of the full map).  Either way it is the look-up a mirror (g = 1) reflection of that direction
     gets, so a mirror ball reflects exactly the backdrop.
+
+    Parameters
+    ----------
+    camera : camera of :mod:`ibl_ref.rendering.camera`
+    source : Environment, array_like (6, N, N[, C]) or region set
+    shape : tuple, optional
+        Unused (the camera's size is the image's).
+
+    Returns
+    -------
+    ndarray, float64, shape (H, W, C)
     """
     _, d = camera.pixel_rays()
     H, W = d.shape[:2]
@@ -539,8 +761,29 @@ def background_image(camera, source, shape=None) -> np.ndarray:
 
 
 def apply_background(image, mask, camera, source, background: str = "black") -> np.ndarray:
-    """Fill the pixels outside ``mask`` with the backdrop ``background`` (``"black"``: 0, ``"env"``:
-    :func:`background_image` of ``source``); returns ``image`` (changed in place)."""
+    """Fill the pixels outside ``mask`` with a backdrop.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W, C)
+        Changed in place.
+    mask : bool array, shape (H, W)
+        Pixels covered by geometry (left as they are).
+    camera, source
+        As :func:`background_image`.
+    background : {"black", "env"}
+        ``"black"``: leave 0; ``"env"``: :func:`background_image` of ``source``.
+
+    Returns
+    -------
+    ndarray
+        ``image``.
+
+    Raises
+    ------
+    IBLError
+        An unknown background, a channel mismatch.
+    """
     if background not in BACKGROUNDS:
         raise IBLError(f"background must be one of {BACKGROUNDS}, got {background!r}")
     if background == "env" and not np.all(mask):
@@ -575,30 +818,69 @@ def render_pem(
 
     Parameters
     ----------
-    meshes : see :func:`ibl_ref.rendering.raster.prepare_scene`
-    camera : :class:`ibl_ref.rendering.camera.PerspectiveCamera` (or orthographic)
-    pems : a region set (:class:`ibl_ref.prefilter.interface.RegionPrefilters`: ``.lights`` with ``directions``
-        (L, 3) and ``solid_angle`` (L,), ``.lookup_all(dirs, g) -> (L, ..., C)``), e.g.
-        ``build_region_prefilters(cube, method="pyramid", n_lights=24)`` (:mod:`ibl_ref.prefilter.registry`;
-        the paper's PEMs) or any other ``--prefilter`` method
+    meshes : trimesh.Trimesh, list of meshes or Scene
+        See :func:`ibl_ref.rendering.raster.prepare_scene`.
+    camera : PerspectiveCamera or OrthographicCamera
+        :mod:`ibl_ref.rendering.camera`.
+    pems : region set
+        ``.lights`` with ``directions`` (L, 3) and ``solid_angle`` (L,), ``.lookup_all(dirs, g) -> (L, ..., C)``
+        (:class:`ibl_ref.prefilter.interface.RegionPrefilters`): the paper's PEMs
+        (:func:`ibl_ref.knuth2014.pem.build_pems`, or ``build_region_prefilters(cube, method="pyramid",
+        n_lights=24)`` of :mod:`ibl_ref.prefilter.registry`) or any other ``--prefilter`` method.
     glossiness : float or {material_id: g}, default 0.5
         Pure glossy material (kd = 0, ks = 1) with this g: c = Σ_i VIS_i · PEM_i(r, g).  Not with ``materials``.
     materials : Material, (kd, ks, g) tuple, or {material_id: Material}, optional
         Eq. 5 with a diffuse and a glossy term, c = Σ_i VIS_i · (kd·PEM_i(n, 0) + ks·PEM_i(r, g)), optional
         per-texel g maps (module docstring).  A single Material applies to every material id.
-    visibility : ``"vsm"`` (paper), ``"raycast"`` (exact, same lights) or ``"none"``
+    visibility : {"vsm", "raycast", "none"}
+        The paper's variance shadow maps, exact binary visibility of the same lights, or none.
     vsm_resolution, vsm_dtype, occluder_distance, depth_bias, min_variance, bleed_reduction
         Passed to :func:`ibl_ref.rendering.vsm.build_vsm` (one map per light, blur from its solid angle).
-    smooth_normals : interpolated vertex normals (True) or face normals
-    exact_backend : ``"binned"`` or ``"trimesh"`` (for ``visibility="raycast"``)
-    horizon : multiply VIS_i by [n_face·ω_i > 0] (see module docstring); default False (paper)
-    background : ``"black"`` (default: 0 outside the geometry) or ``"env"`` — the environment seen along each
-        camera ray (:func:`background_image`: the PEMs' mirror look-up), only in ``image``
-    progress : report progress over lights (:mod:`ibl_ref.progress`)
+    smooth_normals : bool
+        Interpolated vertex normals (True) or face normals.
+    exact_backend : {"binned", "trimesh"}
+        Ray caster of ``visibility="raycast"``.
+    horizon : bool
+        Multiply VIS_i by [n_face·ω_i > 0] (see module docstring); default False (paper).
+    background : {"black", "env"}
+        ``"black"`` (default: 0 outside the geometry) or the environment seen along each camera ray
+        (:func:`background_image`: the PEMs' mirror look-up), only in ``image``.
+    progress : bool
+        Report progress over lights (:mod:`ibl_ref.progress`).
 
     Returns
     -------
     RenderResult
+
+    Raises
+    ------
+    IBLError
+        An unknown option, both ``glossiness`` and ``materials``, invalid materials, a render that overflows.
+    MeshError
+        Invalid meshes.
+
+    Examples
+    --------
+    A sphere on a plane under a constant sky L ≡ 2, six PEMs, exact visibility.  The filtered lobes are
+    normalised, so the unshadowed image is the constant itself (to the float32 storage of the PEMs), and the
+    shadows only take light away:
+
+    >>> import numpy as np
+    >>> from ibl_ref.knuth2014.pem import build_pems
+    >>> from ibl_ref.rendering.camera import PerspectiveCamera
+    >>> from ibl_ref.rendering.render import render_pem
+    >>> from ibl_ref.synthetic.synthetic_envs import make_environment
+    >>> from ibl_ref.synthetic.synthetic_meshes import make_mesh
+    >>> pems = build_pems(make_environment("constant", 16, value=2.0), n_lights=6)
+    >>> scene = make_mesh("sphere_on_plane", subdivisions=2, plane_res=4)
+    >>> camera = PerspectiveCamera(eye=(0.0, 3.0, 6.0), target=(0.0, 0.8, 0.0), up=(0.0, 1.0, 0.0),
+    ...                            fov_y_deg=40.0, width=32, height=24)
+    >>> result = render_pem(scene, camera, pems, glossiness=0.7, visibility="raycast")
+    >>> result.image.shape, result.visibility.shape
+    ((24, 32, 3), (6, 24, 32))
+    >>> m = result.mask
+    >>> bool(np.allclose(result.unshadowed[m], 2.0, rtol=1e-6)), bool(np.all(result.image[m] <= result.unshadowed[m]))
+    (True, True)
     """
     from .raster import prepare_scene, rasterize
 
