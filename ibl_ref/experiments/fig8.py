@@ -7,10 +7,12 @@ Outputs
                      and this library's bytes (float32 RGB PEMs with the true MIP chain; VSMs (μ, μ²) in
                      float32 and float16), computed from array shapes; small configurations are also
                      allocated and compared (``measured_check_*``).
+
 ``fig8_sparse.csv``  dense vs sparse PEM bytes (:mod:`ibl_ref.knuth2014.sparse_pem`) for 12/24/48/96 regions at
                      128² and 256² (quick: 128² only) on the sky+sun and studio maps: lossless
                      (exact zeros only), rtol = 1e-6, and lossless + only the levels touched by a scene
                      with g ∈ {0, 0.5, 0.9} (no mirror-like material).
+
 ``fig8_meta.json``   inferred row counts / MIP factor, text-number checks, timings.
 """
 
