@@ -20,6 +20,7 @@ covered pixels) of these images against the reference (:mod:`ibl_ref.rendering.r
   the paper's data structure and trilinear lookup, levels filled with exact lobe averages at s = 1, 2, 4, …
   instead of the 5×5-filtered MIP levels) — what the method gives once the filter-shape error is gone;
   ``chain_lookup_unoccluded``: its lookup error alone.
+
 Target: diffuse, 96 lights: rel. L1 of ``ours`` ≤ 5 %; g = 0.9, 0.99 measured only.
 
 Files: ``render_error.csv``, ``render_error_meta.json`` (reference info incl. coarse-level errors).
