@@ -9,13 +9,15 @@ At edges, the neighboring face needs to be taken into account").
 
 Kernels (1D, 5 taps, sum 1; the 2D filter is the outer product)
 -----------------------------------------------------------------
-``none``     [0, 0, 1, 0, 0] (identity: the plain MIP chain)
-``box``      [1, 1, 1, 1, 1] / 5
-``gauss``    exp(−t²/(2σ²)) at t = −2..2 taps, σ = :data:`GAUSS_SIGMA_TAPS` = 1.0 tap (the paper gives no σ;
+::
+
+    none     [0, 0, 1, 0, 0] (identity: the plain MIP chain)
+    box      [1, 1, 1, 1, 1] / 5
+    gauss    exp(−t²/(2σ²)) at t = −2..2 taps, σ = GAUSS_SIGMA_TAPS = 1.0 tap (the paper gives no σ;
              1 tap makes the 5 taps span ±2σ, the usual truncation of a 5-tap Gaussian)
-``cos``      cos([−60, −30, 0, 30, 60]°) normalised
-``sqrtcos``  √cos([−60, −30, 0, 30, 60]°) normalised (the paper's choice)
-``cos^k``    cos([−60, −30, 0, 30, 60]°)^k normalised, any real k ≥ 0 (``cos^0`` = box, ``cos^0.5`` = sqrtcos)
+    cos      cos([−60, −30, 0, 30, 60]°) normalised
+    sqrtcos  √cos([−60, −30, 0, 30, 60]°) normalised (the paper's choice)
+    cos^k    cos([−60, −30, 0, 30, 60]°)^k normalised, any real k ≥ 0 (cos^0 = box, cos^0.5 = sqrtcos)
 
 Seam modes (an explicit enum, never an accident)
 ------------------------------------------------
