@@ -10,23 +10,29 @@ the volumes are then used to compute the relative error" (in percent of the targ
 The text leaves three things open; each is an explicit, named option here:
 
 ``volume`` — what "lobe volume" means (both lobes peak-normalised to max 1 first, as in the radial
-plots of Fig. 4):
+plots of Fig. 4)::
+
     ``"integral"``  V = ∫ f dω  (target: 2π/(s+1))
     ``"radial"``    V = ⅓ ∫ f³ dω, the volume enclosed by the 3D radial plot r(ω) = f(ω)
                     (target: 2π/(3(3s+1)))
-``error`` — what "remaining differences in the volumes" means:
+
+``error`` — what "remaining differences in the volumes" means::
+
     ``"symdiff"``   volume of the symmetric difference of the two solids, relative to the target
                     volume: ∫|f − t| dω / V_t ("integral") or ⅓∫|f³ − t³| dω / V_t ("radial").
                     This is the reading that gives the non-zero, level-dependent curves of Fig. 5.
     ``"voldiff"``   |V(f) − V_t| / V_t: zero wherever a level matching the volume exists, non-zero
                     only where the fit is clipped (the lobe is wider than the coarsest level or
                     narrower than level 0 can represent).
-``centring`` — where the target lobe points:
+
+``centring`` — where the target lobe points::
+
     ``"texel"``     the white texel's direction d0 (the error then includes the *position* error of the
                     pyramid: a level-ℓ texel's centre is up to half a level-ℓ texel away from d0, e.g.
                     ~14° at 4×4 faces);
     ``"centroid"``  the response lobe's own axis, normalize(∫ f ω dω) (shape error only, as when
                     radial plots are overlaid by their axes, Fig. 4).
+
 ``position`` — where the white texel sits: ``"centre"`` (face +Z, texel (N/2, N/2)), ``"edge"``
 (face +Z, texel (N/2, N−1), on the seam with the neighbouring face), ``"corner"`` (face +Z, texel
 (0, 0), at a cube corner where three faces meet).
@@ -321,8 +327,9 @@ def analyse(n: int, kernel="sqrtcos", s_values=None, *, order="shrink_then_filte
 
     Returns
     -------
-    list of dict rows with keys ``face_size, kernel, order, seam, position, volume, centring, s_phong,
-    level, fit_clipped, err_symdiff_pct, err_voldiff_pct, target_quad_rel_err_pct``.
+    list of dict
+        Rows with keys ``face_size, kernel, order, seam, position, volume, centring, s_phong, level, fit_clipped,
+        err_symdiff_pct, err_voldiff_pct, target_quad_rel_err_pct``.
     """
     for v in volumes:
         _check("volume definition", v, VOLUME_DEFS)
