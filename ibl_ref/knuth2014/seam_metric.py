@@ -72,8 +72,8 @@ def seam_metric(pyramid) -> list[dict]:
 
     Returns
     -------
-    list of dict rows: ``level, face_size, kind ("edge"|"corner"), name, step, inner_gradient,
-    reference, ratio``.
+    list of dict
+        Rows: ``level, face_size, kind ("edge"|"corner"), name, step, inner_gradient, reference, ratio``.
     """
     from .filters import pad_cube
 
