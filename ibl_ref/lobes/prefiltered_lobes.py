@@ -35,6 +35,7 @@ per-pixel exact reference the renders are judged by is :mod:`ibl_ref.lobes.km00_
     integral of the fitted Phong lobe, Meunier 2009 closed form) or ``W_j = ∫ p_j dω`` (``energy="profile"``: keeps
     the fitted profile's exact energy, i.e. KM2000's albedo rescale, and uses the Phong fit only for the shape).
     A fit with s < 1 is looked up at g = 0 (s = 1); W then still uses the fitted s.
+
 Input errors raise :class:`ProfileError` (NaN/Inf/negative/malformed profile), :class:`ElevationRangeError` (θo
 outside the sampled range), :class:`ibl_ref.errors.LayoutError` (wrong cube layout) — all :class:`IBLError`.
 """
