@@ -16,7 +16,7 @@ often as needed.  Every method of :mod:`ibl_ref.prefilter` is a class that satis
   ggx      perceptual roughness r ∈ (0, 1]; α = r²,           the method's GGX prefilter lobe (stated by the
            :func:`ibl_ref.conventions.ggx_alpha`               method, e.g. the n = v = r lobe of the split sum)
   cosine   none: 1 (the cosine lobe's Phong exponent) or       the irradiance E(n)/π, E(n) = Σ_j L_j max(n·ω_j, 0)
-           ``None``; a Lambertian surface shades kd·lookup(n)  Ω_j (Kán et al. 2015, Eq. 3; the diffuse methods)
+           ``None``; a Lambertian surface: kd·lookup(n)        Ω_j (Kán et al. 2015, Eq. 3; the diffuse methods)
   ======== ================================================= ==================================================
 
 * ``lookup(directions, param)``: directions ``(..., 3)`` (need not be normalised), ``param`` a scalar or an array
