@@ -4,7 +4,7 @@ filtered importance sampling (FIS).
 Computer Graphics Forum 27(4) (EGSR 2008), Sec. 3 ("Filtered importance sampling"; the same rule is in Colbert &
 Křivánek, GPU Gems 3, Ch. 20).  Plain importance sampling (:func:`ibl_ref.prefilter.karis2013.prefilter_importance`)
 reads the environment at full resolution, so a few samples alias; FIS reads every sample from a box-filtered MIP
-level of the source whose texels cover about the solid angle the sample stands for:
+level of the source whose texels cover about the solid angle the sample stands for::
 
     Ω_s = 1 / (N · p(l_k))                        solid angle of one of N samples with pdf p
     Ω_p = solid angle of a level-0 texel at l_k   (``texel_solid_angle="exact"``: the exact solid angle of the texel
