@@ -2,7 +2,7 @@
 
 SIGGRAPH 2001, Sec. 2–3.  The irradiance ``E(n) = ∫ L(ω) max(n·ω, 0) dω`` of a Lambertian surface is the spherical
 convolution of L with the clamped cosine ``A(c) = max(c, 0)``, whose Legendre coefficients decay fast; keeping the
-bands l ≤ 2 (9 coefficients) gives (equation numbers of the paper as we know them)
+bands l ≤ 2 (9 coefficients) gives (equation numbers of the paper as we know them)::
 
     L_lm = ∫ L(ω) Y_lm(ω) dω                                 (Eq. 3; here Σ_j L_j Y_lm(ω_j) Ω_j over every texel,
                                                               exact texel solid angles Ω_j)
