@@ -9,16 +9,21 @@ No generator uses random numbers, so every output is bit-for-bit reproducible.
 Generators (``make_env(name, n, **params)``):
 
 ``constant``   L ≡ ``value`` (per channel).
+
 ``delta``      one lit texel (``texel=(face,row,col)`` or ``direction``); ``normalize=True`` makes
                ∫L dω = ``radiance`` exactly (value = radiance / Ω_texel).
+
 ``gradient``   L(ω) = a + b·ω, stored as the **exact texel average** (closed form, see
                :func:`texel_mean_directions`) or at texel centres (``sample="center"``).
                :func:`gradient_lobe_average` is the closed-form normalised Phong lobe average.
+
 ``sky_sun``    smooth sky (zenith→horizon blend, darker ground) plus a sun disc (spherical cap of
                ``sun_solid_angle`` sr, ``sun_radiance``) whose texel coverage is supersampled with exact
                sub-texel solid angles; :func:`sun_coverage_relative_error` reports the achieved error.
+
 ``studio``     dark room with rectangular area lights (gnomonic rectangles: exact solid angle
                :func:`rect_light_solid_angle`), coverage supersampled.
+
 ``checker``    two-level checkerboard, either in latitude/longitude cells (supersampled texel
                average) or in face-texel blocks (exact).
 
