@@ -5,10 +5,13 @@ The paper renders a teapot and a dragon (Sec. 5, Fig. 1/6/7) and targets virtual
 
 ``sphere_on_plane``  icosphere resting on a square ground plane (two components; plane single-sided,
                      normal +Y) — the classic contact-shadow case.
+
 ``torus``            closed torus lying flat (axis +Y), watertight, self-shadowing in the hole.
+
 ``teapot``           Newell's teapot tessellated from its 32 published bicubic Bézier patches
                      (``ibl_ref/data/teapot_patches.txt``); **not watertight** (like the original: the
                      handle and spout pierce the body, the lid does not meet the rim).
+
 ``cloth``            a draped garment: a periodic grid wrapped around an ellipsoidal torso proxy, hugging
                      the shoulders and flaring towards the hem with sinusoidal folds that decay with
                      height, plus (optionally) the torso itself.
@@ -390,7 +393,7 @@ def mesh_cloth(n_around: int = 128, n_down: int = 64, body_radii=(0.5, 0.8, 0.3)
     """A garment draped over a torso proxy (the paper's virtual-prototyping use case).
 
     The torso is an ellipsoid with semi-axes ``body_radii`` = (a_x, a_y, a_z) centred at
-    (0, body_center_y, 0).  The cloth is a grid of ``n_around`` × (``n_down``+1) vertices, periodic
+    (0, body_center_y, 0).  The cloth is a grid of ``n_around`` × (``n_down`` + 1) vertices, periodic
     around the vertical axis (open at the neck and the hem), 2·n_around·n_down triangles
     (16 384 by default).  At angle θ (from +X towards +Z) and height h its distance from the axis is
 
