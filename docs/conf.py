@@ -94,9 +94,11 @@ numpydoc_xref_param_type = False
 # problem in a docstring stays a warning (and so an error under -W).
 _LITERAL = re.compile(r"(``.*?``)")
 _UNDERLINE = re.compile(r"^(\s*)([-=~^])\2{2,}\s*$")
+_GRID_BORDER = re.compile(r"^\s*\+[-=+]+\+\s*$")
 
 
 def _plain_text_docstring(app, what, name, obj, options, lines):
+    grid = any(_GRID_BORDER.match(line) for line in lines)  # a grid table: its bars are markup
     for i, line in enumerate(lines):
         m = _UNDERLINE.match(line)
         if m and i > 0 and lines[i - 1].strip() and not _UNDERLINE.match(lines[i - 1]):
@@ -104,7 +106,7 @@ def _plain_text_docstring(app, what, name, obj, options, lines):
             if len(line.rstrip()) < len(title):
                 lines[i] = m.group(1) + m.group(2) * (len(title) - len(m.group(1)))
             continue
-        if "|" in line and not line.lstrip().startswith(("|", "+")):
+        if "|" in line and not (grid and line.lstrip().startswith(("|", "+"))):
             parts = _LITERAL.split(line)
             lines[i] = "".join(p if p.startswith("``") else p.replace("|", r"\|") for p in parts)
 
