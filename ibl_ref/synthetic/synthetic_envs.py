@@ -346,7 +346,8 @@ def env_gradient(n: int = 64, a=1.0, b=(0.0, 0.5, 0.0), sample: str = "average")
     Raises
     ------
     IBLError
-        |b_c| > a_c for a channel (negative radiance somewhere), an unknown ``sample``.
+        A gradient longer than the constant term, |b_c| > a_c (negative radiance somewhere); an unknown
+        ``sample``.
 
     Notes
     -----
