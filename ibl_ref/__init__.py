@@ -4,7 +4,8 @@ Core paper: Knuth, Altenhofen, Kuijper, Bender (2014), *Efficient Self-Shadowing
 Lighting on Glossy Surfaces*.  The package layout follows the data flow:
 
 * :mod:`ibl_ref.environment` — environment maps: conventions (:mod:`ibl_ref.environment.envmap`, the single
-  source of truth for face order, orientation, texel addressing and units), sampling, resampling, EXR/.hdr files;
+  source of truth for face order, orientation, texel addressing and units), sampling, resampling, EXR/.hdr files,
+  and the validated environment every stage trusts (:mod:`ibl_ref.environment.validated`);
 * :mod:`ibl_ref.groundtruth` — the exact answer: Phong-lobe convolution (Eq. 4) with error bounds, Kán et al. maps;
 * :mod:`ibl_ref.knuth2014` — the paper's approximation: filters, pyramid, glossiness lookup, median cut, PEMs;
 * :mod:`ibl_ref.rendering` — cameras, rasteriser, ray casting, VSMs, Eq. 5 shading, the reference renderer;

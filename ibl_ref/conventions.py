@@ -28,12 +28,26 @@ def phong_exponent(g):
 
     Parameters
     ----------
-    g : float or array in [0, 1]
+    g : float or array_like
+        Glossiness in [0, 1] (0 = diffuse, 1 = mirror).
+
+    Returns
+    -------
+    float or ndarray
+        s_Phong ≥ 1, ``inf`` for g = 1.
 
     Raises
     ------
     IBLError
         If any g is NaN or outside [0, 1].
+
+    Examples
+    --------
+    >>> from ibl_ref.conventions import phong_exponent
+    >>> phong_exponent(0.5), phong_exponent(1.0)
+    (2.0, inf)
+    >>> phong_exponent([0.0, 0.9])
+    array([ 1., 10.])
     """
     g_arr = np.asarray(g, dtype=np.float64)
     if np.any(np.isnan(g_arr)):
@@ -48,7 +62,27 @@ def phong_exponent(g):
 
 
 def lobe_half_angle(s) -> np.ndarray:
-    """Half-width at half maximum of max(cos θ, 0)^s: θ½ = arccos(2^(−1/s)) (≈ 1.18/√s for large s)."""
+    """Half-width at half maximum of max(cos θ, 0)^s: θ½ = arccos(2^(−1/s)) (≈ 1.18/√s for large s).
+
+    Parameters
+    ----------
+    s : float or array_like
+        Phong exponents > 0.
+
+    Returns
+    -------
+    ndarray, float64
+        Radians.
+
+    Examples
+    --------
+    A cosine lobe (s = 1) falls to half at 60°:
+
+    >>> import numpy as np
+    >>> from ibl_ref.conventions import lobe_half_angle
+    >>> float(np.degrees(lobe_half_angle(1.0)))
+    60.0
+    """
     s = np.asarray(s, dtype=np.float64)
     return np.arccos(np.power(2.0, -1.0 / s))
 
@@ -64,7 +98,13 @@ def ggx_alpha(roughness):
 
     Parameters
     ----------
-    roughness : float or array in (0, 1] (perceptual roughness)
+    roughness : float or array_like
+        Perceptual roughness in [:data:`GGX_ROUGHNESS_MIN`, 1].
+
+    Returns
+    -------
+    float or ndarray
+        α.
 
     Raises
     ------
