@@ -689,156 +689,195 @@ class _Cells:
 
 
 def _converge_block(job: dict) -> dict:
-    """One block of pixels: quadrature levels, base rays, adaptive refinement → occluded, unoccluded, errors."""
-    from .raycast import ShadowRays
+    """One block of pixels: quadrature levels, base rays, adaptive refinement → occluded, unoccluded, errors
+    (:class:`_Block`, one method per stage)."""
+    return _Block(job).run()
 
-    t0, c0 = time.perf_counter(), time.process_time()
-    a, lobe, rtol = job["env"], job["lobe"], float(job["rtol"])
-    nb, depth, seed, blk = int(job["nb"]), int(job["depth"]), int(job["seed"]), int(job["block"])
-    g = _Geom(lobe, job["points"], job["normals"], job["face_normals"], job["views"])
-    P_, nrm, fn = g.P, g.n, g.fn
-    Pn = len(P_)
-    C = a.shape[-1]
-    env = _Env(a, nb)
-    caster = ShadowRays(job["scene"], job["backend"], job["eps"])
-    max_cells = int(job["max_cells"])
+
+class _Block:
+    """The state of one block while it converges: set-up (:meth:`__init__`), the block's quadrature level with the
+    base cells' rays (:meth:`_quadrature`), the base cells' edge flags (:meth:`_base_edges`), the splitting of cells
+    (:meth:`split`), the pre-split of a GGX core (:meth:`_presplit`), the refinement rounds (:meth:`_refine`) and the
+    results (:meth:`_results`)."""
+
+    def __init__(self, job: dict):
+        from .raycast import ShadowRays
+
+        self.t0, self.c0 = time.perf_counter(), time.process_time()
+        self.job = job
+        a, self.lobe, self.rtol = job["env"], job["lobe"], float(job["rtol"])
+        self.nb, self.depth = int(job["nb"]), int(job["depth"])
+        self.seed, self.blk = int(job["seed"]), int(job["block"])
+        self.g = _Geom(self.lobe, job["points"], job["normals"], job["face_normals"], job["views"])
+        self.P_, self.nrm, self.fn = self.g.P, self.g.n, self.g.fn
+        self.Pn = len(self.P_)
+        self.C = a.shape[-1]
+        self.env = _Env(a, self.nb)
+        self.caster = ShadowRays(job["scene"], job["backend"], job["eps"])
+        self.max_cells = int(job["max_cells"])
+        self.prtol = float(job["pixel_rtol"])
+
+    def run(self) -> dict:
+        self._quadrature()
+        self._base_edges()
+        self.R = _Cells(self.C)
+        self.st = dict(n_rays=self.n_rays, kap_num=0.0, kap_den=0.0, n_kap=0, cap_reached=False, presplit=0)
+        if self.lobe.presplit:
+            self._presplit()
+        rounds, converged = self._refine()
+        return self._results(rounds, converged)
 
     # ---- base cells: one random point each (drawn again above a pixel's horizon where needed) -------------------
-    K = 6 * nb * nb
-    cells = np.arange(K)
-    cf, ci, cj = cells // (nb * nb), (cells // nb) % nb, cells % nb
-    su_c, sv_c = env.samples(seed, blk, np.zeros(K, np.int64), cf, ci, cj, np.full(K, nb))
-    cen, rad = _cell_geometry(nb)
-    cand_p, cand_c = _candidates(lobe, g, cen, rad)
-    M = int(job["M0"])
-    cap = max(int(job["n_quad_max"]), M)
-    grade = _grades(lobe, g, cand_p, cand_c, cen, rad, M)
+    def _quadrature(self) -> None:
+        """The block's quadrature level M: doubled (the cells and their rays stay) until the M/2 → M change with the
+        base visibility is within QUAD_SHARE of rtol (module docstring); the base pairs, their weights and rays."""
+        lobe, g, env, nb, Pn, C = self.lobe, self.g, self.env, self.nb, self.Pn, self.C
+        seed, blk, rtol, prtol = self.seed, self.blk, self.rtol, self.prtol
+        K = 6 * nb * nb
+        cells = np.arange(K)
+        cf, ci, cj = cells // (nb * nb), (cells // nb) % nb, cells % nb
+        su_c, sv_c = env.samples(seed, blk, np.zeros(K, np.int64), cf, ci, cj, np.full(K, nb))
+        cen, rad = _cell_geometry(nb)
+        cand_p, cand_c = _candidates(lobe, g, cen, rad)
+        M = int(self.job["M0"])
+        cap = max(int(self.job["n_quad_max"]), M)
+        grade = _grades(lobe, g, cand_p, cand_c, cen, rad, M)
 
-    def levels(M_, grade=grade):  # bound now: the arrays are freed below, with this function
-        return np.minimum(M_ * 2 ** grade, max(cap, M_))
+        def levels(M_):
+            return np.minimum(M_ * 2 ** grade, max(cap, M_))
 
-    prtol = float(job["pixel_rtol"])
-    Wh, nsh = _pair_weights(env, lobe, g, cand_p, cand_c, levels(M // 2))
-    Wq, nsq = _pair_weights(env, lobe, g, cand_p, cand_c, levels(M))
-    vis_key = np.zeros(0, np.int64)  # (pixel·K + cell) pairs cast so far, ascending, their visibility and points
-    vis_val = np.zeros(0, np.int8)
-    vis_su, vis_sv = np.zeros(0), np.zeros(0)
-    n_rays = 0
-
-    def norm_sums(ns, cand_p=cand_p):
-        if not lobe.normalised:
-            return np.ones(Pn)
-        w = np.bincount(cand_p, weights=ns, minlength=Pn)
-        return np.where(w > 0, w, 1.0)
-
-    while True:
-        keep = Wq.mean(axis=-1) > 0
-        ws, wsh = norm_sums(nsq), norm_sums(nsh)
-        bp, bc, bW = cand_p[keep], cand_c[keep], Wq[keep]
-        bkey = bp * K + bc
-        bY = bW.mean(axis=-1) / ws[bp]
-        bYh = Wh[keep].mean(axis=-1) / wsh[bp]  # the same cells at M/2
-        U = np.stack([np.bincount(bp, weights=bW[:, ch], minlength=Pn) for ch in range(C)], -1) / ws[:, None]
-        # rays for the pairs not cast yet (a finer M can give weight to a few more cells)
-        known = _match(vis_key, np.ones(len(vis_key)), bkey) > 0
-        new = np.flatnonzero(~known)
-        if len(new):
-            p_, c_ = bp[new], bc[new]
-            su, sv, w, moved = env.above(seed, blk, np.zeros(len(new), np.int64), cf[c_], ci[c_], cj[c_],
-                                         np.full(len(new), nb), su_c[c_], sv_c[c_], nrm[p_], p_)
-            grp = np.where(moved, K + np.arange(len(new)), c_)  # rays toward one cell's shared point: one direction
-            v_new = caster.visibility(P_[p_], fn[p_], w, groups=grp).astype(np.int8)
-            n_rays += len(new)
-            o = np.argsort(np.concatenate([vis_key, bkey[new]]), kind="stable")
-            vis_key = np.concatenate([vis_key, bkey[new]])[o]
-            vis_val = np.concatenate([vis_val, v_new])[o]
-            vis_su = np.concatenate([vis_su, su])[o]
-            vis_sv = np.concatenate([vis_sv, sv])[o]
-        at = np.searchsorted(vis_key, bkey)
-        bV, bsu, bsv = vis_val[at], vis_su[at], vis_sv[at]
-        # quadrature estimate with the base visibility: image share ≤ QUAD_SHARE·rtol, and ≤ 1 % of the pixels above
-        # QUAD_SHARE·pixel_rtol of their value; else M doubles (the cells and their rays stay)
-        A0 = np.bincount(bp, weights=bY * (bV > 0), minlength=Pn)
-        q0 = np.abs(np.bincount(bp, weights=(bV > 0) * (bY - bYh), minlength=Pn))
-        over = (q0 > QUAD_SHARE * prtol * np.maximum(A0, ERR_FLOOR * A0.mean())).mean() if Pn else 0.0
-        if ((q0.sum() <= QUAD_SHARE * rtol * max(A0.sum(), 1e-300) and over <= QUAD_PIXEL_SHARE)
-                or 2 * M > cap):
-            break
-        M = 2 * M
-        Wh, nsh = Wq, nsq
+        Wh, nsh = _pair_weights(env, lobe, g, cand_p, cand_c, levels(M // 2))
         Wq, nsq = _pair_weights(env, lobe, g, cand_p, cand_c, levels(M))
-    bM = levels(M)[keep]
-    del Wh, Wq, vis_key, vis_val, vis_su, vis_sv, cand_p, cand_c, grade, levels, norm_sums
-    nB = len(bp)
-    nF, nI, nJ = _neighbours(cf, ci, cj, nb)
-    nbr = (nF * nb + nI) * nb + nJ  # (K, 8)
+        vis_key = np.zeros(0, np.int64)  # (pixel·K + cell) pairs cast so far, ascending, their visibility and points
+        vis_val = np.zeros(0, np.int8)
+        vis_su, vis_sv = np.zeros(0), np.zeros(0)
+        n_rays = 0
 
-    def find(p, cb):
+        def norm_sums(ns):
+            if not lobe.normalised:
+                return np.ones(Pn)
+            w = np.bincount(cand_p, weights=ns, minlength=Pn)
+            return np.where(w > 0, w, 1.0)
+
+        while True:
+            keep = Wq.mean(axis=-1) > 0
+            ws, wsh = norm_sums(nsq), norm_sums(nsh)
+            bp, bc, bW = cand_p[keep], cand_c[keep], Wq[keep]
+            bkey = bp * K + bc
+            bY = bW.mean(axis=-1) / ws[bp]
+            bYh = Wh[keep].mean(axis=-1) / wsh[bp]  # the same cells at M/2
+            U = np.stack([np.bincount(bp, weights=bW[:, ch], minlength=Pn) for ch in range(C)], -1) / ws[:, None]
+            # rays for the pairs not cast yet (a finer M can give weight to a few more cells)
+            known = _match(vis_key, np.ones(len(vis_key)), bkey) > 0
+            new = np.flatnonzero(~known)
+            if len(new):
+                p_, c_ = bp[new], bc[new]
+                su, sv, w, moved = env.above(seed, blk, np.zeros(len(new), np.int64), cf[c_], ci[c_], cj[c_],
+                                             np.full(len(new), nb), su_c[c_], sv_c[c_], self.nrm[p_], p_)
+                grp = np.where(moved, K + np.arange(len(new)), c_)  # rays toward one cell's shared point: one direction
+                v_new = self.caster.visibility(self.P_[p_], self.fn[p_], w, groups=grp).astype(np.int8)
+                n_rays += len(new)
+                o = np.argsort(np.concatenate([vis_key, bkey[new]]), kind="stable")
+                vis_key = np.concatenate([vis_key, bkey[new]])[o]
+                vis_val = np.concatenate([vis_val, v_new])[o]
+                vis_su = np.concatenate([vis_su, su])[o]
+                vis_sv = np.concatenate([vis_sv, sv])[o]
+            at = np.searchsorted(vis_key, bkey)
+            bV, bsu, bsv = vis_val[at], vis_su[at], vis_sv[at]
+            # quadrature estimate with the base visibility: image share ≤ QUAD_SHARE·rtol, and ≤ 1 % of the pixels
+            # above QUAD_SHARE·pixel_rtol of their value; else M doubles (the cells and their rays stay)
+            A0 = np.bincount(bp, weights=bY * (bV > 0), minlength=Pn)
+            q0 = np.abs(np.bincount(bp, weights=(bV > 0) * (bY - bYh), minlength=Pn))
+            over = (q0 > QUAD_SHARE * prtol * np.maximum(A0, ERR_FLOOR * A0.mean())).mean() if Pn else 0.0
+            if ((q0.sum() <= QUAD_SHARE * rtol * max(A0.sum(), 1e-300) and over <= QUAD_PIXEL_SHARE)
+                    or 2 * M > cap):
+                break
+            M = 2 * M
+            Wh, nsh = Wq, nsq
+            Wq, nsq = _pair_weights(env, lobe, g, cand_p, cand_c, levels(M))
+        self.bM = levels(M)[keep]
+        self.M, self.K, self.n_rays = M, K, n_rays
+        self.cf, self.ci, self.cj = cf, ci, cj
+        self.ws, self.U = ws, U
+        self.bp, self.bc, self.bW, self.bkey, self.bY, self.bYh = bp, bc, bW, bkey, bY, bYh
+        self.bV, self.bsu, self.bsv = bV, bsu, bsv
+        self.nB = len(bp)
+
+    def find(self, p, cb):
         """index of the base pair (pixel p, base cell cb), −1 where it has no weight"""
-        q_ = p * K + cb
+        nB, bkey = self.nB, self.bkey
+        q_ = p * self.K + cb
         at_ = np.minimum(np.searchsorted(bkey, q_), max(nB - 1, 0))
         return np.where((nB > 0) & (bkey[at_] == q_), at_, -1) if nB else np.full(len(q_), -1)
 
-    pin = find(np.repeat(bp, 8), nbr[bc].reshape(-1)).reshape(-1, 8)
-    Vn = np.where(pin >= 0, bV[np.maximum(pin, 0)], -1)
-    bedge = ((Vn >= 0) & (Vn != bV[:, None])).any(axis=1) | _cut_by_horizon(cf[bc], ci[bc], cj[bc], nb, nrm[bp])
-    del Vn, pin
-    bsplit = np.zeros(nB, dtype=bool)
-    R = _Cells(C)
-    ctx = dict(bV=bV, bedge=bedge, bsplit=bsplit, find=find, nb=nb, depth=depth)
-    st = dict(n_rays=n_rays, kap_num=0.0, kap_den=0.0, n_kap=0, cap_reached=False, presplit=0)
+    def _base_edges(self) -> None:
+        """A base cell is an edge where its ray differs from a neighbour's (8 cells around it, across face borders)
+        or the pixel's horizon cuts it."""
+        nb, bp, bc, bV, cf, ci, cj = self.nb, self.bp, self.bc, self.bV, self.cf, self.ci, self.cj
+        nF, nI, nJ = _neighbours(cf, ci, cj, nb)
+        nbr = (nF * nb + nI) * nb + nJ  # (K, 8)
+        pin = self.find(np.repeat(bp, 8), nbr[bc].reshape(-1)).reshape(-1, 8)
+        Vn = np.where(pin >= 0, bV[np.maximum(pin, 0)], -1)
+        self.bedge = ((Vn >= 0) & (Vn != bV[:, None])).any(axis=1) | _cut_by_horizon(cf[bc], ci[bc], cj[bc], nb,
+                                                                                      self.nrm[bp])
+        self.bsplit = np.zeros(self.nB, dtype=bool)
 
-    def quad_est(vb):
+    # ---- estimates ---------------------------------------------------------------------------------------------
+    def quad_est(self, vb):
         """per-pixel |Σ_c V̄_c (Y_c(M) − Y_c(M/2))| (channel mean, relative to ws)."""
-        return np.abs(np.bincount(bp, weights=vb * (bY - bYh), minlength=Pn))
+        return np.abs(np.bincount(self.bp, weights=vb * (self.bY - self.bYh), minlength=self.Pn))
 
-    def vbar():
+    def vbar(self):
         """visible fraction of each base pair from its leaves."""
-        vb = bV.astype(np.float64).clip(min=0.0)
+        R, bY = self.R, self.bY
+        vb = self.bV.astype(np.float64).clip(min=0.0)
         if len(R):
-            num = np.bincount(R["bi"], weights=R["Y"] * (R["V"] > 0), minlength=nB)
-            vb = np.where(bsplit, num / np.where(bY > 0, bY, 1.0), vb)
+            num = np.bincount(R["bi"], weights=R["Y"] * (R["V"] > 0), minlength=self.nB)
+            vb = np.where(self.bsplit, num / np.where(bY > 0, bY, 1.0), vb)
         return vb
 
-    def uncertain():
-        ub = np.flatnonzero(bedge & ~bsplit & (bV >= 0))
+    def uncertain(self):
+        R = self.R
+        ub = np.flatnonzero(self.bedge & ~self.bsplit & (self.bV >= 0))
         ur = np.flatnonzero(R["edge"])
-        return ub, ur, np.concatenate([bp[ub], R["p"][ur]]), np.concatenate([bY[ub], R["Y"][ur]])
+        return ub, ur, np.concatenate([self.bp[ub], R["p"][ur]]), np.concatenate([self.bY[ub], R["Y"][ur]])
 
-    def split(bsel, rsel):
+    # ---- splitting -------------------------------------------------------------------------------------------------
+    def split(self, bsel, rsel):
         """Split base pairs ``bsel`` and refined cells ``rsel`` (both in priority order) into 2×2 children: weights,
         points, rays, edge flags; at most up to the block's cell budget → number of cells split."""
-        room = max(0, (max_cells - nB - len(R)) // 4)
+        room = max(0, (self.max_cells - self.nB - len(self.R)) // 4)
         if len(bsel) + len(rsel) > room:
-            st["cap_reached"] = True
+            self.st["cap_reached"] = True
             take_b = min(len(bsel), room)
             bsel, rsel = bsel[:take_b], rsel[:room - take_b]
         bsel = np.asarray(bsel, np.int64)
         rsel = np.sort(np.asarray(rsel, np.int64))[::-1]  # refined cells from the highest index: lower ones stay put
         for a0 in range(0, len(bsel), SPLIT_CHUNK):
-            _split_chunk(bsel[a0:a0 + SPLIT_CHUNK], np.zeros(0, np.int64))
+            self._split_chunk(bsel[a0:a0 + SPLIT_CHUNK], np.zeros(0, np.int64))
         for a0 in range(0, len(rsel), SPLIT_CHUNK):
-            _split_chunk(np.zeros(0, np.int64), rsel[a0:a0 + SPLIT_CHUNK])
+            self._split_chunk(np.zeros(0, np.int64), rsel[a0:a0 + SPLIT_CHUNK])
         return len(bsel) + len(rsel)
 
-    def _split_chunk(bsel, rsel):
+    def _split_chunk(self, bsel, rsel):
+        R, nb, bc, st, env, seed, blk = self.R, self.nb, self.bc, self.st, self.env, self.seed, self.blk
         cb_ = bc[bsel]
-        par = dict(p=np.concatenate([bp[bsel], R["p"][rsel]]).astype(np.int64),
+        par = dict(p=np.concatenate([self.bp[bsel], R["p"][rsel]]).astype(np.int64),
                    f=np.concatenate([cb_ // (nb * nb), R["f"][rsel]]).astype(np.int64),
                    l=np.concatenate([np.zeros(len(bsel), np.int64), R["l"][rsel]]).astype(np.int64),
                    i=np.concatenate([(cb_ // nb) % nb, R["i"][rsel]]).astype(np.int64),
                    j=np.concatenate([cb_ % nb, R["j"][rsel]]).astype(np.int64),
-                   V=np.concatenate([bV[bsel], R["V"][rsel]]),
-                   su=np.concatenate([bsu[bsel], R["su"][rsel]]),
-                   sv=np.concatenate([bsv[bsel], R["sv"][rsel]]),
+                   V=np.concatenate([self.bV[bsel], R["V"][rsel]]),
+                   su=np.concatenate([self.bsu[bsel], R["su"][rsel]]),
+                   sv=np.concatenate([self.bsv[bsel], R["sv"][rsel]]),
                    bi=np.concatenate([bsel, R["bi"][rsel]]).astype(np.int64))
-        Wpar = np.concatenate([bW[bsel], R.W[rsel]])
-        pedge = np.concatenate([bedge[bsel], R["edge"][rsel]])  # κ̂ is measured on split edge cells only
-        bsplit[bsel] = True
-        cp, cf2, cl2, ci2, cj2, cW = _child_weights(env, lobe, g, par["p"], par["f"], par["l"], par["i"],
-                                                    par["j"], Wpar, bM[par["bi"]])
+        Wpar = np.concatenate([self.bW[bsel], R.W[rsel]])
+        pedge = np.concatenate([self.bedge[bsel], R["edge"][rsel]])  # κ̂ is measured on split edge cells only
+        self.bsplit[bsel] = True
+        cp, cf2, cl2, ci2, cj2, cW = _child_weights(env, self.lobe, self.g, par["p"], par["f"], par["l"], par["i"],
+                                                    par["j"], Wpar, self.bM[par["bi"]])
         nc = nb * (2 ** cl2)
-        cY = cW.mean(axis=-1) / ws[cp]
+        cY = cW.mean(axis=-1) / self.ws[cp]
         # the child holding its parent's point keeps point and ray; the others get their own (above the horizon)
         u0, u1, v0, v1 = _rect(ci2, cj2, nc)
         psu, psv = np.repeat(par["su"], 4), np.repeat(par["sv"], 4)
@@ -851,14 +890,14 @@ def _converge_block(job: dict) -> dict:
         cast = np.flatnonzero(relevant & ~inherit)
         if len(cast):
             su_, sv_, w, moved = env.above(seed, blk, cl2[cast], cf2[cast], ci2[cast], cj2[cast], nc[cast],
-                                           su2[cast], sv2[cast], nrm[cp[cast]], cp[cast])
+                                           su2[cast], sv2[cast], self.nrm[cp[cast]], cp[cast])
             su2[cast], sv2[cast] = su_, sv_
             grp = None
-            if caster.backend == "exact":  # rays toward one cell share their direction: one projection set-up each
-                ck = _keys(np.zeros(len(cast), np.int64), cf2[cast], cl2[cast], ci2[cast], cj2[cast], depth)
+            if self.caster.backend == "exact":  # rays toward one cell share their direction: one projection set-up
+                ck = _keys(np.zeros(len(cast), np.int64), cf2[cast], cl2[cast], ci2[cast], cj2[cast], self.depth)
                 grp = np.unique(ck, return_inverse=True)[1]
                 grp = np.where(moved, grp.max() + 1 + np.arange(len(cast)), grp)
-            cV[cast] = caster.visibility(P_[cp[cast]], fn[cp[cast]], w, groups=grp)
+            cV[cast] = self.caster.visibility(self.P_[cp[cast]], self.fn[cp[cast]], w, groups=grp)
             st["n_rays"] += len(cast)
         cV[~relevant] = -1
         # siblings: a child differing from one of its three siblings is an edge
@@ -867,107 +906,121 @@ def _converge_block(job: dict) -> dict:
         ok = (nrel >= 2) & pedge  # a pre-split cell that agreed with its neighbours would dilute κ̂
         if ok.any():
             qh = (v4 > 0).sum(axis=1)[ok] / nrel[ok]
-            wp = (Wpar.mean(axis=-1) / ws[par["p"]])[ok] ** 2
+            wp = (Wpar.mean(axis=-1) / self.ws[par["p"]])[ok] ** 2
             st["kap_num"] += float((wp * qh * (1 - qh) * nrel[ok] / (nrel[ok] - 1)).sum())
             st["kap_den"] += float((wp / 4).sum())
             st["n_kap"] += int(ok.sum())
         has1 = ((v4 == 1).any(axis=1))[:, None]
         has0 = ((v4 == 0).any(axis=1))[:, None]
         sib = ((v4 == 1) & has0) | ((v4 == 0) & has1)
-        sib |= (_cut_by_horizon(cf2, ci2, cj2, nc, nrm[cp]) & (cV >= 0)).reshape(-1, 4)
+        sib |= (_cut_by_horizon(cf2, ci2, cj2, nc, self.nrm[cp]) & (cV >= 0)).reshape(-1, 4)
         keep_ = np.ones(len(R), dtype=bool)
         keep_[rsel] = False
         new_ = dict(p=cp, f=cf2, l=cl2, i=ci2, j=cj2, Y=cY, V=cV, edge=sib.reshape(-1), su=su2, sv=sv2,
-                    bi=np.repeat(par["bi"], 4), key=_keys(cp, cf2, cl2, ci2, cj2, depth))
+                    bi=np.repeat(par["bi"], 4), key=_keys(cp, cf2, cl2, ci2, cj2, self.depth))
         inew = R.replace(keep_, new_, cW)
         # the new children against the 12 cells around their 2×2 block (edge flags of older cells only grow)
-        _classify_children(R, inew, ctx)
+        _classify_children(R, inew, dict(bV=self.bV, bedge=self.bedge, bsplit=self.bsplit, find=self.find, nb=nb,
+                                         depth=self.depth))
 
     # ---- a non-symmetric lobe's core: split cells holding a large share of the pixel until they resolve it -------
-    if lobe.presplit:
+    def _presplit(self) -> None:
+        R, bp, bY, g, nb, depth = self.R, self.bp, self.bY, self.g, self.nb, self.depth
         for _ in range(depth):
-            Up = np.bincount(bp, weights=bY, minlength=Pn)
+            Up = np.bincount(bp, weights=bY, minlength=self.Pn)
             size_b = (np.pi / 2) / nb
-            wb = np.flatnonzero(~bsplit & (bY > PRESPLIT_SHARE * Up[bp]) & (size_b > 0.5 * g.w[bp]) & (depth > 0))
+            wb = np.flatnonzero(~self.bsplit & (bY > PRESPLIT_SHARE * Up[bp]) & (size_b > 0.5 * g.w[bp])
+                                & (depth > 0))
             size_r = (np.pi / 2) / (nb * 2.0 ** R["l"].astype(np.float64))
             wr = np.flatnonzero((R["Y"] > PRESPLIT_SHARE * Up[R["p"]]) & (size_r > 0.5 * g.w[R["p"]])
                                 & (R["l"] < depth))
             if len(wb) + len(wr) == 0:
                 break
-            st["presplit"] += split(wb[np.argsort(-bY[wb], kind="stable")], wr[np.argsort(-R["Y"][wr], kind="stable")])
-            if st["cap_reached"]:
+            self.st["presplit"] += self.split(wb[np.argsort(-bY[wb], kind="stable")],
+                                              wr[np.argsort(-R["Y"][wr], kind="stable")])
+            if self.st["cap_reached"]:
                 break
 
-    rounds = []
-    converged = False
-    for rnd in range(MAX_ROUNDS):
-        ub, ur, pix, Yu = uncertain()
-        S = np.bincount(pix, weights=Yu ** 2, minlength=Pn)
-        strict = np.bincount(pix, weights=Yu, minlength=Pn)
-        A = (np.bincount(bp, weights=bY * ((bV > 0) & ~bsplit), minlength=Pn)
-             + np.bincount(R["p"], weights=R["Y"] * (R["V"] > 0), minlength=Pn))
-        q = quad_est(vbar())
-        kap = _kappa(st["kap_num"], st["kap_den"], st["n_kap"])
-        sig = 0.5 * np.sqrt(kap * S)
-        tot_A = max(A.sum(), 1e-300)
-        est = (sig.sum() + q.sum()) / tot_A
-        # per pixel: the bound should stay within pixel_rtol of the pixel's value (lit pixels; best effort: pixels
-        # whose quadrature estimate alone exceeds it, or whose edge cells are at the finest level, stay over)
-        bound = np.minimum(strict, T_BOUND * 0.5 * np.sqrt(S)) + q
-        den = np.maximum(A, ERR_FLOOR * A.mean()) if Pn else A
-        target = ROUND_AIM * prtol * den
-        viol = np.flatnonzero((bound > prtol * den) & (q < target))
-        rounds.append(dict(round=rnd, rays=int(st["n_rays"]), est_rel_l1=float(est), vis_rel_l1=float(sig.sum() / tot_A),
-                           quad_rel_l1=float(q.sum() / tot_A), kappa=float(kap), edge_cells=int(len(pix)),
-                           cells=int(nB + len(R)), pixels_over=int(len(viol))))
-        if est <= rtol and len(viol) == 0:
-            converged = True
-            break
-        if st["cap_reached"]:
-            converged = est <= rtol
-            break
-        # candidates: edge cells that can still be split, largest weight first, among the top SPLIT_SHARE of their
-        # pixel's Σ W² (the smallest cells of a pixel wait until the larger ones are split)
-        lv = np.concatenate([np.zeros(len(ub), np.int64), R["l"][ur].astype(np.int64)])
-        can = np.flatnonzero(lv < depth)
-        o = can[np.argsort(-Yu[can], kind="stable")]
-        o = o[_worth_splitting(pix[o], Yu[o], S)]
-        chosen = np.zeros(0, np.int64)
-        if est > rtol and len(o):
-            budget = ROUND_AIM * max(rtol * tot_A - q.sum(), 0.25 * rtol * tot_A)
-            k_plan = kap if st["n_kap"] >= KAPPA_MIN_SPLITS else KAPPA_PLAN  # planning only; the estimate keeps κ̂ = 1
-            chosen = o[:_select(pix[o], Yu[o], S, budget, min_split=64, kappa=k_plan)]
-        if len(viol) and len(o):
-            pick = np.zeros(len(pix), bool)
-            pick[chosen] = True
-            pick[_select_pixels(pix[o], Yu[o], o, viol, S, strict, q, target, Pn)] = True
-            chosen = np.flatnonzero(pick)
-        if len(chosen) == 0:
-            converged = est <= rtol
-            break
-        chosen = chosen[np.argsort(-Yu[chosen], kind="stable")]
-        isb = chosen < len(ub)
-        if split(ub[chosen[isb]], ur[chosen[~isb] - len(ub)]) == 0:
-            converged = est <= rtol
-            break
+    # ---- refinement rounds ------------------------------------------------------------------------------------------
+    def _refine(self):
+        """Rounds of splits where weight × possible change is largest (module docstring) → (rounds, converged)."""
+        R, st, Pn, bp, bY, bV, rtol, prtol = self.R, self.st, self.Pn, self.bp, self.bY, self.bV, self.rtol, self.prtol
+        rounds = []
+        converged = False
+        for rnd in range(MAX_ROUNDS):
+            ub, ur, pix, Yu = self.uncertain()
+            S = np.bincount(pix, weights=Yu ** 2, minlength=Pn)
+            strict = np.bincount(pix, weights=Yu, minlength=Pn)
+            A = (np.bincount(bp, weights=bY * ((bV > 0) & ~self.bsplit), minlength=Pn)
+                 + np.bincount(R["p"], weights=R["Y"] * (R["V"] > 0), minlength=Pn))
+            q = self.quad_est(self.vbar())
+            kap = _kappa(st["kap_num"], st["kap_den"], st["n_kap"])
+            sig = 0.5 * np.sqrt(kap * S)
+            tot_A = max(A.sum(), 1e-300)
+            est = (sig.sum() + q.sum()) / tot_A
+            # per pixel: the bound should stay within pixel_rtol of the pixel's value (lit pixels; best effort:
+            # pixels whose quadrature estimate alone exceeds it, or whose edge cells are at the finest level, stay over)
+            bound = np.minimum(strict, T_BOUND * 0.5 * np.sqrt(S)) + q
+            den = np.maximum(A, ERR_FLOOR * A.mean()) if Pn else A
+            target = ROUND_AIM * prtol * den
+            viol = np.flatnonzero((bound > prtol * den) & (q < target))
+            rounds.append(dict(round=rnd, rays=int(st["n_rays"]), est_rel_l1=float(est),
+                               vis_rel_l1=float(sig.sum() / tot_A), quad_rel_l1=float(q.sum() / tot_A),
+                               kappa=float(kap), edge_cells=int(len(pix)), cells=int(self.nB + len(R)),
+                               pixels_over=int(len(viol))))
+            if est <= rtol and len(viol) == 0:
+                converged = True
+                break
+            if st["cap_reached"]:
+                converged = est <= rtol
+                break
+            # candidates: edge cells that can still be split, largest weight first, among the top SPLIT_SHARE of
+            # their pixel's Σ W² (the smallest cells of a pixel wait until the larger ones are split)
+            lv = np.concatenate([np.zeros(len(ub), np.int64), R["l"][ur].astype(np.int64)])
+            can = np.flatnonzero(lv < self.depth)
+            o = can[np.argsort(-Yu[can], kind="stable")]
+            o = o[_worth_splitting(pix[o], Yu[o], S)]
+            chosen = np.zeros(0, np.int64)
+            if est > rtol and len(o):
+                budget = ROUND_AIM * max(rtol * tot_A - q.sum(), 0.25 * rtol * tot_A)
+                k_plan = kap if st["n_kap"] >= KAPPA_MIN_SPLITS else KAPPA_PLAN  # planning only (the estimate: κ̂ = 1)
+                chosen = o[:_select(pix[o], Yu[o], S, budget, min_split=64, kappa=k_plan)]
+            if len(viol) and len(o):
+                pick = np.zeros(len(pix), bool)
+                pick[chosen] = True
+                pick[_select_pixels(pix[o], Yu[o], o, viol, S, strict, q, target, Pn)] = True
+                chosen = np.flatnonzero(pick)
+            if len(chosen) == 0:
+                converged = est <= rtol
+                break
+            chosen = chosen[np.argsort(-Yu[chosen], kind="stable")]
+            isb = chosen < len(ub)
+            if self.split(ub[chosen[isb]], ur[chosen[~isb] - len(ub)]) == 0:
+                converged = est <= rtol
+                break
+        return rounds, converged
 
     # ---- results ---------------------------------------------------------------------------------------------------
-    lit_b = (bV > 0) & ~bsplit
-    occ = (np.stack([np.bincount(bp, weights=bW[:, ch] * lit_b, minlength=Pn) for ch in range(C)], -1)
-           + np.stack([np.bincount(R["p"], weights=R.W[:, ch] * (R["V"] > 0), minlength=Pn) for ch in range(C)], -1))
-    occ = occ / ws[:, None]
-    _, _, pix, Yu = uncertain()
-    S = np.bincount(pix, weights=Yu ** 2, minlength=Pn)
-    strict = np.bincount(pix, weights=Yu, minlength=Pn)
-    q = quad_est(vbar())
-    kap = _kappa(st["kap_num"], st["kap_den"], st["n_kap"])
-    return dict(occ=occ, un=U, err_mean=0.5 * np.sqrt(kap * S) + q,
-                err_bound=np.minimum(strict, T_BOUND * 0.5 * np.sqrt(S)) + q, kappa=float(kap),
-                n_rays=int(st["n_rays"]), n_quad=int(M), n_quad_pair_max=int(bM.max()) if nB else int(M),
-                converged=converged, rounds=rounds, cap_reached=bool(st["cap_reached"]), presplit=int(st["presplit"]),
-                max_level=int(nb * 2 ** (int(R["l"].max()) if len(R) else 0)),
-                n_cells=int(nB + len(R)), time_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0,
-                peak_rss_mb=_peak_rss_mb())
+    def _results(self, rounds, converged) -> dict:
+        R, st, Pn, C, bp, bW, bV, nB = self.R, self.st, self.Pn, self.C, self.bp, self.bW, self.bV, self.nB
+        lit_b = (bV > 0) & ~self.bsplit
+        occ = (np.stack([np.bincount(bp, weights=bW[:, ch] * lit_b, minlength=Pn) for ch in range(C)], -1)
+               + np.stack([np.bincount(R["p"], weights=R.W[:, ch] * (R["V"] > 0), minlength=Pn) for ch in range(C)],
+                          -1))
+        occ = occ / self.ws[:, None]
+        _, _, pix, Yu = self.uncertain()
+        S = np.bincount(pix, weights=Yu ** 2, minlength=Pn)
+        strict = np.bincount(pix, weights=Yu, minlength=Pn)
+        q = self.quad_est(self.vbar())
+        kap = _kappa(st["kap_num"], st["kap_den"], st["n_kap"])
+        M = self.M
+        return dict(occ=occ, un=self.U, err_mean=0.5 * np.sqrt(kap * S) + q,
+                    err_bound=np.minimum(strict, T_BOUND * 0.5 * np.sqrt(S)) + q, kappa=float(kap),
+                    n_rays=int(st["n_rays"]), n_quad=int(M), n_quad_pair_max=int(self.bM.max()) if nB else int(M),
+                    converged=converged, rounds=rounds, cap_reached=bool(st["cap_reached"]),
+                    presplit=int(st["presplit"]), max_level=int(self.nb * 2 ** (int(R["l"].max()) if len(R) else 0)),
+                    n_cells=int(nB + len(R)), time_s=time.perf_counter() - self.t0,
+                    cpu_s=time.process_time() - self.c0, peak_rss_mb=_peak_rss_mb())
 
 
 def _peak_rss_mb() -> float:
