@@ -24,7 +24,7 @@ import os
 from .errors import IBLError
 
 __all__ = ["SizeError", "as_size", "memory_limit_bytes", "check_allocation", "check_cube_size", "cube_nbytes",
-           "RTOL_MIN", "check_rtol"]
+           "RTOL_MIN", "ToleranceError", "check_rtol"]
 
 
 class SizeError(IBLError):
@@ -96,18 +96,22 @@ def check_cube_size(value, name: str, channels: int = 3) -> int:
 RTOL_MIN = 2.0 ** -26
 
 
+class ToleranceError(IBLError):
+    """A relative tolerance that is not a number in [:data:`RTOL_MIN`, 1)."""
+
+
 def check_rtol(value, name: str = "rtol") -> float:
-    """A relative tolerance in [:data:`RTOL_MIN`, 1) as a float; a one-line :class:`SizeError` naming ``name``
+    """A relative tolerance in [:data:`RTOL_MIN`, 1) as a float; a one-line :class:`ToleranceError` naming ``name``
     otherwise (not a number, NaN, ≤ 0, below the float64 floor, ≥ 1: a relative error of 100 % checks nothing)."""
     if isinstance(value, bool):
-        raise SizeError(f"{name}: expected a number, got {value!r}")
+        raise ToleranceError(f"{name}: expected a number, got {value!r}")
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise SizeError(f"{name}: expected a number, got {value!r}") from None
+        raise ToleranceError(f"{name}: expected a number, got {value!r}") from None
     if not (math.isfinite(v) and 0 < v < 1):
-        raise SizeError(f"{name}: a relative tolerance must be a number in (0, 1), got {value!r}")
+        raise ToleranceError(f"{name}: a relative tolerance must be a number in (0, 1), got {value!r}")
     if v < RTOL_MIN:
-        raise SizeError(f"{name}: {v:g} is below {RTOL_MIN:.2g} (2^-26), the float64 rounding of the lab's largest "
+        raise ToleranceError(f"{name}: {v:g} is below {RTOL_MIN:.2g} (2^-26), the float64 rounding of the lab's largest "
                         "quadrature sums (2^27 terms x 2^-53): a smaller tolerance cannot be verified")
     return v

@@ -482,14 +482,51 @@ def _reproduce_job(job) -> dict:
 
 
 def reproduce(out, quick: bool = False, names=None, *, executor=None, workers: int = 1) -> dict:
-    """Run experiments (default: all; with ``quick`` those with ``IN_QUICK_REPRODUCE``) into ``out/NAME`` and
-    write ``out/reproduce_summary.json``; returns that summary.
+    """Run experiments into ``out/NAME`` (each with :func:`run_experiment`: its outputs replaced as a set) and write
+    ``out/reproduce_summary.json``.
 
     The experiments are independent jobs of :func:`ibl_ref.executors.map_jobs`: serially (default), on
     ``workers`` local processes, or on ``executor`` (any :class:`concurrent.futures.Executor`, a
     ``dask.distributed.Client`` or a scheduler address).  Each writes its own files, so on a cluster ``out`` must
     be a folder that every worker and this process see (a shared file system); a run whose files are missing
     here is an error.  Every data file is the same as in a serial run (timing columns aside).
+
+    Parameters
+    ----------
+    out : path
+        The folder of the runs (created if needed).
+    quick : bool
+        Quick sizes; without ``names`` only the experiments with ``IN_QUICK_REPRODUCE`` run.
+    names : list of str, optional
+        The experiments to run (default: all, or with ``quick`` all that have a quick version).
+    executor, workers
+        Where the experiments run (:func:`ibl_ref.executors.map_jobs`).
+
+    Returns
+    -------
+    dict
+        The summary written to ``reproduce_summary.json``: ``quick``, ``ran_on``, ``runs`` (one
+        :func:`run_experiment` result each), ``skipped_in_quick``.
+
+    Raises
+    ------
+    IBLError
+        An unknown experiment name, an output folder that cannot be written, an experiment's own error, or figures
+        written by workers that this process cannot see.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> from ibl_ref import experiments
+    >>> out = Path(tempfile.mkdtemp())
+    >>> s = experiments.reproduce(out, quick=True, names=[])  # nothing to run: the summary alone
+    >>> s["runs"], s["ran_on"], (out / "reproduce_summary.json").exists()
+    ([], 'serial', True)
+    >>> experiments.reproduce(out, names=["fig2"])
+    Traceback (most recent call last):
+    ...
+    ibl_ref.errors.IBLError: unknown experiment 'fig2'; available: ...
     """
     from ..atomic import write_json
     from ..errors import IBLError

@@ -288,6 +288,34 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
     Returns
     -------
     ReferenceResult
+        ``image``, ``unoccluded``, ``mask``, ``gbuffer``, ``info`` (tolerance, error estimates, rays, times, per
+        lobe), ``error`` (per-pixel bound).
+
+    Raises
+    ------
+    IBLError
+        A bad material, environment, tolerance (:func:`ibl_ref.limits.check_rtol`: in [2^-26, 1)), ``sided`` or
+        size parameter; a material id without a material; a GGX lobe narrower than one texel of the finest
+        quadrature level (:meth:`ibl_ref.rendering.materials.GGXLobe.check_resolved`).
+
+    Examples
+    --------
+    A plane facing up under a constant environment L = 1: the diffuse lobe lies wholly above the horizon and nothing
+    occludes it, so every pixel is exactly 1 (the quadrature's own normalisation):
+
+    >>> import numpy as np, trimesh
+    >>> from ibl_ref.rendering.camera import PerspectiveCamera
+    >>> from ibl_ref.rendering.reference_render import render_reference
+    >>> quad = trimesh.Trimesh([[-1, 0, -1], [1, 0, -1], [1, 0, 1], [-1, 0, 1]], [[0, 2, 1], [0, 3, 2]],
+    ...                        process=False)
+    >>> cam = PerspectiveCamera(eye=[0, 2, 0.5], target=[0, 0, 0], up=[0, 1, 0], fov_y_deg=30, width=4, height=4)
+    >>> res = render_reference([(quad, 0)], cam, np.ones((6, 8, 8, 3)), material=(1.0, 0.0, 0.5), rtol=1e-2)
+    >>> int(res.mask.sum()), np.allclose(res.image[res.mask], 1.0), res.info["converged"]
+    (16, True, True)
+    >>> render_reference([(quad, 0)], cam, np.ones((6, 8, 8, 3)), rtol=0)
+    Traceback (most recent call last):
+    ...
+    ibl_ref.limits.ToleranceError: rtol: a relative tolerance must be a number in (0, 1), got 0
     """
     from .materials import as_material
     from .raster import prepare_scene, rasterize
