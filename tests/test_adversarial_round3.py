@@ -390,3 +390,57 @@ def test_a_wrong_drjit_libllvm_path_is_one_line(tmp_path, lib, mitsuba_llvm):
     assert r.returncode == 1
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and str(bad) in lines[0], r.stderr
+
+
+# ---- class 2 through the command line: every exponent / roughness / tolerance flag with extreme values --------------
+EXTREME = ["0", "-1", "1e-300", "1e-200", "1e300", "inf", "nan", "abc"]
+_R = ["render", "--size", "4", "--env-size", "8", "--lights", "6", "--vsm-res", "16", "--no-progress"]
+_K = ["km00-render", "--size", "4", "--env-size", "8", "--n-theta", "3", "--quiet"]
+#: (argv before the value, argv after it, the values that a computation can use: they are not run here)
+CLI_PARAMS = {
+    "render --material ggx:R": (_R + ["--mode", "reference", "--material"], "ggx:{}", []),
+    "render --ground-material ggx:R": (_R + ["--mode", "reference", "--ground-material"], "ggx:{}", []),
+    "render --material ggx:roughness=0.5,f0=F": (_R + ["--mode", "reference", "--material"],
+                                                 "ggx:roughness=0.5,f0={}", ["0", "1e-300", "1e-200"]),
+    "render --ref-rtol": (_R + ["--mode", "reference", "--ref-rtol"], "{}", []),
+    "render --gloss": (_R + ["--gloss"], "{}", ["0", "1e-300", "1e-200"]),
+    "render --ground-gloss": (_R + ["--ground-gloss"], "{}", ["0", "1e-300", "1e-200"]),
+    "render --material kd,ks,G": (_R + ["--material"], "0,1,{}", ["0", "1e-300", "1e-200"]),
+    "experiment method-zoo --rtol": (["experiment", "method-zoo", "--quick", "--rtol"], "{}", []),
+    "experiment method-zoo --ref-rtol": (["experiment", "method-zoo", "--quick", "--ref-rtol"], "{}", []),
+    "experiment method-zoo --ggx-f0": (["experiment", "method-zoo", "--quick", "--ggx-f0"], "{}",
+                                       ["0", "1e-300", "1e-200"]),
+    "experiment cross-validate --rtol": (["experiment", "cross-validate", "--quick", "--rtol"], "{}", []),
+    "experiment error-budget --rtol": (["experiment", "error-budget", "--quick", "--rtol"], "{}", []),
+    "experiment speed-accuracy --exponents": (["experiment", "speed-accuracy", "--quick", "--exponents"], "{}", []),
+    "experiment lobe-chain --s-values": (["experiment", "lobe-chain", "--quick", "--s-values"], "{}", []),
+    "experiment fig3 --gloss": (["experiment", "fig3", "--quick", "--gloss"], "{}", ["0", "1e-300", "1e-200"]),
+    "experiment fig6 --g": (["experiment", "fig6", "--quick", "--g"], "{}", ["0", "1e-300", "1e-200"]),
+    "experiment km00-render --tail-rtol": (["experiment", "km00-render", "--quick", "--tail-rtol"], "{}", []),
+    "experiment km00-render --ref-eps": (["experiment", "km00-render", "--quick", "--ref-eps"], "{}", []),
+    "experiment render-error --chain-factor": (["experiment", "render-error", "--quick", "--chain-factor"], "{}",
+                                               ["1e300"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CLI_PARAMS))
+def test_extreme_values_of_every_exponent_roughness_and_tolerance_flag(case, tmp_path, capsys):
+    # each refused value: exit code 1 or 2, one line naming the flag, nothing written; the accepted ones are values
+    # the computation can use (a glossiness of 1e-300 is a diffuse-like lobe), not run here
+    from ibl_ref.cli import main
+
+    head, form, usable = CLI_PARAMS[case]
+    flag = next(a for a in reversed(head) if a.startswith("--"))
+    for v in EXTREME:
+        if v in usable:
+            continue
+        out = tmp_path / ("o.exr" if head[0] != "experiment" else "out")
+        argv = head + [form.format(v), "--out", str(out)]
+        try:
+            rc = main(argv)
+        except SystemExit as exc:
+            rc = exc.code
+        err = capsys.readouterr().err.strip()
+        assert rc in (1, 2), (argv, rc, err)
+        assert len(err.splitlines()) == 1 and flag in err, (argv, err)
+        assert not out.exists(), argv

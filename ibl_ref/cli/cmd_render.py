@@ -195,6 +195,16 @@ def _ao_render_mode():
     return render_mode
 
 
+def _gloss_material(g, option):
+    """``Material(0, 1, g)`` of a glossiness flag; its error names the flag."""
+    from ..rendering.render import Material
+
+    try:
+        return Material(kd=0.0, ks=1.0, g=g)
+    except IBLError as exc:
+        raise IBLError(f"{option}: {exc}") from None
+
+
 def _checked(args):
     """Every check that needs no file read, before the expensive parts: outputs, size, exposure, lights, materials,
     mode-specific flags → the settings of the run (a namespace)."""
@@ -215,9 +225,9 @@ def _checked(args):
         from .cmd_mediancut import check_lights
 
         check_lights(args.lights, args.median_cut)
-    mat = parse_material(args.material) if args.material else Material(kd=0.0, ks=1.0, g=args.gloss)
+    mat = parse_material(args.material) if args.material else _gloss_material(args.gloss, "--gloss")
     gmat = (parse_material(args.ground_material, "--ground-material") if args.ground_material
-            else Material(kd=0.0, ks=1.0, g=args.ground_gloss))
+            else _gloss_material(args.ground_gloss, "--ground-gloss"))
     if (_is_ggx(mat) or _is_ggx(gmat)) and args.mode not in _EXACT_MODES:
         raise IBLError("GGX materials (ggx:...) are rendered by --mode reference and --mode mitsuba; the other modes "
                        "take kd,ks,g")
