@@ -70,7 +70,7 @@ myst_heading_anchors = 3  # links like background.md#2-conventions-and-definitio
 myst_enable_extensions = ["dollarmath"]
 
 # ---- notebooks (myst-nb) ---------------------------------------------------------------------------------------
-nb_execution_mode = "cache"
+nb_execution_mode = "cache"  # executed at build time (quick sizes); cached in OUTDIR/../.jupyter_cache
 nb_execution_timeout = 900
 nb_execution_raise_on_error = True
 nb_output_stderr = "remove"  # progress lines on stderr are for a live session, not for the rendered page
