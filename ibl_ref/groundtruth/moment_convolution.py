@@ -397,95 +397,139 @@ def convolve_moment_many(
             raise IBLError(f"{name} must be a positive power of two, got {v!r}")
     leaf, tile, gather = int(leaf), int(tile), int(gather)
     faces = check_faces(faces)
-    nF = len(faces)
-    need2 = 2.0 in s_list
-    kern = get_kernels(check_impl(impl))
-    C = a4.shape[-1]
-    Q = C + 1  # channel Q-1: L ≡ 1 (denominator)
+    mp = _MomentPasses(a4, s_list, out_size, faces, tile, gather, leaf, bright_factor, chunk_elems,
+                       get_kernels(check_impl(impl)))
+    todo = np.arange(mp.T)
+    lf = leaf
+    while True:
+        mp.run(lf, todo)
+        if lf == 1 or rtol is None or lf // 2 < 2:
+            break
+        # tiles whose bound misses rtol are done again with half the leaf (down to 2)
+        worst = np.zeros(todo.size)
+        for s_ in s_list:
+            worst = np.maximum(worst, _ratio_bound(mp.num[s_][todo], mp.err[s_][todo], mp.C,
+                                                   normalized)[1].max(axis=(1, 2)))
+        todo = todo[~(worst <= rtol)]
+        if not todo.size:
+            break
+        lf //= 2
+    # ---- assemble, ratio bound ---------------------------------------------------------------------
+    nF, t, nt, C = len(faces), tile, mp.nt, mp.C
+    maps = np.empty((len(s_in), nF, out_size, out_size, C))
+    rel = np.empty((len(s_in), nF, out_size, out_size))
 
-    # ---- source: padded grid (power of two ≥ N, ≥ leaf), weights L Ω, bright texels ---------------
-    P = 1 << max(int(math.ceil(math.log2(n))), int(math.log2(leaf)), 0)
-    omega = envmap.cube_solid_angles(n)
-    wL = np.concatenate([a4 * omega[..., None], omega[..., None]], axis=-1)  # (6,n,n,Q)
-    dirs = envmap.texel_directions(n)
-    br = None
-    if leaf > 1:  # bright texels (e.g. a sun): gathered exactly where their leaf block straddles
-        lum = a4.max(axis=-1)
-        mean = float(np.sum(lum * omega) / np.sum(omega))
-        br = lum > bright_factor * max(mean, 1e-300)
-    pad = ((0, 0), (0, P - n), (0, P - n), (0, 0))
-    wP = np.pad(wL, pad)
-    dP = np.pad(dirs, pad)
-    real = np.pad(np.ones((6, n, n), bool), pad[:3])
+    def untile(x):
+        x = x.reshape(nF, nt, nt, t, t, -1).transpose(0, 1, 3, 2, 4, 5).reshape(nF, nt * t, nt * t, -1)
+        return x[:, :out_size, :out_size]
 
-    # ---- output tiles ----------------------------------------------------------------------------
-    t = tile
-    nt = -(-out_size // t)
-    od = envmap.texel_directions(out_size)[list(faces)]
-    od = np.pad(od, ((0, 0), (0, nt * t - out_size), (0, nt * t - out_size), (0, 0)), mode="edge")
-    R = envmap.face_blocks(od, t)
-    T = R.shape[0]
-    cT = R.sum(axis=1)
-    cT /= np.linalg.norm(cT, axis=-1, keepdims=True)
-    betaT = np.arccos(np.clip(np.einsum("tik,tk->ti", R, cT).min(axis=1), -1.0, 1.0)) + _ANGLE_EPS
+    for k, s in enumerate(s_in):
+        approx, r = _ratio_bound(untile(mp.num[s]), untile(mp.err[s]), C, normalized)
+        if not np.all(np.isfinite(approx)):
+            raise IBLError("moment convolution: zero lobe weight (cannot happen for a valid cube map)")
+        maps[k] = approx
+        rel[k] = channel_max(r) + ROUNDING_REL
+    if squeeze:
+        maps = maps[..., 0]
+    return maps, rel
 
-    sinB, cosB = np.sin(betaT), np.cos(betaT)
-    nK = 3 * Q + (6 * Q if need2 else 0)
-    num = {s_: np.zeros((T, t * t, Q)) for s_ in s_list}
-    err = {s_: np.zeros((T, t * t, Q)) for s_ in s_list}
-    LAST_INFO.clear()
-    LAST_INFO.update(classify_s=0.0, band_s=0.0, band_pairs=0, tile_chunks=0, leaf_tiles={})
-    brP = np.flatnonzero(np.pad(br, pad[:3]).ravel()) if br is not None else np.zeros(0, np.int64)
-    if brP.size:
-        LAST_INFO["bright_texels"] = int(brP.size)
-    bdT = bw_pad = bw_bright = None
-    if leaf == 1 or brP.size:  # source texels with one zero-weight dummy entry at the end (index −1: the pads)
-        bdT = np.ascontiguousarray(np.concatenate([dP.reshape(-1, 3), np.zeros((1, 3))]).T)
-        bw_pad = np.concatenate([wP.reshape(-1, Q), np.zeros((1, Q))])
-    if brP.size:  # the bright texels' own weights; the denominator (L ≡ 1) stays in the blocks
-        bw_bright = np.zeros_like(bw_pad)
-        bw_bright[brP, :C] = bw_pad[brP, :C]
-    band_src = kern.band_sources(bdT, bw_pad) if bdT is not None else None
-    bright_src = kern.band_sources(bdT, bw_bright) if bw_bright is not None else None
 
-    def run_pass(lf, tsel):
-        """num/err of the output tiles ``tsel`` with leaf size ``lf`` (1: exact band)."""
-        LAST_INFO["leaf_tiles"][lf] = int(tsel.size)
-        stop = lf if lf > 1 else min(gather, P)
-        M0 = M1 = M2 = prep = None
+class _MomentPasses:
+    """The sources (padded grid, power of two ≥ N and ≥ leaf; weights L Ω; bright texels), the output tiles and
+    the sums ``num``/``err`` (per exponent, (tiles, t², Q)) of :func:`convolve_moment_many`; :meth:`run` fills the
+    sums of a set of tiles with one leaf size."""
+
+    def __init__(self, a4, s_list, out_size, faces, tile, gather, leaf, bright_factor, chunk_elems, kern):
+        n = a4.shape[1]
+        self.n, self.s_list, self.out_size, self.tile, self.gather, self.chunk_elems = n, s_list, out_size, tile, \
+            gather, chunk_elems
+        self.kern, self.need2 = kern, 2.0 in s_list
+        self.C = a4.shape[-1]
+        Q = self.Q = self.C + 1  # channel Q-1: L ≡ 1 (denominator)
+        # ---- source: padded grid, weights L Ω, bright texels ---------------------------------------------
+        P = self.P = 1 << max(int(math.ceil(math.log2(n))), int(math.log2(leaf)), 0)
+        omega = envmap.cube_solid_angles(n)
+        wL = np.concatenate([a4 * omega[..., None], omega[..., None]], axis=-1)  # (6,n,n,Q)
+        self.br = None
+        if leaf > 1:  # bright texels (e.g. a sun): gathered exactly where their leaf block straddles
+            lum = a4.max(axis=-1)
+            mean = float(np.sum(lum * omega) / np.sum(omega))
+            self.br = lum > bright_factor * max(mean, 1e-300)
+        self.pad = ((0, 0), (0, P - n), (0, P - n), (0, 0))
+        self.wP = np.pad(wL, self.pad)
+        self.dP = np.pad(envmap.texel_directions(n), self.pad)
+        self.real = np.pad(np.ones((6, n, n), bool), self.pad[:3])
+        # ---- output tiles --------------------------------------------------------------------------------
+        t = tile
+        nt = self.nt = -(-out_size // t)
+        od = envmap.texel_directions(out_size)[list(faces)]
+        od = np.pad(od, ((0, 0), (0, nt * t - out_size), (0, nt * t - out_size), (0, 0)), mode="edge")
+        R = self.R = envmap.face_blocks(od, t)
+        self.T = R.shape[0]
+        cT = self.cT = R.sum(axis=1)
+        cT /= np.linalg.norm(cT, axis=-1, keepdims=True)
+        self.betaT = np.arccos(np.clip(np.einsum("tik,tk->ti", R, cT).min(axis=1), -1.0, 1.0)) + _ANGLE_EPS
+        self.sinB, self.cosB = np.sin(self.betaT), np.cos(self.betaT)
+        self.nK = 3 * Q + (6 * Q if self.need2 else 0)
+        self.num = {s_: np.zeros((self.T, t * t, Q)) for s_ in s_list}
+        self.err = {s_: np.zeros((self.T, t * t, Q)) for s_ in s_list}
+        LAST_INFO.clear()
+        LAST_INFO.update(classify_s=0.0, band_s=0.0, band_pairs=0, tile_chunks=0, leaf_tiles={})
+        brP = self.brP = (np.flatnonzero(np.pad(self.br, self.pad[:3]).ravel()) if self.br is not None
+                          else np.zeros(0, np.int64))
+        if brP.size:
+            LAST_INFO["bright_texels"] = int(brP.size)
+        bdT = bw_pad = bw_bright = None
+        if leaf == 1 or brP.size:  # source texels with one zero-weight dummy entry at the end (index −1: the pads)
+            bdT = np.ascontiguousarray(np.concatenate([self.dP.reshape(-1, 3), np.zeros((1, 3))]).T)
+            bw_pad = np.concatenate([self.wP.reshape(-1, Q), np.zeros((1, Q))])
+        if brP.size:  # the bright texels' own weights; the denominator (L ≡ 1) stays in the blocks
+            bw_bright = np.zeros_like(bw_pad)
+            bw_bright[brP, : self.C] = bw_pad[brP, : self.C]
+        self.band_src = kern.band_sources(bdT, bw_pad) if bdT is not None else None
+        self.bright_src = kern.band_sources(bdT, bw_bright) if bw_bright is not None else None
+
+    def _leaves(self, lf):
+        """The block levels of a pass with leaf ``lf`` and, for ``lf > 1``, the bracket band's leaf-block moments
+        without the bright texels (those are gathered exactly) and the bright texels per leaf block (CSR)."""
+        dP, wP, P, Q, C, need2, brP = self.dP, self.wP, self.P, self.Q, self.C, self.need2, self.brP
+        stop = lf if lf > 1 else min(self.gather, P)
         if lf == 1:
             F = _texel_moments(dP, wP, Q, need2)
-            levels = _block_levels(dP, real, F, P, stop)
-        else:
-            F = None
-            levels = _block_levels(dP, real, _leaf_moments(dP, wP, Q, need2, lf), P, stop)
-            # leaf-block moments without the bright texels (those are gathered exactly)
-            brp = np.pad(br, pad[:3])
-            M0 = _block_sums(wP, lf)
-            if brP.size:
-                M0 = _block_sums(np.where(brp[..., None] & (np.arange(Q) < C), 0.0, wP), lf)
-            FD = _leaf_moments(dP, wP, Q, need2, lf, drop=brp if brP.size else None).reshape(M0.shape[0], -1)
-            M1 = FD[:, : 3 * Q]
-            M2 = FD[:, 3 * Q :] if need2 else None
-            # bright texels per leaf block (flat padded indices), as a CSR list
-            f_, rem_ = np.divmod(brP, P * P)
-            i_, j_ = np.divmod(rem_, P)
-            mg = P // lf
-            blk_of = f_ * mg * mg + (i_ // lf) * mg + (j_ // lf)
-            order_ = np.argsort(blk_of, kind="stable")
-            bright_sorted = brP[order_]
-            bright_start = np.searchsorted(blk_of[order_], np.arange(6 * mg * mg + 1))
-        # output tiles in chunks of bounded working set (independent of the worker count)
-        per_chunk = moment_tiles_per_chunk(n, out_size, t, stop, kern.moment_chunk_pairs(Q), lf)
+            return stop, F, _block_levels(dP, self.real, F, P, stop), None
+        levels = _block_levels(dP, self.real, _leaf_moments(dP, wP, Q, need2, lf), P, stop)
+        brp = np.pad(self.br, self.pad[:3])
+        M0 = _block_sums(wP, lf)
+        if brP.size:
+            M0 = _block_sums(np.where(brp[..., None] & (np.arange(Q) < C), 0.0, wP), lf)
+        FD = _leaf_moments(dP, wP, Q, need2, lf, drop=brp if brP.size else None).reshape(M0.shape[0], -1)
+        M1 = FD[:, : 3 * Q]
+        M2 = FD[:, 3 * Q :] if need2 else None
+        f_, rem_ = np.divmod(brP, P * P)
+        i_, j_ = np.divmod(rem_, P)
+        mg = P // lf
+        blk_of = f_ * mg * mg + (i_ // lf) * mg + (j_ // lf)
+        order_ = np.argsort(blk_of, kind="stable")
+        bright = (brP[order_], np.searchsorted(blk_of[order_], np.arange(6 * mg * mg + 1)))
+        return stop, None, levels, (self.kern.brackets_prep(levels[-1][2], levels[-1][3], M0, M1, M2), bright)
+
+    def run(self, lf, tsel):
+        """``num``/``err`` of the output tiles ``tsel`` with leaf size ``lf`` (1: exact band), in chunks of tiles
+        of bounded working set (independent of the worker count)."""
+        LAST_INFO["leaf_tiles"][lf] = int(tsel.size)
+        stop, F, levels, brackets = self._leaves(lf)
+        Q, s_list, kern, chunk_elems = self.Q, self.s_list, self.kern, self.chunk_elems
+        per_chunk = moment_tiles_per_chunk(self.n, self.out_size, self.tile, stop, kern.moment_chunk_pairs(Q), lf)
         for c0 in range(0, tsel.size, per_chunk):
             ch = tsel[c0 : c0 + per_chunk]
             nc = ch.size
             _t0 = time.perf_counter()
-            S, tiles, blk = _classify(levels, cT[ch], betaT[ch], sinB[ch], cosB[ch], nK, stop, lf, dP, real, F, P, n)
+            S, tiles, blk = _classify(levels, self.cT[ch], self.betaT[ch], self.sinB[ch], self.cosB[ch], self.nK,
+                                      stop, lf, self.dP, self.real, F, self.P, self.n)
             LAST_INFO["classify_s"] += time.perf_counter() - _t0
             LAST_INFO["band_pairs"] += int(tiles.size)
             LAST_INFO["tile_chunks"] += 1
-            Rc = R[ch]
+            Rc = self.R[ch]
             # per output texel: positive-block moments (exact polynomial)
             num_c, err_c = {}, {}
             S1 = S[:, : 3 * Q].reshape(nc, 3, Q)
@@ -499,10 +543,9 @@ def convolve_moment_many(
                 err_c[s_] = np.zeros_like(num_c[s_])
             _t0 = time.perf_counter()
             if lf == 1:
-                kern.band_exact(Rc, tiles, blk, band_src, s_list, num_c, chunk_elems)
+                kern.band_exact(Rc, tiles, blk, self.band_src, s_list, num_c, chunk_elems)
             else:
-                if prep is None:
-                    prep = kern.brackets_prep(levels[-1][2], levels[-1][3], M0, M1, M2)
+                prep, (bright_sorted, bright_start) = brackets
                 kern.band_brackets(Rc, tiles, blk, prep, s_list, num_c, err_c, chunk_elems)
                 nb = bright_start[blk + 1] - bright_start[blk]
                 if nb.any():  # bright texels of straddling leaf blocks: exact gather
@@ -510,46 +553,12 @@ def convolve_moment_many(
                     bt = np.repeat(tiles[sel], nb[sel])
                     first = np.repeat(bright_start[blk[sel]], nb[sel])
                     within = np.arange(bt.size) - np.repeat(np.cumsum(nb[sel]) - nb[sel], nb[sel])
-                    btex = bright_sorted[first + within]
-                    kern.band_exact(Rc, bt, btex, bright_src, s_list, num_c, chunk_elems)
+                    kern.band_exact(Rc, bt, bright_sorted[first + within], self.bright_src, s_list, num_c,
+                                    chunk_elems)
             for s_ in s_list:
-                num[s_][ch] = num_c[s_]
-                err[s_][ch] = err_c[s_]
+                self.num[s_][ch] = num_c[s_]
+                self.err[s_][ch] = err_c[s_]
             LAST_INFO["band_s"] += time.perf_counter() - _t0
-
-    todo = np.arange(T)
-    lf = leaf
-    while True:
-        run_pass(lf, todo)
-        if lf == 1 or rtol is None or lf // 2 < 2:
-            break
-        # tiles whose bound misses rtol are done again with half the leaf (down to 2)
-        worst = np.zeros(todo.size)
-        for s_ in s_list:
-            worst = np.maximum(worst, _ratio_bound(num[s_][todo], err[s_][todo], C, normalized)[1].max(axis=(1, 2)))
-        todo = todo[~(worst <= rtol)]
-        if not todo.size:
-            break
-        lf //= 2
-
-    # ---- assemble, ratio bound ---------------------------------------------------------------------
-    K = len(s_in)
-    maps = np.empty((K, nF, out_size, out_size, C))
-    rel = np.empty((K, nF, out_size, out_size))
-
-    def untile(x):
-        x = x.reshape(nF, nt, nt, t, t, -1).transpose(0, 1, 3, 2, 4, 5).reshape(nF, nt * t, nt * t, -1)
-        return x[:, :out_size, :out_size]
-
-    for k, s in enumerate(s_in):
-        approx, r = _ratio_bound(untile(num[s]), untile(err[s]), C, normalized)
-        if not np.all(np.isfinite(approx)):
-            raise IBLError("moment convolution: zero lobe weight (cannot happen for a valid cube map)")
-        maps[k] = approx
-        rel[k] = channel_max(r) + ROUNDING_REL
-    if squeeze:
-        maps = maps[..., 0]
-    return maps, rel
 
 
 def convolve_moment(cube, s, **kwargs):
