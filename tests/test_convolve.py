@@ -87,8 +87,12 @@ def test_errors():
         convolve(cube, float("nan"))
     with pytest.raises(IBLError, match=r"no Phong exponents given"):
         convolve(cube, [])
-    with pytest.raises(IBLError, match=r"rtol must be in \(0, 1"):
+    with pytest.raises(IBLError, match=r"rtol: a relative tolerance must be a number in \(0, 1"):
         convolve(cube, 2.0, rtol=0)
+    # below what float64 sums of the lab's sizes can verify (it had run for minutes): one line, before any work
+    for tiny in (1e-300, 1e-9):
+        with pytest.raises(IBLError, match=r"rtol: .* is below 1.5e-08 \(2\^-26\)"):
+            convolve(cube, 2.0, rtol=tiny)
     with pytest.raises(IBLError, match=r"method 'sh' cannot represent the mirror"):
         convolve(cube, np.inf, method="sh")
     with pytest.raises(LayoutError, match=r"environment cube map: expected an array"):

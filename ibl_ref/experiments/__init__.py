@@ -139,17 +139,17 @@ def _in_range(lo: float, hi: float, what: str):
     return check
 
 
-#: largest Phong exponent of an experiment: the half width arccos(2^(-1/s)) ≈ 1.18/√s of a larger one is below
-#: 2^-26, the smallest angle whose cosine float64 tells from 1 (cos θ ≈ 1 − θ²/2 against the spacing 2^-53)
-MAX_PHONG_EXPONENT = 2.0 ** 52
+#: largest Phong exponent of an experiment: the convolution's (:data:`ibl_ref.groundtruth.convolution_args.S_MAX`,
+#: 2^30: beyond, the weights' float64 rounding cannot be bounded and the lobe is narrower than any texel)
+MAX_PHONG_EXPONENT = 2.0 ** 30
 
 
 def _exponent(v):
     from ..errors import IBLError
 
     if not 1 <= v <= MAX_PHONG_EXPONENT:
-        raise IBLError(f"a Phong exponent must be in [1, 2^52] (beyond, the lobe is narrower than float64 cosines "
-                       f"resolve), got {v!r}")
+        raise IBLError(f"a Phong exponent must be in [1, 2^30] (beyond, its weights' float64 rounding cannot be "
+                       f"bounded and the lobe is narrower than any texel), got {v!r}")
     return v
 
 

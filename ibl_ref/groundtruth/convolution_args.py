@@ -25,14 +25,27 @@ __all__ = ["check_exponent", "check_exponents", "check_cube", "check_faces", "ch
            "channel_min"]
 
 
+#: largest finite Phong exponent of the convolution: the float64 rounding of a weight c^s grows as s·u (the cosine's
+#: rounding Δ ≈ 5.6e-16 raised to the s-th power, :func:`ibl_ref.groundtruth.kernels.rounding.weight_error`), ≈ 1.6e-5
+#: relative at 2^30, so a larger exponent could not be bounded at rtol 1e-4; its lobe (half width ≈ 1.18/√s <
+#: 3.6e-5 rad) is narrower than a texel of any face up to 16384² (9.6e-5 rad), where the mirror s = inf gives the map
+S_MAX = 2.0 ** 30
+
+
 def check_exponent(s) -> float:
-    """A Phong exponent as a float ≥ 1 or ``inf``; IBLError otherwise (NaN, < 1, not a number)."""
+    """A Phong exponent as a float in [1, :data:`S_MAX`] or ``inf``; IBLError otherwise (NaN, < 1, not a number,
+    too large to bound)."""
+    if isinstance(s, bool):
+        raise IBLError(f"Phong exponent must be a number >= 1 or inf, got {s!r}")
     try:
         s = float(s)
     except (TypeError, ValueError):
         raise IBLError(f"Phong exponent must be a number >= 1 or inf, got {s!r}") from None
     if math.isnan(s) or s < 1.0:
         raise IBLError(f"Phong exponent s must be >= 1 (s_Phong = 1/(1-g) with g in [0,1]) or inf, got {s!r}")
+    if S_MAX < s < math.inf:
+        raise IBLError(f"Phong exponent s = {s:g} is above 2^30: its weights' float64 rounding cannot be bounded and "
+                       "its lobe is narrower than any texel; use s = inf (the mirror)")
     return s
 
 

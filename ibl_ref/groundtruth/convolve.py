@@ -104,8 +104,17 @@ except ImportError:  # pragma: no cover - not POSIX (no fork either)
 
 from ..errors import IBLError
 from ..executors import one_blas_thread, resolve_executor, worker_died
+from ..limits import check_rtol
 from .convolution_args import channel_max, check_cube, check_exponents, check_out_size
+from . import moment_convolution as mc
+from . import phong_convolution as pc
+from . import sh_convolution as shc
 from .kernels import KERNEL_ENV, KERNEL_METHODS, get_kernels, kernels_loaded, resolve_kernel
+from .kernels.rounding import sum_error, weight_error
+from .moment_convolution import moment_leaf, moment_peak_bytes
+from .phong_convolution import estimate_candidates
+from .sh_bounds import SH_L_MAX, band_limit_lower_bound, choose_band_limit, texel_max_radius
+from .sh_convolution import SECONDS_PER_UNIT, sh_assemble, sh_coefficients
 
 __all__ = ["ConvolutionResult", "convolve", "default_workers", "METHODS", "WORKERS_ENV"]
 
@@ -264,7 +273,6 @@ def _job_bytes(stage, n, out_size, C, n_faces, K, need2=True, leaf=1):
     n_src, n_out = 6 * n * n, n_faces * out_size * out_size
     maps = K * n_out * C * 8.0 * 2  # maps + bounds
     if stage == "moment":
-        from .moment_convolution import moment_peak_bytes
 
         return moment_peak_bytes(n, out_size, n_faces, C, need2, leaf)
     if stage == "sh":  # SH matrix cache / chunk (≤ 256 MB + 128 MB) and per-texel work arrays
@@ -458,6 +466,16 @@ def _with_underflow(maps, rel, u):
     return np.where(extra > 0, rel + extra, rel)
 
 
+def exact_rounding(s, n) -> float:
+    """Relative rounding bound of the dense exact gather's lobe average for exponent ``s`` on faces of size ``n``: a
+    ratio of two float64 sums of 6n² weights exp(s·(log c − log c_max)) (:func:`ibl_ref.groundtruth.kernels.rounding.
+    weight_error`, relative to the row maximum) is off by ≤ 2(η + γ_m); at least 1e-12 (reported, not zero)."""
+    if not np.isfinite(s):
+        return 1e-12
+    eta, _eps = weight_error(s, False, True)
+    return max(1e-12, 2.0 * (eta + float(sum_error(6 * n * n))))
+
+
 def _rel_from_abs(maps, abs_bound):
     """Relative bound per texel (max over channels) from an absolute per-channel bound."""
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -473,8 +491,6 @@ def _unit(name, impl):
 
 
 def _seconds_per_unit():
-    from .sh_convolution import SECONDS_PER_UNIT
-
     return SECONDS_PER_UNIT
 
 
@@ -576,24 +592,38 @@ def convolve(
     Returns
     -------
     ConvolutionResult
-        ``maps[s]`` has the input's channel layout ((6,n,n) for a 3-d input).
+        ``maps[s]`` (the lobe averages, the input's channel layout: (6,n,n) for a 3-d input), ``error_bound[s]``
+        (per texel, a bound on ``|approx − exact| / exact``, max over channels), ``method_used[s]``,
+        ``bound_kind[s]`` (``"rigorous"``, ``"estimate"`` or ``"rounding"``), ``info`` and ``timings_s``.
 
     Raises
     ------
     IBLError
-        Bad method, exponent (< 1, NaN), rtol or out_size; ``LayoutError`` / ``RadianceError`` for a
-        wrong shape or NaN/Inf/negative radiance.
+        Bad method, exponent (< 1, NaN), rtol, out_size, workers or kernel; ``LayoutError`` / ``RadianceError``
+        for a wrong shape or NaN/Inf/negative radiance.
+
+    Examples
+    --------
+    A constant environment is its own lobe average, for every exponent (the mirror too):
+
+    >>> import numpy as np
+    >>> from ibl_ref.groundtruth.convolve import convolve
+    >>> res = convolve(np.full((6, 8, 8, 3), 2.0), [1.0, 16.0, np.inf], kernel="numpy")
+    >>> [float(np.abs(res.maps[s] - 2.0).max()) < 1e-12 for s in (1.0, 16.0, np.inf)]
+    [True, True, True]
+
+    A sky with a sun: every texel within the requested relative error, by the route ``auto`` chose:
+
+    >>> from ibl_ref.synthetic.synthetic_envs import make_env
+    >>> res = convolve(make_env("sky_sun", 16), [64.0], rtol=1e-3, kernel="numpy")
+    >>> res.maps[64.0].shape, bool(res.error_bound[64.0].max() <= 1e-3), res.bound_kind[64.0]
+    ((6, 16, 16, 3), True, 'rounding')
     """
     t_start = time.perf_counter()
     c_start = time.process_time()
     if method not in METHODS:
         raise IBLError(f"unknown convolution method {method!r}; choose one of {', '.join(METHODS)}")
-    try:
-        rtol = float(rtol)
-    except (TypeError, ValueError):
-        raise IBLError(f"rtol must be a number in (0, 1), got {rtol!r}") from None
-    if not (0.0 < rtol < 1.0):
-        raise IBLError(f"rtol must be in (0, 1), got {rtol!r}")
+    rtol = check_rtol(rtol)
     a4, squeeze = check_cube(cube)
     n = a4.shape[1]
     a4, scale_k = _power_of_two_scaled(a4)
@@ -641,8 +671,6 @@ SH_RISK_SHARE = 0.25
 def _sh_pass_cost(L, n_bright, n_src, n_out, K, Q, impl):
     """Model cost of one SH pass (its passes, the bright gather and the fixed part; units of
     :func:`_seconds_per_unit`)."""
-    from . import sh_convolution as shc
-
     return (_unit("SH_FACTOR", impl) * shc.sh_cost(L, n_src, n_out, K, Q)
             + _unit("SH_BRIGHT_FACTOR", impl) * shc.bright_cost(n_bright, n_out, K) + shc.SH_OVERHEAD_UNITS)
 
@@ -662,10 +690,6 @@ def _route_auto(a4, s_list, rtol, out_size, normalized, info, impl="numpy", esti
     floor_impl = floor_impl or impl
     n_src, n_out = 6 * n * n, 6 * out_size * out_size
     Q = a4.shape[-1] + 1
-    from . import sh_convolution as shc
-    from .moment_convolution import moment_leaf
-    from .sh_bounds import SH_L_MAX
-
     unit = _seconds_per_unit()
     route, plan = {}, None
     finite = [s for s in s_list if np.isfinite(s)]
@@ -705,8 +729,6 @@ def _route_auto(a4, s_list, rtol, out_size, normalized, info, impl="numpy", esti
         if alt / SPARSE_STATIC_SLACK <= c_sp[s] <= SPARSE_STATIC_SLACK * alt:
             big.append(s)
     if big:
-        from .phong_convolution import estimate_candidates
-
         cand = estimate_candidates(a4, big, rtol=rtol, out_size=out_size, impl=impl)
         info["sparse_candidates_per_output"] = {_s_json(s): float(c) for s, c in zip(big, cand)}
         for s, c in zip(big, cand):
@@ -804,8 +826,6 @@ def _sh_cannot_pay(finite, others, n, n_src, n_out, Q, impl="numpy", rtol=1e-3):
     a lower bound of its cost: the band limit the planner could choose is never below the one the truncation
     bound needs at the most lenient target 0.8·rtol (:func:`~ibl_ref.groundtruth.sh_bounds.choose_band_limit`).
     Spares the planner (its coarse lobe averages and bound tables) where narrow lobes go to the sparse gather."""
-    from .sh_bounds import SH_L_MAX, band_limit_lower_bound, choose_band_limit, texel_max_radius
-
     # first without the truncation tables (≈ 10 ms per exponent): the band limit the tables give is never below
     # band_limit_lower_bound, and the pass cost grows with L, so when the other routes are cheaper than the pass at
     # those band limits they are cheaper than the planned pass too (the same answer as below)
@@ -834,8 +854,6 @@ def _sh_split_state(a4, sh_set, sh_plan, rtol, out_size, normalized, impl="numpy
     """``("project", setup)`` when the SH pass of ``sh_set`` is big enough to split
     (:data:`SH_SPLIT_MIN_SECONDS`, decided from the sizes and the band limit), else None.  Without a plan the
     band limit is planned here (as the single job would)."""
-    from . import sh_convolution as shc
-
     n = a4.shape[1]
     n_src, n_out = 6 * n * n, 6 * out_size * out_size
     Q = a4.shape[-1] + 1
@@ -860,16 +878,11 @@ def _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sh_pla
     Every job computes a fixed piece of work (its exponents, its output faces) that does not depend on
     the number of workers, so the maps and bounds are bit-for-bit the same for any worker count.
     """
-    from . import phong_convolution as pc
-    from . import sh_convolution as shc
-
     n = a4.shape[1]
     n_src, n_out = 6 * n * n, 6 * out_size * out_size
     pair_units = n_out * n_src
     jobs = []
     if mo_set:
-        from . import moment_convolution as mc
-
         for pi, fc in enumerate(mo_parts):
             jobs.append(("moment", ("moment", pi), _moment_cost(n, out_size, mo_leaf, impl) * len(fc) / 6,
                          functools.partial(mc.convolve_moment_many, a4, mo_set, out_size=out_size,
@@ -918,8 +931,6 @@ def _job_faces_exponents(fn):
 def _round_workers(jobs, a4, out_size, workers, executor, memory_limit, need2):
     """Workers for one round: the memory planner, and serial when the jobs are too small to pay for a
     pool (:data:`PARALLEL_MIN_SECONDS`).  Returns ``(workers, memory warning or None)``."""
-    from .sh_convolution import SECONDS_PER_UNIT
-
     n, C = a4.shape[1], a4.shape[-1]
     job_mem = [_job_bytes(j[0], n, out_size, C, *_job_faces_exponents(j[3]), need2, j[3].keywords.get("leaf", 1))
                for j in jobs]
@@ -936,77 +947,42 @@ def _round_workers(jobs, a4, out_size, workers, executor, memory_limit, need2):
 
 def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, workers, backend, executor,
               memory_limit, scale_k, t_start, c_start, impl="numpy", kernel_note=None):
-    """Body of :func:`convolve` after the argument checks (routing, jobs, collection)."""
-
+    """Body of :func:`convolve` after the argument checks: route every exponent, run rounds of independent jobs
+    (route × output-face part, :func:`_round_jobs`) until every exponent has a result within ``rtol`` (or its last
+    fallback), then assemble the result."""
     res = ConvolutionResult()
     if kernel_note:
         res.info["kernel_auto"] = kernel_note
-
-    timings = {"sh": 0.0, "sparse": 0.0, "exact": 0.0, "moment": 0.0}
-
-    # ---- route every exponent ----------------------------------------------------------------
     plan, finite = None, []
     if method == "auto":
         with one_blas_thread():
             route, plan, finite = _route_auto(a4, s_list, rtol, out_size, normalized, res.info, impl)
     else:
         route = {s: method for s in s_list}
-
     # the loops of the routes taken, ready before any worker is forked (the sparse gather is every route's fallback)
     stages = {"sparse", "moment", "sh"} & (set(route.values()) | {"sparse"})
     res.info["kernel_load_s"] = get_kernels(impl).warm_up(sorted(stages))
-
-    # ---- execute: rounds of independent jobs (route × output-face part, :func:`_round_jobs`) --------
-    results = {}
-    parts = FACE_PARTS
-    mo_parts = MOMENT_FACE_PARTS_LARGE if out_size >= MOMENT_SPLIT_MIN_SIZE else FACE_PARTS
-    # the sparse gather aims at rtol at every texel by itself (its local bound and per-tile caps);
-    # a batch whose bound still misses rtol somewhere is retried once with a tighter target, then exact
-    scale0 = 1.0
-
-    mo_set = [s for s in s_list if route[s] == "moment"]
-    # auto: the bracket band (rigorous bound, leaf > 1) where it is cheaper; halved while it misses rtol
-    mo_leaf = 1
-    if method == "auto" and mo_set:
-        from .moment_convolution import moment_leaf
-
-        mo_leaf = moment_leaf(n, rtol)
-    res.info["moment_leaf"] = []
-    sh_set = [s for s in s_list if route[s] == "sh"]
-    sparse_batches = [(tuple(s for s in s_list if route[s] == "sparse"), scale0, 0)]
-    sparse_batches = [b for b in sparse_batches if b[0]]
-    if sparse_batches and normalized:
-        # a sparse gather too small to pay for a pool runs as one job over all faces (each face's result is the
-        # same whatever the face subset, so this changes no number)
-        n_src, n_out = 6 * n * n, 6 * out_size * out_size
-        sp_cost = sum(_sparse_cost(s, rtol, n_src, n_out, impl) for s in sparse_batches[0][0])
-        if sp_cost * _seconds_per_unit() < PARALLEL_MIN_SECONDS:
-            parts = (tuple(range(6)),)
-    ex_set = [s for s in s_list if route[s] == "exact"]
-    fallback_sh, fallback_sparse = [], []
-    stage_busy = {"sh": 0.0, "sparse": 0.0, "exact": 0.0, "moment": 0.0}
-    t_par = 0.0
-    child_cpu = 0.0
+    rd = _Rounds(a4, s_list, route, method, rtol, out_size, normalized, impl, res.info)
+    t_par = child_cpu = 0.0
     planned = []
     # one BLAS thread per worker (no oversubscription) and, serial included, the same BLAS blocking
     # for every worker count: bit-for-bit identical results (threadpoolctl restores the limits after)
-    sh_state = None  # a split SH pass: ("project", setup) then ("evaluate", setup, Be, Bo)
-    sh_busy_parts = 0.0
     with one_blas_thread():
-        while mo_set or sh_set or sparse_batches or ex_set:
+        while rd.mo_set or rd.sh_set or rd.sparse_batches or rd.ex_set:
             sub_plan = None
-            if sh_set and method == "auto":  # re-plan only if the SH subset differs from the planned set
-                sub_plan = plan if list(sh_set) == list(finite) else None
-            if sh_set and sh_state is None:
-                sh_state = _sh_split_state(a4, sh_set, sub_plan, rtol, out_size, normalized, impl)
+            if rd.sh_set and method == "auto":  # re-plan only if the SH subset differs from the planned set
+                sub_plan = plan if list(rd.sh_set) == list(finite) else None
+            if rd.sh_set and rd.sh_state is None:
+                rd.sh_state = _sh_split_state(a4, rd.sh_set, sub_plan, rtol, out_size, normalized, impl)
             # a round of sparse gathers only, with a gather that shares its tiles between threads (the compiled one
             # releases the GIL): one job over all faces on `workers` threads, no pool to start, balanced tile by tile
-            solo = (get_kernels(impl).gather_threads and executor is None and workers > 1 and sparse_batches
-                    and not (mo_set or sh_set or ex_set))
-            sp_parts = (tuple(range(6)),) if solo else parts
-            jobs = _round_jobs(a4, out_size, rtol, normalized, mo_set, mo_parts, sh_set, sub_plan,
-                               sparse_batches, sp_parts, ex_set, mo_leaf, sh_state, impl, workers if solo else 1)
-            w_plan, warning = _round_workers(jobs, a4, out_size, workers, executor, memory_limit, 2.0 in mo_set)
+            solo = (get_kernels(impl).gather_threads and executor is None and workers > 1 and rd.sparse_batches
+                    and not (rd.mo_set or rd.sh_set or rd.ex_set))
+            rd.sp_parts = (tuple(range(6)),) if solo else rd.parts
+            jobs = _round_jobs(a4, out_size, rtol, normalized, rd.mo_set, rd.mo_parts, rd.sh_set, sub_plan,
+                               rd.sparse_batches, rd.sp_parts, rd.ex_set, rd.mo_leaf, rd.sh_state, impl,
+                               workers if solo else 1)
+            w_plan, warning = _round_workers(jobs, a4, out_size, workers, executor, memory_limit, 2.0 in rd.mo_set)
             planned.append(w_plan)
             if warning:
                 res.info["memory_warning"] = warning
@@ -1016,99 +992,18 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
             child_cpu += cpu_c
             for stage, key, _c, _f in jobs:
                 # a solo sparse job's threads count as workers: its wall time × threads
-                stage_busy[stage] += busy[key] * (workers if solo and stage == "sparse" else 1)
+                rd.stage_busy[stage] += busy[key] * (workers if solo and stage == "sparse" else 1)
             if solo:
                 res.info["sparse_threads"] = workers
-            # ---- collect ----
-            nxt_batches, nxt_exact = [], []
-            if mo_set:
-                maps = np.concatenate([out[("moment", pi)][0] for pi in range(len(mo_parts))], axis=1)
-                rel = np.concatenate([out[("moment", pi)][1] for pi in range(len(mo_parts))], axis=1)
-                res.info["moment_leaf"].append(mo_leaf)
-                retry = []
-                for k, s in enumerate(mo_set):
-                    if mo_leaf > 1 and not float(rel[k].max()) <= rtol:
-                        retry.append(s)
-                        continue
-                    results[s] = (maps[k], rel[k], "moment", "rigorous" if mo_leaf > 1 else "rounding")
-                mo_set = retry
-                mo_leaf = mo_leaf // 2 if mo_leaf // 2 >= 4 else 1
-            if sh_set and sh_state is not None and sh_state[0] == "project":
-                from .sh_convolution import sh_coefficients
-
-                setup = sh_state[1]
-                n_sp = setup.sym_src.n_parts
-                sh_busy_parts += sum(busy[("sh", "project", i)] for i in range(n_sp))
-                Be, Bo = sh_coefficients(setup, [out[("sh", "project", i)] for i in range(n_sp)])
-                sh_state = ("evaluate", setup, Be, Bo)
-            elif sh_set:
-                if sh_state is not None:  # the evaluation round of a split pass
-                    from .sh_convolution import sh_assemble
-
-                    setup = sh_state[1]
-                    n_sp = setup.sym_src.n_parts
-                    sh_busy_parts += sum(busy[("sh", "evaluate", i)] for i in range(n_sp))
-                    maps, rel, info = sh_assemble(setup, [out[("sh", "evaluate", i)] for i in range(n_sp)],
-                                                  {"time_plan_s": setup.time_setup_s,
-                                                   "time_parts_s": sh_busy_parts, "parts": n_sp})
-                    sh_state = None
-                else:
-                    maps, rel, info = out[("sh",)]
-                res.info["sh"] = {k: v for k, v in info.items()}
-                fb = []
-                for k, s in enumerate(sh_set):
-                    if method == "auto" and not float(rel[k].max()) <= rtol:
-                        fb.append(s)
-                        continue
-                    results[s] = (maps[k], rel[k], "sh", info["bound_kind"][k])
-                if fb:
-                    fallback_sh += fb
-                    if normalized:
-                        nxt_batches.append((tuple(fb), scale0, 0))
-                    else:
-                        nxt_exact += fb
-                sh_set = []
-            for bi, (sb, sc, att) in enumerate(sparse_batches):
-                maps = np.concatenate([out[("sparse", bi, pi)][0] for pi in range(len(sp_parts))], axis=1)
-                abs_b = np.concatenate([out[("sparse", bi, pi)][1] for pi in range(len(sp_parts))], axis=1)
-                # (output, source texel) pairs the gathers computed (all attempts), for the benchmarks
-                n_src = 6 * n * n
-                res.info["sparse_pairs"] = res.info.get("sparse_pairs", 0.0) + sum(
-                    i.gathered_fraction * len(fc) * out_size * out_size * n_src
-                    for pi, fc in enumerate(sp_parts) for i in out[("sparse", bi, pi)][2])
-                worst, fb = 0.0, []
-                for k, s in enumerate(sb):
-                    rel = _rel_from_abs(maps[k], abs_b[k])
-                    if method == "auto" and not float(rel.max()) <= rtol:
-                        fb.append(s)
-                        worst = max(worst, float(rel.max()))
-                        continue
-                    results[s] = (maps[k], rel, "sparse", "rigorous")
-                if fb and att == 0 and np.isfinite(worst):
-                    nxt_batches.append((tuple(fb), sc * 0.8 * rtol / worst, 1))
-                elif fb:
-                    fallback_sparse += fb
-                    nxt_exact += fb
-            if ex_set:
-                maps = out[("exact",)]
-                for k, s in enumerate(ex_set):
-                    # float64 sums over ≤ 6N² terms: relative rounding ≲ 1e-12 (reported, not zero)
-                    results[s] = (maps[k], np.full((6, out_size, out_size), 1e-12), "exact", "rounding")
-            sparse_batches, ex_set = nxt_batches, nxt_exact
-    if fallback_sh:
-        res.info["fallback_from_sh"] = [_s_json(s) for s in fallback_sh]
-    if fallback_sparse:
-        res.info["fallback_from_sparse"] = [_s_json(s) for s in fallback_sparse]
-    timings.update(stage_busy)
-    timings["jobs_wall"] = t_par
-    res.info["workers"] = workers
-    res.info["kernel"] = impl
-    res.info["workers_planned"] = min(planned) if planned else workers
-    res.info["backend"] = "executor" if executor is not None else backend
-
+            rd.collect(out, busy)
+    for key, fb in (("fallback_from_sh", rd.fallback_sh), ("fallback_from_sparse", rd.fallback_sparse)):
+        if fb:
+            res.info[key] = [_s_json(s) for s in fb]
+    res.info.update(workers=workers, kernel=impl, workers_planned=min(planned) if planned else workers,
+                    backend="executor" if executor is not None else backend)
     u = float(a4.max()) * UNDERFLOW_ABS if a4.size else 0.0
     for s in s_list:
-        m, b, meth, kind = results[s]
+        m, b, meth, kind = rd.results[s]
         b = _with_underflow(m, b, u)
         if scale_k:
             with np.errstate(over="ignore"):
@@ -1120,8 +1015,130 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
         res.error_bound[s] = b
         res.method_used[s] = meth
         res.bound_kind[s] = kind
-    timings["total"] = time.perf_counter() - t_start
     # process CPU time (+ forked workers): robust on a loaded machine
-    timings["total_cpu"] = time.process_time() - c_start + child_cpu
-    res.timings_s = timings
+    res.timings_s = {**rd.stage_busy, "jobs_wall": t_par, "total": time.perf_counter() - t_start,
+                     "total_cpu": time.process_time() - c_start + child_cpu}
     return res
+
+
+class _Rounds:
+    """What each route of :func:`_convolve` still has to compute, and the results collected from its rounds of jobs:
+    ``results[s] = (map, relative bound, method, bound kind)``.  An SH or sparse result that misses ``rtol`` (``auto``
+    only) goes to the next round's sparse gather (once with a tighter target) and finally to the exact gather; a
+    moment result with a bracket band that misses it is computed again with half the leaf."""
+
+    def __init__(self, a4, s_list, route, method, rtol, out_size, normalized, impl, info):
+        n = a4.shape[1]
+        self.method, self.rtol, self.out_size, self.normalized, self.info, self.n = (method, rtol, out_size,
+                                                                                    normalized, info, n)
+        self.results = {}
+        self.parts = self.sp_parts = FACE_PARTS
+        self.mo_parts = MOMENT_FACE_PARTS_LARGE if out_size >= MOMENT_SPLIT_MIN_SIZE else FACE_PARTS
+        self.mo_set = [s for s in s_list if route[s] == "moment"]
+        # auto: the bracket band (rigorous bound, leaf > 1) where it is cheaper; halved while it misses rtol
+        self.mo_leaf = moment_leaf(n, rtol) if method == "auto" and self.mo_set else 1
+        info["moment_leaf"] = []
+        self.sh_set = [s for s in s_list if route[s] == "sh"]
+        self.sh_state = None  # a split SH pass: ("project", setup) then ("evaluate", setup, Be, Bo)
+        self.sh_busy_parts = 0.0
+        # the sparse gather aims at rtol at every texel by itself (its local bound and per-tile caps); a batch whose
+        # bound still misses rtol somewhere is retried once with a tighter target, then exact
+        self.sparse_batches = [b for b in [(tuple(s for s in s_list if route[s] == "sparse"), 1.0, 0)] if b[0]]
+        if self.sparse_batches and normalized:
+            # a sparse gather too small to pay for a pool runs as one job over all faces (each face's result is the
+            # same whatever the face subset, so this changes no number)
+            n_src, n_out = 6 * n * n, 6 * out_size * out_size
+            sp_cost = sum(_sparse_cost(s, rtol, n_src, n_out, impl) for s in self.sparse_batches[0][0])
+            if sp_cost * _seconds_per_unit() < PARALLEL_MIN_SECONDS:
+                self.parts = (tuple(range(6)),)
+        self.ex_set = [s for s in s_list if route[s] == "exact"]
+        self.fallback_sh, self.fallback_sparse = [], []
+        self.stage_busy = {"sh": 0.0, "sparse": 0.0, "exact": 0.0, "moment": 0.0}
+
+    def _miss(self, rel) -> bool:
+        return self.method == "auto" and not float(rel.max()) <= self.rtol
+
+    def collect(self, out, busy):
+        """Take one round's outputs ``out`` (job key → result) and set up the next round."""
+        self._nxt_batches, self._nxt_exact = [], []
+        if self.mo_set:
+            self._collect_moment(out)
+        if self.sh_set:
+            self._collect_sh(out, busy)
+        for bi, batch in enumerate(self.sparse_batches):
+            self._collect_sparse(out, bi, batch)
+        for k, s in enumerate(self.ex_set):
+            self.results[s] = (out[("exact",)][k], np.full((6, self.out_size, self.out_size), exact_rounding(s, self.n)),
+                               "exact", "rounding")
+        self.sparse_batches, self.ex_set = self._nxt_batches, self._nxt_exact
+
+    def _collect_moment(self, out):
+        maps = np.concatenate([out[("moment", pi)][0] for pi in range(len(self.mo_parts))], axis=1)
+        rel = np.concatenate([out[("moment", pi)][1] for pi in range(len(self.mo_parts))], axis=1)
+        self.info["moment_leaf"].append(self.mo_leaf)
+        retry = []
+        for k, s in enumerate(self.mo_set):
+            if self.mo_leaf > 1 and not float(rel[k].max()) <= self.rtol:
+                retry.append(s)
+                continue
+            self.results[s] = (maps[k], rel[k], "moment", "rigorous" if self.mo_leaf > 1 else "rounding")
+        self.mo_set = retry
+        self.mo_leaf = self.mo_leaf // 2 if self.mo_leaf // 2 >= 4 else 1
+
+    def _collect_sh(self, out, busy):
+        state = self.sh_state
+        if state is not None and state[0] == "project":  # the projection round of a split pass
+            setup = state[1]
+            n_sp = setup.sym_src.n_parts
+            self.sh_busy_parts += sum(busy[("sh", "project", i)] for i in range(n_sp))
+            self.sh_state = ("evaluate", setup) + sh_coefficients(setup, [out[("sh", "project", i)]
+                                                                          for i in range(n_sp)])
+            return
+        if state is not None:  # the evaluation round of a split pass
+            setup = state[1]
+            n_sp = setup.sym_src.n_parts
+            self.sh_busy_parts += sum(busy[("sh", "evaluate", i)] for i in range(n_sp))
+            maps, rel, info = sh_assemble(setup, [out[("sh", "evaluate", i)] for i in range(n_sp)],
+                                          {"time_plan_s": setup.time_setup_s, "time_parts_s": self.sh_busy_parts,
+                                           "parts": n_sp})
+            self.sh_state = None
+        else:
+            maps, rel, info = out[("sh",)]
+        self.info["sh"] = dict(info)
+        fb = []
+        for k, s in enumerate(self.sh_set):
+            if self._miss(rel[k]):
+                fb.append(s)
+                continue
+            self.results[s] = (maps[k], rel[k], "sh", info["bound_kind"][k])
+        if fb:
+            self.fallback_sh += fb
+            if self.normalized:
+                self._nxt_batches.append((tuple(fb), 1.0, 0))
+            else:
+                self._nxt_exact += fb
+        self.sh_set = []
+
+    def _collect_sparse(self, out, bi, batch):
+        sb, sc, att = batch
+        parts = self.sp_parts
+        maps = np.concatenate([out[("sparse", bi, pi)][0] for pi in range(len(parts))], axis=1)
+        abs_b = np.concatenate([out[("sparse", bi, pi)][1] for pi in range(len(parts))], axis=1)
+        # (output, source texel) pairs the gathers computed (all attempts), for the benchmarks
+        n_src = 6 * self.n * self.n
+        self.info["sparse_pairs"] = self.info.get("sparse_pairs", 0.0) + sum(
+            i.gathered_fraction * len(fc) * self.out_size * self.out_size * n_src
+            for pi, fc in enumerate(parts) for i in out[("sparse", bi, pi)][2])
+        worst, fb = 0.0, []
+        for k, s in enumerate(sb):
+            rel = _rel_from_abs(maps[k], abs_b[k])
+            if self._miss(rel):
+                fb.append(s)
+                worst = max(worst, float(rel.max()))
+                continue
+            self.results[s] = (maps[k], rel, "sparse", "rigorous")
+        if fb and att == 0 and np.isfinite(worst):
+            self._nxt_batches.append((tuple(fb), sc * 0.8 * self.rtol / worst, 1))
+        elif fb:
+            self.fallback_sparse += fb
+            self._nxt_exact += fb

@@ -118,6 +118,7 @@ import numpy as np
 
 from ..environment import envmap
 from ..errors import IBLError, LayoutError
+from ..limits import check_rtol
 from .convolution_args import channel_max, check_cube, check_exponent, check_faces, check_out_size
 from .kernels import check_impl, get_kernels
 from .kernels.numpy_backend import ANGLE_MARGIN, column_extremes
@@ -732,12 +733,7 @@ def _sparse_args(exponents, rtol, dark_floor, threads):
     s_list = [check_exponent(s) for s in np.atleast_1d(np.asarray(exponents, dtype=object))]
     if not s_list:
         raise IBLError("no Phong exponents given")
-    try:
-        rtol = float(rtol)
-    except (TypeError, ValueError):
-        raise IBLError(f"rtol must be a positive number, got {rtol!r}") from None
-    if not (0.0 < rtol < 1.0):
-        raise IBLError(f"rtol must be in (0, 1), got {rtol!r}")
+    rtol = check_rtol(rtol)
     if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
         raise IBLError(f"threads must be an integer ≥ 1, got {threads!r}")
     try:

@@ -95,6 +95,7 @@ import numpy as np
 from ..environment import envmap
 from .convolution_args import channel_max, check_cube, check_exponent, check_out_size
 from ..errors import IBLError
+from ..limits import check_rtol
 
 __all__ = [
     "convolve_sh",
@@ -371,8 +372,7 @@ def sh_setup(cube, exponents, *, rtol: float = 1e-3, L: int | None = None, hybri
         raise IBLError("no Phong exponents given")
     if any(not np.isfinite(s) for s in s_list):
         raise IBLError("the SH route cannot represent the mirror (s = inf); use method='exact'")
-    if not (isinstance(rtol, (int, float, np.floating)) and rtol > 0 and np.isfinite(rtol)):
-        raise IBLError(f"rtol must be a positive finite number, got {rtol!r}")
+    rtol = check_rtol(rtol)
     C = a.shape[-1]
     src = envmap.texel_directions(n).reshape(-1, 3)
     omega = np.ascontiguousarray(envmap.cube_solid_angles(n)).reshape(-1)

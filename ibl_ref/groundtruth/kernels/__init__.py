@@ -145,16 +145,19 @@ def resolve_kernel(kernel=None) -> str:
     return kernel
 
 
-def check_impl(impl) -> str:
-    """``impl`` if it names a backend of :data:`KERNEL_METHODS` (the routes' ``impl=`` argument), else
-    :class:`~ibl_ref.errors.IBLError`."""
-    if not isinstance(impl, str) or impl not in KERNEL_METHODS:
+def check_impl(impl):
+    """``impl`` if it names a backend of :data:`KERNEL_METHODS` or is a :class:`Kernels` instance (the routes'
+    ``impl=`` argument), else :class:`~ibl_ref.errors.IBLError`."""
+    if not isinstance(impl, Kernels) and (not isinstance(impl, str) or impl not in KERNEL_METHODS):
         raise IBLError(f"impl must be one of {', '.join(repr(k) for k in KERNEL_METHODS)}, got {impl!r}")
     return impl
 
 
-def get_kernels(name: str) -> Kernels:
-    """The backend ``name`` of :data:`KERNEL_METHODS` (one instance per process, imported on first use)."""
+def get_kernels(name) -> Kernels:
+    """The backend ``name`` of :data:`KERNEL_METHODS` (one instance per process, imported on first use); a
+    :class:`Kernels` instance is returned as it is (a backend of one's own, e.g. a benchmark's variant)."""
+    if isinstance(name, Kernels):
+        return name
     if name not in _LOADED:
         check_impl(name)
         if os.environ.get("IBL_REF_KERNEL_BACKEND"):

@@ -23,8 +23,9 @@ import numpy as np
 
 from ...environment import envmap
 from ...errors import IBLError
-from ..convolution_args import channel_max
 from ..sh_basis import NumpySH
+from . import Kernels
+from .rounding import sum_error, weight_error
 
 __all__ = ["NumpyKernels", "SparseGather", "Sources", "tile_bounds", "band_exact", "band_brackets", "bright_gather",
            "SYM_PAIRS", "ANGLE_MARGIN", "MOMENT_CHUNK_PAIRS",
@@ -462,6 +463,9 @@ class SparseGather:
             self._slabs = _Slabs(self.src_dirs, self.rad_w, self.is_bright, m)
         self.use32 = use32
         self.rowmax = (not use32) and own_log < -600.0
+        # the float64 kernel's weights exp(s·log c) (relative to the row's largest cosine with ``rowmax``): NumPy's
+        # log and exp are within the compiled kernels' stated bounds (checked in the tests), so the same model
+        self.eta64, self.eps64 = weight_error(s, False, self.rowmax)
         self.label = "float32" if use32 else "float64"
         return 2.2 * eta_typ if use32 else 0.0
 
@@ -534,17 +538,25 @@ class SparseGather:
                     ii = np.concatenate([ii, np.broadcast_to(bright, (tb.size, bright.size))], axis=1)
                 acc[r], mx = _gather_batch64(tb, ii, TD, self.src_dirs_pad_t, self.rad_w_pad, s, self.rowmax)
                 log_mx[r] = s * mx[..., 0]
+                m = ii.shape[1]
                 if bright.size and not self.rowmax:
                     acc[r] += _bright_sums(TD[tb], self.bright_dirs_t, self.rad_w_bright, s)
+                    m += bright.size
+                # the weights' rounding (relative η for r·ω ≥ C0, absolute ε per pair below, against W_in ≥ the own
+                # texel's weight · Ω_min) and the sums' (γ_m, any order)
+                eta[r] = self.eta64 + sum_error(m)
+                und[r] = m * self.eps64 * math.exp(-(0.0 if self.rowmax else self.own_log)) * self.omega_ratio
                 self.gathered += ii.size * B
-        return acc, log_mx, eta, und, None
+        # (the float32 kernel's allowance is relative to the tiles' local radiance maxima, the float64 kernel's to
+        # the largest radiance: its pairs include the bright set)
+        return acc, log_mx, eta, und, None if self.use32 else float(self.rad.max())
 
     def bounds(self, sums, tt, ANG, q_t, q_far, half_margin, grid, log_wb_grid, lmax2, lmin2, l_max_out, l_min_out,
                VALID, IDX, maps, bounds):
-        """:func:`tile_bounds` of :meth:`gather`'s ``sums`` for the tiles ``tt``; the allowance ``und`` is relative to
-        the tiles' local radiance maxima here."""
-        acc, log_mx, eta, und, _ = sums
-        return tile_bounds(acc, log_mx, eta, und, lmax2[tt][:, None, :], ANG[tt], q_t[tt], q_far[tt], half_margin,
+        """:func:`tile_bounds` of :meth:`gather`'s ``sums`` for the tiles ``tt``."""
+        acc, log_mx, eta, und, l_und = sums
+        l_u = lmax2[tt][:, None, :] if l_und is None else l_und
+        return tile_bounds(acc, log_mx, eta, und, l_u, ANG[tt], q_t[tt], q_far[tt], half_margin,
                            grid, log_wb_grid, lmax2[tt], lmin2[tt], l_max_out, l_min_out, VALID[tt], IDX[tt], maps,
                            bounds)
 
@@ -754,7 +766,7 @@ def bright_gather(out_dirs, b_dirs, b_w, s_list, chunk_elems=1 << 22):
 # ----------------------------------------------------------------------------------------------------------------
 # the backend
 # ----------------------------------------------------------------------------------------------------------------
-class NumpyKernels(NumpySH):
+class NumpyKernels(Kernels, NumpySH):
     """The NumPy implementation of :class:`ibl_ref.groundtruth.kernels.Kernels` (the reference)."""
 
     name = "numpy"
