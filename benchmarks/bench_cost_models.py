@@ -164,9 +164,9 @@ def main(argv=None):
     print(f"ibl_ref from {ROOT}; {_load()}; CPU seconds, 1 BLAS thread, rtol {RTOL}")
     for k in kernels:
         if k == "compiled":
-            from ibl_ref.groundtruth import kernel_library
+            from ibl_ref.groundtruth.kernels import get_kernels
 
-            print(f"compiled kernels loaded in {kernel_library.warm_up():.2f} s")
+            print(f"compiled kernels loaded in {get_kernels('compiled').warm_up():.2f} s")
         with threadpool_limits(limits=1, user_api="blas"):
             environment(8)
             if "sparse" in only:

@@ -41,9 +41,9 @@ cmft + the cell's interpreter floor (:data:`IO_FLOOR`: start Python, import NumP
 and write one of the same size, measured per face size in the same run).
 
 Also measured: the start-up floor (``python -S``, ``import numpy``, ``import numpy, OpenEXR``, ``import numba``,
-loading the compiled kernels as the lab does (compiled ahead of time, :mod:`ibl_ref.groundtruth.kernel_library`) and
-through numba's JIT cache, ``ibl-ref convolve --help``); the compiled kernels' cold (first run after install: an empty
-cache folder, ``$NUMBA_CACHE_DIR``, so numba compiles and the ahead-of-time file is built) and warm whole-process cost
+loading the compiled kernels from numba's cache (:mod:`ibl_ref.groundtruth.kernels`), ``ibl-ref convolve --help``);
+the compiled kernels' cold (first run after install: an empty cache folder, ``$NUMBA_CACHE_DIR``, so numba compiles)
+and warm whole-process cost
 on one cell; the machine's compiled peak (a tight multiply-add loop and a dot product, per core) against the pairs
 (output × source texel) per second per core the sparse gather computes in the in-process cells (the bright texels a
 tile leaves out are not counted); with ``--native`` the 512² and 1024² runs of the 8 exponents (whole process,
@@ -260,10 +260,8 @@ FLOOR_COMMANDS = {
     "python -c 'import numpy, OpenEXR'": [sys.executable, "-c", "import numpy, OpenEXR"],
     "ibl-ref convolve --help": [sys.executable, "-m", "ibl_ref", "convolve", "--help"],
     "python -c 'import numba'": [sys.executable, "-c", "import numba"],
-    "load the compiled kernels (ahead of time)": [sys.executable, "-c",
-                                                  "from ibl_ref.groundtruth import kernel_library as k; k.warm_up()"],
-    "load the compiled kernels (numba JIT cache)": [
-        sys.executable, "-c", "from ibl_ref.groundtruth import kernel_library as k; k.use('jit'); k.warm_up()"],
+    "load the compiled kernels (numba's cache)": [
+        sys.executable, "-c", "from ibl_ref.groundtruth.kernels import get_kernels; get_kernels('compiled').warm_up()"],
 }
 
 

@@ -58,7 +58,8 @@ _MODULES_OF_RUN = ("import sys, json, runpy; sys.argv = ['ibl_ref'] + sys.argv[1
 def lab_floor_code(modules) -> str:
     """:data:`bench_peer.IO_FLOOR` with ``modules`` imported and the compiled kernels loaded first."""
     imports = "".join(f"import {m}; " for m in modules)
-    return imports + "import ibl_ref.groundtruth.kernel_library as kl; kl.load(); " + bp.IO_FLOOR
+    return (imports + "from ibl_ref.groundtruth.kernels import get_kernels; get_kernels('compiled').warm_up(); "
+            + bp.IO_FLOOR)
 
 
 class KernelClock:
@@ -66,14 +67,14 @@ class KernelClock:
     gather from start to join counts once; kernels the tile threads call inside it are not counted again)."""
 
     def __init__(self):
-        from ibl_ref.groundtruth import kernel_library, phong_convolution
+        from ibl_ref.groundtruth.kernels import get_kernels, numba_backend, numba_loops
 
-        kernel_library.load()
+        get_kernels("compiled").warm_up()
         self.seconds = 0.0
         self._main = threading.get_ident()
         self._depth = 0
-        self._patches = [(kernel_library._RAW, k) for k in list(kernel_library._RAW)]
-        self._patches.append((phong_convolution.__dict__, "_tile_gather_threads"))
+        self._patches = [(numba_loops.__dict__, k) for k in numba_loops.__all__]
+        self._patches.append((numba_backend.__dict__, "_tile_gather_threads"))
 
     def _timed(self, fn):
         def call(*args):

@@ -8,7 +8,7 @@ For the sky + 1e5 sun of :func:`ibl_ref.experiments.speed_accuracy.environment` 
 probe at 128², 256²), s ∈ {64, 256, 1024, 4096} (256²: from 256), rtol 1e-3, it runs
 :func:`ibl_ref.groundtruth.phong_convolution.convolve_sparse_many` (``impl="compiled"``) with every tile width T ∈
 {2, 3, 4, 6, 8, 12, 16} forced (process CPU seconds, best of 2 after one warm call), then fits the two constants of
-the tile-size model (``_TILE_OVERHEAD_COMPILED``, ``_CAND_OVERHEAD_COMPILED``: cost per tile and per candidate
+the tile-size model (``numba_backend.TILE_OVERHEAD``, ``CAND_OVERHEAD``: cost per tile and per candidate
 in units of one weight) on a grid, by the mean ratio chosen / best over the cells, and prints the best fits and the
 current constants' ratio.  CPU time: the cells are single-threaded and CPU time depends least on the machine's load.
 """
@@ -94,8 +94,10 @@ def main(argv=None):
     print("best fits (mean, max chosen/best; tile overhead; candidate overhead):")
     for (mean, mx), to, co in fits[:5]:
         print(f"  {mean:.3f} {mx:.3f}  {to:g}  {co:g}")
-    cur = regret(pc._TILE_OVERHEAD_COMPILED, pc._CAND_OVERHEAD_COMPILED)
-    print(f"current ({pc._TILE_OVERHEAD_COMPILED:g}, {pc._CAND_OVERHEAD_COMPILED:g}): {cur[0]:.3f} {cur[1]:.3f}")
+    from ibl_ref.groundtruth.kernels.numba_backend import CAND_OVERHEAD, TILE_OVERHEAD
+
+    cur = regret(TILE_OVERHEAD, CAND_OVERHEAD)
+    print(f"current ({TILE_OVERHEAD:g}, {CAND_OVERHEAD:g}): {cur[0]:.3f} {cur[1]:.3f}")
     for T in (4, 6, 8):
         print(f"fixed T={T}: {np.mean([row['t'][T] / min(row['t'].values()) for row in rows]):.3f}")
     if args.csv:
