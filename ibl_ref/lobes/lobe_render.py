@@ -123,10 +123,12 @@ def shade_single_method(method: str, env: np.ndarray, n, wo, *, brdf: str = "war
     from . import kautz_mccool2000 as km
     from . import prefiltered_lobes as pl
     from . import km00_reference
+    from ..environment.validated import as_environment
     from ..errors import IBLError
     from ..progress import step
 
     check_single_method(method, n_theta)
+    env = as_environment(env, "environment cube map")  # checked once here; the maps and the reference trust it
     if method == "pyramid" and prefilter is None:
         raise IBLError("method 'pyramid' looks the lobes up in a Phong prefilter of env: pass prefilter= "
                        "(e.g. ibl_ref.prefilter.build_prefilter(env, 'pyramid', kernel='sqrtcos'))")

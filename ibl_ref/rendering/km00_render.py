@@ -37,10 +37,12 @@ def render_single_method(method: str, env: np.ndarray, *, width: int = 256, heig
     method; returns (image (H, W, C), mask (H, W), info dict).  ``method``, ``n_theta`` and ``shade_kw`` (BRDF, lobe
     count, map and reference settings, ``rescale_lobes``) as in :func:`ibl_ref.lobes.lobe_render.shade_single_method`;
     ``pyramid`` looks the lobes up in the paper's sqrt-cos pyramid of ``env``."""
+    from ..environment.validated import as_environment
     from ..errors import IBLError
     from ..lobes.lobe_render import check_single_method, shade_single_method
 
     check_single_method(method, n_theta)
+    env = as_environment(env, "environment cube map")  # once: the prefilter and every method trust it
     from ..lobes.brdfs import get_brdf
 
     with np.errstate(all="ignore"):  # a needle-thin lobe overflows at its peak: check_resolvable refuses it
