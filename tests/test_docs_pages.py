@@ -130,7 +130,7 @@ def test_bench_peer_verdicts_follow_from_the_cells():
         assert (m.group(1) == "yes") == (float(m.group(2)) <= float(m.group(3))), (k, proc)
 
 
-def test_cross_validate_excess_is_rel_l1_minus_noise():
+def test_cross_validate_excess_is_rel_l1_minus_noise():  # runs without Mitsuba (the saved run's data only)
     rows = read_csv(SAVED / "cross-validate" / "cross_validate.csv")
     assert len(rows) == 24
     for q in rows:

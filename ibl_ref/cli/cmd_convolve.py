@@ -34,16 +34,23 @@ def _exponent(text: str) -> float:
         raise IBLError(f"--exponent: {text} overflows float64; write 'inf' for the mirror")
     if not (v >= 1):  # also NaN
         raise IBLError(f"--exponent: the Phong exponent must be >= 1 or 'inf' (mirror), got {text}")
-    return v
+    from ..groundtruth.convolution_args import check_exponent
+
+    try:
+        return check_exponent(v)  # (at most 2^30)
+    except IBLError as exc:
+        raise IBLError(f"--exponent: {exc}") from None
 
 
 def cmd_convolve(args) -> int:
     from ..atomic import OutputSet, check_side_files, refuse_overwriting_inputs
     from ..groundtruth.convolve import convolve
+    from ..limits import check_rtol
     from ..environment.exr_io import write_envmap
     from .radiance_args import load_env
 
     exps = [_exponent(e) for e in args.exponent]
+    check_rtol(args.rtol, "--rtol")  # (before the file is read)
     side = Path(args.output).with_suffix(".json")
     maps = [exponent_path(args.output, s) for s in exps]
     refuse_overwriting_inputs({"IN": args.input}, [("OUT", side)] + [("OUT", m) for m in maps])

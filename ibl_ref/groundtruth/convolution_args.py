@@ -6,8 +6,8 @@ sparse gathers), :mod:`ibl_ref.groundtruth.sh_convolution`, :mod:`ibl_ref.ground
 naming the argument.
 
 * Phong exponent ``s = s_Phong = 1/(1−g)`` (Eq. 3, g ∈ [0, 1]): a number ≥ 1, or ``inf`` (mirror, g = 1).
-* Cube map: shape ``(6, N, N[, C])`` (:func:`ibl_ref.environment.envmap.check_cube_shape`), finite non-negative
-  radiance (:func:`ibl_ref.environment.radiance_policy.check_radiance`), at least one channel.
+* Cube map: shape ``(6, N, N[, C])``, finite non-negative radiance, at least one channel, checked once
+  (:mod:`ibl_ref.environment.validated`: an :class:`~ibl_ref.environment.validated.Environment` passes through).
 * Output face subsets ``faces``: distinct indices 0…5 in OpenEXR face order.
 """
 
@@ -18,7 +18,7 @@ import math
 import numpy as np
 
 from ..environment import envmap
-from ..environment.radiance_policy import check_radiance
+from ..environment.validated import environment_array
 from ..errors import IBLError, LayoutError
 
 __all__ = ["check_exponent", "check_exponents", "check_cube", "check_faces", "check_out_size", "channel_max",
@@ -63,16 +63,11 @@ def check_exponents(exponents) -> list[float]:
 
 
 def check_cube(cube, name: str = "environment cube map") -> tuple[np.ndarray, bool]:
-    """``(float64 array (6, N, N, C), squeezed)``: a 3-d input gets a channel axis (``squeezed = True``)."""
-    envmap.check_cube_shape(cube, name)  # LayoutError for a wrong shape
-    a = np.asarray(cube)
-    check_radiance(a, name)
-    squeeze = a.ndim == 3
-    if squeeze:
-        a = a[..., None]
-    if a.shape[-1] < 1:
-        raise LayoutError(f"{name}: zero channels in shape {np.shape(cube)}")
-    return np.asarray(a, dtype=np.float64), squeeze
+    """``(read-only float64 array (6, N, N, C), squeezed)`` of an environment argument: a 3-d input gets a channel
+    axis (``squeezed = True``); a plain array is validated once (layout, radiance) and copied, an
+    :class:`~ibl_ref.environment.validated.Environment` passes through unchecked
+    (:func:`~ibl_ref.environment.validated.environment_array`)."""
+    return environment_array(cube, name)
 
 
 def check_faces(faces) -> tuple[int, ...]:

@@ -103,6 +103,7 @@ except ImportError:  # pragma: no cover - not POSIX (no fork either)
     resource = None
 
 from ..errors import IBLError
+from ..environment.validated import adopt
 from ..executors import one_blas_thread, resolve_executor, worker_died
 from ..limits import check_rtol
 from .convolution_args import channel_max, check_cube, check_exponents, check_out_size
@@ -627,6 +628,7 @@ def convolve(
     a4, squeeze = check_cube(cube)
     n = a4.shape[1]
     a4, scale_k = _power_of_two_scaled(a4)
+    a4 = adopt(a4, name="environment cube map")  # (checked once here; every route and job trusts it)
     out_size = check_out_size(out_size, n)
     s_list = check_exponents(exponents)
     if not normalized and any(not np.isfinite(s) for s in s_list):
@@ -813,6 +815,7 @@ def plan_routes(cube, exponents, *, rtol: float = 1e-3, out_size: int | None = N
     the planning diagnostics of ``info``."""
     a4, _ = check_cube(cube)
     a4, _k = _power_of_two_scaled(a4)
+    a4 = adopt(a4, name="environment cube map")
     s_list = check_exponents(exponents)
     out_size = check_out_size(out_size, a4.shape[1])
     impl = resolve_kernel(kernel)
@@ -1001,7 +1004,7 @@ def _convolve(a4, squeeze, n, s_list, method, rtol, out_size, normalized, worker
             res.info[key] = [_s_json(s) for s in fb]
     res.info.update(workers=workers, kernel=impl, workers_planned=min(planned) if planned else workers,
                     backend="executor" if executor is not None else backend)
-    u = float(a4.max()) * UNDERFLOW_ABS if a4.size else 0.0
+    u = float(a4.data.max()) * UNDERFLOW_ABS if a4.data.size else 0.0
     for s in s_list:
         m, b, meth, kind = rd.results[s]
         b = _with_underflow(m, b, u)

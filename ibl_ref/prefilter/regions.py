@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..environment.validated import adopt
 from ..errors import IBLError
 
 __all__ = ["RegionSet", "build_region_set"]
@@ -62,8 +63,9 @@ class RegionSet:
         from ..knuth2014.pem import partial_maps, prepare_pem_input
 
         _, a, lights = prepare_pem_input(cube, lights, None, "per-face", f"{method.__name__} regions")
-        return cls(lights, [method(partial_maps(a, lights.labels, i, i + 1)[:, :, :, 0, :], **params)
-                            for i in range(len(lights))])
+        # (a masked copy of a validated map is valid by construction: no check per region)
+        return cls(lights, [method(adopt(partial_maps(a, lights.labels, i, i + 1)[:, :, :, 0, :], name="partial map"),
+                                   **params) for i in range(len(lights))])
 
     @property
     def n_regions(self) -> int:

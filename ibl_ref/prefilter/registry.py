@@ -19,6 +19,7 @@ from __future__ import annotations
 import inspect
 from typing import NamedTuple
 
+from ..environment.validated import as_environment
 from ..errors import IBLError
 from .cmft_peer import CmftRadiance
 from .exact_lobe_chain import ExactLobeChain
@@ -177,7 +178,8 @@ def build_prefilter(cube, method: str = "pyramid", **params):
     """
     cls = get_method(method)
     _check_params(method, _params(cls.__init__), params, "build")
-    return cls(cube, **resolve_method_params(params))
+    # checked once here (the method's own check passes an Environment through)
+    return cls(as_environment(cube, "environment cube map"), **resolve_method_params(params))
 
 
 def build_region_prefilters(cube, lights=None, method: str = "pyramid", *, n_lights: int | None = None,
@@ -202,4 +204,4 @@ def build_region_prefilters(cube, lights=None, method: str = "pyramid", *, n_lig
     _check_params(method, region_params(method), params, "region build")
     from .regions import build_region_set
 
-    return build_region_set(cls, cube, lights, **params)
+    return build_region_set(cls, as_environment(cube, "environment cube map"), lights, **params)

@@ -177,7 +177,7 @@ def select_variant(prefer: str = "auto") -> str:
     if lib is None and env:
         raise MitsubaUnavailable(f"DRJIT_LIBLLVM_PATH={env}: not an existing libLLVM >= {MIN_LLVM_MAJOR} file (the "
                                  "version is read from its name, e.g. libLLVM-19.so.1); unset it to let the lab look "
-                                 "for one")
+                                 "for one, or install one (Debian: apt-get install libllvm19)")
     if lib is None:
         raise MitsubaUnavailable(
             f"Mitsuba's llvm_ad_rgb variant needs libLLVM >= {MIN_LLVM_MAJOR} and none was found (Debian: "

@@ -167,16 +167,13 @@ _HASH_MUL = np.uint64(0x9E3779B97F4A7C15)
 # environment: validation and piecewise-constant radiance on any face size
 # ------------------------------------------------------------------------------------------------
 def check_environment(cube) -> np.ndarray:
-    """The environment of a render as validated float64 radiance (6, N, N, C): layout checked, NaN/Inf/negative
-    radiance refused with a clear :class:`ibl_ref.errors.RadianceError` (:func:`ibl_ref.environment.radiance_policy.check_radiance`);
-    a (6, N, N) map gets one channel."""
-    from ..environment.envmap import check_cube_shape
+    """The environment of a render as validated, read-only float64 radiance (6, N, N, C): checked once
+    (:func:`ibl_ref.environment.validated.as_environment`: layout, NaN/Inf/negative radiance refused with a clear
+    :class:`ibl_ref.errors.RadianceError`; a (6, N, N) map gets one channel), an
+    :class:`~ibl_ref.environment.validated.Environment` passed through."""
+    from ..environment.validated import as_environment
 
-    check_cube_shape(cube, "environment")
-    a = np.asarray(check_radiance(cube, "environment"), dtype=np.float64)
-    if a.ndim == 3:
-        a = a[..., None]
-    return a
+    return as_environment(cube, "environment").data
 
 
 def coarse_env(cube, n_env: int) -> np.ndarray:
