@@ -27,6 +27,7 @@ import sys
 import threading
 
 from .errors import IBLError
+from .progress import quiet
 
 __all__ = ["resolve_executor", "map_jobs", "worker_died", "one_blas_thread", "CONNECT_TIMEOUT_S"]
 
@@ -121,7 +122,6 @@ def _job(fn, x, silent: bool = True):
     threads the process it lands on has (a Dask worker sets one, a local process the machine's count); held
     at one everywhere, the job gives the same bits serially, on local processes and on a cluster.
     """
-    from .progress import quiet
 
     with one_blas_thread(), (quiet() if silent else contextlib.nullcontext()):
         return fn(x)

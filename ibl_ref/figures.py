@@ -20,6 +20,7 @@ environment (``tests/conftest.py``).
 from __future__ import annotations
 
 from pathlib import Path
+from .atomic import atomic_path
 
 __all__ = ["pyplot", "save_figure", "add_save_hook", "remove_save_hook", "layout_problems", "integer_ticks",
            "count_ticks", "plain_log_ticks"]
@@ -46,7 +47,6 @@ def remove_save_hook(fn) -> None:
 
 def save_figure(fig, path, dpi: int = 110, fmt: str | None = None) -> Path:
     """Write ``fig`` to ``path`` atomically (tight bounding box, 0.05 inch pad) and close it; returns the path."""
-    from .atomic import atomic_path
 
     path = Path(path)
     for hook in list(_SAVE_HOOKS):

@@ -62,6 +62,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import IBLError, LayoutError
+from ..limits import check_allocation
 
 __all__ = [
     "FACE_NAMES",
@@ -507,7 +508,6 @@ def _texel_directions_cached(n: int, convention: str, normalize: bool) -> np.nda
 
 def _check_grid(n, per_texel_bytes: int, what: str) -> int:
     """:func:`check_face_size`, and the grid of ``per_texel_bytes`` per texel must fit in memory (SizeError)."""
-    from ..limits import check_allocation
 
     n = check_face_size(n)
     check_allocation(per_texel_bytes * n * n, f"the {what} of {n}x{n} faces", "face size")

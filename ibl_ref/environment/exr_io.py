@@ -71,6 +71,13 @@ from ..errors import (EnvMapFileError, FormatRangeWarning, IBLError, LayoutError
                       check_input_file)
 from .radiance_policy import check_radiance
 from .validated import Environment, adopt
+from . import resample
+from ..limits import SizeError
+from ..limits import check_allocation
+from .radiance_policy import apply_policy
+from .radiance_policy import check_format_range
+from .radiance_policy import pixel_solid_angles
+from .radiance_policy import warn_repaired
 
 __all__ = [
     "HALF_MAX",
@@ -259,7 +266,6 @@ def to_pixel_type(strip: np.ndarray, pixel_type: str, clamp_half: bool, where: s
     RadianceError
         Values below the normal range that carry more than 1e-4 of ∫L dω.
     """
-    from .radiance_policy import check_format_range
 
     if pixel_type not in _PIXEL_TYPES:
         raise IBLError(f"{where}: unknown pixel type {pixel_type!r}; choose one of {_PIXEL_TYPES}")
@@ -387,7 +393,6 @@ def write_exr(path, parts, compression: str = "zip") -> Path:
 
 
 def _strip_weights(strip: np.ndarray, layout: str):
-    from .radiance_policy import pixel_solid_angles
 
     return pixel_solid_angles(strip.shape[0], strip.shape[1], layout)
 
@@ -558,7 +563,6 @@ def _scan_headers(path: Path, buf: bytes) -> list:
     """
     import struct
 
-    from ..limits import SizeError, check_allocation
 
     if len(buf) < 8:
         raise EnvMapFileError(f"{path}: truncated OpenEXR file ({len(buf)} bytes)")
@@ -885,7 +889,6 @@ def _radiance(img: np.ndarray, chans, where: str, layout, negative: str, nonfini
 
     An alpha channel is checked for NaN/Inf under the same ``nonfinite`` policy, never clamped.
     """
-    from .radiance_policy import apply_policy, pixel_solid_angles
 
     h, w = img.shape[:2]
     nc = 3 if len(chans) >= 3 else 1
@@ -1033,7 +1036,6 @@ def read_image(path, part: int = 0, negative: str = "auto", nonfinite: str = "er
     ((24, 4, 1), ('Y',), 'float', 'ENVMAP_CUBE')
     >>> folder.cleanup()
     """
-    from .radiance_policy import warn_repaired
 
     ex = read_exr(path, part, dtype)
     img = ex.pixels
@@ -1046,7 +1048,6 @@ def read_image(path, part: int = 0, negative: str = "auto", nonfinite: str = "er
 
 def _as_map(img, lay: str, header: dict, convention, where: str):
     """(data, layout): a cube strip reshaped (and re-oriented to OpenEXR), a cross cut into a cube, lat-long as is."""
-    from . import resample
 
     h, w = img.shape[:2]
     if lay == "cube":
@@ -1110,7 +1111,6 @@ def read_map(path, layout: str | None = None, convention: str | None = None, neg
     EnvMapFileError, LayoutError, RadianceError
         As :func:`read_envmap` and :func:`ibl_ref.environment.hdr_io.read_hdr`.
     """
-    from .radiance_policy import warn_repaired
 
     m = _read_map(path, layout, convention, negative, nonfinite, dtype)
     warn_repaired(m.radiance)
@@ -1167,7 +1167,6 @@ def read_envmap(path, layout: str | None = None, convention: str | None = None, 
     2.0
     >>> folder.cleanup()
     """
-    from .radiance_policy import warn_repaired
 
     path = as_path(path, "OpenEXR file")
     if layout is not None and layout not in _LAYOUTS:
@@ -1218,8 +1217,6 @@ def _rgb(data: np.ndarray) -> np.ndarray:
 
 def _load_cube(path, size, layout, convention, negative, nonfinite):
     """``(cube (6, N, N, 3) float64, RadianceReport)``: the work of :func:`load_cube` (the cube is the caller's)."""
-    from . import resample
-    from .radiance_policy import warn_repaired
 
     path = as_path(path, "environment map")
     if size is not None:

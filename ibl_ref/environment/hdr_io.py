@@ -35,6 +35,11 @@ import numpy as np
 from ..atomic import atomic_write
 from ..errors import EnvMapFileError, LayoutError, as_path, check_input_file
 from .radiance_policy import check_radiance
+from ..limits import SizeError
+from ..limits import check_allocation
+from .radiance_policy import apply_policy
+from .radiance_policy import check_format_range
+from .radiance_policy import pixel_solid_angles
 
 __all__ = ["read_hdr", "read_hdr_header", "write_hdr", "rgbe_to_float", "float_to_rgbe"]
 
@@ -151,7 +156,6 @@ def _check_claimed_size(n_major: int, n_minor: int, n_data: int, path, res: byte
     RLE marker), so fewer than ``4·n_major`` bytes of pixel data mean a truncated file or a false header.
     ``n_data < 0`` means only the header was read (:func:`read_hdr_header`), then only memory is checked.
     """
-    from ..limits import SizeError, check_allocation
 
     claim = res.decode("latin-1")
     if 0 <= n_data < 4 * n_major:
@@ -346,7 +350,6 @@ def read_hdr(path, apply_exposure: bool = False, negative: str = "auto", nonfini
             raise EnvMapFileError(f"{path}: EXPOSURE product {info['exposure']} is not positive")
         img /= info["exposure"]
     img = np.ascontiguousarray(img)
-    from .radiance_policy import apply_policy, pixel_solid_angles
 
     h, w = img.shape[:2]
     img, rep = apply_policy(img, f"{path}: radiance", negative, nonfinite,
@@ -441,7 +444,6 @@ def write_hdr(path, img, rle: bool = True, exposure: float | None = None) -> Pat
     except EnvMapFileError as exc:
         raise EnvMapFileError(f"{path}: {exc}") from None
     # RGBE stores a pixel whose largest channel is below 1e-32 as 0: refuse or report what that loses
-    from .radiance_policy import check_format_range, pixel_solid_angles
 
     h, w = a.shape[:2]
     check_format_range(a, rgbe_to_float(rgbe), str(path), "the smallest pixel value of Radiance RGBE", RGBE_MIN,

@@ -30,6 +30,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import IBLError
+from .exr_io import ExrPart
+from .exr_io import write_exr
+from .resample import latlong_to_cube
 
 __all__ = ["sky_sun_latlong", "probe_cube", "write_probe_exr"]
 
@@ -84,7 +87,6 @@ def probe_cube(n: int, h: int | None = None, **kw) -> np.ndarray:
     (:func:`ibl_ref.environment.resample.latlong_to_cube`) — a probe-like environment with a small bright sun,
     a textured ground and a black strip, for renders and experiments.  ``kw`` go to :func:`sky_sun_latlong`.
     """
-    from .resample import latlong_to_cube
 
     img, _ = sky_sun_latlong(4 * int(n) if h is None else int(h), **kw)
     return np.asarray(latlong_to_cube(img, int(n)), dtype=np.float64)
@@ -100,7 +102,6 @@ def write_probe_exr(path, img, compression: str = "dwab", pixel_type: str = "flo
     """
     import OpenEXR as ox
 
-    from .exr_io import ExrPart, write_exr
 
     if pixel_type not in ("float", "half"):
         raise IBLError(f"{path}: pixel_type must be 'float' or 'half', got {pixel_type!r}")

@@ -65,6 +65,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from ..errors import FormatRangeWarning, RadianceError
+from . import envmap
 
 __all__ = [
     "NEGATIVE_MODES",
@@ -173,7 +174,6 @@ def pixel_solid_angles(h: int, w: int, layout: str | None):
     ``"cube"`` strips (faces stacked) and crosses (empty cells 0), or ``None`` (uniform weights) for an
     unknown layout.
     """
-    from . import envmap
 
     if layout == "latlong" and w == 2 * h:
         return envmap.latlong_solid_angles(h, w)

@@ -79,6 +79,8 @@ from . import envmap
 from ..errors import IBLError, LayoutError
 from .radiance_policy import check_radiance
 from .validated import environment_array
+from .sampling import CubeSampler
+from .sampling import padding_tables
 
 __all__ = [
     "latlong_to_cube_cost",
@@ -182,7 +184,6 @@ class _LatLongSampler:
 
 class _CubeSourceSampler:
     def __init__(self, cube: np.ndarray, interpolation: str):
-        from .sampling import CubeSampler
 
         self.s = CubeSampler(cube)
         self.interpolation = interpolation
@@ -339,7 +340,6 @@ def _ring_pattern():
     """
     if "edge" in _RING:
         return _RING
-    from .sampling import padding_tables
 
     n, m = _N0, _N0 + 2
     src, w = padding_tables(n, 1)

@@ -23,6 +23,11 @@ import numpy as np
 from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 from . import Param, resolve_params
+from ..figures import pyplot
+from ..figures import save_figure
+from ..knuth2014.pyramid import build_pyramid
+from ..knuth2014.pyramid import pyramid_energy
+from .fig5 import compute_rows
 
 NAME = "claims"
 DESCRIPTION = "Knuth 2014 Sec. 5 filter claims (box ~4% at s=1, spikes, Gauss stable, cos <10%, sqrt-cos) checked"
@@ -125,7 +130,6 @@ def _energy_claim(n):
 
     Returns, per map/kernel/seam, the relative energy drift of largest magnitude over the levels.
     """
-    from ..knuth2014.pyramid import build_pyramid, pyramid_energy
 
     rng = np.random.default_rng(7)
     cube = rng.random((6, n, n, 1))
@@ -144,7 +148,6 @@ def _energy_claim(n):
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from .fig5 import compute_rows  # the Fig. 5 error curves (public; same rows as fig5_errors.csv)
 
     p = resolve_params(__name__, quick, params)
     t0 = time.perf_counter()
@@ -189,7 +192,6 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 
 
 def plot(out_dir: Path) -> list[Path]:
-    from ..figures import pyplot, save_figure
 
     plt = pyplot()
 

@@ -28,6 +28,8 @@ from ..atomic import read_csv, write_csv, write_json
 from ..environment import envmap
 from ..groundtruth.phong_convolution import convolve_exact_many, phong_lobe_integral
 from . import Param, resolve_params
+from ..figures import pyplot
+from ..figures import save_figure
 
 NAME = "convergence"
 DESCRIPTION = "exact Phong convolution vs source resolution and supersampling (closed-form targets)"
@@ -141,7 +143,6 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 
 
 def plot(out_dir: Path) -> list[Path]:
-    from ..figures import pyplot, save_figure
 
     plt = pyplot()
 

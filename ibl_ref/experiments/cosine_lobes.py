@@ -26,6 +26,9 @@ import numpy as np
 from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 from . import Param, resolve_params
+from ..figures import pyplot
+from ..figures import save_figure
+from ..lobes import meunier2009 as m
 
 NAME = "cosine-lobes"
 DESCRIPTION = "Meunier 2009 cosine lobes: integral table, product-of-lobes fit errors (vs paper 7.1e-4), cap fit"
@@ -58,7 +61,6 @@ def _weighted_stats(x, w):
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
     p = resolve_params(__name__, quick, params)
-    from ..lobes import meunier2009 as m
 
     out_dir = Path(out_dir)
     t_start = time.perf_counter()
@@ -193,7 +195,6 @@ FLOOR = 1e-17
 
 
 def plot(out_dir: Path) -> list[Path]:
-    from ..figures import pyplot, save_figure
 
     plt = pyplot()
 

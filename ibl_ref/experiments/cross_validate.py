@@ -43,6 +43,15 @@ import numpy as np
 
 from ..atomic import atomic_path, read_csv, write_csv, write_json
 from . import params_from_settings, settings_with
+from ..executors import map_jobs
+from ..figures import pyplot
+from ..figures import save_figure
+from ..rendering.mitsuba_render import render_mitsuba
+from ..rendering.reference_render import render_reference
+from ..rendering.scenes import default_camera
+from ..rendering.scenes import ground_quad
+from ..synthetic.synthetic_envs import scene_environment
+from ..synthetic.synthetic_meshes import make_mesh
 
 NAME = "cross-validate"
 DESCRIPTION = "reference renderer vs Mitsuba 3 (same scene, rays, radiance, BRDF): rel. L1 / RMSE next to noise"
@@ -88,8 +97,6 @@ PARAMS = tuple(p for p in params_from_settings(settings, {
 
 def scene_meshes(name: str):
     """(mesh, material id) list of a named scene: the generated mesh, plus a ground quad for teapot and torus."""
-    from ..rendering.scenes import ground_quad
-    from ..synthetic.synthetic_meshes import make_mesh
 
     mesh = make_mesh(name)
     meshes = [(mesh, 0)]
@@ -118,10 +125,6 @@ def _ggx(spec: str, smith: str) -> str:
 def case_job(job) -> tuple:
     """One case ``(k, (scene, env, material), settings)`` → (CSV rows, meta entry, arrays): an independent job
     (Mitsuba's seeds come from the case's index, not from the order in which cases run)."""
-    from ..rendering.mitsuba_render import render_mitsuba
-    from ..rendering.reference_render import render_reference
-    from ..rendering.scenes import default_camera
-    from ..synthetic.synthetic_envs import scene_environment
 
     k, (scene, env_name, mat), st = job
     env = scene_environment(env_name, st["env_size"])
@@ -164,7 +167,6 @@ def case_job(job) -> tuple:
 
 
 def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **params) -> dict:
-    from ..executors import map_jobs
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -197,7 +199,6 @@ def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **p
 
 
 def plot(out_dir: Path) -> list:
-    from ..figures import pyplot, save_figure
 
     plt = pyplot()
 

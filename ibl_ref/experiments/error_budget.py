@@ -44,6 +44,23 @@ import numpy as np
 
 from ..atomic import atomic_path, atomic_write, read_csv, write_csv, write_json
 from . import params_from_settings, settings_with, power_of_two
+from ..errors import IBLError
+from ..executors import map_jobs
+from ..figures import pyplot
+from ..figures import save_figure
+from ..knuth2014.median_cut import median_cut
+from ..prefilter.registry import get_method
+from ..rendering import error_budget as eb
+from ..rendering.error_budget import DEFAULT_ORDER
+from ..rendering.image_io import write_image_exr
+from ..rendering.raster import prepare_scene
+from ..rendering.raster import rasterize
+from ..rendering.reference_render import render_reference
+from ..rendering.scenes import default_camera
+from ..rendering.scenes import teapot_on_ground
+from ..rendering.tonemap import auto_exposure
+from ..rendering.tonemap import exposure_srgb
+from ..synthetic.synthetic_envs import scene_environment
 
 NAME = "error-budget"
 DESCRIPTION = "error budget of the paper's method: reference -> Eq. 5 one approximation at a time, share per step"
@@ -90,8 +107,6 @@ PARAMS = params_from_settings(settings, {
 
 
 def _scene(size: int):
-    from ..rendering.raster import prepare_scene, rasterize
-    from ..rendering.scenes import default_camera, teapot_on_ground
 
     meshes = teapot_on_ground()
     sc = prepare_scene(meshes, warn=False)
@@ -100,7 +115,6 @@ def _scene(size: int):
 
 
 def _materials(material: str, ground: str) -> dict:
-    from ..errors import IBLError
 
     for m in (material, ground):
         if m not in MATERIALS and m != "same":
@@ -110,10 +124,6 @@ def _materials(material: str, ground: str) -> dict:
 
 def _case(job: dict) -> dict:
     """One (environment, material): the reference and every walk (a picklable job for :func:`map_jobs`)."""
-    from ..knuth2014.median_cut import median_cut
-    from ..rendering import error_budget as eb
-    from ..rendering.reference_render import render_reference
-    from ..synthetic.synthetic_envs import scene_environment
 
     t0 = time.perf_counter()
     meshes, sc, cam, gb = _scene(job["size"])
@@ -142,8 +152,6 @@ def _case(job: dict) -> dict:
 
 def _texel_case(job: dict) -> list:
     """One (environment, factor) of the step-1 check: texel regions, all materials sharing the visibility rays."""
-    from ..rendering import error_budget as eb
-    from ..synthetic.synthetic_envs import scene_environment
 
     t0 = time.perf_counter()
     meshes, sc, cam, gb = _scene(job["size"])
@@ -169,11 +177,6 @@ def _texel_case(job: dict) -> list:
 
 
 def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **params) -> dict:
-    from ..errors import IBLError
-    from ..executors import map_jobs
-    from ..prefilter.registry import get_method
-    from ..rendering import error_budget as eb
-    from ..rendering.image_io import write_image_exr
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -246,7 +249,6 @@ def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **p
 
 def markdown_table(rows, texel, st) -> str:
     """The README table: per case the paper's error and each step's increment rel. L1 (share), default order."""
-    from ..rendering.error_budget import DEFAULT_ORDER
 
     head = ("| env | material | regions | Eq. 5 vs ref. | " + " | ".join(DEFAULT_ORDER) + " | Σ increments |\n"
             "|---|---|---|---|" + "---|" * (len(DEFAULT_ORDER) + 1) + "\n")
@@ -272,9 +274,6 @@ def markdown_table(rows, texel, st) -> str:
 
 
 def plot(out_dir: Path) -> list:
-    from ..figures import pyplot, save_figure
-    from ..rendering.error_budget import DEFAULT_ORDER
-    from ..rendering.tonemap import auto_exposure, exposure_srgb
 
     plt = pyplot()
     out_dir = Path(out_dir)
@@ -314,7 +313,6 @@ def plot(out_dir: Path) -> list:
 
 
 def _plot_shares(plt, save_figure, out_dir, st):
-    from ..rendering.error_budget import DEFAULT_ORDER
 
     rows = read_csv(out_dir / "error_budget.csv")
     envs = list(dict.fromkeys(q["env"] for q in rows))

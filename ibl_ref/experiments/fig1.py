@@ -18,6 +18,20 @@ import numpy as np
 
 from ..atomic import write_json
 from . import images_from_json, images_to_json, params_from_settings, settings_with, power_of_two
+from ..figures import pyplot
+from ..figures import save_figure
+from ..knuth2014.pem import build_pems
+from ..rendering.raster import prepare_scene
+from ..rendering.raster import rasterize
+from ..rendering.render import light_visibilities
+from ..rendering.render import shade_eq5
+from ..rendering.scenes import default_camera
+from ..rendering.tonemap import auto_exposure
+from ..rendering.tonemap import backdrop
+from ..rendering.tonemap import exposure_srgb
+from ..rendering.tonemap import with_backdrop
+from ..synthetic.synthetic_envs import make_env
+from ..synthetic.synthetic_meshes import make_mesh
 
 NAME = "fig1"
 DESCRIPTION = "Knuth 2014 Fig. 1: diffuse-to-mirror gallery (g = 0 … 1) under sky_sun and studio, our method"
@@ -40,13 +54,6 @@ PARAMS = params_from_settings(settings, checks={"env_size": power_of_two})
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..rendering.render import light_visibilities, shade_eq5
-    from ..rendering.scenes import default_camera
-    from ..knuth2014.pem import build_pems
-    from ..rendering.raster import prepare_scene, rasterize
-    from ..synthetic.synthetic_envs import make_env
-    from ..synthetic.synthetic_meshes import make_mesh
-    from ..rendering.tonemap import backdrop
 
     out_dir = Path(out_dir)
     st = settings_with(__name__, quick, params)
@@ -79,11 +86,9 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 
 
 def plot(out_dir: Path) -> list:
-    from ..figures import pyplot, save_figure
 
     plt = pyplot()
 
-    from ..rendering.tonemap import auto_exposure, exposure_srgb, with_backdrop
 
     import json
 

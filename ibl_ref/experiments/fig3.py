@@ -20,6 +20,11 @@ import numpy as np
 
 from ..atomic import write_json
 from . import Param, resolve_params
+from ..figures import pyplot
+from ..figures import save_figure
+from ..knuth2014.pyramid import build_pyramid
+from ..rendering.sphere_render import render_sphere_lookup
+from ..synthetic.synthetic_envs import make_env
 
 NAME = "fig3"
 DESCRIPTION = "Knuth 2014 Fig. 3: a row of spheres from mirror to diffuse via the sqrtcos pyramid lookup"
@@ -38,9 +43,6 @@ GLOSS = PARAMS[2].default
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..knuth2014.pyramid import build_pyramid
-    from ..rendering.sphere_render import render_sphere_lookup
-    from ..synthetic.synthetic_envs import make_env
 
     p = resolve_params(__name__, quick, params)
     n, px = p["face_size"], p["pixels"]
@@ -54,7 +56,6 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 
 
 def plot(out_dir: Path) -> list[Path]:
-    from ..figures import pyplot, save_figure
 
     plt = pyplot()
 

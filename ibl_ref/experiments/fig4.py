@@ -19,6 +19,10 @@ import numpy as np
 
 from ..atomic import read_csv, write_csv
 from . import Param, resolve_params
+from ..figures import pyplot
+from ..figures import save_figure
+from ..knuth2014.lobe_analysis import LobeResponse
+from ..knuth2014.lobe_analysis import target_lobe
 
 NAME = "fig4"
 DESCRIPTION = "Knuth 2014 Fig. 4: polar cross-sections of the s=1 lobe for MIP-only/gauss/cos/box/sqrtcos"
@@ -33,7 +37,6 @@ TITLES = {"none": "MIP map only", "gauss": "Gaussian", "cos": "cosine", "box": "
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..knuth2014.lobe_analysis import LobeResponse, target_lobe
 
     n = resolve_params(__name__, quick, params)["face_size"]
     s = 1.0
@@ -64,7 +67,6 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 
 
 def plot(out_dir: Path) -> list[Path]:
-    from ..figures import pyplot, save_figure
 
     plt = pyplot()
 

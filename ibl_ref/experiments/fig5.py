@@ -22,6 +22,13 @@ import numpy as np
 
 from ..atomic import read_csv, write_csv, write_json
 from . import Param, resolve_params
+from ..executors import map_jobs
+from ..figures import pyplot
+from ..figures import save_figure
+from ..knuth2014.lobe_analysis import CENTRINGS
+from ..knuth2014.lobe_analysis import LobeResponse
+from ..knuth2014.lobe_analysis import analyse
+from ..knuth2014.lobe_analysis import s_grid
 
 NAME = "fig5"
 DESCRIPTION = "Knuth 2014 Fig. 5: relative lobe error vs s_Phong for none/gauss/cos/box/sqrtcos filters"
@@ -51,7 +58,6 @@ def configs(quick: bool, **params):
 
 
 def compute_rows(n, position, count, kernels=KERNELS, order="shrink_then_filter", seam="neighbour"):
-    from ..knuth2014.lobe_analysis import CENTRINGS, LobeResponse, analyse, s_grid
 
     rows = []
     s_values = s_grid(n, count)
@@ -70,7 +76,6 @@ def config_job(config) -> tuple:
 
 
 def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **params) -> dict:
-    from ..executors import map_jobs
 
     out_dir = Path(out_dir)
     t0 = time.perf_counter()
@@ -96,7 +101,6 @@ def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **p
 
 
 def plot(out_dir: Path) -> list[Path]:
-    from ..figures import pyplot, save_figure
 
     plt = pyplot()
 

@@ -20,6 +20,19 @@ import numpy as np
 
 from ..atomic import read_csv, write_csv, write_json
 from . import images_from_json, images_to_json, params_from_settings, settings_with, power_of_two
+from ..figures import pyplot
+from ..figures import save_figure
+from ..rendering.ao_modes import render_modes
+from ..rendering.image_metrics import all_metrics
+from ..rendering.image_metrics import error_map
+from ..rendering.image_metrics import rel_l1
+from ..rendering.scenes import default_camera
+from ..rendering.tonemap import auto_exposure
+from ..rendering.tonemap import backdrop
+from ..rendering.tonemap import exposure_srgb
+from ..rendering.tonemap import with_backdrop
+from ..synthetic.synthetic_envs import make_env
+from ..synthetic.synthetic_meshes import make_mesh
 
 NAME = "fig6"
 DESCRIPTION = "Knuth 2014 Fig. 6: no occlusion / AO / AO+color / ours / ray-traced reference on a glossy teapot"
@@ -43,11 +56,6 @@ PARAMS = params_from_settings(settings, checks={"env_size": power_of_two})
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..rendering.ao_modes import render_modes
-    from ..rendering.scenes import default_camera
-    from ..rendering.image_metrics import all_metrics, rel_l1
-    from ..synthetic.synthetic_envs import make_env
-    from ..synthetic.synthetic_meshes import make_mesh
 
     out_dir = Path(out_dir)
     st = settings_with(__name__, quick, params)
@@ -74,7 +82,6 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
     note = all_metrics(res.images["ours"], ref, res.mask)["flip_note"]
     write_csv(out_dir / "fig6_metrics.csv", rows, ["mode", "rmse", "rel_l1", "rel_max", "rel_l1_occlusion_only", "flip"],
               comment=f"errors vs the ray-traced reference over covered pixels; kd=0 ks=1 g={st['g']}; {note}")
-    from ..rendering.tonemap import backdrop
 
     # stored for the plot: the environment behind the teapot and the reference without visibility
     extra = {"_background": backdrop(env, cam), "_reference-unoccluded": ref_un}
@@ -95,12 +102,9 @@ def _meta_g(out_dir) -> str:
 
 
 def plot(out_dir: Path) -> list:
-    from ..figures import pyplot, save_figure
 
     plt = pyplot()
 
-    from ..rendering.image_metrics import error_map
-    from ..rendering.tonemap import auto_exposure, exposure_srgb, with_backdrop
 
     out_dir = Path(out_dir)
     imgs, mask = images_from_json(out_dir / "fig6_images.json")

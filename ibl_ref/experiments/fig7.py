@@ -20,6 +20,14 @@ import numpy as np
 from . import params_from_settings, settings_with, power_of_two
 from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
+from ..figures import count_ticks
+from ..figures import pyplot
+from ..figures import save_figure
+from ..knuth2014.pem import build_pems
+from ..rendering.ao_modes import render_modes
+from ..rendering.scenes import default_camera
+from ..synthetic.synthetic_envs import make_env
+from ..synthetic.synthetic_meshes import make_mesh
 
 NAME = "fig7"
 DESCRIPTION = "Knuth 2014 Fig. 7: render time vs number of lights (teapot, cloth) with a per-stage breakdown"
@@ -63,11 +71,6 @@ def _load_average():
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..rendering.ao_modes import render_modes
-    from ..rendering.scenes import default_camera
-    from ..knuth2014.pem import build_pems
-    from ..synthetic.synthetic_envs import make_env
-    from ..synthetic.synthetic_meshes import make_mesh
 
     out_dir = Path(out_dir)
     st = settings_with(__name__, quick, params)
@@ -106,7 +109,6 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 def plot(out_dir: Path) -> list:
     import json
 
-    from ..figures import count_ticks, pyplot, save_figure
 
     plt = pyplot()
 

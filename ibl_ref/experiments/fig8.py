@@ -26,6 +26,23 @@ import numpy as np
 from ..progress import track
 
 from . import Param, resolve_params
+from ..atomic import read_csv
+from ..atomic import write_csv
+from ..atomic import write_json
+from ..figures import pyplot
+from ..figures import save_figure
+from ..knuth2014.memory_model import FIG8_COLUMNS
+from ..knuth2014.memory_model import MIB
+from ..knuth2014.memory_model import PAPER_FIG8
+from ..knuth2014.memory_model import fig8_model_table
+from ..knuth2014.memory_model import infer_fig8_rows
+from ..knuth2014.memory_model import library_pem_bytes
+from ..knuth2014.memory_model import library_vsm_bytes
+from ..knuth2014.memory_model import paper_pem_bytes
+from ..knuth2014.pem import build_pems
+from ..knuth2014.sparse_pem import build_sparse_pems
+from ..knuth2014.sparse_pem import levels_touched
+from ..synthetic.synthetic_envs import make_env
 
 NAME = "fig8"
 DESCRIPTION = "Fig. 8 memory table: published vs model vs this library's arrays; sparse PEM savings"
@@ -40,18 +57,6 @@ SCENE_G = (0.0, 0.5, 0.9)
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..atomic import write_csv, write_json
-    from ..synthetic.synthetic_envs import make_env
-    from ..knuth2014.memory_model import (
-        MIB,
-        PAPER_FIG8,
-        FIG8_COLUMNS,
-        fig8_model_table,
-        infer_fig8_rows,
-        library_pem_bytes,
-        library_vsm_bytes,
-        paper_pem_bytes,
-    )
 
     out_dir = Path(out_dir)
     inferred = infer_fig8_rows()
@@ -75,7 +80,6 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
         "MIP chain (x ~4/3), VSM (mu, mu^2) float32/float16."))
 
     # cross-check the analytic library bytes against allocated arrays for small configurations
-    from ..knuth2014.pem import build_pems
 
     checks = {}
     t0 = time.perf_counter()
@@ -89,7 +93,6 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
                                               "equal": int(vsm.nbytes) == library_vsm_bytes(12, 64, np.float16)}
 
     # sparse PEMs
-    from ..knuth2014.sparse_pem import build_sparse_pems, levels_touched
 
     p = resolve_params(__name__, quick, params)
     sizes, region_counts = p["sparse_sizes"], p["regions"]
@@ -144,11 +147,9 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 
 
 def plot(out_dir: Path) -> list:
-    from ..figures import pyplot, save_figure
 
     plt = pyplot()
 
-    from ..atomic import read_csv
 
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "fig8_table.csv")

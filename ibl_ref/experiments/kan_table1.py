@@ -30,6 +30,12 @@ import numpy as np
 from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 from . import Param, resolve_params
+from ..figures import pyplot
+from ..figures import save_figure
+from ..groundtruth.convolve import convolve
+from ..groundtruth.phong_convolution import convolve_exact_many
+from ..synthetic.synthetic_envs import SUN_NEAR_CORNER
+from ..synthetic.synthetic_envs import make_env
 
 NAME = "kan-table1"
 DESCRIPTION = "time for 8 exponents at once vs face size, next to Kán et al. 2015 Table 1 (mobile GPU)"
@@ -47,9 +53,6 @@ CITATION = "Kan, Unterguggenberger, Kaufmann 2015, Table 1 (NVIDIA Shield tablet
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..groundtruth.convolve import convolve
-    from ..groundtruth.phong_convolution import convolve_exact_many
-    from ..synthetic.synthetic_envs import SUN_NEAR_CORNER, make_env
 
     def environment(n):  # the speed-accuracy environment: sky + a 1e5 sun near a cube corner
         return make_env("sky_sun", n, sun_direction=SUN_NEAR_CORNER, sun_radiance=1e5)
@@ -100,7 +103,6 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 
 
 def plot(out_dir: Path) -> list:
-    from ..figures import pyplot, save_figure
 
     plt = pyplot()
 

@@ -20,6 +20,11 @@ import numpy as np
 from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 from . import Param, resolve_params
+from ..figures import integer_ticks
+from ..figures import pyplot
+from ..figures import save_figure
+from ..lobes import brdfs as B
+from ..lobes import kautz_mccool2000 as km
 
 NAME = "km00"
 DESCRIPTION = "Kautz & McCool 2000 greedy lobe fits: RMS error vs number of lobes (Fig. 7), lobes per elevation"
@@ -41,8 +46,6 @@ BRDFS = {
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..lobes import brdfs as B
-    from ..lobes import kautz_mccool2000 as km
 
     out_dir = Path(out_dir)
     p = resolve_params(__name__, quick, params)
@@ -111,7 +114,6 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 
 
 def plot(out_dir: Path) -> list[Path]:
-    from ..figures import integer_ticks, pyplot, save_figure
 
     plt = pyplot()
 

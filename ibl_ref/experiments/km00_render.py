@@ -50,6 +50,28 @@ from ..atomic import read_csv, write_csv, write_json
 from ..lobes.lobe_render import THETA_MAX_DEG, reference_supersample
 from ..rendering.km00_render import teapot_gbuffer as _gbuffer
 from . import params_from_settings, settings_with, power_of_two
+from ..figures import pyplot
+from ..figures import save_figure
+from ..lobes import brdfs as B
+from ..lobes import kautz_mccool2000 as km
+from ..lobes import km00_reference
+from ..lobes import prefiltered_lobes as pl
+from ..lobes.profile_convolution import profile_integral
+from ..prefilter.registry import build_prefilter
+from ..progress import step
+from ..rendering.image_io import read_image_exr
+from ..rendering.image_io import write_image_exr
+from ..rendering.image_metrics import error_map
+from ..rendering.image_metrics import rel_l1
+from ..rendering.image_metrics import rel_max
+from ..rendering.image_metrics import rmse
+from ..rendering.scenes import default_camera
+from ..rendering.tonemap import auto_exposure
+from ..rendering.tonemap import backdrop
+from ..rendering.tonemap import exposure_srgb
+from ..rendering.tonemap import with_backdrop
+from ..synthetic.synthetic_envs import make_env
+from ..synthetic.synthetic_meshes import make_mesh
 
 NAME = "km00-render"
 DESCRIPTION = ("Kautz & McCool 2000 renders: Ward teapot by per-pixel exact filtering vs 3 lobes / single lobe / "
@@ -93,11 +115,6 @@ PARAMS = params_from_settings(settings, {
 
 def render_all(st: dict, env: np.ndarray, progress: bool = False) -> dict:
     """Fit, prefilter and render every method for settings ``st``; returns images, mask, θo map, timings, info."""
-    from ..lobes import brdfs as B
-    from ..lobes import kautz_mccool2000 as km
-    from ..lobes import prefiltered_lobes as pl
-    from ..lobes import km00_reference
-    from ..prefilter.registry import build_prefilter
 
     T: dict = {}
     t0 = time.perf_counter()
@@ -112,7 +129,6 @@ def render_all(st: dict, env: np.ndarray, progress: bool = False) -> dict:
               out_size=int(st.get("map_out_size", env.shape[1])))
 
     t0 = time.perf_counter()
-    from ..progress import step
 
     with step(f"km00-render: lobe fits at {len(thetas)} elevations", enabled=progress):
         multi = [km.fit_multi_lobe(f, t, int(st["n_lobes"]), **fk) for t in thetas]
@@ -234,10 +250,6 @@ def _constant_env_images(L3, L3r, L1, L2, f, n, wo) -> dict:
     """Per-sample radiance of every method for L ≡ 1 (see :func:`render_all`); (P, 1) arrays."""
     import dataclasses
 
-    from ..lobes import brdfs as B
-    from ..lobes import prefiltered_lobes as pl
-    from ..lobes.profile_convolution import profile_integral
-    from ..prefilter.registry import build_prefilter
 
     def const_maps(ls):
         K, J = ls.integral.shape
@@ -270,9 +282,6 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 
 def run_with(out_dir: Path, st: dict, quick: bool = False, progress: bool = False) -> dict:
     """:func:`run` with explicit settings (see :func:`settings`)."""
-    from ..rendering.image_io import write_image_exr
-    from ..rendering.image_metrics import error_map, rel_l1, rel_max, rmse
-    from ..synthetic.synthetic_envs import make_env
 
     out_dir = Path(out_dir)
     t_all = time.perf_counter()
@@ -329,9 +338,6 @@ def run_with(out_dir: Path, st: dict, quick: bool = False, progress: bool = Fals
         write_image_exr(out_dir / f"km00_render_{k}.exr", ims[k])
     write_image_exr(out_dir / "km00_render_mask.exr", m.astype(np.float64))
     write_image_exr(out_dir / "km00_render_theta.exr", res["theta"])
-    from ..rendering.scenes import default_camera
-    from ..rendering.tonemap import backdrop
-    from ..synthetic.synthetic_meshes import make_mesh
 
     # display only: the environment behind the teapot (the camera of teapot_gbuffer)
     cam = default_camera([(make_mesh("teapot"), 0)], size=int(st["size"]))
@@ -355,13 +361,9 @@ def run_with(out_dir: Path, st: dict, quick: bool = False, progress: bool = Fals
 
 
 def plot(out_dir: Path) -> list:
-    from ..figures import pyplot, save_figure
 
     plt = pyplot()
 
-    from ..rendering.image_io import read_image_exr
-    from ..rendering.image_metrics import error_map
-    from ..rendering.tonemap import auto_exposure, exposure_srgb, with_backdrop
 
     out_dir = Path(out_dir)
     ims = {k: read_image_exr(out_dir / f"km00_render_{k}.exr") for k in METHODS}

@@ -35,6 +35,19 @@ import numpy as np
 from ..progress import track
 
 from . import Param, resolve_params
+from ..atomic import read_csv
+from ..atomic import write_csv
+from ..atomic import write_json
+from ..environment.envmap import texel_directions
+from ..environment.envmap import texel_solid_angles
+from ..figures import pyplot
+from ..figures import save_figure
+from ..knuth2014.gloss_lookup import lookup
+from ..knuth2014.median_cut import median_cut
+from ..knuth2014.pem import build_pems
+from ..knuth2014.pyramid import build_pyramid
+from ..rendering.sphere_render import orthographic_sphere
+from ..synthetic.synthetic_envs import make_env
 
 NAME = "lights-vs-error"
 DESCRIPTION = "sphere lit by median-cut point lights vs PEM lookups vs exact Phong convolution, s = 1..1000"
@@ -56,7 +69,6 @@ ENVS = ("sky_sun", "studio")
 
 def exact_lobe_average(cube, r, s, supersample: int = 1, chunk: int = 512):
     """Brute-force normalised Phong lobe average at directions r (P, 3); also returns W_s(r)."""
-    from ..environment.envmap import texel_directions, texel_solid_angles
 
     n = cube.shape[1]
     m = n * supersample
@@ -90,13 +102,6 @@ def rel_l1(a, ref):
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..atomic import write_csv, write_json
-    from ..synthetic.synthetic_envs import make_env
-    from ..knuth2014.median_cut import median_cut
-    from ..knuth2014.pem import build_pems
-    from ..knuth2014.pyramid import build_pyramid
-    from ..knuth2014.gloss_lookup import lookup
-    from ..rendering.sphere_render import orthographic_sphere
 
     out_dir = Path(out_dir)
     p = resolve_params(__name__, quick, params)
@@ -157,11 +162,9 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 def plot(out_dir: Path) -> list:
     import json
 
-    from ..figures import pyplot, save_figure
 
     plt = pyplot()
 
-    from ..atomic import read_csv
 
     out_dir = Path(out_dir)
     rows = read_csv(out_dir / "lights_vs_error.csv")

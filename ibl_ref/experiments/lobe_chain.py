@@ -34,6 +34,12 @@ from ..knuth2014.gloss_lookup import LEVEL_STEP, best_constant_level, level_fit_
 from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 from . import params_from_settings, settings_with
+from ..conventions import phong_exponent
+from ..figures import pyplot
+from ..figures import save_figure
+from ..prefilter.registry import build_prefilter
+from ..rendering.reference_render import lobe_average
+from ..synthetic.synthetic_envs import make_env
 
 NAME = "lobe-chain"
 DESCRIPTION = "filter pyramid vs exact-lobe chain: lookup error vs s, build time and memory"
@@ -67,16 +73,12 @@ PARAMS = params_from_settings(settings, {"envs": "synthetic environments", "n_di
 
 def build(name: str, env):
     """The prefilter of one :data:`PREFILTERS` label (a level chain: ``.pyramid``, ``.level_of``, ``.lookup``)."""
-    from ..prefilter.registry import build_prefilter
 
     method, params = PREFILTERS[name]
     return build_prefilter(env, method, **params)
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..conventions import phong_exponent
-    from ..rendering.reference_render import lobe_average
-    from ..synthetic.synthetic_envs import make_env
 
     out_dir = Path(out_dir)
     st = settings_with(__name__, quick, params)
@@ -128,7 +130,6 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 
 
 def plot(out_dir: Path) -> list:
-    from ..figures import pyplot, save_figure
 
     plt = pyplot()
 

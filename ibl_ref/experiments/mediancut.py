@@ -21,6 +21,20 @@ from pathlib import Path
 import numpy as np
 
 from . import Param, resolve_params
+from ..atomic import read_csv
+from ..atomic import write_csv
+from ..atomic import write_json
+from ..environment.envmap import direction_to_texel_coords
+from ..environment.resample import cube_to_cross
+from ..figures import plain_log_ticks
+from ..figures import pyplot
+from ..figures import save_figure
+from ..knuth2014.median_cut import VARIANTS
+from ..knuth2014.median_cut import check_partition
+from ..knuth2014.median_cut import energy_spread
+from ..knuth2014.median_cut import luminance
+from ..knuth2014.median_cut import median_cut
+from ..synthetic.synthetic_envs import make_env
 
 NAME = "mediancut"
 DESCRIPTION = "median-cut regions and lights (per-face/global/variance) on the unfolded cube, energy spread"
@@ -42,7 +56,6 @@ def cross_placement(n: int, layout: str = "hcross") -> dict:
     Read off :func:`ibl_ref.environment.resample.cube_to_cross` applied to an index cube, so it is that function's layout and
     orientation; each face lands as a rotated/flipped copy, an affine map of its texel indices.
     """
-    from ..environment.resample import cube_to_cross
 
     idx = (np.arange(6 * n * n, dtype=np.float64) + 1.0).reshape(6, n, n, 1)
     cross = cube_to_cross(idx, layout)[..., 0]
@@ -59,7 +72,6 @@ def cross_placement(n: int, layout: str = "hcross") -> dict:
 
 def log_luminance_cross(y, layout: str = "hcross") -> np.ndarray:
     """log10 luminance (6, n, n) on the cross of :func:`ibl_ref.environment.resample.cube_to_cross`; −99 where no face."""
-    from ..environment.resample import cube_to_cross
 
     img = cube_to_cross(np.log10(np.maximum(y, 1e-6))[..., None], layout)[..., 0]
     inside = cube_to_cross(np.ones(y.shape + (1,)), layout)[..., 0] > 0
@@ -67,10 +79,6 @@ def log_luminance_cross(y, layout: str = "hcross") -> np.ndarray:
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..atomic import write_csv, write_json
-    from ..synthetic.synthetic_envs import make_env
-    from ..environment.envmap import direction_to_texel_coords
-    from ..knuth2014.median_cut import VARIANTS, check_partition, energy_spread, luminance, median_cut
 
     out_dir = Path(out_dir)
     p = resolve_params(__name__, quick, params)
@@ -127,13 +135,11 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 def plot(out_dir: Path) -> list:
     import json
 
-    from ..figures import plain_log_ticks, pyplot, save_figure
 
     plt = pyplot()
     from matplotlib.collections import PatchCollection
     from matplotlib.patches import Rectangle
 
-    from ..atomic import read_csv
 
     out_dir = Path(out_dir)
     maps = json.loads((out_dir / "mediancut_maps.json").read_text())

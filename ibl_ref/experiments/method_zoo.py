@@ -54,6 +54,27 @@ import numpy as np
 
 from ..atomic import atomic_path, atomic_write, read_csv, write_csv, write_json
 from . import params_from_settings, settings_with, power_of_two
+from ..environment.exr_io import load_cube
+from ..errors import IBLError
+from ..executors import map_jobs
+from ..figures import plain_log_ticks
+from ..figures import pyplot
+from ..figures import save_figure
+from ..prefilter.karis2013 import build_dfg_table
+from ..progress import track
+from ..rendering import method_budget as mb
+from ..rendering import method_shading as ms
+from ..rendering import unoccluded_reference as ur
+from ..rendering.method_budget import STEPS
+from ..rendering.method_shading import MethodSpec
+from ..rendering.method_shading import material_params
+from ..rendering.raster import prepare_scene
+from ..rendering.raster import rasterize
+from ..rendering.scenes import default_camera
+from ..rendering.scenes import teapot_on_ground
+from ..rendering.tonemap import auto_exposure
+from ..rendering.tonemap import exposure_srgb
+from ..rendering.unoccluded_reference import integrate
 
 NAME = "method-zoo"
 DESCRIPTION = ("GGX-era IBL methods (split sum with exact / importance / filtered importance sampling, SH9, the "
@@ -162,7 +183,6 @@ def cmft_path(binary: str = "") -> str:
 
 def environment(name: str, n: int, folder: str = ""):
     """``(cube (6, n, n, 3), None)`` or ``(None, reason)`` for an environment of :data:`ENVS`."""
-    from ..errors import IBLError
 
     if name == "sky_sun":
         from ..synthetic.synthetic_envs import make_env
@@ -173,15 +193,12 @@ def environment(name: str, n: int, folder: str = ""):
     path = probe_dir(folder) / f"{name}.exr"
     if not path.is_file():
         return None, f"probe file {path} not found (set IBL_REF_PROBE_DIR or --probe-dir)"
-    from ..environment.exr_io import load_cube
 
     return load_cube(path, size=n), None
 
 
 def material(name: str, f0: float) -> dict:
     """The parameters of :data:`MATERIALS` entry ``name`` (GGX with F0 = ``f0``), checked."""
-    from ..errors import IBLError
-    from ..rendering.method_shading import material_params
 
     if name not in MATERIALS:
         raise IBLError(f"unknown material {name!r}; choose from {', '.join(MATERIALS)}")
@@ -192,8 +209,6 @@ def material(name: str, f0: float) -> dict:
 
 
 def method_spec(label: str, n_lights: int, cmft: str):
-    from ..errors import IBLError
-    from ..rendering.method_shading import MethodSpec
 
     if label not in METHODS:
         raise IBLError(f"unknown method {label!r}; choose from {', '.join(METHODS)}")
@@ -205,7 +220,6 @@ def method_spec(label: str, n_lights: int, cmft: str):
 
 
 def _reference_lobe(m):
-    from ..rendering import unoccluded_reference as ur
 
     if m["kind"] == "ggx":
         return ur.GGXSpecularLobe(m["roughness"], m["f0"], m["smith"])
@@ -234,8 +248,6 @@ def _pixels(scene: str, size: int):
         mask, n, _ = orthographic_sphere(size)
         v = np.broadcast_to(np.array([0.0, 0.0, 1.0]), n.shape).copy()
         return dict(n=n, v=v, P=None, fn=None, sc=None, meshes=None, cam=None, gb=None, mask=mask)
-    from ..rendering.raster import prepare_scene, rasterize
-    from ..rendering.scenes import default_camera, teapot_on_ground
 
     meshes = teapot_on_ground()
     sc = prepare_scene(meshes, warn=False)
@@ -249,9 +261,7 @@ def _pixels(scene: str, size: int):
 def _references(job, px, cube, mats):
     """Per material: (occluded or None, unoccluded exact (lab's integral), unoccluded of the reference renderer or
     None, info)."""
-    from ..rendering.unoccluded_reference import integrate
 
-    from ..progress import track
 
     out = {}
     front = (np.sum(px["n"] * px["v"], axis=1) > 0)[:, None]
@@ -279,9 +289,6 @@ def _references(job, px, cube, mats):
 
 def _case(job: dict) -> dict:
     """One (scene, environment): a picklable job for :func:`ibl_ref.executors.map_jobs`."""
-    from ..prefilter.karis2013 import build_dfg_table
-    from ..rendering import method_budget as mb
-    from ..rendering import method_shading as ms
 
     t_case = time.perf_counter()
     cube, why = environment(job["env"], job["env_size"], job["probe_dir"])
@@ -299,7 +306,6 @@ def _case(job: dict) -> dict:
     caches = {name: {} for name in mats}
     for name in mats:
         caches[name][_reference_lobe(mats[name])] = refs[name][1]
-    from ..progress import track
 
     for label in track(list(job["methods"]), f"{job['scene']}/{job['env']}: methods", unit="method"):
         spec = method_spec(label, job["n_lights"], job["cmft"])
@@ -374,8 +380,6 @@ def _case(job: dict) -> dict:
 # run
 # ------------------------------------------------------------------------------------------------------------------
 def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **params) -> dict:
-    from ..errors import IBLError
-    from ..executors import map_jobs
 
     out_dir = Path(out_dir)
     st = settings_with(__name__, quick, params)
@@ -535,7 +539,6 @@ def markdown_tables(rows, brows, karis, st) -> str:
 # plots (read only the files written above)
 # ------------------------------------------------------------------------------------------------------------------
 def plot(out_dir: Path) -> list:
-    from ..figures import pyplot
 
     plt = pyplot()
     out_dir = Path(out_dir)
@@ -569,7 +572,6 @@ def _pareto_front(x, y):
 
 
 def _plot_pareto(plt, out_dir, mat, sel):
-    from ..figures import plain_log_ticks, save_figure
 
     scenes = list(dict.fromkeys(q["scene"] for q in sel))
     methods = list(dict.fromkeys(q["method"] for q in sel))
@@ -608,8 +610,6 @@ def _plot_pareto(plt, out_dir, mat, sel):
 
 
 def _plot_budget(plt, out_dir, scene, sel, meta):
-    from ..figures import save_figure
-    from ..rendering.method_budget import STEPS
 
     mats = [m for m in meta["settings"]["materials"] if any(q["material"] == m for q in sel)]
     colours = plt.get_cmap("tab10")(np.arange(len(STEPS)))
@@ -642,8 +642,6 @@ def _plot_budget(plt, out_dir, scene, sel, meta):
 
 
 def _plot_images(plt, out_dir, scene, meta):
-    from ..figures import save_figure
-    from ..rendering.tonemap import auto_exposure, exposure_srgb
 
     with np.load(out_dir / "method_zoo_images.npz") as z:
         arr = {k: z[k] for k in z.files if k.startswith(scene + "__")}

@@ -36,6 +36,22 @@ import numpy as np
 
 from . import params_from_settings, settings_with, power_of_two
 from ..atomic import read_csv, write_csv, write_json
+from ..figures import pyplot
+from ..figures import save_figure
+from ..prefilter.registry import build_region_prefilters
+from ..progress import track
+from ..rendering.image_metrics import rel_l1
+from ..rendering.image_metrics import rel_max
+from ..rendering.raster import prepare_scene
+from ..rendering.raster import rasterize
+from ..rendering.reference_render import coarse_level_error
+from ..rendering.reference_render import exact_pem_lookup
+from ..rendering.reference_render import render_reference
+from ..rendering.render import light_visibilities
+from ..rendering.render import shade_eq5
+from ..rendering.scenes import default_camera
+from ..synthetic.synthetic_envs import make_env
+from ..synthetic.synthetic_meshes import make_mesh
 
 NAME = "render-error"
 DESCRIPTION = "Eq. 5 renderer error vs lights and VSM resolution against a ray-traced reference (5 % target at s = 1)"
@@ -60,15 +76,6 @@ PARAMS = params_from_settings(settings, checks={"env_size": power_of_two})
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..rendering.render import light_visibilities, shade_eq5
-    from ..rendering.scenes import default_camera
-    from ..rendering.image_metrics import rel_l1, rel_max
-    from ..prefilter.registry import build_region_prefilters
-    from ..progress import track
-    from ..rendering.raster import prepare_scene, rasterize
-    from ..rendering.reference_render import coarse_level_error, exact_pem_lookup, render_reference
-    from ..synthetic.synthetic_envs import make_env
-    from ..synthetic.synthetic_meshes import make_mesh
 
     out_dir = Path(out_dir)
     st = settings_with(__name__, quick, params)
@@ -169,7 +176,6 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 
 
 def plot(out_dir: Path) -> list:
-    from ..figures import pyplot, save_figure
 
     plt = pyplot()
 

@@ -38,6 +38,13 @@ from ..environment import envmap
 from ..progress import track
 from ..atomic import read_csv, write_csv, write_json
 from . import Param, resolve_params, VALUE_CHECKS
+from ..figures import plain_log_ticks
+from ..figures import pyplot
+from ..figures import save_figure
+from ..groundtruth.convolve import convolve
+from ..groundtruth.phong_convolution import convolve_exact_many
+from ..synthetic.synthetic_envs import SUN_NEAR_CORNER
+from ..synthetic.synthetic_envs import make_env
 
 NAME = "speed-accuracy"
 DESCRIPTION = "time vs max/mean relative error of exact / SH-hybrid / sparse / auto Phong convolution"
@@ -57,7 +64,6 @@ PARAMS = (Param("face_sizes", (32, 64, 128), (16, 32), "cube face sizes N"),
 
 def environment(n: int) -> np.ndarray:
     """The sky + sun-near-corner environment (generator of :mod:`ibl_ref.synthetic.synthetic_envs`)."""
-    from ..synthetic.synthetic_envs import SUN_NEAR_CORNER, make_env
 
     return make_env("sky_sun", n, sun_direction=SUN_NEAR_CORNER, sun_radiance=1e5)
 
@@ -82,8 +88,6 @@ def exact_subset(cube, exponents, idx):
 
 
 def run(out_dir: Path, quick: bool = False, **params) -> dict:
-    from ..groundtruth.convolve import convolve
-    from ..groundtruth.phong_convolution import convolve_exact_many
 
     out_dir = Path(out_dir)
     p = resolve_params(__name__, quick, params)
@@ -184,7 +188,6 @@ def run(out_dir: Path, quick: bool = False, **params) -> dict:
 
 
 def plot(out_dir: Path) -> list:
-    from ..figures import plain_log_ticks, pyplot, save_figure
 
     plt = pyplot()
 

@@ -17,9 +17,8 @@ import math
 
 import numpy as np
 
-from ..environment import envmap
 from ..environment.validated import environment_array
-from ..errors import IBLError, LayoutError
+from ..errors import IBLError
 
 __all__ = ["check_exponent", "check_exponents", "check_cube", "check_faces", "check_out_size", "channel_max",
            "channel_min"]

@@ -96,6 +96,11 @@ from ..environment import envmap
 from .convolution_args import channel_max, check_cube, check_exponent, check_out_size
 from ..errors import IBLError
 from ..limits import check_rtol
+from .phong_convolution import convolve_exact_many
+from .sh_basis import SymmetryPlan
+from .sh_basis import evaluate_part
+from .sh_basis import funk_hecke
+from .sh_basis import project_part
 
 __all__ = [
     "convolve_sh",
@@ -149,7 +154,6 @@ def _output_floor(rad, s_list, impl="numpy"):
     (s = 16, 256), where the band-4 SH preview used before rang below zero (probes with a dark ground).
     The exact sums by the bright-texel gather of the kernel ``impl`` (absolute weights c^s); where the nearest
     texel's weight could underflow, by the exact gather, which normalises every row by its largest weight."""
-    from .phong_convolution import convolve_exact_many
 
     M, C = rad.shape
     key = (impl, rad.shape, float(rad.sum()), float(rad[:: max(1, M // 997)].sum()), float(rad.max()))
@@ -419,7 +423,6 @@ def sh_split(setup: ShSetup, n_parts: int) -> ShSetup:
     """Prepare ``setup`` for a pass in ``n_parts`` independent pieces (:func:`sh_project_part`, then
     :func:`sh_evaluate_part`): the symmetry plans of the source and output directions (computed once here,
     not in every part).  Returns ``setup``."""
-    from .sh_basis import SymmetryPlan
 
     setup.sym_src = SymmetryPlan(setup.src, setup.L, n_parts)
     setup.sym_out = setup.sym_src if setup.out_dirs is setup.src else SymmetryPlan(setup.out_dirs, setup.L, n_parts)
@@ -429,14 +432,12 @@ def sh_split(setup: ShSetup, n_parts: int) -> ShSetup:
 def sh_project_part(setup: ShSetup, part: int):
     """Projection of the remainder (all kernels share it) over part ``part`` of the source directions:
     ``(a_even, a_odd)``; :func:`sh_coefficients` adds the parts in order."""
-    from .sh_basis import project_part
 
     return project_part(setup.src, setup.Wq, setup.sym_src, part, get_kernels(setup.impl))
 
 
 def sh_coefficients(setup: ShSetup, parts):
     """Sum of the projection parts (in the given order) times the Funk–Hecke eigenvalues: ``(Be, Bo)``."""
-    from .sh_basis import funk_hecke
 
     ae = parts[0][0].copy()
     ao = parts[0][1].copy()
@@ -450,7 +451,6 @@ def sh_evaluate_part(setup: ShSetup, Be, Bo, part: int):
     """Evaluation at part ``part`` of the output directions, the exact gather of the bright excess there and
     the per-texel values and bounds: ``(idx, maps (K, p, C), rel (K, p), rel_estimate (K, p) or None)``
     for the outputs ``idx`` (:func:`sh_assemble` puts the parts together)."""
-    from .sh_basis import evaluate_part
 
     kern = get_kernels(setup.impl)
     idx, vals = evaluate_part(setup.out_dirs, Be, Bo, setup.sym_out, part, kern)

@@ -54,6 +54,7 @@ import numpy as np
 
 from ..environment.envmap import check_cube_shape
 from ..errors import IBLError, LayoutError
+from ..environment.sampling import padding_tables
 
 __all__ = [
     "KERNELS",
@@ -139,7 +140,6 @@ def check_seam(seam: str) -> str:
 @functools.lru_cache(maxsize=64)
 def _border_tables(n: int, k: int):
     """Border-only gather tables built from :func:`ibl_ref.environment.sampling.padding_tables`."""
-    from ..environment.sampling import padding_tables
 
     src, w = padding_tables(n, k)
     m = n + 2 * k

@@ -26,6 +26,9 @@ import numpy as np
 
 from .gloss_lookup import Calibration, calibration_path
 from .lobe_analysis import LobeResponse, s_grid
+from ..atomic import write_json
+from ..progress import step
+from .gloss_lookup import shipped_calibration
 
 __all__ = ["calibrate", "calibration_for", "build_calibration_tables", "build_shipped_tables", "save_calibration", "table_from_response",
            "SHIPPED"]
@@ -76,8 +79,6 @@ def calibration_for(face_size: int, kernel="sqrtcos", order="shrink_then_filter"
     ``calibration=``.  Computing one costs a lobe analysis at that face size (measured 33 s at 512² on the
     loaded 2-core machine) and is reported as a progress step.
     """
-    from ..progress import step
-    from .gloss_lookup import shipped_calibration
 
     cal = shipped_calibration(face_size, kernel, order, seam, volume, shrink)
     if cal is None:
@@ -89,7 +90,6 @@ def calibration_for(face_size: int, kernel="sqrtcos", order="shrink_then_filter"
 
 def save_calibration(cal: Calibration, data_dir: Path | None = None) -> Path:
     """Write a calibration table as JSON (atomic) into ``ibl_ref/data`` (or ``data_dir``)."""
-    from ..atomic import write_json
 
     return write_json(calibration_path(cal.face_size, cal.kernel, cal.order, cal.seam, cal.volume, cal.shrink,
                                        data_dir), cal.to_dict())

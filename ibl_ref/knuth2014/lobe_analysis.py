@@ -52,6 +52,7 @@ import numpy as np
 
 from ..environment.envmap import cube_solid_angles, texel_directions
 from ..errors import IBLError
+from .pyramid import build_pyramid
 
 __all__ = [
     "VOLUME_DEFS",
@@ -165,7 +166,6 @@ class LobeResponse:
 
     def __init__(self, n: int, kernel="sqrtcos", order="shrink_then_filter", seam="neighbour",
                  position="centre", sample_size: int | None = None, shrink: str = "mean"):
-        from .pyramid import build_pyramid
 
         self.n = int(n)
         self.kernel, self.order, self.seam, self.position, self.shrink = kernel, order, seam, position, shrink

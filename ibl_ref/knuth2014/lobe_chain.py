@@ -50,6 +50,13 @@ from ..environment.envmap import texel_directions
 from ..environment.validated import as_environment
 from ..errors import IBLError, LayoutError
 from ..conventions import lobe_half_angle
+from ..groundtruth.phong_convolution import lobe_average
+from ..progress import track
+from .gloss_lookup import Calibration
+from .pem import PEMSet
+from .pem import partial_maps
+from .pem import prepare_pem_input
+from .pyramid import Pyramid
 
 __all__ = ["ChainSpec", "chain_spec", "build_lobe_chain", "build_lobe_chain_pems",
            "chain_calibration", "exponent_calibration", "lobe_average_regions"]
@@ -115,7 +122,6 @@ def exponent_calibration(s_phong, base_size: int, kernel: str = KERNEL_NAME):
     """The s → level table of levels 1..K holding lobes at the decreasing exponents ``s_phong`` = (s_1, …, s_K)
     over level 0 = the input (face size ``base_size``): level k at s_k, linear in log s between them, linear in 1/s
     from s_1 to the mirror (level 0 at s = ∞), level K for s ≤ s_K (:meth:`~ibl_ref.knuth2014.gloss_lookup.Calibration.level_of`)."""
-    from .gloss_lookup import Calibration
 
     K = len(s_phong)
     s = np.asarray(tuple(s_phong)[::-1], dtype=np.float64)  # increasing: s_K .. s_1
@@ -148,7 +154,6 @@ def lobe_average_regions(cube, labels, n_regions: int, s: float, out_size: int, 
     L_j w_j / Σ_j w_j, w_j = max(d·ω_j,0)^s Ω_j over the included texels (module docstring), and the bound δ on
     the neglected weight fraction (|error| ≤ δ·max L).
     """
-    from ..groundtruth.phong_convolution import lobe_average
 
     env = as_environment(cube, "environment")
     C = env.channels
@@ -172,7 +177,6 @@ def lobe_average_regions(cube, labels, n_regions: int, s: float, out_size: int, 
 def _chain_levels(env, labels, R, spec, weight_eps, tile, progress):
     levels = [None]
     bounds = []
-    from ..progress import track
 
     for s, n in track(list(zip(spec.s_phong, spec.face_sizes[1:])), "exact-lobe chain", unit="level",
                       enabled=progress):
@@ -189,7 +193,6 @@ def build_lobe_chain(cube, *, s_min: float = 1.0, factor: float = 4.0, texels_pe
     ``pyramid.levels[k]`` (6, n_k, n_k, C) as in :func:`chain_spec`; ``pyramid.kernel == "exact-lobe"``;
     ``pyramid.truncation_bounds`` lists δ per level (max over texels).
     """
-    from .pyramid import Pyramid
 
     env = as_environment(cube, "environment")
     N = env.face_size
@@ -211,7 +214,6 @@ def build_lobe_chain_pems(cube, lights=None, *, n_lights: int | None = None, var
     Drop-in for :func:`ibl_ref.knuth2014.pem.build_pems` (same regions, same ``lookup_all``, ``kernel = "exact-lobe"``),
     so every renderer and experiment can swap the paper's filter pyramid for the exact chain.
     """
-    from .pem import PEMSet, partial_maps, prepare_pem_input
 
     N, env, lights = prepare_pem_input(cube, lights, n_lights, variant, "build_lobe_chain_pems")
     dt = np.dtype(dtype)

@@ -68,6 +68,9 @@ import numpy as np
 from ..environment.envmap import check_cube_shape, texel_directions, texel_solid_angles, FACE_NAMES
 from ..environment.validated import as_environment
 from ..errors import IBLError, LayoutError
+from ..limits import SizeError
+from ..limits import check_allocation
+from ..lobes.meunier2009 import region_equivalent_lobe
 
 __all__ = [
     "REC709",
@@ -135,7 +138,6 @@ class LightSet:
         (:func:`ibl_ref.lobes.meunier2009.region_equivalent_lobe`); ``scale_energy`` makes the lobe carry Ω.
         For small regions α ≈ √(Ω/π), the disc half-angle that sizes the VSM blur (docs/background.md §4).
         """
-        from ..lobes.meunier2009 import region_equivalent_lobe
 
         return region_equivalent_lobe(self.solid_angle)
 
@@ -504,7 +506,6 @@ def median_cut(cube, n_lights: int, variant: str = "per-face", *, luminance_weig
     if variant not in VARIANTS:
         raise IBLError(f"unknown median-cut variant {variant!r}; choose one of {VARIANTS}")
     n = check_cube_shape(cube, "median cut input")
-    from ..limits import SizeError, check_allocation
 
     try:  # the working set (summed-area tables, labels, per-variant copies), before any of it is allocated
         check_allocation(WORKING_BYTES_PER_TEXEL * 6 * n * n, f"the median cut of a {n}x{n}-face cube map",

@@ -30,6 +30,10 @@ import numpy as np
 from ..environment.validated import adopt, as_environment
 from ..errors import IBLError, LayoutError
 from .median_cut import LightSet, median_cut
+from ..progress import track
+from .gloss_lookup import lookup
+from .gloss_lookup import lookup_at_level
+from .pyramid import Pyramid
 
 __all__ = ["PEMSet", "build_pems", "iter_pem_chunks", "default_chunk", "partial_maps"]
 
@@ -100,7 +104,6 @@ def iter_pem_chunks(cube, labels, n_regions, *, kernel="sqrtcos", order="shrink_
     cube = as_environment(cube, "PEM input").data
     n, C = cube.shape[1], cube.shape[3]
     chunk = default_chunk(n_regions, C) if chunk is None else int(chunk)
-    from ..progress import track
 
     for a in track(range(0, n_regions, chunk), "PEM pyramids", unit="chunk", enabled=progress):
         b = min(a + chunk, n_regions)
@@ -179,7 +182,6 @@ class PEMSet:
 
     # -- pyramids and lookups -----------------------------------------------------------------------
     def _pyramid(self, levels):
-        from .pyramid import Pyramid
 
         return Pyramid(levels=list(levels), kernel=self.kernel, order=self.order, seam=self.seam,
                        base_size=self.base_size)
@@ -202,7 +204,6 @@ class PEMSet:
     def _lookup(self, pyr, dirs, g):
         if self._lookup_fn is not None:
             return self._lookup_fn(pyr, dirs, g, calibration=self._calibration)
-        from .gloss_lookup import lookup
 
         return lookup(pyr, dirs, g, calibration=self.calibration)
 
@@ -231,7 +232,6 @@ class PEMSet:
     def lookup_all_at_level(self, dirs, level) -> np.ndarray:
         """:meth:`lookup_all` at a given continuous pyramid level instead of the calibrated ℓ(g), (L, ..., C)
         (:func:`ibl_ref.knuth2014.gloss_lookup.lookup_at_level`; the error budget's best-level step)."""
-        from .gloss_lookup import lookup_at_level
 
         dirs = np.asarray(dirs, dtype=np.float64)
         out = lookup_at_level(self._stacked_pyramid(), dirs, level)

@@ -36,6 +36,8 @@ from ..environment.envmap import check_cube_shape, texel_solid_angles
 from ..environment.validated import as_environment
 from ..errors import IBLError, LayoutError
 from .filters import check_seam, filter_cube, kernel_taps
+from ..environment import envmap
+from ..environment.sampling import sample_nearest
 
 __all__ = ["ORDERS", "SHRINKS", "Pyramid", "shrink_2x2", "shrink_2x2_solid_angle", "build_pyramid", "build_mip_chain", "pyramid_energy"]
 
@@ -116,7 +118,6 @@ class FaceCentreSampler:
             raise LayoutError("FaceCentreSampler needs 1x1 faces")
 
     def bilinear(self, dirs):
-        from ..environment import envmap
 
         d = np.asarray(dirs, dtype=np.float64)
         shape = d.shape[:-1]
@@ -136,7 +137,6 @@ class FaceCentreSampler:
         return out.astype(np.result_type(self.cube.dtype, np.float32), copy=False)
 
     def nearest(self, dirs):
-        from ..environment.sampling import sample_nearest
 
         return sample_nearest(self.cube, dirs)
 

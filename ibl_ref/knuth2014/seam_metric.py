@@ -26,6 +26,10 @@ import functools
 import numpy as np
 
 from ..environment.envmap import FACE_NAMES, face_uv_to_direction
+from ..environment.sampling import padding_tables
+from .filters import SEAM_MODES
+from .filters import pad_cube
+from .pyramid import build_pyramid
 
 __all__ = ["seam_metric", "seam_summary", "edge_and_corner_tables", "compare_seam_modes"]
 
@@ -35,7 +39,6 @@ _SIDES = ("left", "right", "top", "bottom")
 @functools.lru_cache(maxsize=32)
 def edge_and_corner_tables(n: int):
     """Neighbour face of each (face, side) and the 8 corners' (face, row, col) triples."""
-    from ..environment.sampling import padding_tables
 
     src, _ = padding_tables(n, 1)
     mid = 1 + n // 2 if n > 1 else 1
@@ -75,7 +78,6 @@ def seam_metric(pyramid) -> list[dict]:
     list of dict
         Rows: ``level, face_size, kind ("edge"|"corner"), name, step, inner_gradient, reference, ratio``.
     """
-    from .filters import pad_cube
 
     levels = pyramid.levels if hasattr(pyramid, "levels") else list(pyramid)
     rows = []
@@ -147,8 +149,6 @@ def compare_seam_modes(cube, kernel="sqrtcos", order="shrink_then_filter", seams
 
     Returns rows ``seam, level, kind, ratio_mean, ratio_max``.
     """
-    from .filters import SEAM_MODES
-    from .pyramid import build_pyramid
 
     out = []
     for seam in seams or SEAM_MODES:

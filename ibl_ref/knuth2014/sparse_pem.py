@@ -48,6 +48,9 @@ import numpy as np
 
 from ..errors import IBLError
 from .median_cut import LightSet
+from .pem import iter_pem_chunks
+from .pem import prepare_pem_input
+from .pyramid import Pyramid
 
 __all__ = ["Tile", "SparsePEMSet", "sparsify", "build_sparse_pems", "levels_touched", "TILE_META_BYTES"]
 
@@ -98,7 +101,6 @@ def levels_touched(g_values, base_size: int, lookup_fn: Callable | None = None, 
     Probe: a pyramid whose level l holds the constant vector e_l (one-hot over levels) returns, for any
     direction, the weight the lookup gives each level.
     """
-    from .pyramid import Pyramid
 
     if lookup_fn is None:
         from .gloss_lookup import lookup as lookup_fn
@@ -226,7 +228,6 @@ class SparsePEMSet:
             )
 
     def _lookup_stack(self, regions, dirs, g):
-        from .pyramid import Pyramid
 
         k, C = len(regions), self.channels
         levels = [lev.reshape(lev.shape[:3] + (k * C,)) for lev in self._dense_levels(regions)]
@@ -299,7 +300,6 @@ def build_sparse_pems(cube, lights: LightSet | None = None, *, n_lights: int | N
     FULL (criterion (*)) is the pyramid of the full map, built once in float64 (equal to Σ_i PEM_i by
     linearity of the pyramid).
     """
-    from .pem import iter_pem_chunks, prepare_pem_input
 
     rtol = _check_rtol(rtol)
     n, env, lights = prepare_pem_input(cube, lights, n_lights, variant, "build_sparse_pems")

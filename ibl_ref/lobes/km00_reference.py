@@ -23,6 +23,8 @@ from ..environment import envmap
 from ..errors import IBLError
 from ..environment.validated import environment_array
 from .profile_convolution import BLOCK_ELEMS, positive_int
+from ..progress import Progress
+from .brdfs import view_direction
 
 __all__ = ["render_reference", "brdf_min_hwhm", "ward_cut_angle", "ward_neglected_bound"]
 
@@ -53,7 +55,6 @@ def brdf_min_hwhm(brdf, theta_o, n_phi: int = 24, n_gamma: int = 400) -> np.ndar
     the minimum over azimuths is returned (an off-specular peak makes one side narrower: conservative).  Used to
     choose the reference's supersampling (an anisotropic grazing Ward lobe is narrow out of the incidence plane).
     """
-    from .brdfs import view_direction
 
     th = np.atleast_1d(np.asarray(theta_o, dtype=np.float64))
     gam = 0.5 * np.pi * (np.arange(n_gamma) / (n_gamma - 1)) ** 2
@@ -113,7 +114,6 @@ def render_reference(cube, n, wo, brdf, *, supersample: int = 1, cut_angle: floa
     r = 2.0 * cdot[:, None] * nn - vv
     out = np.zeros((nn.shape[0], C))
     f, row, col = envmap.direction_to_texel(r, nb)
-    from ..progress import Progress
 
     prog = Progress("exact Ward reference", int((cdot > 0).sum()), "pixel") if progress else None
     for k in np.unique(ks):

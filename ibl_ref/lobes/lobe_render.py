@@ -14,6 +14,15 @@ prefilter, the sqrt-cos pyramid of Knuth et al. 2014, given by the caller).  Vie
 from __future__ import annotations
 
 import numpy as np
+from . import brdfs as B
+from . import kautz_mccool2000 as km
+from . import km00_reference
+from . import prefiltered_lobes as pl
+from ..environment.validated import as_environment
+from ..errors import IBLError
+from ..progress import step
+from .kautz_mccool2000 import gamma_nodes
+from .profile_convolution import auto_supersample
 
 __all__ = ["THETA_MAX_DEG", "MIN_SUBTEXELS_PER_HWHM", "SINGLE_METHODS", "reference_supersample", "check_single_method",
            "check_resolvable", "shade_single_method"]
@@ -32,8 +41,6 @@ def reference_supersample(f, env_size: int, n, wo, samples_per_hwhm: float, max_
     sample's θo (:func:`~ibl_ref.lobes.prefiltered_lobes.brdf_min_hwhm`, tabulated every 0.5°, the smaller of the two
     bracketing entries) spans ``samples_per_hwhm`` sub-texels (:func:`~ibl_ref.lobes.profile_convolution.auto_supersample`),
     capped at ``max_supersample``.  Returns (P,) integers."""
-    from . import km00_reference
-    from .profile_convolution import auto_supersample
 
     th = np.arccos(np.clip(np.sum(n * wo, axis=1), 0.0, 1.0))
     th_tab = np.radians(np.arange(0.0, 90.0, 0.5))
@@ -58,9 +65,6 @@ def check_resolvable(f, method: str, env_size: int, thetas, n_gamma: int = 256, 
     (:func:`ibl_ref.lobes.kautz_mccool2000.gamma_nodes`; narrower lobes fit to no lobe at all).  The message names
     the BRDF parameter that sets the width (``alpha=…`` / ``s=…``).
     """
-    from . import km00_reference
-    from .kautz_mccool2000 import gamma_nodes
-    from ..errors import IBLError
 
     with np.errstate(all="ignore"):  # a needle-thin lobe overflows the BRDF at its peak: judged below instead
         hws = np.atleast_1d(km00_reference.brdf_min_hwhm(f, thetas))
@@ -100,7 +104,6 @@ def check_resolvable(f, method: str, env_size: int, thetas, n_gamma: int = 256, 
 
 def check_single_method(method: str, n_theta) -> None:
     """One-line :class:`~ibl_ref.errors.IBLError` for an unknown method or a bad number of elevations."""
-    from ..errors import IBLError
 
     if method not in SINGLE_METHODS:
         raise IBLError(f"method must be one of {', '.join(SINGLE_METHODS)}, got {method!r}")
@@ -119,13 +122,6 @@ def shade_single_method(method: str, env: np.ndarray, n, wo, *, brdf: str = "war
     (:class:`ibl_ref.prefilter.interface.Prefilter`); ``rescale_lobes``: the greedy lobes with one energy factor
     per elevation, :func:`ibl_ref.lobes.kautz_mccool2000.fit_multi_lobe` ``rescale=True``).  θo sampled in
     [0°, 80°]."""
-    from . import brdfs as B
-    from . import kautz_mccool2000 as km
-    from . import prefiltered_lobes as pl
-    from . import km00_reference
-    from ..environment.validated import as_environment
-    from ..errors import IBLError
-    from ..progress import step
 
     check_single_method(method, n_theta)
     env = as_environment(env, "environment cube map")  # checked once here; the maps and the reference trust it

@@ -43,6 +43,7 @@ import numpy as np
 from scipy import integrate, optimize, special
 
 from ..errors import IBLError
+from ..environment.envmap import unit_directions
 
 __all__ = [
     "E_MAX",
@@ -104,7 +105,6 @@ def check_exponent(e, name: str = "exponent", e_max: float = E_MAX) -> np.ndarra
 
 def _check_axis(a, name: str = "axis") -> np.ndarray:
     """Unit lobe axis (..., 3); an axis shorter than 1e-12 cannot define a cosine lobe."""
-    from ..environment.envmap import unit_directions
 
     return unit_directions(a, name, min_norm=1e-12)
 

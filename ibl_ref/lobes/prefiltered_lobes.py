@@ -56,6 +56,7 @@ from .profile_convolution import (
     convolve_profiles,
     profile_integral,
 )
+from ..conventions import phong_exponent
 
 __all__ = ["ElevationRangeError", "LobeSet", "build_lobe_set",
            "build_2d_lobe", "Lobe2D", "local_frame", "peak_direction", "shade_lobes", "shade_2d", "shade_pyramid",
@@ -446,7 +447,6 @@ def shade_pyramid(lobes: LobeSet, prefilter, n, wo, *, energy: str = "phong", co
     [0, 1] (Eq. 3; s < 1 → g = 0, i.e. s = 1); ``W_j = P_j 2π/(s_j+1)`` (``energy="phong"``) or ``∫ p_j dω``
     (``energy="profile"``), both interpolated linearly in θo (module docstring (d)).
     """
-    from ..conventions import phong_exponent
 
     if getattr(prefilter, "lobe", None) != "phong" or not hasattr(prefilter, "lookup"):
         raise IBLError("shade_pyramid needs a Phong prefilter (an ibl_ref.prefilter method with lobe 'phong', e.g. "

@@ -31,6 +31,7 @@ import numpy as np
 from ..environment import envmap
 from ..environment.validated import environment_array
 from ..errors import IBLError
+from ..progress import Progress
 
 __all__ = ["ProfileError", "check_profile", "profile_integral", "support_angle", "convolve_profiles",
            "convolve_profile", "profile_hwhm", "auto_supersample", "positive_int"]
@@ -283,7 +284,6 @@ def convolve_profiles(cube, gamma, profiles, *, out_size: int | None = None, sup
     out = np.zeros((P, 6 * out_size * out_size, C))
     tiles = _tile_geometry(out_size, tile)
     groups = np.unique(ks)
-    from ..progress import Progress
 
     prog = Progress(f"prefilter of {P} profile(s), supersampling {', '.join(str(int(k)) for k in groups)}",
                     len(groups) * len(tiles), "tile") if progress else None

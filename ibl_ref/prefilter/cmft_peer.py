@@ -54,6 +54,8 @@ import numpy as np
 from ..environment import envmap
 from ..errors import IBLError
 from .level_chain import LevelChainPrefilter, check_exponents, exponent_stack
+from ..groundtruth.convolution_args import check_cube
+from ..groundtruth.phong_convolution import lobe_average
 
 __all__ = ["CmftUnavailable", "CmftRadiance", "cmft_binary", "cmft_command", "run_cmft", "write_dds_cube",
            "read_dds_cube", "check_face_mapping", "cmft_timeout", "ENV_VAR", "TIMEOUT_ENV_VAR", "DEFAULT_TIMEOUT_S",
@@ -218,7 +220,6 @@ def run_cmft(cube, exponents, *, binary=None, threads: int = 2, timeout: float |
     ``timeout``: seconds per run of the program (:func:`cmft_timeout`: default ``$IBL_REF_CMFT_TIMEOUT`` or
     :data:`DEFAULT_TIMEOUT_S`).  Every map read back is checked (finite, ≥ 0, not black for a non-black input).
     """
-    from ..groundtruth.convolution_args import check_cube
 
     a, _ = check_cube(cube)
     if a.shape[3] not in (1, 3):
@@ -275,7 +276,6 @@ def check_face_mapping(binary=None, *, n: int = 16, s: float = FACE_CHECK_S, thr
     without the convention change, and the unfiltered pattern's own distance to it: ``{"max_rel_error",
     "max_rel_error_unconverted", "max_rel_error_unfiltered", "max_rel_change"}`` (the first must be below
     :data:`FACE_CHECK_RTOL`, the next two far above it; the last is the map's change from the pattern)."""
-    from ..groundtruth.phong_convolution import lobe_average
 
     pat = face_check_pattern(n)
     got = run_cmft(pat, [s], binary=binary, threads=threads, timeout=timeout)[0]
@@ -319,7 +319,6 @@ class CmftRadiance(LevelChainPrefilter):
 
     def __init__(self, cube, *, exponents=None, binary=None, threads: int = 2, timeout: float | None = None,
                  verify: bool = True):
-        from ..groundtruth.convolution_args import check_cube
 
         a, _ = check_cube(cube)
         self.exponents = check_exponents(exponents, a.shape[1])

@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from .level_chain import LevelChainPrefilter
+from ..knuth2014.lobe_chain import build_lobe_chain
+from ..knuth2014.lobe_chain import build_lobe_chain_pems
 
 __all__ = ["ExactLobeChain"]
 
@@ -29,7 +31,6 @@ class ExactLobeChain(LevelChainPrefilter):
 
     def __init__(self, cube, *, s_min: float = 1.0, factor: float = 4.0, texels_per_halfwidth: float = 2.0,
                  n_min: int = 8, weight_eps: float = 1e-12, dtype=np.float64, progress: bool = False):
-        from ..knuth2014.lobe_chain import build_lobe_chain
 
         self.pyramid, self.calibration = build_lobe_chain(
             cube, s_min=s_min, factor=factor, texels_per_halfwidth=texels_per_halfwidth, n_min=n_min,
@@ -45,7 +46,6 @@ class ExactLobeChain(LevelChainPrefilter):
                       texels_per_halfwidth: float = 2.0, n_min: int = 8, weight_eps: float = 1e-12,
                       dtype=np.float32, progress: bool = False):
         """PEMs whose levels are exact per-region lobe averages (:func:`~ibl_ref.knuth2014.lobe_chain.build_lobe_chain_pems`)."""
-        from ..knuth2014.lobe_chain import build_lobe_chain_pems
 
         return build_lobe_chain_pems(cube, lights, s_min=s_min, factor=factor,
                                      texels_per_halfwidth=texels_per_halfwidth, n_min=n_min, weight_eps=weight_eps,

@@ -52,6 +52,8 @@ from ..groundtruth.phong_convolution import lobe_average
 from ..lobes import brdfs
 from . import karis2013
 from .knuth2014_pyramid import Knuth2014Pyramid
+from .interface import check_lobe_param
+from .regions import build_region_set
 
 __all__ = ["MAPPINGS", "kernel_mass", "kernel_mean_cosine", "phong_mean_cosine", "phong_exponent", "lobe_tv",
            "brdf_lobe_tv", "GGXPhongMapping"]
@@ -268,7 +270,6 @@ class GGXPhongMapping:
         """The partial environment maps of ``lights`` (median-cut regions of the same map) with this Phong method
         (:func:`ibl_ref.prefilter.registry.build_region_prefilters`); look them up by the glossiness
         ``g = 1 − 1/s`` of :meth:`exponent` (Eq. 3)."""
-        from .regions import build_region_set
 
         cube = getattr(self, "_cube", None)
         if cube is None:
@@ -281,7 +282,6 @@ class GGXPhongMapping:
         return self._nbytes + (self.dfg.nbytes if self.dfg is not None else 0)
 
     def lookup(self, directions, roughness) -> np.ndarray:
-        from .interface import check_lobe_param
 
         d = unit_directions(directions, "directions")
         lead = d.shape[:-1]

@@ -50,6 +50,7 @@ from typing import ClassVar, Protocol, runtime_checkable
 import numpy as np
 
 from ..errors import IBLError
+from ..conventions import ggx_alpha
 
 __all__ = ["LOBES", "Prefilter", "RegionPrefilters", "check_lobe_param"]
 
@@ -153,7 +154,6 @@ def check_lobe_param(lobe: str, param, directions=None) -> np.ndarray:
             raise IBLError(f"Phong exponent s must be >= 1 (np.inf: mirror; from a glossiness g: s = 1/(1 - g)), "
                            f"got {bad!r}")
         return p
-    from ..conventions import ggx_alpha
 
     ggx_alpha(p)
     return p

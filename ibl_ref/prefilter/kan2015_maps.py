@@ -16,6 +16,8 @@ Cost: a dense gather, O(N⁴) per exponent (6N² outputs × 6N² texels).  No er
 from __future__ import annotations
 
 from .level_chain import LevelChainPrefilter, check_exponents, exponent_stack
+from ..groundtruth.convolution_args import check_cube
+from ..groundtruth.kan2015 import specular_maps
 
 __all__ = ["Kan2015Maps"]
 
@@ -33,8 +35,6 @@ class Kan2015Maps(LevelChainPrefilter):
 
     def __init__(self, cube, *, exponents=None, quadrature: str = "literal", supersample: int = 1,
                  out_size=None):
-        from ..groundtruth.convolution_args import check_cube
-        from ..groundtruth.kan2015 import specular_maps
 
         a, _ = check_cube(cube)
         self.exponents = check_exponents(exponents, a.shape[1])

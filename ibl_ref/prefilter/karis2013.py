@@ -98,6 +98,7 @@ from ..environment.sampling import CubeSampler
 from ..errors import IBLError
 from ..groundtruth.convolution_args import check_cube
 from ..lobes import brdfs
+from .interface import check_lobe_param
 
 __all__ = [
     "ROUGHNESS_MAPPINGS", "SEQUENCES", "STORAGE_DTYPES",
@@ -802,7 +803,6 @@ class SplitSum:
 
     def lookup(self, directions, roughness) -> np.ndarray:
         """Prefiltered radiance ``P(r, roughness)`` (..., C): the chain's trilinear look-up."""
-        from .interface import check_lobe_param
 
         return self.chain.lookup(directions, check_lobe_param(self.lobe, roughness, directions))
 

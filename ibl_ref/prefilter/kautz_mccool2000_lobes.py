@@ -21,13 +21,16 @@ from __future__ import annotations
 import numpy as np
 
 from .level_chain import LevelChainPrefilter, check_exponents, exponent_stack
+from ..groundtruth.convolution_args import check_cube
+from ..lobes.kautz_mccool2000 import gamma_nodes
+from ..lobes.profile_convolution import convolve_profiles
+from ..lobes.profile_convolution import profile_integral
 
 __all__ = ["KautzMcCool2000Lobes", "phong_profiles"]
 
 
 def phong_profiles(exponents, n_gamma: int = 256):
     """``(gamma (G,), profiles (K, G))``: max(cos γ, 0)^s tabulated on the Kautz & McCool γ nodes."""
-    from ..lobes.kautz_mccool2000 import gamma_nodes
 
     gamma = gamma_nodes(int(n_gamma))
     c = np.maximum(np.cos(gamma), 0.0)
@@ -46,8 +49,6 @@ class KautzMcCool2000Lobes(LevelChainPrefilter):
 
     def __init__(self, cube, *, exponents=None, n_gamma: int = 256, supersample="auto", tail_rtol: float = 1e-6,
                  out_size=None, progress: bool = False):
-        from ..groundtruth.convolution_args import check_cube
-        from ..lobes.profile_convolution import convolve_profiles, profile_integral
 
         a, _ = check_cube(cube)
         self.exponents = check_exponents(exponents, a.shape[1])

@@ -14,6 +14,8 @@ import numpy as np
 
 from ..errors import IBLError
 from .level_chain import LevelChainPrefilter
+from ..knuth2014.gloss_lookup import get_calibration
+from ..knuth2014.pyramid import build_pyramid
 
 __all__ = ["Knuth2014Pyramid", "STORAGES"]
 
@@ -35,8 +37,6 @@ class Knuth2014Pyramid(LevelChainPrefilter):
 
     def __init__(self, cube, *, kernel="sqrtcos", order: str = "shrink_then_filter", seam: str = "neighbour",
                  shrink: str = "mean", dtype=None, calibration=None, volume: str = "integral"):
-        from ..knuth2014.gloss_lookup import get_calibration
-        from ..knuth2014.pyramid import build_pyramid
 
         self.pyramid = build_pyramid(cube, kernel=kernel, order=order, seam=seam, dtype=dtype, shrink=shrink)
         self.calibration = calibration if calibration is not None else get_calibration(self.pyramid, volume)

@@ -19,6 +19,10 @@ import numpy as np
 
 from ..errors import IBLError
 from .interface import check_lobe_param
+from ..knuth2014.gloss_lookup import lookup_at_level
+from ..knuth2014.lobe_chain import chain_spec
+from ..knuth2014.lobe_chain import exponent_calibration
+from ..knuth2014.pyramid import Pyramid
 
 __all__ = ["LevelChainPrefilter", "exponent_stack", "default_exponents", "check_exponents"]
 
@@ -49,7 +53,6 @@ class LevelChainPrefilter:
 
     def lookup_at_level(self, directions, level) -> np.ndarray:
         """The look-up at a given continuous level instead of ℓ(s) (the error budget's best-level step)."""
-        from ..knuth2014.gloss_lookup import lookup_at_level
 
         return lookup_at_level(self.pyramid, directions, level)
 
@@ -71,7 +74,6 @@ class LevelChainPrefilter:
 def default_exponents(face_size: int) -> tuple:
     """The exact-lobe chain's exponents for face size N (s = 1, 4, 16, … while the lobe's half width θ½ still
     spans one texel, :func:`ibl_ref.knuth2014.lobe_chain.chain_spec` with ``factor=4``), decreasing."""
-    from ..knuth2014.lobe_chain import chain_spec
 
     return chain_spec(int(face_size)).s_phong
 
@@ -79,8 +81,6 @@ def default_exponents(face_size: int) -> tuple:
 def exponent_stack(cube, exponents, maps, kernel: str):
     """``(pyramid, calibration)`` of maps computed at ``exponents``: level 0 = ``cube`` (mirror), level k =
     ``maps[k-1]`` at exponent ``exponents[k-1]`` (strictly decreasing, ≥ 1)."""
-    from ..knuth2014.lobe_chain import exponent_calibration
-    from ..knuth2014.pyramid import Pyramid
 
     a = np.asarray(cube, dtype=np.float64)
     if a.ndim == 3:

@@ -47,6 +47,7 @@ import numpy as np
 from ..environment import envmap
 from ..errors import IBLError, LayoutError
 from ..groundtruth.convolution_args import check_cube
+from .interface import check_lobe_param
 
 __all__ = ["A_HAT", "SH9_CONSTANTS", "C1", "C2", "C3", "C4", "C5", "KERNEL_ERROR_MAX", "sh9_basis",
            "sh9_coefficients", "irradiance", "irradiance_quadratic", "irradiance_cube", "lambertian_radiance",
@@ -185,7 +186,6 @@ class SH9Irradiance:
     def lookup(self, directions, param=1.0) -> np.ndarray:
         """``E(n)/π`` (..., C) at ``directions`` (normalised here); ``param`` is the cosine lobe's exponent, 1
         (``None`` allowed), checked by :func:`ibl_ref.prefilter.interface.check_lobe_param`."""
-        from .interface import check_lobe_param
 
         out = irradiance(self.coeffs, directions) / np.pi  # normalises and checks the directions
         check_lobe_param(self.lobe, param, np.broadcast_to(np.zeros(3), out.shape[:-1] + (3,)))

@@ -22,6 +22,9 @@ import numpy as np
 
 from ..environment.validated import adopt
 from ..errors import IBLError
+from ..conventions import phong_exponent
+from ..knuth2014.pem import partial_maps
+from ..knuth2014.pem import prepare_pem_input
 
 __all__ = ["RegionSet", "build_region_set"]
 
@@ -60,7 +63,6 @@ class RegionSet:
     @classmethod
     def build(cls, method, cube, lights, **params) -> "RegionSet":
         """``method(partial map i, **params)`` for every region of ``lights`` (the masked copies of Sec. 4)."""
-        from ..knuth2014.pem import partial_maps, prepare_pem_input
 
         _, a, lights = prepare_pem_input(cube, lights, None, "per-face", f"{method.__name__} regions")
         # (a masked copy of a validated map is valid by construction: no check per region)
@@ -87,7 +89,6 @@ class RegionSet:
 
     def lookup_all(self, directions, g) -> np.ndarray:
         """Look-ups of every region at glossiness ``g`` (scalar or per direction), (L, ..., C)."""
-        from ..conventions import phong_exponent
 
         s = phong_exponent(g)  # Eq. 3
         return np.stack([np.asarray(m.lookup(directions, s), dtype=np.float64) for m in self.members])

@@ -30,6 +30,8 @@ from .kautz_mccool2000_lobes import KautzMcCool2000Lobes
 from .knuth2014_pyramid import Knuth2014Pyramid
 from .krivanek_colbert2008 import FilteredImportanceSampling
 from .ramamoorthi_hanrahan2001 import SH9Irradiance
+from .interface import LOBES
+from .regions import build_region_set
 
 __all__ = ["PREFILTER_METHODS", "PrefilterMethod", "prefilter_methods", "get_method", "region_params",
            "build_prefilter", "build_region_prefilters", "resolve_method_params"]
@@ -102,7 +104,6 @@ def prefilter_methods(lobe: str | None = None) -> list:
     >>> pyramid.name, pyramid.params["kernel"]
     ('pyramid', 'sqrtcos')
     """
-    from .interface import LOBES
 
     if lobe is not None and lobe not in LOBES:
         raise IBLError(f"unknown lobe family {lobe!r}; choose one of {', '.join(LOBES)}")
@@ -202,6 +203,5 @@ def build_region_prefilters(cube, lights=None, method: str = "pyramid", *, n_lig
 
         lights = median_cut(cube, n_lights, variant)
     _check_params(method, region_params(method), params, "region build")
-    from .regions import build_region_set
 
     return build_region_set(cls, as_environment(cube, "environment cube map"), lights, **params)

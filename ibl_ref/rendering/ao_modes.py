@@ -34,6 +34,14 @@ import numpy as np
 from ..errors import IBLError
 from .render import light_visibilities, shade_eq5  # the one Eq. 5 path
 from .scenes import default_camera
+from ..environment.validated import as_environment
+from .raster import prepare_scene
+from .raster import rasterize
+from .reference_render import render_reference
+from .render import BACKGROUNDS
+from .render import apply_background
+from .render import eq5_lookups
+from .render import unshadowed_eq5
 
 __all__ = ["MODES", "ModesResult", "render_modes", "render_mode"]
 
@@ -96,8 +104,6 @@ def render_modes(meshes, camera, env, modes=MODES, *, pems=None, n_lights: int =
     -------
     ModesResult (``timings`` in seconds: pem_build, raster, shadow_maps, blur, visibility, lookup, shading, reference)
     """
-    from .raster import prepare_scene, rasterize
-    from .render import BACKGROUNDS, apply_background, eq5_lookups, unshadowed_eq5
 
     kd, ks, g = _check_material(kd, ks, g)
     mats = None
@@ -115,7 +121,6 @@ def render_modes(meshes, camera, env, modes=MODES, *, pems=None, n_lights: int =
         raise IBLError(f"ao_color_variant must be one of {AO_COLOR_VARIANTS}, got {ao_color_variant!r}")
     if ao_visibility not in ("vsm", "raycast"):
         raise IBLError(f"ao_visibility must be 'vsm' or 'raycast', got {ao_visibility!r}")
-    from ..environment.validated import as_environment
 
     env = as_environment(env, "environment")
     T: dict = {}
@@ -226,7 +231,6 @@ def _reference_per_material(scene, camera, env, gb, mats, progress, reference_kw
     """The reference on each material's pixels (a G-buffer masked to its material id), summed into one image."""
     import dataclasses
 
-    from .reference_render import render_reference
 
     H, W = gb.mask.shape
     img = np.zeros((H, W, env.shape[-1]))

@@ -81,6 +81,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import IBLError
+from ..groundtruth.phong_convolution import lobe_average
+from ..knuth2014.gloss_lookup import best_constant_level
+from ..knuth2014.gloss_lookup import level_fit_directions
+from ..knuth2014.median_cut import texel_lights
+from ..prefilter.registry import build_region_prefilters
+from .render import eq5_lookups
+from .render import horizon_term
+from .render import light_visibilities
+from .render import shade_eq5
 
 __all__ = ["STEPS", "DEFAULT_ORDER", "SWITCHES", "BudgetTerms", "budget_terms", "check_order", "swapped_order",
            "configuration", "budget_image", "walk", "budget_rows", "region_lobes", "texel_limit_image",
@@ -148,7 +157,6 @@ def region_lobes(cube, lights, dirs, s: float, normals=None, chunk: int = 512) -
     P_i(d) = Σ_{j∈R_i} L_j w_s(d, ω_j) Ω_j / Σ_j w_s(d, ω_j) Ω_j (= :func:`~ibl_ref.rendering.reference_render.exact_pem_lookup`);
     with ``normals`` (P, 3) the numerator is clipped to [n·ω_j > 0] (module docstring, step 1).
     """
-    from ..groundtruth.phong_convolution import lobe_average
 
     out = lobe_average(cube, dirs, s, labels=lights.labels, n_regions=len(lights), normals=normals, chunk=chunk)
     return np.moveaxis(np.asarray(out).reshape(len(np.asarray(dirs).reshape(-1, 3)), len(lights), -1), 1, 0)
@@ -223,7 +231,6 @@ class BudgetTerms:
     def visibility(self, kind: str, horizon: bool) -> np.ndarray:
         """VIS (L, P): ``"exact"`` (binned ray caster, with or without the receiver's plane) or ``"vsm"``
         (× the horizon term if ``horizon``)."""
-        from .render import horizon_term, light_visibilities
 
         key = (kind, bool(horizon))
         if key not in self._vis:
@@ -245,7 +252,6 @@ class BudgetTerms:
     def lookups(self, prefilter: str, hemisphere: bool, level: str):
         """(pem_n, pem_r) of Eq. 5 for a prefilter configuration (module docstring, steps 1, 2, 5, 6):
         ``prefilter`` ``"exact"`` (per-region lobe averages) or ``"prefiltered"`` (the PEMs ``pems``)."""
-        from .render import eq5_lookups
 
         key = ("exact", bool(hemisphere)) if prefilter == "exact" else ("prefiltered", level)
         if key in self._look:
@@ -268,8 +274,6 @@ class BudgetTerms:
 
     def _best_level(self, dirs, s, sel) -> float:
         """ℓ*(s): the best constant level of the whole map's look-up at the fit directions (step 5)."""
-        from ..groundtruth.phong_convolution import lobe_average
-        from ..knuth2014.gloss_lookup import best_constant_level
 
         key = float(s)
         if key not in self.best_levels:
@@ -304,8 +308,6 @@ def budget_terms(scene, gbuffer, cube, lights, materials, *, pems=None, prefilte
     the paper's pyramid, :func:`ibl_ref.knuth2014.pem.build_pems`; step 5 needs a level chain: the look-ups at a
     given level); ``level_dirs``: the directions (K, 3) the best level ℓ* is fitted on, or their number (seeded
     uniform directions); ``vsm_kw`` go to the shadow maps."""
-    from ..knuth2014.gloss_lookup import level_fit_directions
-    from ..prefilter.registry import build_region_prefilters
 
     fit = np.asarray(level_fit_directions(level_dirs) if np.ndim(level_dirs) == 0 else level_dirs, dtype=np.float64)
     if fit.ndim != 2 or fit.shape[1] != 3 or len(fit) < 1:
@@ -327,7 +329,6 @@ def budget_terms(scene, gbuffer, cube, lights, materials, *, pems=None, prefilte
 
 def budget_image(terms: BudgetTerms, config: dict) -> np.ndarray:
     """The image (H, W, C) of one configuration (:func:`configuration`), 0 off the geometry."""
-    from .render import shade_eq5
 
     vis = terms.visibility(config["visibility"], config["horizon"])
     pem_n, pem_r = terms.lookups(config["prefilter"], config["hemisphere"], config["level"])
@@ -390,8 +391,6 @@ def texel_limit_image(scene, gbuffer, cube, materials, factor: int = 1, *, pixel
     ``materials``: ``{id: (kd, ks, g)}``, or a list of such dicts (then a list of images, sharing the visibility
     rays); ``pixels``: optional (H, W) bool — shade only these covered pixels (the others are 0).
     """
-    from ..knuth2014.median_cut import texel_lights
-    from .render import light_visibilities, shade_eq5
 
     a = np.asarray(cube, dtype=np.float64)
     if a.ndim == 3:

@@ -19,6 +19,10 @@ import numpy as np
 
 from ..environment.radiance_policy import check_radiance
 from ..errors import IBLError, as_path, check_input_file
+from ..environment.exr_io import ExrPart
+from ..environment.exr_io import read_image
+from ..environment.exr_io import to_pixel_type
+from ..environment.exr_io import write_exr
 
 __all__ = ["write_image_exr", "read_image_exr", "read_g_map"]
 
@@ -41,7 +45,6 @@ def write_image_exr(path, img, *, signed: bool = False) -> Path:
     EnvMapFileError
         The OpenEXR library cannot write the file.
     """
-    from ..environment.exr_io import ExrPart, to_pixel_type, write_exr
 
     path = as_path(path, "OpenEXR image")
     a = np.asarray(img, dtype=np.float64)
@@ -64,7 +67,6 @@ def write_image_exr(path, img, *, signed: bool = False) -> Path:
 
 def read_image_exr(path) -> np.ndarray:
     """Read an OpenEXR image written by :func:`write_image_exr` (or any RGB/Y EXR) → (H, W, C) float64."""
-    from ..environment.exr_io import read_image
 
     return read_image(path)[0]
 

@@ -12,6 +12,14 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from ..environment.validated import as_environment
+from ..errors import IBLError
+from ..lobes.brdfs import get_brdf
+from ..lobes.lobe_render import check_single_method
+from ..lobes.lobe_render import shade_single_method
+from ..synthetic.synthetic_meshes import make_mesh
+from .raster import rasterize
+from .scenes import default_camera
 
 __all__ = ["teapot_gbuffer", "render_single_method"]
 
@@ -20,9 +28,6 @@ def teapot_gbuffer(width: int, height: int | None = None):
     """G-buffer of the teapot alone under :func:`ibl_ref.rendering.scenes.default_camera` (``width`` px; ``height`` crops)."""
     import dataclasses
 
-    from ..synthetic.synthetic_meshes import make_mesh
-    from .raster import rasterize
-    from .scenes import default_camera
 
     meshes = [(make_mesh("teapot"), 0)]
     cam = default_camera(meshes, size=int(width))
@@ -37,13 +42,9 @@ def render_single_method(method: str, env: np.ndarray, *, width: int = 256, heig
     method; returns (image (H, W, C), mask (H, W), info dict).  ``method``, ``n_theta`` and ``shade_kw`` (BRDF, lobe
     count, map and reference settings, ``rescale_lobes``) as in :func:`ibl_ref.lobes.lobe_render.shade_single_method`;
     ``pyramid`` looks the lobes up in the paper's sqrt-cos pyramid of ``env``."""
-    from ..environment.validated import as_environment
-    from ..errors import IBLError
-    from ..lobes.lobe_render import check_single_method, shade_single_method
 
     check_single_method(method, n_theta)
     env = as_environment(env, "environment cube map")  # once: the prefilter and every method trust it
-    from ..lobes.brdfs import get_brdf
 
     with np.errstate(all="ignore"):  # a needle-thin lobe overflows at its peak: check_resolvable refuses it
         get_brdf(shade_kw.get("brdf", "ward"), **(shade_kw.get("brdf_params") or {}))  # a bad BRDF fails first

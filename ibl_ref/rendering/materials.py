@@ -45,6 +45,8 @@ import numpy as np
 
 from ..conventions import ggx_alpha, lobe_half_angle, phong_exponent
 from ..errors import IBLError
+from ..lobes.brdfs import ggx
+from ..lobes.brdfs import phong_classic
 
 __all__ = ["PhongMaterial", "GGXMaterial", "PhongLobe", "GGXLobe", "MATERIAL_KINDS", "SMITH_FORMS",
            "as_material", "parse_material", "material_dict", "MATERIAL_SYNTAX", "LOBE_TAIL_CUT"]
@@ -227,7 +229,6 @@ class GGXLobe:
 
     def weights(self, n, v, d, w, om):
         """``(None, f_s(ω, v)·max(n·ω, 0)·Ω)`` at directions ``w`` (..., 3); no discrete normalisation."""
-        from ..lobes.brdfs import ggx
 
         with np.errstate(divide="ignore", invalid="ignore", under="ignore", over="ignore"):
             f = ggx(w, v, n, roughness=self.roughness, f0=self.f0, kd=0.0, smith=self.smith)
@@ -283,7 +284,6 @@ class PhongMaterial:
 
     def brdf(self, wi, wo, n):
         """f(wi, wo) of Kán et al. (2015) Eq. 2 (``wi`` toward the light, ``wo`` toward the viewer), one-sided."""
-        from ..lobes.brdfs import phong_classic
 
         return phong_classic(wi, wo, n, ks=self.ks, s=self.s, kd=self.kd)
 
@@ -318,7 +318,6 @@ class GGXMaterial:
 
     def brdf(self, wi, wo, n):
         """f(wi, wo) = :func:`ibl_ref.lobes.brdfs.ggx` (one-sided)."""
-        from ..lobes.brdfs import ggx
 
         return ggx(wi, wo, n, roughness=self.roughness, f0=self.f0, kd=self.kd, smith=self.smith)
 

@@ -50,6 +50,12 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import IBLError
+from . import method_shading as ms
+from . import unoccluded_reference as ur
+from ..environment.envmap import unit_directions
+from ..prefilter import karis2013
+from .error_budget import budget_rows
+from .unoccluded_reference import integrate
 
 __all__ = ["STEPS", "budget_walk", "budget_table_rows"]
 
@@ -60,7 +66,6 @@ STEPS = ("visibility", "integrator", "split_sum", "n_v_r", "phong_lobe", "lobe_h
 
 def _exact(cube, lobe, n, v, rtol, floor_value=None, cache=None):
     """The adaptive integral of ``lobe`` at the pixels (cached in ``cache`` by the lobe, which is hashable)."""
-    from .unoccluded_reference import integrate
 
     if cache is not None and lobe in cache:
         return cache[lobe]
@@ -83,10 +88,6 @@ def budget_walk(built, material, cube, normals, views, *, reference=None, refere
     same pixels and map (the ``split_sum`` and ``n_v_r`` images are the same for every split-sum method).  The
     first image of the walk is the reference (not listed).
     """
-    from ..environment.envmap import unit_directions
-    from ..prefilter import karis2013
-    from . import method_shading as ms
-    from . import unoccluded_reference as ur
 
     spec = built.spec
     m = ms.material_params(material)
@@ -167,7 +168,6 @@ def budget_walk(built, material, cube, normals, views, *, reference=None, refere
 def budget_table_rows(reference, walk, *, front=None) -> list:
     """:func:`ibl_ref.rendering.error_budget.budget_rows` of a walk over pixels (P, C): one dict per step, the
     reference first."""
-    from .error_budget import budget_rows
 
     ref = np.asarray(reference, dtype=np.float64)
     mask = np.ones(len(ref), dtype=bool) if front is None else np.asarray(front, dtype=bool)

@@ -37,6 +37,17 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import IBLError
+from ..environment.envmap import unit_directions
+from ..knuth2014.median_cut import median_cut
+from ..knuth2014.memory_model import library_vsm_bytes
+from ..prefilter.karis2013 import split_sum
+from ..prefilter.registry import build_prefilter
+from ..prefilter.registry import build_region_prefilters
+from ..prefilter.registry import get_method
+from .materials import as_material
+from .render import eq5_lookups
+from .render import light_visibilities
+from .render import shade_eq5
 
 __all__ = ["MethodSpec", "BuiltMethod", "MethodNotApplicable", "VISIBILITIES", "material_params", "serves",
            "build_method", "shade_method", "dfg_weight", "method_nbytes"]
@@ -54,7 +65,6 @@ def material_params(material) -> dict:
     :class:`~ibl_ref.rendering.materials.GGXMaterial` or :class:`~ibl_ref.rendering.materials.PhongMaterial`, a
     dict with ``kind``, ``"ggx:0.3"``, …), its parameters checked there (roughness in (0, 1], F0 in [0, 1], kd,
     ks ≥ 0, the Smith form); Phong materials here need g < 1 (a finite exponent; the mirror is no prefilter's)."""
-    from .materials import as_material
 
     d = as_material(material).describe()
     d.pop("alpha", None)
@@ -76,7 +86,6 @@ class MethodSpec:
     label: str = ""
 
     def __post_init__(self):
-        from ..prefilter.registry import get_method
 
         get_method(self.prefilter)
         get_method(self.diffuse)
@@ -92,7 +101,6 @@ class MethodSpec:
 
     @property
     def lobe(self) -> str:
-        from ..prefilter.registry import get_method
 
         return get_method(self.prefilter).lobe
 
@@ -123,8 +131,6 @@ class BuiltMethod:
 def build_method(cube, spec: MethodSpec, *, with_diffuse: bool = False) -> BuiltMethod:
     """Build ``spec`` from ``cube`` (6, N, N, C): the prefilter, its PEMs for ``visibility="vsm"`` (median cut of
     the same map), and the diffuse method when ``with_diffuse`` (GGX materials with kd > 0)."""
-    from ..knuth2014.median_cut import median_cut
-    from ..prefilter.registry import build_prefilter, build_region_prefilters
 
     t0 = time.perf_counter()
     a = np.asarray(cube, dtype=np.float64)
@@ -143,7 +149,6 @@ def build_method(cube, spec: MethodSpec, *, with_diffuse: bool = False) -> Built
 def dfg_weight(dfg, n_dot_v, roughness, f0) -> np.ndarray:
     """``F0·A + B`` (P, 1) of the split sum at each pixel from a DFG table (``None``: the exact quadrature,
     :func:`ibl_ref.prefilter.karis2013.dfg_terms`); 0 where n·v ≤ 0."""
-    from ..prefilter.karis2013 import split_sum
 
     nv = np.asarray(n_dot_v, dtype=np.float64).reshape(-1)
     return split_sum(np.ones((len(nv), 1)), nv, roughness, f0, dfg)
@@ -155,7 +160,6 @@ def _reflect(n, v):
 
 def method_nbytes(built: BuiltMethod, vsm_resolution: int, vsm_dtype: str = "float32") -> int:
     """Bytes a renderer keeps: the prefilter (or its PEMs, for Eq. 5), the diffuse method, the shadow maps."""
-    from ..knuth2014.memory_model import library_vsm_bytes
 
     b = built.regions.nbytes if built.regions is not None else built.prefilter.nbytes
     if built.regions is not None and built.spec.lobe == "ggx":
@@ -174,7 +178,6 @@ def shade_method(built: BuiltMethod, material, normals, views, *, scene=None, po
     docstring); ``scene`` (prepared meshes), ``points`` and ``face_normals`` (P, 3) give Eq. 5's shadow maps
     (``visibility="vsm"``; without a scene VIS ≡ 1).  :class:`MethodNotApplicable` if the method does not shade
     this material kind."""
-    from ..environment.envmap import unit_directions
 
     spec = built.spec
     m = material_params(material)
@@ -223,7 +226,6 @@ def _diffuse(built):
 
 def _shade_eq5(built, m, n, v, nv, r, scene, points, face_normals, vsm_resolution, vsm_dtype, vsm_kw):
     """Eq. 5 through the PEMs: Σ_i VIS_i (kd·PEM_i(n, 0) + w_s·PEM_i(r, g)) (module docstring)."""
-    from .render import eq5_lookups, light_visibilities, shade_eq5
 
     pems = built.regions
     P = len(n)

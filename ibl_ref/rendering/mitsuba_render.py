@@ -72,6 +72,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import IBLError
+from ..environment.envmap import cube_solid_angles
+from ..environment.envmap import direction_to_texel
+from .materials import as_material
+from .raster import prepare_scene
+from .reference_converged import check_environment
 
 __all__ = [
     "MitsubaUnavailable",
@@ -273,8 +278,6 @@ def mitsuba_envmap(cube, height: int = 1024, energy: str = "texel", return_info:
     energy) is refused with an :class:`IBLError` naming a height that works, in ``"texel"`` mode; ``"none"``
     reports it in the info only.
     """
-    from ..environment.envmap import cube_solid_angles, direction_to_texel
-    from .reference_converged import check_environment
 
     if energy not in ENVMAP_ENERGY_MODES:
         raise IBLError(f"energy must be one of {ENVMAP_ENERGY_MODES}, got {energy!r}")
@@ -504,7 +507,6 @@ def bsdf_dict(material, ggx_route: str = "lab") -> dict:
     dict passes through): Phong → ``lab_phong``; GGX → ``lab_ggx`` (``ggx_route="lab"``) or Mitsuba's
     ``roughconductor`` (``"builtin"``; needs ``smith="separable"`` and ``f0 = 1``, module docstring), blended with a
     ``diffuse`` for kd > 0."""
-    from .materials import as_material
 
     if isinstance(material, dict) and "type" in material:  # a raw Mitsuba BSDF dict (tests: a perfect mirror)
         return dict(material)
@@ -616,7 +618,6 @@ def render_mitsuba(meshes, camera, cube, *, materials=None, kd: float = 0.0, ks:
     lanes : wavefront lanes per pass (memory ≈ 1 kB per lane in ``llvm_ad_rgb``)
     variant : ``auto`` / ``llvm`` (see :func:`select_variant`)
     """
-    from .raster import prepare_scene
 
     spp = int(spp)
     if spp < 2 or spp % 2:

@@ -51,6 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import MeshError
+from .camera import scene_bounds
 
 __all__ = [
     "Scene",
@@ -99,7 +100,6 @@ class Scene:
 
     def bounds(self):
         """Bounding sphere ``(centre, radius)`` of the used vertices."""
-        from .camera import scene_bounds
 
         return scene_bounds(self.vertices[np.unique(self.faces)])
 

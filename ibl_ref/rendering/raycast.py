@@ -55,6 +55,8 @@ import numpy as np
 
 from ..errors import IBLError
 from .raster import Scene, prepare_scene
+from ..progress import track
+from .camera import look_at_basis
 
 __all__ = [
     "backend",
@@ -166,7 +168,6 @@ def any_hit(meshes, origins, directions, chunk: int | None = None, progress: boo
     warn_rays_budget(len(o), len(mesh.faces))
     out = np.zeros(len(o), dtype=bool)
     chunk = _chunk_size(mesh, chunk)
-    from ..progress import track
 
     for a in track(range(0, len(o), chunk), f"rays ({backend()})", unit="chunk", enabled=progress):
         out[a : a + chunk] = mesh.ray.intersects_any(o[a : a + chunk], d[a : a + chunk])
@@ -322,7 +323,6 @@ def parallel_visibility(meshes, points, direction, normals=None, eps: float | No
         if mask.shape != (len(p), D):
             raise IBLError(f"mask shape {mask.shape} != ({len(p)}, {D})")
     out = np.ones((len(p), D))
-    from ..progress import track
 
     it = track(range(D), "exact visibility", unit="dir", enabled=progress)
     if nrm is not None:  # the receiver's own surface blocks lights at or below its plane, cast or not
@@ -353,7 +353,6 @@ def _max3(x):
 
 def _parallel_one(scene, p, w, nrm, eps, bins, chunk_pairs) -> np.ndarray:
     """Visibility (P,) of one unit direction ``w`` from points p (P, 3) (see :func:`parallel_visibility`)."""
-    from .camera import look_at_basis
 
     up = np.array([0.0, 1.0, 0.0]) if abs(w[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
     basis = look_at_basis(-w, up)  # rows: right, up, forward (= −ω)

@@ -106,8 +106,20 @@ import time
 
 import numpy as np
 
-from ..environment.radiance_policy import check_radiance
 from ..errors import IBLError, LayoutError
+from ..environment.envmap import cube_solid_angles
+from ..environment.envmap import direction_to_face_uv
+from ..environment.envmap import face_frames
+from ..environment.envmap import rect_solid_angle
+from ..environment.envmap import texel_directions
+from ..environment.validated import as_environment
+from ..executors import map_jobs
+from ..limits import check_rtol
+from .materials import GGXLobe
+from .materials import PhongLobe
+from .raster import prepare_scene
+from .raycast import ShadowRays
+from .raycast import resolve_shadow_backend
 
 __all__ = ["converged_shading", "check_environment", "radiance_at_face_size", "coarse_env", "DEFAULT_RTOL",
            "BOUND_DELTA", "ERR_FLOOR", "PIXEL_RTOL_FACTOR", "MAX_BLOCK_CELLS", "memory_bound_mb", "base_level",
@@ -171,7 +183,6 @@ def check_environment(cube) -> np.ndarray:
     (:func:`ibl_ref.environment.validated.as_environment`: layout, NaN/Inf/negative radiance refused with a clear
     :class:`ibl_ref.errors.RadianceError`; a (6, N, N) map gets one channel), an
     :class:`~ibl_ref.environment.validated.Environment` passed through."""
-    from ..environment.validated import as_environment
 
     return as_environment(cube, "environment").data
 
@@ -182,7 +193,6 @@ def coarse_env(cube, n_env: int) -> np.ndarray:
     L_coarse = Σ_f L_f Ω_f / Σ_f Ω_f over the k×k fine texels f of each coarse texel (k = N / n_env); since the
     coarse texel is exactly the union of its fine texels, L_coarse·Ω_coarse = Σ L_f Ω_f and ∫L dω is kept.
     """
-    from ..environment.envmap import cube_solid_angles
 
     a = check_environment(cube)
     N = a.shape[1]
@@ -310,7 +320,6 @@ def _neighbours(f, i, j, n: int):
 
 def _direction_to_texel_n(d, n):
     """:func:`ibl_ref.environment.envmap.direction_to_texel` with a per-direction face size ``n`` (array)."""
-    from ..environment.envmap import direction_to_face_uv
 
     face, u, v = direction_to_face_uv(d)
     col = np.clip(np.floor((u + 1.0) * 0.5 * n), 0, n - 1).astype(np.int64)
@@ -327,7 +336,6 @@ def _rect(i, j, n):
 def _dirs(f, u, v, normalize: bool = True):
     """Directions through face-plane points (u, v) of faces f (:func:`ibl_ref.environment.envmap.face_uv_to_direction`
     without its argument checks: f, u, v are the module's own arrays)."""
-    from ..environment.envmap import face_frames
 
     F = face_frames("openexr")[f]
     d = F[:, 0, :] + u[:, None] * F[:, 1, :] + v[:, None] * F[:, 2, :]
@@ -363,7 +371,6 @@ class _Env:
     """The map's radiance, and texel blocks of any face size generated on demand (never a whole fine level)."""
 
     def __init__(self, a, nb):
-        from ..environment.envmap import cube_solid_angles
 
         self.a = a
         self.N = a.shape[1]
@@ -382,7 +389,6 @@ class _Env:
     def texels(self, f, r0, c0, k: int, M: int):
         """Blocks of k×k texels of face size M (block b: face f[b], rows r0[b]…, cols c0[b]…, row-major inside):
         centre directions (B, k², 3), exact solid angles (B, k²), radiance (B, k², C)."""
-        from ..environment.envmap import face_frames, rect_solid_angle
 
         ar = np.arange(k)
         R = np.repeat(r0[:, None] + ar[None, :], k, axis=1)
@@ -470,7 +476,6 @@ def _cut_by_horizon(f, i, j, n, nrm):
 def _cell_geometry(nb):
     """Centre directions (K, 3) of the base cells of face size nb and their angular radius (K,): the largest angle
     from the centre to a corner (every direction of the cell lies within it)."""
-    from ..environment.envmap import texel_directions
 
     K = 6 * nb * nb
     cells = np.arange(K)
@@ -698,7 +703,6 @@ class _Block:
     results (:meth:`_results`)."""
 
     def __init__(self, job: dict):
-        from .raycast import ShadowRays
 
         self.t0, self.c0 = time.perf_counter(), time.process_time()
         self.job = job
@@ -1200,10 +1204,6 @@ def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *
     -------
     occluded (P, C), unoccluded (P, C), err_mean (P,), err_bound (P,), info
     """
-    from ..executors import map_jobs
-    from .materials import GGXLobe, PhongLobe
-    from .raster import prepare_scene
-    from .raycast import resolve_shadow_backend
 
     if not isinstance(lobe, (PhongLobe, GGXLobe)):
         raise IBLError(f"lobe must be a PhongLobe or a GGXLobe (ibl_ref.rendering.materials), got {lobe!r}")
@@ -1220,7 +1220,6 @@ def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *
             raise IBLError(f"{name} must be finite non-zero vectors")
         arrs.append(x / ln)
     nrm, fn, v = arrs
-    from ..limits import check_rtol
 
     rtol = check_rtol(rtol, "rtol")
     n_quad_max = lobe.n_quad_max if n_quad_max is None else n_quad_max

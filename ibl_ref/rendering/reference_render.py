@@ -51,6 +51,17 @@ from ..conventions import lobe_half_angle
 from ..errors import IBLError, LayoutError
 from .reference_converged import (DEFAULT_RTOL, ERR_FLOOR, check_environment, coarse_env,
                                   converged_shading)
+from ..environment.envmap import cube_solid_angles
+from ..environment.envmap import texel_directions
+from ..environment.sampling import sample_nearest
+from ..groundtruth.phong_convolution import lobe_average as _lobe_average
+from ..limits import check_rtol
+from .materials import as_material
+from .raster import prepare_scene
+from .raster import rasterize
+from .raycast import ShadowRays
+from .raycast import parallel_visibility as _cast
+from .reference_converged import MAX_BLOCK_CELLS
 
 __all__ = [
     "ReferenceResult",
@@ -77,7 +88,6 @@ def coarse_directions(cube, n_env: int, mode: str = "centroid") -> np.ndarray:
     ``"centroid"``: normalize(Σ_f Y_f Ω_f ω_f) over the fine texels f (Y = mean over channels); texels with no
     energy use the solid-angle centroid Σ_f Ω_f ω_f.
     """
-    from ..environment.envmap import cube_solid_angles, texel_directions
 
     if mode not in DIRECTION_MODES:
         raise IBLError(f"directions must be one of {DIRECTION_MODES}, got {mode!r}")
@@ -122,7 +132,6 @@ def lobe_average(cube, dirs, s, *, n_env: int | None = None, directions: str = "
     ``directions="centre"`` it is exactly the formula of :func:`ibl_ref.groundtruth.phong_convolution.convolve_exact`
     evaluated at ``dirs`` instead of at texel centres.
     """
-    from ..groundtruth.phong_convolution import lobe_average as _lobe_average
 
     a = check_environment(cube)
     n_env = a.shape[1] if n_env is None else int(n_env)
@@ -141,7 +150,6 @@ def parallel_visibility(meshes, points, normals, dirs, *, eps: float | None = No
     selects the pairs to cast (others are returned as 1).  With ``normals``, directions at or below the receiving
     triangle's plane (ω·n ≤ 0) are occluded without casting (the ray enters the surface).
     """
-    from .raycast import parallel_visibility as _cast
 
     d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
     return _cast(meshes, np.asarray(points, dtype=np.float64).reshape(-1, 3), d, normals=normals, eps=eps,
@@ -186,8 +194,6 @@ def _lobe_name(lobe) -> str:
 
 def _mirror_shading(scene, P, fn, r, a, ray_backend):
     """The mirror (g = 1): the map's nearest texel along r times the visibility of one ray along r."""
-    from ..environment.sampling import sample_nearest
-    from .raycast import ShadowRays
 
     t0 = time.perf_counter()
     Lr = sample_nearest(a, r)
@@ -199,7 +205,6 @@ def _mirror_shading(scene, P, fn, r, a, ray_backend):
 
 def _check_rtol(rtol) -> float:
     """``rtol`` (default :data:`DEFAULT_RTOL`) checked by :func:`ibl_ref.limits.check_rtol`: in [2^-26, 1)."""
-    from ..limits import check_rtol
 
     return check_rtol(DEFAULT_RTOL if rtol is None else rtol, "rtol")
 
@@ -218,7 +223,6 @@ def reference_shading(scene, points, normals, face_normals, views, cube, materia
     ``max_cells``, ``seed``, ``workers``, ``progress``, …); the errors of the lobes add.  ``info["lobes"]`` holds
     each lobe's information.
     """
-    from .materials import as_material
 
     mat = as_material(material)
     rtol = _check_rtol(rtol)
@@ -317,9 +321,6 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
     ...
     ibl_ref.limits.ToleranceError: rtol: a relative tolerance must be a number in (0, 1), got 0
     """
-    from .materials import as_material
-    from .raster import prepare_scene, rasterize
-    from .reference_converged import MAX_BLOCK_CELLS
 
     if sided not in SIDED:
         raise IBLError(f"sided must be one of {SIDED}, got {sided!r}")
@@ -438,7 +439,6 @@ def exact_pem_lookup(cube, labels, dirs, s: float, n_regions: int | None = None,
     texels j (``labels`` (6, N, N) from :func:`ibl_ref.knuth2014.median_cut.median_cut`), so Σ_i PEM_i = the exact lobe
     average.  Used to separate the filter-pyramid error from the visibility error of Eq. 5.
     """
-    from ..groundtruth.phong_convolution import lobe_average as _lobe_average
 
     a = check_environment(cube)
     N = a.shape[1]

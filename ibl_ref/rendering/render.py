@@ -64,6 +64,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import IBLError
+from .raster import mesh_list
+from .raster import prepare_scene
+from .raster import rasterize
 
 __all__ = ["RenderResult", "Material", "glossiness_image", "material_images", "surface_uv", "mesh_uv", "sample_g_map",
            "render_pem", "resolve_materials", "light_visibilities", "horizon_term", "eq5_lookups", "eq5_terms", "shade_eq5",
@@ -389,12 +392,11 @@ def surface_uv(meshes, scene, gbuffer, pixels, fallback: str = "planar_xz") -> n
     IBLError
         A mesh without UVs with ``fallback="error"``, NaN UVs, an unknown fallback.
     """
-    from .raster import mesh_list
 
     if fallback not in UV_FALLBACKS:
         raise IBLError(f"uv fallback must be one of {UV_FALLBACKS}, got {fallback!r}")
     items = mesh_list(meshes)
-    mesh_list = None if hasattr(items, "faces") and hasattr(items, "mesh_index") else [m for m, _ in items]
+    meshes_of = None if hasattr(items, "faces") and hasattr(items, "mesh_index") else [m for m, _ in items]
     tri = gbuffer.triangle_id[pixels]
     lam = gbuffer.barycentric[pixels]
     P = gbuffer.position[pixels]
@@ -402,7 +404,7 @@ def surface_uv(meshes, scene, gbuffer, pixels, fallback: str = "planar_xz") -> n
     uv = np.full((len(tri), 2), np.nan)
     for k in np.unique(midx):
         sel = midx == k
-        mesh = mesh_list[k] if mesh_list is not None else None
+        mesh = meshes_of[k] if meshes_of is not None else None
         muv = mesh_uv(mesh, f"mesh {int(k)}") if mesh is not None else None
         if muv is not None:
             fv = np.asarray(mesh.faces)[scene.source_face[tri[sel]]]  # same vertex order as scene.faces
@@ -882,7 +884,6 @@ def render_pem(
     >>> bool(np.allclose(result.unshadowed[m], 2.0, rtol=1e-6)), bool(np.all(result.image[m] <= result.unshadowed[m]))
     (True, True)
     """
-    from .raster import prepare_scene, rasterize
 
     if visibility not in VISIBILITY_METHODS:
         raise IBLError(f"visibility must be one of {VISIBILITY_METHODS}, got {visibility!r}")

@@ -15,6 +15,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import IBLError
+from .camera import PerspectiveCamera
+from .camera import as_vec3
+from .raster import prepare_scene
 
 __all__ = ["ground_quad", "teapot_on_ground", "default_camera", "DEFAULT_VIEW_DIR", "DEFAULT_DISTANCE",
            "DEFAULT_FOV_Y_DEG"]
@@ -67,15 +70,12 @@ def default_camera(meshes, size: int = 64, view_dir=DEFAULT_VIEW_DIR, fov_y_deg:
 
     Clip planes: near = 1e-3·R, far = 100·R for the framed view, 100·(|eye − target| + R) with an explicit eye.
     """
-    from .camera import PerspectiveCamera
-    from .raster import prepare_scene
 
     c, R = prepare_scene(meshes, warn=False).bounds()
     if not (0 < float(fov_y_deg) < 180):
         raise IBLError(f"field of view must be in (0, 180) degrees, got {fov_y_deg}")
     w = int(size if width is None else width)
     h = int(size if height is None else height)
-    from .camera import as_vec3
 
     tgt = c if target is None else as_vec3(target, "target")  # checked first: the eye is placed from it
     if eye is None:

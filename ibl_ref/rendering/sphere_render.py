@@ -10,6 +10,7 @@ renormalised against rounding).  No occlusion: a convex object does not shadow i
 from __future__ import annotations
 
 import numpy as np
+from ..knuth2014.gloss_lookup import lookup
 
 __all__ = ["orthographic_sphere", "to_image", "render_sphere_lookup"]
 
@@ -37,7 +38,6 @@ def to_image(mask, values) -> np.ndarray:
 
 def render_sphere_lookup(pyramid, g: float, px: int, **lookup_kwargs) -> np.ndarray:
     """(px, px, C) image of the sphere shaded by the glossiness lookup of ``pyramid`` at (r, g)."""
-    from ..knuth2014.gloss_lookup import lookup
 
     mask, _, r = orthographic_sphere(px)
     return to_image(mask, lookup(pyramid, r, g, **lookup_kwargs))

@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import IBLError
+from ..atomic import atomic_path
+from ..environment.sampling import sample_bilinear
 
 __all__ = ["srgb_encode", "reinhard", "expose", "exposure_srgb", "auto_exposure", "environment_exposure", "save_png", "backdrop", "with_backdrop"]
 
@@ -94,7 +96,6 @@ def backdrop(env, camera) -> np.ndarray:
 
     The background of a render for display: what a camera would see behind the object.
     """
-    from ..environment.sampling import sample_bilinear
 
     _, d = camera.pixel_rays(normalize=True)
     return sample_bilinear(np.asarray(env, dtype=np.float64), d.reshape(-1, 3)).reshape(d.shape[:2] + (-1,))
@@ -109,7 +110,6 @@ def save_png(path, img, stops: float | None = None, mask=None, operator: str = "
     """Tone-map and write an 8-bit sRGB PNG atomically (nearest code value; :func:`ibl_ref.atomic.atomic_path`)."""
     import matplotlib.image as mpimg  # writing a PNG needs no pyplot and no backend
 
-    from ..atomic import atomic_path
 
     a = _check(img)
     if stops is None:

@@ -59,6 +59,13 @@ import numpy as np
 from ..conventions import ggx_alpha, lobe_half_angle
 from ..environment import envmap
 from ..errors import IBLError
+from ..environment.validated import as_environment
+from ..lobes.brdfs import SMITH_FORMS
+from ..lobes.brdfs import ggx
+from ..lobes.brdfs import ndf
+from ..prefilter.karis2013 import check_f0
+from ..prefilter.karis2013 import check_scalar_roughness
+from ..progress import track
 
 __all__ = ["GGXSpecularLobe", "PhongLobe", "SplitSumLobe", "NVRKernelLobe", "LobeIntegral", "integrate",
            "ggx_half_width_h", "GGX_MIN_COS_VIEW"]
@@ -84,7 +91,6 @@ def ggx_half_width_h(alpha: float) -> float:
 
 
 def _check_roughness(roughness) -> tuple:
-    from ..prefilter.karis2013 import check_scalar_roughness
 
     return check_scalar_roughness(roughness)
 
@@ -100,8 +106,6 @@ class GGXSpecularLobe:
     normalised = False
 
     def __post_init__(self):
-        from ..lobes.brdfs import SMITH_FORMS
-        from ..prefilter.karis2013 import check_f0
 
         r, _ = _check_roughness(self.roughness)
         object.__setattr__(self, "roughness", r)
@@ -123,7 +127,6 @@ class GGXSpecularLobe:
         return 2.0 * ggx_half_width_h(ggx_alpha(self.roughness)) * ndv
 
     def weights(self, n, v, w):
-        from ..lobes.brdfs import ggx
 
         with np.errstate(divide="ignore", invalid="ignore", under="ignore", over="ignore"):
             f = ggx(w, v, n, roughness=self.roughness, f0=self.f0, kd=0.0, smith=self.smith)
@@ -199,7 +202,6 @@ class SplitSumLobe(_SplitSumFactor):
         return GGXSpecularLobe(self.roughness).width(n, v)
 
     def weights(self, n, v, w):
-        from ..lobes.brdfs import ndf
 
         h = v + w
         ln = np.sqrt(_dot(h, h))
@@ -227,7 +229,6 @@ class NVRKernelLobe(_SplitSumFactor):
         return np.full(len(n), 2.0 * ggx_half_width_h(ggx_alpha(self.roughness)))
 
     def weights(self, n, v, w):
-        from ..lobes.brdfs import ndf
 
         c = np.clip(_dot(self.axis(n, v), w), -1.0, 1.0)
         with np.errstate(under="ignore"):
@@ -488,8 +489,6 @@ def integrate(cube, lobe, normals, views, *, rtol: float = 1e-3, floor: float = 
     chunk_cells : cells per chunk of pixels (memory ≈ 200 bytes × chunk_cells × 5)
     max_cells_per_pixel : refinement stops there (``info["converged"]`` False)
     """
-    from ..environment.validated import as_environment
-    from ..progress import track
 
     a = as_environment(cube, "environment cube map").data
     n_face = a.shape[1]

@@ -48,6 +48,8 @@ import numpy as np
 
 from .camera import OrthographicCamera, light_camera
 from ..errors import IBLError
+from .raster import prepare_scene
+from .raster import render_depth
 
 __all__ = [
     "VarianceShadowMap",
@@ -165,7 +167,6 @@ def build_vsm(
 
     from scipy.ndimage import gaussian_filter
 
-    from .raster import prepare_scene, render_depth
 
     if dtype not in _DTYPES:
         raise IBLError(f"dtype must be one of {sorted(_DTYPES)}, got {dtype!r}")

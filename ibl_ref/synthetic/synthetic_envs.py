@@ -49,6 +49,7 @@ from ..environment import envmap
 from ..environment.radiance_policy import apply_policy
 from ..environment.validated import adopt
 from ..errors import IBLError
+from ..atomic import atomic_path
 
 __all__ = [
     "ENV_NAMES",
@@ -984,7 +985,6 @@ def cached_env(name: str, n: int = 64, cache: str | os.PathLike | None = None, *
     -------
     ndarray, float64, shape (6, n, n, 3)
     """
-    from ..atomic import atomic_path
 
     _generator(name)
     n = _face_size(n)

@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import IBLError, MeshError
+from ..errors import as_path
 
 if TYPE_CHECKING:  # trimesh is imported lazily (≈1 s): the CLI builds its help from this module
     import trimesh
@@ -691,7 +692,6 @@ def load_mesh(path_or_name, **params) -> trimesh.Trimesh:
         return make_mesh(path_or_name, **params)
     if params:
         raise IBLError(f"load_mesh: parameters {sorted(params)} only apply to generated meshes {MESH_NAMES}")
-    from ..errors import as_path
 
     path = as_path(path_or_name, "mesh file")
     if not path.is_file():
