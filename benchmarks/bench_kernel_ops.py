@@ -17,8 +17,8 @@ The operations (:class:`ibl_ref.groundtruth.kernels.Kernels`) and the route each
 Each cell calls the route itself (:func:`~ibl_ref.groundtruth.phong_convolution.convolve_sparse_many`,
 :func:`~ibl_ref.groundtruth.moment_convolution.convolve_moment_many`,
 :func:`~ibl_ref.groundtruth.sh_convolution.convolve_sh_many`) in this process, one worker, BLAS at one thread, after a
-warm-up call; the time is the best of ``--repeat`` (wall seconds; the machine is shared, so the ratios within a row
-are what counts: ``ratio`` = variant / all compiled).  Every variant's maps are checked against the all-compiled
+warm-up call; the time is the best of ``--repeat`` calls made round robin over the variants (wall seconds; the machine
+is shared, so the ratios within a row are what counts: ``ratio`` = variant / all compiled).  Every variant's maps are checked against the all-compiled
 ones within the two bounds.  Output: a markdown table headed by the command, commit and load, and a CSV.
 """
 
@@ -127,16 +127,14 @@ def main(argv=None):
     with threadpool_limits(limits=1, user_api="blas"):
         for scene, n, cube, route, s_list, leaf in cells(args.probe):
             names = ["compiled", "numpy"] + [k for k, (_v, r) in vs.items() if r == route]
-            t, res = {}, {}
-            for name in names:
-                kern = vs[name][0]
-                run_cell(route, cube, s_list, kern, leaf)  # warm-up: set-up tables, numba signatures
-                best = np.inf
-                for _ in range(args.repeat):
+            t, res = {name: np.inf for name in names}, {}
+            for name in names:  # warm-up: set-up tables, numba signatures
+                run_cell(route, cube, s_list, vs[name][0], leaf)
+            for _ in range(args.repeat):  # round robin: a change of the machine's load falls on every variant alike
+                for name in names:
                     t0 = time.perf_counter()
-                    res[name] = run_cell(route, cube, s_list, kern, leaf)
-                    best = min(best, time.perf_counter() - t0)
-                t[name] = best
+                    res[name] = run_cell(route, cube, s_list, vs[name][0], leaf)
+                    t[name] = min(t[name], time.perf_counter() - t0)
             (m0, r0) = res["compiled"]
             for name in names:
                 m1, r1 = res[name]

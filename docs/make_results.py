@@ -569,6 +569,54 @@ def bench_peer_page(folder: Path) -> dict[str, str]:
     return out
 
 
+@page("kernel-ops")
+def kernel_ops_page(folder: Path) -> dict[str, str]:
+    rows = read_csv(folder / "kernel_ops.csv")
+    what = {"numpy": "the NumPy backend, every operation", "tile_gather": "the sparse gather's sums",
+            "tile_bounds": "the sparse route's averages and bounds", "local_extremes": "the sparse route's local "
+            "radiance extremes", "band": "the moment route's horizon band", "sh_passes": "the SH projection and "
+            "evaluation", "bright_gather": "the SH route's bright-texel gather"}
+    summary = []
+    for v, label in what.items():
+        r = [float(q["ratio_to_all_compiled"]) for q in rows if q["variant"] == v]
+        routes = sorted({q["route"] for q in rows if q["variant"] == v})
+        summary.append([f"`{v}`", label, ", ".join(routes), str(len(r)), f"{min(r):.2f}–{max(r):.2f}×"])
+    table = md_table(["scene", "face", "route", "s", "leaf", "variant", "wall s", "× all compiled",
+                      "maps within the bounds"],
+                     [[q["scene"], q["face_size_texels"] + "²", q["route"], q["exponents"], q["leaf"], q["variant"],
+                       q["wall_s"], q["ratio_to_all_compiled"], q["maps_within_bounds"]] for q in rows])
+    ok = sum(q["maps_within_bounds"] == "yes" for q in rows)
+    return {"summary": md_table(["handed back to NumPy", "what", "routes", "cells", "slower by"], summary),
+            "table": table, "all_within": f"{ok} of {len(rows)} rows"}
+
+
+@page("startup")
+def startup_page(folder: Path) -> dict[str, str]:
+    rows = read_csv(folder / "startup.csv")
+    imports = {q["checkout"]: q for q in read_csv(folder / "imports.csv")}
+    order = list(imports)  # this version first, then the earlier ones
+    by = {(q["command"], q["checkout"]): q for q in rows}
+    commands = list(dict.fromkeys(q["command"] for q in rows))
+    table = md_table(["command"] + [f"{c} (s; modules)" for c in order],
+                     [[c] + [f"{by[c, v]['wall_s_median']}; {by[c, v]['ibl_ref_modules']}" for v in order]
+                      for c in commands])
+    table += "\n\n" + md_table(["version", "internal imports", "inside functions", "share"],
+                                 [[v, q["internal_imports"], q["inside_functions"], q["share_inside_functions"]]
+                                  for v, q in imports.items()])
+    this, before_imports, before_all = order[0], order[1], order[-1]
+
+    def ratio(cmd_prefix, a, b):
+        c = next(x for x in commands if x.startswith(cmd_prefix))
+        return f"{float(by[c, a]['wall_s_median']) / float(by[c, b]['wall_s_median']):.2f}"
+
+    comp = next(x for x in commands if "compiled" in x)
+    return {"table": table, "repeat": rows[0]["repeat"], "share": imports[this]["share_inside_functions"],
+            "help_ratio": ratio("ibl-ref --help", this, before_imports),
+            "numpy_ratio": ratio("ibl-ref convolve (32²", this, before_imports),
+            "compiled_now": by[comp, this]["wall_s_median"], "compiled_aot": by[comp, before_all]["wall_s_median"],
+            "compiled_ratio": ratio(comp, this, before_all)}
+
+
 @page("bench-small-cells")
 def bench_small_cells_page(folder: Path) -> dict[str, str]:
     out = {}
