@@ -511,8 +511,8 @@ def _cell(q: dict | None, err: bool = False) -> str:
     return q["max_rel_err"] if err else f"{q['wall_s']} / {q['cpu_s']}"
 
 
-@page("bench-peer")
-def bench_peer_page(folder: Path) -> dict[str, str]:
+def bench_peer_values(folder: Path) -> dict[str, str]:
+    """The tables and numbers of one bench_peer.py run (``benchmarks/bench_peer.py --save-dir``)."""
     cells = {(q["scene"], q["face_size_texels"], q["exponents"], q["tool"], q["mode"]): q
              for q in read_csv(folder / "cells.csv")}
     out = {}
@@ -552,6 +552,27 @@ def bench_peer_page(folder: Path) -> dict[str, str]:
     out["pairs_per_second"] = "; ".join(
         f"{q['scene']} {q['face_size_texels']}² s={'8 exponents' if q['exponents'] == 'set8' else q['exponents']} "
         f"{q['kernel']} {q['giga_pairs_per_s_per_core']} G" for q in read_csv(folder / "pairs_per_second.csv"))
+    return out
+
+
+@page("bench-peer")
+def bench_peer_page(folder: Path) -> dict[str, str]:
+    out = bench_peer_values(folder)
+    verdicts = read_csv(folder / "verdicts.csv")
+    for col, key in (("in_process_compiled_le_cmft", "inproc"), ("process_better_kernel_le_cmft", "proc")):
+        v = [q[col] for q in verdicts]
+        out[f"{key}_targets"] = str(sum(not x.startswith("no target") for x in v))
+        out[f"{key}_met"] = str(sum(x.startswith("yes") for x in v))
+        out[f"{key}_missed"] = "; ".join(
+            f"{q['scene']} {q['face_size_texels']}², s = {q['exponents']}: {q[col]}" for q in verdicts
+            if q[col].startswith("no ") and not q[col].startswith("no target")) or "none"
+    out["cells"] = str(len(verdicts))
+    return out
+
+
+@page("bench-peer-aot")
+def bench_peer_aot_page(folder: Path) -> dict[str, str]:
+    out = bench_peer_values(folder)
     out["native_quiet_table"] = md_table(
         ["face", "kernel", "wall", "CPU (user + sys)", "peak RSS", "routes", "largest bound"],
         [[q["face_size_texels"] + "²", q["kernel"], q["wall"], q["cpu_user_plus_sys"], q["peak_rss"], q["routes"],

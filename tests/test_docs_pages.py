@@ -94,7 +94,7 @@ def _within(printed: str, lo: float, hi: float) -> bool:
 
 
 def test_bench_peer_verdicts_follow_from_the_cells():
-    folder = SAVED / "bench-peer"
+    folder = SAVED / "bench-peer-aot"
     cells = {(q["scene"], q["face_size_texels"], q["exponents"], q["tool"], q["mode"]): q
              for q in read_csv(folder / "cells.csv")}
     floor = {(q["scene"], q["face_size_texels"]): q["wall_s"] for q in read_csv(folder / "interpreter_floor.csv")}

@@ -51,10 +51,11 @@ STAGES = ("sparse", "moment", "sh")
 MANIFEST = "ibl_ref_kernels.json"
 #: tile-width cost model of the compiled gather (no Python per tile; per candidate the interval search and the copy
 #: into the scratch arrays), in units of one of its weights; fitted by ``python benchmarks/bench_tile_size.py --probe
-#: …/courtyard.exr`` (every width T ∈ {2…16} forced in 15 cells of sky + sun 64²–256² and the courtyard probe
-#: 128²–256², s = 64…4096: the model's choice costs 1.002× the best width on average, 1.03× at most)
-TILE_OVERHEAD = 1000.0
-CAND_OVERHEAD = 4.0
+#: …/courtyard.exr`` (2026-12-06, commit e5e4bcc, load ≈ 1: every width T ∈ {2…16} forced in 15 cells of sky + sun
+#: 64²–256² and the courtyard probe 128²–256², s = 64…4096): the model's choice costs 1.012× the best width on average,
+#: 1.12× at most (the constants fitted for the ahead-of-time kernels' 512-bit code, 1000 and 4: 1.031×, 1.20×)
+TILE_OVERHEAD = 2000.0
+CAND_OVERHEAD = 8.0
 #: share of the accuracy target τ that the first attempt's left-out bright weights may take (at the mean radiance)
 BRIGHT_CUT_SHARE = 0.05
 #: fewest tiles per thread of the threaded gather
