@@ -444,3 +444,42 @@ def test_extreme_values_of_every_exponent_roughness_and_tolerance_flag(case, tmp
         assert rc in (1, 2), (argv, rc, err)
         assert len(err.splitlines()) == 1 and flag in err, (argv, err)
         assert not out.exists(), argv
+
+
+# ---- class 2 (lobe width of Ward and Cook–Torrance): one floor with GGX, one line ----------------------------------
+@pytest.mark.parametrize("brdf", ["ward", "cook_torrance"])
+@pytest.mark.parametrize("bad", [0.0, -0.1, 1e-300, 2.0 ** -21, 1.0 + 2.0 ** -52, 1e300, float("inf"), float("nan")])
+def test_ward_and_cook_torrance_refuse_a_lobe_width_outside_the_floor_and_one(brdf, bad):
+    from ibl_ref.lobes import brdfs
+
+    wi = wo = np.array([0.0, 0.0, 1.0])
+    with pytest.raises(IBLError) as exc:
+        getattr(brdfs, brdf)(wi, wo, alpha=bad)
+    assert "alpha" in _one_line(exc) and "2^-20" in str(exc.value)
+
+
+@pytest.mark.parametrize("brdf", ["ward", "cook_torrance"])
+def test_the_lobe_width_floor_is_the_ggx_roughness_floor_squared_and_its_peak_is_finite(brdf):
+    from ibl_ref.conventions import GGX_ROUGHNESS_MIN, ggx_alpha
+    from ibl_ref.lobes import brdfs
+
+    assert brdfs.ALPHA_MIN == ggx_alpha(GGX_ROUGHNESS_MIN) == 2.0 ** -20
+    n = np.array([0.0, 0.0, 1.0])
+    peak = float(getattr(brdfs, brdf)(n, n, alpha=brdfs.ALPHA_MIN))
+    # closed forms at normal view and light: Ward ks/(4π α²) (tan θh = 0); Cook–Torrance F·D·G/(4 cos θi cos θo)
+    # with D = 1/(π α²) (GGX at θh = 0), F = f0 (Schlick at cos = 1), G = 1 (Smith at normal incidence)
+    expected = (0.8 if brdf == "ward" else 0.04) / (4 * np.pi * brdfs.ALPHA_MIN ** 2)
+    assert np.isfinite(peak) and peak == pytest.approx(expected, rel=1e-9)
+
+
+def test_km00_render_with_an_alpha_out_of_range_is_one_line_and_writes_nothing(tmp_path, capsys):
+    from ibl_ref.cli import main
+
+    out = tmp_path / "ward.exr"
+    try:
+        rc = main(["km00-render", "--brdf", "ward", "--alpha", "1e300", "--out", str(out)])
+    except SystemExit as exc:
+        rc = exc.code
+    err = capsys.readouterr().err.strip()
+    assert rc in (1, 2) and len(err.splitlines()) == 1 and "2^-20" in err, err
+    assert not out.exists() and list(tmp_path.iterdir()) == []

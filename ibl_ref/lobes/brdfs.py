@@ -44,7 +44,7 @@ import functools
 import numpy as np
 from scipy import special
 
-from ..conventions import ggx_alpha
+from ..conventions import GGX_ROUGHNESS_MIN, ggx_alpha
 from ..errors import IBLError
 
 __all__ = ["lambert", "phong", "phong_classic", "blinn_phong", "ward", "cook_torrance", "ggx", "ndf", "smith_g1", "smith_g2",
@@ -74,6 +74,20 @@ def _pos(name, v, allow_zero=True):
     v = float(v)
     if not np.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
         raise IBLError(f"{name} must be a finite {'non-negative' if allow_zero else 'positive'} number, got {v!r}")
+    return v
+
+
+ALPHA_MIN = GGX_ROUGHNESS_MIN ** 2
+"""Smallest lobe width α of Ward and Cook–Torrance, 2^-20: the GGX floor (roughness 2^-10) squared; below it
+float64 no longer resolves the peak (α² under 2^-40).  The largest is 1, the roughest lobe of the engines'
+parametrisation (roughness 1)."""
+
+
+def _alpha(v):
+    v = float(v)
+    if not np.isfinite(v) or not ALPHA_MIN <= v <= 1.0:
+        raise IBLError(f"alpha must be a finite number in [2^-20, 1] (brdfs.ALPHA_MIN, the GGX roughness floor squared), "
+                       f"got {v!r}")
     return v
 
 
@@ -129,7 +143,7 @@ def blinn_phong(wi, wo, n=None, *, ks=1.0, s=10.0, kd=0.0):
 def ward(wi, wo, n=None, *, ks=0.8, alpha=0.04, kd=0.0):
     """Isotropic Ward (1992): ``kd/π + ks exp(−tan²θh/α²) / (4π α² √(cos θi cos θo))``."""
     ks, kd = _pos("ks", ks), _pos("kd", kd)
-    alpha = _pos("alpha", alpha, allow_zero=False)
+    alpha = _alpha(alpha)
     wi, wo, n, ci, co, valid = _prep(wi, wo, n)
     _, ch = _cos_h(wi, wo, n)
     ch = np.where(valid & (ch > 0), ch, 1.0)
@@ -193,7 +207,7 @@ def smith_g2(cos_i, cos_o, alpha, distribution="ggx", smith="height_correlated")
 def cook_torrance(wi, wo, n=None, *, alpha=0.2, f0=0.04, kd=0.0, distribution="ggx", smith="separable"):
     """Cook–Torrance microfacet BRDF with GGX or Beckmann D, Smith G (separable or height-correlated), Schlick F
     (module doc)."""
-    alpha = _pos("alpha", alpha, allow_zero=False)
+    alpha = _alpha(alpha)
     kd = _pos("kd", kd)
     f0 = _pos("f0", f0)
     if f0 > 1:
