@@ -411,3 +411,14 @@ def make_special(kind: str, p: Path) -> Path:
     else:
         raise ValueError(kind)
     return p
+
+
+def stand_in_program(folder, name: str, source: str) -> Path:
+    """An executable Python script ``folder/name`` running ``source`` with this interpreter: a stand-in for an
+    outside program (a peer that hangs, fails or writes garbage)."""
+    import sys
+
+    exe = Path(folder) / name
+    exe.write_text(f"#!{sys.executable}\n{source}")
+    exe.chmod(0o755)
+    return exe

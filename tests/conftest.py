@@ -3,7 +3,8 @@ through the environment, as the library itself never switches backends); progres
 test asks for them; the convolution kernel pinned to the NumPy reference (``IBL_REF_KERNEL=numpy`` unless set:
 the tests of the compiled kernels ask for ``kernel="compiled"`` themselves, ``tests/test_compiled_kernels.py``);
 the ``mitsuba_llvm`` fixture for tests that run Mitsuba; the ``cmft`` fixture for tests that run the peer tool
-cmft (``$IBL_REF_CMFT``, by default ``../shared/peers/cmft/cmft`` beside the project, where CI keeps it)."""
+cmft (``$IBL_REF_CMFT``, by default ``../shared/peers/cmft/cmft`` beside the project, where CI keeps it); the
+``cmgen`` fixture for tests that run Filament's cmgen (``$IBL_REF_CMGEN`` or ``cmgen`` on PATH)."""
 
 import os
 from pathlib import Path
@@ -27,6 +28,21 @@ def cmft():
     try:
         return cmft_binary()
     except CmftUnavailable as exc:
+        pytest.skip(str(exc))
+
+
+@pytest.fixture
+def cmgen():
+    """The cmgen binary (:func:`ibl_ref.prefilter.cmgen_peer.cmgen_binary`).  Where there is none the test is
+    skipped with the reason, or fails when ``IBL_REF_REQUIRE_CMGEN=1`` (set by ``.ci/run``, which installs
+    ``libfilament-tools``, so that CI runs the cmgen tests for real and never skips them silently)."""
+    from ibl_ref.prefilter.cmgen_peer import CmgenUnavailable, cmgen_binary
+
+    try:
+        return cmgen_binary()
+    except CmgenUnavailable as exc:
+        if os.environ.get("IBL_REF_REQUIRE_CMGEN") == "1":
+            pytest.fail(f"IBL_REF_REQUIRE_CMGEN=1, but: {exc}")
         pytest.skip(str(exc))
 
 

@@ -10,6 +10,7 @@ import struct
 
 import numpy as np
 import pytest
+from adversarial_files import stand_in_program
 
 from ibl_ref.environment import envmap
 from ibl_ref.errors import IBLError, RadianceError
@@ -132,8 +133,7 @@ def test_cmft_maps_against_the_exact_lobe_average(cmft):
 
 
 # ---- a peer that misbehaves: stand-in programs (Python scripts) in the place of cmft -----------------------------
-_FAKE = """#!{python}
-import sys, time
+_FAKE = """import sys, time
 import numpy as np
 a = sys.argv
 inp, base = a[a.index("--input") + 1], a[a.index("--output0") + 1]
@@ -151,12 +151,7 @@ open(base + ".dds", "wb").write(head + data.tobytes())
 
 
 def _fake_cmft(tmp_path, mode):
-    import sys
-
-    exe = tmp_path / f"cmft_{mode}"
-    exe.write_text(_FAKE.format(python=sys.executable, mode=mode))
-    exe.chmod(0o755)
-    return exe
+    return stand_in_program(tmp_path, f"cmft_{mode}", _FAKE.format(mode=mode))
 
 
 def test_a_peer_that_hangs_is_stopped_at_the_timeout_naming_the_binary(tmp_path, monkeypatch):

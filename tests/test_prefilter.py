@@ -22,6 +22,7 @@ from ibl_ref.knuth2014.median_cut import median_cut
 from ibl_ref.prefilter import (LOBES, PREFILTER_METHODS, Prefilter, RegionPrefilters, build_prefilter,
                                build_region_prefilters, prefilter_methods)
 from ibl_ref.prefilter.cmft_peer import CmftUnavailable
+from ibl_ref.prefilter.cmgen_peer import HALF_ROUNDOFF, CmgenUnavailable
 from ibl_ref.prefilter.registry import get_method, region_params
 from ibl_ref.synthetic.synthetic_envs import make_env
 
@@ -38,14 +39,19 @@ BAD = {"phong": [np.nan, 0.5, -1.0], "ggx": [np.nan, 0.0, 1.5], "cosine": [np.na
 CONSTANT_RTOL = {"pyramid": 1e-12, "exact-lobe": 1e-12, "kan2015": 1.2e-2, "km00-lobes": 1.2e-2,
                  # cmft normalises by its own discrete lobe weight; its files hold float32 (rounding 2^-24 per value,
                  # the log-s blend of two levels keeps it below a few of those)
-                 "cmft": 1e-6}
+                 "cmft": 1e-6,
+                 # cmgen's levels are normalised averages stored as half floats (rounding 2^-11) after float32 sums
+                 # (< 1e-6); a blend of two levels stays within that (tests/test_cmgen_peer.py)
+                 "cmgen": HALF_ROUNDOFF + 1e-6}
+#: the methods that run an outside program: skipped with the reason where it is not available
+PEER_UNAVAILABLE = (CmftUnavailable, CmgenUnavailable)
 
 
 def _build(cube, method, **params):
     """build_prefilter, skipping (with the reason) a method whose outside program is not available."""
     try:
         return build_prefilter(cube, method, **params)
-    except CmftUnavailable as exc:
+    except PEER_UNAVAILABLE as exc:
         pytest.skip(str(exc))
 
 
@@ -60,13 +66,13 @@ def built(env):
     for m in METHODS:
         try:
             out[m] = build_prefilter(env, m)
-        except CmftUnavailable as exc:
+        except PEER_UNAVAILABLE as exc:
             out[m] = exc
     return out
 
 
 def _get(built, method):
-    if isinstance(built[method], CmftUnavailable):
+    if isinstance(built[method], PEER_UNAVAILABLE):
         pytest.skip(str(built[method]))
     return built[method]
 

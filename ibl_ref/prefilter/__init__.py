@@ -46,7 +46,8 @@ chain (``exact-lobe``, :mod:`~ibl_ref.prefilter.exact_lobe_chain`), Kautz & McCo
 :mod:`~ibl_ref.prefilter.cmft_peer`) for Phong lobes; the GGX-era methods — Karis 2013's split sum with the exact,
 an importance-sampled and a filtered-importance-sampled prefilter (``split-sum``, ``split-sum-is``,
 :mod:`~ibl_ref.prefilter.karis2013`; ``split-sum-fis``, Křivánek & Colbert 2008,
-:mod:`~ibl_ref.prefilter.krivanek_colbert2008`), GGX through a Phong prefilter (``ggx-phong-pem``, default the
+:mod:`~ibl_ref.prefilter.krivanek_colbert2008`), Filament's cmgen run as a program (``cmgen``,
+:mod:`~ibl_ref.prefilter.cmgen_peer`), GGX through a Phong prefilter (``ggx-phong-pem``, default the
 paper's pyramid and its PEMs, :mod:`~ibl_ref.prefilter.ggx_phong_mapping`) — and SH9 irradiance for the cosine lobe
 (``sh9``, Ramamoorthi & Hanrahan 2001, :mod:`~ibl_ref.prefilter.ramamoorthi_hanrahan2001`).
 """

@@ -54,6 +54,7 @@ import numpy as np
 from ..environment import envmap
 from ..errors import IBLError
 from .level_chain import LevelChainPrefilter, check_exponents, exponent_stack
+from .peer_programs import check_returned, run_timeout
 from ..groundtruth.convolution_args import check_cube
 from ..groundtruth.phong_convolution import lobe_average
 
@@ -182,35 +183,12 @@ def _check_threads(threads) -> int:
 def cmft_timeout(timeout=None) -> float:
     """Seconds one run of cmft may take: ``timeout``, else ``$IBL_REF_CMFT_TIMEOUT``, else :data:`DEFAULT_TIMEOUT_S`;
     a finite number > 0, or a one-line :class:`IBLError` naming where the value came from."""
-    where, value = "timeout", timeout
-    if timeout is None:
-        where, value = f"${TIMEOUT_ENV_VAR}", os.environ.get(TIMEOUT_ENV_VAR, "")
-        if value.strip() == "":
-            return DEFAULT_TIMEOUT_S
-    if isinstance(value, bool):
-        value = None  # True is not a number of seconds
-    try:
-        t = float(value)
-    except (TypeError, ValueError):
-        t = float("nan")
-    if not (math.isfinite(t) and t > 0):
-        raise IBLError(f"{where}: the cmft timeout must be a finite number of seconds > 0, got {value!r}")
-    return t
+    return run_timeout(timeout, TIMEOUT_ENV_VAR, DEFAULT_TIMEOUT_S, "cmft")
 
 
 def _check_map(got, exe, s, a) -> None:
-    """One map read back from cmft: finite, non-negative, and not black where the input is not (one line naming the
-    binary: NaN, Inf or black output is the program's, not a matter of the cube convention)."""
-    bad = ~np.isfinite(got)
-    if bad.any():
-        raise CmftUnavailable(f"cmft {str(exe)!r} wrote {int(bad.sum())} NaN/Inf value(s) at s = {s:g} (a broken "
-                              "build or a wrong binary; the lab refuses its map)")
-    if np.min(got) < 0:
-        raise CmftUnavailable(f"cmft {str(exe)!r} wrote negative radiance (down to {float(np.min(got)):g}) at "
-                              f"s = {s:g}; the lab refuses its map")
-    if np.max(got) == 0 and np.max(a) > 0:
-        raise CmftUnavailable(f"cmft {str(exe)!r} wrote a black map at s = {s:g} from a non-black input; the lab "
-                              "refuses it")
+    """One map read back from cmft (:func:`~ibl_ref.prefilter.peer_programs.check_returned`)."""
+    check_returned(got, a, program="cmft", exe=exe, where=f"at s = {s:g}", error=CmftUnavailable)
 
 
 def run_cmft(cube, exponents, *, binary=None, threads: int = 2, timeout: float | None = None) -> list:

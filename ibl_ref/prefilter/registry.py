@@ -22,6 +22,7 @@ from typing import NamedTuple
 from ..environment.validated import as_environment
 from ..errors import IBLError
 from .cmft_peer import CmftRadiance
+from .cmgen_peer import CmgenPrefilter
 from .exact_lobe_chain import ExactLobeChain
 from .ggx_phong_mapping import GGXPhongMapping
 from .kan2015_maps import Kan2015Maps
@@ -47,6 +48,7 @@ PREFILTER_METHODS = {
     "split-sum": SplitSum,
     "split-sum-is": SplitSumImportance,
     "split-sum-fis": FilteredImportanceSampling,
+    "cmgen": CmgenPrefilter,
     "ggx-phong-pem": GGXPhongMapping,
     "sh9": SH9Irradiance,
 }
