@@ -25,8 +25,9 @@ orientation) in an **uncompressed float32 OpenEXR** file (:func:`write_input`), 
 
 The command (:func:`cmgen_command`) is ``cmgen --format=exr --size=N --ibl-min-lod-size=M --ibl-samples=K
 --no-mirror [--ibl-no-prefilter] --ibl-ld=DIR IN.exr``; **the input comes last**: options after the file name are
-ignored without a word (an ``--ibl-ld`` there writes nothing).  cmgen has no thread option: its job system uses
-every core (both here: CPU time ≈ 2 × wall in the lab's field notes).
+ignored without a word (an ``--ibl-ld`` there writes nothing).  cmgen has no thread option: Filament's job system
+runs the main thread and one worker per further core (on the lab's 2-core machine: the main thread and one
+``JobSystem::loop`` thread, seen with ``ps -L``).
 
 The radiance is scaled by a power of two first (:func:`half_scale`: the maximum into [2^14, 2^15)) and the levels
 divided by it again, because cmgen writes **half floats** (largest 65504: a 1e5 sun comes back as Inf).  That is
@@ -70,6 +71,9 @@ every face; :func:`cmgen_source_directions`): against that displaced source the 
 falls from 0.039–0.065 to 0.001–0.0065 at every level of 16² faces, and on the smooth map of the test 5–60×.  The
 displacement shrinks with the face size (at r = 1 the tangential bias is 4.4 %, 2.8 %, 1.9 % of the lobe's mean
 cosine at 16², 32², 64², averaged over the faces); at engine sizes (256²) it is ≈ 0.2°, half of a 0.45° texel.
+cmgen's default *prefiltered* sampling (samples read from coarser source levels) adds an error of its own that
+grows with the face size: with ``--ibl-no-prefilter`` the displaced source explains cmgen's levels of a smooth map
+to 0.05–0.17 % at 64², with the default 2.9–10 % remain (``docs/prefilters.md``).
 
 The look-up (:class:`CmgenPrefilter`) is Filament's: perceptual roughness r → lod = r(2 − r)·(L − 1), seam-aware
 bilinear in levels ⌊lod⌋ and ⌊lod⌋ + 1, linear between (the trilinear look-up of
