@@ -434,11 +434,11 @@ def main(argv=None):
                       f"{cold[1][1]:.2f} s and {cold[2][0]:.2f} / {cold[2][1]:.2f} s.")
             print(md[-1], flush=True)
         for scene, path in scenes:
-            native = None
+            native_size = None  # (not `native`: that list collects the --native runs)
             if path:
-                native = load_cube(path).shape[1]
+                native_size = load_cube(path).shape[1]
             for n in args.faces:
-                if native is not None and n > native:
+                if native_size is not None and n > native_size:
                     continue
                 cube = (environment(n) if path is None else load_cube(path, size=n)).astype(np.float32).astype(
                     np.float64)

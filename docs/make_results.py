@@ -590,6 +590,49 @@ def bench_peer_aot_page(folder: Path) -> dict[str, str]:
     return out
 
 
+@page("ggx-chain")
+def ggx_chain_page(folder: Path) -> dict[str, str]:
+    cells = read_csv(folder / "cells.csv")
+    levels = read_csv(folder / "levels.csv")
+    dense = read_csv(folder / "dense.csv")
+    dl = read_csv(folder / "dense_levels.csv")
+    cell_table = md_table(
+        ["map", "faces", "levels", "cmgen wall s (CPU)", "lab wall s (CPU)", "lab / cmgen", "lab: source tree s",
+         "load"],
+        [[q["env"], q["face_size_texels"] + "²", q["levels"], f"{float(q['cmgen_wall_s']):.2f} "
+          f"({float(q['cmgen_cpu_s']):.2f})", f"{float(q['lab_wall_s']):.2f} ({float(q['lab_cpu_s']):.2f})",
+          f"{float(q['lab_over_cmgen_wall']):.2f}×", f"{float(q['lab_tree_s']):.2f}", f"{float(q['load_1min']):.2f}"]
+         for q in cells])
+    level_table = md_table(
+        ["map", "faces", "level", "roughness", "level faces", "lab bound (max)", "lab s", "cmgen err max", "p99",
+         "mean"],
+        [[q["env"], q["face_size_texels"] + "²", q["level"], f"{float(q['roughness']):.3f}",
+          q["level_face_size_texels"] + "²", sci(float(q["lab_rel_bound_max"])), f"{float(q['lab_level_s']):.2f}",
+          pct(float(q["cmgen_rel_err_max"]), 1) + " %", pct(float(q["cmgen_rel_err_p99"]), 1) + " %",
+          pct(float(q["cmgen_rel_err_mean"]), 2) + " %"] for q in levels])
+    dense_table = md_table(
+        ["map", "faces", "levels", "dense sum s", "tree s", "dense / tree", "load"],
+        [[q["env"], q["face_size_texels"] + "²", q["levels_below_0"], f"{float(q['dense_s']):.2f}",
+          f"{float(q['tree_s']):.2f}", f"{float(q['dense_over_tree']):.0f}×", f"{float(q['load_1min']):.2f}"]
+         for q in dense])
+    dense_level_table = md_table(
+        ["map", "faces", "roughness", "level faces", "bound (max)", "error against the dense sum (max)", "within"],
+        [[q["env"], q["face_size_texels"] + "²", f"{float(q['roughness']):.3f}", q["level_face_size_texels"] + "²",
+          sci(float(q["tree_rel_bound_max"])), sci(float(q["tree_rel_err_vs_dense_max"])),
+          "yes" if q["within_bound"] == "True" else "**no**"] for q in dl])
+    ratios = [float(q["lab_over_cmgen_wall"]) for q in cells]
+    largest = max(int(q["face_size_texels"]) for q in cells)
+    at_largest = [float(q["lab_over_cmgen_wall"]) for q in cells if int(q["face_size_texels"]) == largest]
+    dn = max(int(q["face_size_texels"]) for q in dense)
+    speed = [float(q["dense_over_tree"]) for q in dense if int(q["face_size_texels"]) == dn]
+    return {"cells_table": cell_table, "levels_table": level_table, "dense_table": dense_table,
+            "dense_levels_table": dense_level_table, "ratio_min": f"{min(ratios):.1f}", "ratio_max": f"{max(ratios):.1f}",
+            "largest": str(largest), "ratio_largest": " and ".join(f"{r:.1f}×" for r in at_largest),
+            "dense_size": str(dn), "dense_speedup": " and ".join(f"{r:.0f}×" for r in speed),
+            "within": f"{sum(q['within_bound'] == 'True' for q in dl)} of {len(dl)}",
+            "bound_max": sci(max(float(q["lab_rel_bound_max"]) for q in levels))}
+
+
 @page("kernel-ops")
 def kernel_ops_page(folder: Path) -> dict[str, str]:
     rows = read_csv(folder / "kernel_ops.csv")

@@ -161,10 +161,12 @@ def test_exact_prefilter_against_brute_force(roughness):
     cube = rng.random((6, 4, 4, 2)) ** 3
     dirs = rng.normal(size=(7, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    got = k.prefilter_exact(cube, roughness, dirs=dirs)
     ref = np.array([_brute_force_prefilter(cube, d, roughness) for d in dirs])
-    np.testing.assert_allclose(got, ref, rtol=1e-12)
-    full = k.prefilter_exact(cube, roughness)
+    # the dense texel sum (the oracle) to rounding; the tree within its own rigorous bound
+    np.testing.assert_allclose(k.prefilter_dense(cube, roughness, dirs=dirs), ref, rtol=1e-12)
+    got, bound = k.prefilter_exact(cube, roughness, dirs=dirs, return_bound=True)
+    assert np.all(np.abs(got - ref) <= bound[:, None] * ref) and bound.max() <= k.EXACT_RTOL
+    full = k.prefilter_dense(cube, roughness)
     assert full.shape == (6, 4, 4, 2)
     np.testing.assert_allclose(full[2, 1, 3], _brute_force_prefilter(cube, envmap.texel_directions(4)[2, 1, 3],
                                                                      roughness), rtol=1e-12)
@@ -295,9 +297,12 @@ def test_chain_levels_and_trilinear_lookup():
     assert chain.n_levels == 5 and chain.face_sizes == (16, 8, 4, 2, 1)
     assert chain.roughness == (0.0, 0.25, 0.5, 0.75, 1.0)
     np.testing.assert_array_equal(chain.levels[0], cube)  # level 0: the mirror = the source
-    # at a level's roughness and its texel centres the lookup is that level's texel = the exact prefilter there
+    # at a level's roughness and its texel centres the lookup is that level's texel, and the level is the exact
+    # prefilter (the dense texel sum) within the chain's tolerance EXACT_RTOL (a rigorous bound)
     d = envmap.texel_directions(8).reshape(-1, 3)
-    np.testing.assert_allclose(chain.lookup(d, 0.25), k.prefilter_exact(cube, 0.25, dirs=d), rtol=1e-12)
+    np.testing.assert_allclose(chain.lookup(d, 0.25), chain.levels[1].reshape(-1, 3), rtol=1e-12)
+    np.testing.assert_allclose(chain.levels[1], k.prefilter_dense(cube, 0.25, out_size=8), rtol=k.EXACT_RTOL)
+    assert max(chain.info["bound_max"]) <= k.EXACT_RTOL
     # between levels: the linear blend of the two bilinear lookups (ℓ = 4·r)
     rng = np.random.default_rng(2)
     q = rng.normal(size=(20, 3))

@@ -67,7 +67,7 @@ from ..environment import envmap
 from ..errors import IBLError
 from .convolution_args import channel_max, check_cube, check_faces, check_out_size
 from .kernels import check_impl, get_kernels
-from .kernels.numpy_backend import MOMENT_CHUNK_PAIRS, SYM_PAIRS
+from .kernels.numpy_backend import MOMENT_CHUNK_PAIRS, SYM_PAIRS, quad_children
 
 __all__ = ["convolve_moment_many", "convolve_moment", "moment_leaf", "SUPPORTED_EXPONENTS", "ROUNDING_REL"]
 
@@ -102,15 +102,6 @@ def _block_sums(x, b):
     P = x.shape[1]
     m = P // b
     return x.reshape(6, m, b, m, b, x.shape[-1]).sum(axis=(2, 4)).reshape(6 * m * m, x.shape[-1])
-
-
-def _children(blk, m):
-    """Flat child indices (4 per parent) of blocks ``blk`` on a 6×m×m grid → grid 6×2m×2m."""
-    f, rem = np.divmod(blk, m * m)
-    i, j = np.divmod(rem, m)
-    m2 = 2 * m
-    base = f * m2 * m2 + 2 * i * m2 + 2 * j
-    return (base[:, None] + np.array([0, 1, m2, m2 + 1])[None, :]).ravel()
 
 
 def _kernel(x, s):
@@ -269,7 +260,7 @@ def _classify(levels, cT, betaT, sinB, cosB, nK, stop, leaf, dP, real, F, P, n):
         if li == len(levels) - 1:
             break
         tiles = np.repeat(tiles, 4)
-        blk = _children(blk, m)
+        blk = quad_children(blk, m)
     if leaf == 1 and stop > 1:  # straddling blocks of size `stop` → all their texels (exact gather)
         band_d = dP.reshape(-1, 3)
         mg = P // stop

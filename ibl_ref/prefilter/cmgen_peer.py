@@ -108,13 +108,15 @@ from ..groundtruth.convolution_args import check_cube
 from ..knuth2014.pyramid import Pyramid
 from .interface import check_lobe_param
 from ..lobes import brdfs
-from .karis2013 import build_dfg_table, check_option, check_samples, prefilter_exact, shade
+from .karis2013 import (ROUGHNESS_MAPPINGS, build_dfg_table, check_option, check_samples, prefilter_exact,
+                        roughness_of_level, shade)
 from .level_chain import LevelChainPrefilter
 from .peer_programs import check_returned, run_timeout
 
 __all__ = ["CmgenUnavailable", "CmgenRun", "CmgenPrefilter", "cmgen_binary", "cmgen_timeout", "cmgen_command",
            "cmgen_levels", "filament_roughness_of_level", "filament_level_of_roughness", "half_scale",
-           "write_input", "read_levels", "parse_roughness", "run_cmgen", "face_check_pattern",
+           "write_input", "read_levels", "level_file", "write_level", "parse_roughness", "run_cmgen",
+           "face_check_pattern",
            "cmgen_source_directions", "check_face_mapping", "level_errors", "ENV_VAR", "TIMEOUT_ENV_VAR",
            "DEFAULT_TIMEOUT_S", "FACES", "DEFAULT_SAMPLES", "DEFAULT_MIN_LEVEL_SIZE", "FACE_CHECK_ATOL", "PRINT_RTOL",
            "HALF_ROUNDOFF"]
@@ -196,7 +198,8 @@ def cmgen_levels(size: int, min_level_size: int = DEFAULT_MIN_LEVEL_SIZE) -> int
 
 def filament_roughness_of_level(level, n_levels: int) -> np.ndarray:
     """Perceptual roughness cmgen prefilters into level ``level`` of ``n_levels``: r = 1 − √(1 − l/(L − 1))
-    (α = r²); the inverse of :func:`filament_level_of_roughness`.
+    (α = r²); the inverse of :func:`filament_level_of_roughness` (:func:`ibl_ref.prefilter.karis2013.roughness_of_level`
+    with ``mapping="filament"``).
 
     Examples
     --------
@@ -205,10 +208,7 @@ def filament_roughness_of_level(level, n_levels: int) -> np.ndarray:
     >>> np.round(filament_roughness_of_level(np.arange(5), 5), 3)
     array([0.   , 0.134, 0.293, 0.5  , 1.   ])
     """
-    if isinstance(n_levels, bool) or not isinstance(n_levels, (int, np.integer)) or n_levels < 2:
-        raise IBLError(f"n_levels must be an integer >= 2, got {n_levels!r}")
-    lod = np.asarray(level, dtype=np.float64) / (n_levels - 1)
-    return 1.0 - np.sqrt(np.clip(1.0 - lod, 0.0, 1.0))
+    return roughness_of_level(level, n_levels, "filament")
 
 
 def filament_level_of_roughness(roughness, n_levels: int) -> np.ndarray:
@@ -223,8 +223,8 @@ def filament_level_of_roughness(roughness, n_levels: int) -> np.ndarray:
     """
     if isinstance(n_levels, bool) or not isinstance(n_levels, (int, np.integer)) or n_levels < 2:
         raise IBLError(f"n_levels must be an integer >= 2, got {n_levels!r}")
-    r = np.asarray(roughness, dtype=np.float64)
-    return r * (2.0 - r) * (n_levels - 1)
+    # the mapping's formula (roughness 0, the mirror level, included: karis2013's look-up refuses it)
+    return ROUGHNESS_MAPPINGS["filament"][1](np.asarray(roughness, dtype=np.float64)) * (n_levels - 1)
 
 
 def half_scale(vmax: float) -> float:
@@ -298,7 +298,7 @@ def read_levels(folder, n_levels: int, size: int, exe="cmgen") -> list:
         m = max(size >> lv, 1)
         faces = []
         for f in FACES:
-            p = folder / f"m{lv}_{f}.exr"
+            p = level_file(folder, lv, f)
             if not p.is_file():
                 raise CmgenUnavailable(f"cmgen {str(exe)!r} did not write {p.name} (level {lv} of {n_levels})")
             try:
@@ -312,6 +312,24 @@ def read_levels(folder, n_levels: int, size: int, exe="cmgen") -> list:
             faces.append(img.pixels[..., :3])
         levels.append(envmap.convert_convention(np.stack(faces).astype(np.float64), "opengl", "openexr"))
     return levels
+
+
+def level_file(folder, level: int, face: str) -> Path:
+    """``folder/m<level>_<face>.exr``: cmgen's name of one face of one level (faces :data:`FACES`)."""
+    return Path(folder) / f"m{int(level)}_{face}.exr"
+
+
+def write_level(paths, cube, compression: str = "zip") -> None:
+    """Write one level ``(6, M, M, 3)`` (lab convention) as cmgen writes it: one RGB OpenEXR file per face, in
+    :data:`FACES` order, in the OpenGL orientation; ``paths`` the six file names (:func:`level_file`).  Float32 (cmgen
+    writes half floats, whose rounding, 2^-11 relative, exceeds the tolerances an exact chain is made to); each file
+    atomic.  :func:`read_levels` reads it back."""
+    a = np.asarray(cube)
+    if a.ndim != 4 or a.shape[0] != 6 or a.shape[3] != 3 or a.shape[1] != a.shape[2]:
+        raise IBLError(f"write_level: expected a cube (6, M, M, 3), got shape {a.shape}")
+    gl = envmap.convert_convention(a.astype(np.float64), "openexr", "opengl").astype(np.float32)
+    for path, face in zip(paths, gl):
+        write_exr(path, ExrPart(np.ascontiguousarray(face), ("R", "G", "B")), compression=compression)
 
 
 @dataclass

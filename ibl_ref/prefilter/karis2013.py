@@ -97,6 +97,7 @@ from ..environment import envmap
 from ..environment.sampling import CubeSampler
 from ..errors import IBLError
 from ..groundtruth.convolution_args import check_cube
+from ..groundtruth.ggx_convolution import convolve_ggx, convolve_ggx_levels
 from ..lobes import brdfs
 from .interface import check_lobe_param
 
@@ -104,15 +105,18 @@ __all__ = [
     "ROUGHNESS_MAPPINGS", "SEQUENCES", "STORAGE_DTYPES",
     "check_roughness", "check_scalar_roughness", "check_f0", "check_samples", "check_option", "check_sequence",
     "output_directions", "check_finite", "importance_sum",
-    "prefilter_kernel", "prefilter_exact", "prefilter_importance",
+    "prefilter_kernel", "prefilter_exact", "prefilter_dense", "EXACT_RTOL", "prefilter_importance",
     "ggx_half_vectors", "sample_pdf", "tangent_frames", "sample_points",
     "dfg_terms", "DFGTable", "build_dfg_table",
     "roughness_of_level", "level_of_roughness", "PrefilteredChain", "build_chain",
     "reflect", "split_sum", "shade", "SplitSum", "SplitSumImportance",
 ]
 
-#: roughness ↔ MIP-level mappings of :func:`roughness_of_level` (module doc)
-ROUGHNESS_MAPPINGS = ("linear",)
+#: roughness ↔ MIP-level mappings of :func:`roughness_of_level`: name → (roughness of lod ∈ [0, 1], lod of roughness)
+ROUGHNESS_MAPPINGS = {
+    "linear": (lambda lod: lod, lambda r: r),  # glTF-IBL-Sampler, Bevy
+    "filament": (lambda lod: 1.0 - np.sqrt(1.0 - lod), lambda r: r * (2.0 - r)),  # Filament's cmgen and run time
+}
 #: sample sequences of :func:`prefilter_importance`
 SEQUENCES = ("hammersley", "random")
 #: storage types of a prefiltered chain (float16 as engines store it; values above 65504 are refused)
@@ -208,9 +212,60 @@ def prefilter_kernel(cos_gamma, roughness) -> np.ndarray:
     return brdfs.ndf(np.sqrt(0.5 * (1.0 + c)), alpha) * np.maximum(c, 0.0)
 
 
-def prefilter_exact(cube, roughness, *, out_size=None, dirs=None, chunk_elems: int = 1 << 22) -> np.ndarray:
-    """Exact ``n = v = r`` GGX prefilter: ``P(r) = Σ_j L_j K(r·ω_j) Ω_j / Σ_j K(r·ω_j) Ω_j`` over every texel j
-    of ``cube`` (texel centres ω_j, exact solid angles Ω_j; module doc).
+#: relative tolerance of :func:`prefilter_exact` and of the exact level chains (:func:`build_chain`): ten times below
+#: the smallest error the method zoo reports (the split sum's n = v = r step, ≥ 1e-3 relative)
+EXACT_RTOL = 1e-4
+
+
+def prefilter_exact(cube, roughness, *, out_size=None, dirs=None, rtol: float = EXACT_RTOL, kernel=None,
+                    return_bound: bool = False):
+    """The ``n = v = r`` GGX prefilter ``P(r) = Σ_j L_j K(r·ω_j) Ω_j / Σ_j K(r·ω_j) Ω_j`` over every texel j of
+    ``cube`` (module doc), within a rigorous relative bound ``rtol`` at every output texel and channel
+    (:func:`ibl_ref.groundtruth.ggx_convolution.convolve_ggx`: the block-Taylor tree, whose cost grows far slower
+    than the texel sum's; :func:`prefilter_dense` is that sum, the test oracle).
+
+    Parameters
+    ----------
+    cube : (6, N, N[, C]) finite, non-negative radiance
+    roughness : float in (0, 1]
+    out_size : face size of the output cube (default N); ignored when ``dirs`` is given
+    dirs : (..., 3) directions r to evaluate at instead of texel centres
+    rtol : largest relative error (default :data:`EXACT_RTOL`)
+    kernel : ``"auto"``, ``"numpy"`` or ``"compiled"`` (:func:`ibl_ref.groundtruth.kernels.resolve_kernel`)
+    return_bound : also return the per-texel bound
+
+    Returns
+    -------
+    (6, M, M, C) or (..., C) float64 (a 3-d cube gives no channel axis); with ``return_bound`` also the bound
+    ((6, M, M) or (...)), ≤ ``rtol``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> cube = np.ones((6, 8, 8, 3))
+    >>> p, bound = prefilter_exact(cube, 0.5, out_size=4, kernel="numpy", return_bound=True)
+    >>> p.shape, bool(np.allclose(p, 1.0)), bool(bound.max() <= EXACT_RTOL)
+    ((6, 4, 4, 3), True, True)
+    """
+    a, squeeze = check_cube(cube)
+    _, alpha = check_scalar_roughness(roughness)
+    if dirs is not None:
+        d, lead = _check_dirs(dirs, "dirs")
+        maps, bound = convolve_ggx(a, roughness, rtol=rtol, dirs=d, kernel=kernel)
+        maps, bound = maps.reshape(lead + (a.shape[-1],)), bound.reshape(lead)
+    else:
+        maps, bound = convolve_ggx(a, roughness, rtol=rtol, out_size=out_size, kernel=kernel)
+    maps = check_finite(maps, "prefilter_exact")
+    if squeeze:
+        maps = maps[..., 0]
+    return (maps, bound) if return_bound else maps
+
+
+def prefilter_dense(cube, roughness, *, out_size=None, dirs=None, chunk_elems: int = 1 << 22) -> np.ndarray:
+    """The ``n = v = r`` GGX prefilter as the dense texel sum: ``P(r) = Σ_j L_j K(r·ω_j) Ω_j / Σ_j K(r·ω_j) Ω_j``
+    over every texel j of ``cube`` for every output direction (texel centres ω_j, exact solid angles Ω_j; module
+    doc), exact to float64 rounding — the test oracle of :func:`prefilter_exact` (its cost grows as the product of
+    the source and output texel counts: 43 s at 128² faces).
 
     Parameters
     ----------
@@ -237,7 +292,7 @@ def prefilter_exact(cube, roughness, *, out_size=None, dirs=None, chunk_elems: i
         c = np.clip(out_d[i:i + step] @ src.T, -1.0, 1.0)
         w = brdfs.ndf(np.sqrt(0.5 * (1.0 + c)), alpha) * np.maximum(c, 0.0) * om  # K(r·ω_j) Ω_j
         out[i:i + step] = (w @ rad) / w.sum(axis=1, keepdims=True)
-    out = check_finite(out, "prefilter_exact").reshape(lead + (rad.shape[1],))
+    out = check_finite(out, "prefilter_dense").reshape(lead + (rad.shape[1],))
     return out[..., 0] if squeeze else out
 
 
@@ -575,19 +630,30 @@ def _check_mapping(mapping):
 
 
 def roughness_of_level(level, n_levels: int, mapping: str = "linear"):
-    """Roughness prefiltered into MIP level ``level`` of ``n_levels``: ``ℓ/(n_levels − 1)`` (``"linear"``)."""
+    """Roughness prefiltered into MIP level ``level`` of ``n_levels`` under ``mapping`` (:data:`ROUGHNESS_MAPPINGS`,
+    of ``lod = ℓ/(n_levels − 1)``): ``"linear"`` r = lod (glTF-IBL-Sampler), ``"filament"`` r = 1 − √(1 − lod)
+    (Filament's cmgen, the inverse of its run-time lod = r(2 − r)).
+
+    Examples
+    --------
+    >>> roughness_of_level([0, 1, 2, 3, 4], 5).tolist()
+    [0.0, 0.25, 0.5, 0.75, 1.0]
+    >>> [round(r, 3) for r in roughness_of_level([0, 1, 2, 3, 4], 5, "filament").tolist()]
+    [0.0, 0.134, 0.293, 0.5, 1.0]
+    """
     _check_mapping(mapping)
     n_levels = _check_levels(n_levels)
-    return np.asarray(level, dtype=np.float64) / (n_levels - 1)
+    lod = np.clip(np.asarray(level, dtype=np.float64) / (n_levels - 1), 0.0, 1.0)
+    return ROUGHNESS_MAPPINGS[mapping][0](lod)
 
 
 def level_of_roughness(roughness, n_levels: int, mapping: str = "linear"):
-    """Fractional MIP level of a roughness: ``ℓ = roughness·(n_levels − 1)`` (``"linear"``, inverse of
-    :func:`roughness_of_level`)."""
+    """Fractional MIP level of a roughness, ``ℓ = lod(r)·(n_levels − 1)`` (the inverse of
+    :func:`roughness_of_level`: ``"linear"`` lod = r, ``"filament"`` lod = r(2 − r))."""
     _check_mapping(mapping)
     n_levels = _check_levels(n_levels)
     r, _ = check_roughness(roughness)
-    return np.asarray(r) * (n_levels - 1)
+    return ROUGHNESS_MAPPINGS[mapping][1](np.asarray(r)) * (n_levels - 1)
 
 
 def _check_dtype(dtype) -> np.dtype:
@@ -678,7 +744,7 @@ def build_chain(cube, *, n_levels=None, prefilter="exact", samples: int = 1024, 
     ----------
     cube : (6, N, N, C) radiance (3 channels or any C; a 3-d cube gets one channel)
     n_levels : default ``floor(log2 N) + 1`` (down to a 1×1 face), ≥ 2
-    prefilter : ``"exact"`` (:func:`prefilter_exact`), ``"importance"`` (:func:`prefilter_importance` with
+    prefilter : ``"exact"`` (:func:`prefilter_exact` at :data:`EXACT_RTOL`, the levels from one source tree), ``"importance"`` (:func:`prefilter_importance` with
         ``samples``, ``sequence`` and per-level seeds ``(seed, ℓ)``), or a callable
         ``f(cube, roughness, out_size, level) -> (6, M, M, C)`` (e.g. filtered importance sampling,
         :func:`ibl_ref.prefilter.krivanek_colbert2008.build_fis_chain`); ``name`` labels a callable
@@ -698,9 +764,7 @@ def build_chain(cube, *, n_levels=None, prefilter="exact", samples: int = 1024, 
     elif prefilter in _PREFILTERS:
         label = prefilter
         if prefilter == "exact":
-            def fn(c, rough, out_size, level):
-                return prefilter_exact(c, rough, out_size=out_size)
-            info = {}
+            fn, info = None, {"rtol": EXACT_RTOL}
         else:
             samples = check_samples(samples)
             check_sequence(sequence)
@@ -713,9 +777,13 @@ def build_chain(cube, *, n_levels=None, prefilter="exact", samples: int = 1024, 
         raise IBLError(f"prefilter must be one of {', '.join(_PREFILTERS)} or a callable, got {prefilter!r}")
     rough = tuple(float(x) for x in roughness_of_level(np.arange(n_levels), n_levels, mapping))
     levels = [_store(a, dt, "level 0")]
-    for lv in range(1, n_levels):
-        m = max(n >> lv, min_face_size, 1)
-        levels.append(_store(fn(a, rough[lv], m, lv), dt, f"level {lv}"))
+    sizes = [max(n >> lv, min_face_size, 1) for lv in range(n_levels)]
+    if fn is None:  # the exact levels from one source tree (ibl_ref.groundtruth.ggx_convolution)
+        out = convolve_ggx_levels(a, list(zip(rough[1:], sizes[1:])), rtol=EXACT_RTOL)
+        info["bound_max"] = [float(b.max()) for _, b in out]
+        levels += [_store(check_finite(m, f"level {lv}"), dt, f"level {lv}") for lv, (m, _) in enumerate(out, 1)]
+    for lv in range(len(levels), n_levels):
+        levels.append(_store(fn(a, rough[lv], sizes[lv], lv), dt, f"level {lv}"))
     info = dict(info, min_face_size=min_face_size, dtype=dt.name, source_face_size=n, squeezed=squeeze)
     return PrefilteredChain(levels, rough, mapping, label, info)
 

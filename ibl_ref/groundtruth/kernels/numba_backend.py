@@ -38,6 +38,7 @@ from ...atomic import atomic_write
 from ...environment import envmap
 from ...errors import IBLError
 from .. import sh_basis
+from ..ggx_convolution import GGXLobeKernel, GGXSourceTree
 from ..sh_tables import _row_layout, compiled_tables
 from . import numba_loops
 from .numpy_backend import NumpyKernels, Sources, SparseGather
@@ -46,7 +47,7 @@ from .rounding import BRIGHT_GROUP, POWI_MAX, SH_BLOCK, sum_error, weight_error
 __all__ = ["CompiledKernels", "STAGES"]
 
 #: the stages of :meth:`CompiledKernels.warm_up`: the loops of each route
-STAGES = ("sparse", "moment", "sh")
+STAGES = ("sparse", "moment", "sh", "ggx")
 #: the record of numba's cache entries of the loops, beside them
 MANIFEST = "ibl_ref_kernels.json"
 #: tile-width cost model of the compiled gather (no Python per tile; per candidate the interval search and the copy
@@ -248,7 +249,19 @@ def _tile_gather_threads(threads, cen, rows, *args):
     # (a few tiles, e.g. a later attempt's: starting a thread costs more than their gather)
     threads = max(1, min(int(threads), nt // TILES_PER_THREAD_MIN))
     run_len = nt if threads == 1 else max(2 * TILES_PER_THREAD_MIN, -(-nt // (8 * threads)))  # ≈ 8 runs per thread
-    starts = iter(range(0, nt, run_len))
+
+    def run(_k, a, b):
+        numba_loops.tile_gather(cen[a:b], rows[a:b], caps[a:b], arad[a:b], *shared, *(o[a:b] for o in outs))
+
+    _in_threads(run, nt, run_len, threads, "ibl_tiles")
+
+
+def _in_threads(run, n, run_len, threads, name):
+    """``run(k, a, b)`` for the consecutive runs ``[a, b)`` of ``range(n)`` (k the run's index) on ``threads`` threads,
+    this one included, each taking the next run as it becomes free; the first exception is re-raised here."""
+    if n <= 0:
+        return
+    runs = iter(enumerate(range(0, n, run_len)))
     lock = threading.Lock()
     errors = []
 
@@ -256,17 +269,16 @@ def _tile_gather_threads(threads, cen, rows, *args):
         try:
             while True:
                 with lock:
-                    a = None if errors else next(starts, None)
-                if a is None:
+                    item = None if errors else next(runs, None)
+                if item is None:
                     return
-                b = min(a + run_len, nt)
-                numba_loops.tile_gather(cen[a:b], rows[a:b], caps[a:b], arad[a:b], *shared,
-                                        *(o[a:b] for o in outs))
+                k, a = item
+                run(k, a, min(a + run_len, n))
         except BaseException as exc:  # re-raised on the calling thread
             with lock:
                 errors.append(exc)
 
-    others = [threading.Thread(target=work, name=f"ibl_tiles_{j}", daemon=True) for j in range(1, threads)]
+    others = [threading.Thread(target=work, name=f"{name}_{j}", daemon=True) for j in range(1, threads)]
     for th in others:  # the other threads …
         th.start()
     work()  # … and this one
@@ -328,6 +340,49 @@ def _octant_Y_chunks(reps, L):
         Y = np.empty((rows, i1 - i0))
         numba_loops.sh_matrix(np.ascontiguousarray(reps[i0:i1]), L, *tabs, dest, Y)
         yield i0, i1, [Y[a:b] for a, b in spans]
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# GGX tree route
+# ----------------------------------------------------------------------------------------------------------------
+class _FlatTree:
+    """The levels of a :class:`~ibl_ref.groundtruth.ggx_convolution.GGXSourceTree` as the flat, contiguous arrays
+    :func:`~ibl_ref.groundtruth.kernels.numba_loops.ggx_tree` takes (levels ≥ 1 stacked, ``off[ℓ]`` their first
+    rows; the texels apart)."""
+
+    def __init__(self, levels):
+        nodes = levels[1:]
+        counts = [lv.c.shape[0] for lv in nodes]
+        self.off = np.concatenate([[0, 0], np.cumsum(counts)[:-1]]).astype(np.int64)
+        self.grid_m = np.array([levels[0].m] + [lv.m for lv in nodes], dtype=np.int64)
+        self.top = len(levels) - 1
+
+        def cat(name):
+            return np.ascontiguousarray(np.concatenate([getattr(lv, name) for lv in nodes]))
+
+        self.nodes = (cat("c"), cat("cos_psi"), cat("sin_psi"), cat("valid"), cat("M0"), cat("U"), cat("V"),
+                      cat("trV"))
+        t = levels[0]
+        self.texels = (np.ascontiguousarray(t.c), np.ascontiguousarray(t.M0), np.ascontiguousarray(t.valid))
+
+
+def _ggx_tree_threads(threads, tiles, target, num, err, pairs, shared):
+    """:func:`~ibl_ref.groundtruth.kernels.numba_loops.ggx_tree` on ``threads`` threads, runs of consecutive tiles
+    taken in turn (each tile computed by one call as in a serial run: the result does not depend on ``threads``)."""
+    nt = tiles.size
+    threads = max(1, min(int(threads), nt // GGX_TILES_PER_RUN))
+    run_len = nt if threads == 1 else max(GGX_TILES_PER_RUN, -(-nt // (8 * threads)))
+    counts = np.zeros((-(-nt // max(run_len, 1)), pairs.size), np.int64)
+
+    def run(k, a, b):
+        numba_loops.ggx_tree(tiles[a:b], *shared[:3], target[a:b], *shared[3:], num[a:b], err[a:b], counts[k])
+
+    _in_threads(run, nt, run_len, threads, "ibl_ggx")
+    pairs += counts.sum(axis=0)
+
+
+#: tiles per run of a thread of the GGX tree (a run is ≥ a few ms of work)
+GGX_TILES_PER_RUN = 8
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -447,6 +502,22 @@ class CompiledKernels(NumpyKernels):
             out[k] = e_r * nb[k] + e_a * bw
         return out
 
+    def ggx_tree_pass(self, tree, kern, R, cT, betaT, sel, target, beta_share, hshare, threads=1):
+        """``(num, err, pairs)`` of the GGX tree route for the output tiles ``sel`` by
+        :func:`~ibl_ref.groundtruth.kernels.numba_loops.ggx_tree` (the refinement of the NumPy loops, per tile), the
+        tiles shared between ``threads`` threads."""
+        flat = tree.flat(_FlatTree)
+        t2, Q = R.shape[1], flat.texels[1].shape[1]
+        sel = np.ascontiguousarray(sel, dtype=np.int64)
+        num = np.zeros((sel.size, t2, Q))
+        err = np.zeros((sel.size, t2, Q))
+        pairs = np.zeros(flat.top + 1, np.int64)
+        shared = (np.ascontiguousarray(R), np.ascontiguousarray(cT), np.ascontiguousarray(betaT), float(beta_share),
+                  float(hshare), kern.a, kern.b,
+                  flat.off, flat.grid_m, flat.top, *flat.nodes, *flat.texels)
+        _ggx_tree_threads(threads, sel, np.ascontiguousarray(target, dtype=np.float64), num, err, pairs, shared)
+        return num, err, pairs
+
     # ------------------------------------------------------------------------------------------------------------
     # compiling and loading
     # ------------------------------------------------------------------------------------------------------------
@@ -497,6 +568,11 @@ def _exercise(stages):
         ae, ao = k.sh_project_octant(d, np.ones((d.shape[0], 2)), 2, sym.orb)
         k.sh_octant_values(d, ae, ao, 2, sym.orb)
         k.bright_gather(d, d[:2].copy(), np.ones((2, 2)), [2.0, 2.5])
+    if "ggx" in stages:
+        tree = GGXSourceTree(cube)
+        R = d.reshape(-1, 1, 3).copy()
+        CompiledKernels().ggx_tree_pass(tree, GGXLobeKernel(0.5), R, d.copy(), np.zeros(d.shape[0]),
+                                        np.arange(d.shape[0]), np.full(d.shape[0], 1e-3), 0.0, 0.1)
 
 
 def _warm_up_guarded(stages):

@@ -32,7 +32,7 @@ from numba.extending import intrinsic
 from .rounding import BRIGHT_GROUP, POINT_BLOCK, SH_BLOCK, VEC
 
 __all__ = ["exp_", "log_", "powi_", "tile_gather", "tile_bounds", "cap_count", "cone_extremes", "band_exact",
-           "band_brackets", "point_gather", "sh_project", "sh_matrix"]
+           "band_brackets", "point_gather", "sh_project", "sh_matrix", "ggx_tree"]
 
 #: numba's cache for these functions (``IBL_REF_NUMBA_CACHE=0``: none)
 CACHE = os.environ.get("IBL_REF_NUMBA_CACHE", "1").strip() != "0"
@@ -955,3 +955,292 @@ def sh_matrix(reps, L, row_of, cls_of, a_tab, b_tab, dest, out):
     ``out[dest[(ℓ + m) % 2, row_of[ℓ, m, kind]]]`` (so the rows of each octant class can be contiguous)."""
     blk, P = _sh_blocks(L)
     _sh_rows(reps, L, row_of, cls_of, a_tab, b_tab, P, out, out, dest, out, False, blk, P)
+
+
+# ----------------------------------------------------------------------------------------------
+# GGX n = v = r prefilter: the block-Taylor tree (ibl_ref.groundtruth.ggx_convolution)
+# ----------------------------------------------------------------------------------------------
+@_jit(fastmath={"contract"}, inline="always")
+def _ggx_k(x, a, b):
+    """K(x) = x / (a + b(1 − x))², 0 for x ≤ 0."""
+    if x <= 0.0:
+        return 0.0
+    iu = 1.0 / (a + b * (1.0 - x))
+    return x * iu * iu
+
+
+@_jit(fastmath={"contract"}, inline="always")
+def _ggx_d3(x, a, b):
+    """K'''(x) = 18 b² u⁻⁴ + 24 b³ x u⁻⁵, u = a + b(1 − x) (x ≥ 0)."""
+    iu = 1.0 / (a + b * (1.0 - x))
+    iu4 = (iu * iu) * (iu * iu)
+    return 18.0 * b * b * iu4 + 24.0 * b * b * b * x * iu4 * iu
+
+
+@_jit(fastmath={"contract"}, inline="always")
+def _ggx_span(ct, st, cb, sb):
+    """``(x_max, x_min, sin_max)`` over the angles [θ − β, θ + β] ∩ [0, π] (cos θ = ct, sin θ = st ≥ 0; cos β, sin β):
+    cos(θ ∓ β) = cos θ cos β ± sin θ sin β, no trigonometric calls (rounding ≤ 1e-15, inside the margins)."""
+    if ct >= cb:  # θ ≤ β
+        x_max = 1.0
+        s_lo = 0.0
+    else:
+        x_max = ct * cb + st * sb
+        s_lo = st * cb - ct * sb
+    if ct <= -cb:  # θ + β ≥ π
+        x_min = -1.0
+        s_hi = 0.0
+    else:
+        x_min = ct * cb - st * sb
+        s_hi = st * cb + ct * sb
+    return x_max, x_min, (1.0 if x_max >= 0.0 >= x_min else max(s_lo, s_hi))
+
+
+@_jit(fastmath={"contract"}, inline="always")
+def _ggx_pair(node, cx, cy, cz, cb, sb, cd, sd, hshare, a, b, NC, NCOS, NSIN, NM0, NTR, e):
+    """Tests of one (tile, block) pair (:func:`ibl_ref.groundtruth.kernels.numpy_backend.ggx_pairs`): ``(live,
+    k_centre)`` and the per-channel bound estimates in ``e``.  ``live`` (some texel of the block may be above some
+    output texel's horizon) and whether K is smooth on the pair for every texel use the tile's whole cone (cos β,
+    sin β = cb, sb); the estimates of a smooth pair its decision cone (cd, sd); ``k_centre`` = K at the tile's axis
+    (the block's share of the tile's estimate)."""
+    Q = NM0.shape[1]
+    ct = min(max(cx * NC[node, 0] + cy * NC[node, 1] + cz * NC[node, 2], -1.0), 1.0)
+    st = math.sqrt(max(1.0 - ct * ct, 0.0))
+    cp = NCOS[node]
+    spsi = NSIN[node]
+    x_max, x_min, sin_max = _ggx_span(ct, st, cb, sb)
+    delta = (1.0 - cp) * max(abs(x_min), abs(x_max)) + spsi * sin_max + 1e-15
+    if x_max + delta <= 0.0:
+        return False, 0.0
+    # near some texel's horizon that texel takes the bracket (≤ ½K(x_top)·M0 over the whole cone): a share hshare
+    # of it joins the estimate, so that a zero estimate always means a zero bound
+    h_full = hshare * 0.5 * _ggx_k(min(x_max + delta, 1.0), a, b) if x_min - delta <= 0.0 else 0.0
+    x_max, x_min, sin_max = _ggx_span(ct, st, cd, sd)
+    delta = (1.0 - cp) * max(abs(x_min), abs(x_max)) + spsi * sin_max + 1e-15
+    x_top = min(x_max + delta, 1.0)
+    half = 0.5 * _ggx_k(x_top, a, b)
+    c3 = _ggx_d3(x_top, a, b) * delta / 6.0 if x_min - delta > 0.0 else np.inf
+    for q in range(Q):
+        m0 = NM0[node, q]
+        e[q] = min(half * m0, c3 * min(delta * delta * m0, NTR[node, q])) + h_full * m0
+    return True, _ggx_k(ct, a, b)
+
+
+@_jit(fastmath={"contract"})
+def ggx_tree(tiles, R, cT, betaT, target, beta_share, hshare, a, b, off, grid_m, top, NC, NCOS, NSIN, NVALID, NM0, NU, NV,
+             NTR, TC, TW, TVALID, num, err, pairs):
+    """The sums of the tiles ``tiles`` (indices into ``R`` (T, t², 3), ``cT``, ``betaT``; row k of ``target``,
+    ``num``/``err`` (len(tiles), t², Q) belongs to ``tiles[k]``) over the source quadtree.
+
+    Per tile, greedy refinement in rounds: the live (tile, block) pairs, starting from the six faces, each with its
+    tile-level bound e_q (:func:`_ggx_pair`: Taylor remainder or zero-order half-width) and its estimate K(c_T·ĉ)·M0_q;
+    while the summed relative bound ``Σ_B max_q e_q/N̂_q + e_Ω/N̂_Ω`` (N̂ the estimates' sums) exceeds
+    ``target[k]``, every pair whose share is at least half the mean is split (a 2×2 block into its texels, summed
+    exactly).  Then every output texel of the tile sums the final pairs (Taylor sum or bracket midpoint, bound into
+    ``err``) and the texels.  Nodes of level ℓ ≥ 1 are rows ``off[ℓ] + index`` of the N* arrays (grid 6 × m × m,
+    ``m = grid_m[ℓ]``); texels are rows of TC/TW.  ``pairs[ℓ]`` counts the final pairs per level.  Float64; each
+    tile is computed in a fixed order (independent of how the tiles are shared out); the loops over the tile's
+    texels are straight-line code over structure-of-arrays copies (vectorisable)."""
+    Q = NM0.shape[1]
+    C = Q - 1
+    t2 = R.shape[1]
+    cap = 1024
+    cur_l = np.empty(cap, np.int64)
+    cur_i = np.empty(cap, np.int64)
+    cur_e = np.empty((cap, Q))
+    cur_s = np.empty((cap, Q))
+    nxt_l = np.empty(cap, np.int64)
+    nxt_i = np.empty(cap, np.int64)
+    nxt_e = np.empty((cap, Q))
+    nxt_s = np.empty((cap, Q))
+    metric = np.empty(cap)
+    tcap = 4096
+    tex = np.empty(tcap, np.int64)
+    e = np.empty(Q)
+    nh = np.empty(Q)
+    ex = np.empty(Q)
+    rx = np.empty(t2)
+    ry = np.empty(t2)
+    rz = np.empty(t2)
+    rr = np.empty((6, t2))
+    xk = np.empty(t2)
+    k0 = np.empty(t2)
+    k1 = np.empty(t2)
+    k2 = np.empty(t2)
+    hw = np.empty(t2)
+    c3v = np.empty(t2)
+    acc_n = np.empty((Q, t2))
+    acc_e = np.empty((Q, t2))
+    for k in range(tiles.shape[0]):
+        T = tiles[k]
+        cx, cy, cz = cT[T, 0], cT[T, 1], cT[T, 2]
+        beta = betaT[T] + 1e-9
+        cb = math.cos(beta)
+        sb = math.sin(beta)
+        cd = math.cos(beta_share * beta)
+        sd = math.sin(beta_share * beta)
+        n = 0
+        nt = 0
+        ex[:] = 0.0
+        for f in range(6):
+            node = off[top] + f
+            if not NVALID[node]:
+                continue
+            live, kc = _ggx_pair(node, cx, cy, cz, cb, sb, cd, sd, hshare, a, b, NC, NCOS, NSIN, NM0, NTR, e)
+            if live:
+                cur_l[n] = top
+                cur_i[n] = f
+                for q in range(Q):
+                    cur_e[n, q] = e[q]
+                    cur_s[n, q] = kc * NM0[node, q]
+                n += 1
+        # ---- greedy refinement ------------------------------------------------------------------------------------
+        while n > 0:
+            for q in range(Q):
+                nh[q] = ex[q]
+            for j in range(n):
+                for q in range(Q):
+                    nh[q] += cur_s[j, q]
+            total = 0.0
+            for j in range(n):
+                mt = 0.0
+                for q in range(C):
+                    if cur_e[j, q] > 0.0:
+                        v = cur_e[j, q] / nh[q] if nh[q] > 0.0 else np.inf
+                        if v > mt:
+                            mt = v
+                if cur_e[j, C] > 0.0:
+                    mt += cur_e[j, C] / nh[C] if nh[C] > 0.0 else np.inf
+                metric[j] = mt
+                total += mt
+            if total <= target[k]:
+                break
+            thr = total / (2.0 * n)
+            # the next list: kept pairs and the children of the split ones (at most 4 per pair)
+            if 4 * n > nxt_l.shape[0]:
+                m_ = 4 * n
+                nxt_l = np.empty(m_, np.int64)
+                nxt_i = np.empty(m_, np.int64)
+                nxt_e = np.empty((m_, Q))
+                nxt_s = np.empty((m_, Q))
+            n2 = 0
+            for j in range(n):
+                li = cur_l[j]
+                if metric[j] < thr:
+                    nxt_l[n2] = li
+                    nxt_i[n2] = cur_i[j]
+                    for q in range(Q):
+                        nxt_e[n2, q] = cur_e[j, q]
+                        nxt_s[n2, q] = cur_s[j, q]
+                    n2 += 1
+                    continue
+                idx = cur_i[j]
+                m = grid_m[li]
+                f = idx // (m * m)
+                rem = idx - f * m * m
+                bi = rem // m
+                bj = rem - bi * m
+                m2 = 2 * m
+                base = f * m2 * m2 + 2 * bi * m2 + 2 * bj
+                for c in range(4):
+                    ci = base + (c & 1) + (c >> 1) * m2
+                    if li == 1:  # a texel: exact, its share of the estimate fixed
+                        if not TVALID[ci]:
+                            continue
+                        if nt >= tex.shape[0]:
+                            t_new = np.empty(2 * tex.shape[0], np.int64)
+                            t_new[:nt] = tex[:nt]
+                            tex = t_new
+                        tex[nt] = ci
+                        nt += 1
+                        kc = _ggx_k(cx * TC[ci, 0] + cy * TC[ci, 1] + cz * TC[ci, 2], a, b)
+                        for q in range(Q):
+                            ex[q] += kc * TW[ci, q]
+                        continue
+                    node = off[li - 1] + ci
+                    if not NVALID[node]:
+                        continue
+                    live, kc = _ggx_pair(node, cx, cy, cz, cb, sb, cd, sd, hshare, a, b, NC, NCOS, NSIN, NM0, NTR, e)
+                    if live:
+                        nxt_l[n2] = li - 1
+                        nxt_i[n2] = ci
+                        for q in range(Q):
+                            nxt_e[n2, q] = e[q]
+                            nxt_s[n2, q] = kc * NM0[node, q]
+                        n2 += 1
+            cur_l, nxt_l = nxt_l, cur_l
+            cur_i, nxt_i = nxt_i, cur_i
+            cur_e, nxt_e = nxt_e, cur_e
+            cur_s, nxt_s = nxt_s, cur_s
+            n = n2
+            if metric.shape[0] < n:
+                metric = np.empty(2 * n)
+        # ---- every output texel of the tile: the final pairs and the texels ------------------------------------
+        for i in range(t2):
+            x0, x1, x2 = R[T, i, 0], R[T, i, 1], R[T, i, 2]
+            rx[i] = x0
+            ry[i] = x1
+            rz[i] = x2
+            rr[0, i] = x0 * x0
+            rr[1, i] = 2.0 * x0 * x1
+            rr[2, i] = 2.0 * x0 * x2
+            rr[3, i] = x1 * x1
+            rr[4, i] = 2.0 * x1 * x2
+            rr[5, i] = x2 * x2
+        acc_n[:] = 0.0
+        acc_e[:] = 0.0
+        for j in range(n):
+            li = cur_l[j]
+            node = off[li] + cur_i[j]
+            pairs[li] += 1
+            cp = NCOS[node]
+            spsi = NSIN[node]
+            nx, ny, nz = NC[node, 0], NC[node, 1], NC[node, 2]
+            # per output texel: the bracket 0 ≤ K ≤ K(x + δ) (half-width hw) and, where K is smooth on [x − δ, x + δ],
+            # the Taylor coefficients and the remainder per unit of rᵀVr (c3; inf where not smooth)
+            for i in range(t2):
+                x = rx[i] * nx + ry[i] * ny + rz[i] * nz
+                dl = (1.0 - cp) * abs(x) + spsi * math.sqrt(max(1.0 - x * x, 0.0)) + 1e-15
+                xt = min(x + dl, 1.0)
+                ut = 1.0 / (a + b * (1.0 - xt))
+                hw[i] = 0.5 * max(xt, 0.0) * ut * ut
+                xs = x if x - dl > 0.0 else 1.0
+                iu = 1.0 / (a + b * (1.0 - xs))
+                iu2 = iu * iu
+                k0[i] = xs * iu2
+                k1[i] = iu2 + 2.0 * b * xs * iu2 * iu
+                k2[i] = 0.5 * (4.0 * b * iu2 * iu + 6.0 * b * b * xs * iu2 * iu2)
+                ut4 = (ut * ut) * (ut * ut)
+                c3v[i] = (18.0 * b * b * ut4 + 24.0 * b * b * b * xt * ut4 * ut) * dl / 6.0 if x - dl > 0.0 else np.inf
+            for q in range(Q):
+                u0, u1, u2 = NU[node, 0, q], NU[node, 1, q], NU[node, 2, q]
+                v0, v1, v2 = NV[node, 0, q], NV[node, 1, q], NV[node, 2, q]
+                v3, v4, v5 = NV[node, 3, q], NV[node, 4, q], NV[node, 5, q]
+                mq = NM0[node, q]
+                for i in range(t2):
+                    s2 = (rr[0, i] * v0 + rr[1, i] * v1 + rr[2, i] * v2 + rr[3, i] * v3 + rr[4, i] * v4
+                          + rr[5, i] * v5)
+                    et = c3v[i] * s2
+                    hm = hw[i] * mq
+                    if et < hm:
+                        acc_n[q, i] += k0[i] * mq + k1[i] * (rx[i] * u0 + ry[i] * u1 + rz[i] * u2) + k2[i] * s2
+                        acc_e[q, i] += et
+                    else:
+                        acc_n[q, i] += hm
+                        acc_e[q, i] += hm
+        pairs[0] += nt
+        for j in range(nt):
+            ti = tex[j]
+            tx, ty, tz = TC[ti, 0], TC[ti, 1], TC[ti, 2]
+            for i in range(t2):
+                x = max(rx[i] * tx + ry[i] * ty + rz[i] * tz, 0.0)
+                iu = 1.0 / (a + b * (1.0 - x))
+                xk[i] = x * iu * iu
+            for q in range(Q):
+                w = TW[ti, q]
+                for i in range(t2):
+                    acc_n[q, i] += xk[i] * w
+        for i in range(t2):
+            for q in range(Q):
+                num[k, i, q] = acc_n[q, i]
+                err[k, i, q] = acc_e[q, i]

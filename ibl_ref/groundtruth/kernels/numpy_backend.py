@@ -28,7 +28,7 @@ from . import Kernels
 from .rounding import sum_error, weight_error
 
 __all__ = ["NumpyKernels", "SparseGather", "Sources", "tile_bounds", "band_exact", "band_brackets", "bright_gather",
-           "SYM_PAIRS", "ANGLE_MARGIN", "MOMENT_CHUNK_PAIRS",
+           "ggx_tree_pass", "quad_children", "SYM_PAIRS", "ANGLE_MARGIN", "MOMENT_CHUNK_PAIRS",
            "column_extremes"]
 
 
@@ -764,6 +764,194 @@ def bright_gather(out_dirs, b_dirs, b_w, s_list, chunk_elems=1 << 22):
 
 
 # ----------------------------------------------------------------------------------------------------------------
+# GGX n = v = r prefilter: the block-Taylor tree (ibl_ref.groundtruth.ggx_convolution states the tests and the bound).
+# The (tile, block) pairs are refined round by round as arrays (ggx_refine), then the final ones summed per
+# output texel (ggx_evaluate); numba_loops.ggx_tree makes the same decisions depth first per tile.
+# ----------------------------------------------------------------------------------------------------------------
+#: angular margin (rad) of the tile cones (arccos rounding)
+GGX_ANGLE_EPS = 1e-9
+#: absolute margin of δ (the rounding of x_B = r·ĉ)
+GGX_DELTA_EPS = 1e-15
+#: largest (pair × texel-of-tile × channel) elements evaluated at once
+GGX_CHUNK_ELEMS = 1 << 20
+#: output tiles classified at once (× t² texels ≤ this)
+GGX_CHUNK_TEXELS = 4096
+#: the weights of the 6 entries of a symmetric 3×3 matrix (:data:`SYM_PAIRS`) in rᵀVr
+GGX_SYM_W = np.array([1.0, 2.0, 2.0, 1.0, 2.0, 1.0])
+
+
+def quad_children(blk, m):
+    """Flat child indices (4 per parent) of blocks ``blk`` on a 6×m×m grid → grid 6×2m×2m."""
+    f, rem = np.divmod(blk, m * m)
+    i, j = np.divmod(rem, m)
+    m2 = 2 * m
+    base = f * m2 * m2 + 2 * i * m2 + 2 * j
+    return (base[:, None] + np.array([0, 1, m2, m2 + 1])[None, :]).ravel()
+
+
+def _ggx_span(ct, st, c_b, s_b):
+    """``(x_max, x_min, sin_max)`` over the angles [θ − β, θ + β] ∩ [0, π] (cos θ = ct, sin θ = st ≥ 0):
+    cos(θ ∓ β) = cos θ cos β ± sin θ sin β."""
+    inside = ct >= c_b  # θ ≤ β
+    x_max = np.where(inside, 1.0, ct * c_b + st * s_b)
+    s_lo = np.where(inside, 0.0, st * c_b - ct * s_b)
+    beyond = ct <= -c_b  # θ + β ≥ π
+    x_min = np.where(beyond, -1.0, ct * c_b - st * s_b)
+    s_hi = np.where(beyond, 0.0, st * c_b + ct * s_b)
+    return x_max, x_min, np.where((x_max >= 0.0) & (x_min <= 0.0), 1.0, np.maximum(s_lo, s_hi))
+
+
+def ggx_pairs(L, kern, cT, cone, dcone, hshare, tiles, blk):
+    """Tests of the (tile, block) pairs ``(tiles, blk)`` of level ``L`` (module docstring of
+    :mod:`ibl_ref.groundtruth.ggx_convolution`): ``(live, e, k_centre)`` — whether some texel of the block may be above
+    some output texel's horizon (over the tile's whole cone, ``cone`` = (cos β, sin β) per tile: rigorous); the
+    per-channel bound estimates ``e`` (pairs, Q): where K is smooth on the pair for every texel of the tile, over its
+    decision cone ``dcone`` the smaller of the zero-order bracket's half-width ½K(x_top)·M0 and the Taylor remainder
+    K'''(x_top)/6 · δ · min(δ² M0, tr V), elsewhere the bracket's half-width over the whole cone (which some texel
+    takes); K at the tile's axis (the block's share of the tile's estimate)."""
+    ct = np.clip(np.einsum("pk,pk->p", cT[tiles], L.c[blk]), -1.0, 1.0)
+    st = np.sqrt(np.maximum(1.0 - ct * ct, 0.0))
+    cp, sp = L.cos_psi[blk], L.sin_psi[blk]
+    x_max, x_min, sin_max = _ggx_span(ct, st, cone[0][tiles], cone[1][tiles])
+    delta = (1.0 - cp) * np.maximum(np.abs(x_min), np.abs(x_max)) + sp * sin_max + GGX_DELTA_EPS
+    live = x_max + delta > 0.0
+    M0 = L.M0[blk]
+    # near some texel's horizon that texel takes the bracket (≤ ½K(x_top)·M0 over the whole cone): a share hshare of
+    # it joins the estimate, so that a zero estimate always means a zero bound
+    h_full = np.where(x_min - delta <= 0.0, hshare * 0.5 * kern.value(np.minimum(x_max + delta, 1.0)), 0.0)
+    x_max, x_min, sin_max = _ggx_span(ct, st, dcone[0][tiles], dcone[1][tiles])
+    delta = (1.0 - cp) * np.maximum(np.abs(x_min), np.abs(x_max)) + sp * sin_max + GGX_DELTA_EPS
+    x_top = np.minimum(x_max + delta, 1.0)
+    e = 0.5 * kern.value(x_top)[:, None] * M0
+    smooth = x_min - delta > 0.0
+    if smooth.any():
+        c3 = kern.d3(x_top[smooth]) * delta[smooth] / 6.0
+        eT = c3[:, None] * np.minimum((delta[smooth] ** 2)[:, None] * M0[smooth], L.trV[blk[smooth]])
+        e[smooth] = np.minimum(e[smooth], eT)
+    return live, e + h_full[:, None] * M0, kern.value(ct)
+
+
+def _tile_sums(tiles, x, T):
+    """Per tile the column sums of ``x`` (pairs, k) → (T, k)."""
+    return np.stack([np.bincount(tiles, weights=x[:, q], minlength=T) for q in range(x.shape[1])], axis=1)
+
+
+def ggx_refine(levels, kern, cT, betaT, target, beta_share, hshare):
+    """Greedy refinement of one chunk of output tiles (:func:`ibl_ref.groundtruth.kernels.numba_loops.ggx_tree`
+    states the rule), as arrays over all the chunk's tiles at once, round by round: ``{level: (tiles, blocks)}`` of
+    the final pairs, level 0 the texels."""
+    T = cT.shape[0]
+    top = len(levels) - 1
+    Q = levels[0].M0.shape[1]
+    C = Q - 1
+    beta = betaT + GGX_ANGLE_EPS
+    cone, dcone = (np.cos(beta), np.sin(beta)), (np.cos(beta_share * beta), np.sin(beta_share * beta))
+    final = {li: [] for li in range(top + 1)}
+    ex = np.zeros((T, Q))
+
+    def enter(tiles, blk, li):
+        """The live pairs at level ``li``: (tiles, blk, level, e, s)."""
+        L = levels[li]
+        ok = L.valid[blk]
+        tiles, blk = tiles[ok], blk[ok]
+        live, e, kc = ggx_pairs(L, kern, cT, cone, dcone, hshare, tiles, blk)
+        return tiles[live], blk[live], np.full(int(live.sum()), li), e[live], kc[live][:, None] * L.M0[blk[live]]
+
+    state = enter(np.repeat(np.arange(T), 6), np.tile(np.arange(6), T), top)
+    while state[0].size:
+        tiles, blk, lev, e, s = state
+        nh = ex + _tile_sums(tiles, s, T)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rel = np.where(e > 0.0, e / nh[tiles], 0.0)
+        metric = rel[:, :C].max(axis=1) + rel[:, C]
+        total = np.bincount(tiles, weights=metric, minlength=T)
+        count = np.bincount(tiles, minlength=T)
+        done = (total <= target)[tiles]
+        split = ~done & (metric >= (total / np.maximum(2.0 * count, 1.0))[tiles])
+        for li in np.unique(lev[done]):
+            sel = done & (lev == li)
+            final[li].append((tiles[sel], blk[sel]))
+        stay = ~done & ~split
+        parts = [tuple(x[stay] for x in state)]
+        for li in np.unique(lev[split]):
+            sel = split & (lev == li)
+            ct_, cb_ = np.repeat(tiles[sel], 4), quad_children(blk[sel], levels[li].m)
+            if li == 1:  # texels: exact, their share of the estimate fixed
+                ok = levels[0].valid[cb_]
+                ct_, cb_ = ct_[ok], cb_[ok]
+                final[0].append((ct_, cb_))
+                kc = kern.value(np.einsum("pk,pk->p", cT[ct_], levels[0].c[cb_]))
+                ex += _tile_sums(ct_, kc[:, None] * levels[0].M0[cb_], T)
+                continue
+            parts.append(enter(ct_, cb_, li - 1))
+        state = tuple(np.concatenate([p[k] for p in parts]) for k in range(5))
+    return {li: tuple(np.concatenate([c[k] for c in chunks]) for k in range(2))
+            for li, chunks in final.items() if chunks}
+
+
+def _scatter_add(out, idx, vals):
+    """``out[idx[k]] += vals[k]`` (indices may repeat), by a stable sort and a segmented sum."""
+    if not idx.size:
+        return
+    order = np.argsort(idx, kind="stable")
+    idx_s = idx[order]
+    starts = np.flatnonzero(np.r_[True, idx_s[1:] != idx_s[:-1]])
+    out[idx_s[starts]] += np.add.reduceat(vals[order], starts, axis=0)
+
+
+def ggx_evaluate(levels, kern, R, accepted, num, err):
+    """Add the final pairs' sums and absolute bounds to ``num``/``err`` ((tiles, t², Q)) of the chunk, per output
+    texel r and channel the better of two rigorous brackets of the block's sum: the Taylor sum
+    ``K(x_B) M0 + K'(x_B) r·U + ½K''(x_B) rᵀVr`` with the remainder bound ``K'''(x_B + δ)/6 · δ · rᵀVr`` (where
+    x_B − δ > 0) or the zero-order bracket, midpoint and half-width ``½K(x_B + δ)·M0``; texels exactly."""
+    t2, Q = R.shape[1], num.shape[-1]
+    step = max(1, GGX_CHUNK_ELEMS // (t2 * Q))
+    i, j = SYM_PAIRS
+    for li, (tiles, blk) in accepted.items():
+        L = levels[li]
+        for k0 in range(0, tiles.size, step):
+            tl, bk = tiles[k0:k0 + step], blk[k0:k0 + step]
+            Rt = R[tl]  # (p, t², 3)
+            M0 = L.M0[bk][:, None, :]  # (p, 1, Q)
+            x = np.einsum("pik,pk->pi", Rt, L.c[bk])
+            if li == 0:  # single texels: the exact term
+                _scatter_add(num, tl, kern.value(x)[..., None] * M0)
+                continue
+            delta = ((1.0 - L.cos_psi[bk])[:, None] * np.abs(x)
+                     + L.sin_psi[bk][:, None] * np.sqrt(np.maximum(1.0 - x * x, 0.0)) + GGX_DELTA_EPS)
+            x_top = np.minimum(x + delta, 1.0)
+            smooth = x - delta > 0.0
+            hm = 0.5 * kern.value(x_top)[..., None] * M0
+            K0, K1, K2 = kern.taylor(np.where(smooth, x, 1.0))
+            s2 = np.matmul(Rt[..., i] * Rt[..., j] * GGX_SYM_W, L.V[bk])  # Σ w (x − x_B)² = rᵀVr
+            with np.errstate(invalid="ignore"):
+                eT = np.where(smooth, kern.d3(np.where(smooth, x_top, 0.0)) * delta / 6.0, np.inf)[..., None] * s2
+            use_t = eT < hm
+            est = K0[..., None] * M0 + K1[..., None] * np.matmul(Rt, L.U[bk]) + 0.5 * K2[..., None] * s2
+            _scatter_add(num, tl, np.where(use_t, est, hm))
+            _scatter_add(err, tl, np.where(use_t, eT, hm))
+
+
+def ggx_tree_pass(tree, kern, R, cT, betaT, sel, target, beta_share, hshare):
+    """``(num, err, pairs)``: the sums and absolute bounds ((len(sel), t², Q)) of the output tiles ``sel``, each refined
+    until its summed relative bound estimate is at most ``target[k]`` (:func:`ggx_refine`), and the final pairs per
+    level; in chunks of :data:`GGX_CHUNK_TEXELS` output texels."""
+    levels = tree.levels
+    t2, Q = R.shape[1], levels[0].M0.shape[1]
+    num = np.zeros((sel.size, t2, Q))
+    err = np.zeros((sel.size, t2, Q))
+    pairs = np.zeros(len(levels), np.int64)
+    step = max(1, GGX_CHUNK_TEXELS // t2)
+    for c0 in range(0, sel.size, step):
+        ch = sel[c0:c0 + step]
+        acc = ggx_refine(levels, kern, cT[ch], betaT[ch], target[c0:c0 + step], beta_share, hshare)
+        for li, (tl, _) in acc.items():
+            pairs[li] += tl.size
+        ggx_evaluate(levels, kern, R[ch], acc, num[c0:c0 + step], err[c0:c0 + step])
+    return num, err, pairs
+
+
+# ----------------------------------------------------------------------------------------------------------------
 # the backend
 # ----------------------------------------------------------------------------------------------------------------
 class NumpyKernels(Kernels, NumpySH):
@@ -815,3 +1003,8 @@ class NumpyKernels(Kernels, NumpySH):
         """Absolute rounding allowance of :meth:`bright_gather`'s sums ``nb`` beyond the 1e-12 every SH bound carries
         (None: nothing to add)."""
         return None
+
+    def ggx_tree_pass(self, tree, kern, R, cT, betaT, sel, target, beta_share, hshare, threads=1):
+        """``(num, err, pairs)`` of the GGX tree route for the output tiles ``sel`` (:func:`ggx_tree_pass`; one
+        thread)."""
+        return ggx_tree_pass(tree, kern, R, cT, betaT, sel, target, beta_share, hshare)

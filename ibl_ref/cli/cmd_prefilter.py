@@ -1,0 +1,162 @@
+"""``ibl-ref prefilter``: the exact ``n = v = r`` GGX level chain of an environment, with its per-level bound.
+
+Level ℓ of L (face size ``max(N >> ℓ, --min-level-size)``) holds the split sum's prefiltered radiance (Karis 2013,
+Eq. 8) at the roughness of the level under ``--mapping`` (:func:`ibl_ref.prefilter.karis2013.roughness_of_level`:
+``filament`` — Filament's cmgen and run time, lod = r(2 − r) — or ``linear``); level 0 is the source (roughness 0,
+the mirror).  Every other level is the exact prefilter within ``--rtol`` at every texel
+(:func:`ibl_ref.groundtruth.ggx_convolution.convolve_ggx_levels`, one source tree for the chain).
+
+Output naming (``--layout``): ``cube`` (default), one OpenEXR cube per level, OUT with ``_l{ℓ}`` inserted before
+the extension (``chain.exr`` → ``chain_l0.exr`` … ``chain_l4.exr``) and the JSON sidecar OUT.json; ``cmgen``, OUT
+is a folder that gets Filament's cmgen layout, ``m<ℓ>_<face>.exr`` per level and face (faces px nx py ny pz nz in
+the OpenGL orientation, float32 RGB: :func:`ibl_ref.prefilter.cmgen_peer.write_level`), and ``OUT/prefilter.json``.
+The JSON holds the mapping and the roughness, face size, largest bound and seconds of every level.  Like
+``convolve``, the set replaces only files the previous run for the same OUT wrote, and is written whole or not at
+all (:class:`ibl_ref.atomic.OutputSet`).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from ..errors import IBLError
+from .radiance_args import add_radiance_args
+
+
+def level_path(out, level: int) -> Path:
+    """``OUT`` with ``_l{level}`` inserted before the extension."""
+    out = Path(out)
+    return out.with_name(f"{out.stem}_l{int(level)}{out.suffix or '.exr'}")
+
+
+def _cube_layout(out, n_levels):
+    """(side file, [[file of level ℓ]]): OUT_l{ℓ}.exr cubes and OUT.json."""
+    return Path(out).with_suffix(".json"), [[level_path(out, lv)] for lv in range(n_levels)]
+
+
+def _cmgen_layout(out, n_levels):
+    """(side file, [[6 files of level ℓ]]): cmgen's OUT/m{ℓ}_{face}.exr and OUT/prefilter.json."""
+    from ..prefilter.cmgen_peer import FACES, level_file
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise IBLError(f"OUT {out} is a file; --layout cmgen writes a folder")
+    return out / "prefilter.json", [[level_file(out, lv, f) for f in FACES] for lv in range(n_levels)]
+
+
+def _write_cube(paths, m):
+    from ..environment.exr_io import write_envmap
+
+    write_envmap(paths[0], m, layout="cube")
+
+
+def _write_cmgen(paths, m):
+    from ..prefilter.cmgen_peer import write_level
+
+    write_level(paths, m)
+
+
+#: --layout: where the files of each level go, and how one level is written
+LAYOUTS = {"cube": _cube_layout, "cmgen": _cmgen_layout}
+WRITERS = {"cube": _write_cube, "cmgen": _write_cmgen}
+
+
+def _power_of_two(v, name) -> int:
+    if v < 1 or v & (v - 1):
+        raise IBLError(f"{name} must be a power of two >= 1, got {v}")
+    return v
+
+
+def cmd_prefilter(args) -> int:
+    import numpy as np
+
+    from ..atomic import OutputSet, check_side_files, refuse_overwriting_inputs
+    from ..groundtruth.ggx_convolution import LAST_INFO, convolve_ggx_levels
+    from ..limits import check_rtol
+    from ..prefilter.karis2013 import roughness_of_level
+    from ..progress import step
+    from .radiance_args import load_env
+
+    rtol = check_rtol(args.rtol, "--rtol")
+    size = _power_of_two(args.size, "--size") if args.size is not None else None
+    min_size = _power_of_two(args.min_level_size, "--min-level-size")
+    if args.threads is not None and args.threads < 1:
+        raise IBLError(f"--threads must be >= 1, got {args.threads}")
+    t0 = time.perf_counter()
+    cube, radiance = load_env(args, args.input, size)
+    n = cube.shape[1]
+    _power_of_two(n, "the face size of IN (give --size)")
+    n_levels = max(2, n.bit_length() - max(min_size, 1).bit_length() + 1) if min_size < n else 1
+    if n_levels < 2:
+        raise IBLError(f"--min-level-size {min_size} leaves no level below the {n}² source")
+    rough = [float(r) for r in roughness_of_level(np.arange(n_levels), n_levels, args.mapping)]
+    sizes = [max(n >> lv, min_size) for lv in range(n_levels)]
+    side, files = LAYOUTS[args.layout](args.output, n_levels)  # files[ℓ]: the file(s) of level ℓ
+    paths = [p for level in files for p in level]
+    refuse_overwriting_inputs({"IN": args.input}, [("OUT", side)] + [("OUT", p) for p in paths])
+    check_side_files(side, paths, "outputs", "OUT")  # never replace a file the user did not name
+    t_read = time.perf_counter() - t0
+    with step(f"prefiltering {n}² faces into {n_levels - 1} GGX level(s), mapping {args.mapping}, rtol {rtol:g}"):
+        out = convolve_ggx_levels(cube, list(zip(rough[1:], sizes[1:])), rtol=rtol, kernel=args.kernel,
+                                  threads=args.threads)
+    info = dict(LAST_INFO)
+    levels = [{"level": 0, "roughness": 0.0, "face_size": n, "rel_bound_max": 0.0, "seconds": 0.0}]
+    for lv, ((m, b), li) in enumerate(zip(out, info["levels"]), 1):
+        levels.append({"level": lv, "roughness": rough[lv], "face_size": sizes[lv], "rel_bound_max": float(b.max()),
+                       "seconds": li["seconds"]})
+    outs = OutputSet(side, owned_key="outputs", keep=[args.input])
+    with outs:
+        for level_files, m in zip(files, [cube] + [m for m, _ in out]):
+            WRITERS[args.layout]([outs.path(p) for p in level_files], m)
+        outs.commit({"input": str(args.input), "outputs": [str(p) for p in paths], "lobe": "ggx n = v = r",
+                     "layout": args.layout, "mapping": args.mapping, "rtol": rtol, "levels": levels,
+                     "kernel": info.get("kernel"),
+                     "radiance": radiance,
+                     "seconds": {"read": t_read, "tree": info.get("tree_s"), "kernel_load": info.get("kernel_load_s"),
+                                 "total": time.perf_counter() - t0}})
+    for e in levels[1:]:
+        print(f"level {e['level']}: roughness {e['roughness']:.4f}, {e['face_size']}² faces, rel. bound max "
+              f"{e['rel_bound_max']:.2e} ({e['seconds']:.2f} s)")
+    print(f"total {time.perf_counter() - t0:.2f} s ({info.get('kernel')} kernels); wrote {len(paths)} file(s) and "
+          f"{side}")
+    return 0
+
+
+def register(sub) -> None:
+    from ..prefilter.karis2013 import ROUGHNESS_MAPPINGS
+
+    p = sub.add_parser(
+        "prefilter",
+        help="the exact GGX (n = v = r) level chain of an environment, with a rigorous per-level bound",
+        description=(
+            "Prefilter an environment into a GGX MIP chain as engines store it for the split sum (Karis 2013): "
+            "level 0 is the source, level l holds the n = v = r prefilter at the roughness of its level under "
+            "--mapping (filament: Filament's cmgen and run time, lod = r(2 - r); linear: glTF-IBL-Sampler), each "
+            "exact within --rtol at every texel. Writes OUT with _l{l} inserted before the extension (one OpenEXR "
+            "cube per level; --layout cmgen: cmgen's per-face files) and OUT.json with the roughness, size and "
+            "bound of every level."
+        ),
+    )
+    p.add_argument("input", metavar="IN", help="environment map (OpenEXR cube / lat-long / cross, .hdr)")
+    p.add_argument("output", metavar="OUT",
+                   help="output name: with --layout cube, _l{level} is inserted before the extension; with --layout "
+                        "cmgen, a folder")
+    p.add_argument("--layout", choices=tuple(LAYOUTS), default="cube",
+                   help="cube (default): one OpenEXR cube per level, OUT_l{level}.exr, and OUT.json; cmgen: Filament "
+                        "cmgen's files OUT/m{level}_{face}.exr (OpenGL faces px nx py ny pz nz, float32) and "
+                        "OUT/prefilter.json")
+    p.add_argument("--size", type=int, default=None, metavar="N",
+                   help="face size of level 0 (a power of two; the input is resampled to it; default: its own)")
+    p.add_argument("--min-level-size", type=int, default=16, metavar="M",
+                   help="face size of the last level (default 16, cmgen's; 256² gives 5 levels)")
+    p.add_argument("--mapping", choices=tuple(ROUGHNESS_MAPPINGS), default="filament",
+                   help="roughness of each level (default filament)")
+    p.add_argument("--rtol", type=float, default=1e-3, help="largest relative error per texel (default 1e-3)")
+    p.add_argument("--kernel", choices=("auto", "numpy", "compiled"), default=None,
+                   help="inner loops: numpy or compiled (numba); default $IBL_REF_KERNEL or auto")
+    p.add_argument("--threads", type=int, default=None, metavar="T",
+                   help="threads of the compiled kernels (default $IBL_REF_WORKERS or min(2, CPUs)); the maps do "
+                        "not depend on it")
+    add_radiance_args(p)
+    p.set_defaults(func=cmd_prefilter)

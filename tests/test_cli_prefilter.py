@@ -1,0 +1,159 @@
+"""``ibl-ref prefilter``: the exact GGX level chain as files (ibl_ref/cli/cmd_prefilter.py).
+
+Every level is checked against the dense texel sum (:func:`ibl_ref.prefilter.karis2013.prefilter_dense`, exact to
+float64 rounding: an independent route) within the bound the command reports; the roughness of each level against
+the mapping's closed form; bad input gets one line and writes nothing; a file the lab did not write is never
+replaced.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from ibl_ref.cli import main
+from ibl_ref.environment.exr_io import load_cube, write_envmap
+from ibl_ref.prefilter.karis2013 import prefilter_dense
+from ibl_ref.synthetic.synthetic_envs import make_env
+
+N = 16
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory):
+    p = tmp_path_factory.mktemp("prefilter_cli") / "sky.exr"
+    write_envmap(p, make_env("sky_sun", n=N), layout="cube")
+    return p
+
+
+def _one_line_error(capsys):
+    err = capsys.readouterr().err.strip()
+    assert err and len(err.splitlines()) == 1, err
+    return err
+
+
+@pytest.mark.parametrize("mapping, roughness", [
+    ("filament", [0.0, 1.0 - np.sqrt(0.5), 1.0]),  # r = 1 − √(1 − lod), lod = 0, ½, 1
+    ("linear", [0.0, 0.5, 1.0]),
+])
+def test_every_level_is_the_dense_sum_within_its_bound(env, tmp_path, capsys, mapping, roughness):
+    out = tmp_path / "chain.exr"
+    rtol = 1e-3
+    argv = ["prefilter", env, out, "--min-level-size", "4", "--mapping", mapping, "--rtol", rtol, "--kernel",
+            "numpy"]
+    assert main([str(a) for a in argv]) == 0
+    assert "level 2" in capsys.readouterr().out
+    side = json.loads((tmp_path / "chain.json").read_text())
+    levels = side["levels"]
+    assert [e["face_size"] for e in levels] == [16, 8, 4]
+    np.testing.assert_allclose([e["roughness"] for e in levels], roughness, rtol=1e-12, atol=1e-15)
+    src = load_cube(env)
+    np.testing.assert_array_equal(load_cube(tmp_path / "chain_l0.exr"), src)  # level 0: the source itself
+    for e in levels[1:]:
+        got = load_cube(tmp_path / f"chain_l{e['level']}.exr")
+        ref = prefilter_dense(src, e["roughness"], out_size=e["face_size"])
+        rel = np.abs(got - ref) / ref
+        # the bound the command reports, plus the float32 rounding of the EXR file (2^-24 relative)
+        assert 0.0 < e["rel_bound_max"] <= rtol
+        assert rel.max() <= e["rel_bound_max"] + 2.0 ** -23, (e, rel.max())
+    assert side["mapping"] == mapping and side["rtol"] == rtol
+    assert sorted(side["outputs"]) == sorted(str(tmp_path / f"chain_l{k}.exr") for k in range(3))
+    # its own files: a second run replaces them
+    assert main([str(a) for a in argv]) == 0
+
+
+def test_the_chain_does_not_depend_on_the_kernel(env, tmp_path):
+    pytest.importorskip("numba")
+    for k in ("numpy", "compiled"):
+        assert main(["prefilter", str(env), str(tmp_path / f"{k}.exr"), "--min-level-size", "8", "--kernel", k]) == 0
+    a, b = load_cube(tmp_path / "numpy_l1.exr"), load_cube(tmp_path / "compiled_l1.exr")
+    bound = json.loads((tmp_path / "numpy.json").read_text())["levels"][1]["rel_bound_max"]
+    assert np.max(np.abs(a - b) / a) <= 2 * bound + 2.0 ** -23
+
+
+@pytest.mark.parametrize("extra, words", [
+    (["--size", "12"], "--size must be a power of two"),
+    (["--min-level-size", "3"], "--min-level-size must be a power of two"),
+    (["--min-level-size", "16"], "leaves no level"),
+    (["--rtol", "0"], "rtol"),
+    (["--rtol", "nan"], "rtol"),
+    (["--threads", "0"], "--threads"),
+])
+def test_bad_options_give_one_line_and_write_nothing(env, tmp_path, capsys, extra, words):
+    out = tmp_path / "x.exr"
+    assert main(["prefilter", str(env), str(out)] + extra) != 0
+    assert words in _one_line_error(capsys)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_source_that_is_not_a_power_of_two_asks_for_size(tmp_path, capsys):
+    p = tmp_path / "odd.exr"
+    write_envmap(p, make_env("sky_sun", n=12), layout="cube")
+    assert main(["prefilter", str(p), str(tmp_path / "o.exr")]) != 0
+    assert "give --size" in _one_line_error(capsys)
+    assert main(["prefilter", str(p), str(tmp_path / "o.exr"), "--size", "8", "--min-level-size", "4",
+                 "--kernel", "numpy"]) == 0
+    assert load_cube(tmp_path / "o_l0.exr").shape[1] == 8
+
+
+def test_nonfinite_radiance_is_refused(tmp_path, capsys):
+    from ibl_ref.environment.exr_io import ExrPart, write_exr
+
+    img = np.ones((16, 32, 3), np.float32)  # a lat-long map with one NaN texel
+    img[5, 7, 1] = np.nan
+    p = tmp_path / "nan.exr"
+    write_exr(p, ExrPart(img, ("R", "G", "B")))
+    assert main(["prefilter", str(p), str(tmp_path / "o.exr"), "--size", "8"]) != 0
+    assert "nan" in _one_line_error(capsys).lower()
+    assert not list(tmp_path.glob("o*"))
+
+
+@pytest.mark.parametrize("victim", ["chain.json", "chain_l1.exr"])
+def test_files_the_lab_did_not_write_are_not_replaced(env, tmp_path, capsys, victim):
+    (tmp_path / victim).write_text("mine")
+    assert main(["prefilter", str(env), str(tmp_path / "chain.exr"), "--min-level-size", "8"]) != 0
+    err = _one_line_error(capsys)
+    assert "refusing" in err and victim in err
+    assert (tmp_path / victim).read_text() == "mine"
+    assert not (tmp_path / "chain_l0.exr").exists()
+
+
+def test_the_input_is_never_an_output(env, tmp_path, capsys):
+    import shutil
+
+    src = tmp_path / "in_l0.exr"
+    shutil.copy(env, src)
+    before = src.read_bytes()
+    assert main(["prefilter", str(src), str(tmp_path / "in.exr"), "--min-level-size", "8"]) != 0
+    _one_line_error(capsys)
+    assert src.read_bytes() == before
+
+
+def test_the_cmgen_layout_reads_back_as_cmgen_files(env, tmp_path):
+    # read_levels is the reader checked against cmgen's own output (tests/test_cmgen_peer.py): the files written in
+    # cmgen's layout must come back as the chain the cube layout holds, face names and orientation included
+    from ibl_ref.prefilter.cmgen_peer import read_levels
+
+    out = tmp_path / "cm"
+    common = ["--min-level-size", "4", "--kernel", "numpy"]
+    assert main(["prefilter", str(env), str(out), "--layout", "cmgen"] + common) == 0
+    assert main(["prefilter", str(env), str(tmp_path / "c.exr")] + common) == 0
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        ["prefilter.json"] + [f"m{lv}_{f}.exr" for lv in range(3) for f in ("px", "nx", "py", "ny", "pz", "nz")])
+    got = read_levels(out, 3, N)
+    for lv in range(3):
+        np.testing.assert_array_equal(got[lv], load_cube(tmp_path / f"c_l{lv}.exr"))
+    assert json.loads((out / "prefilter.json").read_text())["layout"] == "cmgen"
+    (out / "m1_px.exr").unlink()  # a second run restores its own set
+    assert main(["prefilter", str(env), str(out), "--layout", "cmgen"] + common) == 0
+    assert (out / "m1_px.exr").is_file()
+
+
+def test_the_cmgen_layout_refuses_a_file_as_its_folder(env, tmp_path, capsys):
+    f = tmp_path / "taken"
+    f.write_text("mine")
+    assert main(["prefilter", str(env), str(f), "--layout", "cmgen", "--min-level-size", "8"]) != 0
+    assert "is a file" in _one_line_error(capsys)
+    assert f.read_text() == "mine"
