@@ -171,12 +171,13 @@ class _Level:
 
 class GGXSourceTree:
     """The quadtree of a cube map's texels (module docstring): ``levels[0]`` the texels (P×P per face, P the face
-    size rounded up to a power of two; padding texels invalid and of zero weight), ``levels[-1]`` the six faces.
+    size rounded up to a power of two, at least 2; padding texels invalid and of zero weight), ``levels[-1]`` the six
+    faces.
     One tree serves every roughness of a chain (it does not depend on the lobe)."""
 
     def __init__(self, a4: np.ndarray):
         n = a4.shape[1]
-        P = self.P = 1 << max(int(math.ceil(math.log2(n))), 0)
+        P = self.P = 1 << max(int(math.ceil(math.log2(n))), 1)  # ≥ 2: one level of blocks above the texels
         omega = envmap.cube_solid_angles(n)
         w = np.concatenate([a4 * omega[..., None], omega[..., None]], axis=-1)  # (6,n,n,Q): L Ω and Ω
         Q = self.Q = w.shape[-1]
