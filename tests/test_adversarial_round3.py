@@ -418,7 +418,9 @@ CLI_PARAMS = {
     "experiment fig3 --gloss": (["experiment", "fig3", "--quick", "--gloss"], "{}", ["0", "1e-300", "1e-200"]),
     "experiment fig6 --g": (["experiment", "fig6", "--quick", "--g"], "{}", ["0", "1e-300", "1e-200"]),
     "experiment km00-render --tail-rtol": (["experiment", "km00-render", "--quick", "--tail-rtol"], "{}", []),
-    "experiment km00-render --ref-eps": (["experiment", "km00-render", "--quick", "--ref-eps"], "{}", []),
+    # a cone cut's weight threshold, not a tolerance of a sum: any value in (0, 1) is usable (the experiment's own 1e-12)
+    "experiment km00-render --ref-eps": (["experiment", "km00-render", "--quick", "--ref-eps"], "{}",
+                                         ["1e-300", "1e-200"]),
     "experiment render-error --chain-factor": (["experiment", "render-error", "--quick", "--chain-factor"], "{}",
                                                ["1e300"]),
 }
@@ -484,3 +486,15 @@ def test_km00_render_with_an_alpha_out_of_range_is_one_line_and_writes_nothing(t
     err = capsys.readouterr().err.strip()
     assert rc in (1, 2) and len(err.splitlines()) == 1 and "2^-20" in err, err
     assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_every_experiments_own_values_pass_its_checks():
+    # the checks guard the command line; an experiment's own full and quick values must pass them, or `ibl-ref
+    # reproduce` (which checks every value it passes) stops on the experiment's defaults (km00-render's ref_eps =
+    # 1e-12 once met the tolerance floor meant for sums)
+    from ibl_ref import experiments
+
+    for name, mod in experiments.available().items():
+        for p in getattr(mod, "PARAMS", ()):
+            for quick in (False, True):
+                p.check(p.value(quick))  # raises IBLError naming the flag if not

@@ -159,6 +159,16 @@ def _rtol(v):
     return check_rtol(v, "tolerance")
 
 
+def _cut_eps(v):
+    """A cone cut's weight threshold: the lobe is cut where its weight falls below ``v`` times its peak (not a
+    tolerance of a sum, so no float64 floor; :func:`ibl_ref.lobes.km00_reference.ward_cut_angle` needs 0 < v < 1)."""
+    from ..errors import IBLError
+
+    if not 0.0 < v < 1.0:
+        raise IBLError(f"a cut threshold must be in (0, 1), got {v!r}")
+    return v
+
+
 def _greater_than_one(v):
     from ..errors import IBLError
 
@@ -177,7 +187,7 @@ def power_of_two(v):
 
 
 #: what the experiments' parameters of these names must be, beyond a finite number or an integer >= 1
-VALUE_CHECKS = {"rtol": _rtol, "ref_rtol": _rtol, "tail_rtol": _rtol, "ref_eps": _rtol,
+VALUE_CHECKS = {"rtol": _rtol, "ref_rtol": _rtol, "tail_rtol": _rtol, "ref_eps": _cut_eps,
                 "s_values": _exponent, "gloss": _in_range(0.0, 1.0, "a glossiness g"),
                 "g": _in_range(0.0, 1.0, "a glossiness g"), "ggx_f0": _in_range(0.0, 1.0, "F0"),
                 "chain_factor": _greater_than_one,
