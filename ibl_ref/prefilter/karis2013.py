@@ -247,17 +247,8 @@ def prefilter_exact(cube, roughness, *, out_size=None, dirs=None, rtol: float = 
     >>> p.shape, bool(np.allclose(p, 1.0)), bool(bound.max() <= EXACT_RTOL)
     ((6, 4, 4, 3), True, True)
     """
-    a, squeeze = check_cube(cube)
-    _, alpha = check_scalar_roughness(roughness)
-    if dirs is not None:
-        d, lead = _check_dirs(dirs, "dirs")
-        maps, bound = convolve_ggx(a, roughness, rtol=rtol, dirs=d, kernel=kernel)
-        maps, bound = maps.reshape(lead + (a.shape[-1],)), bound.reshape(lead)
-    else:
-        maps, bound = convolve_ggx(a, roughness, rtol=rtol, out_size=out_size, kernel=kernel)
-    maps = check_finite(maps, "prefilter_exact")
-    if squeeze:
-        maps = maps[..., 0]
+    check_scalar_roughness(roughness)  # (this module's message for a roughness out of range)
+    maps, bound = convolve_ggx(cube, roughness, rtol=rtol, out_size=out_size, dirs=dirs, kernel=kernel)
     return (maps, bound) if return_bound else maps
 
 
