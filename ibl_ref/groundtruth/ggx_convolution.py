@@ -325,7 +325,8 @@ def convolve_ggx_levels(cube, levels, *, rtol: float = 1e-3, tile: int | None = 
     cube : array (6, N, N[, C])
         Finite, non-negative radiance.
     levels : sequence of (roughness, out_size)
-        Perceptual roughness r (α = r², :func:`ibl_ref.conventions.ggx_alpha`) and output face size of each level.
+        Perceptual roughness r (α = r², :func:`ibl_ref.conventions.ggx_alpha`) and output face size of each level
+        (None: the source's).
     rtol : float
         Largest relative error allowed at any output texel and channel (:func:`ibl_ref.limits.check_rtol`).
     tile : int, optional
@@ -417,10 +418,9 @@ def convolve_ggx(cube, roughness, *, rtol: float = 1e-3, out_size: int | None = 
     >>> maps.shape, bool(np.allclose(maps, 1.0)), bool(bound.max() <= 1e-3)
     ((6, 8, 8), True, True)
     """
-    if dirs is None and faces is None:
-        n = check_cube(cube)[0].shape[1]
-        return convolve_ggx_levels(cube, [(roughness, n if out_size is None else out_size)], rtol=rtol, tile=tile,
-                                   kernel=kernel, threads=threads)[0]
+    if dirs is None and faces is None:  # (out_size None: the source's face size, as in convolve_ggx_levels)
+        return convolve_ggx_levels(cube, [(roughness, out_size)], rtol=rtol, tile=tile, kernel=kernel,
+                                   threads=threads)[0]
     t_start = time.perf_counter()
     a4, squeeze = check_cube(cube)
     if np.ndim(roughness):
