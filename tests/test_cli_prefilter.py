@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from ibl_ref.cli import main
+from ibl_ref.cli.cmd_prefilter import level_path
 from ibl_ref.environment.exr_io import load_cube, write_envmap
 from ibl_ref.prefilter.karis2013 import prefilter_dense
 from ibl_ref.synthetic.synthetic_envs import make_env
@@ -157,3 +158,82 @@ def test_the_cmgen_layout_refuses_a_file_as_its_folder(env, tmp_path, capsys):
     assert main(["prefilter", str(env), str(f), "--layout", "cmgen", "--min-level-size", "8"]) != 0
     assert "is a file" in _one_line_error(capsys)
     assert f.read_text() == "mine"
+
+
+# ---- --layout ktx / dds: one container file with every level ------------------------------------------------------
+@pytest.fixture(scope="module")
+def cube_chain(env, tmp_path_factory):
+    """The chain of ``env`` in the cube layout (float32 OpenEXR files), to hold the containers against."""
+    out = tmp_path_factory.mktemp("cube_chain") / "c.exr"
+    assert main(["prefilter", str(env), str(out), "--min-level-size", "4", "--kernel", "numpy"]) == 0
+    return [load_cube(level_path(out, k)) for k in range(3)]
+
+
+@pytest.mark.parametrize("layout, dtype", [("ktx", None), ("dds", None), ("ktx", "float32"), ("dds", "float32")])
+def test_the_container_layouts_hold_the_chain_the_cube_layout_holds(env, cube_chain, tmp_path, layout, dtype):
+    # the readers are the ones checked against cmgen's and cmft's own files (tests/test_cube_containers.py)
+    from ibl_ref.environment.cube_containers import read_cube_chain
+
+    out = tmp_path / f"chain.{layout}"
+    argv = (["prefilter", str(env), str(out), "--layout", layout, "--min-level-size", "4", "--kernel", "numpy"]
+            + (["--dtype", dtype] if dtype else []))
+    assert main(argv) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == [out.name, out.name + ".json"]
+    got = read_cube_chain(out)
+    assert [g.shape for g in got] == [(6, n, n, 3) for n in (16, 8, 4)]
+    side = json.loads((tmp_path / f"chain.{layout}.json").read_text())
+    assert side["layout"] == layout and side["outputs"] == [str(out)] and len(side["levels"]) == 3
+    assert side["storage"] == {"dtype": dtype or "float16", "rel_rounding": 2.0 ** -24 if dtype else 2.0 ** -11}
+    for k, ref in enumerate(cube_chain):
+        if dtype == "float32":
+            np.testing.assert_array_equal(got[k], ref)
+        else:  # float16 by default: half an ulp (values here are far above half's smallest normal)
+            assert np.all(np.abs(got[k] - ref) <= 2.0 ** -11 * ref * (1 + 2.0 ** -10)), k
+    if dtype is None and layout == "ktx":
+        assert main(argv) == 0  # its own files: a second run replaces them
+        assert sorted(p.name for p in tmp_path.iterdir()) == [out.name, out.name + ".json"]
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--layout", "ktx", "OUT=chain.exr"], "writes one .ktx file"),
+    (["--layout", "dds", "OUT=chain.ktx"], "writes one .dds file"),
+    (["--dtype", "float16", "OUT=c.exr"], "--dtype applies to --layout ktx and dds"),
+    (["--layout", "cmgen", "--dtype", "float32", "OUT=cm"], "--dtype applies"),
+])
+def test_container_options_are_checked_before_any_work(env, tmp_path, capsys, argv, words):
+    out = next(a[4:] for a in argv if a.startswith("OUT="))
+    rest = [a for a in argv if not a.startswith("OUT=")]
+    assert main(["prefilter", str(env), str(tmp_path / out), "--min-level-size", "4"] + rest) != 0
+    assert words in _one_line_error(capsys)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_float16_overflow_names_the_level_and_value_and_float32_holds_it(tmp_path, capsys):
+    from ibl_ref.environment.cube_containers import read_dds
+
+    cube = make_env("sky_sun", n=8)
+    cube[4, 3, 5] = 1e5  # a sun texel above half's 65504
+    src = tmp_path / "sun.exr"
+    write_envmap(src, cube, layout="cube")
+    out = tmp_path / "o.dds"
+    common = ["prefilter", str(src), str(out), "--layout", "dds", "--min-level-size", "4", "--kernel", "numpy"]
+    assert main(common) != 0
+    err = _one_line_error(capsys)
+    assert "level 0: value 100000 overflows float16 (max 65504)" in err and "--dtype float32" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sun.exr"]
+    assert main(common + ["--dtype", "float32"]) == 0
+    assert read_dds(out)[0].max() == 1e5
+
+
+def test_the_container_sidecar_is_its_own_and_a_foreign_one_is_kept(env, tmp_path, capsys):
+    # OUT is the user's to replace (they named it); its sidecar OUT.ktx.json only if the lab wrote it
+    out = tmp_path / "chain.ktx"
+    out.write_text("an older file the user names again")
+    (tmp_path / "chain.ktx.json").write_text("mine")
+    argv = ["prefilter", str(env), str(out), "--layout", "ktx", "--min-level-size", "8", "--kernel", "numpy"]
+    assert main(argv) != 0
+    assert "refusing" in _one_line_error(capsys)
+    assert (tmp_path / "chain.ktx.json").read_text() == "mine"
+    (tmp_path / "chain.ktx.json").unlink()
+    assert main(argv) == 0
+    assert out.read_bytes()[:12] == b"\xabKTX 11\xbb\r\n\x1a\n"

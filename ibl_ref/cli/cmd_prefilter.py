@@ -9,10 +9,15 @@ the mirror).  Every other level is the exact prefilter within ``--rtol`` at ever
 Output naming (``--layout``): ``cube`` (default), one OpenEXR cube per level, OUT with ``_l{ℓ}`` inserted before
 the extension (``chain.exr`` → ``chain_l0.exr`` … ``chain_l4.exr``) and the JSON sidecar OUT.json; ``cmgen``, OUT
 is a folder that gets Filament's cmgen layout, ``m<ℓ>_<face>.exr`` per level and face (faces px nx py ny pz nz in
-the OpenGL orientation, float32 RGB: :func:`ibl_ref.prefilter.cmgen_peer.write_level`), and ``OUT/prefilter.json``.
-The JSON holds the mapping and the roughness, face size, largest bound and seconds of every level.  Like
-``convolve``, the set replaces only files the previous run for the same OUT wrote, and is written whole or not at
-all (:class:`ibl_ref.atomic.OutputSet`).
+the OpenGL orientation, float32 RGB: :func:`ibl_ref.prefilter.cmgen_peer.write_level`), and ``OUT/prefilter.json``;
+``ktx`` / ``dds``, OUT is one KTX 1 / DDS cube map (its name must end in ``.ktx`` / ``.dds``) holding every level
+as its MIP chain (:func:`ibl_ref.environment.cube_containers.write_ktx1` /
+:func:`~ibl_ref.environment.cube_containers.write_dds`: RGBA16F by default, ``--dtype float32`` for RGBA32F; a
+float16 overflow is refused naming the level), and the sidecar OUT.json with OUT's whole name (``chain.ktx.json``:
+a KTX and a DDS of one chain keep their own).  The cube and cmgen layouts store float32.  The JSON holds the
+mapping, the storage type and the roughness, face size, largest bound and seconds of every level.  Like
+``convolve``, the set replaces only files the previous run for the same OUT wrote (and OUT itself in the container
+layouts, which the user named), and is written whole or not at all (:class:`ibl_ref.atomic.OutputSet`).
 """
 
 from __future__ import annotations
@@ -31,35 +36,75 @@ def level_path(out, level: int) -> Path:
 
 
 def _cube_layout(out, n_levels):
-    """(side file, [[file of level ℓ]]): OUT_l{ℓ}.exr cubes and OUT.json."""
-    return Path(out).with_suffix(".json"), [[level_path(out, lv)] for lv in range(n_levels)]
+    """(side file, [[file of level ℓ]], files the user named): OUT_l{ℓ}.exr cubes and OUT.json."""
+    return Path(out).with_suffix(".json"), [[level_path(out, lv)] for lv in range(n_levels)], []
 
 
 def _cmgen_layout(out, n_levels):
-    """(side file, [[6 files of level ℓ]]): cmgen's OUT/m{ℓ}_{face}.exr and OUT/prefilter.json."""
+    """(side file, [[6 files of level ℓ]], files the user named): cmgen's OUT/m{ℓ}_{face}.exr and
+    OUT/prefilter.json."""
     from ..prefilter.cmgen_peer import FACES, level_file
 
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise IBLError(f"OUT {out} is a file; --layout cmgen writes a folder")
-    return out / "prefilter.json", [[level_file(out, lv, f) for f in FACES] for lv in range(n_levels)]
+    return out / "prefilter.json", [[level_file(out, lv, f) for f in FACES] for lv in range(n_levels)], []
 
 
-def _write_cube(paths, m):
+def _container_out(out, layout: str) -> Path:
+    """OUT of a container layout, checked: its name must end in .ktx / .dds."""
+    from ..environment.cube_containers import CONTAINERS
+
+    out = Path(out)
+    if out.suffix.lower() != CONTAINERS[layout]:
+        raise IBLError(f"OUT {out}: --layout {layout} writes one {CONTAINERS[layout]} file; name it so")
+    return out
+
+
+def _container_layout(kind):
+    """The layout of one KTX 1 / DDS file OUT holding every level, and OUT.{ktx,dds}.json."""
+
+    def layout(out, n_levels):
+        out = _container_out(out, kind)
+        return out.with_name(out.name + ".json"), [[out]] + [[] for _ in range(n_levels - 1)], [out]
+
+    return layout
+
+
+def _write_cube(files, maps, dtype):
     from ..environment.exr_io import write_envmap
 
-    write_envmap(paths[0], m, layout="cube")
+    for level_files, m in zip(files, maps):
+        write_envmap(level_files[0], m, layout="cube")
 
 
-def _write_cmgen(paths, m):
+def _write_cmgen(files, maps, dtype):
     from ..prefilter.cmgen_peer import write_level
 
-    write_level(paths, m)
+    for level_files, m in zip(files, maps):
+        write_level(level_files, m)
 
 
-#: --layout: where the files of each level go, and how one level is written
-LAYOUTS = {"cube": _cube_layout, "cmgen": _cmgen_layout}
-WRITERS = {"cube": _write_cube, "cmgen": _write_cmgen}
+def _write_ktx(files, maps, dtype):
+    from ..environment.cube_containers import write_ktx1
+
+    write_ktx1(files[0][0], maps, dtype=dtype)
+
+
+def _write_dds(files, maps, dtype):
+    from ..environment.cube_containers import write_dds
+
+    write_dds(files[0][0], maps, dtype=dtype)
+
+
+#: --layout: (side file, the files of each level, the files the user named), and how the levels are written
+LAYOUTS = {"cube": _cube_layout, "cmgen": _cmgen_layout, "ktx": _container_layout("ktx"),
+           "dds": _container_layout("dds")}
+WRITERS = {"cube": _write_cube, "cmgen": _write_cmgen, "ktx": _write_ktx, "dds": _write_dds}
+#: the layouts that write one container file (``--dtype`` chooses their texels; the others store float32)
+CONTAINER_LAYOUTS = ("ktx", "dds")
+#: stored texel type → its relative rounding (round to nearest: half an ulp of a normal number)
+STORAGE = {"float32": 2.0 ** -24, "float16": 2.0 ** -11}
 
 
 def _power_of_two(v, name) -> int:
@@ -83,6 +128,12 @@ def cmd_prefilter(args) -> int:
     min_size = _power_of_two(args.min_level_size, "--min-level-size")
     if args.threads is not None and args.threads < 1:
         raise IBLError(f"--threads must be >= 1, got {args.threads}")
+    container = args.layout in CONTAINER_LAYOUTS
+    if args.dtype is not None and not container:
+        raise IBLError(f"--dtype applies to --layout ktx and dds; --layout {args.layout} stores float32")
+    dtype = args.dtype or ("float16" if container else "float32")
+    if container:
+        _container_out(args.output, args.layout)  # before reading IN
     t0 = time.perf_counter()
     cube, radiance = load_env(args, args.input, size)
     n = cube.shape[1]
@@ -92,10 +143,15 @@ def cmd_prefilter(args) -> int:
         raise IBLError(f"--min-level-size {min_size} leaves no level below the {n}² source")
     rough = [float(r) for r in roughness_of_level(np.arange(n_levels), n_levels, args.mapping)]
     sizes = [max(n >> lv, min_size) for lv in range(n_levels)]
-    side, files = LAYOUTS[args.layout](args.output, n_levels)  # files[ℓ]: the file(s) of level ℓ
+    side, files, named = LAYOUTS[args.layout](args.output, n_levels)  # files[ℓ]: the file(s) of level ℓ
     paths = [p for level in files for p in level]
     refuse_overwriting_inputs({"IN": args.input}, [("OUT", side)] + [("OUT", p) for p in paths])
-    check_side_files(side, paths, "outputs", "OUT")  # never replace a file the user did not name
+    # never replace a file the user did not name
+    check_side_files(side, [p for p in paths if p not in named], "outputs", "OUT")
+    if container:  # level 0 is the source, and no lobe average exceeds its maximum: refuse an overflow now
+        from ..environment.cube_containers import check_storable
+
+        check_storable(cube, dtype, f"{args.output}: level 0")
     t_read = time.perf_counter() - t0
     with step(f"prefiltering {n}² faces into {n_levels - 1} GGX level(s), mapping {args.mapping}, rtol {rtol:g}"):
         out = convolve_ggx_levels(cube, list(zip(rough[1:], sizes[1:])), rtol=rtol, kernel=args.kernel,
@@ -105,12 +161,13 @@ def cmd_prefilter(args) -> int:
     for lv, ((m, b), li) in enumerate(zip(out, info["levels"]), 1):
         levels.append({"level": lv, "roughness": rough[lv], "face_size": sizes[lv], "rel_bound_max": float(b.max()),
                        "seconds": li["seconds"]})
-    outs = OutputSet(side, owned_key="outputs", keep=[args.input])
+    outs = OutputSet(side, owned_key="outputs", keep=[args.input], named=named, label="OUT")
     with outs:
-        for level_files, m in zip(files, [cube] + [m for m, _ in out]):
-            WRITERS[args.layout]([outs.path(p) for p in level_files], m)
+        WRITERS[args.layout]([[outs.path(p) for p in level_files] for level_files in files],
+                             [cube] + [m for m, _ in out], dtype)
         outs.commit({"input": str(args.input), "outputs": [str(p) for p in paths], "lobe": "ggx n = v = r",
-                     "layout": args.layout, "mapping": args.mapping, "rtol": rtol, "levels": levels,
+                     "layout": args.layout, "mapping": args.mapping, "rtol": rtol,
+                     "storage": {"dtype": dtype, "rel_rounding": STORAGE[dtype]}, "levels": levels,
                      "kernel": info.get("kernel"),
                      "radiance": radiance,
                      "seconds": {"read": t_read, "tree": info.get("tree_s"), "kernel_load": info.get("kernel_load_s"),
@@ -134,18 +191,24 @@ def register(sub) -> None:
             "level 0 is the source, level l holds the n = v = r prefilter at the roughness of its level under "
             "--mapping (filament: Filament's cmgen and run time, lod = r(2 - r); linear: glTF-IBL-Sampler), each "
             "exact within --rtol at every texel. Writes OUT with _l{l} inserted before the extension (one OpenEXR "
-            "cube per level; --layout cmgen: cmgen's per-face files) and OUT.json with the roughness, size and "
-            "bound of every level."
+            "cube per level; --layout cmgen: cmgen's per-face files; --layout ktx / dds: one KTX 1 / DDS cube map "
+            "OUT with every level as its MIP chain) and a JSON sidecar with the roughness, size and bound of every "
+            "level."
         ),
     )
     p.add_argument("input", metavar="IN", help="environment map (OpenEXR cube / lat-long / cross, .hdr)")
     p.add_argument("output", metavar="OUT",
                    help="output name: with --layout cube, _l{level} is inserted before the extension; with --layout "
-                        "cmgen, a folder")
+                        "cmgen, a folder; with --layout ktx / dds, the file (ending in .ktx / .dds)")
     p.add_argument("--layout", choices=tuple(LAYOUTS), default="cube",
                    help="cube (default): one OpenEXR cube per level, OUT_l{level}.exr, and OUT.json; cmgen: Filament "
                         "cmgen's files OUT/m{level}_{face}.exr (OpenGL faces px nx py ny pz nz, float32) and "
-                        "OUT/prefilter.json")
+                        "OUT/prefilter.json; ktx / dds: one KTX 1 / DDS cube map OUT (faces +X -X +Y -Y +Z -Z, "
+                        "OpenGL / Direct3D orientation) with every level as its MIP chain, and OUT.json beside it "
+                        "(chain.ktx.json)")
+    p.add_argument("--dtype", choices=("float16", "float32"), default=None,
+                   help="texels of --layout ktx / dds: float16 (default; RGBA16F, what engines load; a value above "
+                        "65504 is refused) or float32 (RGBA32F)")
     p.add_argument("--size", type=int, default=None, metavar="N",
                    help="face size of level 0 (a power of two; the input is resampled to it; default: its own)")
     p.add_argument("--min-level-size", type=int, default=16, metavar="M",

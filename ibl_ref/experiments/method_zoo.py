@@ -647,32 +647,42 @@ def _plot_images(plt, out_dir, scene, meta):
         arr = {k: z[k] for k in z.files if k.startswith(scene + "__")}
     if f"{scene}__mask" not in arr:
         return None
-    mask = arr[f"{scene}__mask"]
     mats = [m for m in meta["settings"]["materials"] if f"{scene}__{m}__reference" in arr]
-    per_row = {m: [x for x in meta["settings"]["methods"] if f"{scene}__{m}__{x}" in arr] for m in mats}
-    ncol = 1 + max(len(v) for v in per_row.values())
-    fig, ax = plt.subplots(len(mats), ncol, figsize=(1.3 * ncol + 0.4, 1.45 * len(mats) + 0.6), squeeze=False,
+    rows = [(mat, arr[f"{scene}__{mat}__reference"], [(x, arr[f"{scene}__{mat}__{x}"])
+                                                        for x in meta["settings"]["methods"]
+                                                        if f"{scene}__{mat}__{x}" in arr]) for mat in mats]
+    return plot_image_rows(plt, out_dir / f"method_zoo_images_{scene}.png", arr[f"{scene}__mask"], rows,
+                           f"{scene}, {meta['settings']['figure_env']}: reference and the methods that shade each "
+                           "material (one exposure per row, the reference's)")
+
+
+def plot_image_rows(plt, path, mask, rows, title, cell=(1.3, 1.45), fontsize=6):
+    """One row per material: its reference, then each method's image, all at the reference's exposure.
+
+    ``rows``: ``[(material, reference (P, C), [(label, image (P, C)), …]), …]`` over the pixels of ``mask``."""
+
+    ncol = 1 + max(len(r[2]) for r in rows)
+    fig, ax = plt.subplots(len(rows), ncol, figsize=(cell[0] * ncol + 0.4, cell[1] * len(rows) + 0.6), squeeze=False,
                            layout="constrained")
 
-    def show(a, vals, stops, title):
+    def show(a, vals, stops, label):
         img = np.zeros(mask.shape + (vals.shape[-1],))
         img[mask] = vals
         a.imshow(exposure_srgb(img, stops))
-        a.set_title(title, fontsize=6)
+        a.set_title(label, fontsize=fontsize)
 
-    for i, mat in enumerate(mats):
-        ref = arr[f"{scene}__{mat}__reference"].astype(np.float64)
+    for i, (mat, ref, images) in enumerate(rows):
+        ref = np.asarray(ref, dtype=np.float64)
         full = np.zeros(mask.shape + (ref.shape[-1],))
         full[mask] = ref
         stops = auto_exposure(full, mask)  # one exposure per row: the reference's
         show(ax[i, 0], ref, stops, f"{mat}: reference")
-        for j, meth in enumerate(per_row[mat], start=1):
-            show(ax[i, j], arr[f"{scene}__{mat}__{meth}"].astype(np.float64), stops, meth)
-        for j in range(1 + len(per_row[mat]), ncol):
+        for j, (label, img) in enumerate(images, start=1):
+            show(ax[i, j], np.asarray(img, dtype=np.float64), stops, label)
+        for j in range(1 + len(images), ncol):
             ax[i, j].set_axis_off()
     for a in ax.ravel():
         a.set_xticks([])
         a.set_yticks([])
-    fig.suptitle(f"{scene}, {meta['settings']['figure_env']}: reference and the methods that shade each material "
-                 "(one exposure per row, the reference's)", fontsize=8)
-    return save_figure(fig, out_dir / f"method_zoo_images_{scene}.png", dpi=100)
+    fig.suptitle(title, fontsize=8)
+    return save_figure(fig, path, dpi=100)

@@ -8,6 +8,18 @@
   ``distance = 2.6``, vertical field of view 40°, as Knuth et al. 2014 Fig. 6 is reproduced in
   ``ibl-ref experiment fig6``); ``distance="fit"`` places the eye so that the bounding sphere fits the vertical
   field of view with a 10 % margin, ``R / sin(fov/2) · 1.1``.  Explicit ``eye`` / ``target`` override the framing.
+
+Scenes with strong self-occlusion (the cases screen-space ambient occlusion is judged on,
+:mod:`ibl_ref.occlusion.gtao`), each a list of meshes, +y up, outward (counter-clockwise) faces:
+
+* :func:`crevice_scene` — a slab with a rectangular pit cut into its top (a box cavity open to the top): one
+  closed solid with flat faces.  Vertices are not shared across faces of different planes (hard edges, as engines
+  export them), so trimesh's vertex normals are the face normals and a smoothly shaded G-buffer is still flat;
+  merging coincident vertices gives a watertight mesh of positive volume.
+* :func:`bumpy_scene` — a ground quad (open, one-sided, normal +y) with a seeded, non-overlapping arrangement of
+  small icospheres sunk to various depths: many small occluders and contact creases.
+* :data:`OCCLUSION_SCENES` names them (and the teapot); :func:`occlusion_scene` gives a scene with its camera
+  factory, :func:`scene_camera` the view of each (the teapot: :func:`default_camera` framing the teapot alone).
 """
 
 from __future__ import annotations
@@ -17,10 +29,11 @@ import numpy as np
 from ..errors import IBLError
 from .camera import PerspectiveCamera
 from .camera import as_vec3
-from .raster import prepare_scene
+from .raster import mesh_list, prepare_scene
 
 __all__ = ["ground_quad", "teapot_on_ground", "default_camera", "DEFAULT_VIEW_DIR", "DEFAULT_DISTANCE",
-           "DEFAULT_FOV_Y_DEG"]
+           "DEFAULT_FOV_Y_DEG", "crevice_scene", "bumpy_scene", "scene_camera", "occlusion_scene",
+           "OCCLUSION_SCENES"]
 
 DEFAULT_VIEW_DIR = (0.3, 0.5, 1.0)
 DEFAULT_DISTANCE = 2.6
@@ -102,3 +115,243 @@ def default_camera(meshes, size: int = 64, view_dir=DEFAULT_VIEW_DIR, fov_y_deg:
         far = 100 * (float(np.linalg.norm(e - tgt)) + R)
     return PerspectiveCamera(eye=e, target=tgt, up=list(up), fov_y_deg=fov_y_deg, width=w, height=h,
                              near=1e-3 * R, far=far)
+
+
+def _panel(corners, outward):
+    """One planar quad (4 corners in cyclic order) as (vertices (4, 3), faces (2, 3)), wound to face ``outward``."""
+    c = np.asarray(corners, dtype=np.float64)
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    if np.dot(np.cross(c[1] - c[0], c[2] - c[0]), outward) < 0:
+        faces = faces[:, ::-1]
+    return c, faces
+
+
+def _mesh_from_panels(panels, metadata=None):
+    """A trimesh of planar quads (:func:`_panel`) that share no vertices (hard edges: vertex normals = face normals)."""
+    import trimesh
+
+    verts = np.concatenate([p[0] for p in panels])
+    faces = np.concatenate([p[1] + 4 * k for k, p in enumerate(panels)])
+    mesh = trimesh.Trimesh(verts, faces, process=False)
+    mesh.metadata.update(metadata or {})
+    return mesh
+
+
+def crevice_scene(depth: float = 0.5, width: float = 0.5, length: float = 1.0, slab: float = 2.5) -> list:
+    """A square slab with a rectangular pit cut into its top: a box cavity open to the top (module docstring).
+
+    Parameters
+    ----------
+    depth : float
+        Depth of the pit below the top face y = 0 (world units).
+    width, length : float
+        Extent of the pit along x and z (each smaller than ``slab``); the pit is centred at the origin.
+    slab : float
+        Side of the square top face; the slab's bottom is at y = −2·depth.
+
+    Returns
+    -------
+    list of trimesh.Trimesh
+        One closed solid of 28 triangles (14 planar quads, none sharing a vertex);
+        ``metadata["crevice"]`` holds the parameters.  With the defaults the bottom centre of the pit sees the sky
+        through the opening only: its cosine-weighted visibility is the form factor to the opening, 0.361.
+
+    Examples
+    --------
+    >>> from ibl_ref.rendering.scenes import crevice_scene
+    >>> (mesh,) = crevice_scene()
+    >>> len(mesh.faces), mesh.bounds.tolist()
+    (28, [[-1.25, -1.0, -1.25], [1.25, 0.0, 1.25]])
+    """
+    from ..synthetic.synthetic_meshes import _pos_param, validate_mesh
+
+    depth, width, length, slab = (_pos_param(x, name) for x, name in
+                                  ((depth, "depth"), (width, "width"), (length, "length"), (slab, "slab")))
+    if not (width < slab and length < slab):
+        raise IBLError(f"crevice_scene: the pit ({width:g} x {length:g}) must be smaller than the slab ({slab:g})")
+    s, bottom = slab / 2, -2.0 * depth
+    up = np.array([0.0, 1.0, 0.0])
+    panels = []
+    for e, a_in, b_in in (((1, 0), width / 2, length / 2), ((-1, 0), width / 2, length / 2),
+                          ((0, 1), length / 2, width / 2), ((0, -1), length / 2, width / 2)):
+        e3 = np.array([e[0], 0.0, e[1]], dtype=np.float64)  # side normal in the xz-plane
+        f3 = np.array([-e[1], 0.0, e[0]], dtype=np.float64)  # tangent along that side
+
+        def at(a, b, y, e3=e3, f3=f3):
+            return a * e3 + b * f3 + y * up
+
+        panels.append(_panel([at(s, s, 0), at(s, -s, 0), at(a_in, -b_in, 0), at(a_in, b_in, 0)], up))  # top ring
+        panels.append(_panel([at(a_in, b_in, 0), at(a_in, -b_in, 0), at(a_in, -b_in, -depth),
+                              at(a_in, b_in, -depth)], -e3))  # pit wall, facing into the pit
+        panels.append(_panel([at(s, s, 0), at(s, -s, 0), at(s, -s, bottom), at(s, s, bottom)], e3))  # slab side
+    hw, hl = width / 2, length / 2
+    panels.append(_panel([[hw, -depth, hl], [hw, -depth, -hl], [-hw, -depth, -hl], [-hw, -depth, hl]], up))
+    panels.append(_panel([[s, bottom, s], [s, bottom, -s], [-s, bottom, -s], [-s, bottom, s]], -up))
+    mesh = _mesh_from_panels(panels, {"crevice": dict(depth=depth, width=width, length=length, slab=slab)})
+    return [validate_mesh(mesh, "crevice")]
+
+
+def bumpy_scene(n_bumps: int = 40, seed: int = 0, size: float = 2.0, radii=(0.06, 0.16), subdivisions: int = 2,
+                gap: float = 0.01) -> list:
+    """A square ground quad with ``n_bumps`` small spheres sunk into it at seeded places (module docstring).
+
+    Parameters
+    ----------
+    n_bumps : int
+        Number of spheres, in [1, 500] (each ``20·4^subdivisions`` triangles: 320 at the default).
+    seed : int
+        Seed of the arrangement (same seed → identical meshes).
+    size : float
+        Side of the ground quad (y = 0, centred at the origin).
+    radii : (float, float)
+        Range of the sphere radii (uniform), 0 < lo ≤ hi.
+    subdivisions : int
+        Icosphere subdivisions, in [0, 4].
+    gap : float
+        Least horizontal gap between two spheres (they never overlap; narrow gaps make crevices).
+
+    Returns
+    -------
+    list of trimesh.Trimesh
+        ``[ground, bumps]``: the ground quad (2 triangles, one-sided, open) and one mesh of ``n_bumps`` disjoint
+        closed icospheres (watertight, radial vertex normals).  A sphere of radius r has its centre at height
+        r·e, e uniform in [−0.5, 0.9]: from a half-buried cap to a ball sunk 5 % of its diameter.
+        ``metadata["bumps"]`` holds the (n_bumps, 4) array of centres and radii.
+
+    Raises
+    ------
+    IBLError
+        A parameter out of range, or no room for ``n_bumps`` spheres (after 200 tries per sphere).
+
+    Examples
+    --------
+    >>> from ibl_ref.rendering.scenes import bumpy_scene
+    >>> ground, bumps = bumpy_scene(n_bumps=5, subdivisions=1)
+    >>> len(ground.faces), len(bumps.faces), bool(bumps.is_watertight)
+    (2, 400, True)
+    """
+    import trimesh
+
+    from ..synthetic.synthetic_meshes import _int_param, _nonneg_param, _pos_param, validate_mesh
+
+    n_bumps = _int_param(n_bumps, "n_bumps", 1, 500)
+    subdivisions = _int_param(subdivisions, "subdivisions", 0, 4)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise IBLError(f"seed: expected a non-negative integer, got {seed!r}")
+    size = _pos_param(size, "size")
+    gap = _nonneg_param(gap, "gap")
+    if isinstance(radii, (str, bytes)) or not hasattr(radii, "__len__") or len(radii) != 2:
+        raise IBLError(f"radii: expected two positive numbers (lo, hi), got {radii!r}")
+    lo, hi = (_pos_param(r, "radii") for r in radii)
+    if lo > hi or 2 * hi >= size:
+        raise IBLError(f"radii: need lo <= hi < size/2, got {radii!r} for size {size:g}")
+    rng = np.random.default_rng(int(seed))
+    placed = []  # (x, y, z, r)
+    for k in range(n_bumps):
+        for _ in range(200):
+            r = rng.uniform(lo, hi)
+            x, z = rng.uniform(-size / 2 + r, size / 2 - r, size=2)
+            if all(np.hypot(x - q[0], z - q[2]) >= r + q[3] + gap for q in placed):
+                placed.append((x, r * rng.uniform(-0.5, 0.9), z, r))
+                break
+        else:
+            raise IBLError(f"bumpy_scene: no room for bump {k + 1} of {n_bumps} on a {size:g} ground "
+                           f"(radii {lo:g}-{hi:g}, gap {gap:g}); use fewer or smaller bumps")
+    unit = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
+    radial = unit.vertices / np.linalg.norm(unit.vertices, axis=1, keepdims=True)
+    bumps = np.array(placed)
+    nv = len(unit.vertices)
+    verts = np.concatenate([b[3] * radial + b[:3] for b in bumps])
+    faces = np.concatenate([unit.faces + k * nv for k in range(len(bumps))])
+    sphere_mesh = trimesh.Trimesh(verts, faces, process=False)
+    sphere_mesh.vertex_normals = np.tile(radial, (len(bumps), 1))
+    sphere_mesh.metadata["bumps"] = bumps
+    s = size / 2
+    ground = trimesh.Trimesh([[-s, 0.0, -s], [s, 0.0, -s], [s, 0.0, s], [-s, 0.0, s]], [[0, 2, 1], [0, 3, 2]],
+                             process=False)
+    return [validate_mesh(ground, "ground"), validate_mesh(sphere_mesh, "bumps")]
+
+
+#: View of each occlusion scene: (view direction from the target to the eye, eye distance in bounding radii).
+_SCENE_VIEWS = {"crevice": ((0.25, 1.0, 0.55), 1.1), "bumpy": ((0.0, 1.0, 0.9), 1.9)}
+
+
+def scene_camera(name: str, size: int = 64, meshes=None):
+    """The default camera of the occlusion scene ``name`` (a key of :data:`OCCLUSION_SCENES`).
+
+    Parameters
+    ----------
+    name : str
+    size : int
+        Image width = height in pixels.
+    meshes : the scene's meshes (default: the scene with its default parameters); they set the framing.
+
+    Returns
+    -------
+    PerspectiveCamera
+        ``teapot``: :func:`default_camera` framing the teapot alone (the ground left out of the bounding sphere, as
+        in ``ibl-ref experiment method-zoo``).  ``crevice``: looking into the pit from above and in front
+        (view direction (0.25, 1, 0.55), target the centre of the pit's mid-depth, eye 1.1 bounding radii away), so
+        that its floor, back wall and a side wall are in view.  ``bumpy``: from above at ~42° off the vertical
+        (view direction (0, 1, 0.9)), 1.9 bounding radii away, the ground filling the image.  Vertical fov 40°.
+
+    Examples
+    --------
+    >>> from ibl_ref.rendering.scenes import scene_camera
+    >>> cam = scene_camera("crevice", size=16)
+    >>> cam.width, cam.height, cam.target.tolist()
+    (16, 16, [0.0, -0.25, 0.0])
+    """
+    factory = _occlusion_factory(name)
+    if meshes is None:
+        meshes = factory()
+    if name not in _SCENE_VIEWS:  # the teapot, framed without its ground (as the method zoo frames it)
+        return default_camera(mesh_list(meshes)[:1], size)
+    view_dir, distance = _SCENE_VIEWS[name]
+    target = None
+    if name == "crevice":
+        pit = mesh_list(meshes)[0][0].metadata.get("crevice", {"depth": 0.0})
+        target = (0.0, -0.5 * pit["depth"], 0.0)
+    return default_camera(meshes, size, view_dir=view_dir, distance=distance, target=target)
+
+
+def _occlusion_factory(name):
+    if name not in OCCLUSION_SCENES:
+        raise IBLError(f"unknown occlusion scene {name!r}; choose one of {', '.join(OCCLUSION_SCENES)}")
+    return OCCLUSION_SCENES[name]
+
+
+def occlusion_scene(name: str, **params):
+    """An occlusion scene and its camera factory: ``(meshes, camera_factory)``.
+
+    Parameters
+    ----------
+    name : str
+        A key of :data:`OCCLUSION_SCENES`: ``"teapot"``, ``"crevice"`` or ``"bumpy"``.
+    **params
+        Passed to the scene's function (e.g. ``depth=0.8`` for the crevice, ``seed=3`` for the bumps).
+
+    Returns
+    -------
+    meshes : list
+        The scene (see the scene's function; the teapot's is a list of (mesh, material id) pairs).
+    camera_factory : callable
+        ``camera_factory(size=64)`` → the scene's :func:`scene_camera` framing these meshes.
+
+    Examples
+    --------
+    >>> from ibl_ref.rendering.scenes import occlusion_scene
+    >>> meshes, camera = occlusion_scene("bumpy", n_bumps=8, subdivisions=1)
+    >>> len(meshes), camera(24).width
+    (2, 24)
+    """
+    meshes = _occlusion_factory(name)(**params)
+
+    def camera_factory(size: int = 64):
+        return scene_camera(name, size, meshes=meshes)
+
+    return meshes, camera_factory
+
+
+#: The occlusion scenes by name: a function returning the scene's meshes (parameters with defaults).
+OCCLUSION_SCENES = {"teapot": teapot_on_ground, "crevice": crevice_scene, "bumpy": bumpy_scene}

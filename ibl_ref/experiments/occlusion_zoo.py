@@ -1,0 +1,648 @@
+"""The occlusion zoo: the self-shadowing that engines ship for image-based lighting, judged against exact visibility
+term by term.
+
+A prefiltered look-up cannot see the visibility V(ω) of a surface point; engines stand in for it with a factor, a
+cone or a transfer.  Each method of :data:`ibl_ref.occlusion.OCCLUSION_METHODS` (AO on diffuse / on both terms,
+multi-bounce AO, specular occlusion from AO after Lagarde & de Rousiers 2014 fed α or r and Unreal's variant,
+horizon occlusion (Marmoset; Godot), cone–cone GTSO (Jimenez et al. 2016) with the Oat–Sander smoothstep or the
+exact cap intersection, PRT diffuse transfer (Sloan et al. 2002, orders 3 and 5), and the paper's per-region
+visibility made exact (Knuth et al. 2014, Eq. 5) at several region counts) is applied to the **exact** unoccluded
+terms of the material — the lab's converged integrals A_1(n) and the GGX term (V ≡ 1,
+:func:`ibl_ref.rendering.unoccluded_reference.integrate`; per region for the region methods) — so the only error
+left is the occlusion model's, and, with screen-space inputs, the estimator's:
+
+* **oracle inputs** (:mod:`ibl_ref.occlusion.oracle_inputs`): cosine-weighted AO, the bent normal, SH visibility
+  transfer and per-region visible fractions from one stratified ray-cast visibility set per (scene, view) and job,
+  shared by every material and method of the job (a job is one scene under one environment; tracing takes about a
+  second at these sizes), each with its error estimate;
+* **screen-space inputs** (:mod:`ibl_ref.occlusion.gtao`): AO and bent normals by GTAO's horizon search in the
+  rasterizer's depth buffer (Jimenez et al. 2016), the way engines get them.  Methods that need more than AO and
+  the bent normal have no screen-space row.
+
+The reference is the converged renderer with exact visibility
+(:func:`ibl_ref.rendering.reference_render.render_reference`, direct lighting only — it has no interreflections, so
+multi-bounce AO, which models them, is judged against a reference without them and its brightening counts as
+error).  Per (scene, environment, material, method, inputs): rel. L1 Σ|I − I_ref| / Σ I_ref, the signed bias,
+the 99th percentile of the per-pixel relative error (relative to max(I_ref, 10 % of the mean)) and **the share of
+the missing-visibility error the method gives back**, 1 − rel. L1(method) / rel. L1(no occlusion) (0 % = no
+occlusion, 100 % = exact; negative = worse than none), with the cost: the input's time (the shared ray-cast set or
+GTAO, per pixel), the method's own time per pixel and the bytes per pixel of the inputs it reads (float32 each).
+The budget walk of each method: no occlusion → the method with oracle inputs (the occlusion model's step) → with
+screen-space inputs (the estimator's step); the prefilter step is zero here by construction (exact terms).
+
+Scenes (:data:`ibl_ref.rendering.scenes.OCCLUSION_SCENES`): the teapot on the ground, a crevice and a bumpy
+cluster.  Materials (:data:`MATERIALS`): diffuse (kd = 0.8), metals (GGX, F0 = 1) and dielectrics (GGX, F0 = 0.04,
+kd = 0.5) at roughness 0.1 / 0.3 / 0.6.  Environments: the synthetic sky with a small sun and the four probes
+(:func:`ibl_ref.experiments.method_zoo.environment`).
+
+The engines' disagreements (:data:`DISAGREEMENTS`: α vs r in Lagarde's formula and in the GTSO aperture, smoothstep
+vs exact cap intersection, the horizon constant, Filament's fade, multi-bounce vs plain AO) are summarised from the
+rows: which choice is closer to the reference, by how much, and the case where it breaks.
+
+Files: ``occlusion_zoo.csv``, ``occlusion_zoo_budget.csv``, ``occlusion_zoo_disagreements.csv``,
+``occlusion_zoo_meta.json``, ``occlusion_zoo_table.md``, ``occlusion_zoo_images.npz``; plots (reading only those):
+``occlusion_zoo_pareto_MATERIAL.png`` and ``occlusion_zoo_images_SCENE.png``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import params_from_settings, power_of_two, settings_with
+from ..atomic import atomic_path, atomic_write, read_csv, write_csv, write_json
+from ..errors import IBLError
+from ..executors import map_jobs
+from ..figures import plain_log_ticks, pyplot, save_figure
+from ..progress import track
+from .method_zoo import ENVS as _ZOO_ENVS
+from .method_zoo import P99_FLOOR, _metrics, plot_image_rows, probe_dir
+from .method_zoo import environment as _zoo_environment
+
+NAME = "occlusion-zoo"
+DESCRIPTION = ("occlusion methods engines ship (AO, multi-bounce, specular occlusion, horizon, GTSO cones, PRT, "
+               "per-region visibility) with oracle and screen-space (GTAO) inputs vs exact visibility")
+PAPER = ("Knuth et al. 2014 (self-shadowing, Eq. 5) against Lagarde & de Rousiers 2014, Jimenez et al. 2016 (GTAO, "
+         "GTSO, multi-bounce), Marmoset 2014 horizon occlusion, Sloan et al. 2002 (PRT)")
+IN_QUICK_REPRODUCE = True
+RUNTIME = {"quick": "15 s (load 2)", "full": "measured in the saved run's meta (total_time_s)"}
+OUTPUTS = ("occlusion_zoo.csv", "occlusion_zoo_budget.csv", "occlusion_zoo_disagreements.csv",
+           "occlusion_zoo_meta.json", "occlusion_zoo_table.md", "occlusion_zoo_images.npz",
+           "occlusion_zoo_pareto_MATERIAL.png", "occlusion_zoo_images_SCENE.png")
+
+#: environments: the method zoo's and ``uniform`` (L ≡ 1: AO on a diffuse material is then exact, a check)
+ENVS = _ZOO_ENVS + ("uniform",)
+INPUT_KINDS = ("oracle", "screen-space")
+#: what GTAO estimates (the other inputs exist only as oracle inputs)
+SCREEN_SPACE_FIELDS = frozenset({"ao", "bent_normal"})
+#: fields every method gets in both kinds (geometry and material)
+COMMON_FIELDS = frozenset({"normal", "view", "roughness", "geo_normal", "albedo"})
+#: GTAO's search radius per scene (world units), set to each scene's occluders as an engine would tune it: half the
+#: teapot's height, twice the crevice's depth, about twice the bumps' radius
+GTAO_RADIUS = {"teapot": 1.5, "crevice": 1.0, "bumpy": 0.3}
+SH_ORDER = 5  # the largest PRT order traced (order 3 reads the first 9 coefficients)
+DIFFUSE_KD = 0.8
+DIELECTRIC_KD = 0.5
+
+
+def _ggx(r, f0, kd):
+    return {"kind": "ggx", "roughness": r, "f0": f0, "kd": kd, "smith": "height_correlated"}
+
+
+#: material name → parameters
+MATERIALS = {"diffuse": {"kind": "phong", "kd": DIFFUSE_KD, "ks": 0.0, "g": 0.0},
+             **{f"metal{r}": _ggx(r, 1.0, 0.0) for r in (0.1, 0.3, 0.6)},
+             **{f"dielectric{r}": _ggx(r, 0.04, DIELECTRIC_KD) for r in (0.1, 0.3, 0.6)}}
+
+#: (method a, method b, what the choice is): the engines' disagreements the table settles
+DISAGREEMENTS = (
+    ("lagarde2014-alpha", "lagarde2014-r", "Lagarde's specular occlusion fed alpha (Filament, HDRP, Bevy) or r "
+                                           "(three.js)"),
+    ("lagarde2014-alpha", "unreal-so", "Frostbite's exponent or Unreal's"),
+    ("gtso-smoothstep-alpha", "gtso-smoothstep-r", "GTSO aperture from alpha (Filament) or r (Unity)"),
+    ("gtso-exact-alpha", "gtso-smoothstep-alpha", "exact cap intersection or Oat-Sander's smoothstep"),
+    ("horizon-k1.1", "horizon-k1.3", "horizon fade constant k = 1.1 (Babylon) or 1.3 (Substance)"),
+    ("horizon-k1.3", "godot-horizon", "Marmoset's horizon on the geometric normal or Godot's variant"),
+    ("gtso-smoothstep-alpha", "filament-gtso", "GTSO without or with Filament's fade below alpha 0.01-0.09"),
+    ("ao-diffuse", "multibounce-ao", "plain AO or Jimenez's multi-bounce AO on the diffuse term"),
+    ("ao-diffuse", "ao-both", "AO on the diffuse term only or on both terms"),
+)
+
+COLUMNS = ["scene", "env", "material", "method", "inputs", "applicable", "rel_l1_frac", "p99_rel_error_frac",
+           "bias_frac", "given_back_frac", "missing_visibility_rel_l1_frac", "input_time_per_pixel_s",
+           "method_time_per_pixel_s", "input_bytes_per_pixel", "ref_err_rel_l1_frac", "n_pixels"]
+BUDGET_COLUMNS = ["scene", "env", "material", "method", "step_index", "step", "rel_l1_increment_frac",
+                  "bias_increment_frac", "rel_l1_vs_ref_frac", "bias_vs_ref_frac"]
+DISAGREEMENT_COLUMNS = ["method_a", "method_b", "choice", "inputs", "n_cases", "mean_rel_l1_a_frac",
+                        "mean_rel_l1_b_frac", "a_closer_cases", "b_closer_cases", "closer", "mean_gap_frac",
+                        "worst_case", "worst_case_gap_frac"]
+
+
+def settings(quick: bool) -> dict:
+    from ..occlusion import OCCLUSION_METHODS
+
+    if quick:
+        return dict(scenes=["crevice"], envs=["sky_sun"], materials=["diffuse", "metal0.3", "dielectric0.1"],
+                    methods=list(OCCLUSION_METHODS), n_regions=[6], size=12, env_size=8, rtol=4e-3, ref_rtol=1e-2,
+                    n_face=8, n_sets=2, gtao_radius_scale=1.0, figure_env="sky_sun", probe_dir="")
+    return dict(scenes=["teapot", "crevice", "bumpy"], envs=list(_ZOO_ENVS), materials=list(MATERIALS),
+                methods=list(OCCLUSION_METHODS), n_regions=[6], size=24, env_size=32, rtol=2e-3,
+                ref_rtol=2e-3, n_face=16, n_sets=4, gtao_radius_scale=1.0, figure_env="sky_sun", probe_dir="")
+
+
+PARAMS = params_from_settings(settings, {
+    "scenes": "scenes: teapot, crevice, bumpy",
+    "envs": "environments: sky_sun, the probes city, courtyard, forest, studio, and uniform (L = 1)",
+    "materials": "materials: " + ", ".join(MATERIALS), "methods": "occlusion methods (ibl_ref.occlusion registry)",
+    "n_regions": "region counts of the per-region methods (median cut; the env face size must be a multiple of "
+                 "--n-face)",
+    "size": "image width = height (pixels)",
+    "rtol": "tolerance of the exact unoccluded integrals (estimated rel. L1)",
+    "ref_rtol": "tolerance of the converged reference", "n_face": "face size of the oracle visibility cells",
+    "n_sets": "independent stratified visibility sets (their spread is the oracle inputs' error estimate)",
+    "gtao_radius_scale": "GTAO search radius as a multiple of each scene's radius (GTAO_RADIUS)",
+    "figure_env": "environment of the image figure",
+    "probe_dir": "folder of the probe EXRs (default $IBL_REF_PROBE_DIR or ../shared/probes beside the project)"},
+    checks={"env_size": power_of_two})
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# materials, methods and their inputs
+# ------------------------------------------------------------------------------------------------------------------
+def material(name: str):
+    """The checked parameters of :data:`MATERIALS` entry ``name``."""
+    from ..rendering.method_shading import material_params
+
+    if name not in MATERIALS:
+        raise IBLError(f"unknown material {name!r}; choose from {', '.join(MATERIALS)}")
+    return material_params(MATERIALS[name])
+
+
+def method_labels(methods, n_regions) -> list:
+    """Row labels: every method, the per-region ones once per region count (``regions-exact-24``)."""
+    from ..occlusion import get
+
+    out = []
+    for name in methods:
+        meth = get(name)
+        if "region_visibility" in meth.needs:
+            out += [f"{name}-{int(r)}" for r in n_regions]
+        else:
+            out.append(name)
+    return out
+
+
+def _split_label(label: str):
+    """``(registry name, region count or None)`` of a row label."""
+    from ..occlusion import OCCLUSION_METHODS
+
+    if label in OCCLUSION_METHODS:
+        return label, None
+    base, _, r = label.rpartition("-")
+    return base, int(r)
+
+
+def input_kinds(method) -> tuple:
+    """The input kinds a method can be fed: screen-space only when it reads nothing GTAO does not estimate."""
+    extra = set(method.needs) - COMMON_FIELDS
+    return INPUT_KINDS if extra <= SCREEN_SPACE_FIELDS else ("oracle",)
+
+
+def _nbytes_per_pixel(method, n_regions) -> int:
+    """Bytes per pixel of the inputs a method reads beyond the G-buffer, stored as float32 (an engine's layout)."""
+    size = {"ao": 1, "bent_normal": 3, "sh_transfer": 25, "region_visibility": n_regions or 0}
+    sh_order = method.params.get("order")
+    if sh_order:
+        size["sh_transfer"] = int(sh_order) ** 2
+    return 4 * sum(size.get(f, 0) for f in method.needs)
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# one job (a scene under its environments): the visibility traced once, then every material and method
+# ------------------------------------------------------------------------------------------------------------------
+def environment(name: str, n: int, folder: str = ""):
+    """``(cube (6, n, n, 3), None)`` or ``(None, reason)`` of an environment of :data:`ENVS`."""
+    if name == "uniform":
+        return np.ones((6, n, n, 3)), None
+    return _zoo_environment(name, n, folder)
+
+
+def _scene_pixels(scene: str, size: int):
+    from ..rendering.raster import prepare_scene, rasterize
+    from ..rendering.scenes import occlusion_scene
+
+    meshes, camera = occlusion_scene(scene)
+    cam = camera(size)
+    sc = prepare_scene(meshes, warn=False)
+    gb = rasterize(sc, cam)
+    m = gb.mask
+    return dict(meshes=meshes, sc=sc, cam=cam, gb=gb, mask=m, n=gb.normal[m], v=gb.view[m], P=gb.position[m],
+                fn=gb.face_normal[m])
+
+
+def _oracle(px, job):
+    from ..occlusion import oracle_inputs as oi
+
+    t0 = time.perf_counter()
+    vs = oi.trace_visibility(px["sc"], px["P"], px["n"], px["fn"], n_face=job["n_face"], n_sets=job["n_sets"],
+                             seed=0)
+    ao, ao_err = oi.ambient_occlusion(vs)
+    bent, bent_err = oi.bent_normal(vs)
+    T, _ = oi.sh_transfer(vs, SH_ORDER)
+    return vs, dict(ao=ao, bent_normal=bent, sh_transfer=T), dict(
+        trace_time_s=time.perf_counter() - t0, ao_err_mean=float(np.mean(ao_err)), ao_err_max=float(np.max(ao_err)),
+        bent_err_mean_rad=float(np.mean(bent_err)), n_rays=int(np.asarray(px["P"]).shape[0]) * 6 * job["n_face"] ** 2
+        * job["n_sets"])
+
+
+def _screen_space(px, job):
+    from ..occlusion.gtao import gtao
+
+    t0 = time.perf_counter()
+    g = gtao(px["gb"], px["cam"], radius=GTAO_RADIUS[job["scene"]] * job["gtao_radius_scale"])
+    m = px["mask"]
+    return dict(ao=np.clip(np.asarray(g.ao)[m], 0.0, 1.0), bent_normal=np.asarray(g.bent_normal)[m]), dict(
+        gtao_time_s=time.perf_counter() - t0)
+
+
+def _stack_regions(cube, labels, R):
+    """(6, N, N, R·C): channel r·C + c holds channel c of region r's partial map (zero outside the region)."""
+    C = cube.shape[-1]
+    out = np.zeros(cube.shape[:3] + (R, C))
+    for r in range(R):
+        out[..., r, :] = np.where((labels == r)[..., None], cube, 0.0)
+    return out.reshape(cube.shape[:3] + (R * C,))
+
+
+def _lobes(m):
+    """``(kd, diffuse lobe or None, specular lobe or None)`` of a material (the reference's lobes)."""
+    from ..rendering import unoccluded_reference as ur
+
+    if m["kind"] == "ggx":
+        return m["kd"], (ur.PhongLobe(1.0, "normal") if m["kd"] > 0 else None), ur.GGXSpecularLobe(
+            m["roughness"], m["f0"], m["smith"])
+    return m["kd"], ur.PhongLobe(1.0, "normal"), None
+
+
+def _integral(cube, lobe, px, front, rtol):
+    from ..rendering.unoccluded_reference import integrate
+
+    ex = integrate(cube, lobe, px["n"], px["v"], rtol=rtol)
+    return np.where(front, ex.value, 0.0), float(ex.info["err_rel_l1"])
+
+
+def _terms(cube, m, px, front, rtol, region_sets, cache):
+    """UnoccludedTerms per region count (None = no regions) of material ``m``; integrals cached per lobe."""
+    from ..occlusion import UnoccludedTerms
+
+    kd, dl, sl = _lobes(m)
+    C = cube.shape[-1]
+    P = px["n"].shape[0]
+
+    def get(lobe, key):
+        if lobe is None:
+            return None
+        k = (repr(lobe), key)
+        if k not in cache:
+            if key is None:
+                cache[k] = _integral(cube, lobe, px, front, rtol)[0]
+            else:
+                R, stacked = region_sets[key]
+                cache[k] = _integral(stacked, lobe, px, front, rtol)[0].reshape(P, R, C)
+        return cache[k]
+
+    zero = np.zeros((P, C))
+    out = {None: UnoccludedTerms(kd=kd, diffuse=get(dl, None), specular=(get(sl, None) if sl is not None
+                                                                           else zero))}
+    for key, (R, _) in region_sets.items():
+        dr = get(dl, key)
+        sr = get(sl, key) if sl is not None else np.zeros((P, R, C))
+        out[key] = UnoccludedTerms(kd=kd, diffuse=out[None].diffuse, specular=out[None].specular,
+                                   diffuse_regions=dr if dr is not None else np.zeros((P, R, C)),
+                                   specular_regions=sr)
+    return out
+
+
+def _reference(px, cube, m, job):
+    from ..rendering.reference_render import render_reference
+
+    mats = {int(i): m for i in np.unique(px["sc"].material_id)}
+    rr = render_reference(px["sc"], px["cam"], cube, materials=mats, rtol=job["ref_rtol"], gbuffer=px["gb"])
+    return rr.image[px["mask"]], dict(err_rel_l1=float(rr.info["err_rel_l1"]),
+                                      err_rel_p99=rr.info.get("err_rel_p99"), converged=rr.info.get("converged"))
+
+
+def _scene_job(job: dict) -> dict:
+    """One scene under ``job["envs"]``: its visibility traced once, then every (environment, material, method,
+    input kind)."""
+    from ..groundtruth.sh_basis import sh_project
+    from ..knuth2014.median_cut import median_cut
+    from ..occlusion import OcclusionInputs, get, oracle_inputs as oi, shade
+
+    t_case = time.perf_counter()
+    px = _scene_pixels(job["scene"], job["size"])
+    P = px["n"].shape[0]
+    if P == 0:
+        raise IBLError(f"occlusion-zoo: scene {job['scene']!r} covers no pixel at size {job['size']}")
+    front = (np.sum(px["n"] * px["v"], axis=1) > 0)[:, None]
+    vs, oracle, oinfo = _oracle(px, job)
+    screen, sinfo = _screen_space(px, job)
+    input_time = {"oracle": oinfo["trace_time_s"] / P, "screen-space": sinfo["gtao_time_s"] / P}
+    labels = method_labels(job["methods"], job["n_regions"])
+    rows, brows, images, refs, skipped = [], [], {}, {}, {}
+    for env in job["envs"]:
+        cube, why = environment(env, job["env_size"], job["probe_dir"])
+        if cube is None:
+            skipped[f"env {env}"] = why
+            continue
+        env_sh = sh_project(cube, SH_ORDER - 1)
+        region_sets, region_vis = {}, {}
+        for R in job["n_regions"]:
+            lab = median_cut(cube, int(R)).labels
+            region_sets[int(R)] = (int(R), _stack_regions(cube, lab, int(R)))
+            region_vis[int(R)] = oi.region_visibility(vs, cube, lab)[0]
+        cache = {}
+        for mname in track(list(job["materials"]), f"{job['scene']}/{env}: materials", unit="material"):
+            m = material(mname)
+            ref, rinfo = _reference(px, cube, m, job)
+            refs[f"{env}/{mname}"] = rinfo
+            terms = _terms(cube, m, px, front, job["rtol"], region_sets, cache)
+            rough = float(m.get("roughness", 1.0))
+            albedo = np.full(cube.shape[-1], min(float(m["kd"]), 1.0))
+            common = dict(normal=px["n"], view=px["v"], roughness=rough, geo_normal=px["fn"], albedo=albedo)
+            unocc = shade(get("none")(OcclusionInputs(**common)), terms[None])
+            missing = _metrics(unocc, ref)["rel_l1_frac"]
+            base = dict(scene=job["scene"], env=env, material=mname, ref_err_rel_l1_frac=rinfo["err_rel_l1"],
+                        missing_visibility_rel_l1_frac=missing, n_pixels=P)
+            if env == job["figure_env"]:
+                images[f"{mname}__reference"] = ref.astype(np.float32)
+            for label in labels:
+                name, R = _split_label(label)
+                meth = get(name)
+                kinds = input_kinds(meth)
+                imgs = {}
+                for kind in INPUT_KINDS:
+                    if kind not in kinds:
+                        rows.append(dict(base, method=label, inputs=kind, applicable=False))
+                        continue
+                    src = oracle if kind == "oracle" else screen
+                    extra = {f: src[f] for f in meth.needs if f in src}
+                    if "env_sh" in meth.needs:
+                        extra["env_sh"] = env_sh
+                    if R is not None:
+                        extra["region_visibility"] = region_vis[R]
+                    inp = OcclusionInputs(**common, **extra)
+                    t0 = time.perf_counter()
+                    img = shade(meth(inp), terms[R])
+                    dt = time.perf_counter() - t0
+                    imgs[kind] = img
+                    met = _metrics(img, ref)
+                    rows.append(dict(base, method=label, inputs=kind, applicable=True, **met,
+                                     given_back_frac=1.0 - met["rel_l1_frac"] / max(missing, 1e-300),
+                                     input_time_per_pixel_s=input_time[kind], method_time_per_pixel_s=dt / P,
+                                     input_bytes_per_pixel=_nbytes_per_pixel(meth, R)))
+                    if env == job["figure_env"] and kind == "oracle":
+                        images[f"{mname}__{label}"] = img.astype(np.float32)
+                brows += _walk(base, label, unocc, imgs, ref)
+    return dict(scene=job["scene"], case="/".join([job["scene"]] + list(job["envs"])), rows=rows, budget=brows, images=images, mask=px["mask"], references=refs,
+                skipped=skipped, oracle=oinfo, screen_space=sinfo, n_pixels=P, time_s=time.perf_counter() - t_case)
+
+
+def _walk(base, label, unocc, imgs, ref):
+    """no occlusion → the method with oracle inputs → with screen-space inputs (where it has them)."""
+    steps = [("no occlusion", unocc), ("occlusion model (oracle inputs)", imgs.get("oracle"))]
+    if "screen-space" in imgs:
+        steps.append(("estimator (screen-space inputs)", imgs["screen-space"]))
+    den = float(np.abs(ref.mean(axis=1)).sum())
+    out, prev = [], None
+    for k, (step, img) in enumerate(steps):
+        m = _metrics(img, ref)
+        inc = 0.0 if prev is None else float(np.abs((img - prev).mean(axis=1)).sum() / den)
+        binc = m["bias_frac"] if prev is None else float((img - prev).mean(axis=1).sum() / ref.mean(axis=1).sum())
+        out.append(dict(scene=base["scene"], env=base["env"], material=base["material"], method=label, step_index=k,
+                        step=step, rel_l1_increment_frac=inc if prev is not None else m["rel_l1_frac"],
+                        bias_increment_frac=binc, rel_l1_vs_ref_frac=m["rel_l1_frac"], bias_vs_ref_frac=m["bias_frac"]))
+        prev = img
+    return out
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# run
+# ------------------------------------------------------------------------------------------------------------------
+def _check(st):
+    from ..occlusion import get
+    from ..rendering.scenes import OCCLUSION_SCENES
+
+    for s in st["scenes"]:
+        if s not in OCCLUSION_SCENES:
+            raise IBLError(f"unknown scene {s!r}; choose from {', '.join(OCCLUSION_SCENES)}")
+    for e in st["envs"]:
+        if e not in ENVS:
+            raise IBLError(f"unknown environment {e!r}; choose from {', '.join(ENVS)}")
+    for mname in st["materials"]:
+        material(mname)
+    for name in st["methods"]:
+        get(name)
+    for k in ("size", "env_size", "n_face", "n_sets"):
+        if isinstance(st[k], bool) or not isinstance(st[k], int) or st[k] < 1:
+            raise IBLError(f"--{k.replace('_', '-')} must be a positive integer, got {st[k]!r}")
+    regions = st["n_regions"] if isinstance(st["n_regions"], (list, tuple)) else [st["n_regions"]]
+    for R in regions:
+        if isinstance(R, bool) or not isinstance(R, int) or R < 1:
+            raise IBLError(f"--n-regions must be positive integers, got {R!r}")
+    if st["env_size"] % st["n_face"]:
+        raise IBLError(f"--env-size {st['env_size']} must be a multiple of --n-face {st['n_face']} (each visibility "
+                       "cell is a block of environment texels)")
+    for k in ("rtol", "ref_rtol", "gtao_radius_scale"):
+        if not (np.isfinite(st[k]) and st[k] > 0):
+            raise IBLError(f"--{k.replace('_', '-')} must be a finite number > 0, got {st[k]!r}")
+    return [int(R) for R in regions]
+
+
+def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **params) -> dict:
+    out_dir = Path(out_dir)
+    st = settings_with(__name__, quick, params)
+    st["n_regions"] = _check(st)  # every parameter is checked before any work (and before any file is written)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    load0, t0 = os.getloadavg(), time.perf_counter()
+    common = {k: st[k] for k in ("envs", "materials", "methods", "n_regions", "size", "env_size", "rtol", "ref_rtol",
+                                 "n_face", "n_sets", "gtao_radius_scale", "figure_env", "probe_dir")}
+    jobs = [dict(common, scene=s, envs=[e]) for s in st["scenes"] for e in st["envs"]]
+    cases = map_jobs(_scene_job, jobs, executor=executor, workers=workers,
+                     desc="occlusion-zoo: cases (scene x environment)", unit="case",
+                     cost=[2.0 if j["scene"] == "teapot" else 1.0 for j in jobs])
+    rows = [q for c in cases for q in c["rows"]]
+    if not any(str(q.get("applicable")) == "True" for q in rows):
+        raise IBLError("occlusion-zoo: every environment was skipped: "
+                       + "; ".join(f"{k}: {v}" for c in cases for k, v in c["skipped"].items()))
+    brows = [q for c in cases for q in c["budget"]]
+    dis = disagreements(rows)
+    note = ("*_frac: fractions of the reference's sum over the covered pixels (channel means); given_back = 1 - "
+            "rel_l1 / missing_visibility_rel_l1 (0 = no occlusion, 1 = exact); "
+            f"p99: 99th percentile of |I - I_ref| / max(I_ref, {P99_FLOOR:g} x mean I_ref); times in seconds per "
+            "pixel (wall, this machine); bytes per pixel of the inputs read, stored as float32")
+    write_csv(out_dir / "occlusion_zoo.csv", rows, COLUMNS, comment=note)
+    write_csv(out_dir / "occlusion_zoo_budget.csv", brows, BUDGET_COLUMNS,
+              comment="per method: no occlusion -> occlusion model with oracle inputs -> estimator (screen-space "
+                      "inputs); increment = rel. L1 of this step's image minus the previous one; " + note)
+    write_csv(out_dir / "occlusion_zoo_disagreements.csv", dis, DISAGREEMENT_COLUMNS,
+              comment="per pair of engine choices, over the GGX and diffuse cases both apply to: mean rel. L1 of "
+                      "each, cases where each is closer to the reference, mean |gap| and the case of the largest gap")
+    arrays = {}
+    for c in cases:
+        for k, v in c["images"].items():
+            arrays[f"{c['scene']}__{k}"] = v
+        arrays[f"{c['scene']}__mask"] = c["mask"]
+    with atomic_path(out_dir / "occlusion_zoo_images.npz", suffix=".npz") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+    from ..occlusion import get
+
+    meta = dict(settings=st, scenes_run=list(dict.fromkeys(c["scene"] for c in cases)),
+                skipped={k: v for c in cases for k, v in c["skipped"].items()},
+                probe_dir=str(probe_dir(st["probe_dir"])), materials={k: material(k) for k in st["materials"]},
+                methods={name: dict(needs=list(get(name).needs), params=dict(get(name).params), citation=get(name).citation,
+                                    inputs=list(input_kinds(get(name)))) for name in st["methods"]},
+                references={f"{c['scene']}/{k}": v for c in cases for k, v in c["references"].items()},
+                oracle_inputs={c["case"]: c["oracle"] for c in cases},
+                screen_space_inputs={c["case"]: c["screen_space"] for c in cases},
+                n_pixels={c["scene"]: c["n_pixels"] for c in cases},
+                case_time_s={c["case"]: c["time_s"] for c in cases}, p99_floor=P99_FLOOR,
+                load_average_start=list(load0), load_average_end=list(os.getloadavg()),
+                total_time_s=time.perf_counter() - t0)
+    write_json(out_dir / "occlusion_zoo_meta.json", meta)
+    with atomic_write(out_dir / "occlusion_zoo_table.md") as fh:
+        fh.write(markdown_tables(rows, brows, dis, st))
+    return dict(given_back=given_back_table(rows), disagreements={f"{q['method_a']} vs {q['method_b']}": q["closer"]
+                                                                  for q in dis},
+                skipped=meta["skipped"], time_s=meta["total_time_s"])
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# summaries (from the rows only)
+# ------------------------------------------------------------------------------------------------------------------
+def _applicable(rows, inputs=None):
+    return [q for q in rows if str(q["applicable"]) == "True" and (inputs is None or q["inputs"] == inputs)]
+
+
+def given_back_table(rows) -> dict:
+    """{"method/inputs": mean share of the missing-visibility error given back, over every case}."""
+    acc = {}
+    for q in _applicable(rows):
+        acc.setdefault(f"{q['method']}/{q['inputs']}", []).append(float(q["given_back_frac"]))
+    return {k: float(np.mean(v)) for k, v in acc.items()}
+
+
+def disagreements(rows) -> list:
+    """One row per :data:`DISAGREEMENTS` pair and input kind, from the cases both methods were applied to."""
+    out = []
+    for a, b, what in DISAGREEMENTS:
+        for kind in INPUT_KINDS:
+            sel = {}
+            for q in _applicable(rows, kind):
+                if q["method"] in (a, b):
+                    sel.setdefault((q["scene"], q["env"], q["material"]), {})[q["method"]] = float(q["rel_l1_frac"])
+            pairs = {k: v for k, v in sel.items() if a in v and b in v}
+            if not pairs:
+                continue
+            ea = np.array([v[a] for v in pairs.values()])
+            eb = np.array([v[b] for v in pairs.values()])
+            gap = eb - ea
+            worst = int(np.argmax(np.abs(gap)))
+            out.append(dict(method_a=a, method_b=b, choice=what, inputs=kind, n_cases=len(pairs),
+                            mean_rel_l1_a_frac=float(ea.mean()), mean_rel_l1_b_frac=float(eb.mean()),
+                            a_closer_cases=int(np.sum(ea < eb)), b_closer_cases=int(np.sum(eb < ea)),
+                            closer=a if ea.mean() < eb.mean() else (b if eb.mean() < ea.mean() else "tie"),
+                            mean_gap_frac=float(np.mean(np.abs(gap))), worst_case="/".join(list(pairs)[worst]),
+                            worst_case_gap_frac=float(gap[worst])))
+    return out
+
+
+def _pct(x):
+    return f"{100 * float(x):.1f}"
+
+
+def markdown_tables(rows, brows, dis, st) -> str:
+    app = _applicable(rows)
+    mats = [m for m in st["materials"] if any(q["material"] == m for q in app)]
+    methods = list(dict.fromkeys(q["method"] for q in app))
+    lines = ["# Occlusion zoo", "",
+             "Share of the missing-visibility error each method gives back (100 % = exact visibility, 0 % = none, "
+             "negative = worse than none), mean over scenes and environments; oracle inputs / screen-space (GTAO) "
+             "inputs.", "", "| method | " + " | ".join(mats) + " |", "|---|" + "---|" * len(mats)]
+    for meth in methods:
+        cells = []
+        for mat in mats:
+            parts = []
+            for kind in INPUT_KINDS:
+                v = [float(q["given_back_frac"]) for q in app if (q["method"], q["material"], q["inputs"]) ==
+                     (meth, mat, kind)]
+                parts.append(_pct(np.mean(v)) if v else "n/a")
+            cells.append(" / ".join(parts))
+        lines.append(f"| {meth} | " + " | ".join(cells) + " |")
+    lines += ["", "Rel. L1 against the reference (%), oracle inputs, mean over scenes and environments (first row: no "
+                  "occlusion, the missing-visibility error).", "",
+              "| method | " + " | ".join(mats) + " |", "|---|" + "---|" * len(mats)]
+    for meth in methods:
+        cells = []
+        for mat in mats:
+            v = [float(q["rel_l1_frac"]) for q in app if (q["method"], q["material"], q["inputs"]) ==
+                 (meth, mat, "oracle")]
+            cells.append(_pct(np.mean(v)) if v else "n/a")
+        lines.append(f"| {meth} | " + " | ".join(cells) + " |")
+    lines += ["", "The engines' disagreements (rel. L1 %, mean over the cases both apply to).", "",
+              "| choice | inputs | a | b | a / b | a closer / b closer | closer | largest gap (b − a) at |",
+              "|---|---|---|---|---|---|---|---|"]
+    for q in dis:
+        lines.append(f"| {q['choice']} | {q['inputs']} | {q['method_a']} | {q['method_b']} | "
+                     f"{_pct(q['mean_rel_l1_a_frac'])} / {_pct(q['mean_rel_l1_b_frac'])} | {q['a_closer_cases']} / "
+                     f"{q['b_closer_cases']} | {q['closer']} | {_pct(q['worst_case_gap_frac'])} at "
+                     f"{q['worst_case']} |")
+    return "\n".join(lines) + "\n"
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# plots (read only the files)
+# ------------------------------------------------------------------------------------------------------------------
+def plot(out_dir: Path) -> list:
+    plt = pyplot()
+    out_dir = Path(out_dir)
+    meta = json.loads((out_dir / "occlusion_zoo_meta.json").read_text())
+    rows = _applicable(read_csv(out_dir / "occlusion_zoo.csv"))
+    figs = []
+    for mat in meta["settings"]["materials"]:
+        sel = [q for q in rows if q["material"] == mat]
+        if sel:
+            figs.append(_plot_pareto(plt, out_dir, mat, sel))
+    for scene in meta["scenes_run"]:
+        f = _plot_images(plt, out_dir, scene, meta)
+        if f is not None:
+            figs.append(f)
+    return figs
+
+
+def _plot_pareto(plt, out_dir, mat, sel):
+    methods = list(dict.fromkeys(q["method"] for q in sel))
+    colours = plt.get_cmap("tab20")(np.linspace(0, 1, max(len(methods), 2)))
+    marks = {"oracle": "o", "screen-space": "^"}
+    fig, ax = plt.subplots(1, 2, figsize=(11.5, 4.6), layout="constrained")
+    for j, (key, label) in enumerate((("method_time_per_pixel_s", "time per pixel of the method (s, wall)"),
+                                      ("input_bytes_per_pixel", "bytes per pixel of its inputs (float32)"))):
+        a = ax[j]
+        for i, meth in enumerate(methods):
+            for kind, mk in marks.items():
+                q = [r for r in sel if (r["method"], r["inputs"]) == (meth, kind)]
+                if not q:
+                    continue
+                x = max(np.mean([float(r[key]) for r in q]), 1e-12 if key.endswith("_s") else 0.5)
+                y = 100 * np.mean([float(r["rel_l1_frac"]) for r in q])
+                a.scatter(x, y, color=colours[i], marker=mk, s=36, zorder=3,
+                          label=meth if (j == 0 and kind == "oracle") else None)
+        a.set_xscale("log")
+        plain_log_ticks(a.xaxis, minor=())
+        a.set_ylim(bottom=0)
+        a.set_xlabel(label)
+        a.set_ylabel("rel. L1 vs reference (%), mean over scenes and environments")
+        a.grid(True, which="both", alpha=0.3)
+    ax[0].set_title(f"{mat}: error vs time (o oracle inputs, ^ screen-space)", fontsize=9)
+    ax[1].set_title(f"{mat}: error vs input memory", fontsize=9)
+    fig.legend(loc="outside right upper", fontsize=7)
+    return save_figure(fig, out_dir / f"occlusion_zoo_pareto_{mat}.png", dpi=100)
+
+
+def _plot_images(plt, out_dir, scene, meta):
+    with np.load(out_dir / "occlusion_zoo_images.npz") as z:
+        arr = {k: z[k] for k in z.files if k.startswith(scene + "__")}
+    mats = [m for m in meta["settings"]["materials"] if f"{scene}__{m}__reference" in arr]
+    if f"{scene}__mask" not in arr or not mats:
+        return None
+    labels = method_labels(meta["settings"]["methods"], meta["settings"]["n_regions"])
+    rows = [(mat, arr[f"{scene}__{mat}__reference"], [(x, arr[f"{scene}__{mat}__{x}"]) for x in labels
+                                                        if f"{scene}__{mat}__{x}" in arr]) for mat in mats]
+    return plot_image_rows(plt, out_dir / f"occlusion_zoo_images_{scene}.png", arr[f"{scene}__mask"], rows,
+                           f"{scene}, {meta['settings']['figure_env']}: reference and each occlusion method with "
+                           "oracle inputs (one exposure per row, the reference's)", cell=(1.1, 1.25), fontsize=5)
