@@ -62,10 +62,15 @@ def test_every_method_has_a_row_and_no_occlusion_gives_nothing_back(quick):
     # the scene occludes: missing visibility is a real error, well above the reference's own estimate
     for q in _rows(out, method="none", inputs="oracle"):
         assert float(q["missing_visibility_rel_l1_frac"]) > 5 * float(q["ref_err_rel_l1_frac"])
-    # methods that read more than AO and the bent normal have no screen-space row
-    for q in _rows(out, inputs="screen-space"):
-        if q["method"].startswith(("prt", "regions")):
-            assert q["applicable"] == "False"
+    # methods that read more than AO and the bent normal have no screen-space row; the per-region ones have one row
+    # per shadow filter instead
+    kinds = {(q["method"], q["inputs"]) for q in rows}
+    for label in labels:
+        has_ss = (label, "screen-space") in kinds
+        assert has_ss == (not label.startswith(("prt", "regions")))
+        if label.startswith("regions"):
+            assert {k for m, k in kinds if m == label} == {"oracle"} | {
+                "shadow-map:" + f for f in meta["settings"]["shadow_filters"]}
 
 
 def test_missing_visibility_only_adds_light(quick):
@@ -87,7 +92,7 @@ def test_budget_walk_adds_up_to_the_methods_error(quick):
             assert float(q["rel_l1_vs_ref_frac"]) == pytest.approx(float(r["rel_l1_frac"]), rel=1e-12)
     walks = {}
     for q in read_csv(out / "occlusion_zoo_budget.csv"):
-        walks.setdefault((q["scene"], q["env"], q["material"], q["method"]), []).append(q)
+        walks.setdefault((q["scene"], q["env"], q["material"], q["method"], q["inputs"]), []).append(q)
     for steps in walks.values():
         # signed biases of the steps add up to the last image's bias
         assert sum(float(s["bias_increment_frac"]) for s in steps) == pytest.approx(
@@ -123,7 +128,7 @@ def test_bad_parameters_fail_before_any_file_is_written(tmp_path):
     out = tmp_path / "never"
     for kw, msg in ((dict(scenes=["moon"]), "unknown scene"), (dict(envs=["mars"]), "unknown environment"),
                     (dict(materials=["chrome"]), "unknown material"), (dict(methods=["magic"]), "magic"),
-                    (dict(n_regions=[0]), "n-regions"), (dict(env_size=8, n_face=3), "multiple of --n-face"),
+                    (dict(n_regions=[0]), "n-regions"), (dict(shadow_filters=["blur"]), "unknown shadow filter"), (dict(env_size=8, n_face=3), "multiple of --n-face"),
                     (dict(ref_rtol=0.0), "ref-rtol"), (dict(gtao_radius_scale=float("nan")), "gtao-radius-scale")):
         with pytest.raises(IBLError, match=msg):
             oz.run(out, quick=True, **kw)

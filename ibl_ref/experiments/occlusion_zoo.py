@@ -76,7 +76,10 @@ OUTPUTS = ("occlusion_zoo.csv", "occlusion_zoo_budget.csv", "occlusion_zoo_disag
 
 #: environments: the method zoo's and ``uniform`` (L ≡ 1: AO on a diffuse material is then exact, a check)
 ENVS = _ZOO_ENVS + ("uniform",)
+#: input kinds of the methods that read AO and bent normals: exact, and estimated by GTAO
 INPUT_KINDS = ("oracle", "screen-space")
+#: the estimated input kind of the per-region methods: shadow maps of the region lights with a filter
+SHADOW_KIND = "shadow-map:"
 #: what GTAO estimates (the other inputs exist only as oracle inputs)
 SCREEN_SPACE_FIELDS = frozenset({"ao", "bent_normal"})
 #: fields every method gets in both kinds (geometry and material)
@@ -115,7 +118,7 @@ DISAGREEMENTS = (
 COLUMNS = ["scene", "env", "material", "method", "inputs", "applicable", "rel_l1_frac", "p99_rel_error_frac",
            "bias_frac", "given_back_frac", "missing_visibility_rel_l1_frac", "input_time_per_pixel_s",
            "method_time_per_pixel_s", "input_bytes_per_pixel", "ref_err_rel_l1_frac", "n_pixels"]
-BUDGET_COLUMNS = ["scene", "env", "material", "method", "step_index", "step", "rel_l1_increment_frac",
+BUDGET_COLUMNS = ["scene", "env", "material", "method", "inputs", "step_index", "step", "rel_l1_increment_frac",
                   "bias_increment_frac", "rel_l1_vs_ref_frac", "bias_vs_ref_frac"]
 DISAGREEMENT_COLUMNS = ["method_a", "method_b", "choice", "inputs", "n_cases", "mean_rel_l1_a_frac",
                         "mean_rel_l1_b_frac", "a_closer_cases", "b_closer_cases", "closer", "mean_gap_frac",
@@ -124,14 +127,17 @@ DISAGREEMENT_COLUMNS = ["method_a", "method_b", "choice", "inputs", "n_cases", "
 
 def settings(quick: bool) -> dict:
     from ..occlusion import OCCLUSION_METHODS
+    from ..occlusion.shadow_filters import SHADOW_FILTERS
 
     if quick:
         return dict(scenes=["crevice"], envs=["sky_sun"], materials=["diffuse", "metal0.3", "dielectric0.1"],
                     methods=list(OCCLUSION_METHODS), n_regions=[6], size=12, env_size=8, rtol=4e-3, ref_rtol=1e-2,
-                    n_face=8, n_sets=2, gtao_radius_scale=1.0, figure_env="sky_sun", probe_dir="")
+                    n_face=8, n_sets=2, gtao_radius_scale=1.0, shadow_filters=["pcf", "vsm", "msm"], shadow_resolution=64,
+                    figure_env="sky_sun", probe_dir="")
     return dict(scenes=["teapot", "crevice", "bumpy"], envs=list(_ZOO_ENVS), materials=list(MATERIALS),
                 methods=list(OCCLUSION_METHODS), n_regions=[6], size=24, env_size=32, rtol=2e-3,
-                ref_rtol=2e-3, n_face=16, n_sets=4, gtao_radius_scale=1.0, figure_env="sky_sun", probe_dir="")
+                ref_rtol=2e-3, n_face=16, n_sets=4, gtao_radius_scale=1.0, shadow_filters=list(SHADOW_FILTERS),
+                shadow_resolution=256, figure_env="sky_sun", probe_dir="")
 
 
 PARAMS = params_from_settings(settings, {
@@ -145,6 +151,8 @@ PARAMS = params_from_settings(settings, {
     "ref_rtol": "tolerance of the converged reference", "n_face": "face size of the oracle visibility cells",
     "n_sets": "independent stratified visibility sets (their spread is the oracle inputs' error estimate)",
     "gtao_radius_scale": "GTAO search radius as a multiple of each scene's radius (GTAO_RADIUS)",
+    "shadow_filters": "shadow-map filters estimating the per-region visibility (pcf, vsm, esm, evsm, msm)",
+    "shadow_resolution": "shadow-map size (texels) of the region lights",
     "figure_env": "environment of the image figure",
     "probe_dir": "folder of the probe EXRs (default $IBL_REF_PROBE_DIR or ../shared/probes beside the project)"},
     checks={"env_size": power_of_two})
@@ -186,9 +194,13 @@ def _split_label(label: str):
     return base, int(r)
 
 
-def input_kinds(method) -> tuple:
-    """The input kinds a method can be fed: screen-space only when it reads nothing GTAO does not estimate."""
+def input_kinds(method, shadow_filters=()) -> tuple:
+    """The input kinds a method can be fed: ``oracle`` always; ``screen-space`` when it reads nothing GTAO does not
+    estimate; ``shadow-map:FILTER`` (:data:`ibl_ref.occlusion.shadow_filters.SHADOW_FILTERS`) when it reads the
+    per-region visibility, which the paper estimates with shadow maps of the region lights."""
     extra = set(method.needs) - COMMON_FIELDS
+    if "region_visibility" in extra:
+        return ("oracle",) + tuple(SHADOW_KIND + f for f in shadow_filters)
     return INPUT_KINDS if extra <= SCREEN_SPACE_FIELDS else ("oracle",)
 
 
@@ -322,6 +334,7 @@ def _scene_job(job: dict) -> dict:
     from ..groundtruth.sh_basis import sh_project
     from ..knuth2014.median_cut import median_cut
     from ..occlusion import OcclusionInputs, get, oracle_inputs as oi, shade
+    from ..occlusion.shadow_filters import region_visibility_shadow_maps
 
     t_case = time.perf_counter()
     px = _scene_pixels(job["scene"], job["size"])
@@ -342,9 +355,14 @@ def _scene_job(job: dict) -> dict:
         env_sh = sh_project(cube, SH_ORDER - 1)
         region_sets, region_vis = {}, {}
         for R in job["n_regions"]:
-            lab = median_cut(cube, int(R)).labels
-            region_sets[int(R)] = (int(R), _stack_regions(cube, lab, int(R)))
-            region_vis[int(R)] = oi.region_visibility(vs, cube, lab)[0]
+            lights = median_cut(cube, int(R))
+            region_sets[int(R)] = (int(R), _stack_regions(cube, lights.labels, int(R)))
+            region_vis[(int(R), "oracle")] = oi.region_visibility(vs, cube, lights.labels)[0]
+            for f in job["shadow_filters"]:
+                t0 = time.perf_counter()
+                region_vis[(int(R), SHADOW_KIND + f)] = region_visibility_shadow_maps(
+                    px["sc"], px["P"], px["fn"], lights, filter=f, resolution=job["shadow_resolution"])
+                input_time[SHADOW_KIND + f] = (time.perf_counter() - t0) / P / int(R)  # per pixel and light
         cache = {}
         for mname in track(list(job["materials"]), f"{job['scene']}/{env}: materials", unit="material"):
             m = material(mname)
@@ -363,18 +381,14 @@ def _scene_job(job: dict) -> dict:
             for label in labels:
                 name, R = _split_label(label)
                 meth = get(name)
-                kinds = input_kinds(meth)
                 imgs = {}
-                for kind in INPUT_KINDS:
-                    if kind not in kinds:
-                        rows.append(dict(base, method=label, inputs=kind, applicable=False))
-                        continue
+                for kind in input_kinds(meth, job["shadow_filters"]):
                     src = oracle if kind == "oracle" else screen
                     extra = {f: src[f] for f in meth.needs if f in src}
                     if "env_sh" in meth.needs:
                         extra["env_sh"] = env_sh
                     if R is not None:
-                        extra["region_visibility"] = region_vis[R]
+                        extra["region_visibility"] = region_vis[(R, kind)]
                     inp = OcclusionInputs(**common, **extra)
                     t0 = time.perf_counter()
                     img = shade(meth(inp), terms[R])
@@ -387,23 +401,31 @@ def _scene_job(job: dict) -> dict:
                                      input_bytes_per_pixel=_nbytes_per_pixel(meth, R)))
                     if env == job["figure_env"] and kind == "oracle":
                         images[f"{mname}__{label}"] = img.astype(np.float32)
-                brows += _walk(base, label, unocc, imgs, ref)
+                brows += _walks(base, label, unocc, imgs, ref)
     return dict(scene=job["scene"], case="/".join([job["scene"]] + list(job["envs"])), rows=rows, budget=brows, images=images, mask=px["mask"], references=refs,
                 skipped=skipped, oracle=oinfo, screen_space=sinfo, n_pixels=P, time_s=time.perf_counter() - t_case)
 
 
-def _walk(base, label, unocc, imgs, ref):
-    """no occlusion → the method with oracle inputs → with screen-space inputs (where it has them)."""
-    steps = [("no occlusion", unocc), ("occlusion model (oracle inputs)", imgs.get("oracle"))]
-    if "screen-space" in imgs:
-        steps.append(("estimator (screen-space inputs)", imgs["screen-space"]))
+def _walks(base, label, unocc, imgs, ref):
+    """One walk per input kind: no occlusion → the method with oracle inputs (→ with the estimated inputs)."""
+    out = []
+    for kind in imgs:
+        steps = [("no occlusion", unocc), ("occlusion model (oracle inputs)", imgs["oracle"])]
+        if kind != "oracle":
+            steps.append((f"estimator ({kind} inputs)", imgs[kind]))
+        out += _walk(dict(base, method=label, inputs=kind), steps, ref)
+    return out
+
+
+def _walk(base, steps, ref):
     den = float(np.abs(ref.mean(axis=1)).sum())
     out, prev = [], None
     for k, (step, img) in enumerate(steps):
         m = _metrics(img, ref)
         inc = 0.0 if prev is None else float(np.abs((img - prev).mean(axis=1)).sum() / den)
         binc = m["bias_frac"] if prev is None else float((img - prev).mean(axis=1).sum() / ref.mean(axis=1).sum())
-        out.append(dict(scene=base["scene"], env=base["env"], material=base["material"], method=label, step_index=k,
+        out.append(dict(scene=base["scene"], env=base["env"], material=base["material"], method=base["method"],
+                        inputs=base["inputs"], step_index=k,
                         step=step, rel_l1_increment_frac=inc if prev is not None else m["rel_l1_frac"],
                         bias_increment_frac=binc, rel_l1_vs_ref_frac=m["rel_l1_frac"], bias_vs_ref_frac=m["bias_frac"]))
         prev = img
@@ -427,7 +449,14 @@ def _check(st):
         material(mname)
     for name in st["methods"]:
         get(name)
-    for k in ("size", "env_size", "n_face", "n_sets"):
+    from ..occlusion.shadow_filters import SHADOW_FILTERS
+
+    filters = st["shadow_filters"] if isinstance(st["shadow_filters"], (list, tuple)) else [st["shadow_filters"]]
+    for f in filters:
+        if f not in SHADOW_FILTERS:
+            raise IBLError(f"unknown shadow filter {f!r}; choose from {', '.join(SHADOW_FILTERS)}")
+    st["shadow_filters"] = list(filters)
+    for k in ("size", "env_size", "n_face", "n_sets", "shadow_resolution"):
         if isinstance(st[k], bool) or not isinstance(st[k], int) or st[k] < 1:
             raise IBLError(f"--{k.replace('_', '-')} must be a positive integer, got {st[k]!r}")
     regions = st["n_regions"] if isinstance(st["n_regions"], (list, tuple)) else [st["n_regions"]]
@@ -450,7 +479,8 @@ def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **p
     out_dir.mkdir(parents=True, exist_ok=True)
     load0, t0 = os.getloadavg(), time.perf_counter()
     common = {k: st[k] for k in ("envs", "materials", "methods", "n_regions", "size", "env_size", "rtol", "ref_rtol",
-                                 "n_face", "n_sets", "gtao_radius_scale", "figure_env", "probe_dir")}
+                                 "n_face", "n_sets", "gtao_radius_scale", "shadow_filters", "shadow_resolution", "figure_env",
+                                 "probe_dir")}
     jobs = [dict(common, scene=s, envs=[e]) for s in st["scenes"] for e in st["envs"]]
     cases = map_jobs(_scene_job, jobs, executor=executor, workers=workers,
                      desc="occlusion-zoo: cases (scene x environment)", unit="case",
@@ -486,7 +516,8 @@ def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **p
                 skipped={k: v for c in cases for k, v in c["skipped"].items()},
                 probe_dir=str(probe_dir(st["probe_dir"])), materials={k: material(k) for k in st["materials"]},
                 methods={name: dict(needs=list(get(name).needs), params=dict(get(name).params), citation=get(name).citation,
-                                    inputs=list(input_kinds(get(name)))) for name in st["methods"]},
+                                    inputs=list(input_kinds(get(name), st["shadow_filters"])))
+                         for name in st["methods"]},
                 references={f"{c['scene']}/{k}": v for c in cases for k, v in c["references"].items()},
                 oracle_inputs={c["case"]: c["oracle"] for c in cases},
                 screen_space_inputs={c["case"]: c["screen_space"] for c in cases},
@@ -574,6 +605,20 @@ def markdown_tables(rows, brows, dis, st) -> str:
                  (meth, mat, "oracle")]
             cells.append(_pct(np.mean(v)) if v else "n/a")
         lines.append(f"| {meth} | " + " | ".join(cells) + " |")
+    region = sorted({(q["method"], q["inputs"]) for q in app if q["inputs"].startswith(SHADOW_KIND)
+                     or (q["method"].startswith("regions") and q["inputs"] == "oracle")})
+    if region:
+        lines += ["", "The paper's per-region visibility (Eq. 5 on exact per-region terms) with its visible fractions "
+                      "exact (oracle) or estimated by shadow maps of the region lights with each filter: share given "
+                      "back (%), mean over scenes and environments.", "",
+                  "| method | inputs | " + " | ".join(mats) + " |", "|---|---|" + "---|" * len(mats)]
+        for meth, kind in region:
+            cells = []
+            for mat in mats:
+                v = [float(q["given_back_frac"]) for q in app if (q["method"], q["material"], q["inputs"]) ==
+                     (meth, mat, kind)]
+                cells.append(_pct(np.mean(v)) if v else "n/a")
+            lines.append(f"| {meth} | {kind} | " + " | ".join(cells) + " |")
     lines += ["", "The engines' disagreements (rel. L1 %, mean over the cases both apply to).", "",
               "| choice | inputs | a | b | a / b | a closer / b closer | closer | largest gap (b − a) at |",
               "|---|---|---|---|---|---|---|---|"]
