@@ -46,9 +46,11 @@ KTX 1 (Khronos, *KTX File Format Specification*, version 1.1, 2018; all fields U
   the reader takes the first of the three layouts whose sizes account for every byte of the file.
 * The file must end with the last level: a shorter or a longer file is refused, naming the level.
 
-DDS (Microsoft Learn, *DDS_HEADER*, *DDS_PIXELFORMAT*, *DDS_HEADER_DXT10* structures and *Programming Guide for
-DDS*; all fields DWORD / UINT, little-endian)
-----------------------------------------------------------------------------------------------------------------
+DDS
+---
+Microsoft Learn, *DDS_HEADER*, *DDS_PIXELFORMAT*, *DDS_HEADER_DXT10* structures and *Programming Guide for DDS*;
+all fields DWORD / UINT, little-endian.
+
 * ``dwMagic`` ``"DDS "``: checked.
 * ``DDS_HEADER``: ``dwSize`` = 124 (checked); ``dwFlags`` (written CAPS | HEIGHT | WIDTH | PITCH | PIXELFORMAT |
   MIPMAPCOUNT; read: DDSD_DEPTH refused); ``dwHeight`` = ``dwWidth`` = N; ``dwPitchOrLinearSize`` (written: the
