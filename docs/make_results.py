@@ -590,6 +590,112 @@ def bench_peer_aot_page(folder: Path) -> dict[str, str]:
     return out
 
 
+# ---- occlusion-zoo -----------------------------------------------------------------------------------------------
+OCC_INPUTS = ("oracle", "screen-space")
+
+
+def _occ_mean(rows, key, **match) -> float | None:
+    vals = [float(q[key]) for q in rows if all(q[k] == v for k, v in match.items())]
+    return statistics.fmean(vals) if vals else None
+
+
+def _occ_cell(rows, key, decimals=1, **match) -> str:
+    v = _occ_mean(rows, key, **match)
+    return pct(v, decimals) if v is not None else "n/a"
+
+
+@page("occlusion-zoo")
+def occlusion_zoo_page(folder: Path) -> dict[str, str]:
+    rows = [q for q in read_csv(folder / "occlusion_zoo.csv") if q["applicable"] == "True"]
+    meta = read_json(folder / "occlusion_zoo_meta.json")
+    mats = [m for m in meta["settings"]["materials"] if any(q["material"] == m for q in rows)]
+    scenes = meta["scenes_run"]
+    methods = list(dict.fromkeys(q["method"] for q in rows))
+    plain = [m for m in methods if not m.startswith("regions")]
+    out = {}
+    out["given_back_table"] = md_table(
+        ["method", *mats], [[m] + [" / ".join(_occ_cell(rows, "given_back_frac", method=m, material=mat, inputs=k)
+                                              for k in OCC_INPUTS) for mat in mats] for m in plain])
+    out["rel_l1_table"] = md_table(
+        ["method", *scenes], [[m] + [_occ_cell(rows, "rel_l1_frac", method=m, scene=sc, inputs="oracle")
+                                     for sc in scenes] for m in methods])
+    region = sorted({(q["method"], q["inputs"]) for q in rows if q["method"].startswith("regions")})
+    out["region_table"] = md_table(
+        ["method", "visible fractions", *mats],
+        [[m, k] + [_occ_cell(rows, "given_back_frac", method=m, material=mat, inputs=k) for mat in mats]
+         for m, k in region])
+    dis = read_csv(folder / "occlusion_zoo_disagreements.csv")
+    out["disagreement_table"] = md_table(
+        ["choice", "inputs", "a", "b", "rel. L1 a / b", "cases a closer / b closer", "closer",
+         "largest gap b − a (at)"],
+        [[q["choice"], q["inputs"], f"`{q['method_a']}`", f"`{q['method_b']}`",
+          f"{pct(float(q['mean_rel_l1_a_frac']), 2)} / {pct(float(q['mean_rel_l1_b_frac']), 2)} %",
+          f"{q['a_closer_cases']} / {q['b_closer_cases']} of {q['n_cases']}",
+          q["closer"] if q["closer"] == "tie" else f"`{q['closer']}`",
+          f"{signed(pct(float(q['worst_case_gap_frac']), 2))} % ({q['worst_case']})"] for q in dis])
+    missing = {sc: _occ_mean(rows, "missing_visibility_rel_l1_frac", method="none", inputs="oracle", scene=sc)
+               for sc in scenes}
+    out["missing_by_scene"] = ", ".join(f"{sc} {pct(v, 1)} %" for sc, v in missing.items())
+    best = {}
+    for mat in mats:
+        cand = [(_occ_mean(rows, "given_back_frac", method=m, material=mat, inputs="oracle"), m) for m in plain
+                if m != "none"]
+        cand = [c for c in cand if c[0] is not None]
+        v, m = max(cand)
+        best[mat] = f"{mat}: `{m}` {pct(v, 0)} %"
+    out["best_plain"] = "; ".join(best.values())
+    out["n_cases"] = str(len({(q["scene"], q["env"], q["material"]) for q in rows}))
+    out["n_rows"] = str(len(rows))
+    return out
+
+
+# ---- mip-mappings ------------------------------------------------------------------------------------------------
+MAPPING_ORDER = ("linear", "filament", "unity", "unreal", "threejs")
+
+
+def _mip_mean(rows, **match) -> float:
+    return statistics.fmean(float(q["rel_l1_frac"]) for q in rows if all(q[k] == v for k, v in match.items()))
+
+
+@page("mip-mappings")
+def mip_mappings_page(folder: Path) -> dict[str, str]:
+    rows = [q for q in read_csv(folder / "mip_mappings.csv") if q["kind"] == "grid"]
+    bases = sorted({q["base_face_size_texels"] for q in rows}, key=int)
+    maps = [m for m in MAPPING_ORDER if any(q["stored_mapping"] == m for q in rows)]
+    out, worst_all = {}, []
+    for b in bases:
+        sel = [q for q in rows if q["base_face_size_texels"] == b]
+        own = []
+        for m in maps:
+            eq = [q for q in sel if q["layout"] == "equal-memory" and q["stored_mapping"] == m == q["lookup_mapping"]]
+            by_r = {}
+            for q in eq:
+                by_r.setdefault(q["roughness"], []).append(float(q["rel_l1_frac"]))
+            worst_r, worst = max(((r, statistics.fmean(v)) for r, v in by_r.items()), key=lambda t: t[1])
+            eng = [q for q in sel if q["layout"] == "engine" and q["stored_mapping"] == m == q["lookup_mapping"]]
+            own.append([f"`{m}`", f"{pct(_mip_mean(eq), 2)} %", f"{pct(worst, 1)} % at r = {worst_r}",
+                        eng[0]["n_levels"], f"{pct(_mip_mean(eng), 2)} %"])
+        out[f"own_{b}"] = md_table(["mapping", "equal memory: mean rel. L1", "its worst roughness", "engine's N",
+                                    "engine's own chain: mean rel. L1"], own)
+        mis = []
+        for a in maps:
+            cells = []
+            for c in maps:
+                v = _mip_mean(sel, layout="equal-memory", stored_mapping=a, lookup_mapping=c)
+                cells.append(f"**{pct(v, 1)} %**" if a == c else f"{pct(v, 1)} %")
+                if a != c:
+                    worst_all.append((v, a, c, b))
+            mis.append([f"`{a}`"] + cells)
+        out[f"mismatch_{b}"] = md_table(["stored \\ read as", *maps], mis)
+        out[f"n_equal_{b}"] = next(q["n_levels"] for q in sel if q["layout"] == "equal-memory")
+    v, a, c, b = max(worst_all)
+    out["worst_mismatch"] = f"a `{a}` chain read as `{c}` at {b}²: {pct(v, 1)} %"
+    fil = [q for q in rows if q["layout"] == "engine" and q["stored_mapping"] == "filament" == q["lookup_mapping"]
+           and q["base_face_size_texels"] == "256"]
+    out["filament_256"] = f"{pct(_mip_mean(fil), 1)} %" if fil else "not run"
+    return out
+
+
 @page("ggx-chain")
 def ggx_chain_page(folder: Path) -> dict[str, str]:
     cells = read_csv(folder / "cells.csv")

@@ -65,6 +65,22 @@ def test_every_level_is_the_dense_sum_within_its_bound(env, tmp_path, capsys, ma
     assert main([str(a) for a in argv]) == 0
 
 
+def test_unreal_filters_its_top_level_at_its_smallest_roughness(env, tmp_path, capsys):
+    # Unreal's level 0 is not the source: with N = 3 levels it holds r0 = 2^((0 - 3 + 3)/1.2) = 1 (and every level
+    # r = 1 after clamping); with N = 4 (16², 8², 4², 2²), r0 = 2^(-1/1.2) = 0.5612 -- within its bound of the dense sum
+    out = tmp_path / "chain.exr"
+    argv = ["prefilter", env, out, "--min-level-size", "2", "--mapping", "unreal", "--rtol", 1e-3, "--kernel", "numpy"]
+    assert main([str(a) for a in argv]) == 0
+    levels = json.loads((tmp_path / "chain.json").read_text())["levels"]
+    assert [e["face_size"] for e in levels] == [16, 8, 4, 2]
+    np.testing.assert_allclose([e["roughness"] for e in levels], [2.0 ** (-1 / 1.2), 1.0, 1.0, 1.0], rtol=1e-12)
+    got = load_cube(tmp_path / "chain_l0.exr")
+    ref = prefilter_dense(load_cube(env), levels[0]["roughness"], out_size=16)
+    assert 0.0 < levels[0]["rel_bound_max"] <= 1e-3
+    assert np.max(np.abs(got - ref) / ref) <= levels[0]["rel_bound_max"] + 2.0 ** -23
+    assert "level 0: roughness 0.5612" in capsys.readouterr().out
+
+
 def test_the_chain_does_not_depend_on_the_kernel(env, tmp_path):
     pytest.importorskip("numba")
     for k in ("numpy", "compiled"):

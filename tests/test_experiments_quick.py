@@ -289,7 +289,7 @@ def check_method_zoo(out, summary):
     assert len(rows) == len(ran) * len(st["materials"]) * len(envs)
     assert {q["env"] for q in rows} == set(envs)
     kinds = {"split-sum": "ggx", "ggx-phong-pem+vsm": "ggx", "pyramid+vsm": "phong", "exact-lobe": "phong",
-             "cmft": "phong", "sh9": "diffuse"}
+             "cmft": "phong", "cmgen": "ggx", "sh9": "diffuse"}
     for q in rows:
         kind = kinds.get(q["method"], "ggx" if q["method"].startswith("split-sum") else None)
         want = {"ggx": q["material"].startswith("ggx"), "phong": not q["material"].startswith("ggx"),
@@ -344,7 +344,8 @@ def check_method_zoo(out, summary):
 
 
 #: experiments whose quick run, figure layout and headline are tested in a file of their own
-OWN_TEST_FILE = {"error-budget": "tests/test_error_budget.py"}
+OWN_TEST_FILE = {"error-budget": "tests/test_error_budget.py", "occlusion-zoo": "tests/test_occlusion_zoo.py",
+                 "mip-mappings": "tests/test_mip_mappings.py"}
 CHECKS = {name: globals()[f"check_{name.replace('-', '_')}"] for name in EXPS if name not in OWN_TEST_FILE}
 
 

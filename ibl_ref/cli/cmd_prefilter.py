@@ -148,23 +148,29 @@ def cmd_prefilter(args) -> int:
     refuse_overwriting_inputs({"IN": args.input}, [("OUT", side)] + [("OUT", p) for p in paths])
     # never replace a file the user did not name
     check_side_files(side, [p for p in paths if p not in named], "outputs", "OUT")
-    if container:  # level 0 is the source, and no lobe average exceeds its maximum: refuse an overflow now
+    # the levels of roughness 0 are the source itself (level 0 under every mapping but Unreal's, whose level 0 holds
+    # its smallest roughness r0 > 0); every other level is filtered
+    filtered = [lv for lv in range(n_levels) if rough[lv] > 0]
+    if any(rough[lv] == 0 for lv in range(1, n_levels)):
+        raise IBLError(f"mapping {args.mapping}: a level below the top has roughness 0")
+    if container:  # no lobe average exceeds the source's maximum: refuse an overflow now
         from ..environment.cube_containers import check_storable
 
         check_storable(cube, dtype, f"{args.output}: level 0")
     t_read = time.perf_counter() - t0
-    with step(f"prefiltering {n}² faces into {n_levels - 1} GGX level(s), mapping {args.mapping}, rtol {rtol:g}"):
-        out = convolve_ggx_levels(cube, list(zip(rough[1:], sizes[1:])), rtol=rtol, kernel=args.kernel,
+    with step(f"prefiltering {n}² faces into {len(filtered)} GGX level(s), mapping {args.mapping}, rtol {rtol:g}"):
+        out = convolve_ggx_levels(cube, [(rough[lv], sizes[lv]) for lv in filtered], rtol=rtol, kernel=args.kernel,
                                   threads=args.threads)
     info = dict(LAST_INFO)
-    levels = [{"level": 0, "roughness": 0.0, "face_size": n, "rel_bound_max": 0.0, "seconds": 0.0}]
-    for lv, ((m, b), li) in enumerate(zip(out, info["levels"]), 1):
-        levels.append({"level": lv, "roughness": rough[lv], "face_size": sizes[lv], "rel_bound_max": float(b.max()),
-                       "seconds": li["seconds"]})
+    done = {lv: (m, float(b.max()), li["seconds"]) for lv, (m, b), li in zip(filtered, out, info["levels"])}
+    maps = [done[lv][0] if lv in done else cube for lv in range(n_levels)]
+    levels = [{"level": lv, "roughness": rough[lv], "face_size": sizes[lv],
+               "rel_bound_max": done[lv][1] if lv in done else 0.0, "seconds": done[lv][2] if lv in done else 0.0}
+              for lv in range(n_levels)]
     outs = OutputSet(side, owned_key="outputs", keep=[args.input], named=named, label="OUT")
     with outs:
         WRITERS[args.layout]([[outs.path(p) for p in level_files] for level_files in files],
-                             [cube] + [m for m, _ in out], dtype)
+                             maps, dtype)
         outs.commit({"input": str(args.input), "outputs": [str(p) for p in paths], "lobe": "ggx n = v = r",
                      "layout": args.layout, "mapping": args.mapping, "rtol": rtol,
                      "storage": {"dtype": dtype, "rel_rounding": STORAGE[dtype]}, "levels": levels,
@@ -172,7 +178,9 @@ def cmd_prefilter(args) -> int:
                      "radiance": radiance,
                      "seconds": {"read": t_read, "tree": info.get("tree_s"), "kernel_load": info.get("kernel_load_s"),
                                  "total": time.perf_counter() - t0}})
-    for e in levels[1:]:
+    for e in levels:
+        if e["roughness"] == 0:
+            continue
         print(f"level {e['level']}: roughness {e['roughness']:.4f}, {e['face_size']}² faces, rel. bound max "
               f"{e['rel_bound_max']:.2e} ({e['seconds']:.2f} s)")
     print(f"total {time.perf_counter() - t0:.2f} s ({info.get('kernel')} kernels); wrote {len(paths)} file(s) and "
@@ -181,16 +189,17 @@ def cmd_prefilter(args) -> int:
 
 
 def register(sub) -> None:
-    from ..prefilter.karis2013 import ROUGHNESS_MAPPINGS
+    from ..prefilter.mip_mappings import ROUGHNESS_MAPPINGS
 
     p = sub.add_parser(
         "prefilter",
         help="the exact GGX (n = v = r) level chain of an environment, with a rigorous per-level bound",
         description=(
             "Prefilter an environment into a GGX MIP chain as engines store it for the split sum (Karis 2013): "
-            "level 0 is the source, level l holds the n = v = r prefilter at the roughness of its level under "
-            "--mapping (filament: Filament's cmgen and run time, lod = r(2 - r); linear: glTF-IBL-Sampler), each "
-            "exact within --rtol at every texel. Writes OUT with _l{l} inserted before the extension (one OpenEXR "
+            "level l holds the n = v = r prefilter at the roughness of its level under --mapping ("
+            + "; ".join(f"{k}: {v.engine}, {v.formula}" for k, v in ROUGHNESS_MAPPINGS.items())
+            + "), each exact within --rtol at every texel; a level of roughness 0 (level 0 under every mapping but "
+            "unreal's) is the source. Writes OUT with _l{l} inserted before the extension (one OpenEXR "
             "cube per level; --layout cmgen: cmgen's per-face files; --layout ktx / dds: one KTX 1 / DDS cube map "
             "OUT with every level as its MIP chain) and a JSON sidecar with the roughness, size and bound of every "
             "level."

@@ -8,7 +8,9 @@ paper's method for GGX — roughness → Phong exponent, the paper's filter pyra
 variance shadow maps (Knuth et al. 2014, Eq. 5; ``ggx-phong-pem+vsm``); the paper's method for Phong materials
 (``pyramid+vsm``); the exact-lobe chain, Kautz & McCool's and Kán et al.'s Phong maps; cmft's released prefilter
 run as a program (``cmft``: ``$IBL_REF_CMFT``, parameter ``cmft``, or ``../shared/peers/cmft/cmft`` beside the
-project; skipped with the reason if absent); SH9 irradiance (Ramamoorthi & Hanrahan 2001, ``sh9``) for the diffuse
+project; skipped with the reason if absent); Filament's cmgen run as a program (``cmgen``: ``$IBL_REF_CMGEN`` or
+``cmgen`` on PATH, skipped with the reason if absent; levels down to 4² so that a 32² map has 4 of them, looked up
+with Filament's lod = r(2 − r)·(N − 1)); SH9 irradiance (Ramamoorthi & Hanrahan 2001, ``sh9``) for the diffuse
 material.  Every method shades the materials it serves (:func:`ibl_ref.rendering.method_shading.serves`; the
 others are n/a): :data:`MATERIALS` — diffuse (kd = 1), GGX roughness 0.1 / 0.3 / 0.6 (kd = 0, F0 = ``ggx_f0``,
 height-correlated Smith), Phong s = 1 / 16 / 256 (ks = 1).
@@ -120,6 +122,7 @@ METHODS = {
     "km00-lobes": ("km00-lobes", {}, "none"),
     "kan2015": ("kan2015", {}, "none"),
     "cmft": ("cmft", {}, "none"),
+    "cmgen": ("cmgen", {"min_level_size": 4}, "none"),
     "sh9": ("sh9", {}, "none"),
 }
 
@@ -138,7 +141,7 @@ def settings(quick: bool) -> dict:
     if quick:
         return dict(scenes=["sphere"], envs=["sky_sun", "city"], materials=["diffuse", "ggx0.1", "ggx0.6", "phong16"],
                     methods=["split-sum", "split-sum-is-16", "split-sum-is-256", "split-sum-fis-16",
-                             "ggx-phong-pem+vsm", "pyramid+vsm", "exact-lobe", "cmft", "sh9"],
+                             "ggx-phong-pem+vsm", "pyramid+vsm", "exact-lobe", "cmft", "cmgen", "sh9"],
                     size=10, teapot_size=16, env_size=8, rtol=4e-3, ref_rtol=5e-3, vsm_resolution=64, n_lights=6,
                     ggx_f0=1.0, figure_env="sky_sun", cmft="", probe_dir="")
     return dict(scenes=list(SCENES), envs=list(ENVS), materials=list(MATERIALS), methods=list(METHODS), size=24,
@@ -297,9 +300,8 @@ def _case(job: dict) -> dict:
     px = _pixels(job["scene"], job["size"] if job["scene"] == "sphere" else job["teapot_size"])
     mats = {name: material(name, job["ggx_f0"]) for name in job["materials"]}
     refs = _references(job, px, cube, mats)
-    if any(METHODS[label][0] in ("split-sum", "split-sum-is", "split-sum-fis", "ggx-phong-pem")
-           for label in job["methods"]):
-        build_dfg_table(64)  # once, before timing (an engine ships its table)
+    if any(m["kind"] == "ggx" for m in mats.values()):
+        build_dfg_table(64)  # once, before timing, for every GGX method that carries it (an engine ships its table)
     rows, brows, karis, skipped, images, checks = [], [], [], {}, {}, []
     occluded = job["scene"] == "teapot"
     vis_kw = dict(scene=px["sc"], points=px["P"], face_normals=px["fn"], vsm_resolution=job["vsm_resolution"])
@@ -313,8 +315,9 @@ def _case(job: dict) -> dict:
             built = ms.build_method(cube, spec)
         except Exception as exc:  # an outside program missing: the method is skipped with its reason
             from ..prefilter.cmft_peer import CmftUnavailable
+            from ..prefilter.cmgen_peer import CmgenUnavailable
 
-            if isinstance(exc, CmftUnavailable):
+            if isinstance(exc, (CmftUnavailable, CmgenUnavailable)):
                 skipped[label] = str(exc)
                 continue
             raise
@@ -356,9 +359,11 @@ def _case(job: dict) -> dict:
                                   share_of_increments_frac=q["share_of_increments_frac"],
                                   rel_l1_vs_ref_frac=q["rel_l1_vs_ref_frac"], bias_vs_ref_frac=q["bias_vs_ref_frac"]))
     for name, m in mats.items():  # Karis's claim: the two split-sum increments of every GGX case
-        st = {q["step"]: q for q in brows if q["material"] == name and q["method"] in
-              ("split-sum", "split-sum-is-16", "split-sum-is-64", "split-sum-is-256", "split-sum-is-1024",
-               "split-sum-fis-16", "split-sum-fis-64", "ggx-phong-pem+vsm")}
+        # (exact integrals, the same in the walk of every GGX method: the first walk that has them)
+        st = {}
+        for q in brows:
+            if q["material"] == name and q["step"] in ("split_sum", "n_v_r"):
+                st.setdefault(q["step"], q)
         if m["kind"] == "ggx" and "split_sum" in st:
             a, b = st["split_sum"], st["n_v_r"]
             karis.append(dict(scene=job["scene"], env=job["env"], material=name,

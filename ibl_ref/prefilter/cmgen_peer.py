@@ -108,9 +108,9 @@ from ..groundtruth.convolution_args import check_cube
 from ..knuth2014.pyramid import Pyramid
 from .interface import check_lobe_param
 from ..lobes import brdfs
-from .karis2013 import (ROUGHNESS_MAPPINGS, build_dfg_table, check_option, check_samples, prefilter_exact,
-                        roughness_of_level, shade)
+from .karis2013 import build_dfg_table, check_option, check_samples, prefilter_exact, roughness_of_level, shade
 from .level_chain import LevelChainPrefilter
+from .mip_mappings import ROUGHNESS_MAPPINGS
 from .peer_programs import check_returned, run_timeout
 
 __all__ = ["CmgenUnavailable", "CmgenRun", "CmgenPrefilter", "cmgen_binary", "cmgen_timeout", "cmgen_command",
@@ -221,10 +221,9 @@ def filament_level_of_roughness(roughness, n_levels: int) -> np.ndarray:
     >>> float(filament_level_of_roughness(0.5, 5)), float(filament_level_of_roughness(1.0, 5))
     (3.0, 4.0)
     """
-    if isinstance(n_levels, bool) or not isinstance(n_levels, (int, np.integer)) or n_levels < 2:
-        raise IBLError(f"n_levels must be an integer >= 2, got {n_levels!r}")
-    # the mapping's formula (roughness 0, the mirror level, included: karis2013's look-up refuses it)
-    return ROUGHNESS_MAPPINGS["filament"][1](np.asarray(roughness, dtype=np.float64)) * (n_levels - 1)
+    # the mapping (:mod:`ibl_ref.prefilter.mip_mappings`), roughness 0 (the mirror level) included: karis2013's
+    # look-up refuses it
+    return ROUGHNESS_MAPPINGS["filament"].level(roughness, n_levels)
 
 
 def half_scale(vmax: float) -> float:

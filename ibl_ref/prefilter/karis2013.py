@@ -51,10 +51,12 @@ The split sum (Eq. 7)
   on a ``size × size`` grid of texel centres ``n·v = (i + ½)/size``, ``roughness = (j + ½)/size`` (a GPU texture
   with clamp-to-edge), :meth:`DFGTable.lookup` interpolates bilinearly.
 * **Roughness → MIP level** (:func:`build_chain`, :class:`PrefilteredChain`): a chain of ``n_levels`` prefiltered
-  cubes, level ℓ of face size ``max(N >> ℓ, min_face_size)`` prefiltered at ``roughness_ℓ = ℓ / (n_levels − 1)``
-  (``mapping="linear"``; level 0 is the unfiltered source: roughness 0 is the mirror, whose kernel is a delta);
-  the lookup is trilinear: seam-aware bilinear within the two levels bracketing ``ℓ(r) = r·(n_levels − 1)``, linear
-  between them.
+  cubes, level ℓ of face size ``max(N >> ℓ, min_face_size)`` prefiltered at the roughness the engine's mapping
+  stores there (``mapping``, one of :data:`~ibl_ref.prefilter.mip_mappings.ROUGHNESS_MAPPINGS`: ``"linear"``
+  ``roughness_ℓ = ℓ / (n_levels − 1)``, ``"filament"``, ``"unity"``, ``"unreal"``, ``"threejs"``); a level of
+  roughness 0 (level 0 of every mapping but ``unreal``) is the unfiltered source: roughness 0 is the mirror, whose
+  kernel is a delta.  The lookup is trilinear: seam-aware bilinear within the two levels bracketing the mapping's
+  fractional level ``ℓ(r)`` (``linear``: ``r·(n_levels − 1)``), linear between them.
 * **Shading**: :func:`shade` (and :meth:`SplitSum.shade`) evaluate ``P(r)·(F0·A + B)``; 0 where ``n·v ≤ 0``.
 
 White furnace: for ``L ≡ c`` every quadrature of P returns c (each is a normalised average), so the split sum gives
@@ -98,11 +100,13 @@ from ..environment.sampling import CubeSampler
 from ..errors import IBLError
 from ..groundtruth.convolution_args import check_cube
 from ..groundtruth.ggx_convolution import convolve_ggx, convolve_ggx_levels
+from ..limits import check_rtol
 from ..lobes import brdfs
 from .interface import check_lobe_param
+from .mip_mappings import ROUGHNESS_MAPPINGS, MipMapping
 
 __all__ = [
-    "ROUGHNESS_MAPPINGS", "SEQUENCES", "STORAGE_DTYPES",
+    "SEQUENCES", "STORAGE_DTYPES",
     "check_roughness", "check_scalar_roughness", "check_f0", "check_samples", "check_option", "check_sequence",
     "output_directions", "check_finite", "importance_sum",
     "prefilter_kernel", "prefilter_exact", "prefilter_dense", "EXACT_RTOL", "prefilter_importance",
@@ -112,11 +116,6 @@ __all__ = [
     "reflect", "split_sum", "shade", "SplitSum", "SplitSumImportance",
 ]
 
-#: roughness ↔ MIP-level mappings of :func:`roughness_of_level`: name → (roughness of lod ∈ [0, 1], lod of roughness)
-ROUGHNESS_MAPPINGS = {
-    "linear": (lambda lod: lod, lambda r: r),  # glTF-IBL-Sampler, Bevy
-    "filament": (lambda lod: 1.0 - np.sqrt(1.0 - lod), lambda r: r * (2.0 - r)),  # Filament's cmgen and run time
-}
 #: sample sequences of :func:`prefilter_importance`
 SEQUENCES = ("hammersley", "random")
 #: storage types of a prefiltered chain (float16 as engines store it; values above 65504 are refused)
@@ -616,14 +615,20 @@ def _check_levels(n_levels) -> int:
     return n_levels
 
 
-def _check_mapping(mapping):
-    check_option(mapping, ROUGHNESS_MAPPINGS, "mapping")
+def _check_mapping(mapping) -> MipMapping:
+    """The :class:`~ibl_ref.prefilter.mip_mappings.MipMapping` of a name of :data:`ROUGHNESS_MAPPINGS` (or a
+    mapping object); a one-line IBLError listing the names otherwise."""
+    if isinstance(mapping, MipMapping):
+        return mapping
+    return ROUGHNESS_MAPPINGS[check_option(mapping, ROUGHNESS_MAPPINGS, "mapping")]
 
 
 def roughness_of_level(level, n_levels: int, mapping: str = "linear"):
-    """Roughness prefiltered into MIP level ``level`` of ``n_levels`` under ``mapping`` (:data:`ROUGHNESS_MAPPINGS`,
-    of ``lod = ℓ/(n_levels − 1)``): ``"linear"`` r = lod (glTF-IBL-Sampler), ``"filament"`` r = 1 − √(1 − lod)
-    (Filament's cmgen, the inverse of its run-time lod = r(2 − r)).
+    """Roughness prefiltered into MIP level ``level`` of ``n_levels`` under ``mapping`` (a name of
+    :data:`~ibl_ref.prefilter.mip_mappings.ROUGHNESS_MAPPINGS`, :meth:`MipMapping.roughness
+    <ibl_ref.prefilter.mip_mappings.MipMapping.roughness>`; levels outside [0, n_levels − 1] are clamped): with
+    ``lod = ℓ/(n_levels − 1)``, ``"linear"`` r = lod (glTF-IBL-Sampler), ``"filament"`` r = 1 − √(1 − lod)
+    (Filament's cmgen, the inverse of its run-time lod = r(2 − r)), ``"unity"``, ``"unreal"``, ``"threejs"``.
 
     Examples
     --------
@@ -631,20 +636,27 @@ def roughness_of_level(level, n_levels: int, mapping: str = "linear"):
     [0.0, 0.25, 0.5, 0.75, 1.0]
     >>> [round(r, 3) for r in roughness_of_level([0, 1, 2, 3, 4], 5, "filament").tolist()]
     [0.0, 0.134, 0.293, 0.5, 1.0]
+    >>> [round(r, 3) for r in roughness_of_level([0, 4, 5, 6, 7], 8, "unreal").tolist()]
+    [0.056, 0.561, 1.0, 1.0, 1.0]
     """
-    _check_mapping(mapping)
-    n_levels = _check_levels(n_levels)
-    lod = np.clip(np.asarray(level, dtype=np.float64) / (n_levels - 1), 0.0, 1.0)
-    return ROUGHNESS_MAPPINGS[mapping][0](lod)
+    m = _check_mapping(mapping)
+    return m.roughness(level, _check_levels(n_levels))
 
 
 def level_of_roughness(roughness, n_levels: int, mapping: str = "linear"):
-    """Fractional MIP level of a roughness, ``ℓ = lod(r)·(n_levels − 1)`` (the inverse of
-    :func:`roughness_of_level`: ``"linear"`` lod = r, ``"filament"`` lod = r(2 − r))."""
-    _check_mapping(mapping)
+    """Fractional MIP level the engine of ``mapping`` reads for a roughness in (0, 1] (:meth:`MipMapping.level
+    <ibl_ref.prefilter.mip_mappings.MipMapping.level>`; the inverse of :func:`roughness_of_level` where that is
+    invertible): ``"linear"`` ℓ = r·(n_levels − 1), ``"filament"`` ℓ = r(2 − r)·(n_levels − 1), …
+
+    Examples
+    --------
+    >>> float(level_of_roughness(0.6, 5)), round(float(level_of_roughness(0.5, 7, "unity")), 12)
+    (2.4, 4.05)
+    """
+    m = _check_mapping(mapping)
     n_levels = _check_levels(n_levels)
     r, _ = check_roughness(roughness)
-    return ROUGHNESS_MAPPINGS[mapping][1](np.asarray(r)) * (n_levels - 1)
+    return m.level(r, n_levels)
 
 
 def _check_dtype(dtype) -> np.dtype:
@@ -672,9 +684,12 @@ class PrefilteredChain:
 
     Attributes
     ----------
-    levels : list of (6, N_ℓ, N_ℓ, C) arrays (storage dtype), level 0 the source
+    levels : list of (6, N_ℓ, N_ℓ, C) arrays (storage dtype), level 0 the source (or, under ``"unreal"``, the
+        prefilter at its roughness)
     roughness : per-level roughness (``roughness_of_level``)
-    mapping : roughness ↔ level mapping name
+    mapping : the roughness ↔ level mapping of the look-up (a name of
+        :data:`~ibl_ref.prefilter.mip_mappings.ROUGHNESS_MAPPINGS`, or a mapping object); a chain built under
+        one mapping and read under another is an engine's mismatch
     prefilter : name of the quadrature that built levels 1…
     info : build parameters (samples, sequence, seed, …)
     """
@@ -703,11 +718,21 @@ class PrefilteredChain:
             self._samplers[k] = CubeSampler(self.levels[k])
         return self._samplers[k]
 
-    def lookup(self, directions, roughness) -> np.ndarray:
+    def level_values(self, directions) -> list:
+        """Every level's seam-aware bilinear look-up at ``directions``: a list of (M, C) float64 arrays (M the
+        number of directions), for :meth:`lookup` ``(…, level_values=…)`` at many roughnesses."""
+        d, _ = _check_dirs(directions)
+        return [self._sampler(k).bilinear(d).astype(np.float64) for k in range(self.n_levels)]
+
+    def lookup(self, directions, roughness, *, level_values=None) -> np.ndarray:
         """Trilinear lookup ``P(r, roughness)`` (..., C) float64: seam-aware bilinear in the two levels around
-        ``ℓ = level_of_roughness(roughness)``, linear between them; roughness scalar or broadcastable to
-        ``directions.shape[:-1]``."""
+        ``ℓ = level_of_roughness(roughness)`` under :attr:`mapping`, linear between them; roughness scalar or
+        broadcastable to ``directions.shape[:-1]``.  ``level_values``: :meth:`level_values` of the same
+        directions (the bilinear look-ups, computed once for many roughnesses; the result is the same)."""
         d, lead = _check_dirs(directions)
+        if level_values is not None and (len(level_values) != self.n_levels
+                                         or any(np.shape(v)[0] != len(d) for v in level_values)):
+            raise IBLError("level_values must be level_values(directions) of this chain and these directions")
         x = level_of_roughness(roughness, self.n_levels, self.mapping)
         x = np.broadcast_to(np.asarray(x, dtype=np.float64), lead).reshape(-1)
         l0 = np.clip(np.floor(x).astype(np.intp), 0, self.n_levels - 2)
@@ -716,8 +741,11 @@ class PrefilteredChain:
         out = np.zeros((len(d), c))
         for k in np.unique(l0):
             sel = l0 == k
-            lo = self._sampler(int(k)).bilinear(d[sel]).astype(np.float64)
-            hi = self._sampler(int(k) + 1).bilinear(d[sel]).astype(np.float64)
+            if level_values is None:
+                lo = self._sampler(int(k)).bilinear(d[sel]).astype(np.float64)
+                hi = self._sampler(int(k) + 1).bilinear(d[sel]).astype(np.float64)
+            else:
+                lo, hi = level_values[k][sel], level_values[k + 1][sel]
             out[sel] = (1.0 - t[sel, None]) * lo + t[sel, None] * hi
         return out.reshape(lead + (c,))
 
@@ -727,19 +755,24 @@ _PREFILTERS = ("exact", "importance")
 
 def build_chain(cube, *, n_levels=None, prefilter="exact", samples: int = 1024, sequence: str = "hammersley",
                 seed: int = 0, min_face_size: int = 1, mapping: str = "linear", dtype="float64",
-                name: str | None = None) -> PrefilteredChain:
+                name: str | None = None, rtol: float = EXACT_RTOL) -> PrefilteredChain:
     """The prefiltered MIP chain: level ℓ = 0…n_levels−1 at face size ``max(N >> ℓ, min_face_size)`` holding
-    ``P(·, roughness_of_level(ℓ))``, every level filtered from the full-resolution source.
+    ``P(·, roughness_of_level(ℓ, n_levels, mapping))``, every level filtered from the full-resolution source; a
+    level of roughness 0 (level 0 of every mapping but ``"unreal"``) is the source itself.
 
     Parameters
     ----------
     cube : (6, N, N, C) radiance (3 channels or any C; a 3-d cube gets one channel)
     n_levels : default ``floor(log2 N) + 1`` (down to a 1×1 face), ≥ 2
-    prefilter : ``"exact"`` (:func:`prefilter_exact` at :data:`EXACT_RTOL`, the levels from one source tree), ``"importance"`` (:func:`prefilter_importance` with
-        ``samples``, ``sequence`` and per-level seeds ``(seed, ℓ)``), or a callable
+    prefilter : ``"exact"`` (:func:`prefilter_exact` at ``rtol``, the levels from one source tree),
+        ``"importance"`` (:func:`prefilter_importance` with ``samples``, ``sequence`` and per-level seeds
+        ``(seed, ℓ)``), or a callable
         ``f(cube, roughness, out_size, level) -> (6, M, M, C)`` (e.g. filtered importance sampling,
         :func:`ibl_ref.prefilter.krivanek_colbert2008.build_fis_chain`); ``name`` labels a callable
+    mapping : a name of :data:`~ibl_ref.prefilter.mip_mappings.ROUGHNESS_MAPPINGS` (or a mapping object)
     dtype : storage type, ``"float64"``, ``"float32"`` or ``"float16"`` (refused if a value exceeds 65504)
+    rtol : the ``"exact"`` prefilter's largest relative error per texel (default :data:`EXACT_RTOL`;
+        ``info["bound_max"]``: the largest bound of each filtered level)
     """
     a, squeeze = check_cube(cube)
     n = a.shape[1]
@@ -755,7 +788,8 @@ def build_chain(cube, *, n_levels=None, prefilter="exact", samples: int = 1024, 
     elif prefilter in _PREFILTERS:
         label = prefilter
         if prefilter == "exact":
-            fn, info = None, {"rtol": EXACT_RTOL}
+            rtol = check_rtol(rtol)
+            fn, info = None, {"rtol": rtol}
         else:
             samples = check_samples(samples)
             check_sequence(sequence)
@@ -767,12 +801,13 @@ def build_chain(cube, *, n_levels=None, prefilter="exact", samples: int = 1024, 
     else:
         raise IBLError(f"prefilter must be one of {', '.join(_PREFILTERS)} or a callable, got {prefilter!r}")
     rough = tuple(float(x) for x in roughness_of_level(np.arange(n_levels), n_levels, mapping))
-    levels = [_store(a, dt, "level 0")]
     sizes = [max(n >> lv, min_face_size, 1) for lv in range(n_levels)]
+    levels = [_store(a, dt, "level 0")] if rough[0] == 0.0 else []  # roughness 0: the mirror, the source itself
     if fn is None:  # the exact levels from one source tree (ibl_ref.groundtruth.ggx_convolution)
-        out = convolve_ggx_levels(a, list(zip(rough[1:], sizes[1:])), rtol=EXACT_RTOL)
+        first = len(levels)
+        out = convolve_ggx_levels(a, list(zip(rough[first:], sizes[first:])), rtol=rtol)
         info["bound_max"] = [float(b.max()) for _, b in out]
-        levels += [_store(check_finite(m, f"level {lv}"), dt, f"level {lv}") for lv, (m, _) in enumerate(out, 1)]
+        levels += [_store(check_finite(m, f"level {lv}"), dt, f"level {lv}") for lv, (m, _) in enumerate(out, first)]
     for lv in range(len(levels), n_levels):
         levels.append(_store(fn(a, rough[lv], sizes[lv], lv), dt, f"level {lv}"))
     info = dict(info, min_face_size=min_face_size, dtype=dt.name, source_face_size=n, squeezed=squeeze)
@@ -865,6 +900,11 @@ class SplitSum:
 
         return self.chain.lookup(directions, check_lobe_param(self.lobe, roughness, directions))
 
+    def direct(self, cube, roughness, dirs) -> np.ndarray:
+        """This method's quadrature of the prefilter at ``dirs`` and one roughness, from the full-resolution
+        ``cube`` without the chain's levels (the error budget's ``prefilter`` step): the exact texel sum."""
+        return prefilter_exact(cube, roughness, dirs=dirs)
+
     def shade(self, normals, views, roughness, f0) -> np.ndarray:
         """Specular radiance of Eq. 7, ``P(r, roughness)·(F0·A + B)`` (:func:`shade`)."""
         return shade(self.lookup, self.dfg, normals, views, roughness, f0)
@@ -881,3 +921,10 @@ class SplitSumImportance(SplitSum):
         self._init(build_chain(cube, n_levels=n_levels, prefilter="importance", samples=samples, sequence=sequence,
                                seed=seed, min_face_size=min_face_size, dtype=dtype),
                    build_dfg_table(dfg_size, smith=smith))
+
+    def direct(self, cube, roughness, dirs) -> np.ndarray:
+        """The chain's importance sampling (same samples, sequence and seed) at ``dirs`` from the full-resolution
+        ``cube``."""
+        info = self.chain.info
+        return prefilter_importance(cube, roughness, samples=info["samples"], sequence=info["sequence"],
+                                    seed=(info["seed"], 0), dirs=dirs)

@@ -192,3 +192,11 @@ class FilteredImportanceSampling(karis2013.SplitSum):
         chain = build_fis_chain(cube, samples=samples, sequence=sequence, seed=seed, bias=bias,
                                 texel_solid_angle=texel_solid_angle, **chain_kw)
         return cls.from_parts(chain, karis2013.build_dfg_table(dfg_size, smith=smith))
+
+    def direct(self, cube, roughness, dirs) -> np.ndarray:
+        """The chain's filtered importance sampling (same samples, sequence, seed, bias and texel solid angle) at
+        ``dirs`` from the full-resolution ``cube``."""
+        info = self.chain.info
+        return prefilter_fis(cube, roughness, samples=info["samples"], sequence=info["sequence"],
+                             seed=(info["seed"], 0), bias=info["bias"], texel_solid_angle=info["texel_solid_angle"],
+                             dirs=dirs)

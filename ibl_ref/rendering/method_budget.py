@@ -28,12 +28,15 @@ Steps (in walk order; a step a method does not have is left out):
     stretched reflections at grazing view (Karis: "the larger source of error");
   - ``phong_lobe`` (``ggx-phong-pem`` only) — K replaced by the Phong lobe max(r·l, 0)^s of the mapped exponent
     s(roughness) (:func:`ibl_ref.prefilter.ggx_phong_mapping.phong_exponent`), exact;
-  - ``prefilter`` — the method's quadrature at each pixel's own r at full resolution: the texel-centre sum of the
-    source (``split-sum``, :func:`~ibl_ref.prefilter.karis2013.prefilter_exact`), N GGX importance samples
-    (``split-sum-is``), filtered importance sampling (``split-sum-fis``), or — for ``ggx-phong-pem`` — the Phong
-    prefilter's own look-up (for the paper's pyramid: its filter shape and its g → level mapping);
+  - ``prefilter`` — the method's quadrature at each pixel's own r at full resolution, which each method provides
+    as ``direct(cube, roughness, dirs)``: the texel-centre sum of the source (``split-sum``,
+    :func:`~ibl_ref.prefilter.karis2013.prefilter_exact`), N GGX importance samples (``split-sum-is``), filtered
+    importance sampling (``split-sum-fis``); for a method reading a Phong prefilter (``ggx-phong-pem``: it has a
+    ``phong`` prefilter and an ``exponent`` mapping) the Phong prefilter's own look-up (for the paper's pyramid: its
+    filter shape and its g → level mapping); for a prefilter run as a whole program (``cmgen``: no ``direct``) its
+    chain as it comes, the ``mip`` step included;
   - ``mip`` — the method's roughness MIP chain read trilinearly (levels at coarser face sizes, roughness blended
-    between the levels' ℓ/(n_levels − 1); split-sum methods only);
+    between the levels' ℓ/(n_levels − 1); methods with ``direct`` only);
   - ``dfg_table`` — DFG_exact → the method's table (bilinear between its texel centres).
 * Phong materials, Phong methods: ``lobe_hemisphere`` — the lobe average no longer clipped to n's hemisphere (a
   prefilter does not know n; glossy lobes only); ``prefilter`` — the method's look-up.
@@ -53,7 +56,6 @@ from ..errors import IBLError
 from . import method_shading as ms
 from . import unoccluded_reference as ur
 from ..environment.envmap import unit_directions
-from ..prefilter import karis2013
 from .error_budget import budget_rows
 from .unoccluded_reference import integrate
 
@@ -131,27 +133,15 @@ def budget_walk(built, material, cube, normals, views, *, reference=None, refere
         add("split_sum", _exact(a, ur.SplitSumLobe(rough), n, v, rtol, scale, cache) * dfg_exact)
         add("n_v_r", _exact(a, ur.NVRKernelLobe(rough), n, v, rtol, scale, cache) * dfg_exact)
         pf = built.prefilter
-        if spec.prefilter == "ggx-phong-pem":
+        if hasattr(pf, "phong"):  # a GGX method reading a Phong prefilter through a roughness → exponent mapping
             s = float(pf.exponent(rough))
             add("phong_lobe", _exact(a, ur.PhongLobe(s, "mirror", clip=False), n, v, rtol, scale, cache) * dfg_exact)
             add("prefilter", pf.phong.lookup(r, s) * dfg_exact)
-        else:
-            info = pf.chain.info
-            if spec.prefilter == "split-sum":
-                direct = karis2013.prefilter_exact(a, rough, dirs=r)
-            elif spec.prefilter == "split-sum-is":
-                direct = karis2013.prefilter_importance(a, rough, samples=info["samples"], sequence=info["sequence"],
-                                                        seed=(info["seed"], 0), dirs=r)
-            elif spec.prefilter == "split-sum-fis":
-                from ..prefilter.krivanek_colbert2008 import prefilter_fis
-
-                direct = prefilter_fis(a, rough, samples=info["samples"], sequence=info["sequence"],
-                                       seed=(info["seed"], 0), bias=info["bias"],
-                                       texel_solid_angle=info["texel_solid_angle"], dirs=r)
-            else:
-                raise IBLError(f"no budget steps defined for the GGX method {spec.prefilter!r}")
-            add("prefilter", direct * dfg_exact)
+        elif hasattr(pf, "direct"):  # the method's own quadrature at full resolution, then its MIP chain
+            add("prefilter", pf.direct(a, rough, r) * dfg_exact)
             add("mip", pf.lookup(r, rough) * dfg_exact)
+        else:  # a prefilter run as a whole (an outside program): its chain as it comes
+            add("prefilter", pf.lookup(r, rough) * dfg_exact)
         add("dfg_table", ms.shade_method(built, m, n, v) if not vis else pf.lookup(r, rough) * dfg_tab)
     else:
         if m["ks"] > 0:
