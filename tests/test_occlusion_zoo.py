@@ -133,3 +133,17 @@ def test_bad_parameters_fail_before_any_file_is_written(tmp_path):
         with pytest.raises(IBLError, match=msg):
             oz.run(out, quick=True, **kw)
         assert not out.exists()
+
+
+def test_a_scene_without_occluders_is_refused_in_one_line(tmp_path, monkeypatch):
+    import trimesh
+
+    from ibl_ref.rendering import scenes
+
+    plane = trimesh.Trimesh(vertices=[[-1, 0, -1], [1, 0, -1], [1, 0, 1], [-1, 0, 1]], faces=[[0, 2, 1], [0, 3, 2]])
+    monkeypatch.setitem(scenes.OCCLUSION_SCENES, "flat", lambda: [plane])
+    with pytest.raises(IBLError, match="no occluders") as exc:
+        oz.run(tmp_path / "out", quick=True, scenes=["flat"], materials=["diffuse"], methods=["none"],
+               shadow_filters=["vsm"])
+    assert "\n" not in str(exc.value)
+

@@ -106,7 +106,7 @@ PARAMS = params_from_settings(
 # chains and metrics
 # ------------------------------------------------------------------------------------------------------------------
 def layout_sizes(layout: str, mapping: str, base: int) -> tuple:
-    """Face sizes of the chain of ``mapping`` in ``layout`` at base ``base``² (module docstring)."""
+    """Face sizes of the chain of ``mapping`` in ``layout`` at a base face of ``base`` texels (module docstring)."""
     if layout == "equal-memory":
         return tuple(base >> k for k in range(base.bit_length()))
     if layout == "engine":

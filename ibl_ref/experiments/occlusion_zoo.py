@@ -85,7 +85,7 @@ SCREEN_SPACE_FIELDS = frozenset({"ao", "bent_normal"})
 #: fields every method gets in both kinds (geometry and material)
 COMMON_FIELDS = frozenset({"normal", "view", "roughness", "geo_normal", "albedo"})
 #: GTAO's search radius per scene (world units), set to each scene's occluders as an engine would tune it: half the
-#: teapot's height, twice the crevice's depth, about twice the bumps' radius
+#: teapot's height, twice the crevice's depth, about twice the bumps' radius (0.5 for a scene added elsewhere)
 GTAO_RADIUS = {"teapot": 1.5, "crevice": 1.0, "bumpy": 0.3}
 SH_ORDER = 5  # the largest PRT order traced (order 3 reads the first 9 coefficients)
 DIFFUSE_KD = 0.8
@@ -255,7 +255,7 @@ def _screen_space(px, job):
     from ..occlusion.gtao import gtao
 
     t0 = time.perf_counter()
-    g = gtao(px["gb"], px["cam"], radius=GTAO_RADIUS[job["scene"]] * job["gtao_radius_scale"])
+    g = gtao(px["gb"], px["cam"], radius=GTAO_RADIUS.get(job["scene"], 0.5) * job["gtao_radius_scale"])
     m = px["mask"]
     return dict(ao=np.clip(np.asarray(g.ao)[m], 0.0, 1.0), bent_normal=np.asarray(g.bent_normal)[m]), dict(
         gtao_time_s=time.perf_counter() - t0)
@@ -343,6 +343,9 @@ def _scene_job(job: dict) -> dict:
         raise IBLError(f"occlusion-zoo: scene {job['scene']!r} covers no pixel at size {job['size']}")
     front = (np.sum(px["n"] * px["v"], axis=1) > 0)[:, None]
     vs, oracle, oinfo = _oracle(px, job)
+    if float(np.min(oracle["ao"])) >= 1.0 - 1e-12:
+        raise IBLError(f"occlusion-zoo: scene {job['scene']!r} has no occluders in view (every pixel's AO is 1): "
+                       "the share of the missing visibility a method gives back is undefined")
     screen, sinfo = _screen_space(px, job)
     input_time = {"oracle": oinfo["trace_time_s"] / P, "screen-space": sinfo["gtao_time_s"] / P}
     labels = method_labels(job["methods"], job["n_regions"])

@@ -187,7 +187,7 @@ class MipMapping:
         return np.clip(self._roughness(_check_level(level, n), n), 0.0, 1.0)[()]
 
     def chain_sizes(self, base: int) -> tuple:
-        """Face sizes of the engine's own chain for a base of ``base``² (a power of two), level 0 first."""
+        """Face sizes of the engine's own chain for a base face of ``base`` texels (a power of two), level 0 first."""
         return self._sizes(_power_of_two(base))
 
     @property
