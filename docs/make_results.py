@@ -456,6 +456,19 @@ def method_zoo_page(folder: Path) -> dict[str, str]:
             mem = statistics.fmean(v[2] for (s, m, _), v in means.items() if s == scene and m == method)
             rows.append([method] + cells + [build[(scene, method)], mib(mem)])
         out[f"{scene}_table"] = md_table(["method", *ZOO_MATERIALS, "build (s)", "memory (MiB)"], rows)
+    cm = [q for q in read_csv(folder / "method_zoo_cmgen.csv") if q["applicable"] == "True"]
+    cells = []
+    for mat in ZOO_MATERIALS:
+        sel = [q for q in cm if q["method"] == "cmgen" and q["material"] == mat]
+        if sel:
+            cells.append(f"{mat} {pct(statistics.fmean(float(q['rel_l1_frac']) for q in sel), 1)} % "
+                         f"({pct(statistics.fmean(float(q['p99_rel_error_frac']) for q in sel), 0)} %)")
+    out["cmgen_sphere"] = ", ".join(cells)
+    saved = {(q["scene"], q["env"], q["material"], q["method"]): float(q["rel_l1_frac"])
+             for q in read_csv(folder / "method_zoo.csv") if q["applicable"] == "True"}
+    gap = max(abs(float(q["rel_l1_frac"]) - saved[(q["scene"], q["env"], q["material"], q["method"])])
+              for q in cm if q["method"] == "split-sum")
+    out["cmgen_split_sum_agreement"] = f"{sci(gap, 1)} in rel. L1 (the tree's bound, not the dense sum)"
     return {**method_zoo_numbers(folder), **out}
 
 

@@ -87,7 +87,8 @@ COMMON_FIELDS = frozenset({"normal", "view", "roughness", "geo_normal", "albedo"
 #: GTAO's search radius per scene (world units), set to each scene's occluders as an engine would tune it: half the
 #: teapot's height, twice the crevice's depth, about twice the bumps' radius (0.5 for a scene added elsewhere)
 GTAO_RADIUS = {"teapot": 1.5, "crevice": 1.0, "bumpy": 0.3}
-SH_ORDER = 5  # the largest PRT order traced (order 3 reads the first 9 coefficients)
+SH_ORDER = 5
+CHUNK_CELLS = 300_000  # cells per chunk of the unoccluded integral for a 3-channel map (its default)  # the largest PRT order traced (order 3 reads the first 9 coefficients)
 DIFFUSE_KD = 0.8
 DIELECTRIC_KD = 0.5
 
@@ -283,7 +284,10 @@ def _lobes(m):
 def _integral(cube, lobe, px, front, rtol):
     from ..rendering.unoccluded_reference import integrate
 
-    ex = integrate(cube, lobe, px["n"], px["v"], rtol=rtol)
+    # the integral's cell arrays grow with the channels (R regions × C stacked): fewer cells per chunk keep its memory
+    # that of a 3-channel map (96 regions at the default chunk needed 22 GB)
+    chunk = max(2_000, int(CHUNK_CELLS * 3 / cube.shape[-1]))
+    ex = integrate(cube, lobe, px["n"], px["v"], rtol=rtol, chunk_cells=chunk)
     return np.where(front, ex.value, 0.0), float(ex.info["err_rel_l1"])
 
 
