@@ -657,6 +657,30 @@ def occlusion_zoo_page(folder: Path) -> dict[str, str]:
         v, m = max(cand)
         best[mat] = f"{mat}: `{m}` {pct(v, 0)} %"
     out["best_plain"] = "; ".join(best.values())
+    best_rows = []
+    for sc in scenes:
+        for mat in mats:
+            cells = [sc, mat]
+            for kind in OCC_INPUTS:
+                cand = []
+                for m in methods:
+                    v = _occ_mean(rows, "given_back_frac", method=m, material=mat, scene=sc, inputs=kind)
+                    if v is not None and m != "none":
+                        b = _occ_mean(rows, "input_bytes_per_pixel", method=m, material=mat, scene=sc, inputs=kind)
+                        cand.append((v, -b, m))
+                v, nb, m = max(cand)
+                cells.append(f"`{m}` {pct(v, 0)} % ({int(-nb)} B/px)")
+            best_rows.append(cells)
+    out["best_table"] = md_table(["scene", "material", "most given back, oracle inputs (input bytes per pixel)",
+                                  "most given back, screen-space inputs"], best_rows)
+    reg = [q for q in read_csv(folder / "occlusion_zoo_regions.csv") if q["applicable"] == "True"]
+    rmats = list(dict.fromkeys(q["material"] for q in reg))
+    counts = sorted({int(q["method"].rsplit("-", 1)[1]) for q in reg if q["method"].startswith("regions")})
+    kinds = list(dict.fromkeys(q["inputs"] for q in reg if q["method"].startswith("regions")))
+    out["regions_table"] = md_table(
+        ["visible fractions", *[f"{mat}, {r} regions" for mat in rmats for r in counts]],
+        [[k] + [_occ_cell(reg, "given_back_frac", method=f"regions-exact-{r}", material=mat, inputs=k)
+                for mat in rmats for r in counts] for k in kinds])
     out["n_cases"] = str(len({(q["scene"], q["env"], q["material"]) for q in rows}))
     out["n_rows"] = str(len(rows))
     return out
