@@ -649,6 +649,13 @@ def occlusion_zoo_page(folder: Path) -> dict[str, str]:
     missing = {sc: _occ_mean(rows, "missing_visibility_rel_l1_frac", method="none", inputs="oracle", scene=sc)
                for sc in scenes}
     out["missing_by_scene"] = ", ".join(f"{sc} {pct(v, 1)} %" for sc, v in missing.items())
+    out["missing_range"] = f"{pct(min(missing.values()), 0)}–{pct(max(missing.values()), 0)} %"
+    out["regions_diffuse"] = _occ_cell(rows, "given_back_frac", 0, method="regions-exact-6", material="diffuse",
+                                       inputs="oracle") + " %"
+    lag = next(q for q in read_csv(folder / "occlusion_zoo_disagreements.csv")
+               if (q["method_a"], q["method_b"], q["inputs"]) == ("lagarde2014-alpha", "lagarde2014-r", "oracle"))
+    out["lagarde_alpha_closer"] = (f"{lag['a_closer_cases']} of the "
+                                   f"{int(lag['a_closer_cases']) + int(lag['b_closer_cases'])}")
     best = {}
     for mat in mats:
         cand = [(_occ_mean(rows, "given_back_frac", method=m, material=mat, inputs="oracle"), m) for m in plain
