@@ -480,6 +480,6 @@ class OcclusionMethod:
         except IBLError as exc:
             raise IBLError(f"{who}: {exc}") from None
         if not isinstance(result, OcclusionResult):
-            raise TypeError(f"{who}: compute returned {type(result).__name__}, not an OcclusionResult")
+            raise IBLError(f"{who}: compute returned {type(result).__name__}, not an OcclusionResult")
         return result
 

@@ -303,11 +303,11 @@ def _load_cached(path: Path, key: str, shape) -> tuple | None:
     try:
         with np.load(path, allow_pickle=False) as z:
             if str(z["key"]) != key:
-                raise ValueError("its key differs from its name")
+                raise IBLError("its key differs from its name")
             bits = np.array(z["bits"])
             backend = str(z["backend"])
         if bits.shape != shape or bits.dtype != np.uint8:
-            raise ValueError(f"bits of shape {bits.shape} ({bits.dtype}), expected {shape} (uint8)")
+            raise IBLError(f"bits of shape {bits.shape} ({bits.dtype}), expected {shape} (uint8)")
     except Exception as exc:  # any unreadable file: trace again, never crash on the cache
         warnings.warn(f"oracle visibility cache {path}: unreadable ({exc}); tracing again", IBLWarning, stacklevel=3)
         return None
