@@ -369,7 +369,7 @@ def _scene_job(job: dict) -> dict:
                 t0 = time.perf_counter()
                 region_vis[(int(R), SHADOW_KIND + f)] = region_visibility_shadow_maps(
                     px["sc"], px["P"], px["fn"], lights, filter=f, resolution=job["shadow_resolution"])
-                input_time[SHADOW_KIND + f] = (time.perf_counter() - t0) / P / int(R)  # per pixel and light
+                input_time[(int(R), SHADOW_KIND + f)] = (time.perf_counter() - t0) / P  # per pixel, all R lights
         cache = {}
         for mname in track(list(job["materials"]), f"{job['scene']}/{env}: materials", unit="material"):
             m = material(mname)
@@ -404,7 +404,8 @@ def _scene_job(job: dict) -> dict:
                     met = _metrics(img, ref)
                     rows.append(dict(base, method=label, inputs=kind, applicable=True, **met,
                                      given_back_frac=1.0 - met["rel_l1_frac"] / max(missing, 1e-300),
-                                     input_time_per_pixel_s=input_time[kind], method_time_per_pixel_s=dt / P,
+                                     input_time_per_pixel_s=input_time.get((R, kind), input_time.get(kind)),
+                                     method_time_per_pixel_s=dt / P,
                                      input_bytes_per_pixel=_nbytes_per_pixel(meth, R)))
                     if env == job["figure_env"] and kind == "oracle":
                         images[f"{mname}__{label}"] = img.astype(np.float32)
@@ -660,17 +661,20 @@ def plot(out_dir: Path) -> list:
 def _plot_pareto(plt, out_dir, mat, sel):
     methods = list(dict.fromkeys(q["method"] for q in sel))
     colours = plt.get_cmap("tab20")(np.linspace(0, 1, max(len(methods), 2)))
-    marks = {"oracle": "o", "screen-space": "^"}
+    kinds = list(dict.fromkeys(q["inputs"] for q in sel))
+    marks = {k: {"oracle": "o", "screen-space": "^"}.get(k, "s") for k in kinds}  # s: a shadow-map filter
     fig, ax = plt.subplots(1, 2, figsize=(11.5, 4.6), layout="constrained")
-    for j, (key, label) in enumerate((("method_time_per_pixel_s", "time per pixel of the method (s, wall)"),
-                                      ("input_bytes_per_pixel", "bytes per pixel of its inputs (float32)"))):
+    cost = {"time": lambda r: float(r["input_time_per_pixel_s"]) + float(r["method_time_per_pixel_s"]),
+            "bytes": lambda r: max(float(r["input_bytes_per_pixel"]), 0.5)}  # no inputs: drawn at 0.5 B
+    for j, (key, label) in enumerate((("time", "time per pixel: its inputs (ray casts or GTAO) + the method (s)"),
+                                      ("bytes", "bytes per pixel of its inputs (float32; none at 0.5)"))):
         a = ax[j]
         for i, meth in enumerate(methods):
             for kind, mk in marks.items():
                 q = [r for r in sel if (r["method"], r["inputs"]) == (meth, kind)]
                 if not q:
                     continue
-                x = max(np.mean([float(r[key]) for r in q]), 1e-12 if key.endswith("_s") else 0.5)
+                x = np.mean([cost[key](r) for r in q])
                 y = 100 * np.mean([float(r["rel_l1_frac"]) for r in q])
                 a.scatter(x, y, color=colours[i], marker=mk, s=36, zorder=3,
                           label=meth if (j == 0 and kind == "oracle") else None)
@@ -680,7 +684,7 @@ def _plot_pareto(plt, out_dir, mat, sel):
         a.set_xlabel(label)
         a.set_ylabel("rel. L1 vs reference (%), mean over scenes and environments")
         a.grid(True, which="both", alpha=0.3)
-    ax[0].set_title(f"{mat}: error vs time (o oracle inputs, ^ screen-space)", fontsize=9)
+    ax[0].set_title(f"{mat}: error vs time (o oracle, ^ GTAO, s shadow maps)", fontsize=9)
     ax[1].set_title(f"{mat}: error vs input memory", fontsize=9)
     fig.legend(loc="outside right upper", fontsize=7)
     return save_figure(fig, out_dir / f"occlusion_zoo_pareto_{mat}.png", dpi=100)
