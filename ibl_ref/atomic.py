@@ -494,6 +494,16 @@ def write_json(path, data):
     return Path(path)
 
 
+def write_npz(path, arrays: dict):
+    """Write ``arrays`` as a compressed ``.npz`` atomically (the previous file stays until it is complete)."""
+    import numpy as np
+
+    with atomic_path(path, suffix=".npz") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+    return Path(path)
+
+
 def read_csv(path):
     """Read a CSV written by :func:`write_csv` (skipping ``#`` comment lines) into a list of dicts."""
     with open(path, newline="") as fh:

@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path, read_csv, write_csv, write_json
+from ..atomic import read_csv, write_csv, write_json, write_npz
 from . import params_from_settings, settings_with
 from ..executors import map_jobs
 from ..figures import pyplot
@@ -186,9 +186,7 @@ def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **p
     write_csv(out_dir / "cross_validate.csv", rows, COLUMNS,
               comment=f"reference vs Mitsuba 3, {st['size']}^2 px, env faces {st['env_size']}^2; rel_l1/bias/noise "
                       "are fractions (unitless), rmse/noise_rmse in radiance units, times in s")
-    with atomic_path(out_dir / "cross_validate_images.npz", suffix=".npz") as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
+    write_npz(out_dir / "cross_validate_images.npz", arrays)
     worst = max(r["excess_rel_l1"] for r in rows)
     meta = dict(settings={k: v for k, v in st.items() if k != "cases"}, cases=meta_cases,
                 target_excess_rel_l1=TARGET_EXCESS_REL_L1, worst_excess_rel_l1=worst,

@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path, atomic_write, read_csv, write_csv, write_json
+from ..atomic import atomic_write, read_csv, write_csv, write_json, write_npz
 from . import params_from_settings, settings_with, power_of_two
 from ..errors import IBLError
 from ..executors import map_jobs
@@ -225,9 +225,7 @@ def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **p
                 prev = im
                 if L == fr:
                     arrays[f"{key}__{step}"] = im
-    with atomic_path(out_dir / "error_budget_images.npz", suffix=".npz") as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
+    write_npz(out_dir / "error_budget_images.npz", arrays)
     final = {f"{q['env']}/{q['material']}/L{q['regions']}": q["rel_l1_vs_ref_frac"] for q in rows
              if q["order"] == "default" and q["step"] == eb.DEFAULT_ORDER[-1]}
     meta = dict(settings=st, figure_regions=fr, steps=list(eb.DEFAULT_ORDER),

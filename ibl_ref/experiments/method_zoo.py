@@ -54,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic import atomic_path, atomic_write, read_csv, write_csv, write_json
+from ..atomic import atomic_write, read_csv, write_csv, write_json, write_npz
 from . import params_from_settings, settings_with, power_of_two
 from ..environment.exr_io import load_cube
 from ..errors import IBLError
@@ -442,9 +442,7 @@ def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **p
             arrays[f"{c['scene']}__{k}"] = v
         if c["env"] == st["figure_env"]:
             arrays[f"{c['scene']}__mask"] = c["mask"]
-    with atomic_path(out_dir / "method_zoo_images.npz", suffix=".npz") as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
+    write_npz(out_dir / "method_zoo_images.npz", arrays)
     checks = [dict(scene=c["scene"], env=c["env"], **q) for c in done for q in c["checks"]]
     meta = dict(settings=st, scenes_run=scenes, skipped=skipped, cmft=cmft or None,
                 probe_dir=str(probe_dir(st["probe_dir"])), materials={k: material(k, st["ggx_f0"]) for k in

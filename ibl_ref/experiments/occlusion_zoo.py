@@ -54,7 +54,7 @@ from pathlib import Path
 import numpy as np
 
 from . import params_from_settings, power_of_two, settings_with
-from ..atomic import atomic_path, atomic_write, read_csv, write_csv, write_json
+from ..atomic import atomic_write, read_csv, write_csv, write_json, write_npz
 from ..errors import IBLError
 from ..executors import map_jobs
 from ..figures import plain_log_ticks, pyplot, save_figure
@@ -515,9 +515,7 @@ def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **p
         for k, v in c["images"].items():
             arrays[f"{c['scene']}__{k}"] = v
         arrays[f"{c['scene']}__mask"] = c["mask"]
-    with atomic_path(out_dir / "occlusion_zoo_images.npz", suffix=".npz") as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
+    write_npz(out_dir / "occlusion_zoo_images.npz", arrays)
     from ..occlusion import get
 
     meta = dict(settings=st, scenes_run=list(dict.fromkeys(c["scene"] for c in cases)),
