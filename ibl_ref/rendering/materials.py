@@ -151,6 +151,11 @@ class PhongLobe:
             f = (c if self.s == 1.0 else np.power(c, self.s)) * om
         return f, f * (_dot(n, w) > 0)
 
+    def loop_params(self) -> np.ndarray:
+        """Parameters of the compiled quadrature loop of this kind
+        (:func:`ibl_ref.rendering.reference_quadrature_loops.phong_blocks`): ``[s]``."""
+        return np.array([self.s], dtype=np.float64)
+
     def describe(self) -> dict:
         return dict(kind="phong", s=self.s, axis=self.axis)
 
@@ -233,6 +238,11 @@ class GGXLobe:
         with np.errstate(divide="ignore", invalid="ignore", under="ignore", over="ignore"):
             f = ggx(w, v, n, roughness=self.roughness, f0=self.f0, kd=0.0, smith=self.smith)
         return None, f * np.maximum(_dot(n, w), 0.0) * om
+
+    def loop_params(self) -> np.ndarray:
+        """Parameters of the compiled quadrature loop of this kind
+        (:func:`ibl_ref.rendering.reference_quadrature_loops.ggx_blocks`): ``[α, f0, height-correlated (1/0)]``."""
+        return np.array([self.alpha, self.f0, float(self.smith == "height_correlated")], dtype=np.float64)
 
     def describe(self) -> dict:
         return dict(kind="ggx", roughness=self.roughness, alpha=self.alpha, f0=self.f0, smith=self.smith)

@@ -92,7 +92,8 @@ random points come from a counter-based hash of (seed, block, cell[, pixel, try]
 wherever the blocks ran.  A block's memory is bounded whatever the environment: the refined cells are kept as
 leaves of a quadtree per pixel (Morton-sorted, ~100 bytes each) and never exceed ``max_cells``
 (:data:`MAX_BLOCK_CELLS`); cells are split in chunks of :data:`SPLIT_CHUNK` parents; the quadrature texels are
-generated per chunk of :data:`QUAD_CHUNK_ELEMENTS` (pair, texel) elements, never as whole levels.  With
+summed per chunk of (pair, texel) elements or texel by texel, never as whole levels
+(:mod:`ibl_ref.rendering.reference_quadrature`: a NumPy and a compiled implementation, ``kernel=``).  With
 ``progress``, the first block runs alone and the predicted cost of the rest (rays, CPU and wall time, memory per
 worker) is printed before they start.
 
@@ -119,6 +120,7 @@ from .materials import GGXLobe
 from .materials import PhongLobe
 from .raster import prepare_scene
 from .raycast import ShadowRays
+from .reference_quadrature import get_quadrature
 from .raycast import resolve_shadow_backend
 
 __all__ = ["converged_shading", "check_environment", "radiance_at_face_size", "coarse_env", "DEFAULT_RTOL",
@@ -141,8 +143,6 @@ MAX_ROUNDS = 120
 #: (with the base cells' visibility) is below it for the image and for all but QUAD_PIXEL_SHARE of the pixels
 QUAD_SHARE = 0.5
 QUAD_PIXEL_SHARE = 0.01
-#: (pair, texel) elements of one quadrature step (bounds its memory: ~30 float64 temporaries per element for GGX)
-QUAD_CHUNK_ELEMENTS = 1 << 18
 #: per-pixel bound: t = √(2 ln(2/δ)) standard deviations (Hoeffding)
 T_BOUND = float(np.sqrt(2.0 * np.log(2.0 / BOUND_DELTA)))
 #: default ``pixel_rtol`` = this × rtol (3 % at the default rtol 2e-3)
@@ -386,6 +386,15 @@ class _Env:
             self._edges[M] = np.linspace(-1.0, 1.0, M + 1)  # the texel edges of texel_solid_angles
         return self._edges[M]
 
+    def level(self, M: int):
+        """The radiance read at face size M: (array, q) with texel (R, C) of face f reading ``array[f, R // q,
+        C // q]`` (the map itself where N divides M, else its exact area averages on face size M)."""
+        if M % self.N == 0:
+            return self.a, M // self.N
+        if M not in self._rad:
+            self._rad[M] = radiance_at_face_size(self.a, M)
+        return self._rad[M], 1
+
     def texels(self, f, r0, c0, k: int, M: int):
         """Blocks of k×k texels of face size M (block b: face f[b], rows r0[b]…, cols c0[b]…, row-major inside):
         centre directions (B, k², 3), exact solid angles (B, k²), radiance (B, k², C)."""
@@ -401,14 +410,8 @@ class _Env:
         d = F[:, None, 0, :] + u[..., None] * F[:, None, 1, :] + v[..., None] * F[:, None, 2, :]
         d = d / np.sqrt(_dot(d, d))[..., None]
         fb = np.broadcast_to(f[:, None], R.shape)
-        if M % self.N == 0:
-            q = M // self.N
-            L = self.a[fb, R // q, Cc // q]
-        else:
-            if M not in self._rad:
-                self._rad[M] = radiance_at_face_size(self.a, M)
-            L = self._rad[M][fb, R, Cc]
-        return d, om, L
+        rad, q = self.level(M)
+        return d, om, rad[fb, R // q, Cc // q]
 
     def samples(self, seed, block, lvl, f, i, j, n, salt=None):
         """Random points (u, v) in cells (f, i, j) of face sizes n (arrays): uniform in the cell's face-plane square,
@@ -513,29 +516,25 @@ def _grades(lobe, g, cp, cc, cen, rad, M0):
     return np.maximum(np.ceil(np.log2(np.maximum(need / M0, 1.0)) - 1e-9), 0).astype(np.int64)
 
 
-def _pair_weights(env, lobe, g, cp, cc, Mp):
+def _pair_weights(quad, env, lobe, g, cp, cc, Mp):
     """Weights W (n, C) = Σ L·weight·Ω over the level-M texels of base cell cc of pixel cp (M = Mp per pair), and the
-    normalisation Σ norm·Ω (n,) (0 for a lobe without a discrete normalisation)."""
+    normalisation Σ norm·Ω (n,) (0 for a lobe without a discrete normalisation): :mod:`ibl_ref.rendering.
+    reference_quadrature`'s block sums (``quad``)."""
     nb = env.nb
     W = np.zeros((len(cp), env.C))
     ns = np.zeros(len(cp))
     for M in np.unique(Mp):
         sel = np.flatnonzero(Mp == M)
-        sel = sel[np.argsort(cc[sel], kind="stable")]  # pairs of one cell together: its texels once per chunk
         k = int(M) // nb
-        step = max(1, QUAD_CHUNK_ELEMENTS // (k * k))
-        for a0 in range(0, len(sel), step):
-            s_ = sel[a0:a0 + step]
-            uc, inv = np.unique(cc[s_], return_inverse=True)
-            dq, oq, Lq = env.texels(uc // (nb * nb), ((uc // nb) % nb) * k, (uc % nb) * k, k, int(M))
-            norm, num = g.weights(lobe, cp[s_], dq[inv], oq[inv])
-            W[s_] = np.einsum("kt,ktc->kc", num, Lq[inv])
-            if norm is not None:
-                ns[s_] = norm.sum(axis=1)
+        c_ = cc[sel]
+        W[sel], n_ = quad.block_sums(env, lobe, g.n[cp[sel]], g.v[cp[sel]], g.d[cp[sel]], c_ // (nb * nb),
+                                     ((c_ // nb) % nb) * k, (c_ % nb) * k, k, int(M))
+        if n_ is not None:
+            ns[sel] = n_
     return W, ns
 
 
-def _child_weights(env, lobe, g, p, f, lvl, i, j, Wpar, Mpar):
+def _child_weights(quad, env, lobe, g, p, f, lvl, i, j, Wpar, Mpar):
     """Weights (4K, C) of the 4 children of K parent cells (level lvl → lvl + 1), children in order (a, b) =
     (0,0), (0,1), (1,0), (1,1) per parent: exact sums of the texels of the parent's quadrature level Mpar that they
     hold, or — finer than it — the parent's weight split in proportion to the lobe's weight × Ω at their centres."""
@@ -555,13 +554,9 @@ def _child_weights(env, lobe, g, p, f, lvl, i, j, Wpar, Mpar):
     if len(coarse):
         kcs = Mc[coarse] // n_c[coarse]
         for M, kc in sorted(set(zip(Mc[coarse].tolist(), kcs.tolist()))):
-            sel_k = coarse[(Mc[coarse] == M) & (kcs == kc)]
-            step = max(1, QUAD_CHUNK_ELEMENTS // (kc * kc))
-            for a0 in range(0, len(sel_k), step):  # bounded memory
-                sel = sel_k[a0:a0 + step]
-                dq, oq, Lq = env.texels(cf[sel], ci[sel] * kc, cj[sel] * kc, int(kc), int(M))
-                _, num = g.weights(lobe, cp[sel], dq, oq)
-                W[sel] = np.einsum("kt,ktc->kc", num, Lq)
+            sel = coarse[(Mc[coarse] == M) & (kcs == kc)]
+            W[sel] = quad.block_sums(env, lobe, g.n[cp[sel]], g.v[cp[sel]], g.d[cp[sel]], cf[sel], ci[sel] * kc,
+                                     cj[sel] * kc, int(kc), int(M))[0]
     fine = np.flatnonzero(n_c > Mc)
     if len(fine):
         from ..environment.envmap import rect_solid_angle
@@ -714,6 +709,7 @@ class _Block:
         self.Pn = len(self.P_)
         self.C = a.shape[-1]
         self.env = _Env(a, self.nb)
+        self.quad = get_quadrature(job["kernel"])
         self.caster = ShadowRays(job["scene"], job["backend"], job["eps"])
         self.max_cells = int(job["max_cells"])
         self.prtol = float(job["pixel_rtol"])
@@ -747,8 +743,8 @@ class _Block:
         def levels(M_):
             return np.minimum(M_ * 2 ** grade, max(cap, M_))
 
-        Wh, nsh = _pair_weights(env, lobe, g, cand_p, cand_c, levels(M // 2))
-        Wq, nsq = _pair_weights(env, lobe, g, cand_p, cand_c, levels(M))
+        Wh, nsh = _pair_weights(self.quad, env, lobe, g, cand_p, cand_c, levels(M // 2))
+        Wq, nsq = _pair_weights(self.quad, env, lobe, g, cand_p, cand_c, levels(M))
         vis_key = np.zeros(0, np.int64)  # (pixel·K + cell) pairs cast so far, ascending, their visibility and points
         vis_val = np.zeros(0, np.int8)
         vis_su, vis_sv = np.zeros(0), np.zeros(0)
@@ -795,7 +791,7 @@ class _Block:
                 break
             M = 2 * M
             Wh, nsh = Wq, nsq
-            Wq, nsq = _pair_weights(env, lobe, g, cand_p, cand_c, levels(M))
+            Wq, nsq = _pair_weights(self.quad, env, lobe, g, cand_p, cand_c, levels(M))
         self.bM = levels(M)[keep]
         self.M, self.K, self.n_rays = M, K, n_rays
         self.cf, self.ci, self.cj = cf, ci, cj
@@ -875,7 +871,7 @@ class _Block:
         Wpar = np.concatenate([self.bW[bsel], R.W[rsel]])
         pedge = np.concatenate([self.bedge[bsel], R["edge"][rsel]])  # κ̂ is measured on split edge cells only
         self.bsplit[bsel] = True
-        cp, cf2, cl2, ci2, cj2, cW = _child_weights(env, self.lobe, self.g, par["p"], par["f"], par["l"], par["i"],
+        cp, cf2, cl2, ci2, cj2, cW = _child_weights(self.quad, env, self.lobe, self.g, par["p"], par["f"], par["l"], par["i"],
                                                     par["j"], Wpar, self.bM[par["bi"]])
         nc = nb * (2 ** cl2)
         cY = cW.mean(axis=-1) / self.ws[cp]
@@ -1175,7 +1171,7 @@ def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *
                       n_vis_start: int = 16, n_vis_max: int = 16384, n_quad_max: int | None = None,
                       max_cells: int = MAX_BLOCK_CELLS, eps: float | None = None, backend: str = "auto",
                       seed: int = 0, block_pixels: int = 256, pixel_rtol: float | None = None, workers: int = 1,
-                      executor=None, progress: bool = False, predict: bool | None = None):
+                      executor=None, progress: bool = False, predict: bool | None = None, kernel: str | None = None):
     """One lobe's visibility-weighted integral (*) or (**) at surface points, converged to ``rtol`` (module
     docstring).
 
@@ -1199,6 +1195,9 @@ def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *
     workers, executor : where the blocks run (:func:`ibl_ref.executors.map_jobs`); the result is bit-identical
     progress : progress reports; predict : run the first block alone and print the predicted cost of the others
         before they start (default: with ``progress``; it changes no result)
+    kernel : the quadrature's implementation (:func:`ibl_ref.rendering.reference_quadrature.get_quadrature`:
+        ``"auto"``, ``"numpy"``, ``"compiled"``; None: ``$IBL_REF_KERNEL`` or ``"auto"``), resolved here so that
+        every block uses the same one
 
     Returns
     -------
@@ -1227,6 +1226,7 @@ def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *
                       ("block_pixels", block_pixels), ("max_cells", max_cells)):
         _int_arg(name, val)
     backend = resolve_shadow_backend(backend)
+    kernel = get_quadrature(kernel).name
     t0 = time.perf_counter()
     scene = prepare_scene(scene, warn=False)
     theta = lobe.base_half_angle()
@@ -1246,7 +1246,7 @@ def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *
                          views=v[idx], nb=nb, depth=depth, seed=int(seed), block=b, M0=M0, n_quad_max=n_quad_max,
                          scene=scene, max_cells=int(max_cells),
                          pixel_rtol=PIXEL_RTOL_FACTOR * rtol if pixel_rtol is None else float(pixel_rtol),
-                         backend=backend, eps=eps))
+                         backend=backend, eps=eps, kernel=kernel))
     label = _label(lobe)
     predict = progress if predict is None else bool(predict)
     res, prediction = [], None
@@ -1274,7 +1274,8 @@ def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *
                 n_quad=sorted({int(r["n_quad"]) for r in res}),
                 n_quad_pair_max=int(max(r["n_quad_pair_max"] for r in res)),
                 n_rays=int(sum(r["n_rays"] for r in res)),
-                n_cells=int(sum(r["n_cells"] for r in res)), blocks=nblk, backend=backend, rtol=rtol,
+                n_cells=int(sum(r["n_cells"] for r in res)), blocks=nblk, backend=backend, quadrature=kernel,
+                rtol=rtol,
                 est_rel_l1=float(em.sum() / tot), block_converged=int(sum(r["converged"] for r in res)),
                 converged=bool(all(r["converged"] for r in res)),
                 max_cells=int(max_cells), blocks_at_cell_cap=int(sum(r["cap_reached"] for r in res)),

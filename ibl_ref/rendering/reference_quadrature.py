@@ -1,0 +1,141 @@
+"""The radiance × lobe quadrature of the converged reference (Knuth et al. 2014, Eq. 4–5; the GGX term of Sec. 3.4):
+block sums of ``L·weight·Ω`` over texels, with a NumPy and a compiled implementation.
+
+:mod:`ibl_ref.rendering.reference_converged` weights each (pixel, direction cell) pair by the exact sum over the
+texels of face size M that the cell holds (its module docstring, "Quadrature")::
+
+    W_s = Σ_{t ∈ block s} L_t · weight(ω_t; n_s, v_s, d_s) · Ω_t        (C channels)
+    S_s = Σ_{t ∈ block s} norm(ω_t; d_s) · Ω_t                         (a Phong lobe's normalisation, whole sphere)
+
+where block s is the k×k texels of face size M starting at row ``r0``, column ``c0`` of face ``f``, ω_t the texel
+centre's direction, Ω_t its exact solid angle (:func:`ibl_ref.environment.envmap.rect_solid_angle`) and L_t the
+map's piecewise-constant radiance on that texel.  The lobe's ``weight`` and ``norm`` are defined once, by
+:meth:`ibl_ref.rendering.materials.PhongLobe.weights` and :meth:`ibl_ref.rendering.materials.GGXLobe.weights`.
+
+These sums are most of a reference render's time (a GGX render spends ≈ 85 % of it here:
+``benchmarks/bench_reference_quadrature.py``), so they have two implementations of one interface,
+:class:`Quadrature`, chosen like the convolution's kernels (:func:`ibl_ref.groundtruth.kernels.resolve_kernel`:
+``IBL_REF_KERNEL`` = ``auto`` | ``numpy`` | ``compiled``):
+
+``"numpy"``
+    :class:`NumpyQuadrature` — array expressions through the lobe's own ``weights`` (the definition); pairs that
+    share a texel block share its directions, solid angles and radiance.
+``"compiled"``
+    :class:`CompiledQuadrature` — one numba loop per lobe kind (:mod:`ibl_ref.rendering.reference_quadrature_loops`,
+    the lobe names its loop and parameters: ``lobe.kind``, :meth:`~ibl_ref.rendering.materials.GGXLobe.loop_params`)
+    that walks each block's texels without temporaries.  The same sums in float64, in another order of the
+    roundings: they agree with the NumPy ones to ≈ 1e-15 relative (``tests/test_reference_quadrature.py``), far
+    inside the reference's tolerances (≥ 1e-4), not bit for bit.  A render is bit-identical wherever its blocks run
+    for either implementation (every process uses the one resolved by the caller).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..environment.envmap import face_frames
+from ..errors import IBLError
+from ..groundtruth.kernels import resolve_kernel
+
+__all__ = ["Quadrature", "NumpyQuadrature", "CompiledQuadrature", "QUADRATURE_METHODS", "get_quadrature"]
+
+#: (pair, texel) elements of one NumPy step (bounds its memory: ~30 float64 temporaries per element for GGX)
+CHUNK_ELEMENTS = 1 << 18
+
+
+class Quadrature:
+    """The interface: ``block_sums(env, lobe, n, v, d, f, r0, c0, k, M) -> (W (S, C), S (S,) or None)``.
+
+    ``env`` is the reference's environment (``texels(f, r0, c0, k, M)`` → directions, solid angles, radiance of
+    k×k blocks; ``level(M)`` → (radiance array, q) with texel (R, C) of face size M reading ``array[f, R//q,
+    C//q]``); ``n, v, d`` (S, 3) the pixels' normals, view directions and lobe axes; ``f, r0, c0`` (S,) the blocks;
+    ``k`` and ``M`` ints.  ``S`` is None for a lobe without a discrete normalisation (``lobe.normalised`` False).
+    """
+
+    name = ""
+
+    def block_sums(self, env, lobe, n, v, d, f, r0, c0, k: int, M: int):  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+class NumpyQuadrature(Quadrature):
+    """The sums through the lobe's own ``weights`` (the definition), in chunks of :data:`CHUNK_ELEMENTS`; pairs
+    with the same block share its texels."""
+
+    name = "numpy"
+
+    def block_sums(self, env, lobe, n, v, d, f, r0, c0, k: int, M: int):
+        S = len(f)
+        W = np.zeros((S, env.C))
+        ns = np.zeros(S) if lobe.normalised else None
+        if S == 0:
+            return W, ns
+        key = (f.astype(np.int64) * M + r0) * M + c0
+        order = np.argsort(key, kind="stable")  # pairs of one block together: its texels once per chunk
+        step = max(1, CHUNK_ELEMENTS // (k * k))
+        for a0 in range(0, S, step):
+            s_ = order[a0:a0 + step]
+            uk, first, inv = np.unique(key[s_], return_index=True, return_inverse=True)
+            b = s_[first]
+            dq, oq, Lq = env.texels(f[b], r0[b], c0[b], k, int(M))
+            dq, oq = dq[inv], oq[inv]
+            norm, num = lobe.weights(n[s_][:, None, :], v[s_][:, None, :], d[s_][:, None, :], dq, oq)
+            W[s_] = np.einsum("kt,ktc->kc", num, Lq[inv])
+            if ns is not None:
+                ns[s_] = norm.sum(axis=1)
+        return W, ns
+
+
+class CompiledQuadrature(Quadrature):
+    """The sums by the lobe's numba loop (:mod:`ibl_ref.rendering.reference_quadrature_loops`)."""
+
+    name = "compiled"
+
+    def __init__(self):
+        from . import reference_quadrature_loops as loops
+
+        self._loops = loops.LOOPS
+
+    def block_sums(self, env, lobe, n, v, d, f, r0, c0, k: int, M: int):
+        S = len(f)
+        W = np.zeros((S, env.C))
+        ns = np.zeros(S)
+        if S == 0:
+            return W, (ns if lobe.normalised else None)
+        rad, q = env.level(int(M))
+        f, r0, c0 = (np.ascontiguousarray(x, dtype=np.int64) for x in (f, r0, c0))
+        key = (f * M + r0) * M + c0
+        order = np.argsort(key, kind="stable")
+        starts = np.flatnonzero(np.diff(key[order], prepend=-1, append=-1) != 0)  # group boundaries, and S
+        self._loops[lobe.kind](np.ascontiguousarray(n, dtype=np.float64), np.ascontiguousarray(v, dtype=np.float64),
+                               np.ascontiguousarray(d, dtype=np.float64), order, starts, f, r0, c0, int(k), int(M),
+                               np.ascontiguousarray(rad), int(q), FRAMES, lobe.loop_params(), W, ns)
+        return W, (ns if lobe.normalised else None)
+
+
+#: the face frames of the package's cube convention (:func:`ibl_ref.environment.envmap.face_frames`)
+FRAMES = np.ascontiguousarray(face_frames("openexr"), dtype=np.float64)
+
+#: the implementations, by the names of :func:`ibl_ref.groundtruth.kernels.resolve_kernel`
+QUADRATURE_METHODS = {"numpy": NumpyQuadrature, "compiled": CompiledQuadrature}
+_LOADED: dict = {}
+
+
+def get_quadrature(kernel=None) -> Quadrature:
+    """The implementation for the switch value ``kernel`` (None: ``$IBL_REF_KERNEL`` or ``"auto"``: compiled where
+    numba's JIT is available), one instance per process.
+
+    Examples
+    --------
+    >>> from ibl_ref.rendering.reference_quadrature import get_quadrature
+    >>> get_quadrature("numpy").name
+    'numpy'
+    """
+    name = kernel if isinstance(kernel, str) and kernel in QUADRATURE_METHODS else resolve_kernel(kernel)
+    if name not in QUADRATURE_METHODS:  # pragma: no cover - resolve_kernel returns one of them
+        raise IBLError(f"unknown quadrature {name!r}")
+    if name == "compiled":
+        name = resolve_kernel("compiled")  # one-line error where numba's JIT is unavailable
+    if name not in _LOADED:
+        _LOADED[name] = QUADRATURE_METHODS[name]()
+    return _LOADED[name]

@@ -1,0 +1,167 @@
+"""The compiled loops (numba) of the converged reference's quadrature (Knuth et al. 2014, Eq. 4–5; GGX, Sec. 3.4).
+
+Each loop computes, for every pair s, the block sums of :mod:`ibl_ref.rendering.reference_quadrature`::
+
+    W[s, c] = Σ_t L_t,c · weight(ω_t) · Ω_t,     S[s] = Σ_t norm(ω_t) · Ω_t
+
+over the k×k texels t of face size M starting at row ``r0[s]``, column ``c0[s]`` of face ``f[s]``: ω_t the texel
+centre's direction ``F0 + u F1 + v F2`` normalised (u, v the centre's face-plane coordinates, F the face frame),
+Ω_t the exact solid angle ``A(u1, v1) − A(u0, v1) − A(u1, v0) + A(u0, v0)``, ``A(x, y) = atan2(x y, √(x² + y² +
+1))`` (:func:`ibl_ref.environment.envmap.rect_solid_angle`), L_t = ``rad[f, R // q, C // q]``.  The weights are
+those of :mod:`ibl_ref.rendering.materials` written out per texel (the NumPy implementation calls them; the tests
+compare the two):
+
+``phong`` (params ``[s]``)
+    norm = max(d·ω, 0)^s Ω, weight = norm·[n·ω > 0].
+``ggx`` (params ``[α, f0, height_correlated]``)
+    weight = D·G·F / (4 (n·ω)(n·v)) · (n·ω) · Ω = D·G·F / (4 n·v) · Ω where n·ω > 0 and n·v > 0 (else 0),
+    h = (ω + v)/|ω + v|,
+    D = α² / (π ((n·h)² (α² − 1) + 1)²), G1(c) = 2c / (c + √(α² + (1 − α²) c²)), G = 1/(1/G1(n·ω) + 1/G1(n·v) − 1)
+    (height-correlated, Heitz 2014 Eq. 99) or G1(n·ω)·G1(n·v) (separable), F = f0 + (1 − f0)(1 − h·ω)^5
+    (:func:`ibl_ref.lobes.brdfs.cook_torrance`).
+
+The pairs come grouped by block (``order``, ``starts``): a block's directions, solid angles and radiance are
+computed once for all the pixels that read it, its corners' A once for the up to four texels that share them.  Serial loops (the
+reference's blocks already run on separate processes) in a fixed order: the same result in every process.  Compiled on first use and kept in numba's cache (the convolution kernels' policy:
+:mod:`ibl_ref.groundtruth.kernels.numba_loops`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..groundtruth.kernels.numba_loops import _jit
+
+__all__ = ["phong_blocks", "ggx_blocks", "LOOPS"]
+
+
+@_jit()
+def _area(x, y):
+    return math.atan2(x * y, math.sqrt(x * x + y * y + 1.0))
+
+
+@_jit()
+def _block_geometry(F, fs, M, r0, c0, k, A, G):
+    """Directions (x, y, z) and exact solid angles of the k×k texels of face fs, face size M, from row r0, column c0
+    into G (4, k²) (one row per quantity, texels row-major); A ((k+1)², scratch) holds the corners' A(u, v), each shared by up to four texels."""
+    h = 2.0 / M
+    for a in range(k + 1):
+        ve = (r0 + a) * h - 1.0
+        for b in range(k + 1):
+            A[a * (k + 1) + b] = _area((c0 + b) * h - 1.0, ve)
+    for a in range(k):
+        v = (r0 + a + 0.5) / M * 2.0 - 1.0
+        for b in range(k):
+            u = (c0 + b + 0.5) / M * 2.0 - 1.0
+            x = F[fs, 0, 0] + u * F[fs, 1, 0] + v * F[fs, 2, 0]
+            y = F[fs, 0, 1] + u * F[fs, 1, 1] + v * F[fs, 2, 1]
+            z = F[fs, 0, 2] + u * F[fs, 1, 2] + v * F[fs, 2, 2]
+            ln = math.sqrt(x * x + y * y + z * z)
+            t = a * k + b
+            G[0, t] = x / ln
+            G[1, t] = y / ln
+            G[2, t] = z / ln
+            c = a * (k + 1) + b
+            G[3, t] = A[c + k + 2] - A[c + k + 1] - A[c + 1] + A[c]
+
+
+@_jit()
+def _block_radiance(rad, q, fs, r0, c0, k, Lb):
+    """The radiance of the block's k×k texels into Lb (C, k²) (one row per channel: the pairs' dot products run
+    along contiguous memory)."""
+    for t in range(k * k):
+        R = (r0 + t // k) // q
+        Cc = (c0 + t % k) // q
+        for ch in range(Lb.shape[0]):
+            Lb[ch, t] = rad[fs, R, Cc, ch]
+
+
+@_jit()
+def _accumulate(wb, Lb, W, p):
+    """W[p, c] = Σ_t wb[t] Lb[c, t]"""
+    for ch in range(Lb.shape[0]):
+        acc = 0.0
+        for t in range(len(wb)):
+            acc += wb[t] * Lb[ch, t]
+        W[p, ch] = acc
+
+
+@_jit()
+def phong_blocks(n, v, d, order, starts, f, r0, c0, k, M, rad, q, F, params, W, S):
+    """Phong lobe (module docstring): W (S, C) and S (S,) filled in place; the pairs ``order[starts[g]:starts[g+1]]``
+    share one block (its geometry and radiance gathered once)."""
+    s = params[0]
+    kk = k * k
+    A = np.empty((k + 1) * (k + 1))
+    G = np.empty((4, kk))
+    Lb = np.empty((rad.shape[3], kk))
+    wb = np.empty(kk)
+    for g in range(len(starts) - 1):
+        p0 = order[starts[g]]
+        fs = f[p0]
+        _block_geometry(F, fs, M, r0[p0], c0[p0], k, A, G)
+        _block_radiance(rad, q, fs, r0[p0], c0[p0], k, Lb)
+        for e in range(starts[g], starts[g + 1]):
+            p = order[e]
+            dx, dy, dz = d[p, 0], d[p, 1], d[p, 2]
+            nx, ny, nz = n[p, 0], n[p, 1], n[p, 2]
+            acc = 0.0
+            for t in range(kk):
+                c = max(dx * G[0, t] + dy * G[1, t] + dz * G[2, t], 0.0)
+                w = (c if s == 1.0 else c ** s) * G[3, t]
+                acc += w
+                wb[t] = w if nx * G[0, t] + ny * G[1, t] + nz * G[2, t] > 0.0 else 0.0
+            S[p] = acc
+            _accumulate(wb, Lb, W, p)
+
+
+@_jit()
+def ggx_blocks(n, v, d, order, starts, f, r0, c0, k, M, rad, q, F, params, W, S):
+    """GGX specular term (module docstring): W (S, C) filled in place (S unused: no discrete normalisation); the
+    pairs ``order[starts[g]:starts[g+1]]`` share one block (its geometry and radiance gathered once).  The texel
+    loop has no branches (selects only), so that it runs on the processor's vector lanes."""
+    alpha, f0, sep = params[0], params[1], 1.0 - params[2]
+    a2 = alpha * alpha
+    kk = k * k
+    A = np.empty((k + 1) * (k + 1))
+    G = np.empty((4, kk))
+    Lb = np.empty((rad.shape[3], kk))
+    wb = np.empty(kk)
+    for g in range(len(starts) - 1):
+        p0 = order[starts[g]]
+        fs = f[p0]
+        _block_geometry(F, fs, M, r0[p0], c0[p0], k, A, G)
+        _block_radiance(rad, q, fs, r0[p0], c0[p0], k, Lb)
+        for e in range(starts[g], starts[g + 1]):
+            p = order[e]
+            nx, ny, nz = n[p, 0], n[p, 1], n[p, 2]
+            vx, vy, vz = v[p, 0], v[p, 1], v[p, 2]
+            co = nx * vx + ny * vy + nz * vz
+            if co <= 0.0:
+                for ch in range(W.shape[1]):
+                    W[p, ch] = 0.0
+                continue
+            inv_g1o = (co + math.sqrt(a2 + (1.0 - a2) * co * co)) / (2.0 * co)
+            for t in range(kk):
+                x, y, z = G[0, t], G[1, t], G[2, t]
+                ci = nx * x + ny * y + nz * z
+                cis = max(ci, 1e-300)
+                hx, hy, hz = x + vx, y + vy, z + vz
+                ih = 1.0 / math.sqrt(max(hx * hx + hy * hy + hz * hz, 1e-300))
+                ch = (nx * hx + ny * hy + nz * hz) * ih
+                tt = ch * ch * (a2 - 1.0) + 1.0
+                D = a2 / (math.pi * tt * tt)
+                inv_g1i = (cis + math.sqrt(a2 + (1.0 - a2) * cis * cis)) / (2.0 * cis)
+                # 1/G = 1/G1i + 1/G1o − 1 (height-correlated) or (1/G1i)(1/G1o) (separable: sep = 1), branch-free
+                Gs = 1.0 / (inv_g1i + inv_g1o - 1.0 + sep * (inv_g1i - 1.0) * (inv_g1o - 1.0))
+                m = 1.0 - min(max((hx * x + hy * y + hz * z) * ih, 0.0), 1.0)
+                Fr = f0 + (1.0 - f0) * (m * m * m * m * m)
+                w = D * Gs * Fr / (4.0 * co) * G[3, t]
+                wb[t] = w if ci > 0.0 else 0.0
+            _accumulate(wb, Lb, W, p)
+
+
+#: the loop of each lobe kind (``lobe.kind`` of :mod:`ibl_ref.rendering.materials`)
+LOOPS = {"phong": phong_blocks, "ggx": ggx_blocks}
