@@ -36,7 +36,7 @@ own integrand value f(ω_c) — zero below the horizon — times Ω_c, which is 
 computed as (unoccluded exact value) − (estimate of the blocked part): with B = 1 − V and c = max(n·ω, 0),
 
 * ambient occlusion  ao = 1 − ∫ B c/π dω;
-* bent vector        ∫ V ω c dω = π n − ∫ B ω c dω            (∫_{n·ω>0} ω (n·ω) dω = π n);
+* bent vector        ∫ V ω c dω = (2π/3) n − ∫ B ω c dω       (∫_{n·ω>0} ω (n·ω) dω = (2π/3) n);
 * SH transfer        T_k = A_l Y_k(n)/π − ∫ B c/π Y_k dω      (Funk–Hecke for the clamped cosine, Ramamoorthi &
   Hanrahan 2001: A_0 = π, A_1 = 2π/3, A_l = 0 for odd l > 1, A_l = 2π (−1)^(l/2−1) / ((l+2)(l−1)) ·
   l! / (2^l ((l/2)!)²) for even l ≥ 2, i.e. A_2 = π/4, A_4 = −π/24; :func:`clamped_cosine_coefficients`).
@@ -486,13 +486,14 @@ def ambient_occlusion(vs: VisibilitySamples):
 
 
 def _bent_vectors(vs):
-    """Per set: the bent vector π n − ∫ B ω c dω (S, P, 3) and whether the set saw any weighted visible direction."""
+    """Per set: the bent vector (2π/3) n − ∫ B ω c dω (S, P, 3) and whether the set saw any weighted visible
+    direction."""
     vec = np.empty((vs.n_sets, vs.n_pixels, 3))
     seen = np.zeros((vs.n_sets, vs.n_pixels), dtype=bool)
     for s in range(vs.n_sets):
         for a, b in _chunks(vs):
             blk, vis = _blocked(vs, s, a, b)
-            vec[s, a:b] = np.pi * vs.normals[a:b] - blk @ vs.directions[s]
+            vec[s, a:b] = (2.0 * np.pi / 3.0) * vs.normals[a:b] - blk @ vs.directions[s]
             seen[s, a:b] = (vis > 0).any(axis=1)
     return vec, seen
 
@@ -505,9 +506,10 @@ def _unit(v, fallback):
 def bent_normal(vs: VisibilitySamples):
     """Bent normal b = normalize(∫ V ω max(n·ω, 0) dω), the cosine-weighted mean visible direction.
 
-    The integral is π n − ∫ (1 − V) ω max(n·ω, 0) dω (control variate: an unoccluded point gets exactly n).  A set
-    in which no weighted direction of a pixel is visible gives that pixel b = n (a fully occluded point has no
-    visible direction to average; n is the convention), as does a vector of zero length.
+    The integral is (2π/3) n − ∫ (1 − V) ω max(n·ω, 0) dω (control variate: an unoccluded point gets exactly n;
+    ∫_{n·ω>0} ω (n·ω) dω = (2π/3) n).  A set in which no weighted direction of a pixel is visible gives that pixel
+    b = n (a fully occluded point has no visible direction to average; n is the convention), as does a vector of zero
+    length.
 
     Parameters
     ----------
