@@ -449,3 +449,23 @@ def test_no_points_and_unpacked_layout():
     assert vs.n_pixels == 1 and vs.n_cells == 96 and vs.n_rays == int((vs.directions[0] @ UP[0] > 0).sum())
     assert np.array_equal(vs.visibility(0)[0], (vs.directions[0] @ UP[0] > 0).astype(np.uint8))
     assert abs(vs.solid_angles.sum() - 4 * np.pi) < 1e-12
+
+
+def test_region_visibility_has_no_horizon_bias():
+    """A point enclosed by a sphere sees nothing: every region's part above the horizon has VIS = 0.  With the
+    normal tilted, the horizon cuts many one-texel regions; a set whose point in such a cell fell below the horizon
+    says nothing about it.  The mean of per-set ratios counted those sets as 1 (≈ the share of the cell below the
+    horizon: 0.114 on average over these 35 texels, measured); the ratio of the sums is 0 unless every set fell below
+    (probability ≈ 2^-16 for a cell cut in half, 16 sets)."""
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    sphere.invert()
+    n = np.array([[1.0, 0.3, 1.0]]) / np.linalg.norm([1.0, 0.3, 1.0])
+    vs = oi.trace_visibility(sphere, [[0.0, 0.0, 0.0]], n, n, n_face=8, n_sets=16)
+    labels = np.arange(6 * 64).reshape(6, 8, 8)
+    vis, err = oi.region_visibility(vs, np.ones((6, 8, 8, 3)), labels)
+    d = texel_directions(8).reshape(-1, 3)
+    corners_up = d @ n[0]  # the texel centres against the horizon
+    cut = (corners_up > 0) & (corners_up < 0.15)  # centre above, near the horizon (most of them cut by it)
+    assert cut.sum() > 20
+    assert float(np.mean(vis[0, cut])) < 0.05
+    assert np.all(vis[0, corners_up > 0.3] == 0.0)

@@ -694,7 +694,7 @@ def _region_weights(cube, labels, n_face: int):
 def region_visibility(vs: VisibilitySamples, cube, labels):
     """Per-region visibility VIS_i: the paper's per-region visibility made exact (Knuth et al. 2014, Eq. 5).
 
-    Per set, ``VIS_i = Σ_c V_c w_ci [n·ω_c > 0] / Σ_c w_ci [n·ω_c > 0]`` with w_ci = Σ_{texels t ∈ cell c, label i}
+    Over the sets s, ``VIS_i = Σ_s Σ_c V_sc w_ci [n·ω_sc > 0] / Σ_s Σ_c w_ci [n·ω_sc > 0]`` with w_ci = Σ_{texels t ∈ cell c, label i}
     Y_t Ω_t (Rec. 709 luminance, :func:`ibl_ref.knuth2014.median_cut.luminance`; exact texel solid angles): the
     radiance-weighted visible fraction of the part of region i above the shading horizon, 1 where that part is
     empty or has no energy.  Not cosine-weighted (the lobe of Eq. 5 is applied by the method, not here).
@@ -711,9 +711,9 @@ def region_visibility(vs: VisibilitySamples, cube, labels):
     Returns
     -------
     vis : ndarray, float64, shape (P, R)
-        Mean over the sets.
+        The ratio of the sums over the sets.
     err : ndarray, float64, shape (P, R)
-        Standard error of the mean from the spread of the sets (NaN with one set).
+        Its standard error from the spread of the sets (delta method; NaN with one set).
 
     Raises
     ------
@@ -739,12 +739,22 @@ def region_visibility(vs: VisibilitySamples, cube, labels):
     vs = _check_samples(vs)
     w, R = _region_weights(cube, labels, vs.n_face)
     wT = w.T.tocsr()
-    per = np.empty((vs.n_sets, vs.n_pixels, R))
+    num = np.empty((vs.n_sets, vs.n_pixels, R))
+    den = np.empty((vs.n_sets, vs.n_pixels, R))
     for s in range(vs.n_sets):
         for a, b in _chunks(vs):
             up = (vs.normals[a:b] @ vs.directions[s].T > 0).astype(np.float64)
             V = vs.visibility(s, a, b)
-            num = np.asarray(wT @ (up * V).T).T
-            den = np.asarray(wT @ up.T).T
-            per[s, a:b] = np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
-    return _mean_and_stderr(per)
+            num[s, a:b] = np.asarray(wT @ (up * V).T).T
+            den[s, a:b] = np.asarray(wT @ up.T).T
+    # the ratio of the sums over the sets, not the mean of the per-set ratios: a region inside one cell that the
+    # horizon cuts has den = 0 in the sets whose point fell below the horizon, and a per-set ratio would count those
+    # as 1 (a biased mean); the ratio of sums is consistent, its standard error by the delta method
+    N, D = num.sum(axis=0), den.sum(axis=0)
+    vis = np.where(D > 0, N / np.where(D > 0, D, 1.0), 1.0)
+    S = vs.n_sets
+    if S < 2:
+        return vis, np.full(vis.shape, np.nan)
+    Dm = np.where(D > 0, D / S, 1.0)
+    resid = (num - vis[None] * den) / Dm[None]
+    return vis, np.where(D > 0, resid.std(axis=0, ddof=1) / math.sqrt(S), 0.0)
