@@ -345,7 +345,7 @@ def check_method_zoo(out, summary):
 
 #: experiments whose quick run, figure layout and headline are tested in a file of their own
 OWN_TEST_FILE = {"error-budget": "tests/test_error_budget.py", "occlusion-zoo": "tests/test_occlusion_zoo.py",
-                 "mip-mappings": "tests/test_mip_mappings.py"}
+                 "mip-mappings": "tests/test_mip_mappings.py", "manson-sloan": "tests/test_manson_sloan.py"}
 CHECKS = {name: globals()[f"check_{name.replace('-', '_')}"] for name in EXPS if name not in OWN_TEST_FILE}
 
 
