@@ -85,6 +85,17 @@ worst case σ and t = √(2 ln(2/δ)), δ = :data:`BOUND_DELTA`: a per-pixel bou
 so its 99th percentile bounds the actual error's up to a δ share of the pixels.  ``tests/test_reference_render.py``
 checks both against closed forms, brute force and much finer runs.
 
+**Several environments** (``groups`` = E > 1: a sweep, the map's channels are E environments stacked).  The cells,
+their rays, the quadrature levels and the lobe's weights depend on the scene, the view and the lobe, not on the
+radiance: one structure serves every environment, the texels' radiance entering the weights W_c as further
+channels.  Each environment e is held to the targets on its own — the estimates above computed with its own weights
+Y_e (channel mean of its group), the image target and the per-pixel targets checked for every e (the quadrature
+level M doubles until every e meets its share; a round splits, for each e over its targets, the cells its own
+weights pick, the image budget going to the worst e) — and its ``err_mean``, ``err_bound`` are its own.  Where
+one order of the cells is needed (the pre-split of a GGX core, the order of a round's splits, the visible fraction
+V̄ of a split base cell) the driving weight is Y = max_e Y_e / T_e, T_e the block's mean unoccluded value of e.
+With E = 1 (T = 1) every computation is the single-environment one, bit for bit.
+
 **Blocks, memory and determinism.**  Pixels are dealt to blocks round-robin (block b holds pixels b, b + B,
 b + 2B, …, so every block is a sample of the whole image and meets the image's tolerance on its own); blocks run
 independently (:func:`ibl_ref.executors.map_jobs`: serially, on local processes or any executor) and each block's
@@ -162,6 +173,9 @@ MAX_BLOCK_CELLS = 1_000_000
 #: the scene, the peak bytes per cell of a block, and the environment's copies (its radiance and energy per texel)
 MEM_BASE_MB = 120.0
 MEM_PER_CELL_B = 240.0
+#: and per channel beyond three (a sweep's stacked environments: the cell's weight row, kept and in about three
+#: temporaries of a split; from the array layout, not measured)
+MEM_PER_CELL_CHANNEL_B = 32.0
 MEM_ENV_COPIES = 6.0
 #: parents split per step (bounds the temporary arrays of a round)
 SPLIT_CHUNK = 1 << 16
@@ -708,6 +722,11 @@ class _Block:
         self.P_, self.nrm, self.fn = self.g.P, self.g.n, self.g.fn
         self.Pn = len(self.P_)
         self.C = a.shape[-1]
+        # environments stacked as channel groups (a sweep): E groups of Cg channels, each held to the tolerance; the
+        # cells are refined by the driving weight Y = max_e Y_e / T_e (module docstring, "Several environments")
+        self.E = int(job.get("groups", 1))
+        self.Cg = self.C // self.E
+        self.T = np.ones(self.E)
         self.env = _Env(a, self.nb)
         self.quad = get_quadrature(job["kernel"])
         self.caster = ShadowRays(job["scene"], job["backend"], job["eps"])
@@ -756,13 +775,20 @@ class _Block:
             w = np.bincount(cand_p, weights=ns, minlength=Pn)
             return np.where(w > 0, w, 1.0)
 
+        first = True
         while True:
             keep = Wq.mean(axis=-1) > 0
             ws, wsh = norm_sums(nsq), norm_sums(nsh)
             bp, bc, bW = cand_p[keep], cand_c[keep], Wq[keep]
             bkey = bp * K + bc
-            bY = bW.mean(axis=-1) / ws[bp]
-            bYh = Wh[keep].mean(axis=-1) / wsh[bp]  # the same cells at M/2
+            bYe = self._ye(bW, ws[bp])
+            bYhe = self._ye(Wh[keep], wsh[bp])  # the same cells at M/2
+            if first and self.E > 1:  # T_e: the block's mean unoccluded value of environment e
+                T = np.array([np.bincount(bp, weights=bYe[:, e], minlength=Pn).mean() if Pn else 1.0
+                              for e in range(self.E)])
+                self.T = np.where(T > 0, T, 1.0)
+            first = False
+            bY = self._crit(bYe)
             U = np.stack([np.bincount(bp, weights=bW[:, ch], minlength=Pn) for ch in range(C)], -1) / ws[:, None]
             # rays for the pairs not cast yet (a finer M can give weight to a few more cells)
             known = _match(vis_key, np.ones(len(vis_key)), bkey) > 0
@@ -782,12 +808,15 @@ class _Block:
             at = np.searchsorted(vis_key, bkey)
             bV, bsu, bsv = vis_val[at], vis_su[at], vis_sv[at]
             # quadrature estimate with the base visibility: image share ≤ QUAD_SHARE·rtol, and ≤ 1 % of the pixels
-            # above QUAD_SHARE·pixel_rtol of their value; else M doubles (the cells and their rays stay)
-            A0 = np.bincount(bp, weights=bY * (bV > 0), minlength=Pn)
-            q0 = np.abs(np.bincount(bp, weights=(bV > 0) * (bY - bYh), minlength=Pn))
-            over = (q0 > QUAD_SHARE * prtol * np.maximum(A0, ERR_FLOOR * A0.mean())).mean() if Pn else 0.0
-            if ((q0.sum() <= QUAD_SHARE * rtol * max(A0.sum(), 1e-300) and over <= QUAD_PIXEL_SHARE)
-                    or 2 * M > cap):
+            # above QUAD_SHARE·pixel_rtol of their value, for every environment; else M doubles (the cells and their
+            # rays stay)
+            met = True
+            for e in range(self.E):
+                A0 = np.bincount(bp, weights=bYe[:, e] * (bV > 0), minlength=Pn)
+                q0 = np.abs(np.bincount(bp, weights=(bV > 0) * (bYe[:, e] - bYhe[:, e]), minlength=Pn))
+                over = (q0 > QUAD_SHARE * prtol * np.maximum(A0, ERR_FLOOR * A0.mean())).mean() if Pn else 0.0
+                met &= bool(q0.sum() <= QUAD_SHARE * rtol * max(A0.sum(), 1e-300) and over <= QUAD_PIXEL_SHARE)
+            if met or 2 * M > cap:
                 break
             M = 2 * M
             Wh, nsh = Wq, nsq
@@ -796,7 +825,7 @@ class _Block:
         self.M, self.K, self.n_rays = M, K, n_rays
         self.cf, self.ci, self.cj = cf, ci, cj
         self.ws, self.U = ws, U
-        self.bp, self.bc, self.bW, self.bkey, self.bY, self.bYh = bp, bc, bW, bkey, bY, bYh
+        self.bp, self.bc, self.bW, self.bkey, self.bY, self.bYe, self.bYhe = bp, bc, bW, bkey, bY, bYe, bYhe
         self.bV, self.bsu, self.bsv = bV, bsu, bsv
         self.nB = len(bp)
 
@@ -820,9 +849,30 @@ class _Block:
         self.bsplit = np.zeros(self.nB, dtype=bool)
 
     # ---- estimates ---------------------------------------------------------------------------------------------
+    def _ye(self, W, w):
+        """Per environment the channel mean of weights W (n, C) relative to the normalisations w (n,) → (n, E)."""
+        return W.reshape(len(W), self.E, self.Cg).mean(axis=-1) / w[:, None]
+
+    def _crit(self, Ye):
+        """The driving weight of cells with per-environment weights Ye (n, E): max_e Ye/T_e (Ye itself for one)."""
+        return Ye[:, 0] if self.E == 1 else (Ye / self.T).max(axis=1)
+
     def quad_est(self, vb):
-        """per-pixel |Σ_c V̄_c (Y_c(M) − Y_c(M/2))| (channel mean, relative to ws)."""
-        return np.abs(np.bincount(self.bp, weights=vb * (self.bY - self.bYh), minlength=self.Pn))
+        """per pixel and environment |Σ_c V̄_c (Y_c(M) − Y_c(M/2))| (channel mean, relative to ws) → (Pn, E)."""
+        d = vb[:, None] * (self.bYe - self.bYhe)
+        return np.abs(np.stack([np.bincount(self.bp, weights=d[:, e], minlength=self.Pn) for e in range(self.E)],
+                               -1))
+
+    def per_env(self, ub, ur):
+        """Per-environment weights (n, E) of the uncertain base pairs ``ub`` and refined cells ``ur``, and of the
+        lit cells per pixel: (Ye of the uncertain cells, A (Pn, E))."""
+        R, Pn = self.R, self.Pn
+        Rye = self._ye(R.W, self.ws[R["p"]]) if len(R) else np.zeros((0, self.E))
+        lit_b = (self.bV > 0) & ~self.bsplit
+        lit_r = R["V"] > 0
+        A = np.stack([np.bincount(self.bp, weights=self.bYe[:, e] * lit_b, minlength=Pn)
+                      + np.bincount(R["p"], weights=Rye[:, e] * lit_r, minlength=Pn) for e in range(self.E)], -1)
+        return np.concatenate([self.bYe[ub], Rye[ur]]), A
 
     def vbar(self):
         """visible fraction of each base pair from its leaves."""
@@ -944,49 +994,63 @@ class _Block:
         R, st, Pn, bp, bY, bV, rtol, prtol = self.R, self.st, self.Pn, self.bp, self.bY, self.bV, self.rtol, self.prtol
         rounds = []
         converged = False
+        E = self.E
         for rnd in range(MAX_ROUNDS):
             ub, ur, pix, Yu = self.uncertain()
-            S = np.bincount(pix, weights=Yu ** 2, minlength=Pn)
-            strict = np.bincount(pix, weights=Yu, minlength=Pn)
-            A = (np.bincount(bp, weights=bY * ((bV > 0) & ~self.bsplit), minlength=Pn)
-                 + np.bincount(R["p"], weights=R["Y"] * (R["V"] > 0), minlength=Pn))
-            q = self.quad_est(self.vbar())
+            Ye, Ae = self.per_env(ub, ur)
+            qe = self.quad_est(self.vbar())
             kap = _kappa(st["kap_num"], st["kap_den"], st["n_kap"])
-            sig = 0.5 * np.sqrt(kap * S)
-            tot_A = max(A.sum(), 1e-300)
-            est = (sig.sum() + q.sum()) / tot_A
-            # per pixel: the bound should stay within pixel_rtol of the pixel's value (lit pixels; best effort:
-            # pixels whose quadrature estimate alone exceeds it, or whose edge cells are at the finest level, stay over)
-            bound = np.minimum(strict, T_BOUND * 0.5 * np.sqrt(S)) + q
-            den = np.maximum(A, ERR_FLOOR * A.mean()) if Pn else A
-            target = ROUND_AIM * prtol * den
-            viol = np.flatnonzero((bound > prtol * den) & (q < target))
+            # per environment: the image estimate and the pixels over pixel_rtol (lit pixels; best effort: pixels
+            # whose quadrature estimate alone exceeds it, or whose edge cells are at the finest level, stay over)
+            per, est, worst = [], -1.0, 0
+            for e in range(E):
+                Se = np.bincount(pix, weights=Ye[:, e] ** 2, minlength=Pn)
+                strict = np.bincount(pix, weights=Ye[:, e], minlength=Pn)
+                A, q = Ae[:, e], qe[:, e]
+                sig = 0.5 * np.sqrt(kap * Se)
+                tot_A = max(A.sum(), 1e-300)
+                est_e = (sig.sum() + q.sum()) / tot_A
+                bound = np.minimum(strict, T_BOUND * 0.5 * np.sqrt(Se)) + q
+                den = np.maximum(A, ERR_FLOOR * A.mean()) if Pn else A
+                target = ROUND_AIM * prtol * den
+                viol = np.flatnonzero((bound > prtol * den) & (q < target))
+                per.append(dict(S=Se, strict=strict, q=q, target=target, viol=viol, tot_A=tot_A, est=est_e,
+                                vis=float(sig.sum() / tot_A), quad=float(q.sum() / tot_A)))
+                if est_e > est:
+                    est, worst = est_e, e
+            n_viol = int(len(np.unique(np.concatenate([d["viol"] for d in per]))))
             rounds.append(dict(round=rnd, rays=int(st["n_rays"]), est_rel_l1=float(est),
-                               vis_rel_l1=float(sig.sum() / tot_A), quad_rel_l1=float(q.sum() / tot_A),
+                               vis_rel_l1=per[worst]["vis"], quad_rel_l1=per[worst]["quad"],
                                kappa=float(kap), edge_cells=int(len(pix)), cells=int(self.nB + len(R)),
-                               pixels_over=int(len(viol))))
-            if est <= rtol and len(viol) == 0:
+                               pixels_over=n_viol))
+            if est <= rtol and n_viol == 0:
                 converged = True
                 break
             if st["cap_reached"]:
                 converged = est <= rtol
                 break
             # candidates: edge cells that can still be split, largest weight first, among the top SPLIT_SHARE of
-            # their pixel's Σ W² (the smallest cells of a pixel wait until the larger ones are split)
+            # their pixel's Σ W² (the smallest cells of a pixel wait until the larger ones are split); each
+            # environment over its targets picks by its own weights (the image budget: the worst one's)
             lv = np.concatenate([np.zeros(len(ub), np.int64), R["l"][ur].astype(np.int64)])
             can = np.flatnonzero(lv < self.depth)
-            o = can[np.argsort(-Yu[can], kind="stable")]
-            o = o[_worth_splitting(pix[o], Yu[o], S)]
-            chosen = np.zeros(0, np.int64)
-            if est > rtol and len(o):
-                budget = ROUND_AIM * max(rtol * tot_A - q.sum(), 0.25 * rtol * tot_A)
-                k_plan = kap if st["n_kap"] >= KAPPA_MIN_SPLITS else KAPPA_PLAN  # planning only (the estimate: κ̂ = 1)
-                chosen = o[:_select(pix[o], Yu[o], S, budget, min_split=64, kappa=k_plan)]
-            if len(viol) and len(o):
-                pick = np.zeros(len(pix), bool)
-                pick[chosen] = True
-                pick[_select_pixels(pix[o], Yu[o], o, viol, S, strict, q, target, Pn)] = True
-                chosen = np.flatnonzero(pick)
+            pick = np.zeros(len(pix), bool)
+            for e, d in enumerate(per):
+                if not ((e == worst and est > rtol) or len(d["viol"])):
+                    continue
+                y = Ye[:, e]
+                o = can[np.argsort(-y[can], kind="stable")]
+                o = o[_worth_splitting(pix[o], y[o], d["S"])]
+                if not len(o):
+                    continue
+                if e == worst and est > rtol:
+                    budget = ROUND_AIM * max(rtol * d["tot_A"] - d["q"].sum(), 0.25 * rtol * d["tot_A"])
+                    k_plan = kap if st["n_kap"] >= KAPPA_MIN_SPLITS else KAPPA_PLAN  # planning only (κ̂ = 1 in est)
+                    pick[o[:_select(pix[o], y[o], d["S"], budget, min_split=64, kappa=k_plan)]] = True
+                if len(d["viol"]):
+                    pick[_select_pixels(pix[o], y[o], o, d["viol"], d["S"], d["strict"], d["q"], d["target"],
+                                        Pn)] = True
+            chosen = np.flatnonzero(pick)
             if len(chosen) == 0:
                 converged = est <= rtol
                 break
@@ -1005,13 +1069,14 @@ class _Block:
                + np.stack([np.bincount(R["p"], weights=R.W[:, ch] * (R["V"] > 0), minlength=Pn) for ch in range(C)],
                           -1))
         occ = occ / self.ws[:, None]
-        _, _, pix, Yu = self.uncertain()
-        S = np.bincount(pix, weights=Yu ** 2, minlength=Pn)
-        strict = np.bincount(pix, weights=Yu, minlength=Pn)
+        ub, ur, pix, _ = self.uncertain()
+        Ye, _ = self.per_env(ub, ur)
+        S = np.stack([np.bincount(pix, weights=Ye[:, e] ** 2, minlength=Pn) for e in range(self.E)], -1)
+        strict = np.stack([np.bincount(pix, weights=Ye[:, e], minlength=Pn) for e in range(self.E)], -1)
         q = self.quad_est(self.vbar())
         kap = _kappa(st["kap_num"], st["kap_den"], st["n_kap"])
         M = self.M
-        return dict(occ=occ, un=self.U, err_mean=0.5 * np.sqrt(kap * S) + q,
+        return dict(occ=occ, un=self.U, err_mean=0.5 * np.sqrt(kap * S) + q,  # (Pn, E) per environment
                     err_bound=np.minimum(strict, T_BOUND * 0.5 * np.sqrt(S)) + q, kappa=float(kap),
                     n_rays=int(st["n_rays"]), n_quad=int(M), n_quad_pair_max=int(self.bM.max()) if nB else int(M),
                     converged=converged, rounds=rounds, cap_reached=bool(st["cap_reached"]),
@@ -1171,7 +1236,8 @@ def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *
                       n_vis_start: int = 16, n_vis_max: int = 16384, n_quad_max: int | None = None,
                       max_cells: int = MAX_BLOCK_CELLS, eps: float | None = None, backend: str = "auto",
                       seed: int = 0, block_pixels: int = 256, pixel_rtol: float | None = None, workers: int = 1,
-                      executor=None, progress: bool = False, predict: bool | None = None, kernel: str | None = None):
+                      executor=None, progress: bool = False, predict: bool | None = None, kernel: str | None = None,
+                      groups: int = 1):
     """One lobe's visibility-weighted integral (*) or (**) at surface points, converged to ``rtol`` (module
     docstring).
 
@@ -1198,16 +1264,24 @@ def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *
     kernel : the quadrature's implementation (:func:`ibl_ref.rendering.reference_quadrature.get_quadrature`:
         ``"auto"``, ``"numpy"``, ``"compiled"``; None: ``$IBL_REF_KERNEL`` or ``"auto"``), resolved here so that
         every block uses the same one
+    groups : the map's C channels are ``groups`` environments of C/groups channels each, stacked (a sweep over
+        environments: :func:`ibl_ref.rendering.reference_render.render_reference` with a list of maps); one set of
+        cells, rays and quadrature weights serves them all and each is held to ``rtol`` and ``pixel_rtol`` (module
+        docstring, "Several environments"); ``err_mean``, ``err_bound`` are then (P, groups) and
+        ``info["est_rel_l1"]`` a list
 
     Returns
     -------
-    occluded (P, C), unoccluded (P, C), err_mean (P,), err_bound (P,), info
+    occluded (P, C), unoccluded (P, C), err_mean (P,) or (P, groups), err_bound (P,) or (P, groups), info
     """
 
     if not isinstance(lobe, (PhongLobe, GGXLobe)):
         raise IBLError(f"lobe must be a PhongLobe or a GGXLobe (ibl_ref.rendering.materials), got {lobe!r}")
     a = check_environment(cube)
     N = a.shape[1]
+    E = _int_arg("groups", groups)
+    if a.shape[-1] % E:
+        raise IBLError(f"groups={E} must divide the environment's {a.shape[-1]} channels")
     P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     arrs = []
     for name, x in (("normals", normals), ("face_normals", face_normals), ("views", views)):
@@ -1246,7 +1320,7 @@ def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *
                          views=v[idx], nb=nb, depth=depth, seed=int(seed), block=b, M0=M0, n_quad_max=n_quad_max,
                          scene=scene, max_cells=int(max_cells),
                          pixel_rtol=PIXEL_RTOL_FACTOR * rtol if pixel_rtol is None else float(pixel_rtol),
-                         backend=backend, eps=eps, kernel=kernel))
+                         backend=backend, eps=eps, kernel=kernel, groups=E))
     label = _label(lobe)
     predict = progress if predict is None else bool(predict)
     res, prediction = [], None
@@ -1263,20 +1337,22 @@ def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *
     C = a.shape[-1]
     occ = np.zeros((nP, C))
     un = np.zeros((nP, C))
-    em = np.zeros(nP)
-    eb = np.zeros(nP)
+    em = np.zeros((nP, E))
+    eb = np.zeros((nP, E))
     for b, r in enumerate(res):
         idx = np.arange(b, nP, nblk)
         occ[idx], un[idx], em[idx], eb[idx] = r["occ"], r["un"], r["err_mean"], r["err_bound"]
-    y = occ.mean(axis=-1)
-    tot = max(float(np.abs(y).sum()), 1e-300)
+    y = occ.reshape(nP, E, C // E).mean(axis=-1)
+    tot = np.maximum(np.abs(y).sum(axis=0), 1e-300)
+    est = em.sum(axis=0) / tot
     info = dict(lobe_kind=lobe.kind, n_vis_base=int(nb), n_vis_finest=int(max(r["max_level"] for r in res)),
                 n_quad=sorted({int(r["n_quad"]) for r in res}),
                 n_quad_pair_max=int(max(r["n_quad_pair_max"] for r in res)),
                 n_rays=int(sum(r["n_rays"] for r in res)),
                 n_cells=int(sum(r["n_cells"] for r in res)), blocks=nblk, backend=backend, quadrature=kernel,
                 rtol=rtol,
-                est_rel_l1=float(em.sum() / tot), block_converged=int(sum(r["converged"] for r in res)),
+                est_rel_l1=float(est[0]) if E == 1 else [float(x) for x in est],
+                block_converged=int(sum(r["converged"] for r in res)),
                 converged=bool(all(r["converged"] for r in res)),
                 max_cells=int(max_cells), blocks_at_cell_cap=int(sum(r["cap_reached"] for r in res)),
                 block_cells_max=int(max(r["n_cells"] for r in res)),
@@ -1289,6 +1365,8 @@ def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *
     if prediction is not None:  # block 1 ran in this process (its CPU time is this process's, not a worker's)
         info["predicted"] = {k: vv for k, vv in prediction.items() if k != "text"}
         info["pilot_cpu_s"] = float(res[0]["cpu_s"])
+    if E == 1:
+        return occ, un, em[:, 0], eb[:, 0], info
     return occ, un, em, eb, info
 
 
@@ -1300,9 +1378,12 @@ def _label(lobe) -> str:
 
 def memory_bound_mb(max_cells: int, env) -> float:
     """Predicted peak memory (MB) of a process running blocks of at most ``max_cells`` cells on ``env`` (the
-    measured model of :data:`MEM_BASE_MB`, :data:`MEM_PER_CELL_B`, :data:`MEM_ENV_COPIES`; the scene's own size
+    measured model of :data:`MEM_BASE_MB`, :data:`MEM_PER_CELL_B`, :data:`MEM_ENV_COPIES`, with
+    :data:`MEM_PER_CELL_CHANNEL_B` for the channels of stacked environments beyond three; the scene's own size
     aside)."""
-    return float(MEM_BASE_MB + MEM_PER_CELL_B * max_cells / 2 ** 20 + MEM_ENV_COPIES * np.asarray(env).nbytes / 2 ** 20)
+    env = np.asarray(env)
+    per_cell = MEM_PER_CELL_B + MEM_PER_CELL_CHANNEL_B * max(env.shape[-1] - 3, 0)
+    return float(MEM_BASE_MB + per_cell * max_cells / 2 ** 20 + MEM_ENV_COPIES * env.nbytes / 2 ** 20)
 
 
 def _predict(r0: dict, nblk: int, workers, n0: int, nP: int, elapsed: float, max_cells: int, mem_mb: float) -> dict:

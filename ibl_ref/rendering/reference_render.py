@@ -263,7 +263,10 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
     Parameters
     ----------
     meshes, camera : scene and view (same as :func:`ibl_ref.rendering.render.render_pem`; same G-buffer)
-    cube : (6, N, N, C) fine environment map (radiance)
+    cube : (6, N, N, C) fine environment map (radiance), or a list of maps of one shape (a sweep over
+        environments: one set of visibility cells, rays and quadrature weights serves them all, each image held to
+        ``rtol`` and ``pixel_rtol`` on its own — :func:`ibl_ref.rendering.reference_converged.converged_shading`'s
+        ``groups`` — and a list of results is returned, one per map)
     kd, ks, g : the Phong material of every mesh when neither ``material`` nor ``materials`` is given (kd, ks ≥ 0;
         g = 1 → exact mirror)
     material : one material for every mesh (:func:`ibl_ref.rendering.materials.as_material`: a
@@ -291,9 +294,9 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
 
     Returns
     -------
-    ReferenceResult
+    ReferenceResult, or a list of them for a list of maps
         ``image``, ``unoccluded``, ``mask``, ``gbuffer``, ``info`` (tolerance, error estimates, rays, times, per
-        lobe), ``error`` (per-pixel bound).
+        lobe; for a list of maps the times and rays are those of the whole sweep), ``error`` (per-pixel bound).
 
     Raises
     ------
@@ -325,7 +328,8 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
     if sided not in SIDED:
         raise IBLError(f"sided must be one of {SIDED}, got {sided!r}")
     rtol = _check_rtol(rtol)
-    a = check_environment(cube)
+    several = isinstance(cube, (list, tuple))
+    a, E = _stack_environments(cube)
     scene = prepare_scene(meshes, warn=False)
     ids = sorted(int(x) for x in np.unique(scene.material_id))
     if materials is None:
@@ -350,8 +354,8 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
     C = a.shape[-1]
     occ = np.zeros((len(P), C))
     unocc = np.zeros((len(P), C))
-    err = np.zeros(len(P))
-    bound = np.zeros(len(P))
+    err = np.zeros((len(P), E))
+    bound = np.zeros((len(P), E))
     first = mats[ids[0]] if ids else as_material((kd, ks, g))
     info = dict(n_pixels=int(m.sum()), n_rays=0, time_s=0.0, sided=sided, n_back_facing=int(back.sum()),
                 quadrature="converged", rtol=rtol, materials={str(k): vv.describe() for k, vv in mats.items()})
@@ -368,7 +372,7 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
     kw = dict(rtol=rtol, n_vis_start=n_vis_start, n_vis_max=n_vis_max, n_quad_max=n_quad_max,
               max_cells=MAX_BLOCK_CELLS if max_cells is None else max_cells, pixel_rtol=pixel_rtol,
               backend=ray_backend, seed=seed, block_pixels=block_pixels, workers=workers, executor=executor,
-              progress=progress)
+              progress=progress, groups=E)
     per_lobe = []
     for lobe, kpx in groups.items():
         sel = kpx > 0
@@ -378,8 +382,8 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
             o, u, e, eb, inf = _mirror_shading(scene, P[sel], fn[sel], r[sel], a, ray_backend)
         else:
             o, u, e, eb, inf = converged_shading(scene, P[sel], n[sel], fn[sel], v[sel], a, lobe, **kw)
-        err[sel] += k[:, 0] * e
-        bound[sel] += k[:, 0] * eb
+        err[sel] += k * np.reshape(e, (len(k), -1))  # (n, E), or (n, 1) broadcast (the mirror: exact)
+        bound[sel] += k * np.reshape(eb, (len(k), -1))
         occ[sel] += k * o
         unocc[sel] += k * u
         if lobe is not None and lobe.kind == "phong":
@@ -391,6 +395,34 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
                              **{kk: vv for kk, vv in inf.items() if kk != "time_s"}, time_s=round(inf["time_s"], 3)))
     info["lobes"] = per_lobe
     info["rays_per_s"] = info["n_rays"] / info["time_s"] if info["time_s"] > 0 else float("nan")
+    info["ray_backend"] = per_lobe[0].get("backend") if per_lobe else None
+    Cg = C // E
+    out = []
+    for ei in range(E):
+        ch = slice(ei * Cg, (ei + 1) * Cg)
+        inf = dict(info, lobes=[dict(lb, est_rel_l1=lb["est_rel_l1"][ei]) if isinstance(lb.get("est_rel_l1"), list)
+                                else lb for lb in per_lobe])
+        if several:
+            inf.update(environment=ei, environments=E)
+        out.append(_result(m, gb, occ[:, ch], unocc[:, ch], err[:, ei], bound[:, ei], shade, rtol, inf))
+    return out if several else out[0]
+
+
+def _stack_environments(cube):
+    """One validated map (6, N, N, C), or a list of them stacked along the channels → ((6, N, N, E·C), E)."""
+    if not isinstance(cube, (list, tuple)):
+        return check_environment(cube), 1
+    if not cube:
+        raise IBLError("the list of environments is empty")
+    maps = [check_environment(c) for c in cube]
+    if any(x.shape != maps[0].shape for x in maps):
+        raise LayoutError(f"the environments of a sweep must have one shape, got {sorted({x.shape for x in maps})}")
+    return np.concatenate(maps, axis=-1), len(maps)
+
+
+def _result(m, gb, occ, unocc, err, bound, shade, rtol, info) -> ReferenceResult:
+    """One environment's image, unoccluded image, error estimates and bound (rel. L1, 99th percentile)."""
+    info = dict(info)
     y = occ.mean(axis=-1)
     tot = float(np.abs(y).sum())
     info["err_rel_l1"] = float(err.sum() / tot) if tot > 0 else 0.0
@@ -398,9 +430,9 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
     if shade.any():  # relative to max(pixel value, ERR_FLOOR × mean): absolute in deep shadow
         den = np.maximum(y[shade], ERR_FLOOR * max(float(np.abs(y[shade]).mean()), 1e-300))
         info["err_rel_p99"] = float(np.percentile(bound[shade] / den, 99))
-    info["converged"] = bool(info["err_rel_l1"] <= rtol and all(lb.get("converged", True) for lb in per_lobe))
-    info["ray_backend"] = per_lobe[0].get("backend") if per_lobe else None
+    info["converged"] = bool(info["err_rel_l1"] <= rtol and all(lb.get("converged", True) for lb in info["lobes"]))
     H, W = m.shape
+    C = occ.shape[-1]
     img = np.zeros((H, W, C))
     img[m] = occ
     un = np.zeros((H, W, C))
