@@ -17,9 +17,10 @@ angle).  Both are computed to a requested estimated relative L1 error ``rtol`` o
 ``pixel_rtol`` where the visibility limits it), with two discretisations:
 
 **Quadrature** (radiance × lobe).  The integrand without V is summed at the texel centres of face sizes M (power-
-of-two multiples of the visibility base level and of the map's N, so that every quadrature texel lies inside one
-map texel): ``w_q = L_q · weight(ω_q) · Ω_q`` with the lobe's weight (the midpoint rule inside the map's texels; a
-Phong lobe's normalisation Σ_q max(d·ω_q,0)^s Ω_q is the same sum over the whole sphere, so L ≡ 1 without
+of-two multiples of the visibility base level, from the level the lobe needs whatever the map's size N; where M is
+coarser than N a texel's radiance L_q is the map's exact area average over it, :func:`coarse_env`, so that the
+lobe and not the map sets the cost — ``n_quad_min=N`` starts at the map's texels instead):
+``w_q = L_q · weight(ω_q) · Ω_q`` with the lobe's weight (the midpoint rule; a Phong lobe's normalisation Σ_q max(d·ω_q,0)^s Ω_q is the same sum over the whole sphere, so L ≡ 1 without
 occluders gives exactly the share of the lobe above the horizon; a GGX lobe is normalised analytically).  Each
 (pixel, base cell) pair has its own level M_pc = min(M·2^g_pc, cap): Phong lobes are radially symmetric and take
 g = 0 everywhere (one M per block, ≥ 4 texels across the half width θ½); a GGX lobe is not — it depends on (n, v,
@@ -37,7 +38,8 @@ stay) while this change, with the base cells' rays, exceeds :data:`QUAD_SHARE` o
 **Visibility** (stratified, adaptive).  The sphere is cut into cells: the six faces at a base size n_b
 (≥ ``n_vis_start`` and ≥ 2 cells across the lobe's half width; for GGX the tails' width), each cell splittable 2×2
 down to face size ``n_vis_max``.  A cell c carries the exact quadrature weight W_c = Σ_{q∈c} w_q (cells finer than
-M split their parent's weight in proportion to the lobe's weight × Ω at their centres) and ONE shadow ray toward a
+M split their parent's weight in proportion to the lobe's weight × Ω at their centres, × their mean radiance per
+channel where they are no finer than the map) and ONE shadow ray toward a
 random point of the cell (drawn uniformly in the cell, or in proportion to the map's energy L·Ω where the cell
 spans several map texels, so that a sun inside a coarse cell is aimed at) — and above the pixel's shading horizon
 n·ω > 0, where the weight is: a point drawn below it in a cell that the horizon cuts is drawn again (up to
@@ -254,11 +256,13 @@ def base_level(theta_half: float, N: int, n_vis_start: int = 16) -> int:
     return int(N) * 2 ** 15
 
 
-def quadrature_start(theta_half: float, N: int, nb: int) -> int:
-    """First quadrature face size M: a power-of-two multiple of max(N, n_b), ≥ 2 n_b (so M/2 nests in the cells)
-    and with ≥ 4 texels across the half width ``theta_half`` ((π/2)/M ≤ θ½/4)."""
+def quadrature_start(theta_half: float, N: int, nb: int, n_quad_min: int | None = None) -> int:
+    """First quadrature face size M: a power-of-two multiple of max(n_quad_min, n_b), ≥ 2 n_b (so M/2 nests in the
+    cells) and with ≥ 4 texels across the half width ``theta_half`` ((π/2)/M ≤ θ½/4).  ``n_quad_min`` None: n_b
+    (a level coarser than the map reads its exact area averages; the lobe, not the map, sets the cost); N: every
+    quadrature texel inside one map texel."""
     need = max(2 * nb, 2 * np.pi / float(theta_half))
-    M = max(int(N), int(nb))
+    M = max(int(nb) if n_quad_min is None else int(n_quad_min), int(nb))
     while M < need:
         M *= 2
     return M
@@ -551,7 +555,8 @@ def _pair_weights(quad, env, lobe, g, cp, cc, Mp):
 def _child_weights(quad, env, lobe, g, p, f, lvl, i, j, Wpar, Mpar):
     """Weights (4K, C) of the 4 children of K parent cells (level lvl → lvl + 1), children in order (a, b) =
     (0,0), (0,1), (1,0), (1,1) per parent: exact sums of the texels of the parent's quadrature level Mpar that they
-    hold, or — finer than it — the parent's weight split in proportion to the lobe's weight × Ω at their centres."""
+    hold, or — finer than it — the parent's weight split in proportion to the lobe's weight × Ω at their centres
+    (× the child's mean radiance per channel where the children are no finer than the map's texels)."""
     nb = env.nb
     K = len(p)
     a = np.array([0, 0, 1, 1])
@@ -587,7 +592,17 @@ def _child_weights(quad, env, lobe, g, p, f, lvl, i, j, Wpar, Mpar):
         os_ = om4.reshape(K, 4).sum(axis=1)
         ratio = np.where(gs[:, None] > 0, g4.reshape(K, 4) / np.where(gs > 0, gs, 1.0)[:, None],
                          om4.reshape(K, 4) / np.where(os_ > 0, os_, 1.0)[:, None]).reshape(-1)
-        W[fine] = np.repeat(Wpar, 4, axis=0)[fine] * ratio[fine, None]
+        Wrep = np.repeat(Wpar, 4, axis=0)
+        W[fine] = Wrep[fine] * ratio[fine, None]
+        # children no finer than the map (a quadrature level coarser than the map's texels: siblings hold different
+        # radiance): the share of each channel in proportion to the lobe's weight × Ω × the child's mean radiance
+        for n in np.unique(n_c[fine][n_c[fine] <= env.N]):
+            sub = fine[n_c[fine] == n]  # the 4 children of each such parent, together
+            rad, q = env.level(int(n))
+            gl = g4[sub][:, None] * rad[cf[sub], ci[sub] // q, cj[sub] // q]
+            tot = gl.reshape(-1, 4, env.C).sum(axis=1)
+            share = gl.reshape(-1, 4, env.C) / np.where(tot > 0, tot, 1.0)[:, None, :]
+            W[sub] = np.where(np.repeat(tot > 0, 4, axis=0), Wrep[sub] * share.reshape(-1, env.C), W[sub])
     return cp, cf, cl, ci, cj, W
 
 
@@ -991,7 +1006,7 @@ class _Block:
     # ---- refinement rounds ------------------------------------------------------------------------------------------
     def _refine(self):
         """Rounds of splits where weight × possible change is largest (module docstring) → (rounds, converged)."""
-        R, st, Pn, bp, bY, bV, rtol, prtol = self.R, self.st, self.Pn, self.bp, self.bY, self.bV, self.rtol, self.prtol
+        R, st, Pn, rtol, prtol = self.R, self.st, self.Pn, self.rtol, self.prtol
         rounds = []
         converged = False
         E = self.E
@@ -1234,7 +1249,7 @@ def _int_arg(name, v):
 
 def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *, rtol: float = DEFAULT_RTOL,
                       n_vis_start: int = 16, n_vis_max: int = 16384, n_quad_max: int | None = None,
-                      max_cells: int = MAX_BLOCK_CELLS, eps: float | None = None, backend: str = "auto",
+                      n_quad_min: int | None = None, max_cells: int = MAX_BLOCK_CELLS, eps: float | None = None, backend: str = "auto",
                       seed: int = 0, block_pixels: int = 256, pixel_rtol: float | None = None, workers: int = 1,
                       executor=None, progress: bool = False, predict: bool | None = None, kernel: str | None = None,
                       groups: int = 1):
@@ -1252,6 +1267,9 @@ def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *
     rtol : target estimated relative L1 (Σ err_mean / Σ A)
     n_vis_start : smallest visibility base face size; n_vis_max : finest visibility face size
     n_quad_max : largest quadrature face size (default: the lobe's, 256 for Phong, 4096 for GGX)
+    n_quad_min : smallest quadrature face size (default: the visibility base level's, whatever the map's size —
+        coarser than the map a level reads the map's exact area averages; the map's N for every quadrature texel
+        inside one map texel, the reference before 2026-12-07)
     max_cells : cells of one block at most (base pairs + refined leaves; the memory bound; the refinement stops
         there and ``converged`` says whether the targets were met)
     eps : shadow-ray offset (default 1e-6 × scene radius); backend : ray caster (``"auto"``, ``"embree"``,
@@ -1308,7 +1326,9 @@ def converged_shading(scene, points, normals, face_normals, views, cube, lobe, *
     depth = 0
     while nb * 2 ** (depth + 1) <= n_vis_max and nb * 2 ** (depth + 1) < 2 ** _MORTON_BITS:
         depth += 1
-    M0 = quadrature_start(theta, N, nb)
+    if n_quad_min is not None:
+        _int_arg("n_quad_min", n_quad_min)
+    M0 = quadrature_start(theta, N, nb, n_quad_min)
     n_quad_max = max(int(n_quad_max), M0)
     lobe.check_resolved(n_quad_max)  # a lobe narrower than the finest quadrature texel: refused before any work
     nP = len(P)

@@ -254,7 +254,7 @@ def reference_shading(scene, points, normals, face_normals, views, cube, materia
 def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, g: float = 0.9, material=None,
                      rtol: float | None = None, materials: dict | None = None, sided: str = "one",
                      n_vis_start: int = 16, n_vis_max: int = 16384, n_quad_max: int | None = None,
-                     max_cells: int | None = None, pixel_rtol: float | None = None, ray_backend: str = "auto",
+                     n_quad_min: int | None = None, max_cells: int | None = None, pixel_rtol: float | None = None, ray_backend: str = "auto",
                      seed: int = 0, block_pixels: int = 256, workers: int = 1, executor=None,
                      smooth_normals: bool = True, gbuffer=None, progress: bool = False) -> ReferenceResult:
     """Ground-truth image of the scene's materials (module docstring: (*) and its GGX form) with exact ray-cast
@@ -279,6 +279,8 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
         (such pixels are shaded with n, its face normal and r flipped toward the viewer)
     n_vis_start, n_vis_max : smallest base and finest face size of the visibility cells
     n_quad_max : largest quadrature face size (default: the lobe's, 256 for Phong, 4096 for GGX)
+    n_quad_min : smallest quadrature face size (default: the visibility base level's; the map's N puts every
+        quadrature texel inside one map texel: :func:`~ibl_ref.rendering.reference_converged.converged_shading`)
     max_cells : cells of one block at most (default
         :data:`ibl_ref.rendering.reference_converged.MAX_BLOCK_CELLS`: the memory bound per worker)
     pixel_rtol : also refine pixels whose error bound exceeds ``pixel_rtol`` × max(pixel value, 10 % of the mean)
@@ -369,7 +371,7 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
             continue
         for k, lobe in mats[mid].lobes():
             groups.setdefault(lobe, np.zeros(len(P)))[sel] = k
-    kw = dict(rtol=rtol, n_vis_start=n_vis_start, n_vis_max=n_vis_max, n_quad_max=n_quad_max,
+    kw = dict(rtol=rtol, n_vis_start=n_vis_start, n_vis_max=n_vis_max, n_quad_max=n_quad_max, n_quad_min=n_quad_min,
               max_cells=MAX_BLOCK_CELLS if max_cells is None else max_cells, pixel_rtol=pixel_rtol,
               backend=ray_backend, seed=seed, block_pixels=block_pixels, workers=workers, executor=executor,
               progress=progress, groups=E)
