@@ -59,3 +59,26 @@ def mitsuba_llvm():
         if os.environ.get("IBL_REF_REQUIRE_MITSUBA") == "1":
             pytest.fail(f"IBL_REF_REQUIRE_MITSUBA=1, but: {exc}")
         pytest.skip(str(exc))
+
+
+@pytest.fixture(scope="session")
+def run_quick():
+    """``run_quick(module, out, **kw) → (summary, figures, {file name: layout problems})``: an experiment's quick run
+    and its plots, with the layout of every figure it saves checked (:func:`ibl_ref.figures.layout_problems`)."""
+    from ibl_ref import figures
+
+    def run(mod, out, **kw):
+        problems = {}
+
+        def hook(fig, path):
+            problems[path.name] = figures.layout_problems(fig)
+
+        figures.add_save_hook(hook)
+        try:
+            summary = mod.run(out, quick=True, **kw)
+            figs = mod.plot(out)
+        finally:
+            figures.remove_save_hook(hook)
+        return summary, figs, problems
+
+    return run

@@ -21,7 +21,6 @@ import json
 import numpy as np
 import pytest
 
-from ibl_ref import figures
 from ibl_ref.atomic import read_csv
 from ibl_ref.errors import IBLError
 from ibl_ref.experiments import error_budget as exp
@@ -33,19 +32,9 @@ SMALL = dict(size=12, env_size=16, envs=("sky_sun",), materials=("diffuse", "g0.
 
 
 @pytest.fixture(scope="module")
-def budget(tmp_path_factory):
+def budget(tmp_path_factory, run_quick):
     out = tmp_path_factory.mktemp("error_budget")
-    problems = {}
-
-    def hook(fig, path):
-        problems[path.name] = figures.layout_problems(fig)
-
-    figures.add_save_hook(hook)
-    try:
-        summary = exp.run(out, quick=True, **SMALL)
-        figs = exp.plot(out)
-    finally:
-        figures.remove_save_hook(hook)
+    summary, figs, problems = run_quick(exp, out, **SMALL)
     return out, summary, figs, problems
 
 

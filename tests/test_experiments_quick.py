@@ -16,7 +16,7 @@ import re
 import numpy as np
 import pytest
 
-from ibl_ref import experiments, figures
+from ibl_ref import experiments
 from ibl_ref.atomic import read_csv
 
 EXPS = experiments.available()
@@ -29,22 +29,6 @@ SMALL = {
     "fig5": dict(centre_only_sizes=()),
     "lights-vs-error": dict(light_counts=(6, 24, 96)),
 }
-
-
-def _run(name, out):
-    mod = EXPS[name]
-    problems = {}
-
-    def hook(fig, path):
-        problems[path.name] = figures.layout_problems(fig)
-
-    figures.add_save_hook(hook)
-    try:
-        summary = mod.run(out, quick=True, **SMALL.get(name, {}))
-        figs = mod.plot(out)
-    finally:
-        figures.remove_save_hook(hook)
-    return summary, figs, problems
 
 
 def _rows(path, **match):
@@ -358,10 +342,10 @@ def test_every_experiment_is_checked_here_or_in_its_own_file():
 
 
 @pytest.mark.parametrize("name", sorted(CHECKS))
-def test_experiment_quick_figures_and_headline(name, tmp_path, request):
+def test_experiment_quick_figures_and_headline(name, tmp_path, request, run_quick):
     if name == "cross-validate":  # renders with Mitsuba (skipped without its llvm variant, outside CI)
         request.getfixturevalue("mitsuba_llvm")
-    summary, figs, problems = _run(name, tmp_path)
+    summary, figs, problems = run_quick(EXPS[name], tmp_path, **SMALL.get(name, {}))
     # every figure the plot step returns exists, was saved through save_figure, and is laid out in its canvas
     assert figs and all(f.exists() and f.read_bytes()[:4] == b"\x89PNG" for f in figs)
     assert sorted(problems) == sorted(f.name for f in figs)

@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ibl_ref import figures
 from ibl_ref.atomic import read_csv
 from ibl_ref.environment import envmap
 from ibl_ref.errors import IBLError
@@ -31,19 +30,9 @@ NORMS = tuple(exp.NORMALISATIONS)
 
 
 @pytest.fixture(scope="module")
-def quick(tmp_path_factory):
+def quick(tmp_path_factory, run_quick):
     out = tmp_path_factory.mktemp("manson_sloan")
-    problems = {}
-
-    def hook(fig, path):
-        problems[path.name] = figures.layout_problems(fig)
-
-    figures.add_save_hook(hook)
-    try:
-        summary = exp.run(out, quick=True)
-        figs = exp.plot(out)
-    finally:
-        figures.remove_save_hook(hook)
+    summary, figs, problems = run_quick(exp, out)
     return out, summary, figs, problems, read_csv(out / "manson_sloan.csv")
 
 

@@ -14,7 +14,6 @@ import json
 import numpy as np
 import pytest
 
-from ibl_ref import figures
 from ibl_ref.atomic import read_csv
 from ibl_ref.errors import IBLError
 from ibl_ref.experiments import mip_mappings as exp
@@ -159,19 +158,9 @@ def test_build_chain_follows_the_mapping():
 
 # ---- the experiment ---------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def quick(tmp_path_factory):
+def quick(tmp_path_factory, run_quick):
     out = tmp_path_factory.mktemp("mip_mappings")
-    problems = {}
-
-    def hook(fig, path):
-        problems[path.name] = figures.layout_problems(fig)
-
-    figures.add_save_hook(hook)
-    try:
-        summary = exp.run(out, quick=True)
-        figs = exp.plot(out)
-    finally:
-        figures.remove_save_hook(hook)
+    summary, figs, problems = run_quick(exp, out)
     return out, summary, figs, problems, read_csv(out / "mip_mappings.csv")
 
 

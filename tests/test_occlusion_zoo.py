@@ -15,26 +15,15 @@ import json
 import numpy as np
 import pytest
 
-from ibl_ref import figures
 from ibl_ref.atomic import read_csv
 from ibl_ref.errors import IBLError
 from ibl_ref.experiments import occlusion_zoo as oz
 
 
 @pytest.fixture(scope="module")
-def quick(tmp_path_factory):
+def quick(tmp_path_factory, run_quick):
     out = tmp_path_factory.mktemp("occlusion_zoo")
-    problems = {}
-
-    def hook(fig, path):
-        problems[path.name] = figures.layout_problems(fig)
-
-    figures.add_save_hook(hook)
-    try:
-        summary = oz.run(out, quick=True)
-        figs = oz.plot(out)
-    finally:
-        figures.remove_save_hook(hook)
+    summary, figs, problems = run_quick(oz, out)
     return out, summary, figs, problems
 
 
