@@ -8,7 +8,8 @@ generated from them.  Two checks:
 * every number of the README's occlusion row is what the saved files give, to its rounding;
 * one case of the full run, re-run here at the full run's settings (crevice, sky with a sun, the diffuse material,
   four methods), reproduces its saved rows: the experiment is deterministic (seeded visibility sets, seeded GTAO,
-  every Embree hit re-checked in float64), so the tolerance is float64 rounding (1e-9 relative).
+  every Embree hit re-checked in float64), so the tolerance is float64 rounding (1e-9 relative) with the compiled
+  quadrature the run used, twice the reference's estimated error without numba.
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ def test_readme_row_is_the_saved_runs():
     assert "plain AO 4 %" in row and round(gb("ao-diffuse", "diffuse")) == 4
     gtso = max(gb(m, mat) for m in ("gtso-exact-alpha", "gtso-smoothstep-alpha") for mat in
                ("metal0.1", "metal0.3", "metal0.6"))
-    assert "up to **60 %**" in row and round(gtso) == 60
+    assert "up to **68 %**" in row and round(gtso) == 68
     dis = next(q for q in read_csv(SAVED / "occlusion_zoo_disagreements.csv")
                if (q["method_a"], q["method_b"], q["inputs"]) == ("lagarde2014-alpha", "lagarde2014-r", "oracle"))
     m = re.search(r"\*\*(\d+) of the (\d+)\*\* cases where the two differ", row)
@@ -63,9 +64,16 @@ def test_readme_row_is_the_saved_runs():
     assert m and (int(m.group(1)), int(m.group(2))) == (int(dis["a_closer_cases"]), differ)
 
 
-def test_one_case_of_the_saved_run_reproduces(tmp_path):
+def test_one_case_of_the_saved_run_reproduces(tmp_path, monkeypatch):
     from ibl_ref.experiments import occlusion_zoo
+    from ibl_ref.groundtruth.kernels import numba_available
 
+    # the full run's references summed radiance × lobe with the compiled quadrature (numba installed, IBL_REF_KERNEL
+    # auto); the NumPy sums differ from it by rounding (≈ 1e-15), which can flip one refinement decision of the
+    # reference (this case: rel. L1 1.2e-5 relative apart): without numba the case is compared to within twice the
+    # reference's own estimated error instead of to float64 rounding
+    exact = numba_available()
+    monkeypatch.setenv("IBL_REF_KERNEL", "compiled" if exact else "numpy")
     methods = ["none", "ao-diffuse", "prt-5", "regions-exact"]
     occlusion_zoo.run(tmp_path, quick=False, scenes=["crevice"], envs=["sky_sun"], materials=["diffuse"],
                       methods=methods, shadow_filters=["vsm"])
@@ -76,7 +84,13 @@ def test_one_case_of_the_saved_run_reproduces(tmp_path):
     assert len(new) == 7
     for q in new:
         old = saved[tuple(q[k] for k in key)]
-        for col in ("rel_l1_frac", "p99_rel_error_frac", "bias_frac", "given_back_frac",
-                    "missing_visibility_rel_l1_frac", "ref_err_rel_l1_frac"):
-            np.testing.assert_allclose(float(q[col]), float(old[col]), rtol=1e-9, atol=1e-15, err_msg=col)
+        if exact:
+            for col in ("rel_l1_frac", "p99_rel_error_frac", "bias_frac", "given_back_frac",
+                        "missing_visibility_rel_l1_frac", "ref_err_rel_l1_frac"):
+                np.testing.assert_allclose(float(q[col]), float(old[col]), rtol=1e-9, atol=1e-15, err_msg=col)
+        else:
+            ref_err = 2.0 * float(old["ref_err_rel_l1_frac"])
+            for col, tol in (("rel_l1_frac", ref_err), ("missing_visibility_rel_l1_frac", ref_err),
+                             ("given_back_frac", ref_err / float(old["missing_visibility_rel_l1_frac"]))):
+                np.testing.assert_allclose(float(q[col]), float(old[col]), rtol=0, atol=tol, err_msg=col)
         assert q["n_pixels"] == old["n_pixels"] and q["input_bytes_per_pixel"] == old["input_bytes_per_pixel"]
