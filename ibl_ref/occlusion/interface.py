@@ -413,6 +413,10 @@ class OcclusionMethod:
     param_needs : tuple of (param, value, inputs)
         Inputs needed in addition when a parameter takes a value other than its default (e.g. PRT's
         ``specular="ao"`` reads ``ao``).
+    reads_roughness : bool
+        Whether the formula reads the roughness (the GGX perceptual r of :class:`OcclusionInputs`; default True).
+        A method that does cannot serve a material without one, a Phong glossy lobe
+        (:func:`ibl_ref.occlusion.image.check_request`).
 
     Calling the method, ``method(inputs, **overrides)``, checks the parameters and the inputs (every needed input
     present, P consistent, unit vectors, visibilities in [0, 1], no NaN or infinity; one-line :class:`IBLError`)
@@ -441,6 +445,7 @@ class OcclusionMethod:
     citation: str = ""
     summary: str = ""
     param_needs: tuple = ()
+    reads_roughness: bool = True
 
     def __post_init__(self):
         object.__setattr__(self, "needs", tuple(self.needs))

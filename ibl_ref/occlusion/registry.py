@@ -26,7 +26,9 @@ regions-exact        region weights VIS_i                      :mod:`~ibl_ref.oc
 ==================== ======================================== ==================================================
 
 Adding a method: its module (docstring: paper, section, equation) with a function ``compute(inputs, **params) →
-OcclusionResult`` that reads only the inputs it declares, and one :class:`OcclusionMethod` entry below.
+OcclusionResult`` that reads only the inputs it declares, and one :class:`OcclusionMethod` entry below
+(``reads_roughness=False`` where the formula never reads the roughness: such a method can also shade a Phong
+glossy material, which has no GGX roughness).
 
 Examples
 --------
@@ -76,12 +78,15 @@ def _gtso(name: str, intersection: str, roughness_input: str, fade_alpha, engine
 
 
 _METHODS = (
-    OcclusionMethod("none", (), no_occlusion, {}, "unoccluded image-based lighting", "f_d = f_s = 1"),
+    OcclusionMethod("none", (), no_occlusion, {}, "unoccluded image-based lighting", "f_d = f_s = 1",
+                    reads_roughness=False),
     OcclusionMethod("ao-diffuse", ("ao",), ao_factors, {"specular": "none"}, _GLTF,
-                    "f_d = ao, f_s = 1: the occlusion map on the diffuse term only"),
-    OcclusionMethod("ao-both", ("ao",), ao_factors, {"specular": "ao"}, _GLTF, "f_d = f_s = ao"),
+                    "f_d = ao, f_s = 1: the occlusion map on the diffuse term only", reads_roughness=False),
+    OcclusionMethod("ao-both", ("ao",), ao_factors, {"specular": "ao"}, _GLTF, "f_d = f_s = ao",
+                    reads_roughness=False),
     OcclusionMethod("multibounce-ao", ("ao", "albedo"), multibounce_ao, {}, f"{_JIMENEZ}, multi-bounce fit",
-                    "f_d = max(V, cubic in V with albedo-linear coefficients) per channel, f_s = 1"),
+                    "f_d = max(V, cubic in V with albedo-linear coefficients) per channel, f_s = 1",
+                    reads_roughness=False),
     OcclusionMethod("lagarde2014-alpha", ("ao",), specular_occlusion_from_ao,
                     {"exponent": "frostbite", "roughness_input": "alpha"}, f"{_LAGARDE}; Filament, Unity HDRP, Bevy",
                     "f_d = ao, f_s = saturate((n·v + ao)^(2^(-16α - 1)) - 1 + ao)"),
@@ -93,9 +98,11 @@ _METHODS = (
                     "Unreal Engine 4, GetSpecularOcclusion (after " + _LAGARDE + ")",
                     "f_d = ao, f_s = saturate((n·v + ao)^α - 1 + ao)"),
     OcclusionMethod("horizon-k1.1", ("geo_normal", "ao"), horizon_occlusion, {"k": 1.1}, _MARMOSET,
-                    "f_d = ao, f_s = saturate(1 + 1.1 R·n_g)^2 (R mirror of v about n, n_g geometric normal)"),
+                    "f_d = ao, f_s = saturate(1 + 1.1 R·n_g)^2 (R mirror of v about n, n_g geometric normal)",
+                    reads_roughness=False),
     OcclusionMethod("horizon-k1.3", ("geo_normal", "ao"), horizon_occlusion, {"k": 1.3}, _MARMOSET,
-                    "f_d = ao, f_s = saturate(1 + 1.3 R·n_g)^2 (R mirror of v about n, n_g geometric normal)"),
+                    "f_d = ao, f_s = saturate(1 + 1.3 R·n_g)^2 (R mirror of v about n, n_g geometric normal)",
+                    reads_roughness=False),
     OcclusionMethod("godot-horizon", ("ao",), godot_horizon_occlusion, {}, f"Godot's variant of {_MARMOSET}",
                     "f_d = ao, f_s = min(1 + R'·n, 1)^2, R' = R bent toward n by r^2"),
     _gtso("gtso-smoothstep-alpha", "smoothstep", "alpha", None, ""),
@@ -105,13 +112,13 @@ _METHODS = (
     _gtso("filament-gtso", "smoothstep", "alpha", (0.01, 0.09), "; Filament's fade smoothstep(0.01, 0.09, α)"),
     OcclusionMethod("prt-3", ("sh_transfer", "env_sh"), prt_diffuse, {"order": 3, "specular": "none"}, _SLOAN,
                     "diffuse radiance = 9-coefficient transfer · environment SH, f_s = 1",
-                    param_needs=(("specular", "ao", ("ao",)),)),
+                    param_needs=(("specular", "ao", ("ao",)),), reads_roughness=False),
     OcclusionMethod("prt-5", ("sh_transfer", "env_sh"), prt_diffuse, {"order": 5, "specular": "none"}, _SLOAN,
                     "diffuse radiance = 25-coefficient transfer · environment SH, f_s = 1",
-                    param_needs=(("specular", "ao", ("ao",)),)),
+                    param_needs=(("specular", "ao", ("ao",)),), reads_roughness=False),
     OcclusionMethod("regions-exact", ("region_visibility",), region_visibility_weights, {},
                     "Knuth, Altenhofen, Kuijper & Bender 2014, Eq. 5, with exact per-region visible fractions",
-                    "region weights = the visible fraction of each environment region"),
+                    "region weights = the visible fraction of each environment region", reads_roughness=False),
 )
 
 #: label → :class:`~ibl_ref.occlusion.interface.OcclusionMethod`, in the order of the module's table
