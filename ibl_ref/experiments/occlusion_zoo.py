@@ -53,12 +53,13 @@ from pathlib import Path
 
 import numpy as np
 
-from . import params_from_settings, power_of_two, settings_with
 from ..atomic import atomic_write, read_csv, write_csv, write_json, write_npz
 from ..errors import IBLError
 from ..executors import map_jobs
 from ..figures import plain_log_ticks, pyplot, save_figure
+from ..occlusion.image import DEFAULT_GTAO_RADIUS, INPUT_KINDS, SH_ORDER
 from ..progress import track
+from . import params_from_settings, power_of_two, settings_with
 from .method_zoo import ENVS as _ZOO_ENVS
 from .method_zoo import P99_FLOOR, _metrics, plot_image_rows, probe_dir
 from .method_zoo import environment as _zoo_environment
@@ -76,19 +77,11 @@ OUTPUTS = ("occlusion_zoo.csv", "occlusion_zoo_budget.csv", "occlusion_zoo_disag
 
 #: environments: the method zoo's and ``uniform`` (L ≡ 1: AO on a diffuse material is then exact, a check)
 ENVS = _ZOO_ENVS + ("uniform",)
-#: input kinds of the methods that read AO and bent normals: exact, and estimated by GTAO
-INPUT_KINDS = ("oracle", "screen-space")
 #: the estimated input kind of the per-region methods: shadow maps of the region lights with a filter
 SHADOW_KIND = "shadow-map:"
-#: what GTAO estimates (the other inputs exist only as oracle inputs)
-SCREEN_SPACE_FIELDS = frozenset({"ao", "bent_normal"})
-#: fields every method gets in both kinds (geometry and material)
-COMMON_FIELDS = frozenset({"normal", "view", "roughness", "geo_normal", "albedo"})
 #: GTAO's search radius per scene (world units), set to each scene's occluders as an engine would tune it: half the
 #: teapot's height, twice the crevice's depth, about twice the bumps' radius (0.5 for a scene added elsewhere)
 GTAO_RADIUS = {"teapot": 1.5, "crevice": 1.0, "bumpy": 0.3}
-SH_ORDER = 5
-CHUNK_CELLS = 300_000  # cells per chunk of the unoccluded integral for a 3-channel map (its default)  # the largest PRT order traced (order 3 reads the first 9 coefficients)
 DIFFUSE_KD = 0.8
 DIELECTRIC_KD = 0.5
 
@@ -196,13 +189,15 @@ def _split_label(label: str):
 
 
 def input_kinds(method, shadow_filters=()) -> tuple:
-    """The input kinds a method can be fed: ``oracle`` always; ``screen-space`` when it reads nothing GTAO does not
-    estimate; ``shadow-map:FILTER`` (:data:`ibl_ref.occlusion.shadow_filters.SHADOW_FILTERS`) when it reads the
-    per-region visibility, which the paper estimates with shadow maps of the region lights."""
-    extra = set(method.needs) - COMMON_FIELDS
-    if "region_visibility" in extra:
-        return ("oracle",) + tuple(SHADOW_KIND + f for f in shadow_filters)
-    return INPUT_KINDS if extra <= SCREEN_SPACE_FIELDS else ("oracle",)
+    """The input kinds a method can be fed: those of :func:`ibl_ref.occlusion.image.input_kinds` (``oracle``
+    always; ``screen-space`` when it reads nothing GTAO does not estimate), and ``shadow-map:FILTER``
+    (:data:`ibl_ref.occlusion.shadow_filters.SHADOW_FILTERS`) when it reads the per-region visibility, which the
+    paper estimates with shadow maps of the region lights."""
+    from ..occlusion.image import input_kinds as kinds
+
+    if "region_visibility" in method.needs:
+        return kinds(method) + tuple(SHADOW_KIND + f for f in shadow_filters)
+    return kinds(method)
 
 
 def _nbytes_per_pixel(method, n_regions) -> int:
@@ -225,132 +220,44 @@ def environment(name: str, n: int, folder: str = ""):
 
 
 def _scene_pixels(scene: str, size: int):
-    from ..rendering.raster import prepare_scene, rasterize
+    from ..occlusion.image import scene_pixels
     from ..rendering.scenes import occlusion_scene
 
     meshes, camera = occlusion_scene(scene)
-    cam = camera(size)
-    sc = prepare_scene(meshes, warn=False)
-    gb = rasterize(sc, cam)
-    m = gb.mask
-    return dict(meshes=meshes, sc=sc, cam=cam, gb=gb, mask=m, n=gb.normal[m], v=gb.view[m], P=gb.position[m],
-                fn=gb.face_normal[m])
-
-
-def _oracle(px, job):
-    from ..occlusion import oracle_inputs as oi
-
-    t0 = time.perf_counter()
-    vs = oi.trace_visibility(px["sc"], px["P"], px["n"], px["fn"], n_face=job["n_face"], n_sets=job["n_sets"],
-                             seed=0)
-    ao, ao_err = oi.ambient_occlusion(vs)
-    bent, bent_err = oi.bent_normal(vs)
-    T, _ = oi.sh_transfer(vs, SH_ORDER)
-    return vs, dict(ao=ao, bent_normal=bent, sh_transfer=T), dict(
-        trace_time_s=time.perf_counter() - t0, ao_err_mean=float(np.mean(ao_err)), ao_err_max=float(np.max(ao_err)),
-        bent_err_mean_rad=float(np.mean(bent_err)), n_rays=int(np.asarray(px["P"]).shape[0]) * 6 * job["n_face"] ** 2
-        * job["n_sets"])
-
-
-def _screen_space(px, job):
-    from ..occlusion.gtao import gtao
-
-    t0 = time.perf_counter()
-    g = gtao(px["gb"], px["cam"], radius=GTAO_RADIUS.get(job["scene"], 0.5) * job["gtao_radius_scale"])
-    m = px["mask"]
-    return dict(ao=np.clip(np.asarray(g.ao)[m], 0.0, 1.0), bent_normal=np.asarray(g.bent_normal)[m]), dict(
-        gtao_time_s=time.perf_counter() - t0)
-
-
-def _stack_regions(cube, labels, R):
-    """(6, N, N, R·C): channel r·C + c holds channel c of region r's partial map (zero outside the region)."""
-    C = cube.shape[-1]
-    out = np.zeros(cube.shape[:3] + (R, C))
-    for r in range(R):
-        out[..., r, :] = np.where((labels == r)[..., None], cube, 0.0)
-    return out.reshape(cube.shape[:3] + (R * C,))
-
-
-def _lobes(m):
-    """``(kd, diffuse lobe or None, specular lobe or None)`` of a material (the reference's lobes)."""
-    from ..rendering import unoccluded_reference as ur
-
-    if m["kind"] == "ggx":
-        return m["kd"], (ur.PhongLobe(1.0, "normal") if m["kd"] > 0 else None), ur.GGXSpecularLobe(
-            m["roughness"], m["f0"], m["smith"])
-    return m["kd"], ur.PhongLobe(1.0, "normal"), None
-
-
-def _integral(cube, lobe, px, front, rtol):
-    from ..rendering.unoccluded_reference import integrate
-
-    # the integral's cell arrays grow with the channels (R regions × C stacked): fewer cells per chunk keep its memory
-    # that of a 3-channel map (96 regions at the default chunk needed 22 GB)
-    chunk = max(2_000, int(CHUNK_CELLS * 3 / cube.shape[-1]))
-    ex = integrate(cube, lobe, px["n"], px["v"], rtol=rtol, chunk_cells=chunk)
-    return np.where(front, ex.value, 0.0), float(ex.info["err_rel_l1"])
-
-
-def _terms(cube, m, px, front, rtol, region_sets, cache):
-    """UnoccludedTerms per region count (None = no regions) of material ``m``; integrals cached per lobe."""
-    from ..occlusion import UnoccludedTerms
-
-    kd, dl, sl = _lobes(m)
-    C = cube.shape[-1]
-    P = px["n"].shape[0]
-
-    def get(lobe, key):
-        if lobe is None:
-            return None
-        k = (repr(lobe), key)
-        if k not in cache:
-            if key is None:
-                cache[k] = _integral(cube, lobe, px, front, rtol)[0]
-            else:
-                R, stacked = region_sets[key]
-                cache[k] = _integral(stacked, lobe, px, front, rtol)[0].reshape(P, R, C)
-        return cache[k]
-
-    zero = np.zeros((P, C))
-    out = {None: UnoccludedTerms(kd=kd, diffuse=get(dl, None), specular=(get(sl, None) if sl is not None
-                                                                           else zero))}
-    for key, (R, _) in region_sets.items():
-        dr = get(dl, key)
-        sr = get(sl, key) if sl is not None else np.zeros((P, R, C))
-        out[key] = UnoccludedTerms(kd=kd, diffuse=out[None].diffuse, specular=out[None].specular,
-                                   diffuse_regions=dr if dr is not None else np.zeros((P, R, C)),
-                                   specular_regions=sr)
-    return out
+    return scene_pixels(meshes, camera(size))
 
 
 def _reference(px, cube, m, job):
     from ..rendering.reference_render import render_reference
 
-    mats = {int(i): m for i in np.unique(px["sc"].material_id)}
-    rr = render_reference(px["sc"], px["cam"], cube, materials=mats, rtol=job["ref_rtol"], gbuffer=px["gb"])
-    return rr.image[px["mask"]], dict(err_rel_l1=float(rr.info["err_rel_l1"]),
+    mats = {int(i): m for i in np.unique(px.scene.material_id)}
+    rr = render_reference(px.scene, px.camera, cube, materials=mats, rtol=job["ref_rtol"], gbuffer=px.gbuffer)
+    return rr.image[px.mask], dict(err_rel_l1=float(rr.info["err_rel_l1"]),
                                       err_rel_p99=rr.info.get("err_rel_p99"), converged=rr.info.get("converged"))
 
 
 def _scene_job(job: dict) -> dict:
     """One scene under ``job["envs"]``: its visibility traced once, then every (environment, material, method,
-    input kind)."""
+    input kind), by the steps of :mod:`ibl_ref.occlusion.image`."""
     from ..groundtruth.sh_basis import sh_project
     from ..knuth2014.median_cut import median_cut
-    from ..occlusion import OcclusionInputs, get, oracle_inputs as oi, shade
+    from ..occlusion import OcclusionInputs, get, shade
+    from ..occlusion import image as oimg
+    from ..occlusion import oracle_inputs as oi
     from ..occlusion.shadow_filters import region_visibility_shadow_maps
 
     t_case = time.perf_counter()
     px = _scene_pixels(job["scene"], job["size"])
-    P = px["n"].shape[0]
+    P = px.n_pixels
     if P == 0:
         raise IBLError(f"occlusion-zoo: scene {job['scene']!r} covers no pixel at size {job['size']}")
-    front = (np.sum(px["n"] * px["v"], axis=1) > 0)[:, None]
-    vs, oracle, oinfo = _oracle(px, job)
+    vs, oracle, oinfo = oimg.trace_oracle_inputs(px, n_face=job["n_face"], n_sets=job["n_sets"], seed=0,
+                                                 sh_order=SH_ORDER)
     if float(np.min(oracle["ao"])) >= 1.0 - 1e-12:
         raise IBLError(f"occlusion-zoo: scene {job['scene']!r} has no occluders in view (every pixel's AO is 1): "
                        "the share of the missing visibility a method gives back is undefined")
-    screen, sinfo = _screen_space(px, job)
+    screen, sinfo = oimg.screen_space_inputs(
+        px, radius=GTAO_RADIUS.get(job["scene"], DEFAULT_GTAO_RADIUS) * job["gtao_radius_scale"])
     input_time = {"oracle": oinfo["trace_time_s"] / P, "screen-space": sinfo["gtao_time_s"] / P}
     labels = method_labels(job["methods"], job["n_regions"])
     rows, brows, images, refs, skipped = [], [], {}, {}, {}
@@ -363,22 +270,20 @@ def _scene_job(job: dict) -> dict:
         region_sets, region_vis = {}, {}
         for R in job["n_regions"]:
             lights = median_cut(cube, int(R))
-            region_sets[int(R)] = (int(R), _stack_regions(cube, lights.labels, int(R)))
+            region_sets[int(R)] = (int(R), oimg.stack_regions(cube, lights.labels, int(R)))
             region_vis[(int(R), "oracle")] = oi.region_visibility(vs, cube, lights.labels)[0]
             for f in job["shadow_filters"]:
                 t0 = time.perf_counter()
                 region_vis[(int(R), SHADOW_KIND + f)] = region_visibility_shadow_maps(
-                    px["sc"], px["P"], px["fn"], lights, filter=f, resolution=job["shadow_resolution"])
+                    px.scene, px.position, px.face_normal, lights, filter=f, resolution=job["shadow_resolution"])
                 input_time[(int(R), SHADOW_KIND + f)] = (time.perf_counter() - t0) / P  # per pixel, all R lights
         cache = {}
         for mname in track(list(job["materials"]), f"{job['scene']}/{env}: materials", unit="material"):
             m = material(mname)
             ref, rinfo = _reference(px, cube, m, job)
             refs[f"{env}/{mname}"] = rinfo
-            terms = _terms(cube, m, px, front, job["rtol"], region_sets, cache)
-            rough = float(m.get("roughness", 1.0))
-            albedo = np.full(cube.shape[-1], min(float(m["kd"]), 1.0))
-            common = dict(normal=px["n"], view=px["v"], roughness=rough, geo_normal=px["fn"], albedo=albedo)
+            terms = oimg.unoccluded_terms(cube, m, px, job["rtol"], region_sets, cache)
+            common = oimg.shading_inputs(px, m, cube.shape[-1])
             unocc = shade(get("none")(OcclusionInputs(**common)), terms[None])
             missing = _metrics(unocc, ref)["rel_l1_frac"]
             base = dict(scene=job["scene"], env=env, material=mname, ref_err_rel_l1_frac=rinfo["err_rel_l1"],
@@ -390,16 +295,9 @@ def _scene_job(job: dict) -> dict:
                 meth = get(name)
                 imgs = {}
                 for kind in input_kinds(meth, job["shadow_filters"]):
-                    src = oracle if kind == "oracle" else screen
-                    extra = {f: src[f] for f in meth.needs if f in src}
-                    if "env_sh" in meth.needs:
-                        extra["env_sh"] = env_sh
-                    if R is not None:
-                        extra["region_visibility"] = region_vis[(R, kind)]
-                    inp = OcclusionInputs(**common, **extra)
-                    t0 = time.perf_counter()
-                    img = shade(meth(inp), terms[R])
-                    dt = time.perf_counter() - t0
+                    inp = oimg.method_inputs(meth, common, oracle if kind == "oracle" else screen, env_sh=env_sh,
+                                             region_visibility=None if R is None else region_vis[(R, kind)])
+                    img, dt = oimg.apply_method(meth, inp, terms[R])
                     imgs[kind] = img
                     met = _metrics(img, ref)
                     rows.append(dict(base, method=label, inputs=kind, applicable=True, **met,
@@ -410,8 +308,9 @@ def _scene_job(job: dict) -> dict:
                     if env == job["figure_env"] and kind == "oracle":
                         images[f"{mname}__{label}"] = img.astype(np.float32)
                 brows += _walks(base, label, unocc, imgs, ref)
-    return dict(scene=job["scene"], case="/".join([job["scene"]] + list(job["envs"])), rows=rows, budget=brows, images=images, mask=px["mask"], references=refs,
-                skipped=skipped, oracle=oinfo, screen_space=sinfo, n_pixels=P, time_s=time.perf_counter() - t_case)
+    return dict(scene=job["scene"], case="/".join([job["scene"]] + list(job["envs"])), rows=rows, budget=brows,
+                images=images, mask=px.mask, references=refs, skipped=skipped, oracle=oinfo, screen_space=sinfo,
+                n_pixels=P, time_s=time.perf_counter() - t_case)
 
 
 def _walks(base, label, unocc, imgs, ref):

@@ -18,6 +18,12 @@ over pixels; engines' variants of one formula are registry labels with other par
 
 Adding a method: its module and one entry in :mod:`~ibl_ref.occlusion.registry` (that module's docstring).
 
+The image of one method (:mod:`~ibl_ref.occlusion.image`): :func:`occlusion_image` shades a scene seen by a camera
+under an environment cube with a material by one registered method — the exact unoccluded terms, the inputs the
+method declares (``inputs="oracle"``: ray-cast; ``"screen-space"``: GTAO), the method — and returns an
+:class:`OcclusionImage` (the image, the unoccluded image, the per-pixel inputs, the timings); ``ibl-ref render
+--occlusion METHOD`` is its command line, the occlusion zoo calls the same steps.
+
 Examples
 --------
 >>> import numpy as np
@@ -28,8 +34,9 @@ Examples
 (array([1.]), array([1.]))
 """
 
+from .image import OcclusionImage, OcclusionRequestError, occlusion_image
 from .interface import OcclusionInputs, OcclusionMethod, OcclusionResult, UnoccludedTerms, shade
 from .registry import OCCLUSION_METHODS, get
 
 __all__ = ["OcclusionInputs", "OcclusionResult", "UnoccludedTerms", "OcclusionMethod", "shade", "OCCLUSION_METHODS",
-           "get"]
+           "get", "occlusion_image", "OcclusionImage", "OcclusionRequestError"]
