@@ -2,8 +2,9 @@
 
 Thin layer over :func:`ibl_ref.rendering.scenes.teapot_on_ground` / :func:`ibl_ref.rendering.scenes.default_camera` (scene and view),
 :func:`ibl_ref.rendering.render.render_pem` (modes ``ours`` and ``no-occlusion``), :func:`ibl_ref.rendering.ao_modes.render_mode`
-(modes ``ao``, ``ao-color``, imported lazily) and :mod:`ibl_ref.cli.exact_modes` (modes ``reference``, ``mitsuba``:
-per-mesh materials).
+(modes ``ao``, ``ao-color``, imported lazily), :mod:`ibl_ref.cli.exact_modes` (modes ``reference``, ``mitsuba``:
+per-mesh materials) and :func:`ibl_ref.occlusion.image.occlusion_image` (``--occlusion METHOD``: one method of the
+occlusion registry on the exact unoccluded terms, a mode of its own).
 """
 
 from __future__ import annotations
@@ -17,6 +18,9 @@ MODES = ("ours", "no-occlusion", "ao", "ao-color", "reference", "mitsuba")
 _AO_MODES = ("ao", "ao-color")
 _EXACT_MODES = ("reference", "mitsuba")  # ibl_ref.cli.exact_modes (per-mesh materials)
 OUT_EXTS = (".exr", ".npz")
+#: flags that only ``--occlusion`` reads (their default is None: given without it, they are refused)
+_OCCLUSION_FLAGS = (("occlusion_inputs", "--occlusion-inputs"), ("n_face", "--n-face"), ("n_sets", "--n-sets"),
+                    ("gtao_radius", "--gtao-radius"))
 
 
 def parse_material(text: str, option: str = "--material"):
@@ -220,15 +224,20 @@ def _checked(args):
     check_side_files(out.with_suffix(".json"), (), "outputs", "--out")  # never replace a file the lab did not write
     w, h = _size(args.size)
     stops = parse_exposure(args.exposure)
+    occlusion = _checked_occlusion(args)
     mode = args.mode
-    if mode not in _EXACT_MODES:  # the median cut's light count, before the environment is read
+    if occlusion is None and mode is None:
+        mode = args.mode = "ours"
+    if occlusion is None and mode not in _EXACT_MODES:  # the median cut's light count, before the environment is read
         from .cmd_mediancut import check_lights
 
         check_lights(args.lights, args.median_cut)
     mat = parse_material(args.material) if args.material else _gloss_material(args.gloss, "--gloss")
     gmat = (parse_material(args.ground_material, "--ground-material") if args.ground_material
             else _gloss_material(args.ground_gloss, "--ground-gloss"))
-    if (_is_ggx(mat) or _is_ggx(gmat)) and args.mode not in _EXACT_MODES:
+    if occlusion is not None:
+        occlusion.update(_occlusion_materials(args, occlusion, mat, gmat))
+    elif (_is_ggx(mat) or _is_ggx(gmat)) and args.mode not in _EXACT_MODES:
         raise IBLError("GGX materials (ggx:...) are rendered by --mode reference and --mode mitsuba; the other modes "
                        "take kd,ks,g")
     if args.gmap and _is_ggx(mat):
@@ -254,7 +263,61 @@ def _checked(args):
     from types import SimpleNamespace
 
     return SimpleNamespace(out=out, png=png, w=w, h=h, stops=stops, mode=mode, mat=mat, gmat=gmat,
-                           visibility=visibility, render_mode=render_mode)
+                           visibility=visibility, render_mode=render_mode, occlusion=occlusion)
+
+
+def _checked_occlusion(args):
+    """``--occlusion`` and its flags, checked before anything is read → the settings of the method (a dict) or
+    None.  ``--occlusion`` is a mode of its own: it refuses ``--mode``, ``--visibility`` and ``--gmap``."""
+    from ..occlusion.image import OcclusionRequestError
+
+    if args.occlusion is None:
+        given = [flag for dest, flag in _OCCLUSION_FLAGS if getattr(args, dest) is not None]
+        if given:
+            raise OcclusionRequestError(f"{', '.join(given)} only apply to --occlusion METHOD")
+        return None
+    for value, flag in ((args.mode, "--mode"), (args.visibility, "--visibility"), (args.gmap, "--gmap")):
+        if value is not None:
+            raise OcclusionRequestError(
+                f"--occlusion {args.occlusion} does not combine with {flag} {value}: it renders the exact unoccluded "
+                "lighting darkened by the occlusion method, a mode of its own (drop one of the two)")
+    from ..occlusion.image import DEFAULT_GTAO_RADIUS, check_request
+
+    inputs = args.occlusion_inputs or "oracle"
+    method, _ = check_request(args.occlusion, None, inputs)
+    n_face = min(16, args.env_size) if args.n_face is None else args.n_face
+    regions = "region_visibility" in method.inputs_needed()
+    if regions and inputs == "oracle" and args.env_size % n_face:
+        raise OcclusionRequestError(f"--env-size {args.env_size} must be a multiple of --n-face {n_face} (each "
+                                    "visibility cell of the per-region visibility is a block of environment texels)")
+    if regions:
+        from .cmd_mediancut import check_lights
+
+        check_lights(args.lights, args.median_cut)
+    radius = DEFAULT_GTAO_RADIUS if args.gtao_radius is None else args.gtao_radius
+    if not radius > 0:
+        raise OcclusionRequestError(f"--gtao-radius must be > 0 (world units), got {radius:g}")
+    rtol = None
+    if args.ref_rtol is not None:
+        from ..limits import check_rtol
+
+        rtol = check_rtol(args.ref_rtol, "--ref-rtol")
+    return {"method": method, "inputs": inputs, "n_face": n_face, "n_sets": 2 if args.n_sets is None else args.n_sets,
+            "gtao_radius": float(radius), "rtol": rtol, "regions": regions}
+
+
+def _occlusion_materials(args, occlusion, mat, gmat) -> dict:
+    """``{"materials": {material id: material}}`` of the scene, each checked against the method (one line naming
+    the flag if the method cannot shade it)."""
+    from ..occlusion.image import check_request
+
+    mats = {0: (mat, "--material" if args.material else "--material (default 0,1,--gloss)")}
+    if args.ground:
+        mats[1] = (gmat, "--ground-material" if args.ground_material else
+                   "--ground-material (default 0,1,--ground-gloss)")
+    for m, flag in mats.values():
+        check_request(occlusion["method"], m, occlusion["inputs"], where=flag)
+    return {"materials": {k: m for k, (m, _) in mats.items()}}
 
 
 def _scene(args, run):
@@ -311,6 +374,8 @@ def _render_image(args, run, meshes, cam, cube, pems, info):
     import numpy as np
 
     mat, gmat, mode, progress = run.mat, run.gmat, run.mode, args.progress
+    if run.occlusion is not None:
+        return _render_occlusion(args, run, meshes, cam, cube, info)
     if mode in _EXACT_MODES:
         from ..rendering.render import apply_background
         from .exact_modes import render_exact
@@ -340,6 +405,22 @@ def _render_image(args, run, meshes, cam, cube, pems, info):
     from ..rendering.raster import rasterize
 
     return image, rasterize(meshes, cam, warn=False).mask, {}  # coverage (the image holds the backdrop elsewhere)
+
+
+def _render_occlusion(args, run, meshes, cam, cube, info):
+    """The image of ``--occlusion`` (:func:`ibl_ref.occlusion.image.occlusion_image`) with the backdrop; the .npz's
+    extra buffers: the unoccluded image and every input the method was fed, as images (``input_ao``, …)."""
+    from ..occlusion.image import occlusion_image
+    from ..rendering.render import apply_background
+
+    occ = run.occlusion
+    res = occlusion_image(meshes, cam, cube, occ["materials"], occ["method"], inputs=occ["inputs"],
+                          regions=args.lights, median_cut_variant=args.median_cut, rtol=occ["rtol"],
+                          n_face=occ["n_face"], n_sets=occ["n_sets"], seed=args.seed, gtao_radius=occ["gtao_radius"])
+    info["occlusion"] = dict(res.info, timings_s={k: round(v, 3) for k, v in res.timings.items()})
+    extra = {"unoccluded": res.unoccluded}
+    extra.update({f"input_{k}": (v if k == "env_sh" else res.input_image(k)) for k, v in res.inputs.items()})
+    return apply_background(res.image, res.mask, cam, cube, args.background), res.mask, extra
 
 
 def _write_outputs(run, image, mask, extra, info, png_stops, times) -> None:
@@ -381,13 +462,13 @@ def cmd_render(args) -> int:
     meshes, cam, cube, radiance = _scene(args, run)
     png_stops, exposure_rule = _preview_exposure(run.stops, cube)
     t0 = time.perf_counter()
-    info = {"out": str(run.out), "mode": run.mode, "size": [run.w, run.h], "fov_y_deg": args.fov,
+    info = {"out": str(run.out), "mode": run.mode or "occlusion", "size": [run.w, run.h], "fov_y_deg": args.fov,
             "camera_eye": cam.eye.tolist(), "camera_target": cam.target.tolist(),
             "background": args.background, "exposure_stops": png_stops, "exposure_rule": exposure_rule,
             "material": _material_info(run.mat, args.gmap),
             "ground_material": (_material_info(run.gmat) if args.ground else None),
             "radiance": radiance}
-    pems = None if run.mode in _EXACT_MODES else _region_prefilters(args, cube, info)
+    pems = None if (run.mode in _EXACT_MODES or run.occlusion) else _region_prefilters(args, cube, info)
     t1 = time.perf_counter()
     image, mask, extra = _render_image(args, run, meshes, cam, cube, pems, info)
     t2 = time.perf_counter()
@@ -399,8 +480,10 @@ def cmd_render(args) -> int:
                        "smaller --material / --ground-material weights or write .npz (float64)")
     _write_outputs(run, image, mask, extra, info, png_stops,
                    {"pem_time_s": round(t1 - t0, 3), "render_time_s": round(t2 - t1, 3)})
-    print(f"wrote {run.out} ({run.w}x{run.h}, mode {run.mode}; {info['render_time_s']} s render, "
-          f"{info['pem_time_s']} s PEMs)" + (f" and {run.png}" if run.png is not None else ""))
+    what = (f"mode {run.mode}; {info['render_time_s']} s render, {info['pem_time_s']} s PEMs" if run.occlusion is None
+            else f"occlusion {run.occlusion['method'].name}, {run.occlusion['inputs']} inputs; "
+                 f"{info['render_time_s']} s render")
+    print(f"wrote {run.out} ({run.w}x{run.h}, {what})" + (f" and {run.png}" if run.png is not None else ""))
     return 0
 
 
@@ -418,8 +501,16 @@ maps in the paper's method). Everything runs on the CPU with NumPy, so keep size
 Without options it renders the Utah teapot on a ground quad under the synthetic 'sky_sun' map
 (96x96 pixels, 24 lights) -- try:  ibl-ref render --out teapot.exr --png teapot.png
 
+--occlusion METHOD renders instead with one of the occlusion methods engines ship (AO, specular
+occlusion, horizon fades, GTSO cones, PRT, the paper's per-region visibility; the labels of
+ibl_ref.occlusion, listed below): the exact unoccluded lighting of the material, darkened by METHOD
+fed the inputs it reads, exact ones from ray casts (--occlusion-inputs oracle, default) or AO and bent
+normals estimated from the depth buffer by GTAO (--occlusion-inputs screen-space) -- try:
+    ibl-ref render --occlusion gtso-exact-alpha --material ggx:0.3 --ground-material ggx:0.6 --out o.exr
+
 Output: OUT.exr is linear radiance (float32 RGB, no tone mapping); OUT.npz instead stores the image plus
-unshadowed image, per-light visibility, depth, mask, diffuse/specular terms and per-pixel g. A small
+unshadowed image, per-light visibility, depth, mask, diffuse/specular terms and per-pixel g (with
+--occlusion: the unoccluded image and every input the method read, input_ao, input_bent_normal, ...). A small
 OUT.json next to it records the settings and timings. --png writes a tone-mapped preview
 (Reinhard, sRGB; auto exposure from the object's pixels unless --exposure is given). Pixels not covered
 by geometry show the environment seen along the camera ray (--background env, default) or are 0
@@ -439,8 +530,24 @@ modes:
   every mode shades the mesh with --material and the ground with --ground-material
   (reference, mitsuba: scalar kd, ks and no --gmap; they also take GGX materials, ggx:ROUGHNESS).
 
+occlusion methods (--occlusion METHOD, instead of --mode; docs/occlusion.md):
+  the mesh and the ground are shaded with their materials' exact unoccluded terms (the diffuse
+  lobe average and the GGX or Phong specular term, integrated to --ref-rtol, V = 1), then METHOD
+  darkens them from the inputs it reads. GGX materials (any method) and Phong kd,ks,g with scalar
+  weights and g < 1; a Phong glossy lobe (ks > 0) has no GGX roughness, so only the methods that
+  read none (marked *) shade it. An unknown METHOD, a material it cannot shade, inputs it cannot
+  be fed or --mode / --visibility / --gmap with it: one line, nothing written.
+{methods}
+
+  --occlusion-inputs oracle        exact AO, bent normal, SH transfer and per-region visible fractions
+                                   by ray casting (--n-face cells, --n-sets sets, --seed)
+  --occlusion-inputs screen-space  AO and bent normals from the depth buffer by GTAO (--gtao-radius),
+                                   as engines get them: methods reading only those two
+
 examples:
   ibl-ref render --out x.exr
+  ibl-ref render --occlusion lagarde2014-alpha --occlusion-inputs screen-space --material ggx:0.3 --out so.exr
+  ibl-ref render --occlusion regions-exact --lights 24 --material 0.2,0.8,0.9 --out r.exr --png r.png
   ibl-ref render --mesh sphere_on_plane --no-ground --material 0.3,0.7,0.9 --out s.exr --png s.png
   ibl-ref render --mode reference --material ggx:roughness=0.3,f0=1 --ground-material ggx:0.6 --out g.exr
   ibl-ref render --env studio.exr --mesh bunny.obj --size 320 240 --lights 48 --out b.exr
@@ -452,12 +559,22 @@ examples:
 
 def register(sub) -> None:
     import argparse
+    import textwrap
 
+    from ..occlusion.image import INPUT_KINDS
+    from ..occlusion.registry import OCCLUSION_METHODS
+
+    methods = "\n".join(textwrap.fill(m.summary + ("" if m.reads_roughness else " *"), 100,
+                                       initial_indent=f"  {name:<23}", subsequent_indent=" " * 25,
+                                       break_on_hyphens=False)
+                         for name, m in OCCLUSION_METHODS.items())
+    methods += "\n  (regions-exact: --lights median-cut regions, --median-cut; prt-3, prt-5, regions-exact: oracle " \
+               "inputs only)"
     p = sub.add_parser(
         "render",
-        help="render a mesh lit by an environment map with PEMs and shadows (Eq. 5)",
+        help="render a mesh lit by an environment map with PEMs and shadows (Eq. 5), or with an occlusion method",
         description=_DESCRIPTION,
-        epilog=_EPILOG,
+        epilog=_EPILOG.format(methods=methods),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     g = p.add_argument_group("scene")
@@ -491,7 +608,7 @@ def register(sub) -> None:
                    help="texture coordinates for meshes without UVs (all generated meshes): top-down planar "
                    "projection over the mesh's bounding box (default), spherical around its centre, or error")
     g = p.add_argument_group("method")
-    g.add_argument("--mode", choices=MODES, default="ours", help="what to render (see below; default ours)")
+    g.add_argument("--mode", choices=MODES, default=None, help="what to render (see below; default ours)")
     g.add_argument("--lights", type=int, default=24, metavar="N",
                    help="number of median-cut lights / PEMs, >= 6: a multiple of 6 (N/6 per cube face as in the "
                    "paper) for --median-cut per-face (default 24)")
@@ -519,8 +636,8 @@ def register(sub) -> None:
     g.add_argument("--vsm-dtype", choices=("float16", "float32", "float64"), default="float32",
                    help="shadow-map moment storage (float16 = the paper's RG16F; default float32)")
     g.add_argument("--ref-rtol", type=float, default=None, metavar="R",
-                   help="--mode reference: estimated relative L1 error to converge to (default 2e-3; > 0, "
-                   "e.g. 1e-2 for a quick look)")
+                   help="--mode reference, and the unoccluded terms of --occlusion: estimated relative L1 error to "
+                   "converge to (default 2e-3; > 0, e.g. 1e-2 for a quick look)")
     g.add_argument("--workers", type=int, default=None, metavar="W",
                    help="--mode reference: worker processes for its pixel blocks (1 = serial; default "
                    "$IBL_REF_WORKERS or min(2, CPUs)); the image is bit-for-bit the same for every W")
@@ -532,7 +649,27 @@ def register(sub) -> None:
                    "f0=1), or both (default): the image is the lab's, the JSON records the built-in's difference "
                    "(the built-in is skipped, with a note, where it does not apply)")
     g.add_argument("--seed", type=int, default=0, metavar="S",
-                   help="--mode mitsuba: first seed; --mode reference: seed of its random ray points (default 0)")
+                   help="--mode mitsuba: first seed; --mode reference: seed of its random ray points; --occlusion "
+                   "with oracle inputs: seed of the ray directions (default 0)")
+    g = p.add_argument_group("occlusion methods (instead of --mode; see below)")
+    g.add_argument("--occlusion", metavar="METHOD",
+                   help="render with an occlusion method engines ship, a label of ibl_ref.occlusion (listed below, "
+                   "e.g. ao-diffuse, lagarde2014-alpha, gtso-exact-alpha, prt-5, regions-exact): the exact "
+                   "unoccluded lighting of --material / --ground-material darkened by METHOD; regions-exact splits "
+                   "the map into --lights median-cut regions (--median-cut)")
+    g.add_argument("--occlusion-inputs", choices=INPUT_KINDS, default=None,
+                   help="what METHOD reads: oracle (default) = exact AO, bent normal, SH transfer, per-region "
+                   "visibility by ray casting; screen-space = AO and bent normals estimated from the depth buffer by "
+                   "GTAO, as engines do (only for the methods that read nothing else)")
+    g.add_argument("--n-face", type=int, default=None, metavar="N",
+                   help="oracle inputs: face size of the cube of ray-direction cells, 6*N^2 rays per point and set "
+                   "(default min(16, --env-size); --occlusion regions-exact: --env-size must be a multiple of N)")
+    g.add_argument("--n-sets", type=int, default=None, metavar="K",
+                   help="oracle inputs: independent stratified ray sets, their spread is the inputs' error estimate "
+                   "(default 2)")
+    g.add_argument("--gtao-radius", type=float, default=None, metavar="R",
+                   help="screen-space inputs: GTAO's search radius in world units (default 0.5; the teapot is "
+                   "about 3 units tall)")
     g = p.add_argument_group("camera (perspective, y is up)")
     g.add_argument("--size", type=int, nargs="+", default=[96, 96], metavar="N",
                    help="image size W H in pixels, or one N for N x N (default 96 96)")
