@@ -55,6 +55,7 @@ import numpy as np
 
 from ..errors import IBLError
 from .interface import OcclusionInputs, OcclusionMethod, UnoccludedTerms, shade
+from .oracle_inputs import _positive_int
 from .registry import OCCLUSION_METHODS, get
 
 __all__ = [
@@ -278,12 +279,6 @@ def _is_mapping(material) -> bool:
     """``{material_id: material}`` (every key an integer) rather than one material's parameters."""
     return isinstance(material, dict) and bool(material) and all(
         isinstance(k, (int, np.integer)) and not isinstance(k, bool) for k in material)
-
-
-def _positive_int(name: str, v) -> int:
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-        raise IBLError(f"{name} must be a positive integer, got {v!r}")
-    return int(v)
 
 
 # ------------------------------------------------------------------------------------------------------------------
