@@ -19,6 +19,28 @@ if "IBL_REF_CMFT" not in os.environ and _CMFT.is_file():
     os.environ["IBL_REF_CMFT"] = str(_CMFT)
 
 
+def _refuse_if_same_without_tools(request, what):
+    """A test marked ``same_without_tools`` (pyproject.toml) promises the NumPy path only: one that ``what``
+    (asks for Mitsuba or the compiled kernels) would be skipped without being run in .ci/run's second run of the
+    suite without the optional tools, so it fails here instead."""
+    if request.node.get_closest_marker("same_without_tools") is not None:
+        pytest.fail(f"{request.node.nodeid} is marked same_without_tools but {what}")
+
+
+def pytest_collection_modifyitems(config, items):
+    """A ``same_without_tools`` test may not ask for the compiled kernels in its own code (the switch of
+    ``IBL_REF_KERNEL`` stays on the NumPy reference set above); Mitsuba is refused by the fixture."""
+    import inspect
+    import re
+
+    asks = re.compile(r"""kernel\s*=\s*["']compiled|IBL_REF_KERNEL|numba_available|import numba""")
+    for item in items:
+        fn = getattr(item, "function", None)
+        if fn is not None and item.get_closest_marker("same_without_tools") is not None \
+                and asks.search(inspect.getsource(fn)):
+            raise pytest.UsageError(f"{item.nodeid} is marked same_without_tools but asks for the compiled kernels")
+
+
 @pytest.fixture
 def cmft():
     """The cmft binary (:func:`ibl_ref.prefilter.cmft_peer.cmft_binary`); the test is skipped with the reason
@@ -47,12 +69,13 @@ def cmgen():
 
 
 @pytest.fixture
-def mitsuba_llvm():
+def mitsuba_llvm(request):
     """Mitsuba's llvm_ad_rgb variant, the only one the lab's Mitsuba code runs on (it needs libLLVM >= 17).
     Where it cannot run, the test is skipped with the reason, or fails when ``IBL_REF_REQUIRE_MITSUBA=1``
     (set by ``.ci/run``, so that CI cross-validates with Mitsuba for real and never skips silently)."""
     from ibl_ref.rendering import mitsuba_render as mr
 
+    _refuse_if_same_without_tools(request, "runs Mitsuba")
     try:
         return mr.select_variant()
     except mr.MitsubaUnavailable as exc:

@@ -22,6 +22,9 @@ import pytest
 
 from ibl_ref.atomic import read_csv
 
+#: slow and the same in every installation (NumPy path, no optional tool): phase 2+3 of .ci/run skips it
+pytestmark = pytest.mark.same_without_tools
+
 ROOT = Path(__file__).resolve().parent.parent
 SAVED = ROOT / "tests" / "data" / "readme_runs"
 

@@ -27,6 +27,9 @@ from ibl_ref.experiments import error_budget as exp
 from ibl_ref.rendering import error_budget as eb
 from ibl_ref.synthetic.synthetic_envs import scene_environment
 
+#: slow and the same in every installation (NumPy path, no optional tool): phase 2+3 of .ci/run skips it
+pytestmark = pytest.mark.same_without_tools
+
 SMALL = dict(size=12, env_size=16, envs=("sky_sun",), materials=("diffuse", "g0.9"), regions=(6, 24),
              vsm_resolution=64, texel_factors=(1,), texel_pixels=60, level_dirs=1500, figure_regions=24)
 

@@ -30,6 +30,7 @@ def _fig5(out, **jobs):
     return (Path(out) / "fig5_errors.csv").read_bytes()
 
 
+@pytest.mark.same_without_tools
 def test_fig5_cases_on_processes_and_dask_match_serial(tmp_path, dask_client):
     serial = _fig5(tmp_path / "serial")
     assert serial.count(b"\n") > 100  # 4 configurations x 5 filters x s values x 2 volumes x 2 centrings
@@ -61,6 +62,7 @@ def _data_files(root):
             and not p.name.endswith("_outputs.json")}  # the experiments' manifests (tests/test_adversarial_round3.py)
 
 
+@pytest.mark.same_without_tools
 def test_reproduce_on_processes_and_dask_matches_serial(tmp_path, dask_client):
     serial = experiments.reproduce(tmp_path / "serial", quick=True, names=REPRODUCE_NAMES)
     assert [r["experiment"] for r in serial["runs"]] == REPRODUCE_NAMES and serial["ran_on"] == "serial"
@@ -89,6 +91,7 @@ def test_data_files_do_not_depend_on_the_blas_thread_count(tmp_path, name):
     assert many and many == one
 
 
+@pytest.mark.same_without_tools
 def test_job_options_on_the_command_line(tmp_path, capsys):
     out = str(tmp_path)
     assert main(["experiment", "fig3", "--quick", "--out", out, "--workers", "2"]) == 1

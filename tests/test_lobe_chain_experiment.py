@@ -3,12 +3,14 @@
 import json
 
 import numpy as np
+import pytest
 
 from ibl_ref.atomic import read_csv
 from ibl_ref.experiments import lobe_chain
 from ibl_ref.knuth2014.gloss_lookup import best_constant_level
 
 
+@pytest.mark.same_without_tools
 def test_quick_run_and_plot(tmp_path):
     lobe_chain.run(tmp_path, quick=True)
     rows = read_csv(tmp_path / "lobe_chain.csv")

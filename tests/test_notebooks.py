@@ -14,6 +14,9 @@ from pathlib import Path
 
 import pytest
 
+#: slow and the same in every installation (NumPy path, no optional tool): phase 2+3 of .ci/run skips it
+pytestmark = pytest.mark.same_without_tools
+
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 

@@ -19,6 +19,9 @@ from ibl_ref.atomic import read_csv
 from ibl_ref.errors import IBLError
 from ibl_ref.experiments import occlusion_zoo as oz
 
+#: slow and the same in every installation (NumPy path, no optional tool): phase 2+3 of .ci/run skips it
+pytestmark = pytest.mark.same_without_tools
+
 
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory, run_quick):

@@ -22,6 +22,9 @@ import pytest
 from ibl_ref.atomic import read_csv
 from ibl_ref.experiments import occlusion_zoo as oz
 
+#: slow and the same in every installation (NumPy path, no optional tool): phase 2+3 of .ci/run skips it
+pytestmark = pytest.mark.same_without_tools
+
 SMALL = dict(envs=["sky_sun", "uniform"], materials=["diffuse", "metal0.3"],
              methods=["none", "ao-diffuse", "multibounce-ao", "gtso-exact-alpha", "lagarde2014-alpha", "prt-5",
                       "regions-exact"],

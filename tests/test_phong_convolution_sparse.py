@@ -359,6 +359,7 @@ def test_float32_kernel_faces_bit_identical_and_refused_where_unbounded():
         convolve_sparse_many(cube, [64.0], dark_floor=2.0)
 
 
+@pytest.mark.same_without_tools
 def test_tabulated_weight_bound_is_the_pointwise_bound_bit_for_bit():
     """The W_b table of the sparse gather (annulus sums of all angles at once, the integral bound only where it can
     be the smaller one) holds exactly the running minimum of :func:`neglected_weight_bound` at its angles, and the

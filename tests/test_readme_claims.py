@@ -268,6 +268,7 @@ def test_pyramid_floor_at_s1():
 
 
 # ---- the ground-truth convolution: speed-accuracy and Kán Table 1 --------------------------------------------------
+@pytest.mark.same_without_tools
 def test_auto_convolution_error_at_32():
     # Quoted: "auto convolution at rtol 1e-3 (1e5 sun near a corner): max rel. error ... 8.9e-7 at 32²; 0 texels
     # anywhere above a method's reported bound" (speed-accuracy, 7 exponents; at 32² its reference is every texel)

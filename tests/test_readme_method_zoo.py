@@ -79,6 +79,7 @@ def test_readme_karis_statements_are_the_saved_run():
         assert abs(min(v) - lo) <= 0.05 and abs(max(v) - hi) <= 0.05, (mat, min(v), max(v))
 
 
+@pytest.mark.same_without_tools
 def test_one_case_of_the_saved_run_reproduces(tmp_path):
     from ibl_ref.experiments import method_zoo
     from ibl_ref.prefilter import karis2013

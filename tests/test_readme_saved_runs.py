@@ -225,6 +225,7 @@ def test_error_budget_bullets_are_the_saved_run():
         _check(m.group(2), inc(("sky_sun", "g0.9", r), "horizon"), ("horizon", r))
 
 
+@pytest.mark.same_without_tools
 def test_one_error_budget_case_reproduces(tmp_path):
     from ibl_ref.experiments import error_budget
 
@@ -275,6 +276,7 @@ def test_lobe_chain_row_is_the_saved_run():
         _check(m.group(5 + k), mem, (pf, "memory ratio"))
 
 
+@pytest.mark.same_without_tools
 def test_one_lobe_chain_case_reproduces(tmp_path):
     from ibl_ref.experiments import lobe_chain
 

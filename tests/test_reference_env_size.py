@@ -42,6 +42,7 @@ def test_children_finer_than_the_quadrature_follow_the_radiance():
 
 
 @pytest.mark.parametrize("material", [(1.0, 0.0, 0.0), (0.0, 1.0, 0.9375), "ggx:roughness=0.3,f0=1"])
+@pytest.mark.same_without_tools
 def test_lobe_start_agrees_with_map_start_on_a_large_map_with_a_sun(material):
     """A 128² map with the real sun's solid angle (≈ 0.4 texel) and 1e5 radiance: the quadrature starting at the
     lobe's level (it reads area averages coarser than the map) and the one starting at the map's texels (another

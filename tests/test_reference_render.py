@@ -480,6 +480,7 @@ def test_ggx_white_furnace_is_the_directional_albedo(roughness, smith):
 
 
 @pytest.mark.parametrize("roughness", [0.1, 0.3, 0.6])
+@pytest.mark.same_without_tools
 def test_ggx_estimate_bounds_difference_to_finer_run(roughness):
     # as for the Phong lobes: the estimates of a default run bound its difference to a run at rtol 2e-4,
     # pixel_rtol 0.6 % and another seed, per image (rel. L1) and per pixel (bound on all but 2e-3 of the pixels, 99th
@@ -523,6 +524,7 @@ def _brute_force_ggx(meshes, env, P, n, fn, v, lobe, N):
 
 
 @pytest.mark.parametrize("roughness", [0.3, 0.6])
+@pytest.mark.same_without_tools
 def test_ggx_matches_brute_force_fibonacci(roughness):
     # the independent route of the Phong test with the GGX weight: Fibonacci sums with trimesh rays at 2e5 and 8e5
     # directions (their difference bounds the 8e5 sum's error) on the hardest pixels and a spread; roughness 0.1 is

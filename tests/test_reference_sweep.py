@@ -44,6 +44,7 @@ def test_a_scaled_copy_gives_the_scaled_image_exactly():
 
 
 @pytest.mark.parametrize("material", [(1.0, 0.0, 0.0), "ggx:roughness=0.3,f0=1"])
+@pytest.mark.same_without_tools
 def test_each_estimate_bounds_its_difference_to_a_finer_single_run(material):
     """Every environment of a sweep meets the tolerance on its own: its estimate is ≤ rtol (2e-3) and bounds its
     actual difference to an independent single-environment run at rtol 2e-4, pixel_rtol 0.6 % (another seed), per
