@@ -208,19 +208,21 @@ def ensure_output_dir(folder, what: str = "output folder", created: list | None 
 
 
 @contextlib.contextmanager
-def output_folder(folder, what: str = "output folder", remove_tree: bool = False):
+def output_folder(folder, what: str = "output folder", remove_tree: bool = False, keep=None):
     """Create ``folder`` for the block (:func:`ensure_output_dir`); if the block fails (an error, Ctrl-C), the
     folders created here are removed again when they are empty: a failed run leaves no empty folder.
 
     ``remove_tree=True`` (an experiment's own folder): a folder this block created is removed with everything in
-    it — it did not exist before the run, so all it holds is the failed run's partial output."""
+    it — it did not exist before the run, so all it holds is the failed run's partial output — unless ``keep()``
+    (a function, asked after the failure) is true: the failed run left something the next run wants (the finished
+    jobs of an experiment, :func:`ibl_ref.executors.keeping_jobs`)."""
     created: list = []
     folder = ensure_output_dir(folder, what, created)
     try:
         yield folder
     except BaseException:
         with critical_section():  # a repeated Ctrl-C waits for the clean-up
-            if remove_tree and created:
+            if remove_tree and created and not (keep is not None and keep()):
                 shutil.rmtree(created[-1], ignore_errors=True)  # the outermost folder this block made
             _remove_empty(created)
         raise

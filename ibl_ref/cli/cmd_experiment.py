@@ -4,7 +4,9 @@ Every experiment gets its own sub-parser, built from its declarations (:mod:`ibl
 ``--help`` shows the description, the paper item, the typical run time, the outputs and one ``--PARAM``
 option per parameter (default and quick value).  ``--workers N`` / ``--scheduler ADDRESS`` run the independent
 jobs (an experiment's cases, or ``reproduce``'s experiments) on local processes or a Dask cluster
-(:func:`ibl_ref.executors.map_jobs`); ``reproduce`` is :func:`ibl_ref.experiments.reproduce`.
+(:func:`ibl_ref.executors.map_jobs`); ``reproduce`` is :func:`ibl_ref.experiments.reproduce`.  An interrupted
+``experiment`` keeps the jobs it finished for the next run of the same command
+(:func:`ibl_ref.experiments.run_experiment`); ``--fresh`` discards them.
 """
 
 from __future__ import annotations
@@ -16,12 +18,22 @@ from pathlib import Path
 from .. import experiments
 
 
-def _run_one(mod, out: Path, quick: bool, overrides: dict | None = None, **jobs) -> dict:
+#: the common end of every ``ibl-ref experiment NAME --help`` (one line, like the lines of the description)
+EXPERIMENT_EPILOG = (
+    "Interrupted runs lose no finished job: while the experiment runs, each independent job it finishes (a case, a "
+    "block of a reference image) is kept in .jobs-{name} inside its output folder; the same command run again takes "
+    "those results (one line says how many) and runs only the others, with the same data files as a run without "
+    "interruption. The folder is removed once the outputs are in place; results of other code (another version of "
+    "ibl_ref or NumPy) are never used; --fresh discards them.")
+
+
+def _run_one(mod, out: Path, quick: bool, overrides: dict | None = None, fresh: bool = False, **jobs) -> dict:
     from ..atomic import output_folder
 
-    # under a file / read-only: one-line error, no traceback; a failed run leaves no folder it created
-    with output_folder(out, "--out folder", remove_tree=True):
-        return experiments.run_experiment(mod, out, quick, overrides, **jobs)
+    # under a file / read-only: one-line error, no traceback; a failed run leaves no folder it created, but for the
+    # jobs it finished (experiments.job_store_folder)
+    with output_folder(out, "--out folder", remove_tree=True, keep=experiments.job_store_folder(mod, out).is_dir):
+        return experiments.run_experiment(mod, out, quick, overrides, fresh=fresh, **jobs)
 
 
 def _jobs(args) -> dict:
@@ -46,13 +58,19 @@ def _add_job_options(p, d=None, note=None) -> None:
                    help=f"run the independent jobs on a Dask cluster (e.g. tcp://host:8786; pip install '.[dask]'){note}")
 
 
+def _add_fresh_option(p, d=None, name: str = "NAME") -> None:
+    p.add_argument("--fresh", action="store_true", default=(d or {}).get("fresh", False),
+                   help=f"discard the jobs an interrupted run kept (.jobs-{name} in the output folder) and run every "
+                   "job again")
+
+
 def experiment_parser(mod, defaults=None) -> argparse.ArgumentParser:
     """The parser of ``ibl-ref experiment NAME``: common options plus one ``--PARAM`` per parameter."""
     d = defaults or {}
     from . import _Parser  # the one usage-error path of the command line: one line naming the flag
 
     e = _Parser(prog=f"ibl-ref experiment {mod.NAME}", description=experiments.describe(mod),
-                formatter_class=argparse.RawDescriptionHelpFormatter)
+                epilog=EXPERIMENT_EPILOG.format(name=mod.NAME), formatter_class=argparse.RawDescriptionHelpFormatter)
     e.add_argument("--out", default=d.get("out", "results"), help="output folder (default: results)")
     e.add_argument("--quick", action="store_true", default=d.get("quick", False),
                    help="quick sizes (the parameters' quick values) for a fast run")
@@ -60,6 +78,7 @@ def experiment_parser(mod, defaults=None) -> argparse.ArgumentParser:
                    help="write directly into --out instead of --out/NAME")
     _add_job_options(e, d, None if experiments.takes_jobs(mod) else
                      " (not for this experiment: it does not split into independent jobs)")
+    _add_fresh_option(e, d, mod.NAME)
     g = e.add_argument_group("parameters of this experiment (default = full run; quick = with --quick)")
     for prm in getattr(mod, "PARAMS", ()):
         q = "" if prm.quick is None else f"; quick: {experiments._fmt(prm.quick)}"
@@ -85,7 +104,7 @@ def cmd_experiment(args) -> int:
     mod = experiments.get(args.name)
     args = experiment_parser(mod, vars(args)).parse_args(args.rest)
     out = Path(args.out) / mod.NAME if args.subdir else Path(args.out)
-    res = _run_one(mod, out, args.quick, _overrides(mod, args), **_jobs(args))
+    res = _run_one(mod, out, args.quick, _overrides(mod, args), fresh=args.fresh, **_jobs(args))
     print(json.dumps({k: v for k, v in res.items() if k != "summary"}, indent=1))
     print(f"results in {out}")
     return 0
@@ -140,7 +159,9 @@ def register(sub) -> None:
         help="run one experiment (a paper figure or a speed/accuracy study) and plot it",
         description="Run one experiment: compute its data into CSV/JSON under --out, then plot PNG "
         "figures from those files. 'ibl-ref experiment --list' shows the experiments, "
-        "'ibl-ref experiment NAME --help' what one reproduces, its parameters, outputs and run time.",
+        "'ibl-ref experiment NAME --help' what one reproduces, its parameters, outputs and run time. "
+        "An interrupted run keeps the jobs it finished: the same command run again runs only the others "
+        "(--fresh: all of them).",
     )
     p.add_argument("name", nargs="?", help="experiment name (see --list); 'NAME --help' for its parameters")
     p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
@@ -150,6 +171,7 @@ def register(sub) -> None:
     p.add_argument("--no-subdir", dest="subdir", action="store_false",
                    help="write directly into --out instead of --out/NAME")
     _add_job_options(p, note=" (experiments whose cases are independent jobs: see 'NAME --help')")
+    _add_fresh_option(p)
     p.set_defaults(func=cmd_experiment)
 
     r = sub.add_parser(

@@ -35,7 +35,9 @@ Data flows one way: ``run`` never plots and ``plot`` never computes.  Shared sce
 from the library (:func:`ibl_ref.synthetic.synthetic_envs.make_env`, :mod:`ibl_ref.synthetic.synthetic_meshes`,
 :mod:`ibl_ref.rendering.sphere_render`), never from another experiment.  :func:`run_experiment` runs both steps with
 progress lines (:mod:`ibl_ref.progress`) and timings, into a staging folder whose files then replace the previous
-run's as a set (its manifest ``NAME_outputs.json`` lists them); :func:`describe` is the ``--help`` text.
+run's as a set (its manifest ``NAME_outputs.json`` lists them), keeping every finished job of
+:func:`~ibl_ref.executors.map_jobs` until then (:func:`job_store_folder`: a rerun after an interruption runs only
+the jobs that had not finished); :func:`describe` is the ``--help`` text.
 
 Examples
 --------
@@ -58,7 +60,7 @@ from types import ModuleType
 from typing import Any
 
 __all__ = ["available", "get", "Param", "resolve_params", "run_experiment", "describe", "show", "images_to_json",
-           "images_from_json", "takes_jobs", "reproduce"]
+           "images_from_json", "takes_jobs", "reproduce", "job_store_folder"]
 
 
 @dataclass(frozen=True)
@@ -373,7 +375,7 @@ def _check_folder(mod: ModuleType, out: Path) -> None:
     pats = _output_patterns(mod)
     found = []
     for root, dirs, files in os.walk(out):
-        dirs[:] = sorted(d for d in dirs if ".ibl-tmp-" not in d)
+        dirs[:] = sorted(d for d in dirs if ".ibl-tmp-" not in d and not d.startswith(".jobs-"))  # job stores
         for f in sorted(files):
             rel = (Path(root) / f).relative_to(out).as_posix()
             if any(p.match(rel) for p in pats):
@@ -399,7 +401,7 @@ def _rebase(obj, old: str, new: str):
 
 
 def run_experiment(mod: ModuleType, out: Path, quick: bool, overrides: dict | None = None, *, executor=None,
-                   workers: int = 1) -> dict:
+                   workers: int = 1, fresh: bool = False) -> dict:
     """Compute step then plot step of an experiment into ``out``, with a status line per step and timings; the
     outputs replace those of an earlier run as a set.
 
@@ -408,6 +410,14 @@ def run_experiment(mod: ModuleType, out: Path, quick: bool, overrides: dict | No
     the lab's marker) and the files of the previous run of the same experiment that this run did not write are
     removed; files the lab did not write are left alone.  An error or Ctrl-C leaves the previous run's files as they
     were; of two runs into one folder at once, the later commit replaces the earlier one's set whole.
+
+    Nothing finished is lost: while the experiment runs, the result of every job it runs through
+    :func:`ibl_ref.executors.map_jobs` is kept as it finishes in ``out/.jobs-NAME`` (:func:`job_store_folder`,
+    :func:`ibl_ref.executors.keeping_jobs`).  A run that fails or is interrupted leaves that folder (and ``out``,
+    even one it created); the next run of the experiment into ``out`` takes the results of the jobs it holds
+    (one line says how many) and runs only the others, with the same results as a run without interruption.
+    The store is removed once the outputs are in place; a store of other code (another version of ``ibl_ref``
+    or of NumPy) is never used.
 
     Parameters
     ----------
@@ -422,6 +432,8 @@ def run_experiment(mod: ModuleType, out: Path, quick: bool, overrides: dict | No
     executor, workers
         Where the experiment's independent cases run (:func:`ibl_ref.executors.map_jobs`); only for experiments
         that split into jobs (:func:`takes_jobs`), an error otherwise.
+    fresh : bool
+        Discard the finished jobs an interrupted run left and run every job again.
 
     Returns
     -------
@@ -450,6 +462,7 @@ def run_experiment(mod: ModuleType, out: Path, quick: bool, overrides: dict | No
     """
     from .. import progress
     from ..atomic import OutputSet, output_folder
+    from ..executors import keeping_jobs
 
     out = Path(out)
     params = resolve_params(mod, quick, overrides)
@@ -462,23 +475,33 @@ def run_experiment(mod: ModuleType, out: Path, quick: bool, overrides: dict | No
             raise IBLError(f"experiment {mod.NAME} does not split into independent jobs (--workers / --scheduler "
                            f"apply to {names}; 'ibl-ref reproduce --workers N' runs whole experiments in parallel)")
         jobs = dict(executor=executor, workers=workers)
-    with output_folder(out, "experiment output folder", remove_tree=True):  # a failed run leaves no folder of its own
+    store = job_store_folder(mod, out)
+    # a failed run leaves no folder of its own, but for the jobs it finished
+    with output_folder(out, "experiment output folder", remove_tree=True, keep=store.is_dir):
         _check_folder(mod, out)
-        with OutputSet(out / manifest_name(mod), owned_key="files", relative=True) as outs:
-            stage = outs.staging_folder()
-            t0 = time.perf_counter()
-            with progress.step(f"{mod.NAME}: compute", announce=False):
-                summary = mod.run(stage, quick=quick, **params, **jobs) or {}
-            t1 = time.perf_counter()
-            with progress.step(f"{mod.NAME}: plot", announce=False):
-                figs = mod.plot(stage) or []
-            t2 = time.perf_counter()
-            res = {"experiment": mod.NAME, "quick": quick, "params": {k: _jsonable(v) for k, v in params.items()},
-                   "compute_time_s": round(t1 - t0, 3), "plot_time_s": round(t2 - t1, 3),
-                   "figures": [str(f) for f in figs], "summary": summary}
-            res = _rebase(res, str(stage), str(out))
-            outs.commit({k: res[k] for k in ("experiment", "quick", "params")})  # no timings: the same every run
+        with keeping_jobs(store, mod.NAME, fresh=fresh):  # removed when the outputs are in place
+            with OutputSet(out / manifest_name(mod), owned_key="files", relative=True) as outs:
+                stage = outs.staging_folder()
+                t0 = time.perf_counter()
+                with progress.step(f"{mod.NAME}: compute", announce=False):
+                    summary = mod.run(stage, quick=quick, **params, **jobs) or {}
+                t1 = time.perf_counter()
+                with progress.step(f"{mod.NAME}: plot", announce=False):
+                    figs = mod.plot(stage) or []
+                t2 = time.perf_counter()
+                res = {"experiment": mod.NAME, "quick": quick, "params": {k: _jsonable(v) for k, v in params.items()},
+                       "compute_time_s": round(t1 - t0, 3), "plot_time_s": round(t2 - t1, 3),
+                       "figures": [str(f) for f in figs], "summary": summary}
+                res = _rebase(res, str(stage), str(out))
+                outs.commit({k: res[k] for k in ("experiment", "quick", "params")})  # no timings: the same every run
     return res
+
+
+def job_store_folder(mod: ModuleType, out) -> Path:
+    """Where :func:`run_experiment` keeps the finished jobs of the experiment ``mod`` run into ``out`` until its
+    outputs are in place: ``out/.jobs-NAME`` (one folder per experiment: ``--no-subdir`` runs of several
+    experiments into one folder keep their jobs apart)."""
+    return Path(out) / f".jobs-{mod.NAME}"
 
 
 def _jsonable(v):
