@@ -1,7 +1,10 @@
 """Materials of the exact renderers (``--mode reference``, ``--mode mitsuba``) and their lobe weights — defined once.
 
 Two kinds, each a small frozen dataclass with its parameters checked on construction (one-line
-:class:`ibl_ref.errors.IBLError` on bad input):
+:class:`ibl_ref.errors.IBLError` on bad input), both a :class:`BaseMaterial` — the one material type of the lab's
+exact renderers, method shading (:mod:`ibl_ref.rendering.method_shading`, :mod:`ibl_ref.rendering.method_budget`),
+occlusion images (:mod:`ibl_ref.occlusion.image`) and the experiments.  Other forms (a ``(kd, ks, g)`` tuple, a dict
+with ``kind``, a text form) are turned into one at the edges by :func:`as_material` / :func:`parse_material`:
 
 * :class:`PhongMaterial` ``(kd, ks, g)`` — Knuth et al. (2014) Eq. 4–5 as a normalised lobe average:
   ``c = kd·A_1(n) + ks·A_s(r)``, ``s = 1/(1−g)`` (Eq. 3), ``r = 2(n·v)n − v``; the BRDF is the normalised Phong
@@ -31,6 +34,16 @@ its weight at quadrature directions ω (:meth:`PhongLobe.weights`, :meth:`GGXLob
   by the factor n·v (ω = 2(v·h)h − v moves by 2(v·h)|dh| when h tilts out of the plane, by 2|dh| in it), which
   :meth:`GGXLobe.width` returns so that the quadrature resolves it.
 
+**What differs per kind** is asked of the material, never of a ``kind`` string: whether it has a diffuse part
+(:attr:`~BaseMaterial.has_diffuse`, kd > 0) and a specular part (:attr:`~BaseMaterial.has_specular`: ks > 0 for
+Phong, always for GGX), whether it is diffuse only (:attr:`~BaseMaterial.diffuse_only`, what an irradiance method
+such as SH9 serves) or a mirror (:attr:`~BaseMaterial.mirror`), its GGX roughness (:attr:`~BaseMaterial.ggx_roughness`,
+None for Phong) or Phong exponent (:attr:`PhongMaterial.s`), the material with another Fresnel F0
+(:meth:`~BaseMaterial.with_fresnel`), its parameters as JSON (:meth:`~BaseMaterial.params`) and its lobes: those of
+the reference renderer (``lobes()``, above) and those of the lab's adaptive texel integral
+(:meth:`~BaseMaterial.unoccluded_lobes`, :meth:`~BaseMaterial.unoccluded_lobe`,
+:mod:`ibl_ref.rendering.unoccluded_reference`).
+
 **Text syntax** (:func:`parse_material`, the CLI's ``--material`` / ``--ground-material``): ``kd,ks,g`` (Phong,
 as before), ``phong:kd=0.2,ks=0.8,g=0.9``, ``ggx:0.3`` (roughness 0.3, f0 0.04, kd 0) or
 ``ggx:roughness=0.3,f0=1,kd=0.5,smith=separable``.
@@ -38,7 +51,7 @@ as before), ``phong:kd=0.2,ks=0.8,g=0.9``, ``ggx:0.3`` (roughness 0.3, f0 0.04, 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from typing import ClassVar
 
 import numpy as np
@@ -48,8 +61,8 @@ from ..errors import IBLError
 from ..lobes.brdfs import ggx
 from ..lobes.brdfs import phong_classic
 
-__all__ = ["PhongMaterial", "GGXMaterial", "PhongLobe", "GGXLobe", "MATERIAL_KINDS", "SMITH_FORMS",
-           "as_material", "parse_material", "material_dict", "MATERIAL_SYNTAX", "LOBE_TAIL_CUT"]
+__all__ = ["BaseMaterial", "PhongMaterial", "GGXMaterial", "PhongLobe", "GGXLobe", "MATERIAL_KINDS", "SMITH_FORMS",
+           "as_material", "parse_material", "MATERIAL_SYNTAX", "LOBE_TAIL_CUT"]
 
 #: material kinds of :func:`parse_material` / :func:`as_material`
 MATERIAL_KINDS = ("phong", "ggx")
@@ -251,9 +264,110 @@ class GGXLobe:
 # ------------------------------------------------------------------------------------------------
 # materials
 # ------------------------------------------------------------------------------------------------
+def _unoccluded_reference():
+    """:mod:`ibl_ref.rendering.unoccluded_reference`, imported on first use: it loads the prefilters (about 0.4 s),
+    which parsing a ``--material`` or the reference renderer need not."""
+    from . import unoccluded_reference
+
+    return unoccluded_reference
+
+
+class BaseMaterial:
+    """What every material answers (module docstring): :class:`PhongMaterial` and :class:`GGXMaterial` are the two
+    kinds; code that takes a material asks it these questions instead of testing its ``kind``.
+
+    Attributes
+    ----------
+    kind : str
+        ``"phong"`` or ``"ggx"`` (:data:`MATERIAL_KINDS`): the name of the kind in messages, JSON and the text form.
+    kd : float
+        Weight of the diffuse (Lambertian, clamped-cosine) lobe, ≥ 0.
+    """
+
+    kind: ClassVar[str]
+    kd: float
+
+    @property
+    def has_diffuse(self) -> bool:
+        """Whether the material has a diffuse part: kd > 0."""
+        return self.kd > 0
+
+    @property
+    def has_specular(self) -> bool:
+        """Whether the material has a specular part (Phong: ks > 0; GGX: always)."""
+        raise NotImplementedError
+
+    @property
+    def diffuse_only(self) -> bool:
+        """No specular part: all an irradiance method (E(n)/π, e.g. SH9) needs to shade it."""
+        return not self.has_specular
+
+    @property
+    def mirror(self) -> bool:
+        """Whether the specular part is a perfect mirror (a Phong material with g = 1; never GGX: roughness > 0)."""
+        return False
+
+    @property
+    def ggx_roughness(self) -> float | None:
+        """The GGX roughness r (α = r²) of the specular part; None for a Phong material (its lobe has none)."""
+        return None
+
+    def with_fresnel(self, f0: float) -> BaseMaterial:
+        """This material with Fresnel reflectance ``f0`` at normal incidence, where it has a Fresnel term (GGX);
+        a Phong material has none and is returned as it is."""
+        return self
+
+    def params(self) -> dict:
+        """``{"kind": …, parameter: value, …}`` — the constructor's arguments in their order, JSON-ready; what
+        :func:`as_material` takes back (unlike ``describe()``, no derived values such as GGX's alpha)."""
+        return {"kind": self.kind, **{f.name: getattr(self, f.name) for f in fields(self)}}
+
+    def _unoccluded_specular(self):
+        """``(weight, lobe)`` of the specular part for :mod:`ibl_ref.rendering.unoccluded_reference`."""
+        raise NotImplementedError
+
+    def unoccluded_lobes(self) -> dict:
+        """The lobes of the lab's adaptive texel integral (:func:`ibl_ref.rendering.unoccluded_reference.integrate`)
+        that the material has, with their weights.
+
+        Returns
+        -------
+        dict
+            ``"diffuse"``: ``(kd, PhongLobe(1, "normal"))`` if :attr:`has_diffuse` — the lobe average
+            A_1(n) = ∫ L max(n·ω, 0)/π dω; ``"specular"``: ``(weight, lobe)`` if :attr:`has_specular` — Phong:
+            ``(ks, PhongLobe(s, "mirror"))``, the lobe average about r clipped to n's hemisphere; GGX:
+            ``(1.0, GGXSpecularLobe(roughness, f0, smith))``, f_s(ω, v)(n·ω)⁺ with the Fresnel term in the lobe.
+        """
+        ur = _unoccluded_reference()
+        out = {"diffuse": (self.kd, ur.PhongLobe(1.0, "normal"))} if self.has_diffuse else {}
+        if self.has_specular:
+            out["specular"] = self._unoccluded_specular()
+        return out
+
+    def unoccluded_lobe(self):
+        """The one lobe of a material that has at most one (not both a diffuse and a specular part), unweighted:
+        the specular lobe of :meth:`unoccluded_lobes` if it has one, else the diffuse lobe (also for a black Phong
+        material, kd = ks = 0).  One-line :class:`IBLError` for a material with two lobes."""
+        if self.has_diffuse and self.has_specular:
+            raise IBLError(f"a {self.kind} material with both a diffuse and a specular part has two lobes, not one: "
+                           f"{self.params()}")
+        ur = _unoccluded_reference()
+        return self.unoccluded_lobes().get("specular", (None, ur.PhongLobe(1.0, "normal")))[1]
+
+
 @dataclass(frozen=True)
-class PhongMaterial:
-    """``kd·A_1(n) + ks·A_s(r)`` (module docstring); ``kd, ks ≥ 0``, ``g ∈ [0, 1]`` (g = 1: the mirror)."""
+class PhongMaterial(BaseMaterial):
+    """``kd·A_1(n) + ks·A_s(r)`` (module docstring); ``kd, ks ≥ 0``, ``g ∈ [0, 1]`` (g = 1: the mirror).
+
+    Examples
+    --------
+    >>> from ibl_ref.rendering.materials import PhongMaterial
+    >>> m = PhongMaterial(kd=0.5, ks=0.0, g=0.0)
+    >>> m.has_diffuse, m.has_specular, m.diffuse_only, m.ggx_roughness
+    (True, False, True, None)
+    >>> PhongMaterial(0.0, 1.0, 0.75).s, PhongMaterial(0.0, 1.0, 0.75).params()
+    (4.0, {'kind': 'phong', 'kd': 0.0, 'ks': 1.0, 'g': 0.75})
+    """
 
     kd: float = 0.0
     ks: float = 1.0
@@ -280,15 +394,25 @@ class PhongMaterial:
 
     @property
     def mirror(self) -> bool:
+        """g = 1: the glossy lobe is one ray along r."""
         return self.g == 1.0
+
+    @property
+    def has_specular(self) -> bool:
+        """ks > 0."""
+        return self.ks > 0
+
+    def _unoccluded_specular(self):
+        ur = _unoccluded_reference()
+        return self.ks, ur.PhongLobe(self.s, "mirror")
 
     def lobes(self):
         """[(weight, lobe)]: the diffuse lobe (s = 1 about n) and the glossy lobe (s about r); ``None`` for the
         glossy lobe of the mirror (g = 1: one ray along r)."""
         out = []
-        if self.kd > 0:
+        if self.has_diffuse:
             out.append((self.kd, PhongLobe(1.0, "normal")))
-        if self.ks > 0:
+        if self.has_specular:
             out.append((self.ks, None if self.mirror else PhongLobe(self.s, "mirror")))
         return out
 
@@ -302,8 +426,18 @@ class PhongMaterial:
 
 
 @dataclass(frozen=True)
-class GGXMaterial:
-    """``kd/π + GGX`` (module docstring); roughness ∈ (0, 1], f0 ∈ [0, 1], kd ≥ 0, smith ∈ :data:`SMITH_FORMS`."""
+class GGXMaterial(BaseMaterial):
+    """``kd/π + GGX`` (module docstring); roughness ∈ (0, 1], f0 ∈ [0, 1], kd ≥ 0, smith ∈ :data:`SMITH_FORMS`.
+
+    Examples
+    --------
+    >>> from ibl_ref.rendering.materials import GGXMaterial
+    >>> m = GGXMaterial(roughness=0.3, kd=0.2)
+    >>> m.has_diffuse, m.has_specular, m.diffuse_only, m.ggx_roughness
+    (True, True, False, 0.3)
+    >>> m.with_fresnel(1.0).params()
+    {'kind': 'ggx', 'roughness': 0.3, 'f0': 1.0, 'kd': 0.2, 'smith': 'height_correlated'}
+    """
 
     roughness: float = 0.5
     f0: float = 0.04
@@ -321,9 +455,27 @@ class GGXMaterial:
     def alpha(self) -> float:
         return float(ggx_alpha(self.roughness))
 
+    @property
+    def has_specular(self) -> bool:
+        """Always: the GGX term (its directional albedo is > 0 for every f0, Smith's B term)."""
+        return True
+
+    @property
+    def ggx_roughness(self) -> float:
+        """The roughness r."""
+        return self.roughness
+
+    def with_fresnel(self, f0: float) -> GGXMaterial:
+        """This material with Fresnel F0 = ``f0`` (checked)."""
+        return replace(self, f0=f0)
+
+    def _unoccluded_specular(self):
+        ur = _unoccluded_reference()
+        return 1.0, ur.GGXSpecularLobe(self.roughness, self.f0, self.smith)
+
     def lobes(self):
         """[(weight, lobe)]: the Lambertian lobe (s = 1 about n, weight kd) and the GGX term (weight 1)."""
-        out = [(self.kd, PhongLobe(1.0, "normal"))] if self.kd > 0 else []
+        out = [(self.kd, PhongLobe(1.0, "normal"))] if self.has_diffuse else []
         return out + [(1.0, GGXLobe(self.roughness, self.f0, self.smith))]
 
     def brdf(self, wi, wo, n):
@@ -336,17 +488,12 @@ class GGXMaterial:
                     smith=self.smith)
 
 
-def material_dict(m) -> dict:
-    """JSON-ready description of a material (``kind`` and its parameters)."""
-    return as_material(m).describe()
-
-
 def as_material(m, where: str = "material"):
     """A :class:`PhongMaterial` or :class:`GGXMaterial` from any accepted form: one of them; a ``(kd, ks, g)``
     triple; a dict with ``kind`` (``"phong"`` / ``"ggx"``) and the parameters; an object with scalar ``kd``,
     ``ks``, ``g`` attributes and no g map (:class:`ibl_ref.rendering.render.Material`); or a
     :func:`parse_material` string."""
-    if isinstance(m, (PhongMaterial, GGXMaterial)):
+    if isinstance(m, BaseMaterial):
         return m
     try:
         if isinstance(m, str):
