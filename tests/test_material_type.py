@@ -13,6 +13,8 @@ import json
 import pytest
 
 from ibl_ref.errors import IBLError
+from ibl_ref.experiments import method_zoo as mz
+from ibl_ref.experiments import occlusion_zoo as oz
 from ibl_ref.rendering import materials as mt
 from ibl_ref.rendering import method_shading as ms
 from ibl_ref.rendering import unoccluded_reference as ur
@@ -51,6 +53,8 @@ def test_phong_with_both_lobes_and_the_black_and_mirror_edges():
     assert black.unoccluded_lobes() == {} and black.unoccluded_lobe() == DIFFUSE_LOBE
     mirror = mt.PhongMaterial(kd=0.0, ks=1.0, g=1.0)
     assert mirror.mirror and mirror.has_specular
+    with pytest.raises(IBLError, match=r"g must be in \[0, 1\)"):  # no prefilter has the mirror
+        ms.shading_material(mirror)
 
 
 def test_ggx_always_has_a_specular_part():
@@ -97,5 +101,17 @@ def test_every_old_shape_gives_the_same_instance(want, forms):
     for form in forms:
         got = mt.as_material(form)
         assert type(got) is type(want) and got == want and hash(got) == hash(want), form
+        assert ms.shading_material(form) == want
     assert mt.as_material(want) is want and isinstance(want, mt.BaseMaterial)
 
+
+def test_the_zoos_registries_hold_materials_in_their_old_json_form():
+    assert all(isinstance(m, mt.BaseMaterial) for m in (*mz.MATERIALS.values(), *oz.MATERIALS.values()))
+    assert list(mz.MATERIALS) == ["diffuse", "ggx0.1", "ggx0.3", "ggx0.6", "phong1", "phong16", "phong256"]
+    assert mz.material("ggx0.1", 1.0).params() == {"kind": "ggx", "roughness": 0.1, "f0": 1.0, "kd": 0.0,
+                                                   "smith": "height_correlated"}
+    assert mz.material("phong16", 1.0).params() == {"kind": "phong", "kd": 0.0, "ks": 1.0, "g": 0.9375}
+    assert mz.material("diffuse", 1.0).params() == {"kind": "phong", "kd": 1.0, "ks": 0.0, "g": 0.0}
+    assert oz.material("dielectric0.3").params() == {"kind": "ggx", "roughness": 0.3, "f0": 0.04,
+                                                     "kd": oz.DIELECTRIC_KD, "smith": "height_correlated"}
+    assert oz.material("metal0.6") == mt.GGXMaterial(0.6, 1.0, 0.0)

@@ -133,7 +133,7 @@ def test_bad_materials_and_parameters_are_one_line_errors():
                     ({"kind": "phong", "g": 1.0}, "g"), ({"kind": "phong", "kd": -1}, "kd"),
                     ({"kind": "lambert"}, "kind")):
         with pytest.raises(IBLError) as e:
-            ms.material_params(m)
+            ms.shading_material(m)
         assert word.lower() in _one_line(e).lower()
     cube = se.env_constant(4)
     for call, word in ((lambda: ms.build_method(cube, ms.MethodSpec("split-sum-is", {"samples": 0})), "N >= 1"),

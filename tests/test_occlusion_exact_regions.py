@@ -114,13 +114,13 @@ def _per_texel_terms(name, px, cube):
     per-pixel error of the per-texel terms (P, T) in radiance units, before the radiance)."""
     mat = oz.material(name)
     P = len(px["n"])
-    if mat["kind"] == "phong":
+    if mat.diffuse_only:
         G = np.clip(px["n"] @ _texel_first_moments(N).T / np.pi, 0.0, None)  # texels below the horizon: 0
-        return mat, float(mat["kd"]), G, None, np.zeros((P, T))
-    lobe = ur.GGXSpecularLobe(mat["roughness"], mat["f0"], mat["smith"])
+        return mat, mat.kd, G, None, np.zeros((P, T))
+    lobe = ur.GGXSpecularLobe(mat.roughness, mat.f0, mat.smith)
     s4 = _texel_lobe_integrals(lobe, N, px["n"], px["v"], 4)
     s8 = _texel_lobe_integrals(lobe, N, px["n"], px["v"], 8)
-    assert mat["kd"] == 0.0
+    assert mat.kd == 0.0
     return mat, 0.0, None, s8, np.abs(s8 - s4)
 
 
@@ -133,7 +133,7 @@ def _shade_regions(px, mat, kd, G, S, L, onehot, vis):
     A1 = Dr.sum(axis=1)
     terms = UnoccludedTerms(kd=kd, diffuse=A1 if G is not None else None, specular=Sr.sum(axis=1),
                             diffuse_regions=Dr if G is not None else None, specular_regions=Sr)
-    rough = float(mat.get("roughness", 1.0))
+    rough = 1.0 if mat.ggx_roughness is None else mat.ggx_roughness
     inp = OcclusionInputs(normal=px["n"], view=px["v"], roughness=rough, region_visibility=vis)
     img = shade(get("regions-exact")(inp), terms)
     per_region = (kd * Dr + Sr).mean(axis=2)  # c_pr, channel mean

@@ -33,6 +33,7 @@ from ibl_ref.occlusion import (
     occlusion_image,
 )
 from ibl_ref.occlusion.image import check_request
+from ibl_ref.rendering.materials import PhongMaterial
 from ibl_ref.rendering.scenes import occlusion_scene
 from ibl_ref.synthetic.synthetic_envs import make_env
 
@@ -112,7 +113,8 @@ def test_requests_a_method_cannot_serve_are_refused():
         check_request("prt-5", "ggx:0.3", "screen-space")
     with pytest.raises(OcclusionRequestError, match="Phong glossy lobe"):
         check_request("gtso-exact-alpha", (0.0, 1.0, 0.8))
-    assert check_request("horizon-k1.3", (0.0, 1.0, 0.8))[1][None]["ks"] == 1.0  # reads no roughness: served
+    # reads no roughness: served, as the one material type
+    assert check_request("horizon-k1.3", (0.0, 1.0, 0.8))[1][None] == PhongMaterial(0.0, 1.0, 0.8)
     with pytest.raises(OcclusionRequestError, match="material 1"):
         check_request("ao-both", {0: "ggx:0.3", 1: (0.5, 0.5, 1.0)})  # the mirror has no finite Phong lobe
 

@@ -66,10 +66,11 @@ from ..prefilter.karis2013 import build_dfg_table
 from ..progress import track
 from ..rendering import method_budget as mb
 from ..rendering import method_shading as ms
-from ..rendering import unoccluded_reference as ur
+from ..rendering.materials import GGXMaterial
+from ..rendering.materials import PhongMaterial
 from ..rendering.method_budget import STEPS
 from ..rendering.method_shading import MethodSpec
-from ..rendering.method_shading import material_params
+from ..rendering.method_shading import shading_material
 from ..rendering.raster import prepare_scene
 from ..rendering.raster import rasterize
 from ..rendering.scenes import default_camera
@@ -95,17 +96,14 @@ ENVS = ("sky_sun",) + PROBES
 SCENES = ("sphere", "teapot")
 
 
-def _ggx(r):
-    return {"kind": "ggx", "roughness": r, "kd": 0.0, "smith": "height_correlated"}
-
-
 def _phong(s):
-    return {"kind": "phong", "kd": 0.0, "ks": 1.0, "g": 1.0 - 1.0 / s}
+    return PhongMaterial(kd=0.0, ks=1.0, g=1.0 - 1.0 / s)
 
 
-#: material name → parameters (GGX F0 from the ``ggx_f0`` setting)
-MATERIALS = {"diffuse": {"kind": "phong", "kd": 1.0, "ks": 0.0, "g": 0.0}, "ggx0.1": _ggx(0.1), "ggx0.3": _ggx(0.3),
-             "ggx0.6": _ggx(0.6), "phong1": _phong(1.0), "phong16": _phong(16.0), "phong256": _phong(256.0)}
+#: material name → material (GGX F0 from the ``ggx_f0`` setting, :func:`material`)
+MATERIALS = {"diffuse": PhongMaterial(kd=1.0, ks=0.0, g=0.0),
+             **{f"ggx{r}": GGXMaterial(roughness=r, kd=0.0) for r in (0.1, 0.3, 0.6)},
+             **{f"phong{s:g}": _phong(s) for s in (1.0, 16.0, 256.0)}}
 
 #: method label → (registry name, parameters, visibility)
 METHODS = {
@@ -200,15 +198,13 @@ def environment(name: str, n: int, folder: str = ""):
     return load_cube(path, size=n), None
 
 
-def material(name: str, f0: float) -> dict:
-    """The parameters of :data:`MATERIALS` entry ``name`` (GGX with F0 = ``f0``), checked."""
+def material(name: str, f0: float):
+    """The material of :data:`MATERIALS` entry ``name`` with Fresnel F0 = ``f0`` where it has one (GGX), checked
+    (:func:`ibl_ref.rendering.method_shading.shading_material`)."""
 
     if name not in MATERIALS:
         raise IBLError(f"unknown material {name!r}; choose from {', '.join(MATERIALS)}")
-    m = dict(MATERIALS[name])
-    if m["kind"] == "ggx":
-        m["f0"] = f0
-    return material_params(m)
+    return shading_material(MATERIALS[name].with_fresnel(f0))
 
 
 def method_spec(label: str, n_lights: int, cmft: str):
@@ -220,15 +216,6 @@ def method_spec(label: str, n_lights: int, cmft: str):
     if name == "cmft" and cmft:
         params["binary"] = cmft
     return MethodSpec(name, params, vis, int(n_lights), label=label)
-
-
-def _reference_lobe(m):
-
-    if m["kind"] == "ggx":
-        return ur.GGXSpecularLobe(m["roughness"], m["f0"], m["smith"])
-    if m["ks"] == 0:
-        return ur.PhongLobe(1.0, "normal")
-    return ur.PhongLobe(1.0 / (1.0 - m["g"]), "mirror", clip=True)
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -271,7 +258,7 @@ def _references(job, px, cube, mats):
     for name in track(list(mats), f"{job['scene']}/{job['env']}: references", unit="material"):
         m = mats[name]
         t0 = time.perf_counter()
-        ex = integrate(cube, _reference_lobe(m), px["n"], px["v"], rtol=job["rtol"])
+        ex = integrate(cube, m.unoccluded_lobe(), px["n"], px["v"], rtol=job["rtol"])
         exact = np.where(front, ex.value, 0.0)
         info = dict(exact_err_rel_l1=ex.info["err_rel_l1"], exact_cells_per_pixel=ex.info["cells_per_pixel"],
                     exact_converged=ex.info["converged"], exact_time_s=time.perf_counter() - t0)
@@ -300,14 +287,14 @@ def _case(job: dict) -> dict:
     px = _pixels(job["scene"], job["size"] if job["scene"] == "sphere" else job["teapot_size"])
     mats = {name: material(name, job["ggx_f0"]) for name in job["materials"]}
     refs = _references(job, px, cube, mats)
-    if any(m["kind"] == "ggx" for m in mats.values()):
+    if any(ms.serves("ggx", m) for m in mats.values()):
         build_dfg_table(64)  # once, before timing, for every GGX method that carries it (an engine ships its table)
     rows, brows, karis, skipped, images, checks = [], [], [], {}, {}, []
     occluded = job["scene"] == "teapot"
     vis_kw = dict(scene=px["sc"], points=px["P"], face_normals=px["fn"], vsm_resolution=job["vsm_resolution"])
     caches = {name: {} for name in mats}
     for name in mats:
-        caches[name][_reference_lobe(mats[name])] = refs[name][1]
+        caches[name][mats[name].unoccluded_lobe()] = refs[name][1]
 
     for label in track(list(job["methods"]), f"{job['scene']}/{job['env']}: methods", unit="method"):
         spec = method_spec(label, job["n_lights"], job["cmft"])
@@ -364,7 +351,7 @@ def _case(job: dict) -> dict:
         for q in brows:
             if q["material"] == name and q["step"] in ("split_sum", "n_v_r"):
                 st.setdefault(q["step"], q)
-        if m["kind"] == "ggx" and "split_sum" in st:
+        if "split_sum" in st:  # (only the walks of the split-sum methods, which shade the GGX materials, have it)
             a, b = st["split_sum"], st["n_v_r"]
             karis.append(dict(scene=job["scene"], env=job["env"], material=name,
                               split_sum_rel_l1_frac=a["rel_l1_increment_frac"],
@@ -445,7 +432,7 @@ def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **p
     write_npz(out_dir / "method_zoo_images.npz", arrays)
     checks = [dict(scene=c["scene"], env=c["env"], **q) for c in done for q in c["checks"]]
     meta = dict(settings=st, scenes_run=scenes, skipped=skipped, cmft=cmft or None,
-                probe_dir=str(probe_dir(st["probe_dir"])), materials={k: material(k, st["ggx_f0"]) for k in
+                probe_dir=str(probe_dir(st["probe_dir"])), materials={k: material(k, st["ggx_f0"]).params() for k in
                                                                        st["materials"]},
                 methods={k: dict(prefilter=METHODS[k][0], params=METHODS[k][1], visibility=METHODS[k][2])
                          for k in st["methods"]},

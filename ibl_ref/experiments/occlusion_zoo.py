@@ -59,6 +59,7 @@ from ..executors import map_jobs
 from ..figures import plain_log_ticks, pyplot, save_figure
 from ..occlusion.image import DEFAULT_GTAO_RADIUS, INPUT_KINDS, SH_ORDER
 from ..progress import track
+from ..rendering.materials import GGXMaterial, PhongMaterial
 from . import params_from_settings, power_of_two, settings_with
 from .method_zoo import ENVS as _ZOO_ENVS
 from .method_zoo import P99_FLOOR, _metrics, plot_image_rows, probe_dir
@@ -86,14 +87,10 @@ DIFFUSE_KD = 0.8
 DIELECTRIC_KD = 0.5
 
 
-def _ggx(r, f0, kd):
-    return {"kind": "ggx", "roughness": r, "f0": f0, "kd": kd, "smith": "height_correlated"}
-
-
-#: material name → parameters
-MATERIALS = {"diffuse": {"kind": "phong", "kd": DIFFUSE_KD, "ks": 0.0, "g": 0.0},
-             **{f"metal{r}": _ggx(r, 1.0, 0.0) for r in (0.1, 0.3, 0.6)},
-             **{f"dielectric{r}": _ggx(r, 0.04, DIELECTRIC_KD) for r in (0.1, 0.3, 0.6)}}
+#: material name → material
+MATERIALS = {"diffuse": PhongMaterial(kd=DIFFUSE_KD, ks=0.0, g=0.0),
+             **{f"metal{r}": GGXMaterial(roughness=r, f0=1.0, kd=0.0) for r in (0.1, 0.3, 0.6)},
+             **{f"dielectric{r}": GGXMaterial(roughness=r, f0=0.04, kd=DIELECTRIC_KD) for r in (0.1, 0.3, 0.6)}}
 
 #: (method a, method b, what the choice is): the engines' disagreements the table settles
 DISAGREEMENTS = (
@@ -156,12 +153,11 @@ PARAMS = params_from_settings(settings, {
 # materials, methods and their inputs
 # ------------------------------------------------------------------------------------------------------------------
 def material(name: str):
-    """The checked parameters of :data:`MATERIALS` entry ``name``."""
-    from ..rendering.method_shading import material_params
+    """The material of :data:`MATERIALS` entry ``name`` (a ``PhongMaterial`` or ``GGXMaterial``)."""
 
     if name not in MATERIALS:
         raise IBLError(f"unknown material {name!r}; choose from {', '.join(MATERIALS)}")
-    return material_params(MATERIALS[name])
+    return MATERIALS[name]
 
 
 def method_labels(methods, n_regions) -> list:
@@ -419,7 +415,8 @@ def run(out_dir: Path, quick: bool = False, executor=None, workers: int = 1, **p
 
     meta = dict(settings=st, scenes_run=list(dict.fromkeys(c["scene"] for c in cases)),
                 skipped={k: v for c in cases for k, v in c["skipped"].items()},
-                probe_dir=str(probe_dir(st["probe_dir"])), materials={k: material(k) for k in st["materials"]},
+                probe_dir=str(probe_dir(st["probe_dir"])),
+                materials={k: material(k).params() for k in st["materials"]},
                 methods={name: dict(needs=list(get(name).needs), params=dict(get(name).params), citation=get(name).citation,
                                     inputs=list(input_kinds(get(name), st["shadow_filters"])))
                          for name in st["methods"]},

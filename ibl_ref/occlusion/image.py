@@ -71,7 +71,6 @@ __all__ = [
     "apply_method",
     "check_request",
     "input_kinds",
-    "material_lobes",
     "method_inputs",
     "occlusion_image",
     "scene_pixels",
@@ -206,20 +205,20 @@ def _method(method) -> OcclusionMethod:
         raise OcclusionRequestError(str(exc)) from None
 
 
-def _served(meth: OcclusionMethod, material, where: str) -> dict:
-    """The checked parameters (:func:`ibl_ref.rendering.method_shading.material_params`) of a material ``meth``
-    can shade, or a one-line :class:`OcclusionRequestError`."""
-    from ..rendering.method_shading import material_params
+def _served(meth: OcclusionMethod, material, where: str):
+    """The material (:func:`ibl_ref.rendering.method_shading.shading_material`: a ``PhongMaterial`` or
+    ``GGXMaterial``, checked) if ``meth`` can shade it, or a one-line :class:`OcclusionRequestError`."""
+    from ..rendering.method_shading import shading_material
 
     who = f"occlusion method {meth.name!r}"
     try:
-        m = material_params(material)
+        m = shading_material(material)
     except IBLError as exc:  # (as_material names its argument "material": the caller's name is ``where``)
         raise OcclusionRequestError(f"{who} cannot shade {where}: {str(exc).removeprefix('material: ')}") from None
-    if m["kind"] == "phong" and m["ks"] > 0 and meth.reads_roughness:
+    if m.has_specular and m.ggx_roughness is None and meth.reads_roughness:  # a Phong glossy lobe
         free = ", ".join(n for n, x in OCCLUSION_METHODS.items() if not x.reads_roughness)
         raise OcclusionRequestError(
-            f"{who} cannot shade {where}, a Phong glossy lobe (ks = {m['ks']:g}, g = {m['g']:g}): its specular "
+            f"{who} cannot shade {where}, a Phong glossy lobe (ks = {m.ks:g}, g = {m.g:g}): its specular "
             f"formula reads the GGX roughness, which a Phong lobe does not have; use a GGX material (ggx:ROUGHNESS) "
             f"or a method that reads no roughness ({free})")
     return m
@@ -246,7 +245,9 @@ def check_request(method, material, inputs: str = "oracle", *, params=None, wher
     -------
     method : OcclusionMethod
     materials : dict
-        ``{None: params}`` for one material, ``{material_id: params}`` for a mapping, ``{}`` for None.
+        ``{None: material}`` for one material, ``{material_id: material}`` for a mapping (each a checked
+        :class:`~ibl_ref.rendering.materials.PhongMaterial` or :class:`~ibl_ref.rendering.materials.GGXMaterial`),
+        ``{}`` for None.
 
     Raises
     ------
@@ -347,21 +348,6 @@ def stack_regions(cube, labels, R: int) -> np.ndarray:
     return out.reshape(cube.shape[:3] + (R * C,))
 
 
-def material_lobes(m: dict):
-    """``(kd, diffuse lobe or None, specular weight or None, specular lobe or None)`` of checked material
-    parameters (:func:`check_request`): the lobes of :mod:`ibl_ref.rendering.unoccluded_reference` the reference
-    renderer integrates.  GGX: the clamped-cosine lobe where kd > 0 and the GGX term (weight None: Fresnel is in
-    the lobe); Phong: the clamped cosine about n, and the lobe s = 1/(1 − g) about r weighted by ks where ks > 0."""
-    from ..conventions import phong_exponent
-    from ..rendering import unoccluded_reference as ur
-
-    if m["kind"] == "ggx":
-        return m["kd"], (ur.PhongLobe(1.0, "normal") if m["kd"] > 0 else None), None, ur.GGXSpecularLobe(
-            m["roughness"], m["f0"], m["smith"])
-    glossy = ur.PhongLobe(float(phong_exponent(m["g"])), "mirror") if m["ks"] > 0 else None
-    return m["kd"], ur.PhongLobe(1.0, "normal"), (m["ks"] if glossy is not None else None), glossy
-
-
 def _integral(cube, lobe, pixels: ScenePixels, front, rtol):
     from ..rendering.unoccluded_reference import integrate
 
@@ -372,15 +358,16 @@ def _integral(cube, lobe, pixels: ScenePixels, front, rtol):
     return np.where(front, ex.value, 0.0), float(ex.info["err_rel_l1"])
 
 
-def unoccluded_terms(cube, m: dict, pixels: ScenePixels, rtol: float, region_sets=None, cache=None,
+def unoccluded_terms(cube, m, pixels: ScenePixels, rtol: float, region_sets=None, cache=None,
                      errors=None) -> dict:
-    """The exact unoccluded terms of material ``m`` (:func:`check_request`'s parameters) at ``pixels``.
+    """The exact unoccluded terms of material ``m`` at ``pixels``: the integrals of its lobes
+    (:meth:`~ibl_ref.rendering.materials.BaseMaterial.unoccluded_lobes`), the specular one weighted.
 
     Parameters
     ----------
     cube : (6, N, N, C) radiance
-    m : dict
-        Checked material parameters.
+    m : PhongMaterial or GGXMaterial
+        A checked material (:func:`check_request`).
     pixels : ScenePixels
     rtol : float
         Target of each integral's estimated error (:func:`ibl_ref.rendering.unoccluded_reference.integrate`).
@@ -396,7 +383,9 @@ def unoccluded_terms(cube, m: dict, pixels: ScenePixels, rtol: float, region_set
     dict
         ``{None: UnoccludedTerms, key: UnoccludedTerms with the region terms (P, R, C)}``.
     """
-    kd, dl, ks, sl = material_lobes(m)
+    lobes = m.unoccluded_lobes()
+    kd, dl = m.kd, lobes["diffuse"][1] if m.has_diffuse else None
+    ks, sl = lobes.get("specular", (None, None))
     cache = {} if cache is None else cache
     region_sets = region_sets or {}
     front = pixels.front
@@ -430,11 +419,12 @@ def unoccluded_terms(cube, m: dict, pixels: ScenePixels, rtol: float, region_set
     return out
 
 
-def shading_inputs(pixels: ScenePixels, m: dict, channels: int) -> dict:
-    """The fields of :class:`~ibl_ref.occlusion.interface.OcclusionInputs` every method gets: n, v, the roughness
-    (the material's r; 1 for Phong), n_g and the albedo min(kd, 1) per channel."""
-    rough = float(m.get("roughness", 1.0))
-    albedo = np.full(channels, min(float(m["kd"]), 1.0))
+def shading_inputs(pixels: ScenePixels, m, channels: int) -> dict:
+    """The fields of :class:`~ibl_ref.occlusion.interface.OcclusionInputs` every method gets for material ``m``
+    (a checked ``PhongMaterial`` or ``GGXMaterial``): n, v, the roughness (its GGX roughness; 1 for Phong, which
+    has none), n_g and the albedo min(kd, 1) per channel."""
+    rough = 1.0 if m.ggx_roughness is None else m.ggx_roughness
+    albedo = np.full(channels, min(m.kd, 1.0))
     return {"normal": pixels.normal, "view": pixels.view, "roughness": rough, "geo_normal": pixels.face_normal,
             "albedo": albedo}
 
@@ -479,7 +469,7 @@ def _region_labels(cube, regions, variant):
 
 
 def _groups(pixels: ScenePixels, mats: dict):
-    """``[(rows or None, material id or None, parameters)]``: every covered pixel's material."""
+    """``[(rows or None, material id or None, material)]``: every covered pixel's material."""
     if None in mats:
         return [(None, None, mats[None])]
     present = [int(i) for i in np.unique(pixels.material_id)]
@@ -626,7 +616,7 @@ def occlusion_image(meshes, camera, cube, material, method, *, inputs: str = "or
     info = {"method": {"name": meth.name, "params": dict(meth.params, **params), "reads": list(needed),
                        "reads_roughness": meth.reads_roughness, "citation": meth.citation, "summary": meth.summary},
             "inputs": inputs, "input_info": input_info,
-            "materials": {("all" if mid is None else str(mid)): m for _rows, mid, m in groups},
+            "materials": {("all" if mid is None else str(mid)): m.params() for _rows, mid, m in groups},
             "regions": region_info, "rtol": float(rtol), "terms_err_rel_l1_max": max(errors.values(), default=0.0),
             "n_pixels": px.n_pixels}
     timings = {"inputs_s": t_inputs, "terms_s": t_terms, "method_s": t_method,

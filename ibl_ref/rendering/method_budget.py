@@ -92,10 +92,10 @@ def budget_walk(built, material, cube, normals, views, *, reference=None, refere
     """
 
     spec = built.spec
-    m = ms.material_params(material)
+    m = ms.shading_material(material)
     if not ms.serves(spec.lobe, m):
-        raise ms.MethodNotApplicable(f"method {spec.label!r} does not shade a {m['kind']} material")
-    if (m["kind"] == "ggx" and m["kd"] > 0) or (m["kind"] == "phong" and m["kd"] > 0 and m["ks"] > 0):
+        raise ms.MethodNotApplicable(f"method {spec.label!r} does not shade a {m.kind} material")
+    if m.has_diffuse and m.has_specular:
         raise IBLError("the method budget takes one lobe at a time: a GGX material with kd = 0, or a Phong material "
                        "with either kd = 0 or ks = 0")
     a = np.asarray(cube, dtype=np.float64)
@@ -110,12 +110,7 @@ def budget_walk(built, material, cube, normals, views, *, reference=None, refere
     def add(step, img):
         walk.append((step, np.where(front, np.asarray(img, dtype=np.float64), 0.0)))
 
-    if m["kind"] == "ggx":
-        ref_lobe = ur.GGXSpecularLobe(m["roughness"], m["f0"], m["smith"])
-    elif m["ks"] == 0:
-        ref_lobe = ur.PhongLobe(1.0, "normal")
-    else:
-        ref_lobe = ur.PhongLobe(float(1.0 / (1.0 - m["g"])), "mirror", clip=True)
+    ref_lobe = m.unoccluded_lobe()
     if exact_unoccluded is None:
         exact_unoccluded = _exact(a, ref_lobe, n, v, rtol, cache=cache)
     exact_unoccluded = np.where(front, exact_unoccluded, 0.0)
@@ -126,8 +121,8 @@ def budget_walk(built, material, cube, normals, views, *, reference=None, refere
         add("visibility", reference_unoccluded)
         add("integrator", exact_unoccluded)
     vis = spec.visibility == "vsm" and scene is not None
-    if m["kind"] == "ggx":
-        rough, f0 = m["roughness"], m["f0"]
+    if spec.lobe == "ggx":  # the split-sum methods' steps (they shade the GGX materials)
+        rough, f0 = m.roughness, m.f0
         dfg_exact = ms.dfg_weight(None, nv, rough, f0)
         dfg_tab = ms.dfg_weight(built.prefilter.dfg, nv, rough, f0)
         add("split_sum", _exact(a, ur.SplitSumLobe(rough), n, v, rtol, scale, cache) * dfg_exact)
@@ -144,7 +139,7 @@ def budget_walk(built, material, cube, normals, views, *, reference=None, refere
             add("prefilter", pf.lookup(r, rough) * dfg_exact)
         add("dfg_table", ms.shade_method(built, m, n, v) if not vis else pf.lookup(r, rough) * dfg_tab)
     else:
-        if m["ks"] > 0:
+        if m.has_specular:
             add("lobe_hemisphere", _exact(a, ur.PhongLobe(ref_lobe.s, "mirror", clip=False), n, v, rtol, scale, cache))
         add("prefilter", ms.shade_method(ms.BuiltMethod(ms.MethodSpec(spec.prefilter, spec.params, "none",
                                                                       label=spec.label), built.prefilter,

@@ -26,7 +26,8 @@ One-sided, as the reference: pixels with n·v ≤ 0 are black.  A method that do
 :class:`MethodNotApplicable` (the experiment's table marks the cell n/a).
 
 Materials are those of the exact renderers (:mod:`ibl_ref.rendering.materials`: ``GGXMaterial(roughness, f0, kd,
-smith)``, ``PhongMaterial(kd, ks, g)``, or their dicts and text forms; :func:`material_params`).
+smith)``, ``PhongMaterial(kd, ks, g)``); the functions here also take their tuple, dict and text forms, turned into
+one by :func:`shading_material`.
 """
 
 from __future__ import annotations
@@ -44,12 +45,13 @@ from ..prefilter.karis2013 import split_sum
 from ..prefilter.registry import build_prefilter
 from ..prefilter.registry import build_region_prefilters
 from ..prefilter.registry import get_method
+from .materials import BaseMaterial
 from .materials import as_material
 from .render import eq5_lookups
 from .render import light_visibilities
 from .render import shade_eq5
 
-__all__ = ["MethodSpec", "BuiltMethod", "MethodNotApplicable", "VISIBILITIES", "material_params", "serves",
+__all__ = ["MethodSpec", "BuiltMethod", "MethodNotApplicable", "VISIBILITIES", "shading_material", "serves",
            "build_method", "shade_method", "dfg_weight", "method_nbytes"]
 
 #: visibility models of a method (module docstring)
@@ -60,17 +62,17 @@ class MethodNotApplicable(IBLError):
     """The method does not shade this material kind."""
 
 
-def material_params(material) -> dict:
-    """``{"kind", ...}`` of a material: anything :func:`ibl_ref.rendering.materials.as_material` accepts (a
-    :class:`~ibl_ref.rendering.materials.GGXMaterial` or :class:`~ibl_ref.rendering.materials.PhongMaterial`, a
-    dict with ``kind``, ``"ggx:0.3"``, …), its parameters checked there (roughness in (0, 1], F0 in [0, 1], kd,
-    ks ≥ 0, the Smith form); Phong materials here need g < 1 (a finite exponent; the mirror is no prefilter's)."""
+def shading_material(material) -> BaseMaterial:
+    """The :class:`~ibl_ref.rendering.materials.GGXMaterial` or :class:`~ibl_ref.rendering.materials.PhongMaterial`
+    of anything :func:`ibl_ref.rendering.materials.as_material` accepts (one of them, a dict with ``kind``,
+    ``"ggx:0.3"``, ``(kd, ks, g)``, …), its parameters checked there (roughness in (0, 1], F0 in [0, 1], kd, ks ≥ 0,
+    the Smith form); not a mirror (a Phong material needs g < 1 here: a finite exponent; the mirror is no
+    prefilter's)."""
 
-    d = as_material(material).describe()
-    d.pop("alpha", None)
-    if d["kind"] == "phong" and not d["g"] < 1.0:
-        raise IBLError(f"g must be in [0, 1) (a finite Phong exponent s = 1/(1 - g)), got {d['g']!r}")
-    return d
+    m = as_material(material)
+    if m.mirror:
+        raise IBLError(f"g must be in [0, 1) (a finite Phong exponent s = 1/(1 - g)), got {m.g!r}")
+    return m
 
 
 @dataclass(frozen=True)
@@ -106,13 +108,12 @@ class MethodSpec:
 
 
 def serves(lobe: str, material) -> bool:
-    """Whether a method of lobe family ``lobe`` shades ``material`` (module docstring)."""
-    m = material_params(material)
-    if lobe == "ggx":
-        return m["kind"] == "ggx"
-    if lobe == "phong":
-        return m["kind"] == "phong"
-    return m["kind"] == "phong" and m["ks"] == 0.0  # cosine: irradiance only
+    """Whether a method of lobe family ``lobe`` shades ``material`` (module docstring): a GGX or Phong method the
+    materials of its own kind, an irradiance method (``"cosine"``) the diffuse-only materials."""
+    m = shading_material(material)
+    if lobe in ("ggx", "phong"):
+        return m.kind == lobe
+    return m.diffuse_only
 
 
 @dataclass
@@ -180,9 +181,9 @@ def shade_method(built: BuiltMethod, material, normals, views, *, scene=None, po
     this material kind."""
 
     spec = built.spec
-    m = material_params(material)
+    m = shading_material(material)
     if not serves(spec.lobe, m):
-        raise MethodNotApplicable(f"method {spec.label!r} ({spec.lobe} lobes) does not shade a {m['kind']} material"
+        raise MethodNotApplicable(f"method {spec.label!r} ({spec.lobe} lobes) does not shade a {m.kind} material"
                                   + (" with ks > 0" if spec.lobe == "cosine" else ""))
     t0 = time.perf_counter()
     n = unit_directions(np.asarray(normals, dtype=np.float64).reshape(-1, 3), "normals")
@@ -194,22 +195,20 @@ def shade_method(built: BuiltMethod, material, normals, views, *, scene=None, po
     P = len(n)
     out = np.zeros((P, C))
     if spec.lobe == "cosine":
-        out = m["kd"] * built.prefilter.lookup(n, 1.0)
+        out = m.kd * built.prefilter.lookup(n, 1.0)
     elif spec.visibility == "vsm":
         out = _shade_eq5(built, m, n, v, nv, r, scene, points, face_normals, vsm_resolution, vsm_dtype,
                          vsm_kw or {})
     elif spec.lobe == "phong":
-        from ..conventions import phong_exponent
-
-        if m["kd"] > 0:
-            out = out + m["kd"] * built.prefilter.lookup(n, 1.0)
-        if m["ks"] > 0:
-            out = out + m["ks"] * built.prefilter.lookup(r, float(phong_exponent(m["g"])))
+        if m.has_diffuse:
+            out = out + m.kd * built.prefilter.lookup(n, 1.0)
+        if m.has_specular:
+            out = out + m.ks * built.prefilter.lookup(r, m.s)
     else:  # GGX through the split sum
-        w = dfg_weight(built.prefilter.dfg, nv, m["roughness"], m["f0"])
-        out = out + w * built.prefilter.lookup(r, m["roughness"])
-        if m["kd"] > 0:
-            out = out + m["kd"] * _diffuse(built).lookup(n, 1.0)
+        w = dfg_weight(built.prefilter.dfg, nv, m.roughness, m.f0)
+        out = out + w * built.prefilter.lookup(r, m.roughness)
+        if m.has_diffuse:
+            out = out + m.kd * _diffuse(built).lookup(n, 1.0)
     out = np.where(front[:, None], out, 0.0)
     if not np.all(np.isfinite(out)):
         raise IBLError(f"method {spec.label!r} produced non-finite radiance")
@@ -225,16 +224,18 @@ def _diffuse(built):
 
 
 def _shade_eq5(built, m, n, v, nv, r, scene, points, face_normals, vsm_resolution, vsm_dtype, vsm_kw):
-    """Eq. 5 through the PEMs: Σ_i VIS_i (kd·PEM_i(n, 0) + w_s·PEM_i(r, g)) (module docstring)."""
+    """Eq. 5 through the PEMs: Σ_i VIS_i (kd·PEM_i(n, 0) + w_s·PEM_i(r, g)) (module docstring).  The weights are
+    the method's: a Phong method reads the material's own ks and g, a GGX method (through a Phong prefilter) its
+    DFG weight and its roughness → exponent mapping (a method serves only materials of its kind, :func:`serves`)."""
 
     pems = built.regions
     P = len(n)
-    if m["kind"] == "phong":
-        kd, ks, g = m["kd"], m["ks"], np.full(P, m["g"])
+    kd = m.kd
+    if built.spec.lobe == "phong":
+        ks, g = m.ks, np.full(P, m.g)
     else:
-        s = built.prefilter.exponent(m["roughness"])
-        kd = m["kd"]
-        ks = dfg_weight(built.prefilter.dfg, nv, m["roughness"], m["f0"])
+        s = built.prefilter.exponent(m.roughness)
+        ks = dfg_weight(built.prefilter.dfg, nv, m.roughness, m.f0)
         g = np.full(P, 1.0 - 1.0 / float(s))
     pem_n, pem_r = eq5_lookups(pems, n, r, g, kd, ks)
     if scene is None:
