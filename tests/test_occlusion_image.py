@@ -142,6 +142,21 @@ def test_cli_oracle_inputs_write_the_image_and_its_inputs(tmp_path, capsys):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_cli_reports_each_step_of_a_long_render(tmp_path, capsys, monkeypatch):
+    # progress lines (not a bar: stderr is captured): the inputs, then the unoccluded integrals of each material
+    monkeypatch.setenv("IBL_REF_PROGRESS", "lines")
+    rc = main(["render", "--occlusion", "ao-diffuse", "--synthetic", "constant", "--material", "0.8,0,0",
+               "--ground-material", "0.5,0,0", *[a for a in TINY if a != "--no-progress"],
+               "--out", str(tmp_path / "o.npz")])
+    err = capsys.readouterr().err
+    assert rc == 0, err
+    lines = [ln for ln in err.splitlines() if ln.startswith(("oracle inputs", "unoccluded integrals"))]
+    assert lines[0].startswith("oracle inputs (") and lines[0].endswith("…")
+    assert any(ln.startswith("oracle inputs") and ": done in" in ln for ln in lines)
+    for k in (1, 2):
+        assert any(ln.startswith(f"unoccluded integrals, material {k} of 2 (phong") for ln in lines), lines
+
+
 def test_cli_screen_space_inputs_write_an_exr(tmp_path, capsys):
     out = tmp_path / "s.exr"
     rc = main(["render", "--occlusion", "lagarde2014-alpha", "--occlusion-inputs", "screen-space", "--material",

@@ -416,7 +416,8 @@ def _render_occlusion(args, run, meshes, cam, cube, info):
     occ = run.occlusion
     res = occlusion_image(meshes, cam, cube, occ["materials"], occ["method"], inputs=occ["inputs"],
                           regions=args.lights, median_cut_variant=args.median_cut, rtol=occ["rtol"],
-                          n_face=occ["n_face"], n_sets=occ["n_sets"], seed=args.seed, gtao_radius=occ["gtao_radius"])
+                          n_face=occ["n_face"], n_sets=occ["n_sets"], seed=args.seed, gtao_radius=occ["gtao_radius"],
+                          progress=True)
     info["occlusion"] = dict(res.info, timings_s={k: round(v, 3) for k, v in res.timings.items()})
     extra = {"unoccluded": res.unoccluded}
     extra.update({f"input_{k}": (v if k == "env_sh" else res.input_image(k)) for k, v in res.inputs.items()})

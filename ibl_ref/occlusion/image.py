@@ -298,8 +298,9 @@ def scene_pixels(meshes, camera) -> ScenePixels:
 
 
 def trace_oracle_inputs(pixels: ScenePixels, *, n_face: int = 16, n_sets: int = 2, seed: int = 0,
-                        sh_order: int | None = SH_ORDER, cache_dir=None):
-    """Exact inputs from one stratified ray-cast visibility set (:mod:`ibl_ref.occlusion.oracle_inputs`).
+                        sh_order: int | None = SH_ORDER, cache_dir=None, progress: bool = False):
+    """Exact inputs from one stratified ray-cast visibility set (:mod:`ibl_ref.occlusion.oracle_inputs`); with
+    ``progress`` the trace reports its chunks (:func:`ibl_ref.progress.track`).
 
     Returns
     -------
@@ -316,7 +317,7 @@ def trace_oracle_inputs(pixels: ScenePixels, *, n_face: int = 16, n_sets: int = 
     t0 = time.perf_counter()
     kw = {} if cache_dir is None else {"cache_dir": cache_dir}
     vs = oi.trace_visibility(pixels.scene, pixels.position, pixels.normal, pixels.face_normal, n_face=n_face,
-                             n_sets=n_sets, seed=seed, **kw)
+                             n_sets=n_sets, seed=seed, progress=progress, **kw)
     ao, ao_err = oi.ambient_occlusion(vs)
     bent, bent_err = oi.bent_normal(vs)
     fields = {"ao": ao, "bent_normal": bent}
@@ -489,7 +490,7 @@ def _take(x, rows):
 def occlusion_image(meshes, camera, cube, material, method, *, inputs: str = "oracle", params=None, regions=6,
                     median_cut_variant: str = "per-face", rtol: float | None = None, n_face: int = 16,
                     n_sets: int = 2, seed: int = 0, gtao_radius: float = DEFAULT_GTAO_RADIUS,
-                    cache_dir=None) -> OcclusionImage:
+                    cache_dir=None, progress: bool = False) -> OcclusionImage:
     """Render the image of one occlusion method (module docstring: the route).
 
     Parameters
@@ -521,6 +522,9 @@ def occlusion_image(meshes, camera, cube, material, method, *, inputs: str = "or
         Screen-space inputs: GTAO's search radius in world units.
     cache_dir : path, optional
         Cache of the traced visibility (:func:`~ibl_ref.occlusion.oracle_inputs.trace_visibility`).
+    progress : bool
+        Report each step (:func:`ibl_ref.progress.step`: the inputs, the median cut, the unoccluded integrals of
+        each material) and the trace's chunks; the command line's ``render --occlusion`` turns it on.
 
     Returns
     -------
@@ -534,6 +538,7 @@ def occlusion_image(meshes, camera, cube, material, method, *, inputs: str = "or
         Bad settings, radiance, meshes (:class:`~ibl_ref.errors.MeshError`) or camera; a view that covers no pixel.
     """
     from ..environment.validated import as_environment
+    from ..progress import step
     from ..rendering.reference_converged import DEFAULT_RTOL
 
     t_start = time.perf_counter()
@@ -561,12 +566,14 @@ def occlusion_image(meshes, camera, cube, material, method, *, inputs: str = "or
     order = max(SH_ORDER, int(dict(meth.params, **params).get("order") or 0))
     env_sh, region_vis, region_info, region_sets = None, None, None, {}
     if inputs == "oracle":
-        vs, source, input_info = trace_oracle_inputs(px, n_face=n_face, n_sets=n_sets, seed=seed,
-                                                     sh_order=order if "sh_transfer" in needed else None,
-                                                     cache_dir=cache_dir)
+        with step(f"oracle inputs ({px.n_pixels} pixels x {6 * n_face ** 2 * n_sets} rays)", enabled=progress):
+            vs, source, input_info = trace_oracle_inputs(px, n_face=n_face, n_sets=n_sets, seed=seed,
+                                                         sh_order=order if "sh_transfer" in needed else None,
+                                                         cache_dir=cache_dir, progress=progress)
         input_info.update(n_face=n_face, n_sets=n_sets, seed=seed)
     else:
-        source, input_info = screen_space_inputs(px, radius=gtao_radius)
+        with step(f"screen-space inputs (GTAO, {px.n_pixels} pixels)", enabled=progress):
+            source, input_info = screen_space_inputs(px, radius=gtao_radius)
         input_info.update(radius=float(gtao_radius))
     if "env_sh" in needed:
         from ..groundtruth.sh_basis import sh_project
@@ -577,8 +584,9 @@ def occlusion_image(meshes, camera, cube, material, method, *, inputs: str = "or
         from . import oracle_inputs as oi
 
         t0 = time.perf_counter()
-        labels, R, region_info = _region_labels(cube, regions, median_cut_variant)
-        region_sets = {R: (R, stack_regions(cube, labels, R))}
+        with step("median-cut regions and their stacked maps", enabled=progress):
+            labels, R, region_info = _region_labels(cube, regions, median_cut_variant)
+            region_sets = {R: (R, stack_regions(cube, labels, R))}
         t1 = time.perf_counter()
         region_vis = oi.region_visibility(vs, cube, labels)[0]
         t_inputs += time.perf_counter() - t1
@@ -591,10 +599,12 @@ def occlusion_image(meshes, camera, cube, material, method, *, inputs: str = "or
     image, unocc = np.zeros(px.mask.shape + (C,)), np.zeros(px.mask.shape + (C,))
     flat, flat_un = np.zeros((px.n_pixels, C)), np.zeros((px.n_pixels, C))
     fed, errors, t_method = {}, {}, 0.0
-    for rows, _mid, m in groups:
+    for k, (rows, _mid, m) in enumerate(groups):
         sub = px.subset(rows)
         t0 = time.perf_counter()
-        terms = unoccluded_terms(cube, m, sub, rtol, region_sets, {}, errors)
+        with step(f"unoccluded integrals, material {k + 1} of {len(groups)} ({m.kind}, {sub.n_pixels} pixels)",
+                  enabled=progress):
+            terms = unoccluded_terms(cube, m, sub, rtol, region_sets, {}, errors)
         t_terms += time.perf_counter() - t0
         common = shading_inputs(sub, m, C)
         inp = method_inputs(meth, common, _take(source, rows), env_sh=env_sh, params=params,
