@@ -68,7 +68,7 @@ def test_crevice_pit_bottom_is_occluded():
 
 
 def test_registry_and_cameras():
-    assert set(OCCLUSION_SCENES) == {"teapot", "crevice", "bumpy"}
+    assert set(OCCLUSION_SCENES) == {"teapot", "crevice", "bumpy", "normal-mapped"}
     _, camera = occlusion_scene("crevice", depth=0.8)
     cam = camera(20)
     assert (cam.width, cam.height) == (20, 20) and cam.target.tolist() == [0.0, -0.4, 0.0]

@@ -5,7 +5,11 @@ The route (one implementation: the occlusion zoo, :mod:`ibl_ref.experiments.occl
 functions, and ``ibl-ref render --occlusion METHOD`` calls :func:`occlusion_image`):
 
 1. :func:`scene_pixels` — rasterize the scene (:func:`ibl_ref.rendering.raster.rasterize`): per covered pixel the
-   shading normal n, the direction toward the viewer v, the position and the geometric normal n_g;
+   shading normal n, the direction toward the viewer v, the position and the geometric normal n_g; a mesh carrying a
+   normal map (``mesh.metadata["normal_map"]``, :mod:`ibl_ref.rendering.normal_map`) has its n perturbed there, in
+   the G-buffer itself, so that every later step — the exact reference, the oracle inputs and GTAO's cosine weighting
+   (the normal a deferred engine's G-buffer stores) — sees the mapped n, while positions, depth and n_g stay those of
+   the geometry (GTAO's horizons come from that depth);
 2. :func:`unoccluded_terms` — the exact unoccluded (V ≡ 1) terms of the material
    (:class:`~ibl_ref.occlusion.interface.UnoccludedTerms`): the diffuse lobe average A_1(n) = ∫ L max(n·ω, 0)/π dω
    and the specular term S — GGX ``f_s(ω, v)(n·ω)⁺`` (Karis 2013's α = r², Fresnel F0, the Smith form of the
@@ -116,7 +120,8 @@ class ScenePixels:
     mask : ndarray (H, W) of bool
         The covered pixels.
     normal, view, position, face_normal : ndarray (P, 3)
-        Shading normal n, unit direction toward the viewer v, world position, geometric normal n_g.
+        Shading normal n (normal-mapped where the mesh carries a map), unit direction toward the viewer v, world
+        position, geometric normal n_g.
     material_id : ndarray (P,) of int
     """
 
@@ -286,11 +291,14 @@ def _is_mapping(material) -> bool:
 # the steps
 # ------------------------------------------------------------------------------------------------------------------
 def scene_pixels(meshes, camera) -> ScenePixels:
-    """Rasterize ``meshes`` (anything :func:`ibl_ref.rendering.raster.prepare_scene` accepts) with ``camera``."""
+    """Rasterize ``meshes`` (anything :func:`ibl_ref.rendering.raster.prepare_scene` accepts) with ``camera``, the
+    shading normals of meshes that carry a normal map perturbed by it
+    (:func:`ibl_ref.rendering.normal_map.apply_normal_maps`; ``gbuffer`` holds the perturbed normals)."""
+    from ..rendering.normal_map import apply_normal_maps
     from ..rendering.raster import prepare_scene, rasterize
 
     sc = prepare_scene(meshes, warn=False)
-    gb = rasterize(sc, camera)
+    gb = apply_normal_maps(meshes, sc, rasterize(sc, camera))
     m = gb.mask
     return ScenePixels(meshes=meshes, scene=sc, camera=camera, gbuffer=gb, mask=m, normal=gb.normal[m],
                        view=gb.view[m], position=gb.position[m], face_normal=gb.face_normal[m],

@@ -18,6 +18,10 @@ Scenes with strong self-occlusion (the cases screen-space ambient occlusion is j
   merging coincident vertices gives a watertight mesh of positive volume.
 * :func:`bumpy_scene` — a ground quad (open, one-sided, normal +y) with a seeded, non-overlapping arrangement of
   small icospheres sunk to various depths: many small occluders and contact creases.
+* :func:`normal_mapped_scene` — a flat ground quad carrying a seeded procedural normal map
+  (:mod:`ibl_ref.rendering.normal_map`): the shading normals tilt away from the geometric one, the geometry does
+  not, so the only occluder is the surface's own geometric horizon — the case horizon occlusion was made for
+  (Marmoset 2014).
 * :data:`OCCLUSION_SCENES` names them (and the teapot); :func:`occlusion_scene` gives a scene with its camera
   factory, :func:`scene_camera` the view of each (the teapot: :func:`default_camera` framing the teapot alone).
 """
@@ -32,8 +36,8 @@ from .camera import as_vec3
 from .raster import mesh_list, prepare_scene
 
 __all__ = ["ground_quad", "teapot_on_ground", "default_camera", "DEFAULT_VIEW_DIR", "DEFAULT_DISTANCE",
-           "DEFAULT_FOV_Y_DEG", "crevice_scene", "bumpy_scene", "scene_camera", "occlusion_scene",
-           "OCCLUSION_SCENES"]
+           "DEFAULT_FOV_Y_DEG", "crevice_scene", "bumpy_scene", "normal_mapped_scene", "scene_camera",
+           "occlusion_scene", "OCCLUSION_SCENES"]
 
 DEFAULT_VIEW_DIR = (0.3, 0.5, 1.0)
 DEFAULT_DISTANCE = 2.6
@@ -135,6 +139,15 @@ def _mesh_from_panels(panels, metadata=None):
     mesh = trimesh.Trimesh(verts, faces, process=False)
     mesh.metadata.update(metadata or {})
     return mesh
+
+
+def _square_ground(size: float):
+    """The square quad y = 0 of side ``size`` centred at the origin: 2 triangles, normal +y."""
+    import trimesh
+
+    s = size / 2
+    return trimesh.Trimesh([[-s, 0.0, -s], [s, 0.0, -s], [s, 0.0, s], [-s, 0.0, s]], [[0, 2, 1], [0, 3, 2]],
+                           process=False)
 
 
 def crevice_scene(depth: float = 0.5, width: float = 0.5, length: float = 1.0, slab: float = 2.5) -> list:
@@ -266,14 +279,71 @@ def bumpy_scene(n_bumps: int = 40, seed: int = 0, size: float = 2.0, radii=(0.06
     sphere_mesh = trimesh.Trimesh(verts, faces, process=False)
     sphere_mesh.vertex_normals = np.tile(radial, (len(bumps), 1))
     sphere_mesh.metadata["bumps"] = bumps
-    s = size / 2
-    ground = trimesh.Trimesh([[-s, 0.0, -s], [s, 0.0, -s], [s, 0.0, s], [-s, 0.0, s]], [[0, 2, 1], [0, 3, 2]],
-                             process=False)
-    return [validate_mesh(ground, "ground"), validate_mesh(sphere_mesh, "bumps")]
+    return [validate_mesh(_square_ground(size), "ground"), validate_mesh(sphere_mesh, "bumps")]
+
+
+def normal_mapped_scene(max_tilt_deg: float = 45.0, n_waves: int = 3, wavelengths=(0.3, 0.8), seed: int = 0,
+                        size: float = 4.0) -> list:
+    """A flat square ground quad whose shading normals a seeded procedural normal map tilts (module docstring).
+
+    Horizon occlusion (Marmoset 2014, "Horizon Occlusion for Normal Mapped Reflections";
+    :mod:`ibl_ref.occlusion.horizon_occlusion`) exists for normal-mapped surfaces: the shading normal n leans away
+    from the geometric normal n_g, and the mirror direction R = 2(n·v)n − v can dip below the geometric horizon,
+    where the surface itself hides the environment.  Here nothing else occludes: the quad is flat and alone, so every
+    bit of occlusion is the surface's own half-space below its plane (blocked by the ray caster,
+    :class:`ibl_ref.rendering.raycast.ShadowRays`), seen through a tilted lobe.
+
+    Parameters
+    ----------
+    max_tilt_deg : float
+        Largest tilt of the mapped normal from n_g = +y, in [0, 90) degrees; never exceeded
+        (:func:`ibl_ref.rendering.normal_map.procedural_normal_map`).  0: the plain quad's normals, bit for bit.
+    n_waves : int
+        Plane waves of the height field, in [1, 64].
+    wavelengths : (float, float)
+        Range of their wavelengths (world units), 0 < lo ≤ hi.
+    seed : int
+        Seed of the waves' directions, wavelengths and phases.
+    size : float
+        Side of the quad (y = 0, centred at the origin).
+
+    Returns
+    -------
+    list of trimesh.Trimesh
+        ``[ground]``: 2 triangles, one-sided, normal +y; ``metadata["normal_map"]`` holds the
+        :class:`~ibl_ref.rendering.normal_map.NormalMap` on the plane y = 0 with tangent frame t = +x, b = −z,
+        n_0 = +y.  The map reaches the pixels where the occlusion pipeline rasterizes a scene
+        (:func:`ibl_ref.occlusion.image.scene_pixels`); a plain :func:`ibl_ref.rendering.raster.rasterize` ignores it.
+
+    Raises
+    ------
+    IBLError
+        A parameter out of range (one line naming it).
+
+    Examples
+    --------
+    >>> from ibl_ref.rendering.scenes import normal_mapped_scene
+    >>> (ground,) = normal_mapped_scene(max_tilt_deg=40.0, seed=2)
+    >>> len(ground.faces), ground.face_normals[0].tolist(), ground.metadata["normal_map"].max_tilt_deg
+    (2, [0.0, 1.0, 0.0], 40.0)
+    >>> normal_mapped_scene(size=-1.0)
+    Traceback (most recent call last):
+    ...
+    ibl_ref.errors.IBLError: size: must be a positive finite number, got -1.0
+    """
+    from ..synthetic.synthetic_meshes import _pos_param, validate_mesh
+    from .normal_map import METADATA_KEY, procedural_normal_map
+
+    size = _pos_param(size, "size")
+    nm = procedural_normal_map(max_tilt_deg, n_waves, wavelengths, seed)
+    ground = _square_ground(size)
+    ground.metadata[METADATA_KEY] = nm
+    return [validate_mesh(ground, "normal-mapped ground")]
 
 
 #: View of each occlusion scene: (view direction from the target to the eye, eye distance in bounding radii).
-_SCENE_VIEWS = {"crevice": ((0.25, 1.0, 0.55), 1.1), "bumpy": ((0.0, 1.0, 0.9), 1.9)}
+_SCENE_VIEWS = {"crevice": ((0.25, 1.0, 0.55), 1.1), "bumpy": ((0.0, 1.0, 0.9), 1.9),
+                "normal-mapped": ((0.0, 0.5, 1.0), 0.7)}
 
 
 def scene_camera(name: str, size: int = 64, meshes=None):
@@ -293,7 +363,10 @@ def scene_camera(name: str, size: int = 64, meshes=None):
         in ``ibl-ref experiment method-zoo``).  ``crevice``: looking into the pit from above and in front
         (view direction (0.25, 1, 0.55), target the centre of the pit's mid-depth, eye 1.1 bounding radii away), so
         that its floor, back wall and a side wall are in view.  ``bumpy``: from above at ~42° off the vertical
-        (view direction (0, 1, 0.9)), 1.9 bounding radii away, the ground filling the image.  Vertical fov 40°.
+        (view direction (0, 1, 0.9)), 1.9 bounding radii away, the ground filling the image.  ``normal-mapped``:
+        toward the quad's centre from 27° above it (view direction (0, 0.5, 1)), 0.7 bounding radii away, so that
+        the view elevation runs from about 13° (the far rows, where the quad's edge leaves a strip of background)
+        to 46°: grazing enough for mirror directions to dip below the geometric horizon.  Vertical fov 40°.
 
     Examples
     --------
@@ -327,7 +400,7 @@ def occlusion_scene(name: str, **params):
     Parameters
     ----------
     name : str
-        A key of :data:`OCCLUSION_SCENES`: ``"teapot"``, ``"crevice"`` or ``"bumpy"``.
+        A key of :data:`OCCLUSION_SCENES`: ``"teapot"``, ``"crevice"``, ``"bumpy"`` or ``"normal-mapped"``.
     **params
         Passed to the scene's function (e.g. ``depth=0.8`` for the crevice, ``seed=3`` for the bumps).
 
@@ -354,4 +427,5 @@ def occlusion_scene(name: str, **params):
 
 
 #: The occlusion scenes by name: a function returning the scene's meshes (parameters with defaults).
-OCCLUSION_SCENES = {"teapot": teapot_on_ground, "crevice": crevice_scene, "bumpy": bumpy_scene}
+OCCLUSION_SCENES = {"teapot": teapot_on_ground, "crevice": crevice_scene, "bumpy": bumpy_scene,
+                    "normal-mapped": normal_mapped_scene}
