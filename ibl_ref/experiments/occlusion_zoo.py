@@ -31,7 +31,9 @@ The budget walk of each method: no occlusion → the method with oracle inputs (
 screen-space inputs (the estimator's step); the prefilter step is zero here by construction (exact terms).
 
 Scenes (:data:`ibl_ref.rendering.scenes.OCCLUSION_SCENES`): the teapot on the ground, a crevice and a bumpy
-cluster.  Materials (:data:`MATERIALS`): diffuse (kd = 0.8), metals (GGX, F0 = 1) and dielectrics (GGX, F0 = 0.04,
+cluster; on request (``--scenes normal-mapped``, not in the default list) a flat quad with a procedural normal map
+(:func:`ibl_ref.rendering.scenes.normal_mapped_scene`), whose only occluder is the surface's own geometric horizon:
+the case horizon occlusion was made for.  Materials (:data:`MATERIALS`): diffuse (kd = 0.8), metals (GGX, F0 = 1) and dielectrics (GGX, F0 = 0.04,
 kd = 0.5) at roughness 0.1 / 0.3 / 0.6.  Environments: the synthetic sky with a small sun and the four probes
 (:func:`ibl_ref.experiments.method_zoo.environment`).
 
@@ -81,8 +83,9 @@ ENVS = _ZOO_ENVS + ("uniform",)
 #: the estimated input kind of the per-region methods: shadow maps of the region lights with a filter
 SHADOW_KIND = "shadow-map:"
 #: GTAO's search radius per scene (world units), set to each scene's occluders as an engine would tune it: half the
-#: teapot's height, twice the crevice's depth, about twice the bumps' radius (0.5 for a scene added elsewhere)
-GTAO_RADIUS = {"teapot": 1.5, "crevice": 1.0, "bumpy": 0.3}
+#: teapot's height, twice the crevice's depth, about twice the bumps' radius, and for the normal-mapped quad, whose
+#: only occluder is its own plane (found at any radius), the default (0.5 for a scene added elsewhere too)
+GTAO_RADIUS = {"teapot": 1.5, "crevice": 1.0, "bumpy": 0.3, "normal-mapped": DEFAULT_GTAO_RADIUS}
 DIFFUSE_KD = 0.8
 DIELECTRIC_KD = 0.5
 
@@ -132,7 +135,8 @@ def settings(quick: bool) -> dict:
 
 
 PARAMS = params_from_settings(settings, {
-    "scenes": "scenes: teapot, crevice, bumpy",
+    "scenes": "scenes: teapot, crevice, bumpy, normal-mapped (a flat quad with a normal map; not in the default "
+              "list)",
     "envs": "environments: sky_sun, the probes city, courtyard, forest, studio, and uniform (L = 1)",
     "materials": "materials: " + ", ".join(MATERIALS), "methods": "occlusion methods (ibl_ref.occlusion registry)",
     "n_regions": "region counts of the per-region methods (median cut; the env face size must be a multiple of "
