@@ -150,8 +150,8 @@ def _fibonacci_sphere(N):
 
 
 def test_reference_glossy_lobe_loses_what_dips_below_the_geometric_plane():
-    # Phong s = 10 about r = 2(n·v)n − v, L = 1: the lobe average over ω with [n·ω > 0][n_g·ω > 0], normalised over the
-    # whole sphere (ibl_ref.rendering.materials.PhongLobe), by brute force on 10⁶ equal-area directions
+    # Phong s = 10 about r = 2(n·v)n − v, L = 1: the lobe average over ω with [n·ω > 0][n_g·ω > 0], normalised over
+    # the whole sphere (ibl_ref.rendering.materials.PhongLobe), by brute force on 10⁶ equal-area directions
     px = _pixels(8)
     m = PhongMaterial(kd=0.0, ks=1.0, g=0.9)
     img, unocc, bound = _reference(px, m)

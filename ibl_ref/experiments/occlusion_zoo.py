@@ -33,8 +33,8 @@ screen-space inputs (the estimator's step); the prefilter step is zero here by c
 Scenes (:data:`ibl_ref.rendering.scenes.OCCLUSION_SCENES`): the teapot on the ground, a crevice and a bumpy
 cluster; on request (``--scenes normal-mapped``, not in the default list) a flat quad with a procedural normal map
 (:func:`ibl_ref.rendering.scenes.normal_mapped_scene`), whose only occluder is the surface's own geometric horizon:
-the case horizon occlusion was made for.  Materials (:data:`MATERIALS`): diffuse (kd = 0.8), metals (GGX, F0 = 1) and dielectrics (GGX, F0 = 0.04,
-kd = 0.5) at roughness 0.1 / 0.3 / 0.6.  Environments: the synthetic sky with a small sun and the four probes
+the case horizon occlusion was made for.  Materials (:data:`MATERIALS`): diffuse (kd = 0.8), metals (GGX, F0 = 1)
+and dielectrics (GGX, F0 = 0.04, kd = 0.5) at roughness 0.1 / 0.3 / 0.6.  Environments: the synthetic sky with a small sun and the four probes
 (:func:`ibl_ref.experiments.method_zoo.environment`).
 
 The engines' disagreements (:data:`DISAGREEMENTS`: α vs r in Lagarde's formula and in the GTSO aperture, smoothstep

@@ -239,8 +239,9 @@ def apply_normal_maps(meshes, scene, gbuffer):
     Returns
     -------
     GBuffer
-        ``gbuffer`` itself when no mesh has a map (or only maps of zero amplitude); else a copy whose ``normal`` and ``reflect`` = 2(n·v)n − v differ
-        on the covered pixels of mapped meshes (position, depth, face normal and the rest unchanged).
+        ``gbuffer`` itself when no mesh has a map; else a copy whose ``normal`` and ``reflect`` = 2(n·v)n − v
+        differ on the covered pixels of mapped meshes (position, depth, face normal and the rest unchanged; a map
+        of zero amplitude changes nothing, not even the rounding of n).
     """
     from .raster import mesh_list
 
