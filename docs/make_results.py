@@ -472,6 +472,96 @@ def method_zoo_page(folder: Path) -> dict[str, str]:
     return {**method_zoo_numbers(folder), **out}
 
 
+# ---- method-zoo at engine size --------------------------------------------------------------------------------
+ZOO_256_METHODS = ("split-sum", "split-sum-is-16", "split-sum-is-64", "split-sum-is-256", "split-sum-is-1024",
+                   "split-sum-fis-16", "split-sum-fis-64", "cmgen", "ggx-phong-pem+vsm", "pyramid+vsm", "exact-lobe",
+                   "sh9")
+#: a cell "moved" between 32² and 256² faces when its mean rel. L1 changed by at least this many points and this share
+MOVED_POINTS, MOVED_SHARE = 2.0, 0.2
+
+
+def _zoo_steps(folder: Path, scene: str) -> dict[tuple, float]:
+    """(method, material, step) → mean rel. L1 increment over the environments (fraction)."""
+    acc: dict[tuple, list] = {}
+    for q in read_csv(folder / "method_zoo_budget.csv"):
+        if q["scene"] == scene:
+            acc.setdefault((q["method"], q["material"], q["step"]), []).append(float(q["rel_l1_increment_frac"]))
+    return {k: statistics.fmean(v) for k, v in acc.items()}
+
+
+@numbers("method-zoo-256")
+def method_zoo_256_numbers(folder: Path) -> dict[str, str]:
+    means = zoo_means(folder)
+    small = zoo_means(DATA / "method-zoo")
+    steps = _zoo_steps(folder, "sphere")
+    out = {}
+    for method in ZOO_256_METHODS:
+        for mat in ZOO_MATERIALS:
+            for tag, src in (("256", means), ("32", small)):
+                v = src.get(("sphere", method, mat))
+                out[f"{method}_{mat}_{tag}"] = pct(v[0], 1) if v else "n/a"
+    for mat in ("ggx0.1", "ggx0.3", "ggx0.6"):
+        for method in ("split-sum", "split-sum-is-256", "split-sum-fis-64"):
+            for step in ("split_sum", "n_v_r", "prefilter", "mip", "dfg_table"):
+                v = steps.get((method, mat, step))
+                if v is not None:
+                    out[f"{method}_{mat}_{step}"] = pct(v, 1)
+    karis = read_csv(folder / "method_zoo_karis.csv")
+    out["karis_cases"] = str(len(karis))
+    out["karis_holds"] = str(sum(q["n_v_r_larger"] == "True" for q in karis))
+    # cmgen at 32² is a run of its own (method_zoo_cmgen.csv of the 32² folder)
+    cm32: dict[str, list] = {}
+    for q in read_csv(DATA / "method-zoo" / "method_zoo_cmgen.csv"):
+        if q["applicable"] == "True" and q["method"] == "cmgen" and q["scene"] == "sphere":
+            cm32.setdefault(q["material"], []).append(float(q["rel_l1_frac"]))
+    gaps = []
+    for mat in ("ggx0.1", "ggx0.3", "ggx0.6"):
+        out[f"cmgen_{mat}_32"] = pct(statistics.fmean(cm32[mat]), 1)
+        out[f"cmgen_{mat}_chain"] = pct(steps[("cmgen", mat, "prefilter")], 1)
+        out[f"split-sum_{mat}_chain"] = pct(steps[("split-sum", mat, "prefilter")] + steps[("split-sum", mat, "mip")], 1)
+        gaps.append(abs(means[("sphere", "cmgen", mat)][0] - means[("sphere", "split-sum", mat)][0]))
+    out["cmgen_vs_split_sum"] = f"{100 * max(gaps):.1f}"
+    return out
+
+
+@page("method-zoo-256")
+def method_zoo_256_page(folder: Path) -> dict[str, str]:
+    means = zoo_means(folder)
+    small = zoo_means(DATA / "method-zoo")
+    build: dict[str, list] = {}
+    for q in read_csv(folder / "method_zoo.csv"):
+        if q["applicable"] == "True":
+            build.setdefault(q["method"], []).append(float(q["build_time_s"]))
+    rows, moved = [], []
+    for method in ZOO_256_METHODS:
+        if not any(("sphere", method, mat) in means for mat in ZOO_MATERIALS):
+            continue
+        cells = []
+        for mat in ZOO_MATERIALS:
+            v = means.get(("sphere", method, mat))
+            cells.append(f"{pct(v[0], 1)} % ({pct(v[1], 0)} %)" if v else "n/a")
+            w = small.get(("sphere", method, mat))
+            if v and w and abs(v[0] - w[0]) * 100 >= MOVED_POINTS and abs(v[0] - w[0]) >= MOVED_SHARE * w[0]:
+                moved.append([method, mat, pct(w[0], 1) + " %", pct(v[0], 1) + " %",
+                              signed(f"{100 * (v[0] - w[0]):+.1f}")])
+        mem = statistics.fmean(v[2] for (s, m, _), v in means.items() if s == "sphere" and m == method)
+        rows.append([method] + cells + [f"{statistics.fmean(build[method]):.3g}", mib(mem)])
+    steps = _zoo_steps(folder, "sphere")
+    names = ("split_sum", "n_v_r", "prefilter", "mip", "dfg_table")
+    walk = []
+    for method in ("split-sum", "split-sum-is-16", "split-sum-is-64", "split-sum-is-256", "split-sum-is-1024",
+                   "split-sum-fis-16", "split-sum-fis-64"):
+        for mat in ("ggx0.1", "ggx0.3", "ggx0.6"):
+            if (method, mat, "n_v_r") in steps:
+                walk.append([method, mat] + [pct(steps[(method, mat, k)], 1) + " %" if (method, mat, k) in steps
+                                             else "—" for k in names]
+                            + [pct(means[("sphere", method, mat)][0], 1) + " %"])
+    return {**method_zoo_256_numbers(folder),
+            "sphere_table": md_table(["method", *ZOO_MATERIALS, "build (s)", "memory (MiB)"], rows),
+            "moved_table": md_table(["method", "material", "32² faces", "256² faces", "change (points)"], moved),
+            "walk_table": md_table(["method", "material", *names, "total rel. L1"], walk)}
+
+
 # ---- transcribed runs: tables as printed -------------------------------------------------------------------------
 @page("reference-renderer")
 def reference_renderer_page(folder: Path) -> dict[str, str]:

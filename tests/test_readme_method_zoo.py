@@ -130,3 +130,57 @@ def test_the_cmgen_row_is_its_saved_run_and_that_runs_split_sum_is_the_tables():
         exact = np.mean([float(q["rel_l1_frac"]) for q in ss if q["material"] == mat])
         assert cm[mat] > exact
 
+
+
+# ---- the zoo at engine size (256² faces, sphere): tests/data/readme_runs/method-zoo-256 ----------------------------
+SAVED_256 = ROOT / "tests" / "data" / "readme_runs" / "method-zoo-256"
+
+
+def _means_256():
+    acc = {}
+    for q in read_csv(SAVED_256 / "method_zoo.csv"):
+        if q["applicable"] == "True":
+            assert q["scene"] == "sphere"
+            acc.setdefault((q["method"], q["material"]), []).append(float(q["rel_l1_frac"]))
+    return {k: float(np.mean(v)) for k, v in acc.items()}
+
+
+def test_the_256_run_is_complete_and_its_walks_add_up():
+    rows = read_csv(SAVED_256 / "method_zoo.csv")
+    # 12 methods × 7 materials × 5 environments, each environment read at 256² faces (n_pixels: the 24² sphere)
+    assert len(rows) == 12 * 7 * 5 and {q["env"] for q in rows} == {"sky_sun", "city", "courtyard", "forest", "studio"}
+    assert all(q["n_pixels"] == rows[0]["n_pixels"] for q in rows)
+    # every reference converged to its target (estimated rel. L1 ≤ rtol = 2e-3)
+    assert max(float(q["ref_err_rel_l1_frac"]) for q in rows) <= 2e-3
+    # the increments of each walk add up to its last image's error against the reference (bias exactly, rel. L1 as a
+    # triangle inequality: the sum of the steps' rel. L1 is at least the total)
+    walks = {}
+    for q in read_csv(SAVED_256 / "method_zoo_budget.csv"):
+        walks.setdefault((q["env"], q["material"], q["method"]), []).append(q)
+    assert len(walks) == sum(q["applicable"] == "True" for q in rows)
+    for key, w in walks.items():
+        total = float(w[-1]["bias_vs_ref_frac"])
+        assert abs(sum(float(q["bias_increment_frac"]) for q in w) - total) <= 1e-12 * max(1.0, abs(total)), key
+        assert sum(float(q["rel_l1_increment_frac"]) for q in w) >= float(w[-1]["rel_l1_vs_ref_frac"]) - 1e-12, key
+
+
+def test_readme_256_headline_is_the_saved_run():
+    import re
+
+    row = next(ln for ln in (ROOT / "README.md").read_text().splitlines() if "method-zoo-256.md" in ln)
+    means, small = _means_256(), _saved_means()
+    steps = {}
+    for q in read_csv(SAVED_256 / "method_zoo_budget.csv"):
+        steps.setdefault((q["method"], q["material"], q["step"]), []).append(float(q["rel_l1_increment_frac"]))
+    mip = 100 * float(np.mean(steps[("split-sum", "ggx0.1", "mip")]))
+    m = re.search(r"roughness 0\.1 falls from \*\*([\d.]+) %\*\* \(32²\) to \*\*([\d.]+) %\*\*", row)
+    # 20.0 % is the 32² page's MIP step (docs/results/method-zoo.md), 7.7 % this run's, to their rounding
+    assert m and float(m.group(1)) == 20.0 and abs(mip - float(m.group(2))) <= 0.05 + 1e-9, (mip, row)
+    m = re.search(r"256 samples at roughness 0\.6: ([\d.]+) % → \*\*([\d.]+) %\*\*", row)
+    is32 = 100 * small[("sphere", "split-sum-is-256", "ggx0.6")][0]
+    is256 = 100 * means[("split-sum-is-256", "ggx0.6")]
+    assert m and abs(is32 - float(m.group(1))) <= 0.05 + 1e-9 and abs(is256 - float(m.group(2))) <= 0.05 + 1e-9
+    karis = read_csv(SAVED_256 / "method_zoo_karis.csv")
+    m = re.search(r"holds in \*\*(\d+) of (\d+)\*\* GGX cases", row)
+    assert m and int(m.group(2)) == len(karis) == 15
+    assert int(m.group(1)) == sum(q["n_v_r_larger"] == "True" for q in karis)
