@@ -791,6 +791,39 @@ def _mip_mean(rows, **match) -> float:
     return statistics.fmean(float(q["rel_l1_frac"]) for q in rows if all(q[k] == v for k, v in match.items()))
 
 
+@page("occlusion-zoo-normal-mapped")
+def occlusion_zoo_normal_mapped_page(folder: Path) -> dict[str, str]:
+    rows = [q for q in read_csv(folder / "occlusion_zoo.csv") if q["inputs"] == "oracle"]
+    meta = read_json(folder / "occlusion_zoo_meta.json")
+    st = meta["settings"]
+
+    def q(env, mat, method, col="rel_l1_frac"):
+        (r,) = [r for r in rows if (r["env"], r["material"], r["method"]) == (env, mat, method)]
+        return float(r[col])
+
+    cases = [(e, m) for e in st["envs"] for m in st["materials"]]
+    table = []
+    for env, mat in cases:
+        cells = [f"{pct(q(env, mat, m), 1)} ({signed(pct(q(env, mat, m, 'bias_frac'), 1))})"
+                 for m in ("none", "horizon-k1.1", "horizon-k1.3")]
+        closer = "k = 1.1" if q(env, mat, "horizon-k1.1") < q(env, mat, "horizon-k1.3") else "k = 1.3"
+        table.append([env, mat, *cells, closer, pct(q(env, mat, "horizon-k1.3", "given_back_frac"), 0)])
+    dis = next(r for r in read_csv(folder / "occlusion_zoo_disagreements.csv")
+               if (r["method_a"], r["method_b"], r["inputs"]) == ("horizon-k1.1", "horizon-k1.3", "oracle"))
+    godot = sum(q(e, m, "godot-horizon") == q(e, m, "ao-diffuse") for e, m in cases)
+    return {"table": md_table(["environment", "material", "no occlusion", "horizon-k1.1", "horizon-k1.3", "closer",
+                               "given back by k = 1.3 (%)"], table),
+            "n_pixels": str(meta["n_pixels"]["normal-mapped"]),
+            "k13_closer": f"{dis['b_closer_cases']} of the {dis['n_cases']} cases",
+            "k13_mean": pct(float(dis["mean_rel_l1_b_frac"]), 1), "k11_mean": pct(float(dis["mean_rel_l1_a_frac"]), 1),
+            "none_court_m01": pct(q("courtyard", "metal0.1", "none"), 1),
+            "k13_court_m01": pct(q("courtyard", "metal0.1", "horizon-k1.3"), 1),
+            "none_sky_m06": pct(q("sky_sun", "metal0.6", "none"), 1),
+            "k11_sky_m06": pct(q("sky_sun", "metal0.6", "horizon-k1.1"), 1),
+            "k13_sky_m06": pct(q("sky_sun", "metal0.6", "horizon-k1.3"), 1),
+            "godot_equal": str(godot), "n_cases": str(len(cases))}
+
+
 @page("mip-mappings")
 def mip_mappings_page(folder: Path) -> dict[str, str]:
     rows = [q for q in read_csv(folder / "mip_mappings.csv") if q["kind"] == "grid"]

@@ -23,7 +23,7 @@ from ibl_ref.rendering.raster import prepare_scene, rasterize
 from ibl_ref.rendering.scenes import OCCLUSION_SCENES, normal_mapped_scene, occlusion_scene, scene_camera
 
 ROOT = Path(__file__).resolve().parent.parent
-SAVED = ROOT / "tests" / "data" / "occlusion-zoo-normal-mapped"
+SAVED = ROOT / "tests" / "data" / "readme_runs" / "occlusion-zoo-normal-mapped"
 UP = np.array([0.0, 1.0, 0.0])
 
 
@@ -325,3 +325,23 @@ def test_the_docs_section_quotes_the_saved_run():
         if mat.startswith("metal"):
             for m in ("horizon-k1.1", "horizon-k1.3"):
                 assert q(env, mat, m, kind="screen-space") == q(env, mat, m)
+
+
+def test_the_readme_row_quotes_the_saved_run():
+    from ibl_ref.atomic import read_csv
+
+    row = next(ln for ln in (ROOT / "README.md").read_text(encoding="utf-8").splitlines()
+               if "occlusion-zoo-normal-mapped.md" in ln)
+    rows = read_csv(SAVED / "occlusion_zoo.csv")
+
+    def q(env, mat, method):
+        (r,) = [r for r in rows if (r["env"], r["material"], r["method"], r["inputs"]) == (env, mat, method, "oracle")]
+        return float(r["rel_l1_frac"])
+
+    (dis,) = [r for r in read_csv(SAVED / "occlusion_zoo_disagreements.csv")
+              if (r["method_a"], r["method_b"], r["inputs"]) == ("horizon-k1.1", "horizon-k1.3", "oracle")]
+    assert f"**{dis['b_closer_cases']} of the {dis['n_cases']}** cases" in row
+    assert (f"no occlusion **{_pc(q('courtyard', 'metal0.1', 'none'))} %**, k = 1.3 "
+            f"{_pc(q('courtyard', 'metal0.1', 'horizon-k1.3'))} % on metal 0.1") in row
+    assert (f"({_pc(q('sky_sun', 'metal0.6', 'none'))} % → **{_pc(q('sky_sun', 'metal0.6', 'horizon-k1.3'))} %**)"
+            in row)
