@@ -575,7 +575,18 @@ def reference_renderer_page(folder: Path) -> dict[str, str]:
                       q["finest_cells_per_face"], q["quadrature_M_per_block"], q["est_rel_l1_pct"] + " %",
                       q["p99_pct"] + " %", f"{q['peak_memory_main_MB']} / {q['peak_memory_worker_MB']} MB",
                       q["load_1min"]] for q in read_csv(folder / "cost.csv")])
-    return {"estimate_table": est, "cost_table": cost}
+    eq = read_csv(folder / "equal_error.csv")
+    equal = md_table(["material", "reference wall", "est. rel. L1", "Mitsuba spp", "Mitsuba wall", "Mitsuba noise",
+                      "reference − Mitsuba (rel. L1)", "reference / Mitsuba time"],
+                     [[q["material"], f"{float(q['ref_wall_s']):.1f} s", f"{pct(float(q['ref_est_rel_l1']), 3)} %",
+                       q["mitsuba_spp"], f"{float(q['mitsuba_wall_s']):.1f} s",
+                       f"{pct(float(q['mitsuba_noise_rel_l1']), 3)} %", f"{pct(float(q['ref_vs_mitsuba_rel_l1']), 3)} %",
+                       f"{float(q['ratio_ref_to_mitsuba']):.2f}×"] for q in eq])
+    ratios = [float(q["ratio_ref_to_mitsuba"]) for q in eq]
+    total = sum(float(q["ref_wall_s"]) for q in eq) / sum(float(q["mitsuba_wall_s"]) for q in eq)
+    return {"estimate_table": est, "cost_table": cost, "equal_error_table": equal,
+            "equal_error_total": f"{total:.2f}×", "equal_error_range": f"{min(ratios):.2f}–{max(ratios):.2f}×",
+            "equal_error_slower": str(sum(r > 1.0 for r in ratios)), "equal_error_cases": str(len(ratios))}
 
 
 @page("cross-validate")

@@ -375,3 +375,15 @@ def test_kan_table1_row_is_the_saved_run():
     assert bound * 1e4 <= float(m.group(9)) and _close(float(m.group(9)), bound * 1e4, 1)
     _check(m.group(10), float(rows[32]["time_exact_s"]), "exact 32²")
     _check(m.group(11), float(rows[64]["time_exact_s"]), "exact 64²")
+
+
+def test_equal_error_run_is_consistent():
+    # benchmarks/bench_equal_error.py's saved run (docs/results/reference-renderer.md): every reference converged,
+    # every timed Mitsuba render's noise is the reference's estimated error (the search stops within 15 % on its last
+    # try; the timed repeat, another seed, has its own noise estimate: 20 % allowed), and the ratio is the two times'
+    rows = read_csv(SAVED / "reference-renderer" / "equal_error.csv")
+    assert [q["material"] for q in rows] == ["ggx0.1", "ggx0.3", "ggx0.6", "g0.9"]
+    for q in rows:
+        assert q["ref_converged"] == "True" and float(q["ref_est_rel_l1"]) <= 2e-3
+        assert abs(float(q["mitsuba_noise_rel_l1"]) / float(q["ref_est_rel_l1"]) - 1.0) <= 0.2, q["material"]
+        assert abs(float(q["ratio_ref_to_mitsuba"]) - float(q["ref_wall_s"]) / float(q["mitsuba_wall_s"])) <= 1e-3
