@@ -95,13 +95,13 @@ def test_reads_roughness_declares_what_the_formula_reads():
     fields = {"geo_normal": unit(n + 0.2 * rng.normal(size=(P, 3))), "ao": rng.uniform(0.05, 1.0, P),
               "bent_normal": unit(n + 0.5 * rng.normal(size=(P, 3))), "albedo": np.array([0.2, 0.5, 0.8]),
               "region_visibility": rng.uniform(size=(P, 6)), "sh_transfer": rng.normal(size=(P, 25)),
-              "env_sh": rng.normal(size=(25, 3))}
+              "env_sh": rng.normal(size=(25, 3)), "sh_transfer_matrix": rng.normal(size=(P, 25, 25))}
     for name, meth in OCCLUSION_METHODS.items():
         out = []
         for r in (0.15, 0.7):
             res = meth(OcclusionInputs(normal=n, view=v, roughness=r, **fields))
             out.append([getattr(res, f) for f in ("diffuse_factor", "specular_factor", "region_weights",
-                                                   "diffuse_radiance")])
+                                                   "diffuse_radiance", "specular_radiance")])
         same = all((a is None and b is None) or np.array_equal(a, b) for a, b in zip(*out))
         assert same == (not meth.reads_roughness), name
 

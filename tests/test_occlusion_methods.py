@@ -578,11 +578,12 @@ def _random_inputs(rng, P=64, C=3, R=4, order=5):
     return OcclusionInputs(normal=n, view=v, roughness=0.4, geo_normal=_unit(n + 0.5 * rng.normal(size=(P, 3))),
                            ao=ao, bent_normal=_unit(n + 0.3 * rng.normal(size=(P, 3))),
                            albedo=rng.uniform(size=C), region_visibility=rng.uniform(size=(P, R)),
-                           sh_transfer=rng.normal(size=(P, k)) * 0.1, env_sh=rng.normal(size=(k, C)))
+                           sh_transfer=rng.normal(size=(P, k)) * 0.1, env_sh=rng.normal(size=(k, C)),
+                           sh_transfer_matrix=rng.normal(size=(P, k, k)) * 0.1)
 
 
 def test_registry_entries_are_well_formed_and_callable():
-    assert len(OCCLUSION_METHODS) == 18
+    assert len(OCCLUSION_METHODS) == 20
     rng = np.random.default_rng(9)
     full = _random_inputs(rng)
     for name, m in OCCLUSION_METHODS.items():
@@ -598,8 +599,9 @@ def test_registry_entries_are_well_formed_and_callable():
                     assert f.shape[0] == 64 and np.all(np.isfinite(f)), name
                     # ≤ 1, but for multi-bounce AO's published fit, which reaches 1 + 5e-4 ρ − 4e-4 at V = 1
                     assert np.all(f >= 0.0) and np.all(f <= 1.0 + 1e-4), name
-            if res.diffuse_radiance is not None:
-                assert res.diffuse_radiance.shape == (64, 3) and np.all(np.isfinite(res.diffuse_radiance))
+            for radiance in (res.diffuse_radiance, res.specular_radiance):
+                if radiance is not None:
+                    assert radiance.shape == (64, 3) and np.all(np.isfinite(radiance))
         # every declared input is needed: leaving one out names it
         for field in m.needs:
             with pytest.raises(IBLError, match=f"'{name}' needs the input {field}"):

@@ -202,10 +202,12 @@ def input_kinds(method, shadow_filters=()) -> tuple:
 
 def _nbytes_per_pixel(method, n_regions) -> int:
     """Bytes per pixel of the inputs a method reads beyond the G-buffer, stored as float32 (an engine's layout)."""
-    size = {"ao": 1, "bent_normal": 3, "sh_transfer": 25, "region_visibility": n_regions or 0}
+    size = {"ao": 1, "bent_normal": 3, "sh_transfer": 25, "sh_transfer_matrix": 625,
+            "region_visibility": n_regions or 0}
     sh_order = method.params.get("order")
     if sh_order:
         size["sh_transfer"] = int(sh_order) ** 2
+        size["sh_transfer_matrix"] = int(sh_order) ** 4  # order 5: 625 floats, 2500 bytes
     return 4 * sum(size.get(f, 0) for f in method.needs)
 
 
@@ -251,15 +253,16 @@ def _scene_job(job: dict) -> dict:
     P = px.n_pixels
     if P == 0:
         raise IBLError(f"occlusion-zoo: scene {job['scene']!r} covers no pixel at size {job['size']}")
+    labels = method_labels(job["methods"], job["n_regions"])
+    glossy = any("sh_transfer_matrix" in get(_split_label(label)[0]).needs for label in labels)
     vs, oracle, oinfo = oimg.trace_oracle_inputs(px, n_face=job["n_face"], n_sets=job["n_sets"], seed=0,
-                                                 sh_order=SH_ORDER)
+                                                 sh_order=SH_ORDER, matrix_order=SH_ORDER if glossy else None)
     if float(np.min(oracle["ao"])) >= 1.0 - 1e-12:
         raise IBLError(f"occlusion-zoo: scene {job['scene']!r} has no occluders in view (every pixel's AO is 1): "
                        "the share of the missing visibility a method gives back is undefined")
     screen, sinfo = oimg.screen_space_inputs(
         px, radius=GTAO_RADIUS.get(job["scene"], DEFAULT_GTAO_RADIUS) * job["gtao_radius_scale"])
     input_time = {"oracle": oinfo["trace_time_s"] / P, "screen-space": sinfo["gtao_time_s"] / P}
-    labels = method_labels(job["methods"], job["n_regions"])
     rows, brows, images, refs, skipped = [], [], {}, {}, {}
     for env in job["envs"]:
         cube, why = environment(env, job["env_size"], job["probe_dir"])
@@ -282,7 +285,7 @@ def _scene_job(job: dict) -> dict:
             m = material(mname)
             ref, rinfo = _reference(px, cube, m, job)
             refs[f"{env}/{mname}"] = rinfo
-            terms = oimg.unoccluded_terms(cube, m, px, job["rtol"], region_sets, cache)
+            terms = oimg.unoccluded_terms(cube, m, px, job["rtol"], region_sets, cache, with_specular_weight=glossy)
             common = oimg.shading_inputs(px, m, cube.shape[-1])
             unocc = shade(get("none")(OcclusionInputs(**common)), terms[None])
             missing = _metrics(unocc, ref)["rel_l1_frac"]

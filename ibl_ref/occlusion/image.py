@@ -20,10 +20,10 @@ functions, and ``ibl-ref render --occlusion METHOD`` calls :func:`occlusion_imag
    back-facing pixels (n·v ≤ 0);
 3. the inputs the method declares (:attr:`~ibl_ref.occlusion.interface.OcclusionMethod.needs`), of one kind:
    ``"oracle"`` — exact, from one stratified ray-cast visibility set (:func:`trace_oracle_inputs`,
-   :mod:`ibl_ref.occlusion.oracle_inputs`: cosine-weighted AO, the bent normal, the SH visibility transfer, the
-   per-region visible fractions, each with its standard error), or ``"screen-space"`` — AO and bent normals
-   estimated from the depth buffer by GTAO's horizon search (:func:`screen_space_inputs`, Jimenez et al. 2016), as
-   engines get them; methods that read more than AO and the bent normal have no screen-space form
+   :mod:`ibl_ref.occlusion.oracle_inputs`: cosine-weighted AO, the bent normal, the SH visibility transfer (vector and
+   glossy transfer matrix), the per-region visible fractions, each with its standard error), or ``"screen-space"`` —
+   AO and bent normals estimated from the depth buffer by GTAO's horizon search (:func:`screen_space_inputs`,
+   Jimenez et al. 2016), as engines get them; methods that read more than AO and the bent normal have no screen-space form
    (:func:`input_kinds`);
 4. :func:`method_inputs` and :func:`apply_method` — the method's :class:`~ibl_ref.occlusion.interface.OcclusionResult`
    applied to the terms by :func:`~ibl_ref.occlusion.interface.shade`.
@@ -80,6 +80,7 @@ __all__ = [
     "scene_pixels",
     "screen_space_inputs",
     "shading_inputs",
+    "specular_weight",
     "stack_regions",
     "trace_oracle_inputs",
     "unoccluded_terms",
@@ -306,7 +307,8 @@ def scene_pixels(meshes, camera) -> ScenePixels:
 
 
 def trace_oracle_inputs(pixels: ScenePixels, *, n_face: int = 16, n_sets: int = 2, seed: int = 0,
-                        sh_order: int | None = SH_ORDER, cache_dir=None, progress: bool = False):
+                        sh_order: int | None = SH_ORDER, matrix_order: int | None = None, cache_dir=None,
+                        progress: bool = False):
     """Exact inputs from one stratified ray-cast visibility set (:mod:`ibl_ref.occlusion.oracle_inputs`); with
     ``progress`` the trace reports its chunks (:func:`ibl_ref.progress.track`).
 
@@ -315,7 +317,9 @@ def trace_oracle_inputs(pixels: ScenePixels, *, n_face: int = 16, n_sets: int = 
     samples : :class:`~ibl_ref.occlusion.oracle_inputs.VisibilitySamples`
         The traced bits (for :func:`~ibl_ref.occlusion.oracle_inputs.region_visibility`).
     fields : dict
-        ``ao`` (P,), ``bent_normal`` (P, 3) and, unless ``sh_order`` is None, ``sh_transfer`` (P, sh_order²).
+        ``ao`` (P,), ``bent_normal`` (P, 3), unless ``sh_order`` is None ``sh_transfer`` (P, sh_order²) and,
+        unless ``matrix_order`` is None, ``sh_transfer_matrix`` (P, matrix_order², matrix_order²)
+        (:func:`~ibl_ref.occlusion.oracle_inputs.sh_transfer_matrix`; its leading k² × k² block is that of order k).
     info : dict
         ``trace_time_s`` (the trace and the fields), the AO's mean and largest standard error, the bent normal's
         mean angular error (rad), ``n_rays``.
@@ -331,9 +335,14 @@ def trace_oracle_inputs(pixels: ScenePixels, *, n_face: int = 16, n_sets: int = 
     fields = {"ao": ao, "bent_normal": bent}
     if sh_order is not None:
         fields["sh_transfer"] = oi.sh_transfer(vs, sh_order)[0]
+    info = {}
+    if matrix_order is not None:
+        fields["sh_transfer_matrix"], m_err = oi.sh_transfer_matrix(vs, matrix_order)
+        info = {"sh_transfer_matrix_err_mean": float(np.nanmean(m_err)),
+                "sh_transfer_matrix_err_max": float(np.nanmax(m_err)) if np.isfinite(m_err).any() else float("nan")}
     return vs, fields, {"trace_time_s": time.perf_counter() - t0, "ao_err_mean": float(np.mean(ao_err)),
                         "ao_err_max": float(np.max(ao_err)), "bent_err_mean_rad": float(np.mean(bent_err)),
-                        "n_rays": pixels.n_pixels * 6 * n_face ** 2 * n_sets}
+                        "n_rays": pixels.n_pixels * 6 * n_face ** 2 * n_sets, **info}
 
 
 def screen_space_inputs(pixels: ScenePixels, *, radius: float = DEFAULT_GTAO_RADIUS):
@@ -368,7 +377,7 @@ def _integral(cube, lobe, pixels: ScenePixels, front, rtol):
 
 
 def unoccluded_terms(cube, m, pixels: ScenePixels, rtol: float, region_sets=None, cache=None,
-                     errors=None) -> dict:
+                     errors=None, with_specular_weight: bool = False) -> dict:
     """The exact unoccluded terms of material ``m`` at ``pixels``: the integrals of its lobes
     (:meth:`~ibl_ref.rendering.materials.BaseMaterial.unoccluded_lobes`), the specular one weighted.
 
@@ -386,6 +395,9 @@ def unoccluded_terms(cube, m, pixels: ScenePixels, rtol: float, region_sets=None
         Integrals by (lobe, key), shared by the materials of one (view, environment) that have a lobe in common.
     errors : dict, optional
         Filled with each integral's estimated rel. L1 error, by (lobe, key).
+    with_specular_weight : bool
+        Also fill ``specular_weight`` (:func:`specular_weight`; a quadrature per pixel for GGX), which glossy PRT
+        reads; None otherwise.
 
     Returns
     -------
@@ -417,15 +429,34 @@ def unoccluded_terms(cube, m, pixels: ScenePixels, rtol: float, region_sets=None
         return cache[k] if weight is None else weight * cache[k]
 
     zero = np.zeros((P, C))
+    w_s = specular_weight(m, pixels) if with_specular_weight else None
     out = {None: UnoccludedTerms(kd=kd, diffuse=get_(dl, None), specular=(get_(sl, None, ks) if sl is not None
-                                                                            else zero))}
+                                                                            else zero), specular_weight=w_s)}
     for key, (R, _) in region_sets.items():
         dr = get_(dl, key)
         sr = get_(sl, key, ks) if sl is not None else np.zeros((P, R, C))
         out[key] = UnoccludedTerms(kd=kd, diffuse=out[None].diffuse, specular=out[None].specular,
                                    diffuse_regions=dr if dr is not None else np.zeros((P, R, C)),
-                                   specular_regions=sr)
+                                   specular_regions=sr, specular_weight=w_s)
     return out
+
+
+def specular_weight(m, pixels: ScenePixels) -> np.ndarray:
+    """w_s (P,): the weight of material ``m``'s specular lobe average in its specular term — Phong: ks (0 without a
+    specular part); GGX: the directional albedo F0·A + B by exact quadrature
+    (:func:`ibl_ref.prefilter.karis2013.dfg_terms` with the material's Smith form, 0 where n·v ≤ 0).  Glossy PRT
+    shades w_s·G with it."""
+    if m.ggx_roughness is None:
+        return np.full(pixels.n_pixels, m.ks if m.has_specular else 0.0)
+    from ..prefilter.karis2013 import dfg_terms
+
+    nv = np.minimum(np.einsum("pi,pi->p", pixels.normal, pixels.view), 1.0)
+    w = np.zeros(pixels.n_pixels)
+    up = nv > 0
+    if up.any():
+        A, B = dfg_terms(nv[up], m.ggx_roughness, smith=m.smith)
+        w[up] = m.f0 * np.asarray(A) + np.asarray(B)
+    return w
 
 
 def shading_inputs(pixels: ScenePixels, m, channels: int) -> dict:
@@ -577,6 +608,8 @@ def occlusion_image(meshes, camera, cube, material, method, *, inputs: str = "or
         with step(f"oracle inputs ({px.n_pixels} pixels x {6 * n_face ** 2 * n_sets} rays)", enabled=progress):
             vs, source, input_info = trace_oracle_inputs(px, n_face=n_face, n_sets=n_sets, seed=seed,
                                                          sh_order=order if "sh_transfer" in needed else None,
+                                                         matrix_order=(order if "sh_transfer_matrix" in needed
+                                                                       else None),
                                                          cache_dir=cache_dir, progress=progress)
         input_info.update(n_face=n_face, n_sets=n_sets, seed=seed)
     else:
@@ -612,7 +645,8 @@ def occlusion_image(meshes, camera, cube, material, method, *, inputs: str = "or
         t0 = time.perf_counter()
         with step(f"unoccluded integrals, material {k + 1} of {len(groups)} ({m.kind}, {sub.n_pixels} pixels)",
                   enabled=progress):
-            terms = unoccluded_terms(cube, m, sub, rtol, region_sets, {}, errors)
+            terms = unoccluded_terms(cube, m, sub, rtol, region_sets, {}, errors,
+                                     with_specular_weight="sh_transfer_matrix" in needed)
         t_terms += time.perf_counter() - t0
         common = shading_inputs(sub, m, C)
         inp = method_inputs(meth, common, _take(source, rows), env_sh=env_sh, params=params,

@@ -14,13 +14,14 @@ per-region terms, or a diffuse radiance that replaces the unoccluded one.  Every
 * :class:`UnoccludedTerms` — the unoccluded diffuse and specular terms (V ≡ 1) the result is applied to;
 * :func:`shade` — the shaded radiance ``(P, C)``:
 
-  ======================= ===============================================================
-  result holds            shaded radiance
-  ======================= ===============================================================
-  factors (f_d, f_s)      kd·f_d·A_1 + f_s·S (a ``None`` factor means 1)
-  ``region_weights`` w    Σ_i w_i (kd·A_1,i + S_i) (Knuth et al. 2014, Eq. 5)
-  ``diffuse_radiance`` D  kd·D + f_s·S (PRT: D replaces A_1)
-  ======================= ===============================================================
+  ============================== ===============================================================
+  result holds                   shaded radiance
+  ============================== ===============================================================
+  factors (f_d, f_s)             kd·f_d·A_1 + f_s·S (a ``None`` factor means 1)
+  ``region_weights`` w           Σ_i w_i (kd·A_1,i + S_i) (Knuth et al. 2014, Eq. 5)
+  ``diffuse_radiance`` D         kd·D + f_s·S (PRT: D replaces A_1)
+  D and ``specular_radiance`` G  kd·D + w_s·G (glossy PRT: w_s = ``UnoccludedTerms.specular_weight``)
+  ============================== ===============================================================
 
 Conventions: directions are unit vectors (within 1e-6); the roughness is the perceptual r ∈ [0, 1] and
 α = r² (the convention of :func:`ibl_ref.conventions.ggx_alpha`; r = 0 is accepted here, these formulas have a
@@ -83,6 +84,8 @@ class OcclusionInputs:
         K = order²: T_k = ∫ V(ω) max(n·ω, 0)/π Y_k(ω) dω (the lab's real SH basis).
     env_sh : array (K', C), optional
         SH coefficients of the radiance, L_k = ∫ L Y_k dω.
+    sh_transfer_matrix : array (P, K, K), optional
+        K = order²: M_ij = ∫ V(ω) Y_i(ω) Y_j(ω) dω, V = 0 below the shading horizon (glossy PRT).
     """
 
     normal: np.ndarray
@@ -95,6 +98,7 @@ class OcclusionInputs:
     region_visibility: np.ndarray | None = None
     sh_transfer: np.ndarray | None = None
     env_sh: np.ndarray | None = None
+    sh_transfer_matrix: np.ndarray | None = None
 
 
 #: the optional inputs a method can name in its ``needs`` (every field beyond normal, view and roughness)
@@ -113,12 +117,17 @@ class OcclusionResult:
         Weights of the per-region unoccluded terms (Knuth et al. 2014, Eq. 5).
     diffuse_radiance : array (P, C), optional
         Replaces the unoccluded diffuse lobe average A_1(n) (PRT).
+    specular_radiance : array (P, C), optional
+        The occluded specular lobe average G (the lobe normalised to 1), weighted by
+        ``UnoccludedTerms.specular_weight`` in place of the specular term (glossy PRT; only with
+        ``diffuse_radiance``).
     """
 
     diffuse_factor: np.ndarray | None = None
     specular_factor: np.ndarray | None = None
     region_weights: np.ndarray | None = None
     diffuse_radiance: np.ndarray | None = None
+    specular_radiance: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -136,6 +145,9 @@ class UnoccludedTerms:
     diffuse_regions, specular_regions : array (P, R, C), optional
         The same terms of each region's partial environment (for ``region_weights``); ``diffuse_regions`` may be
         ``None`` only when kd = 0.
+    specular_weight : float or array (P,) or (P, 1), optional
+        w_s, the weight of the specular lobe average in ``specular`` (Phong: ks; GGX: the directional albedo
+        F0·A + B); needed for a result with ``specular_radiance``.
     """
 
     kd: float
@@ -143,6 +155,7 @@ class UnoccludedTerms:
     specular: np.ndarray
     diffuse_regions: np.ndarray | None = None
     specular_regions: np.ndarray | None = None
+    specular_weight: np.ndarray | float | None = None
 
 
 # ----------------------------------------------------------------------------------------------
@@ -287,7 +300,8 @@ def shade(result: OcclusionResult, terms: UnoccludedTerms) -> np.ndarray:
     P, C = S.shape
 
     if result.region_weights is not None:
-        if any(f is not None for f in (result.diffuse_factor, result.specular_factor, result.diffuse_radiance)):
+        if any(f is not None for f in (result.diffuse_factor, result.specular_factor, result.diffuse_radiance,
+                                       result.specular_radiance)):
             raise IBLError("shade: a result with region_weights must hold nothing else (no factors, no diffuse "
                            "radiance)")
         if terms.specular_regions is None or (kd != 0 and terms.diffuse_regions is None):
@@ -299,6 +313,16 @@ def shade(result: OcclusionResult, terms: UnoccludedTerms) -> np.ndarray:
         per_region = Si if kd == 0 else kd * _array(terms.diffuse_regions, "shade: diffuse_regions", 3, (P, R, C)) + Si
         return np.einsum("pr,prc->pc", w, per_region)
 
+    if result.specular_radiance is not None:
+        if result.diffuse_radiance is None or result.specular_factor is not None or result.diffuse_factor is not None:
+            raise IBLError("shade: a result with specular_radiance must hold diffuse_radiance and no factors")
+        if terms.specular_weight is None:
+            raise IBLError("shade: specular_radiance needs UnoccludedTerms.specular_weight")
+        w = np.asarray(terms.specular_weight, dtype=np.float64)
+        w = _factor(w.reshape(-1) if w.ndim else np.full(P, float(w)), "shade: specular_weight", P, C)
+        G = _array(result.specular_radiance, "shade: specular_radiance", 2, (P, C))
+        D = _array(result.diffuse_radiance, "shade: diffuse_radiance", 2, (P, C))
+        return kd * D + w * G
     f_s = _factor(result.specular_factor, "shade: specular_factor", P, C)
     if result.diffuse_radiance is not None:
         if result.diffuse_factor is not None:
@@ -371,6 +395,7 @@ _INPUT_CHECKS = {
     "albedo": _albedo,
     "sh_transfer": lambda x, what, P: _sh_coefficients(_array(x, what, 2, (P, None)), what, 1),
     "env_sh": lambda x, what, P: _sh_coefficients(_array(x, what, 2, (None, None)), what, 0),
+    "sh_transfer_matrix": lambda x, what, P: _sh_coefficients(_array(x, what, 3, (P, None, None)), what, 1),
 }
 
 

@@ -22,6 +22,7 @@ gtso-smoothstep-*    ao / cone–cone SO, smoothstep caps        :mod:`~ibl_ref.
 gtso-exact-*         ao / cone–cone SO, exact caps             :mod:`~ibl_ref.occlusion.jimenez2016`
 filament-gtso        ao / smoothstep SO, x = α, faded          :mod:`~ibl_ref.occlusion.jimenez2016`
 prt-3, prt-5         diffuse radiance T·L / 1                  :mod:`~ibl_ref.occlusion.sloan2002`
+prt-glossy-3, -5     T·L / lobe average of M·L (radiance)      :mod:`~ibl_ref.occlusion.sloan2002_glossy`
 regions-exact        region weights VIS_i                      :mod:`~ibl_ref.occlusion.knuth2014_regions`
 ==================== ======================================== ==================================================
 
@@ -53,6 +54,7 @@ from .jimenez2016 import gtso, multibounce_ao
 from .knuth2014_regions import region_visibility_weights
 from .lagarde2014 import specular_occlusion_from_ao
 from .sloan2002 import prt_diffuse
+from .sloan2002_glossy import prt_glossy
 
 __all__ = ["OCCLUSION_METHODS", "get"]
 
@@ -65,6 +67,18 @@ _MARMOSET = "Marmoset 2014, Horizon Occlusion for Normal Mapped Reflections"
 _CAP_SOURCES = {"smoothstep": "Oat & Sander 2007, Ambient Aperture Lighting",
                 "exact": "Mazonka 2012, arXiv:1205.1396 (exact)"}
 _SLOAN = "Sloan, Kautz & Snyder 2002, Precomputed Radiance Transfer, Sec. 4 (shadowed diffuse transfer)"
+_SLOAN_GLOSSY = ("Sloan, Kautz & Snyder 2002, Precomputed Radiance Transfer, Sec. 4 and 5 (shadowed diffuse and "
+                 "glossy transfer); Kautz, Sloan & Snyder 2002 (arbitrary BRDFs); GGX as the lab's TV-optimal Phong "
+                 "lobe")
+
+
+def _prt_glossy(order: int) -> OcclusionMethod:
+    K = order * order
+    return OcclusionMethod(
+        f"prt-glossy-{order}", ("sh_transfer", "sh_transfer_matrix", "env_sh"), prt_glossy, {"order": order},
+        _SLOAN_GLOSSY,
+        f"diffuse radiance = {K}-coefficient transfer · environment SH; specular = Phong lobe (GGX → Phong "
+        f"exponent) convolved with the {K}x{K} transfer matrix · environment SH, evaluated at R")
 
 
 def _gtso(name: str, intersection: str, roughness_input: str, fade_alpha, engines: str) -> OcclusionMethod:
@@ -116,6 +130,8 @@ _METHODS = (
     OcclusionMethod("prt-5", ("sh_transfer", "env_sh"), prt_diffuse, {"order": 5, "specular": "none"}, _SLOAN,
                     "diffuse radiance = 25-coefficient transfer · environment SH, f_s = 1",
                     param_needs=(("specular", "ao", ("ao",)),), reads_roughness=False),
+    _prt_glossy(3),
+    _prt_glossy(5),
     OcclusionMethod("regions-exact", ("region_visibility",), region_visibility_weights, {},
                     "Knuth, Altenhofen, Kuijper & Bender 2014, Eq. 5, with exact per-region visible fractions",
                     "region weights = the visible fraction of each environment region", reads_roughness=False),
