@@ -524,28 +524,40 @@ def method_zoo_256_numbers(folder: Path) -> dict[str, str]:
     return out
 
 
+def _zoo_walks(folder: Path, scene: str) -> dict[tuple, list]:
+    """(env, material, method) → the budget walk's rows of one scene, in their order."""
+    walks: dict[tuple, list] = {}
+    for q in read_csv(folder / "method_zoo_budget.csv"):
+        if q["scene"] == scene:
+            walks.setdefault((q["env"], q["material"], q["method"]), []).append(q)
+    return walks
+
+
 @page("method-zoo-256")
 def method_zoo_256_page(folder: Path) -> dict[str, str]:
     means = zoo_means(folder)
     small = zoo_means(DATA / "method-zoo")
-    build: dict[str, list] = {}
+    build: dict[tuple, list] = {}
     for q in read_csv(folder / "method_zoo.csv"):
         if q["applicable"] == "True":
-            build.setdefault(q["method"], []).append(float(q["build_time_s"]))
-    rows, moved = [], []
-    for method in ZOO_256_METHODS:
-        if not any(("sphere", method, mat) in means for mat in ZOO_MATERIALS):
-            continue
-        cells = []
-        for mat in ZOO_MATERIALS:
-            v = means.get(("sphere", method, mat))
-            cells.append(f"{pct(v[0], 1)} % ({pct(v[1], 0)} %)" if v else "n/a")
-            w = small.get(("sphere", method, mat))
-            if v and w and abs(v[0] - w[0]) * 100 >= MOVED_POINTS and abs(v[0] - w[0]) >= MOVED_SHARE * w[0]:
-                moved.append([method, mat, pct(w[0], 1) + " %", pct(v[0], 1) + " %",
-                              signed(f"{100 * (v[0] - w[0]):+.1f}")])
-        mem = statistics.fmean(v[2] for (s, m, _), v in means.items() if s == "sphere" and m == method)
-        rows.append([method] + cells + [f"{statistics.fmean(build[method]):.3g}", mib(mem)])
+            build.setdefault((q["scene"], q["method"]), []).append(float(q["build_time_s"]))
+    out, moved = {}, []
+    for scene in ("sphere", "teapot"):
+        rows = []
+        for method in ZOO_256_METHODS:
+            if not any((scene, method, mat) in means for mat in ZOO_MATERIALS):
+                continue
+            cells = []
+            for mat in ZOO_MATERIALS:
+                v = means.get((scene, method, mat))
+                cells.append(f"{pct(v[0], 1)} % ({pct(v[1], 0)} %)" if v else "n/a")
+                w = small.get((scene, method, mat))
+                if v and w and abs(v[0] - w[0]) * 100 >= MOVED_POINTS and abs(v[0] - w[0]) >= MOVED_SHARE * w[0]:
+                    moved.append([scene, method, mat, pct(w[0], 1) + " %", pct(v[0], 1) + " %",
+                                  signed(f"{100 * (v[0] - w[0]):+.1f}")])
+            mem = statistics.fmean(v[2] for (s, m, _), v in means.items() if s == scene and m == method)
+            rows.append([method] + cells + [f"{statistics.fmean(build[(scene, method)]):.3g}", mib(mem)])
+        out[f"{scene}_table"] = md_table(["method", *ZOO_MATERIALS, "build (s)", "memory (MiB)"], rows)
     steps = _zoo_steps(folder, "sphere")
     names = ("split_sum", "n_v_r", "prefilter", "mip", "dfg_table")
     walk = []
@@ -556,9 +568,20 @@ def method_zoo_256_page(folder: Path) -> dict[str, str]:
                 walk.append([method, mat] + [pct(steps[(method, mat, k)], 1) + " %" if (method, mat, k) in steps
                                              else "—" for k in names]
                             + [pct(means[("sphere", method, mat)][0], 1) + " %"])
-    return {**method_zoo_256_numbers(folder),
-            "sphere_table": md_table(["method", *ZOO_MATERIALS, "build (s)", "memory (MiB)"], rows),
-            "moved_table": md_table(["method", "material", "32² faces", "256² faces", "change (points)"], moved),
+    # the teapot: which step of each walk is the largest (the 32² run: missing visibility in 160 of 225)
+    walks = _zoo_walks(folder, "teapot")
+    largest = [max(w, key=lambda q: float(q["rel_l1_increment_frac"]))["step"] for w in walks.values()]
+    vis = {}
+    for (env, mat, method), w in walks.items():
+        for q in w:
+            if q["step"] == "visibility":
+                vis.setdefault(mat, []).append(float(q["bias_increment_frac"]))
+    out.update(teapot_walks=str(len(largest)), teapot_vis_largest=str(largest.count("visibility")),
+               teapot_vis_bias=", ".join(f"{mat} {signed(pct(statistics.fmean(v), 1))} %" for mat, v in vis.items()))
+    out.update({f"{scene}_moved": str(sum(r[0] == scene for r in moved)) for scene in ("sphere", "teapot")})
+    return {**method_zoo_256_numbers(folder), **out,
+            "moved_table": md_table(["scene", "method", "material", "32² faces", "256² faces", "change (points)"],
+                                    moved),
             "walk_table": md_table(["method", "material", *names, "total rel. L1"], walk)}
 
 

@@ -12,6 +12,9 @@ page ``docs/results/method-zoo.md`` is generated from them.  Three checks:
 * one case of that run, re-run here at the full run's settings (sphere, city probe, the diffuse and GGX 0.3
   materials, the exact split sum and SH9), reproduces its saved rows: the experiment is deterministic, so the
   tolerance is float64 rounding (1e-9 relative, which also absorbs a different BLAS thread count).
+
+The zoo at engine size (256² faces, both scenes; ``tests/data/readme_runs/method-zoo-256/``, two runs of 33 and 48
+minutes): the run is complete, its budget walks add up, and the README row is what its files give.
 """
 
 from __future__ import annotations
@@ -136,27 +139,29 @@ def test_the_cmgen_row_is_its_saved_run_and_that_runs_split_sum_is_the_tables():
 SAVED_256 = ROOT / "tests" / "data" / "readme_runs" / "method-zoo-256"
 
 
-def _means_256():
+def _means_256(scene="sphere"):
     acc = {}
     for q in read_csv(SAVED_256 / "method_zoo.csv"):
-        if q["applicable"] == "True":
-            assert q["scene"] == "sphere"
+        if q["applicable"] == "True" and q["scene"] == scene:
             acc.setdefault((q["method"], q["material"]), []).append(float(q["rel_l1_frac"]))
     return {k: float(np.mean(v)) for k, v in acc.items()}
 
 
 def test_the_256_run_is_complete_and_its_walks_add_up():
     rows = read_csv(SAVED_256 / "method_zoo.csv")
-    # 12 methods × 7 materials × 5 environments, each environment read at 256² faces (n_pixels: the 24² sphere)
-    assert len(rows) == 12 * 7 * 5 and {q["env"] for q in rows} == {"sky_sun", "city", "courtyard", "forest", "studio"}
-    assert all(q["n_pixels"] == rows[0]["n_pixels"] for q in rows)
+    # 2 scenes × 12 methods × 7 materials × 5 environments, each environment read at 256² faces; n_pixels: the
+    # pixels of the scene's image, the same for every row of a scene
+    assert len(rows) == 2 * 12 * 7 * 5 and {q["env"] for q in rows} == {"sky_sun", "city", "courtyard", "forest",
+                                                                         "studio"}
+    for scene in ("sphere", "teapot"):
+        assert len({q["n_pixels"] for q in rows if q["scene"] == scene}) == 1
     # every reference converged to its target (estimated rel. L1 ≤ rtol = 2e-3)
     assert max(float(q["ref_err_rel_l1_frac"]) for q in rows) <= 2e-3
     # the increments of each walk add up to its last image's error against the reference (bias exactly, rel. L1 as a
     # triangle inequality: the sum of the steps' rel. L1 is at least the total)
     walks = {}
     for q in read_csv(SAVED_256 / "method_zoo_budget.csv"):
-        walks.setdefault((q["env"], q["material"], q["method"]), []).append(q)
+        walks.setdefault((q["scene"], q["env"], q["material"], q["method"]), []).append(q)
     assert len(walks) == sum(q["applicable"] == "True" for q in rows)
     for key, w in walks.items():
         total = float(w[-1]["bias_vs_ref_frac"])
@@ -171,7 +176,8 @@ def test_readme_256_headline_is_the_saved_run():
     means, small = _means_256(), _saved_means()
     steps = {}
     for q in read_csv(SAVED_256 / "method_zoo_budget.csv"):
-        steps.setdefault((q["method"], q["material"], q["step"]), []).append(float(q["rel_l1_increment_frac"]))
+        if q["scene"] == "sphere":
+            steps.setdefault((q["method"], q["material"], q["step"]), []).append(float(q["rel_l1_increment_frac"]))
     mip = 100 * float(np.mean(steps[("split-sum", "ggx0.1", "mip")]))
     m = re.search(r"roughness 0\.1 falls from \*\*([\d.]+) %\*\* \(32²\) to \*\*([\d.]+) %\*\*", row)
     # 20.0 % is the 32² page's MIP step (docs/results/method-zoo.md), 7.7 % this run's, to their rounding
@@ -182,5 +188,13 @@ def test_readme_256_headline_is_the_saved_run():
     assert m and abs(is32 - float(m.group(1))) <= 0.05 + 1e-9 and abs(is256 - float(m.group(2))) <= 0.05 + 1e-9
     karis = read_csv(SAVED_256 / "method_zoo_karis.csv")
     m = re.search(r"holds in \*\*(\d+) of (\d+)\*\* GGX cases", row)
-    assert m and int(m.group(2)) == len(karis) == 15
+    assert m and int(m.group(2)) == len(karis) == 30
     assert int(m.group(1)) == sum(q["n_v_r_larger"] == "True" for q in karis)
+    # the teapot: the visibility step is the largest of its walk in 127 of the 180 walks
+    walks = {}
+    for q in read_csv(SAVED_256 / "method_zoo_budget.csv"):
+        if q["scene"] == "teapot":
+            walks.setdefault((q["env"], q["material"], q["method"]), []).append(q)
+    largest = [max(w, key=lambda q: float(q["rel_l1_increment_frac"]))["step"] for w in walks.values()]
+    m = re.search(r"largest step in \*\*(\d+) of the (\d+)\*\* walks", row)
+    assert m and (int(m.group(1)), int(m.group(2))) == (largest.count("visibility"), len(walks)) == (127, 180)
