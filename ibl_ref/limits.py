@@ -8,6 +8,7 @@ file header) is checked here *before* anything is allocated:
 * :func:`check_allocation` — the bytes an array would take are compared with the machine's physical
   memory (``os.sysconf``; the environment variable ``IBL_REF_MAX_BYTES`` lowers the limit, e.g. for
   tests), so ``--size 1000000000`` fails at once instead of after minutes of swapping;
+* :func:`positive_int` — a count that must be a true positive integer (no ``8.0``: counts of sets, orders, tiles);
 * :func:`check_cube_size` — both, for one float64 RGB cube map ``(6, N, N, 3)`` (24·6·N² bytes);
 * :func:`check_rtol` — a relative tolerance in [:data:`RTOL_MIN`, 1): the floor is what float64 quadrature sums can
   verify (the constant's comment gives the derivation).
@@ -23,7 +24,7 @@ import os
 
 from .errors import IBLError
 
-__all__ = ["SizeError", "as_size", "memory_limit_bytes", "check_allocation", "check_cube_size", "cube_nbytes",
+__all__ = ["SizeError", "as_size", "positive_int", "memory_limit_bytes", "check_allocation", "check_cube_size", "cube_nbytes",
            "RTOL_MIN", "ToleranceError", "check_rtol"]
 
 
@@ -45,6 +46,14 @@ def as_size(value, name: str, minimum: int = 1) -> int:
     if v < minimum:
         raise SizeError(f"{name}: must be >= {minimum}, got {v}")
     return v
+
+
+def positive_int(name: str, value) -> int:
+    """``value`` as an ``int`` ≥ 1, an integer type only (``8.0`` and ``True`` are errors);
+    :class:`~ibl_ref.errors.IBLError` naming ``name`` otherwise."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or int(value) < 1:
+        raise IBLError(f"{name} must be a positive integer, got {value!r}")
+    return int(value)
 
 
 def memory_limit_bytes() -> int:

@@ -214,3 +214,28 @@ def test_budget_refuses_two_lobes_at_once():
     built = ms.build_method(cube, ms.MethodSpec("exact-lobe"))
     with pytest.raises(IBLError, match="one lobe at a time"):
         mb.budget_walk(built, {"kind": "phong", "kd": 0.5, "ks": 0.5, "g": 0.5}, cube, n, v)
+
+
+@pytest.mark.parametrize("smith", ["separable", "height_correlated"])
+def test_exact_dfg_weight_is_the_albedo_of_the_materials_smith_form(smith):
+    # dfg_weight(None, …) is the directional albedo of the material's own GGX lobe: against brdfs.albedo of the
+    # BRDF with that Smith form (an independent graded Gauss rule, ≈ 1e-8; dfg_terms within 5e-8 of it, karis2013's
+    # tests) -> 1e-6; the two Smith forms differ by far more than that at grazing views (checked, so a Smith form
+    # ignored would fail), and the occlusion zoo's glossy-PRT weight is the same function
+    from ibl_ref.occlusion.image import specular_weight
+    from ibl_ref.rendering.materials import GGXMaterial
+
+    n, v = _views()
+    nv = n[:, 2]
+    m = GGXMaterial(0.4, f0=0.3, smith=smith)
+    w = ms.dfg_weight(None, nv, m.roughness, m.f0, m.smith)[:, 0]
+    alb = np.array([brdfs.albedo(brdfs.get_brdf("ggx", roughness=0.4, f0=0.3, smith=smith), np.arccos(z),
+                                 width=0.02) for z in nv])
+    np.testing.assert_allclose(w, alb, atol=1e-6)
+    other = "height_correlated" if smith == "separable" else "separable"
+    assert np.abs(ms.dfg_weight(None, nv, 0.4, 0.3, other)[:, 0] - w).max() > 1e-3
+
+    class _Pixels:
+        normal, view, n_pixels = n, v, len(n)
+
+    np.testing.assert_array_equal(specular_weight(m, _Pixels()), w)

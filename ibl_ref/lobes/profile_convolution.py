@@ -31,6 +31,7 @@ import numpy as np
 from ..environment import envmap
 from ..environment.validated import environment_array
 from ..errors import IBLError
+from ..limits import positive_int
 from ..progress import Progress
 
 __all__ = ["ProfileError", "check_profile", "profile_integral", "support_angle", "convolve_profiles",
@@ -119,12 +120,6 @@ def support_angle(gamma, profile, tail_rtol: float = 0.0):
 # ----------------------------------------------------------------------------------------------
 # (a) exact convolution with tabulated radial profiles
 # ----------------------------------------------------------------------------------------------
-def positive_int(name, v):
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-        raise IBLError(f"{name} must be a positive integer, got {v!r}")
-    return int(v)
-
-
 def _tile_geometry(n: int, tile: int):
     """Output texels grouped into face tiles: list of (flat indices, centre direction, radius in rad)."""
     d = envmap.texel_directions(n)

@@ -58,8 +58,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import IBLError
+from ..limits import positive_int
 from .interface import OcclusionInputs, OcclusionMethod, UnoccludedTerms, shade
-from .oracle_inputs import _positive_int
 from .registry import OCCLUSION_METHODS, get
 
 __all__ = [
@@ -448,15 +448,10 @@ def specular_weight(m, pixels: ScenePixels) -> np.ndarray:
     shades w_s·G with it."""
     if m.ggx_roughness is None:
         return np.full(pixels.n_pixels, m.ks if m.has_specular else 0.0)
-    from ..prefilter.karis2013 import dfg_terms
+    from ..rendering.method_shading import dfg_weight
 
-    nv = np.minimum(np.einsum("pi,pi->p", pixels.normal, pixels.view), 1.0)
-    w = np.zeros(pixels.n_pixels)
-    up = nv > 0
-    if up.any():
-        A, B = dfg_terms(nv[up], m.ggx_roughness, smith=m.smith)
-        w[up] = m.f0 * np.asarray(A) + np.asarray(B)
-    return w
+    nv = np.einsum("pi,pi->p", pixels.normal, pixels.view)
+    return dfg_weight(None, nv, m.ggx_roughness, m.f0, m.smith)[:, 0]
 
 
 def shading_inputs(pixels: ScenePixels, m, channels: int) -> dict:
@@ -586,7 +581,7 @@ def occlusion_image(meshes, camera, cube, material, method, *, inputs: str = "or
     rtol = DEFAULT_RTOL if rtol is None else rtol
     if not (isinstance(rtol, (int, float)) and np.isfinite(rtol) and rtol > 0):
         raise IBLError(f"rtol must be a finite number > 0, got {rtol!r}")
-    n_face, n_sets = _positive_int("n_face", n_face), _positive_int("n_sets", n_sets)
+    n_face, n_sets = positive_int("n_face", n_face), positive_int("n_sets", n_sets)
     if not (isinstance(gtao_radius, (int, float)) and np.isfinite(gtao_radius) and gtao_radius > 0):
         raise IBLError(f"gtao_radius must be a finite number > 0, got {gtao_radius!r}")
     cube = as_environment(cube, "environment cube map").data

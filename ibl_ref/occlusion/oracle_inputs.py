@@ -84,6 +84,7 @@ from ..environment.envmap import face_frames
 from ..environment.envmap import rect_solid_angle
 from ..errors import IBLError, IBLWarning, as_path
 from ..limits import check_allocation
+from ..limits import positive_int
 from ..progress import track
 from ..rendering.raster import prepare_scene
 from ..rendering.raycast import ShadowRays
@@ -237,8 +238,8 @@ def jittered_directions(n_face: int = 16, n_sets: int = 2, seed: int = 0) -> np.
     >>> bool(np.array_equal((f * 4 + r) * 4 + c, np.arange(96)))
     True
     """
-    n_face = _positive_int("n_face", n_face)
-    n_sets = _positive_int("n_sets", n_sets)
+    n_face = positive_int("n_face", n_face)
+    n_sets = positive_int("n_sets", n_sets)
     seed = _seed(seed)
     K = 6 * n_face * n_face
     out = np.empty((n_sets, K, 3))
@@ -250,12 +251,6 @@ def jittered_directions(n_face: int = 16, n_sets: int = 2, seed: int = 0) -> np.
 # ------------------------------------------------------------------------------------------------
 # input checks
 # ------------------------------------------------------------------------------------------------
-def _positive_int(name: str, v) -> int:
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or int(v) < 1:
-        raise IBLError(f"{name} must be a positive integer, got {v!r}")
-    return int(v)
-
-
 def _seed(v) -> int:
     if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or int(v) < 0:
         raise IBLError(f"seed must be a non-negative integer, got {v!r}")
@@ -401,8 +396,8 @@ def trace_visibility(scene, points, normals, face_normals, *, n_face: int = 16, 
     >>> ao.tolist(), err.tolist()
     ([1.0], [0.0])
     """
-    n_face = _positive_int("n_face", n_face)
-    n_sets = _positive_int("n_sets", n_sets)
+    n_face = positive_int("n_face", n_face)
+    n_sets = positive_int("n_sets", n_sets)
     seed = _seed(seed)
     backend = resolve_shadow_backend(ray_backend)
     pts = _vectors("points", points, None, unit=False)
@@ -608,7 +603,7 @@ def clamped_cosine_coefficients(order: int) -> np.ndarray:
     >>> (clamped_cosine_coefficients(5) / np.pi).round(6).tolist()
     [1.0, 0.666667, 0.25, 0.0, -0.041667]
     """
-    order = _positive_int("order", order)
+    order = positive_int("order", order)
     A = np.zeros(order)
     for ell in range(order):
         if ell == 0:
@@ -656,7 +651,7 @@ def sh_transfer(vs: VisibilitySamples, order: int):
     from ..groundtruth.sh_basis import real_sh
 
     vs = _check_samples(vs)
-    order = _positive_int("order", order)
+    order = positive_int("order", order)
     L = order - 1
     A = clamped_cosine_coefficients(order)
     band = np.repeat(np.arange(order), 2 * np.arange(order) + 1)
@@ -709,7 +704,7 @@ def sh_transfer_matrix(vs: VisibilitySamples, order: int):
     from ..groundtruth.sh_basis import real_sh
 
     vs = _check_samples(vs)
-    order = _positive_int("order", order)
+    order = positive_int("order", order)
     K = order * order
     check_allocation(vs.n_sets * vs.n_pixels * K * K * 8, "the SH transfer matrices", "sh_transfer_matrix")
     per = np.empty((vs.n_sets, vs.n_pixels, K, K))

@@ -123,8 +123,8 @@ def budget_walk(built, material, cube, normals, views, *, reference=None, refere
     vis = spec.visibility == "vsm" and scene is not None
     if spec.lobe == "ggx":  # the split-sum methods' steps (they shade the GGX materials)
         rough, f0 = m.roughness, m.f0
-        dfg_exact = ms.dfg_weight(None, nv, rough, f0)
-        dfg_tab = ms.dfg_weight(built.prefilter.dfg, nv, rough, f0)
+        dfg_exact = ms.dfg_weight(None, nv, rough, f0, m.smith)
+        dfg_tab = ms.dfg_weight(built.prefilter.dfg, nv, rough, f0, m.smith)
         add("split_sum", _exact(a, ur.SplitSumLobe(rough), n, v, rtol, scale, cache) * dfg_exact)
         add("n_v_r", _exact(a, ur.NVRKernelLobe(rough), n, v, rtol, scale, cache) * dfg_exact)
         pf = built.prefilter

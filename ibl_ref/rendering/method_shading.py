@@ -41,6 +41,8 @@ from ..errors import IBLError
 from ..environment.envmap import unit_directions
 from ..knuth2014.median_cut import median_cut
 from ..knuth2014.memory_model import library_vsm_bytes
+from ..prefilter.karis2013 import check_f0
+from ..prefilter.karis2013 import dfg_terms
 from ..prefilter.karis2013 import split_sum
 from ..prefilter.registry import build_prefilter
 from ..prefilter.registry import build_region_prefilters
@@ -147,12 +149,23 @@ def build_method(cube, spec: MethodSpec, *, with_diffuse: bool = False) -> Built
     return BuiltMethod(spec, pf, diffuse, regions, time.perf_counter() - t0, a.shape)
 
 
-def dfg_weight(dfg, n_dot_v, roughness, f0) -> np.ndarray:
-    """``F0·A + B`` (P, 1) of the split sum at each pixel from a DFG table (``None``: the exact quadrature,
-    :func:`ibl_ref.prefilter.karis2013.dfg_terms`); 0 where n·v ≤ 0."""
+def dfg_weight(dfg, n_dot_v, roughness, f0, smith: str = "height_correlated") -> np.ndarray:
+    """``F0·A + B`` (P, 1) of the split sum at each pixel, 0 where n·v ≤ 0: from a DFG table (the engine's table,
+    whatever Smith form it tabulates), or, with ``dfg=None``, the exact quadrature
+    (:func:`ibl_ref.prefilter.karis2013.dfg_terms`) of the material's Smith form ``smith`` — the directional albedo
+    of its GGX lobe."""
 
     nv = np.asarray(n_dot_v, dtype=np.float64).reshape(-1)
-    return split_sum(np.ones((len(nv), 1)), nv, roughness, f0, dfg)
+    if dfg is not None:
+        return split_sum(np.ones((len(nv), 1)), nv, roughness, f0, dfg)
+    f0 = np.broadcast_to(np.asarray(check_f0(f0), dtype=np.float64), nv.shape)
+    r = np.broadcast_to(np.asarray(roughness, dtype=np.float64), nv.shape)
+    w = np.zeros((len(nv), 1))
+    up = nv > 0
+    if up.any():
+        A, B = dfg_terms(np.minimum(nv[up], 1.0), r[up], smith=smith)
+        w[up, 0] = f0[up] * np.asarray(A) + np.asarray(B)
+    return w
 
 
 def _reflect(n, v):
@@ -205,7 +218,7 @@ def shade_method(built: BuiltMethod, material, normals, views, *, scene=None, po
         if m.has_specular:
             out = out + m.ks * built.prefilter.lookup(r, m.s)
     else:  # GGX through the split sum
-        w = dfg_weight(built.prefilter.dfg, nv, m.roughness, m.f0)
+        w = dfg_weight(built.prefilter.dfg, nv, m.roughness, m.f0, m.smith)
         out = out + w * built.prefilter.lookup(r, m.roughness)
         if m.has_diffuse:
             out = out + m.kd * _diffuse(built).lookup(n, 1.0)
@@ -235,7 +248,7 @@ def _shade_eq5(built, m, n, v, nv, r, scene, points, face_normals, vsm_resolutio
         ks, g = m.ks, np.full(P, m.g)
     else:
         s = built.prefilter.exponent(m.roughness)
-        ks = dfg_weight(built.prefilter.dfg, nv, m.roughness, m.f0)
+        ks = dfg_weight(built.prefilter.dfg, nv, m.roughness, m.f0, m.smith)
         g = np.full(P, 1.0 - 1.0 / float(s))
     pem_n, pem_r = eq5_lookups(pems, n, r, g, kd, ks)
     if scene is None:
