@@ -300,10 +300,10 @@ def _clip_near(scene, camera):
         hi_l = np.where(swap, a, b)
         z_lo = zl[np.arange(len(Fi)), lo_l]
         z_hi = zl[np.arange(len(Fi)), hi_l]
-        with np.errstate(divide="ignore", invalid="ignore"):  # edges not crossing the plane are unused
-            t = (near - z_lo) / (z_hi - z_lo)
-        B = (1 - t)[:, None] * eye3[lo_l] + t[:, None] * eye3[hi_l]
-        P = (1 - t)[:, None] * V[np.minimum(ia, ib)] + t[:, None] * V[np.maximum(ia, ib)]
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # edges not crossing the plane
+            t = (near - z_lo) / (z_hi - z_lo)                                  # (t = ±inf / nan) are unused
+            B = (1 - t)[:, None] * eye3[lo_l] + t[:, None] * eye3[hi_l]
+            P = (1 - t)[:, None] * V[np.minimum(ia, ib)] + t[:, None] * V[np.maximum(ia, ib)]
         return B, P
 
     B01, P01 = cut(0, 1)
