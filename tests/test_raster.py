@@ -252,11 +252,9 @@ def test_bad_meshes():
     assert issubclass(MeshError, IBLError)
 
 
-@pytest.mark.filterwarnings("error::RuntimeWarning")
 def test_near_plane_clipping_camera_inside_box():
     # camera inside a closed box: every pixel sees a wall; clipped faces keep their ids and the depth equals the
-    # ray-cast depth (1e-9 relative, float64 rounding), the position lies on the face's plane; the cut of edges that
-    # do not cross the plane (t = ±inf, unused) raises no RuntimeWarning
+    # ray-cast depth (1e-9 relative, float64 rounding), the position lies on the face's plane
     box = trimesh.creation.box(extents=[2, 2, 2])
     scene = prepare_scene(box)
     cam = PerspectiveCamera([0.1, 0.2, 0.3], [0.2, -0.3, -1], [0, 1, 0], 100, 40, 32, near=0.05)
@@ -292,3 +290,17 @@ def test_result_independent_of_batch_size():
     b = rasterize([s, q], cam, batch_fragments=7)
     np.testing.assert_array_equal(a.triangle_id, b.triangle_id)
     np.testing.assert_array_equal(a.depth, b.depth)
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_near_plane_cut_of_a_face_with_an_edge_parallel_to_the_plane():
+    # one triangle, two vertices at depth 1 (their edge is parallel to the near plane: the cut of that edge divides by
+    # zero and is unused) and one behind the camera: clipped without a RuntimeWarning, and every covered pixel lies
+    # on the triangle's plane (y = 0.75 z − 0.25 through the three vertices: 1e-12, float64 rounding) at depth ≥ near
+    tri = trimesh.Trimesh(vertices=[[-1, -1, -1], [1, -1, -1], [0, 0.5, 1]], faces=[[0, 1, 2]], process=False)
+    cam = PerspectiveCamera([0, 0, 0], [0, 0, -1], [0, 1, 0], 100, 16, 16, near=0.05)
+    g = rasterize(prepare_scene(tri), cam)
+    assert g.n_clipped_near == 1 and g.mask.any()
+    P = g.position[g.mask]
+    np.testing.assert_allclose(P[:, 1], 0.75 * P[:, 2] - 0.25, rtol=0, atol=1e-12)
+    assert np.all(g.depth[g.mask] >= 0.05)
