@@ -42,14 +42,16 @@ bound at the tile's axis, relative to the tile's running estimate of the sums (�
 
 plus :data:`HORIZON_SHARE` of the bracket where the pair straddles the horizon of some texel of the tile (so that
 a zero estimate always means a zero bound).  While the tile's total Σ m exceeds its target, every pair with
-m ≥ Σ m / (2n) (n live pairs) is split into its four children (children that are texels are exact): the greedy
-rule that spends the splits where the bound is.  The estimates only steer the cost: per output texel and channel
+m ≥ θ is split into its four children (children that are texels are exact): the greedy rule that spends the
+splits where the bound is.  θ is Σ m / (2n) (n live pairs), doubled while the pairs at or above 2θ hold at least
+(Σ m − target)/:data:`SPLIT_GAIN`: near the target only the largest pairs are split, as many as the excess needs.  The estimates only steer the cost: per output texel and channel
 the sums and their absolute bounds (:func:`ibl_ref.groundtruth.kernels.numpy_backend.ggx_evaluate`, the better
 of the two brackets per texel) give the lobe average and a rigorous relative bound
 (:func:`ibl_ref.groundtruth.moment_convolution._ratio_bound`, plus :data:`ROUNDING_REL`).  Every tile is refined
 to the target :data:`BUDGET_TARGET` · τ (τ = rtol/(1 + rtol)); the tiles whose per-texel bound still misses rtol
-are computed again with the target divided by :data:`REFINE_FACTOR` (:data:`REFINE_STEPS` times) and at last
-with target 0, which splits every live pair down to texels: the exact sum.  So the bound ≤ rtol holds for every
+are computed again with the target scaled by :data:`REDO_SHARE` · rtol over their largest bound (at least divided by
+:data:`REFINE_FACTOR`; :data:`REFINE_STEPS` times) and at last with target 0, which splits every live pair down to
+texels: the exact sum.  So the bound ≤ rtol holds for every
 output texel whatever the estimates, and the cost is what the bound needs.
 
 References: Karis (2013), "Real Shading in Unreal Engine 4", Eq. 8 (the split sum); Walter et al. (2007), Eq. 33
@@ -79,18 +81,31 @@ __all__ = ["GGXLobeKernel", "GGXSourceTree", "convolve_ggx", "convolve_ggx_level
 #: relative allowance added to every bound for the float64 rounding of the sums (≤ 6N² non-negative terms of a
 #: few roundings each, and the Taylor terms, each ≤ its block's K·M0: ≈ 1e-13 at 1024², ten times that here)
 ROUNDING_REL = 1e-12
-#: refinement passes (target / REFINE_FACTOR each) before the exact sum of the tiles still missing rtol
+#: refinement passes (each with a smaller target, see REFINE_FACTOR) before the exact sum of the tiles still missing rtol
 REFINE_STEPS = 2
 #: the tile-level relative bound each tile is refined to, as a share of τ = rtol/(1 + rtol) (the per-texel bounds are
 #: smaller: the tile-level ones hold for its whole cone)
-BUDGET_TARGET = 0.5
+BUDGET_TARGET = 1.0
 #: share of a tile's cone half-angle β over which the refinement estimates each block's bound (0: at the tile's
 #: axis); the bounds returned are per output texel whatever this is
 BETA_SHARE = 0.0
 #: share of the bracket of a pair near some texel's horizon (over the tile's whole cone) in its bound estimate
 HORIZON_SHARE = 0.0625
-#: divisor of the target of each refinement pass
-REFINE_FACTOR = 4.0
+#: divisor of the target of each refinement pass, at least (a tile whose largest per-texel bound b misses rtol is
+#: computed again with its target times REDO_SHARE · rtol / b, clipped to [REFINE_FACTOR⁻⁴, 1/REFINE_FACTOR])
+REFINE_FACTOR = 2.0
+#: the share of rtol a tile's largest per-texel bound is aimed at when the tile is computed again
+REDO_SHARE = 0.5
+#: levels of at least this many output tiles first compute every SAMPLE_STRIDE-th tile at BUDGET_TARGET·τ, and the
+#: others at the target that brings the sample's 90th-percentile largest per-texel bound to SAMPLE_AIM·rtol (the
+#: tile-level estimates are 1–5× the per-texel bounds, depending on the lobe's width against the tile's)
+SAMPLE_MIN_TILES = 64
+SAMPLE_STRIDE = 8
+SAMPLE_AIM = 0.7
+#: the share of a split pair's bound estimate the split is expected to remove (2×2 children of a block in the Taylor
+#: regime have about 1/8 of its remainder): the last rounds of a tile's refinement split only the largest pairs,
+#: enough for the excess over the target, instead of every pair above half the mean
+SPLIT_GAIN = 0.875
 #: diagnostics of the last call (pairs per level, passes, seconds)
 LAST_INFO: dict = {}
 
@@ -257,7 +272,7 @@ class _Run:
 
     def _pass(self, sel, target):
         num, err, pairs = self.impl.ggx_tree_pass(self.tree, self.kern, self.tiles.R, self.tiles.cT, self.tiles.betaT,
-                                                  sel, target, BETA_SHARE, HORIZON_SHARE,
+                                                  sel, target, BETA_SHARE, HORIZON_SHARE, SPLIT_GAIN,
                                                   threads=self.threads)
         counts = self.info.setdefault("pairs", {})
         for li, k in enumerate(pairs):
@@ -265,26 +280,51 @@ class _Run:
             counts[b] = counts.get(b, 0) + int(k)
         return num, err
 
+    def _worst(self, num, err):
+        """Per tile the largest per-texel relative bound of the sums ``num``/``err`` (tiles, t², Q)."""
+        return channel_max(_ratio_bound(num, err, self.C, True)[1]).max(axis=1) + ROUNDING_REL
+
     def run(self):
-        """``(approx (T, t², C), rel_bound (T, t²))``: every tile refined to BUDGET_TARGET·τ, then the tiles whose
-        per-texel bound misses rtol again with the target divided by REFINE_FACTOR, at last exactly (target 0)."""
-        C, T = self.C, self.tiles.R.shape[0]
-        todo = np.arange(T)
-        num = err = None
+        """``(approx (T, t², C), rel_bound (T, t²))``: a sample of the tiles (every :data:`SAMPLE_STRIDE`-th) refined to
+        BUDGET_TARGET·τ, the others to the target at which the sample's 90th-percentile largest bound would be
+        :data:`SAMPLE_AIM`·rtol (within 4× of BUDGET_TARGET·τ); then the tiles whose per-texel bound misses rtol
+        again with the target times REDO_SHARE·rtol/(their largest bound) (at least divided by REFINE_FACTOR), at
+        last exactly (target 0).  The targets only steer the cost: every tile's bound is checked per texel."""
+        T = self.tiles.R.shape[0]
         passes = self.info.setdefault("passes", [])
-        target = BUDGET_TARGET * self.tau
-        for step in range(REFINE_STEPS + 1):
-            tgt = target / REFINE_FACTOR ** step if step < REFINE_STEPS else 0.0
-            nn, ee = self._pass(todo, np.full(todo.size, tgt))
+        tgt = np.full(T, BUDGET_TARGET * self.tau)
+        first = [np.arange(T)]
+        if T >= SAMPLE_MIN_TILES:
+            sample = np.arange(0, T, SAMPLE_STRIDE)
+            first = [sample, np.setdiff1d(np.arange(T), sample)]
+        num = err = None
+        worst = np.empty(T)
+        for k, sel in enumerate(first):
+            nn, ee = self._pass(sel, tgt[sel])
             if num is None:
-                num, err = nn, ee
-            else:
-                num[todo], err[todo] = nn, ee
-            worst = channel_max(_ratio_bound(nn, ee, C, True)[1]).max(axis=1) + ROUNDING_REL
-            passes.append((tgt, int(todo.size)))
-            todo = todo[~(worst <= self.rtol)]
+                num, err = np.empty((T,) + nn.shape[1:]), np.empty((T,) + ee.shape[1:])
+            num[sel], err[sel] = nn, ee
+            worst[sel] = self._worst(nn, ee)
+            passes.append((float(tgt[sel].max()), int(sel.size)))
+            if k == 0 and len(first) > 1:
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    q = float(np.quantile(worst[sel] / tgt[sel], 0.9))
+                if math.isfinite(q) and q > 0.0:
+                    rest = first[1]
+                    tgt[rest] = np.clip(SAMPLE_AIM * self.rtol / q, tgt[rest] / 4.0, tgt[rest] * 4.0)
+        todo = np.flatnonzero(~(worst <= self.rtol))
+        for step in range(REFINE_STEPS + 1):
             if not todo.size:
                 break
+            with np.errstate(divide="ignore"):
+                scale = np.clip(REDO_SHARE * self.rtol / worst[todo], REFINE_FACTOR ** -4, 1.0 / REFINE_FACTOR)
+            tgt[todo] = 0.0 if step == REFINE_STEPS else tgt[todo] * scale
+            nn, ee = self._pass(todo, tgt[todo])
+            num[todo], err[todo] = nn, ee
+            worst[todo] = self._worst(nn, ee)
+            passes.append((float(tgt[todo].max()), int(todo.size)))
+            todo = todo[~(worst[todo] <= self.rtol)]
+        C = self.C
         approx, r = _ratio_bound(num, err, C, True)
         if not np.all(np.isfinite(approx)):
             raise IBLError("GGX prefilter: non-finite result (overflow of the input radiance?)")

@@ -502,7 +502,7 @@ class CompiledKernels(NumpyKernels):
             out[k] = e_r * nb[k] + e_a * bw
         return out
 
-    def ggx_tree_pass(self, tree, kern, R, cT, betaT, sel, target, beta_share, hshare, threads=1):
+    def ggx_tree_pass(self, tree, kern, R, cT, betaT, sel, target, beta_share, hshare, split_gain=1.0, threads=1):
         """``(num, err, pairs)`` of the GGX tree route for the output tiles ``sel`` by
         :func:`~ibl_ref.groundtruth.kernels.numba_loops.ggx_tree` (the refinement of the NumPy loops, per tile), the
         tiles shared between ``threads`` threads."""
@@ -513,7 +513,7 @@ class CompiledKernels(NumpyKernels):
         err = np.zeros((sel.size, t2, Q))
         pairs = np.zeros(flat.top + 1, np.int64)
         shared = (np.ascontiguousarray(R), np.ascontiguousarray(cT), np.ascontiguousarray(betaT), float(beta_share),
-                  float(hshare), kern.a, kern.b,
+                  float(hshare), float(split_gain), kern.a, kern.b,
                   flat.off, flat.grid_m, flat.top, *flat.nodes, *flat.texels)
         _ggx_tree_threads(threads, sel, np.ascontiguousarray(target, dtype=np.float64), num, err, pairs, shared)
         return num, err, pairs
@@ -572,7 +572,7 @@ def _exercise(stages):
         tree = GGXSourceTree(cube)
         R = d.reshape(-1, 1, 3).copy()
         CompiledKernels().ggx_tree_pass(tree, GGXLobeKernel(0.5), R, d.copy(), np.zeros(d.shape[0]),
-                                        np.arange(d.shape[0]), np.full(d.shape[0], 1e-3), 0.0, 0.1)
+                                        np.arange(d.shape[0]), np.full(d.shape[0], 1e-3), 0.0, 0.1, 0.875)
 
 
 def _warm_up_guarded(stages):

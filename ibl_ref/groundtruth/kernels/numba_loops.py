@@ -1027,16 +1027,18 @@ def _ggx_pair(node, cx, cy, cz, cb, sb, cd, sd, hshare, a, b, NC, NCOS, NSIN, NM
 
 
 @_jit(fastmath={"contract"})
-def ggx_tree(tiles, R, cT, betaT, target, beta_share, hshare, a, b, off, grid_m, top, NC, NCOS, NSIN, NVALID, NM0, NU, NV,
-             NTR, TC, TW, TVALID, num, err, pairs):
+def ggx_tree(tiles, R, cT, betaT, target, beta_share, hshare, split_gain, a, b, off, grid_m, top, NC, NCOS, NSIN, NVALID,
+             NM0, NU, NV, NTR, TC, TW, TVALID, num, err, pairs):
     """The sums of the tiles ``tiles`` (indices into ``R`` (T, t², 3), ``cT``, ``betaT``; row k of ``target``,
     ``num``/``err`` (len(tiles), t², Q) belongs to ``tiles[k]``) over the source quadtree.
 
     Per tile, greedy refinement in rounds: the live (tile, block) pairs, starting from the six faces, each with its
     tile-level bound e_q (:func:`_ggx_pair`: Taylor remainder or zero-order half-width) and its estimate K(c_T·ĉ)·M0_q;
     while the summed relative bound ``Σ_B max_q e_q/N̂_q + e_Ω/N̂_Ω`` (N̂ the estimates' sums) exceeds
-    ``target[k]``, every pair whose share is at least half the mean is split (a 2×2 block into its texels, summed
-    exactly).  Then every output texel of the tile sums the final pairs (Taylor sum or bracket midpoint, bound into
+    ``target[k]``, every pair whose share is at least the threshold θ is split (a 2×2 block into its texels, summed
+    exactly): θ = half the mean share, doubled while the pairs at or above 2θ hold at least (total − target)/split_gain
+    (split_gain: the share of a split pair's bound the split is expected to remove; the doubling keeps the last
+    rounds from splitting far more than the excess needs).  Then every output texel of the tile sums the final pairs (Taylor sum or bracket midpoint, bound into
     ``err``) and the texels.  Nodes of level ℓ ≥ 1 are rows ``off[ℓ] + index`` of the N* arrays (grid 6 × m × m,
     ``m = grid_m[ℓ]``); texels are rows of TC/TW.  ``pairs[ℓ]`` counts the final pairs per level.  Float64; each
     tile is computed in a fixed order (independent of how the tiles are shared out); the loops over the tile's
@@ -1116,6 +1118,17 @@ def ggx_tree(tiles, R, cT, betaT, target, beta_share, hshare, a, b, off, grid_m,
             if total <= target[k]:
                 break
             thr = total / (2.0 * n)
+            need = (total - target[k]) / split_gain
+            if need < total:
+                while True:
+                    thr2 = 2.0 * thr
+                    held = 0.0
+                    for j in range(n):
+                        if metric[j] >= thr2:
+                            held += metric[j]
+                    if held < need:
+                        break
+                    thr = thr2
             # the next list: kept pairs and the children of the split ones (at most 4 per pair)
             if 4 * n > nxt_l.shape[0]:
                 m_ = 4 * n
@@ -1198,36 +1211,44 @@ def ggx_tree(tiles, R, cT, betaT, target, beta_share, hshare, a, b, off, grid_m,
             nx, ny, nz = NC[node, 0], NC[node, 1], NC[node, 2]
             # per output texel: the bracket 0 ≤ K ≤ K(x + δ) (half-width hw) and, where K is smooth on [x − δ, x + δ],
             # the Taylor coefficients and the remainder per unit of rᵀVr (c3; inf where not smooth)
+            # (straight-line selects, no branches: the loops vectorise)
+            cp1 = 1.0 - cp
             for i in range(t2):
                 x = rx[i] * nx + ry[i] * ny + rz[i] * nz
-                dl = (1.0 - cp) * abs(x) + spsi * math.sqrt(max(1.0 - x * x, 0.0)) + 1e-15
-                xt = min(x + dl, 1.0)
+                s1 = 1.0 - x * x
+                s1 = s1 if s1 > 0.0 else 0.0
+                ax = x if x > 0.0 else -x
+                dl = cp1 * ax + spsi * math.sqrt(s1) + 1e-15
+                xt = x + dl
+                xt = xt if xt < 1.0 else 1.0
                 ut = 1.0 / (a + b * (1.0 - xt))
-                hw[i] = 0.5 * max(xt, 0.0) * ut * ut
-                xs = x if x - dl > 0.0 else 1.0
+                ut2 = ut * ut
+                hw[i] = 0.5 * (xt if xt > 0.0 else 0.0) * ut2
+                smooth = x - dl > 0.0
+                xs = x if smooth else 1.0
                 iu = 1.0 / (a + b * (1.0 - xs))
                 iu2 = iu * iu
                 k0[i] = xs * iu2
                 k1[i] = iu2 + 2.0 * b * xs * iu2 * iu
-                k2[i] = 0.5 * (4.0 * b * iu2 * iu + 6.0 * b * b * xs * iu2 * iu2)
-                ut4 = (ut * ut) * (ut * ut)
-                c3v[i] = (18.0 * b * b * ut4 + 24.0 * b * b * b * xt * ut4 * ut) * dl / 6.0 if x - dl > 0.0 else np.inf
+                k2[i] = b * iu2 * iu * (2.0 + 3.0 * b * xs * iu)  # ½K''
+                c3 = b * b * (ut2 * ut2) * (3.0 + 4.0 * b * xt * ut) * dl  # K'''(x_top)/6 · δ
+                c3v[i] = c3 if smooth else np.inf
             for q in range(Q):
                 u0, u1, u2 = NU[node, 0, q], NU[node, 1, q], NU[node, 2, q]
                 v0, v1, v2 = NV[node, 0, q], NV[node, 1, q], NV[node, 2, q]
                 v3, v4, v5 = NV[node, 3, q], NV[node, 4, q], NV[node, 5, q]
                 mq = NM0[node, q]
+                an = acc_n[q]
+                ae = acc_e[q]
                 for i in range(t2):
                     s2 = (rr[0, i] * v0 + rr[1, i] * v1 + rr[2, i] * v2 + rr[3, i] * v3 + rr[4, i] * v4
                           + rr[5, i] * v5)
                     et = c3v[i] * s2
                     hm = hw[i] * mq
-                    if et < hm:
-                        acc_n[q, i] += k0[i] * mq + k1[i] * (rx[i] * u0 + ry[i] * u1 + rz[i] * u2) + k2[i] * s2
-                        acc_e[q, i] += et
-                    else:
-                        acc_n[q, i] += hm
-                        acc_e[q, i] += hm
+                    tv = k0[i] * mq + k1[i] * (rx[i] * u0 + ry[i] * u1 + rz[i] * u2) + k2[i] * s2
+                    use = et < hm
+                    an[i] += tv if use else hm
+                    ae[i] += et if use else hm
         pairs[0] += nt
         for j in range(nt):
             ti = tex[j]

@@ -836,7 +836,23 @@ def _tile_sums(tiles, x, T):
     return np.stack([np.bincount(tiles, weights=x[:, q], minlength=T) for q in range(x.shape[1])], axis=1)
 
 
-def ggx_refine(levels, kern, cT, betaT, target, beta_share, hshare):
+def _split_threshold(tiles, metric, total, thr, target, split_gain):
+    """Per tile the split threshold of :func:`~ibl_ref.groundtruth.kernels.numba_loops.ggx_tree`: ``thr`` (half the
+    mean share) doubled while the pairs at or above twice it hold at least ``(total − target)/split_gain``."""
+    T = total.size
+    with np.errstate(invalid="ignore"):
+        need = (total - target) / split_gain
+        active = (total > target) & (need < total)
+    thr = thr.copy()
+    while active.any():
+        thr2 = 2.0 * thr
+        held = np.bincount(tiles, weights=np.where(metric >= thr2[tiles], metric, 0.0), minlength=T)
+        active &= held >= need
+        thr = np.where(active, thr2, thr)
+    return thr
+
+
+def ggx_refine(levels, kern, cT, betaT, target, beta_share, hshare, split_gain=1.0):
     """Greedy refinement of one chunk of output tiles (:func:`ibl_ref.groundtruth.kernels.numba_loops.ggx_tree`
     states the rule), as arrays over all the chunk's tiles at once, round by round: ``{level: (tiles, blocks)}`` of
     the final pairs, level 0 the texels."""
@@ -866,8 +882,9 @@ def ggx_refine(levels, kern, cT, betaT, target, beta_share, hshare):
         metric = rel[:, :C].max(axis=1) + rel[:, C]
         total = np.bincount(tiles, weights=metric, minlength=T)
         count = np.bincount(tiles, minlength=T)
+        thr = _split_threshold(tiles, metric, total, total / np.maximum(2.0 * count, 1.0), target, split_gain)
         done = (total <= target)[tiles]
-        split = ~done & (metric >= (total / np.maximum(2.0 * count, 1.0))[tiles])
+        split = ~done & (metric >= thr[tiles])
         for li in np.unique(lev[done]):
             sel = done & (lev == li)
             final[li].append((tiles[sel], blk[sel]))
@@ -932,7 +949,7 @@ def ggx_evaluate(levels, kern, R, accepted, num, err):
             _scatter_add(err, tl, np.where(use_t, eT, hm))
 
 
-def ggx_tree_pass(tree, kern, R, cT, betaT, sel, target, beta_share, hshare):
+def ggx_tree_pass(tree, kern, R, cT, betaT, sel, target, beta_share, hshare, split_gain=1.0):
     """``(num, err, pairs)``: the sums and absolute bounds ((len(sel), t², Q)) of the output tiles ``sel``, each refined
     until its summed relative bound estimate is at most ``target[k]`` (:func:`ggx_refine`), and the final pairs per
     level; in chunks of :data:`GGX_CHUNK_TEXELS` output texels."""
@@ -944,7 +961,7 @@ def ggx_tree_pass(tree, kern, R, cT, betaT, sel, target, beta_share, hshare):
     step = max(1, GGX_CHUNK_TEXELS // t2)
     for c0 in range(0, sel.size, step):
         ch = sel[c0:c0 + step]
-        acc = ggx_refine(levels, kern, cT[ch], betaT[ch], target[c0:c0 + step], beta_share, hshare)
+        acc = ggx_refine(levels, kern, cT[ch], betaT[ch], target[c0:c0 + step], beta_share, hshare, split_gain)
         for li, (tl, _) in acc.items():
             pairs[li] += tl.size
         ggx_evaluate(levels, kern, R[ch], acc, num[c0:c0 + step], err[c0:c0 + step])
@@ -1004,7 +1021,7 @@ class NumpyKernels(Kernels, NumpySH):
         (None: nothing to add)."""
         return None
 
-    def ggx_tree_pass(self, tree, kern, R, cT, betaT, sel, target, beta_share, hshare, threads=1):
+    def ggx_tree_pass(self, tree, kern, R, cT, betaT, sel, target, beta_share, hshare, split_gain=1.0, threads=1):
         """``(num, err, pairs)`` of the GGX tree route for the output tiles ``sel`` (:func:`ggx_tree_pass`; one
         thread)."""
-        return ggx_tree_pass(tree, kern, R, cT, betaT, sel, target, beta_share, hshare)
+        return ggx_tree_pass(tree, kern, R, cT, betaT, sel, target, beta_share, hshare, split_gain)
