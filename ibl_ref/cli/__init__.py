@@ -18,8 +18,8 @@ Errors (this module, for every command):
 * warnings are one line each: ``ibl-ref CMD: warning: …`` (:class:`~ibl_ref.errors.IBLWarning` and ibl_ref's
   own); a warning of another package (numpy, scipy, trimesh) that reaches the command is one line naming the
   package and asking for a report — the known cases are checked where they arise and named by their flag;
-* Ctrl-C at any moment: ``ibl-ref CMD: interrupted``, exit code 130, no partial output
-  (:mod:`ibl_ref.cli.interrupts`);
+* Ctrl-C at any moment: ``ibl-ref CMD: interrupted``, exit code 130, no partial output; ``kill`` (SIGTERM):
+  ``ibl-ref CMD: terminated``, exit code 143; worker processes stop with the command (:mod:`ibl_ref.cli.interrupts`);
 * last resort: an unexpected ``OSError`` / ``MemoryError`` prints one line asking for a report instead
   of a traceback (known cases are translated where they happen, not here).
 """
@@ -193,14 +193,20 @@ def main(argv=None) -> int:
                 import signal
 
                 signal.signal(signal.SIGINT, signal.SIG_IGN)
+                signal.signal(signal.SIGTERM, signal.SIG_IGN)
     except KeyboardInterrupt:
         rc = None
     if rc is not None:
         return rc
+    import signal
+
+    from .interrupts import received_signal
+
     words = sys.argv[1:] if argv is None else [str(a) for a in argv]
     command = words[0] if words and not str(words[0]).startswith("-") else ""
-    print(f"ibl-ref{' ' + command if command else ''}: interrupted", file=sys.stderr)
-    return 130
+    term = received_signal() == signal.SIGTERM
+    print(f"ibl-ref{' ' + command if command else ''}: {'terminated' if term else 'interrupted'}", file=sys.stderr)
+    return 143 if term else 130  # 128 + the signal's number, the shell's convention
 
 
 def _main(argv=None) -> int:

@@ -1,7 +1,9 @@
-"""Ctrl-C for the ``ibl-ref`` command: at any moment, exit code 130, one line, no partial output.
+"""Ctrl-C and ``kill`` for the ``ibl-ref`` command: at any moment, exit code 130 (SIGINT) or 143 (SIGTERM), one
+line, no partial output, no worker process left running.
 
 Not a command module (no ``cmd_`` prefix).  :func:`handling` is entered by :func:`ibl_ref.cli.main` around a
-command; inside it, SIGINT is handled by :func:`_on_sigint`:
+command; inside it, SIGINT and SIGTERM (``kill PID``, a batch system's time limit: without a handler Python dies at
+once and the pool's worker processes go on computing, orphaned) are handled by :func:`_on_sigint`:
 
 * **Deferred while a module is being imported.**  Some dependencies guard their optional imports with
   ``except BaseException`` (trimesh does), which swallows a ``KeyboardInterrupt`` raised inside the import and
@@ -21,7 +23,8 @@ command; inside it, SIGINT is handled by :func:`_on_sigint`:
 
 * **An ignored SIGINT stays ignored**: a process started with SIGINT set to ``SIG_IGN`` (a ``cmd &`` job of a
   non-interactive shell, ``nohup``-like launchers) was told not to stop on Ctrl-C, as POSIX shells and Python's
-  own start-up respect; :func:`handling` then installs nothing.
+  own start-up respect; :func:`handling` then installs nothing for it.  SIGTERM is handled only where it has its
+  default disposition (an embedding program's own handler stays); such a job still stops on ``kill``.
 
 Every output is written atomically or as an :class:`ibl_ref.atomic.OutputSet`, so an interrupt leaves the
 previous files as they were and no temporary file behind; :func:`ibl_ref.cli.main` prints
@@ -36,11 +39,11 @@ import signal
 import sys
 import threading
 
-__all__ = ["handling", "interrupted", "in_import"]
+__all__ = ["handling", "interrupted", "in_import", "received_signal"]
 
 _RETRY_S = 0.02  #: re-delivery interval of a deferred SIGINT
 _RESEND_S = 0.25  #: interval at which a raised interrupt is sent again while the command still runs
-_STATE = {"active": False, "received": False, "pending": False, "generation": 0}
+_STATE = {"active": False, "received": False, "pending": False, "generation": 0, "signum": None}
 _FORK_HOOK = {"registered": False}
 
 
@@ -66,7 +69,7 @@ def _redeliver(generation: int) -> None:
     _STATE["pending"] = False
     if _STATE["active"]:
         with contextlib.suppress(OSError):
-            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), _STATE["signum"] or signal.SIGINT)
 
 
 def _later(delay: float) -> None:
@@ -93,7 +96,9 @@ def _in_critical_section() -> bool:
 
 
 def _on_sigint(signum, frame) -> None:
+    """The handler of SIGINT and SIGTERM (module docstring); which one arrived is :func:`received_signal`."""
     _STATE["received"] = True
+    _STATE["signum"] = signum
     if in_import(frame) or _in_critical_section():
         if not _STATE["pending"]:
             _STATE["pending"] = True
@@ -107,24 +112,35 @@ def _on_sigint(signum, frame) -> None:
 
 
 def _child_after_fork() -> None:
-    if _STATE["active"]:  # a worker forked by a command: the command handles Ctrl-C, the worker keeps quiet
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if _STATE["active"]:  # a worker forked by a command: the command handles Ctrl-C, the worker keeps quiet, and
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # the command's terminate() (SIGTERM) ends it at once
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def received_signal():
+    """The signal (``signal.SIGINT`` or ``signal.SIGTERM``) that interrupted the last :func:`handling` block, or
+    None."""
+    return _STATE["signum"] if _STATE["received"] else None
 
 
 @contextlib.contextmanager
 def handling():
-    """Install :func:`_on_sigint` for the block (main thread only, and only where SIGINT is not ignored: a
-    process that inherited ``SIG_IGN`` keeps it; elsewhere a no-op)."""
+    """Install :func:`_on_sigint` for SIGINT (unless ignored) and SIGTERM (unless ignored or handled by the
+    embedding program) for the block; main thread only, elsewhere a no-op."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
-        _STATE["received"] = False
-        yield
-        return
-    try:
-        old = signal.signal(signal.SIGINT, _on_sigint)
-    except (ValueError, OSError):  # pragma: no cover - no signals here (embedded interpreter)
+    _STATE.update(received=False, signum=None)
+    old = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        h = signal.getsignal(sig)
+        if h is signal.SIG_IGN or (sig == signal.SIGTERM and h is not signal.SIG_DFL):
+            continue  # an inherited SIG_IGN stays; a SIGTERM handler of the embedding program stays its own
+        try:
+            old[sig] = signal.signal(sig, _on_sigint)
+        except (ValueError, OSError):  # pragma: no cover - no signals here (embedded interpreter)
+            pass
+    if not old:
         yield
         return
     if not _FORK_HOOK["registered"] and hasattr(os, "register_at_fork"):
@@ -135,4 +151,5 @@ def handling():
         yield
     finally:
         _STATE.update(active=False, generation=_STATE["generation"] + 1)  # pending timers of this block expire
-        signal.signal(signal.SIGINT, old)
+        for sig, h in old.items():
+            signal.signal(sig, h)
