@@ -187,6 +187,8 @@ HORIZON_TRIES = 8
 PRESPLIT_SHARE = 1.0 / 16.0
 #: graded quadrature (GGX): texels across the local scale ℓ = w + δ/2
 GRADE_TEXELS = 4.0
+#: (pixel, base cell) entries of a block's look-up table of base pairs (4 bytes each; more: binary search)
+FIND_TABLE_MAX = 1 << 22
 _MORTON_BITS = 21  # coordinates at the finest level < 2^21 per face side
 _HASH_MUL = np.uint64(0x9E3779B97F4A7C15)
 
@@ -688,30 +690,114 @@ _FIELDS = (("p", np.int32), ("f", np.int8), ("l", np.int8), ("i", np.int32), ("j
 
 
 class _Cells:
-    """The refined cells of a block (descendants of split base cells; only leaves are kept), with a Morton-sorted
-    index for region look-ups."""
+    """The refined cells of a block (descendants of split base cells; only leaves count), with a Morton-sorted
+    index for region look-ups.
 
-    def __init__(self, C):
-        self.d = {k: np.zeros(0, t) for k, t in _FIELDS}
-        self.W = np.zeros((0, C))
+    Stored in slots with room to grow (appending is amortised, not a copy of every cell per split): a split cell's
+    slot stays in place, marked ``dead`` (no weight, no ray: V = −1, not an edge, Y = Ye = W = 0, so that every sum
+    over the slots is the sum over the leaves, in the same order), until :meth:`compact` drops the dead slots.  The
+    live cells keep their relative order, as if the split cells had been removed at once, so every result is the
+    one of a plain array of leaves.  ``len`` is the number of slots (the length of every array), :attr:`live` the
+    number of leaves."""
+
+    #: spare slots: capacity × this when it grows; the dead slots are dropped when they exceed this share of the live
+    GROW = 1.5
+    DEAD_SHARE = 0.25
+
+    def __init__(self, C, E=1, max_slots=None):
+        self.max_slots = max_slots  # capacity grows by GROW up to here (the block's cell budget), further only as needed
+        self._d = {k: np.zeros(0, t) for k, t in _FIELDS}
+        self._d["dead"] = np.zeros(0, bool)
+        self._W = np.zeros((0, C))
+        self._Ye = np.zeros((0, E))  # per environment the channel mean of W relative to ws (kept, not recomputed)
+        self.n = 0
+        self.live = 0
         self.order = np.zeros(0, np.int64)
         self.skeys = np.zeros(0, np.int64)
 
     def __len__(self):
-        return len(self.W)
+        return self.n
 
     def __getitem__(self, k):
-        return self.d[k]
+        return self._d[k][:self.n]
 
-    def replace(self, keep, new, W_new):
-        """Keep the cells ``keep`` (bool), append ``new`` (dict of arrays) → index of the appended cells."""
-        n0 = int(keep.sum())
-        for k, t in _FIELDS:  # one field at a time: the old copy is freed before the next is built
-            self.d[k] = np.concatenate([self.d[k][keep], np.asarray(new[k]).astype(t)])
-        self.W = np.concatenate([self.W[keep], W_new])
-        self.order = np.argsort(self.d["key"], kind="stable")
-        self.skeys = self.d["key"][self.order]
-        return np.arange(n0, len(self.W))
+    @property
+    def W(self):
+        return self._W[:self.n]
+
+    @property
+    def Ye(self):
+        return self._Ye[:self.n]
+
+    def _reserve(self, n_new):
+        cap = len(self._W)
+        if self.n + n_new <= cap:
+            return
+        grown = int(self.GROW * cap) if self.max_slots is None else min(int(self.GROW * cap), self.max_slots)
+        cap = max(self.n + n_new, grown)
+        for k in self._d:
+            a = np.zeros(cap, self._d[k].dtype)
+            a[:self.n] = self._d[k][:self.n]
+            self._d[k] = a
+        for name in ("_W", "_Ye"):
+            old = getattr(self, name)
+            a = np.zeros((cap, old.shape[1]))
+            a[:self.n] = old[:self.n]
+            setattr(self, name, a)
+
+    def replace(self, gone, new, W_new, Ye_new):
+        """Mark the cells ``gone`` (indices: split) dead, append ``new`` (dict of arrays) with weights ``W_new`` and
+        per-environment weights ``Ye_new`` → index of the appended cells."""
+        gone = np.asarray(gone, np.int64)
+        d = self._d
+        d["dead"][gone] = True
+        d["V"][gone] = -1
+        d["edge"][gone] = False
+        d["Y"][gone] = 0.0
+        self._W[gone] = 0.0
+        self._Ye[gone] = 0.0
+        self.live -= len(gone)
+        m = len(W_new)
+        self._reserve(m)
+        n0 = self.n
+        for k, t in _FIELDS:
+            d[k][n0:n0 + m] = np.asarray(new[k]).astype(t)
+        d["dead"][n0:n0 + m] = False
+        self._W[n0:n0 + m] = W_new
+        self._Ye[n0:n0 + m] = Ye_new
+        self.n += m
+        self.live += m
+        # the Morton index: the old slots' sorted order merged with the new cells' — the stable argsort of all keys,
+        # in time linear in the slots (a new key goes after equal old ones, as the stable sort puts it)
+        kn = d["key"][n0:n0 + m]
+        on = np.argsort(kn, kind="stable")
+        at = np.searchsorted(self.skeys, kn[on], side="right") + np.arange(m)
+        is_new = np.zeros(n0 + m, bool)
+        is_new[at] = True
+        order = np.empty(n0 + m, np.int64)
+        order[at] = n0 + on
+        order[~is_new] = self.order
+        self.order = order
+        self.skeys = d["key"][:self.n][order]
+        return np.arange(n0, self.n)
+
+    def compact(self, force=False):
+        """Drop the dead slots (where they exceed :attr:`DEAD_SHARE` of the live cells, or ``force``): the live cells
+        keep their order, so nothing computed from them changes; indices do (callers look cells up again)."""
+        dead = self["dead"]
+        n_dead = self.n - self.live
+        if n_dead == 0 or not (force or n_dead > self.DEAD_SHARE * self.live):
+            return
+        keep = ~dead
+        for k in self._d:
+            self._d[k] = self._d[k][:self.n][keep]
+        self._W = self._W[:self.n][keep]
+        self._Ye = self._Ye[:self.n][keep]
+        ok = keep[self.order]
+        renum = np.cumsum(keep) - 1
+        self.order = renum[self.order[ok]]
+        self.skeys = self.skeys[ok]
+        self.n = self.live
 
 
 def _converge_block(job: dict) -> dict:
@@ -751,7 +837,8 @@ class _Block:
     def run(self) -> dict:
         self._quadrature()
         self._base_edges()
-        self.R = _Cells(self.C)
+        # slots: the live cells (≤ max_cells) and the dead ones (≤ DEAD_SHARE of them) of one round's splits
+        self.R = _Cells(self.C, self.E, int((1.0 + _Cells.DEAD_SHARE) * self.max_cells) + 4 * SPLIT_CHUNK)
         self.st = dict(n_rays=self.n_rays, kap_num=0.0, kap_den=0.0, n_kap=0, cap_reached=False, presplit=0)
         if self.lobe.presplit:
             self._presplit()
@@ -843,11 +930,21 @@ class _Block:
         self.bp, self.bc, self.bW, self.bkey, self.bY, self.bYe, self.bYhe = bp, bc, bW, bkey, bY, bYe, bYhe
         self.bV, self.bsu, self.bsv = bV, bsu, bsv
         self.nB = len(bp)
+        self._find_table = None
+        # per environment, contiguous: the pairs' weights and their change M/2 → M (read every round)
+        self.bYeT = np.ascontiguousarray(bYe.T)
+        self.bdYT = np.ascontiguousarray((bYe - bYhe).T)
 
     def find(self, p, cb):
-        """index of the base pair (pixel p, base cell cb), −1 where it has no weight"""
+        """index of the base pair (pixel p, base cell cb), −1 where it has no weight (a table over all (pixel,
+        cell) where it is small, else a binary search of the sorted keys)"""
         nB, bkey = self.nB, self.bkey
         q_ = p * self.K + cb
+        if self._find_table is None and self.Pn * self.K <= FIND_TABLE_MAX:
+            self._find_table = np.full(self.Pn * self.K, -1, np.int32)
+            self._find_table[bkey] = np.arange(nB)
+        if self._find_table is not None:
+            return self._find_table[q_]
         at_ = np.minimum(np.searchsorted(bkey, q_), max(nB - 1, 0))
         return np.where((nB > 0) & (bkey[at_] == q_), at_, -1) if nB else np.full(len(q_), -1)
 
@@ -862,6 +959,8 @@ class _Block:
         self.bedge = ((Vn >= 0) & (Vn != bV[:, None])).any(axis=1) | _cut_by_horizon(cf[bc], ci[bc], cj[bc], nb,
                                                                                       self.nrm[bp])
         self.bsplit = np.zeros(self.nB, dtype=bool)
+        self.dirty = np.zeros(self.Pn, dtype=bool)  # pixels whose cells were split since the last pixel_sums
+        self._sums = None
 
     # ---- estimates ---------------------------------------------------------------------------------------------
     def _ye(self, W, w):
@@ -874,20 +973,53 @@ class _Block:
 
     def quad_est(self, vb):
         """per pixel and environment |Σ_c V̄_c (Y_c(M) − Y_c(M/2))| (channel mean, relative to ws) → (Pn, E)."""
-        d = vb[:, None] * (self.bYe - self.bYhe)
-        return np.abs(np.stack([np.bincount(self.bp, weights=d[:, e], minlength=self.Pn) for e in range(self.E)],
-                               -1))
+        return np.abs(np.stack([np.bincount(self.bp, weights=vb * self.bdYT[e], minlength=self.Pn)
+                                for e in range(self.E)], -1))
 
     def per_env(self, ub, ur):
         """Per-environment weights (n, E) of the uncertain base pairs ``ub`` and refined cells ``ur``, and of the
         lit cells per pixel: (Ye of the uncertain cells, A (Pn, E))."""
         R, Pn = self.R, self.Pn
-        Rye = self._ye(R.W, self.ws[R["p"]]) if len(R) else np.zeros((0, self.E))
+        Rye = R.Ye
         lit_b = (self.bV > 0) & ~self.bsplit
         lit_r = R["V"] > 0
-        A = np.stack([np.bincount(self.bp, weights=self.bYe[:, e] * lit_b, minlength=Pn)
+        A = np.stack([np.bincount(self.bp, weights=self.bYeT[e] * lit_b, minlength=Pn)
                       + np.bincount(R["p"], weights=Rye[:, e] * lit_r, minlength=Pn) for e in range(self.E)], -1)
         return np.concatenate([self.bYe[ub], Rye[ur]]), A
+
+    def pixel_sums(self):
+        """Per pixel and environment the lit weight A and the quadrature estimate q (:meth:`per_env`,
+        :meth:`quad_est`), recomputed only for the pixels whose cells were split since the last call (a split changes
+        no other pixel's cells): each pixel's sums over its own cells in the same order as over all cells, so the
+        values are those of the full computation, bit for bit."""
+        Pn, E, R, bp = self.Pn, self.E, self.R, self.bp
+        if self._sums is None:
+            A = self.per_env(np.zeros(0, np.int64), np.zeros(0, np.int64))[1]
+            self._sums = (A, self.quad_est(self.vbar()))
+            self.dirty[:] = False
+            return self._sums
+        D = self.dirty.copy()
+        if not D.any():
+            return self._sums
+        self.dirty[:] = False
+        ib = np.flatnonzero(D[bp])
+        ir = np.flatnonzero(D[R["p"]])
+        rb, rp, rv = R["bi"][ir], R["p"][ir], R["V"][ir] > 0
+        vb = self.bV[ib].astype(np.float64).clip(min=0.0)
+        if len(R):
+            num = np.bincount(rb, weights=R["Y"][ir] * rv, minlength=self.nB)[ib]
+            bY = self.bY[ib]
+            vb = np.where(self.bsplit[ib], num / np.where(bY > 0, bY, 1.0), vb)
+        lit_b = (self.bV[ib] > 0) & ~self.bsplit[ib]
+        bpi, Rye = bp[ib], R.Ye[ir]
+        A, q = self._sums
+        A, q = A.copy(), q.copy()
+        for e in range(E):
+            A[D, e] = (np.bincount(bpi, weights=self.bYeT[e][ib] * lit_b, minlength=Pn)
+                       + np.bincount(rp, weights=Rye[:, e] * rv, minlength=Pn))[D]
+            q[D, e] = np.abs(np.bincount(bpi, weights=vb * self.bdYT[e][ib], minlength=Pn))[D]
+        self._sums = (A, q)
+        return self._sums
 
     def vbar(self):
         """visible fraction of each base pair from its leaves."""
@@ -908,7 +1040,7 @@ class _Block:
     def split(self, bsel, rsel):
         """Split base pairs ``bsel`` and refined cells ``rsel`` (both in priority order) into 2×2 children: weights,
         points, rays, edge flags; at most up to the block's cell budget → number of cells split."""
-        room = max(0, (self.max_cells - self.nB - len(self.R)) // 4)
+        room = max(0, (self.max_cells - self.nB - self.R.live) // 4)
         if len(bsel) + len(rsel) > room:
             self.st["cap_reached"] = True
             take_b = min(len(bsel), room)
@@ -919,6 +1051,7 @@ class _Block:
             self._split_chunk(bsel[a0:a0 + SPLIT_CHUNK], np.zeros(0, np.int64))
         for a0 in range(0, len(rsel), SPLIT_CHUNK):
             self._split_chunk(np.zeros(0, np.int64), rsel[a0:a0 + SPLIT_CHUNK])
+        self.R.compact()  # indices change: the callers look the cells up again
         return len(bsel) + len(rsel)
 
     def _split_chunk(self, bsel, rsel):
@@ -936,10 +1069,12 @@ class _Block:
         Wpar = np.concatenate([self.bW[bsel], R.W[rsel]])
         pedge = np.concatenate([self.bedge[bsel], R["edge"][rsel]])  # κ̂ is measured on split edge cells only
         self.bsplit[bsel] = True
+        self.dirty[par["p"]] = True
         cp, cf2, cl2, ci2, cj2, cW = _child_weights(self.quad, env, self.lobe, self.g, par["p"], par["f"], par["l"], par["i"],
                                                     par["j"], Wpar, self.bM[par["bi"]])
         nc = nb * (2 ** cl2)
-        cY = cW.mean(axis=-1) / self.ws[cp]
+        cYe = self._ye(cW, self.ws[cp])
+        cY = self._crit(cYe)  # the driving weight, as the base pairs' bY (with one environment: the channel mean)
         # the child holding its parent's point keeps point and ray; the others get their own (above the horizon)
         u0, u1, v0, v1 = _rect(ci2, cj2, nc)
         psu, psv = np.repeat(par["su"], 4), np.repeat(par["sv"], 4)
@@ -976,11 +1111,9 @@ class _Block:
         has0 = ((v4 == 0).any(axis=1))[:, None]
         sib = ((v4 == 1) & has0) | ((v4 == 0) & has1)
         sib |= (_cut_by_horizon(cf2, ci2, cj2, nc, self.nrm[cp]) & (cV >= 0)).reshape(-1, 4)
-        keep_ = np.ones(len(R), dtype=bool)
-        keep_[rsel] = False
         new_ = dict(p=cp, f=cf2, l=cl2, i=ci2, j=cj2, Y=cY, V=cV, edge=sib.reshape(-1), su=su2, sv=sv2,
                     bi=np.repeat(par["bi"], 4), key=_keys(cp, cf2, cl2, ci2, cj2, self.depth))
-        inew = R.replace(keep_, new_, cW)
+        inew = R.replace(rsel, new_, cW, cYe)
         # the new children against the 12 cells around their 2×2 block (edge flags of older cells only grow)
         _classify_children(R, inew, dict(bV=self.bV, bedge=self.bedge, bsplit=self.bsplit, find=self.find, nb=nb,
                                          depth=self.depth))
@@ -1012,8 +1145,8 @@ class _Block:
         E = self.E
         for rnd in range(MAX_ROUNDS):
             ub, ur, pix, Yu = self.uncertain()
-            Ye, Ae = self.per_env(ub, ur)
-            qe = self.quad_est(self.vbar())
+            Ye = np.concatenate([self.bYe[ub], R.Ye[ur]])
+            Ae, qe = self.pixel_sums()
             kap = _kappa(st["kap_num"], st["kap_den"], st["n_kap"])
             # per environment: the image estimate and the pixels over pixel_rtol (lit pixels; best effort: pixels
             # whose quadrature estimate alone exceeds it, or whose edge cells are at the finest level, stay over)
@@ -1036,7 +1169,7 @@ class _Block:
             n_viol = int(len(np.unique(np.concatenate([d["viol"] for d in per]))))
             rounds.append(dict(round=rnd, rays=int(st["n_rays"]), est_rel_l1=float(est),
                                vis_rel_l1=per[worst]["vis"], quad_rel_l1=per[worst]["quad"],
-                               kappa=float(kap), edge_cells=int(len(pix)), cells=int(self.nB + len(R)),
+                               kappa=float(kap), edge_cells=int(len(pix)), cells=int(self.nB + R.live),
                                pixels_over=n_viol))
             if est <= rtol and n_viol == 0:
                 converged = True
@@ -1054,7 +1187,12 @@ class _Block:
                 if not ((e == worst and est > rtol) or len(d["viol"])):
                     continue
                 y = Ye[:, e]
-                o = can[np.argsort(-y[can], kind="stable")]
+                c_ = can
+                if not (e == worst and est > rtol):  # pixels only: their cells alone (the same order, the same picks)
+                    over = np.zeros(Pn, bool)
+                    over[d["viol"]] = True
+                    c_ = can[over[pix[can]]]
+                o = c_[np.argsort(-y[c_], kind="stable")]
                 o = o[_worth_splitting(pix[o], y[o], d["S"])]
                 if not len(o):
                     continue
@@ -1096,7 +1234,7 @@ class _Block:
                     n_rays=int(st["n_rays"]), n_quad=int(M), n_quad_pair_max=int(self.bM.max()) if nB else int(M),
                     converged=converged, rounds=rounds, cap_reached=bool(st["cap_reached"]),
                     presplit=int(st["presplit"]), max_level=int(self.nb * 2 ** (int(R["l"].max()) if len(R) else 0)),
-                    n_cells=int(nB + len(R)), time_s=time.perf_counter() - self.t0,
+                    n_cells=int(nB + R.live), time_s=time.perf_counter() - self.t0,
                     cpu_s=time.process_time() - self.c0, peak_rss_mb=_peak_rss_mb())
 
 
