@@ -119,7 +119,7 @@ def cmd_prefilter(args) -> int:
     from ..atomic import OutputSet, check_side_files, refuse_overwriting_inputs
     from ..groundtruth.ggx_convolution import LAST_INFO, convolve_ggx_levels
     from ..limits import check_rtol
-    from ..prefilter.karis2013 import roughness_of_level
+    from ..prefilter.mip_mappings import get_mapping  # (not karis2013: it imports SciPy for its other routes)
     from ..progress import step
     from .radiance_args import load_env
 
@@ -141,7 +141,7 @@ def cmd_prefilter(args) -> int:
     n_levels = max(2, n.bit_length() - max(min_size, 1).bit_length() + 1) if min_size < n else 1
     if n_levels < 2:
         raise IBLError(f"--min-level-size {min_size} leaves no level below the {n}² source")
-    rough = [float(r) for r in roughness_of_level(np.arange(n_levels), n_levels, args.mapping)]
+    rough = [float(r) for r in get_mapping(args.mapping).roughness(np.arange(n_levels), n_levels)]
     sizes = [max(n >> lv, min_size) for lv in range(n_levels)]
     side, files, named = LAYOUTS[args.layout](args.output, n_levels)  # files[ℓ]: the file(s) of level ℓ
     paths = [p for level in files for p in level]

@@ -73,7 +73,7 @@ from .convolution_args import channel_max, check_cube, check_faces, check_out_si
 from .convolve import default_workers
 from .kernels import get_kernels, resolve_kernel
 from .kernels.numpy_backend import GGX_ANGLE_EPS, SYM_PAIRS
-from .moment_convolution import _cones, _ratio_bound
+from .moment_convolution import _ratio_bound
 
 __all__ = ["GGXLobeKernel", "GGXSourceTree", "convolve_ggx", "convolve_ggx_levels", "ROUNDING_REL", "REFINE_STEPS",
            "LAST_INFO"]
@@ -184,6 +184,27 @@ class _Level:
         self.trV = None if V is None else V[:, 0] + V[:, 3] + V[:, 5]
 
 
+def _block_cones(dP, S, ok, n, b):
+    """Bounding cones of the b×b blocks of the padded (6,P,P,3) texel directions ``dP`` whose real texels' direction
+    sums are ``S`` (6,m,m,3) (``ok``: blocks with a real texel): the centres (6,m,m,3) and half-angles ψ (6,m,m),
+    +GGX_ANGLE_EPS.  ψ is the largest angle from the centre c to a texel centre of the block, found among the real
+    block's four corner texels: on the face plane the points p with p·c ≥ t|p| (t > 0) form a convex set, so the
+    smallest cos over the rectangle of the block's texel centres is taken at a corner."""
+    nrm = np.linalg.norm(S, axis=-1)
+    c = S / np.where(nrm > 0, nrm, 1.0)[..., None]
+    m = S.shape[1]
+    lo = np.arange(m) * b
+    hi = np.minimum(lo + b, n) - 1
+    lo = np.minimum(lo, n - 1)
+    dots = np.ones(S.shape[:3])
+    for r in (lo, hi):
+        for q in (lo, hi):
+            corner = dP[:, r[:, None], q[None, :]]  # (6,m,m,3)
+            dots = np.minimum(dots, np.einsum("...k,...k->...", corner, c))
+    dots = np.where(ok, dots, 1.0)
+    return c, np.arccos(np.clip(dots, -1.0, 1.0)) + GGX_ANGLE_EPS
+
+
 class GGXSourceTree:
     """The quadtree of a cube map's texels (module docstring): ``levels[0]`` the texels (P×P per face, P the face
     size rounded up to a power of two, at least 2; padding texels invalid and of zero weight), ``levels[-1]`` the six
@@ -202,29 +223,37 @@ class GGXSourceTree:
         real = np.pad(np.ones((6, n, n), bool), pad[:3])
         self.levels = [_Level(1, P, dP.reshape(-1, 3), None, None, real.ravel(), M0.reshape(-1, Q), None, None)]
         self._flat = None
-        # moments about each block's centre from its children's by the parallel-axis shift (texels: U = V = 0)
+        # moments about each block's centre from its children's by the parallel-axis shift (texels: U = V = 0), child
+        # by child (strided views: no 2×2 temporaries)
         U = V = None
         cc = dP
+        S = dP  # per block the sum of its texels' directions (padding: 0)
+        ok = real
         i, j = SYM_PAIRS
         b = 1
         while b < P:
             b *= 2
             m = P // b
-            c, psi, valid = _cones(dP, real, b)
-            d = cc.reshape(6, m, 2, m, 2, 3) - c.reshape(6, m, 1, m, 1, 3)  # child centre − parent centre
-            M0k = M0.reshape(6, m, 2, m, 2, Q)
-            Uk = d[..., :, None] * M0k[..., None, :]
-            Vk = (d[..., i] * d[..., j])[..., None] * M0k[..., None, :]
-            if U is not None:
-                Uc = U.reshape(6, m, 2, m, 2, 3, Q)
-                Vk += V.reshape(6, m, 2, m, 2, 6, Q) + d[..., i, None] * Uc[..., j, :] + Uc[..., i, :] * d[..., j, None]
-                Uk += Uc
-            M0 = M0k.sum(axis=(2, 4))
-            U = Uk.sum(axis=(2, 4))
-            V = Vk.sum(axis=(2, 4))
-            cc = c.reshape(6, m, m, 3)
-            self.levels.append(_Level(b, m, c, np.cos(psi), np.sin(psi), valid, M0.reshape(-1, Q),
-                                      U.reshape(-1, 3, Q), V.reshape(-1, 6, Q)))
+            kids = [(slice(None), slice(di, None, 2), slice(dj, None, 2)) for di in (0, 1) for dj in (0, 1)]
+            S = sum(S[k] for k in kids)
+            ok = ok[kids[0]] | ok[kids[1]] | ok[kids[2]] | ok[kids[3]]
+            c, psi = _block_cones(dP, S, ok, n, b)
+            M0n = np.zeros((6, m, m, Q))
+            Un = np.zeros((6, m, m, 3, Q))
+            Vn = np.zeros((6, m, m, 6, Q))
+            for k in kids:
+                d = cc[k] - c  # child centre − parent centre
+                M0k = M0[k]
+                M0n += M0k
+                Un += d[..., :, None] * M0k[..., None, :]
+                Vn += (d[..., i] * d[..., j])[..., None] * M0k[..., None, :]
+                if U is not None:
+                    Uc = U[k]
+                    Un += Uc
+                    Vn += V[k] + d[..., i, None] * Uc[..., j, :] + Uc[..., i, :] * d[..., j, None]
+            M0, U, V, cc = M0n, Un, Vn, c
+            self.levels.append(_Level(b, m, c.reshape(-1, 3), np.cos(psi).ravel(), np.sin(psi).ravel(), ok.ravel(),
+                                      M0.reshape(-1, Q), U.reshape(-1, 3, Q), V.reshape(-1, 6, Q)))
 
     def flat(self, factory):
         """``factory(levels)``, made once and kept (the compiled backend's flat arrays)."""

@@ -52,8 +52,29 @@ paper's pyramid and its PEMs, :mod:`~ibl_ref.prefilter.ggx_phong_mapping`) — a
 (``sh9``, Ramamoorthi & Hanrahan 2001, :mod:`~ibl_ref.prefilter.ramamoorthi_hanrahan2001`).
 """
 
+import importlib
+
 from .interface import LOBES, Prefilter, RegionPrefilters, check_lobe_param
-from .registry import PREFILTER_METHODS, build_prefilter, build_region_prefilters, prefilter_methods
 
 __all__ = ["LOBES", "Prefilter", "RegionPrefilters", "check_lobe_param", "PREFILTER_METHODS", "build_prefilter",
            "build_region_prefilters", "prefilter_methods"]
+
+#: the registry's names, imported on first use (the registry imports every method and SciPy: a command that needs
+#: one module of the package, e.g. ``ibl-ref prefilter``'s karis2013, does not pay for them at start-up)
+_REGISTRY_NAMES = ("PREFILTER_METHODS", "build_prefilter", "build_region_prefilters", "prefilter_methods")
+
+
+def __getattr__(name):
+    if name in _REGISTRY_NAMES:
+        return getattr(importlib.import_module(".registry", __name__), name)
+    if not name.startswith("__"):  # a method module not imported yet: as when the registry had imported it
+        try:
+            return importlib.import_module(f".{name}", __name__)
+        except ModuleNotFoundError as exc:
+            if exc.name != f"{__name__}.{name}":
+                raise
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_REGISTRY_NAMES))
