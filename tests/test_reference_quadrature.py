@@ -147,3 +147,24 @@ def test_unknown_or_unavailable_quadrature_is_one_line(monkeypatch):
     monkeypatch.setenv("NUMBA_DISABLE_JIT", "1")
     with pytest.raises(IBLError, match="compiled.*needs numba"):
         get_quadrature("compiled")
+
+
+@needs_numba
+@pytest.mark.parametrize("C", [1, 2, 3, 4, 5, 7, 8, 15])
+def test_compiled_channel_sums_are_running_sums_in_texel_order(C):
+    """The compiled loops' accumulation runs several channels' sums side by side (four, then three, then one at a
+    time): each channel's sum is still the plain running sum over the texels in order, bit for bit."""
+    from ibl_ref.rendering.reference_quadrature_loops import _accumulate
+
+    rng = np.random.default_rng(C)
+    kk = 97
+    wb = rng.random(kk) * 10.0 ** rng.integers(-8, 3, kk)
+    Lb = rng.random((C, kk)) * 10.0 ** rng.integers(-5, 5, (C, kk))
+    W = np.full((3, C), np.nan)
+    _accumulate(wb, Lb, W, 1)
+    for ch in range(C):
+        acc = 0.0
+        for t in range(kk):
+            acc += float(wb[t]) * float(Lb[ch, t])
+        assert W[1, ch] == acc
+    assert np.isnan(W[0]).all() and np.isnan(W[2]).all()
