@@ -81,45 +81,25 @@ def _block_radiance(rad, q, fs, r0, c0, k, Lb):
 @_jit()
 def _accumulate(wb, Lb, W, p):
     """W[p, c] = Σ_t wb[t] Lb[c, t], each channel's sum a running sum in texel order (t = 0, 1, …); four channels'
-    sums at a time side by side (independent additions: one running sum alone waits on each addition's latency)."""
+    sums at a time side by side (independent additions: one running sum alone waits on each addition's latency;
+    past the last channel a group repeats it, written once)."""
     C = Lb.shape[0]
-    kk = len(wb)
-    ch = 0
-    while ch + 4 <= C:
+    for ch in range(0, C, 4):
+        r1, r2, r3 = min(ch + 1, C - 1), min(ch + 2, C - 1), min(ch + 3, C - 1)
         a0 = 0.0
         a1 = 0.0
         a2 = 0.0
         a3 = 0.0
-        for t in range(kk):
+        for t in range(len(wb)):
             w = wb[t]
             a0 += w * Lb[ch, t]
-            a1 += w * Lb[ch + 1, t]
-            a2 += w * Lb[ch + 2, t]
-            a3 += w * Lb[ch + 3, t]
+            a1 += w * Lb[r1, t]
+            a2 += w * Lb[r2, t]
+            a3 += w * Lb[r3, t]
         W[p, ch] = a0
-        W[p, ch + 1] = a1
-        W[p, ch + 2] = a2
-        W[p, ch + 3] = a3
-        ch += 4
-    if C - ch == 3:
-        a0 = 0.0
-        a1 = 0.0
-        a2 = 0.0
-        for t in range(kk):
-            w = wb[t]
-            a0 += w * Lb[ch, t]
-            a1 += w * Lb[ch + 1, t]
-            a2 += w * Lb[ch + 2, t]
-        W[p, ch] = a0
-        W[p, ch + 1] = a1
-        W[p, ch + 2] = a2
-        ch += 3
-    while ch < C:
-        a0 = 0.0
-        for t in range(kk):
-            a0 += wb[t] * Lb[ch, t]
-        W[p, ch] = a0
-        ch += 1
+        W[p, r1] = a1
+        W[p, r2] = a2
+        W[p, r3] = a3
 
 
 @_jit()
