@@ -31,7 +31,8 @@ expansion of K about x_B gives the block's contribution::
 √(1 − x_B²)).  K is smooth on [x_B − δ, x_B + δ] when x_B − δ > 0, and there K''' > 0 grows with x
 (:meth:`GGXLobeKernel.d3`), so the sup is K'''(min(x_B + δ, 1)).  Near the horizon the zero-order bracket
 ``0 ≤ K ≤ K(x_B + δ)`` (K increases with x) gives the midpoint and half-width instead; per output texel and block
-the smaller of the two bounds is used.  Single texels are summed exactly.
+the smaller of the two bounds is used.  Single texels are summed exactly, and so are the 2×2 blocks left after the refinement (their four texels cost less
+than one Taylor sum per output texel).
 
 Output texels are grouped in t×t tiles (axis c_T, half-angle β_T; :func:`default_tile`).  Each tile starts from
 the six face blocks.  A (tile, block) pair is dropped when no texel of the block can be above the horizon of any
@@ -101,7 +102,7 @@ REDO_SHARE = 0.5
 #: tile-level estimates are 1–5× the per-texel bounds, depending on the lobe's width against the tile's)
 SAMPLE_MIN_TILES = 64
 SAMPLE_STRIDE = 8
-SAMPLE_AIM = 0.7
+SAMPLE_AIM = 0.85
 #: the share of a split pair's bound estimate the split is expected to remove (2×2 children of a block in the Taylor
 #: regime have about 1/8 of its remainder): the last rounds of a tile's refinement split only the largest pairs,
 #: enough for the excess over the target, instead of every pair above half the mean
