@@ -1026,6 +1026,29 @@ def _ggx_pair(node, cx, cy, cz, cb, sb, cd, sd, hshare, a, b, NC, NCOS, NSIN, NM
     return True, _ggx_k(ct, a, b)
 
 
+@_jit(inline="always")
+def _ggx_first_child(idx, m):
+    """``(first child, child grid side 2m)``: block ``idx`` of a 6×m×m grid → the flat index of its first child on the
+    6×2m×2m grid (the others at +1, +2m, +2m+1)."""
+    f = idx // (m * m)
+    rem = idx - f * m * m
+    bi = rem // m
+    bj = rem - bi * m
+    m2 = 2 * m
+    return f * m2 * m2 + 2 * bi * m2 + 2 * bj, m2
+
+
+@_jit(inline="always")
+def _ggx_add_texel(tex, nt, ci):
+    """Append texel ``ci`` to the list ``tex[:nt]`` (grown by doubling): ``(tex, nt + 1)``."""
+    if nt >= tex.shape[0]:
+        t_new = np.empty(2 * tex.shape[0], np.int64)
+        t_new[:nt] = tex[:nt]
+        tex = t_new
+    tex[nt] = ci
+    return tex, nt + 1
+
+
 @_jit(fastmath={"contract"})
 def ggx_tree(tiles, R, cT, betaT, target, beta_share, hshare, split_gain, a, b, off, grid_m, top, NC, NCOS, NSIN, NVALID,
              NM0, NU, NV, NTR, TC, TW, TVALID, num, err, pairs):
@@ -1147,25 +1170,13 @@ def ggx_tree(tiles, R, cT, betaT, target, beta_share, hshare, split_gain, a, b, 
                         nxt_s[n2, q] = cur_s[j, q]
                     n2 += 1
                     continue
-                idx = cur_i[j]
-                m = grid_m[li]
-                f = idx // (m * m)
-                rem = idx - f * m * m
-                bi = rem // m
-                bj = rem - bi * m
-                m2 = 2 * m
-                base = f * m2 * m2 + 2 * bi * m2 + 2 * bj
+                base, m2 = _ggx_first_child(cur_i[j], grid_m[li])
                 for c in range(4):
                     ci = base + (c & 1) + (c >> 1) * m2
                     if li == 1:  # a texel: exact, its share of the estimate fixed
                         if not TVALID[ci]:
                             continue
-                        if nt >= tex.shape[0]:
-                            t_new = np.empty(2 * tex.shape[0], np.int64)
-                            t_new[:nt] = tex[:nt]
-                            tex = t_new
-                        tex[nt] = ci
-                        nt += 1
+                        tex, nt = _ggx_add_texel(tex, nt, ci)
                         kc = _ggx_k(cx * TC[ci, 0] + cy * TC[ci, 1] + cz * TC[ci, 2], a, b)
                         for q in range(Q):
                             ex[q] += kc * TW[ci, q]
@@ -1204,30 +1215,17 @@ def ggx_tree(tiles, R, cT, betaT, target, beta_share, hshare, split_gain, a, b, 
         acc_e[:] = 0.0
         # the final 2×2 blocks as their four texels, exactly (cheaper per output texel than the Taylor sum)
         n_b = 0
-        m = grid_m[1]
-        m2 = 2 * m
         for j in range(n):
             if cur_l[j] != 1:
                 cur_l[n_b] = cur_l[j]
                 cur_i[n_b] = cur_i[j]
                 n_b += 1
                 continue
-            idx = cur_i[j]
-            f = idx // (m * m)
-            rem = idx - f * m * m
-            bi = rem // m
-            bj = rem - bi * m
-            base = f * m2 * m2 + 2 * bi * m2 + 2 * bj
+            base, m2 = _ggx_first_child(cur_i[j], grid_m[1])
             for c in range(4):
                 ci = base + (c & 1) + (c >> 1) * m2
-                if not TVALID[ci]:
-                    continue
-                if nt >= tex.shape[0]:
-                    t_new = np.empty(2 * tex.shape[0], np.int64)
-                    t_new[:nt] = tex[:nt]
-                    tex = t_new
-                tex[nt] = ci
-                nt += 1
+                if TVALID[ci]:
+                    tex, nt = _ggx_add_texel(tex, nt, ci)
         n = n_b
         for j in range(n):
             li = cur_l[j]
