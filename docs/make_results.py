@@ -741,6 +741,48 @@ def _occ_cell(rows, key, decimals=1, **match) -> str:
     return pct(v, decimals) if v is not None else "n/a"
 
 
+#: the scenes of the occlusion zoo as the page names them
+OCC_SCENE_NAMES = {"teapot": "the teapot on the ground", "crevice": "a crevice", "bumpy": "a bumpy cluster",
+                   "normal-mapped": "a normal-mapped quad"}
+#: the per-cost pick of a scene and material: the cheapest method (input bytes per pixel) on the Pareto front whose
+#: share given back is within this many points (a fraction) of the most any method gives back there
+OCC_PICK_MARGIN = 0.10
+
+
+def _occ_front(rows, methods, inputs=("oracle",), **match) -> list[tuple[int, float, str]]:
+    """The Pareto front of (input bytes per pixel ↓, mean share given back ↑) over ``methods`` fed each of
+    ``inputs`` on the rows matching ``match``: (bytes, given back, label), cheapest first; the label is the method,
+    with the input kind in brackets where ``inputs`` has several.  ``none`` (0 B, 0 %) is a point: where every method
+    is worse than no occlusion the front is ``none`` alone."""
+    pts = [(0, 0.0, "none")]
+    for m in methods:
+        for kind in inputs:
+            v = _occ_mean(rows, "given_back_frac", method=m, inputs=kind, **match)
+            if v is not None and m != "none":
+                label = m if len(inputs) == 1 else f"{m} ({kind.replace('shadow-map:', '')})"
+                pts.append((int(_occ_mean(rows, "input_bytes_per_pixel", method=m, inputs=kind, **match)), v,
+                            label))
+    pts.sort(key=lambda t: (t[0], -t[1], t[2]))
+    front, best = [], -math.inf
+    for b, v, m in pts:
+        if v > best:
+            front.append((b, v, m))
+            best = v
+    return front
+
+
+def _occ_pick(front) -> tuple[int, float, str]:
+    """The cheapest point (bytes, given back, method) of a front within :data:`OCC_PICK_MARGIN` of its most given
+    back."""
+    top = max(v for _, v, _ in front)
+    return next(t for t in front if t[1] >= top - OCC_PICK_MARGIN)
+
+
+def _occ_pick_cell(t) -> str:
+    b, v, m = t
+    return f"`{m}` ({b} B, {pct(v, 0)} %)"
+
+
 @page("occlusion-zoo")
 def occlusion_zoo_page(folder: Path) -> dict[str, str]:
     rows = [q for q in read_csv(folder / "occlusion_zoo.csv") if q["applicable"] == "True"]
@@ -812,6 +854,23 @@ def occlusion_zoo_page(folder: Path) -> dict[str, str]:
         ["visible fractions", *[f"{mat}, {r} regions" for mat in rmats for r in counts]],
         [[k] + [_occ_cell(reg, "given_back_frac", method=f"regions-exact-{r}", material=mat, inputs=k)
                 for mat in rmats for r in counts] for k in kinds])
+    est_kinds = sorted({q["inputs"] for q in rows} - {"oracle"})
+    fronts = {(sc, mat): (_occ_front(rows, methods, scene=sc, material=mat),
+                          _occ_front(rows, methods, tuple(est_kinds), scene=sc, material=mat))
+              for sc in scenes for mat in mats}
+    out["front_table"] = md_table(
+        ["scene", "material", "Pareto front, exact (baked) inputs: method bytes per pixel → % given back",
+         f"pick: the cheapest within {pct(OCC_PICK_MARGIN, 0)} points of the most",
+         "pick with run-time estimates (GTAO, shadow maps)"],
+        [[sc, mat, " · ".join(f"`{m}` {b} B → {pct(v, 0)} %" for b, v, m in fr),
+          _occ_pick_cell(_occ_pick(fr)), _occ_pick_cell(_occ_pick(fe))] for (sc, mat), (fr, fe) in fronts.items()])
+    for key, i in (("pick_counts", 0), ("pick_counts_estimated", 1)):
+        picks = [_occ_pick(f[i])[2] for f in fronts.values()]
+        out[key] = ", ".join(f"`{m}` {picks.count(m)}" for m in sorted(set(picks), key=lambda m: (-picks.count(m), m)))
+    out["n_fronts"] = str(len(fronts))
+    out["pick_margin"] = pct(OCC_PICK_MARGIN, 0)
+    out["n_scenes"] = str(len(scenes))
+    out["scene_list"] = ", ".join(OCC_SCENE_NAMES.get(sc, sc) for sc in scenes)
     out["n_cases"] = str(len({(q["scene"], q["env"], q["material"]) for q in rows}))
     out["n_rows"] = str(len(rows))
     return out
