@@ -22,7 +22,8 @@ import numpy as np
 from ..environment import envmap
 from ..errors import IBLError
 from ..environment.validated import environment_array
-from .profile_convolution import BLOCK_ELEMS, positive_int
+from ..limits import positive_int
+from .profile_convolution import BLOCK_ELEMS
 from ..progress import Progress
 from .brdfs import view_direction
 

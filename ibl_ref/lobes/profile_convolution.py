@@ -35,7 +35,7 @@ from ..limits import positive_int
 from ..progress import Progress
 
 __all__ = ["ProfileError", "check_profile", "profile_integral", "support_angle", "convolve_profiles",
-           "convolve_profile", "profile_hwhm", "auto_supersample", "positive_int"]
+           "convolve_profile", "profile_hwhm", "auto_supersample"]
 
 #: target number of float64 elements of one (outputs × candidates) block
 BLOCK_ELEMS = 1 << 18
