@@ -1133,8 +1133,8 @@ def ggx_chain_page(folder: Path) -> dict[str, str]:
     dn = max(int(q["face_size_texels"]) for q in dense)
     speed = [float(q["dense_over_tree"]) for q in dense if int(q["face_size_texels"]) == dn]
     return {"cells_table": cell_table, "levels_table": level_table, "dense_table": dense_table,
-            "dense_levels_table": dense_level_table, "ratio_min": f"{min(ratios):.1f}", "ratio_max": f"{max(ratios):.1f}",
-            "largest": str(largest), "ratio_largest": " and ".join(f"{r:.1f}×" for r in at_largest),
+            "dense_levels_table": dense_level_table, "ratio_min": f"{min(ratios):.2f}", "ratio_max": f"{max(ratios):.2f}",
+            "largest": str(largest), "ratio_largest": " and ".join(f"{r:.2f}×" for r in at_largest),
             "dense_size": str(dn), "dense_speedup": " and ".join(f"{r:.0f}×" for r in speed),
             "within": f"{sum(q['within_bound'] == 'True' for q in dl)} of {len(dl)}",
             "bound_max": sci(max(float(q["lab_rel_bound_max"]) for q in levels))}

@@ -387,3 +387,25 @@ def test_equal_error_run_is_consistent():
         assert q["ref_converged"] == "True" and float(q["ref_est_rel_l1"]) <= 2e-3
         assert abs(float(q["mitsuba_noise_rel_l1"]) / float(q["ref_est_rel_l1"]) - 1.0) <= 0.2, q["material"]
         assert abs(float(q["ratio_ref_to_mitsuba"]) - float(q["ref_wall_s"]) / float(q["mitsuba_wall_s"])) <= 1e-3
+
+
+def test_readme_ggx_chain_row_is_the_saved_run():
+    # "**0.88–1.04×** the wall time of Filament's `cmgen` at 256² and 512² faces (faster on 3 of the 4 maps and
+    # sizes …), **69–74×** faster than the dense sum at 128²; cmgen's own chain is 3–10 % off on average per level"
+    row = next(ln for ln in (ROOT / "README.md").read_text().splitlines() if ln.startswith("| Exact GGX (n = v = r)"))
+    m = re.search(r"\*\*([\d.]+)–([\d.]+)×\*\* the wall time of Filament's `cmgen`", row)
+    cells = read_csv(SAVED / "ggx-chain" / "cells.csv")
+    ratios = [float(q["lab_over_cmgen_wall"]) for q in cells]
+    assert m and len(ratios) == 4
+    _check(m.group(1), min(ratios), "fastest lab / cmgen")
+    _check(m.group(2), max(ratios), "slowest lab / cmgen")
+    assert "faster on 3 of the 4 maps and sizes" in row and sum(r < 1 for r in ratios) == 3
+    dense = [float(q["dense_over_tree"]) for q in read_csv(SAVED / "ggx-chain" / "dense.csv")
+             if q["face_size_texels"] == "128"]
+    m = re.search(r"\*\*(\d+)–(\d+)×\*\* faster than the dense sum at 128²", row)
+    assert m and len(dense) == 2
+    _check(m.group(1), min(dense), "dense / tree")
+    _check(m.group(2), max(dense), "dense / tree")
+    errs = [100 * float(q["cmgen_rel_err_mean"]) for q in read_csv(SAVED / "ggx-chain" / "levels.csv")]
+    assert "cmgen's own chain is 3–10 % off on average per level" in row
+    assert round(min(errs)) == 3 and round(max(errs)) == 10
