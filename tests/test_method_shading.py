@@ -239,3 +239,10 @@ def test_exact_dfg_weight_is_the_albedo_of_the_materials_smith_form(smith):
         normal, view, n_pixels = n, v, len(n)
 
     np.testing.assert_array_equal(specular_weight(m, _Pixels()), w)
+    # edges: n·v ≤ 0 gives 0, n·v a hair above 1 is 1, NaN is a one-line error (not a silent 0)
+    np.testing.assert_array_equal(ms.dfg_weight(None, [0.0, -0.5], 0.4, 0.3, smith)[:, 0], [0.0, 0.0])
+    np.testing.assert_array_equal(ms.dfg_weight(None, [1.0 + 1e-15], 0.4, 0.3, smith),
+                                  ms.dfg_weight(None, [1.0], 0.4, 0.3, smith))
+    with pytest.raises(IBLError) as e:
+        ms.dfg_weight(None, [0.5, np.nan], 0.4, 0.3, smith)
+    assert "NaN" in _one_line(e)

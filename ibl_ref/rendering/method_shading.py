@@ -158,6 +158,8 @@ def dfg_weight(dfg, n_dot_v, roughness, f0, smith: str = "height_correlated") ->
     nv = np.asarray(n_dot_v, dtype=np.float64).reshape(-1)
     if dfg is not None:
         return split_sum(np.ones((len(nv), 1)), nv, roughness, f0, dfg)
+    if not np.all(np.isfinite(nv)):  # as split_sum's table branch: not a silent 0
+        raise IBLError("n·v contains NaN/Inf")
     f0 = np.broadcast_to(np.asarray(check_f0(f0), dtype=np.float64), nv.shape)
     r = np.broadcast_to(np.asarray(roughness, dtype=np.float64), nv.shape)
     w = np.zeros((len(nv), 1))
