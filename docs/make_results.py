@@ -868,6 +868,10 @@ def occlusion_zoo_page(folder: Path) -> dict[str, str]:
         picks = [_occ_pick(f[i])[2] for f in fronts.values()]
         out[key] = ", ".join(f"`{m}` {picks.count(m)}" for m in sorted(set(picks), key=lambda m: (-picks.count(m), m)))
     out["n_fronts"] = str(len(fronts))
+    baked = [_occ_pick(f[0]) for f in fronts.values()]
+    run_time = [_occ_pick(f[1]) for f in fronts.values()]
+    out["pick_regions"] = f"{sum(m.startswith('regions') for _, _, m in baked)} of {len(fronts)}"
+    out["pick_4b_run_time"] = f"{sum(b == 4 for b, _, _ in run_time)} of {len(fronts)}"
     out["pick_margin"] = pct(OCC_PICK_MARGIN, 0)
     out["n_scenes"] = str(len(scenes))
     out["scene_list"] = ", ".join(OCC_SCENE_NAMES.get(sc, sc) for sc in scenes)
@@ -1135,7 +1139,7 @@ def ggx_chain_page(folder: Path) -> dict[str, str]:
     return {"cells_table": cell_table, "levels_table": level_table, "dense_table": dense_table,
             "dense_levels_table": dense_level_table, "ratio_min": f"{min(ratios):.2f}", "ratio_max": f"{max(ratios):.2f}",
             "largest": str(largest), "ratio_largest": " and ".join(f"{r:.2f}×" for r in at_largest),
-            "dense_size": str(dn), "dense_speedup": " and ".join(f"{r:.0f}×" for r in speed),
+            "dense_size": str(dn), "dense_speedup": f"{min(speed):.0f}–{max(speed):.0f}×",
             "within": f"{sum(q['within_bound'] == 'True' for q in dl)} of {len(dl)}",
             "bound_max": sci(max(float(q["lab_rel_bound_max"]) for q in levels))}
 
