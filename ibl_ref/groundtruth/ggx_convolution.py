@@ -31,8 +31,8 @@ expansion of K about x_B gives the block's contribution::
 √(1 − x_B²)).  K is smooth on [x_B − δ, x_B + δ] when x_B − δ > 0, and there K''' > 0 grows with x
 (:meth:`GGXLobeKernel.d3`), so the sup is K'''(min(x_B + δ, 1)).  Near the horizon the zero-order bracket
 ``0 ≤ K ≤ K(x_B + δ)`` (K increases with x) gives the midpoint and half-width instead; per output texel and block
-the smaller of the two bounds is used.  Single texels are summed exactly, and so are the 2×2 blocks left after the refinement (their four texels cost less
-than one Taylor sum per output texel).
+the smaller of the two bounds is used.  Single texels are summed exactly, and so are the 2×2 blocks left after
+the refinement (their four texels cost less than one Taylor sum per output texel).
 
 Output texels are grouped in t×t tiles (axis c_T, half-angle β_T; :func:`default_tile`).  Each tile starts from
 the six face blocks.  A (tile, block) pair is dropped when no texel of the block can be above the horizon of any
@@ -45,9 +45,10 @@ plus :data:`HORIZON_SHARE` of the bracket where the pair straddles the horizon o
 a zero estimate always means a zero bound).  While the tile's total Σ m exceeds its target, every pair with
 m ≥ θ is split into its four children (children that are texels are exact): the greedy rule that spends the
 splits where the bound is.  θ is Σ m / (2n) (n live pairs), doubled while the pairs at or above 2θ hold at least
-(Σ m − target)/:data:`SPLIT_GAIN`: near the target only the largest pairs are split, as many as the excess needs.  The estimates only steer the cost: per output texel and channel
-the sums and their absolute bounds (:func:`ibl_ref.groundtruth.kernels.numpy_backend.ggx_evaluate`, the better
-of the two brackets per texel) give the lobe average and a rigorous relative bound
+(Σ m − target)/:data:`SPLIT_GAIN`: near the target only the largest pairs are split, as many as the excess needs.
+The estimates only steer the cost: per output texel and channel the sums and their absolute bounds
+(:func:`ibl_ref.groundtruth.kernels.numpy_backend.ggx_evaluate`, the better of the two brackets per texel) give the
+lobe average and a rigorous relative bound
 (:func:`ibl_ref.groundtruth.moment_convolution._ratio_bound`, plus :data:`ROUNDING_REL`).  Every tile is refined
 to the target :data:`BUDGET_TARGET` · τ (τ = rtol/(1 + rtol)); the tiles whose per-texel bound still misses rtol
 are computed again with the target scaled by :data:`REDO_SHARE` · rtol over their largest bound (at least divided by

@@ -1059,11 +1059,11 @@ def ggx_tree(tiles, R, cT, betaT, target, beta_share, hshare, split_gain, a, b, 
     tile-level bound e_q (:func:`_ggx_pair`: Taylor remainder or zero-order half-width) and its estimate K(c_T·ĉ)·M0_q;
     while the summed relative bound ``Σ_B max_q e_q/N̂_q + e_Ω/N̂_Ω`` (N̂ the estimates' sums) exceeds
     ``target[k]``, every pair whose share is at least the threshold θ is split (a 2×2 block into its texels, summed
-    exactly; so are the 2×2 blocks left at the end): θ = half the mean share, doubled while the pairs at or above 2θ hold at least (total − target)/split_gain
-    (split_gain: the share of a split pair's bound the split is expected to remove; the doubling keeps the last
-    rounds from splitting far more than the excess needs).  Then every output texel of the tile sums the final pairs (Taylor sum or bracket midpoint, bound into
-    ``err``) and the texels.  Nodes of level ℓ ≥ 1 are rows ``off[ℓ] + index`` of the N* arrays (grid 6 × m × m,
-    ``m = grid_m[ℓ]``); texels are rows of TC/TW.  ``pairs[ℓ]`` counts the final pairs per level.  Float64; each
+    exactly; so are the 2×2 blocks left at the end): θ = half the mean share, doubled while the pairs at or above 2θ
+    hold at least (total − target)/split_gain (split_gain: the share of a split pair's bound the split is expected to
+    remove; the doubling keeps the last rounds from splitting far more than the excess needs).  Then every output
+    texel of the tile sums the final pairs (Taylor sum or bracket midpoint, bound into ``err``) and the texels.
+    Nodes of level ℓ ≥ 1 are rows ``off[ℓ] + index`` of the N* arrays (grid 6 × m × m, ``m = grid_m[ℓ]``); texels are rows of TC/TW.  ``pairs[ℓ]`` counts the final pairs per level.  Float64; each
     tile is computed in a fixed order (independent of how the tiles are shared out); the loops over the tile's
     texels are straight-line code over structure-of-arrays copies (vectorisable)."""
     Q = NM0.shape[1]
