@@ -824,10 +824,11 @@ def reflect(views, normals) -> np.ndarray:
     return 2.0 * np.sum(n * v, axis=-1, keepdims=True) * n - v
 
 
-def split_sum(prefiltered, n_dot_v, roughness, f0, dfg: DFGTable | None = None) -> np.ndarray:
+def split_sum(prefiltered, n_dot_v, roughness, f0, dfg: DFGTable | None = None,
+              smith: str = "height_correlated") -> np.ndarray:
     """Eq. 7: ``P·(F0·A + B)`` for prefiltered radiance ``P`` (..., C) and per-point ``n·v`` (...), roughness and
-    F0 (scalars or (...)); A, B from ``dfg`` (table lookup) or, when ``dfg`` is None, from :func:`dfg_terms`
-    (no table error).  Points with ``n·v ≤ 0`` give 0."""
+    F0 (scalars or (...)); A, B from ``dfg`` (table lookup, whatever Smith form it tabulates) or, when ``dfg`` is
+    None, from :func:`dfg_terms` of the Smith form ``smith`` (no table error).  Points with ``n·v ≤ 0`` give 0."""
     p = np.asarray(prefiltered, dtype=np.float64)
     f0 = check_f0(f0)
     nv = np.asarray(n_dot_v, dtype=np.float64)
@@ -839,7 +840,7 @@ def split_sum(prefiltered, n_dot_v, roughness, f0, dfg: DFGTable | None = None) 
     scale = np.zeros(nv.shape)
     if np.any(up):
         nvu = np.minimum(nv[up], 1.0)
-        A, B = dfg.lookup(nvu, r[up]) if dfg is not None else dfg_terms(nvu, r[up])
+        A, B = dfg.lookup(nvu, r[up]) if dfg is not None else dfg_terms(nvu, r[up], smith=smith)
         scale[up] = f0b[up] * A + B
     return p * scale[..., None]
 

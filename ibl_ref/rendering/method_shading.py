@@ -41,8 +41,6 @@ from ..errors import IBLError
 from ..environment.envmap import unit_directions
 from ..knuth2014.median_cut import median_cut
 from ..knuth2014.memory_model import library_vsm_bytes
-from ..prefilter.karis2013 import check_f0
-from ..prefilter.karis2013 import dfg_terms
 from ..prefilter.karis2013 import split_sum
 from ..prefilter.registry import build_prefilter
 from ..prefilter.registry import build_region_prefilters
@@ -156,18 +154,7 @@ def dfg_weight(dfg, n_dot_v, roughness, f0, smith: str = "height_correlated") ->
     of its GGX lobe."""
 
     nv = np.asarray(n_dot_v, dtype=np.float64).reshape(-1)
-    if dfg is not None:
-        return split_sum(np.ones((len(nv), 1)), nv, roughness, f0, dfg)
-    if not np.all(np.isfinite(nv)):  # as split_sum's table branch: not a silent 0
-        raise IBLError("n·v contains NaN/Inf")
-    f0 = np.broadcast_to(np.asarray(check_f0(f0), dtype=np.float64), nv.shape)
-    r = np.broadcast_to(np.asarray(roughness, dtype=np.float64), nv.shape)
-    w = np.zeros((len(nv), 1))
-    up = nv > 0
-    if up.any():
-        A, B = dfg_terms(np.minimum(nv[up], 1.0), r[up], smith=smith)
-        w[up, 0] = f0[up] * np.asarray(A) + np.asarray(B)
-    return w
+    return split_sum(np.ones((len(nv), 1)), nv, roughness, f0, dfg, smith=smith)
 
 
 def _reflect(n, v):
