@@ -345,3 +345,38 @@ def test_the_readme_row_quotes_the_saved_run():
             f"{_pc(q('courtyard', 'metal0.1', 'horizon-k1.3'))} % on metal 0.1") in row
     assert (f"({_pc(q('sky_sun', 'metal0.6', 'none'))} % → **{_pc(q('sky_sun', 'metal0.6', 'horizon-k1.3'))} %**)"
             in row)
+
+
+def test_the_renderers_shade_a_mapped_mesh_with_its_map():
+    # render_reference and render_pem rasterise the scene themselves: a mesh that carries a normal map is shaded with
+    # the mapped normals (before, both silently shaded the geometric one).  Reference: diffuse, L = 1, the closed
+    # form (1 + n·n_g)/2 of test_reference_diffuse_is_the_tilted_sky_view_factor, to its rtol.
+    from ibl_ref.rendering.reference_render import render_reference
+    from ibl_ref.rendering.render import render_pem
+    from ibl_ref.prefilter import build_region_prefilters
+
+    meshes, camera = occlusion_scene("normal-mapped")
+    cam = camera(8)
+    res = render_reference(meshes, cam, np.ones((6, 8, 8, 3)), material=(1.0, 0.0, 0.0), rtol=1e-3)
+    mapped = apply_normal_maps(meshes, prepare_scene(meshes), rasterize(prepare_scene(meshes), cam))
+    m = res.mask
+    n = mapped.normal[m]
+    front = np.sum(n * mapped.view[m], axis=1) > 0
+    exact = (1.0 + n @ UP) / 2
+    assert np.abs(res.image[m][:, 0] - exact)[front].max() < 2e-3
+    assert (exact[front] < 0.95).sum() >= 5  # the map tilts: the geometric normal would give 1 everywhere
+    np.testing.assert_array_equal(res.gbuffer.normal, mapped.normal)
+    pems = build_region_prefilters(np.ones((6, 8, 8, 3)), method="pyramid", n_lights=6)
+    out = render_pem(meshes, cam, pems, glossiness=0.5, visibility="none")
+    np.testing.assert_array_equal(out.gbuffer.normal, mapped.normal)
+    np.testing.assert_array_equal(out.gbuffer.reflect, mapped.reflect)
+
+
+def test_mitsuba_refuses_a_mapped_mesh_in_one_line():
+    # the maps are procedural and not handed to Mitsuba: its image would be another scene's, so it is refused before
+    # Mitsuba is loaded (no Mitsuba needed for this test)
+    from ibl_ref.rendering.mitsuba_render import render_mitsuba
+
+    meshes, camera = occlusion_scene("normal-mapped")
+    with pytest.raises(IBLError, match=r"^mesh 0 carries a normal map .*not supported[^\n]*$"):
+        render_mitsuba(meshes, camera(4), np.ones((6, 8, 8, 3)), spp=2)

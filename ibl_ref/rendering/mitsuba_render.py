@@ -596,6 +596,18 @@ def _render_half(mi, mscene, o, dirs, spp, seed, lanes):
     return acc / done, done
 
 
+def _refuse_normal_maps(meshes) -> None:
+    """One-line error for a mesh that carries a normal map (``mesh.metadata["normal_map"]``): the lab's maps are
+    procedural (:mod:`ibl_ref.rendering.normal_map`) and are not handed to Mitsuba, whose render would show the
+    geometric normals instead — a different image, not a check of the lab's."""
+    from .normal_map import METADATA_KEY, mesh_normal_maps
+
+    maps = mesh_normal_maps(meshes)
+    if maps:
+        raise IBLError(f"mesh {min(maps)} carries a normal map (metadata[{METADATA_KEY!r}]): Mitsuba renders of "
+                       f"normal-mapped meshes are not supported (Mitsuba would shade the geometric normals)")
+
+
 def render_mitsuba(meshes, camera, cube, *, materials=None, kd: float = 0.0, ks: float = 1.0, g: float = 0.9,
                    material=None, ggx_route: str = "lab", spp: int = 256, seed: int = 0,
                    envmap_height: int | None = None, envmap_energy: str = "texel", lanes: int = 1 << 21,
@@ -622,6 +634,7 @@ def render_mitsuba(meshes, camera, cube, *, materials=None, kd: float = 0.0, ks:
     spp = int(spp)
     if spp < 2 or spp % 2:
         raise IBLError(f"spp must be an even number >= 2, got {spp}")
+    _refuse_normal_maps(meshes)
     t0 = time.perf_counter()
     scene = prepare_scene(meshes, warn=False)
     ids = sorted(int(x) for x in np.unique(scene.material_id))

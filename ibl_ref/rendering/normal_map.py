@@ -59,7 +59,7 @@ import numpy as np
 
 from ..errors import IBLError
 
-__all__ = ["METADATA_KEY", "NormalMap", "procedural_normal_map", "apply_normal_maps"]
+__all__ = ["METADATA_KEY", "NormalMap", "procedural_normal_map", "apply_normal_maps", "mesh_normal_maps"]
 
 #: the key of a mesh's ``metadata`` that holds its :class:`NormalMap`
 METADATA_KEY = "normal_map"
@@ -224,6 +224,18 @@ def procedural_normal_map(max_tilt_deg: float = 45.0, n_waves: int = 3, waveleng
                      amplitude=amplitude, max_tilt_deg=theta, seed=int(seed))
 
 
+def mesh_normal_maps(meshes) -> dict:
+    """{mesh index: ``mesh.metadata["normal_map"]``} of the meshes that carry one (any form
+    :func:`ibl_ref.rendering.raster.prepare_scene` accepts; a prepared ``Scene`` carries no metadata: {})."""
+    from .raster import mesh_list
+
+    items = mesh_list(meshes)
+    if not isinstance(items, list):  # a prepared Scene
+        return {}
+    return {k: m.metadata.get(METADATA_KEY) for k, (m, _) in enumerate(items)
+            if getattr(m, "metadata", None) and m.metadata.get(METADATA_KEY) is not None}
+
+
 def apply_normal_maps(meshes, scene, gbuffer):
     """The G-buffer with the shading normals of every mesh that carries a :class:`NormalMap` perturbed by it.
 
@@ -243,13 +255,7 @@ def apply_normal_maps(meshes, scene, gbuffer):
         differ on the covered pixels of mapped meshes (position, depth, face normal and the rest unchanged; a map
         of zero amplitude changes nothing, not even the rounding of n).
     """
-    from .raster import mesh_list
-
-    items = mesh_list(meshes)
-    if not isinstance(items, list):  # a prepared Scene
-        return gbuffer
-    maps = {k: m.metadata.get(METADATA_KEY) for k, (m, _) in enumerate(items)
-            if getattr(m, "metadata", None) and m.metadata.get(METADATA_KEY) is not None}
+    maps = mesh_normal_maps(meshes)
     if not maps:
         return gbuffer
     normal, reflect = gbuffer.normal.copy(), gbuffer.reflect.copy()

@@ -58,6 +58,7 @@ from ..groundtruth.phong_convolution import lobe_average as _lobe_average
 from ..limits import check_rtol
 from .materials import as_material
 from .raster import prepare_scene
+from .normal_map import apply_normal_maps
 from .raster import rasterize
 from .raycast import ShadowRays
 from .raycast import parallel_visibility as _cast
@@ -291,7 +292,9 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
     block_pixels : pixels per block (round-robin; the image depends on it, never on where the blocks run)
     workers, executor : where the blocks run (:func:`ibl_ref.executors.map_jobs`: ``workers`` local processes or
         any Executor / Dask client); the image is bit-identical to a serial run
-    gbuffer : a precomputed :class:`ibl_ref.rendering.raster.GBuffer` of the same camera (optional)
+    gbuffer : a precomputed :class:`ibl_ref.rendering.raster.GBuffer` of the same camera (optional; without it the
+        G-buffer is rasterised here and a mesh that carries a normal map, ``mesh.metadata["normal_map"]``, is shaded
+        with its perturbed normals: :func:`ibl_ref.rendering.normal_map.apply_normal_maps`)
     progress : progress reports, and the predicted cost of each lobe before most of it runs
 
     Returns
@@ -342,7 +345,10 @@ def render_reference(meshes, camera, cube, *, kd: float = 0.0, ks: float = 1.0, 
     for mid in ids:
         if mid not in mats:
             raise IBLError(f"no material for material id {mid} (have {sorted(mats)})")
-    gb = rasterize(scene, camera, smooth_normals=smooth_normals) if gbuffer is None else gbuffer
+    if gbuffer is None:  # a mesh's normal map (metadata["normal_map"]) perturbs its shading normals
+        gb = apply_normal_maps(meshes, scene, rasterize(scene, camera, smooth_normals=smooth_normals))
+    else:
+        gb = gbuffer
     m = gb.mask
     P, n, fn, v = gb.position[m], gb.normal[m], gb.face_normal[m], gb.view[m]
     mat_px = gb.material_id[m]

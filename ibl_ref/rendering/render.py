@@ -66,6 +66,7 @@ import numpy as np
 from ..errors import IBLError
 from .raster import mesh_list
 from .raster import prepare_scene
+from .normal_map import apply_normal_maps
 from .raster import rasterize
 
 __all__ = ["RenderResult", "Material", "glossiness_image", "material_images", "surface_uv", "mesh_uv", "sample_g_map",
@@ -821,7 +822,9 @@ def render_pem(
     Parameters
     ----------
     meshes : trimesh.Trimesh, list of meshes or Scene
-        See :func:`ibl_ref.rendering.raster.prepare_scene`.
+        See :func:`ibl_ref.rendering.raster.prepare_scene`; a mesh that carries a normal map
+        (``mesh.metadata["normal_map"]``) is shaded with its perturbed normals and their reflections
+        (:func:`ibl_ref.rendering.normal_map.apply_normal_maps`), the shadows are those of its geometry.
     camera : PerspectiveCamera or OrthographicCamera
         :mod:`ibl_ref.rendering.camera`.
     pems : region set
@@ -903,7 +906,7 @@ def render_pem(
     mats = resolve_materials(materials) if materials is not None else None
     if glossiness is None:
         glossiness = 0.5
-    g = rasterize(scene, camera, smooth_normals=smooth_normals)
+    g = apply_normal_maps(meshes, scene, rasterize(scene, camera, smooth_normals=smooth_normals))
     H, W = g.mask.shape
     m = g.mask
     P = g.position[m]
