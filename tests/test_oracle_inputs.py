@@ -335,6 +335,30 @@ def test_corrupt_cache_is_traced_again_with_a_warning(tmp_path):
     assert sorted(f.name for f in tmp_path.iterdir()) == sorted([path.name, other.name])
 
 
+def test_foreign_cache_under_our_name_is_traced_again(tmp_path):
+    # a cache file of another scene (here: another seed) copied under this key's name: its stored key differs, so it
+    # is traced again with a warning, never read as this scene's visibility
+    scene, x, n = disk_case()
+    a = oi.trace_visibility(scene, x, n, n, n_face=8, seed=1, cache_dir=tmp_path)
+    b_key = oi.trace_visibility(scene, x, n, n, n_face=8, seed=2).key
+    (tmp_path / f"oracle_visibility_{b_key}.npz").write_bytes((tmp_path / f"oracle_visibility_{a.key}.npz").read_bytes())
+    with pytest.warns(IBLWarning, match="key differs"):
+        b = oi.trace_visibility(scene, x, n, n, n_face=8, seed=2, cache_dir=tmp_path)
+    assert not b.from_cache and np.array_equal(b.bits, oi.trace_visibility(scene, x, n, n, n_face=8, seed=2).bits)
+
+
+def test_unwritable_cache_folder_keeps_the_traced_bits_with_a_warning(tmp_path):
+    # a file where the cache folder should be (root ignores permission bits, this fails for everyone): one warning,
+    # the traced visibility is returned, nothing is written
+    scene, x, n = disk_case()
+    blocker = tmp_path / "not_a_folder"
+    blocker.write_bytes(b"mine")
+    with pytest.warns(IBLWarning, match="not written"):
+        a = oi.trace_visibility(scene, x, n, n, n_face=8, cache_dir=blocker / "cache")
+    assert not a.from_cache and np.array_equal(a.bits, oi.trace_visibility(scene, x, n, n, n_face=8).bits)
+    assert blocker.read_bytes() == b"mine" and sorted(p.name for p in tmp_path.iterdir()) == ["not_a_folder"]
+
+
 # ------------------------------------------------------------------------------------------------
 # region visibility
 # ------------------------------------------------------------------------------------------------

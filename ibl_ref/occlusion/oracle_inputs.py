@@ -368,7 +368,8 @@ def trace_visibility(scene, points, normals, face_normals, *, n_face: int = 16, 
         Folder of the ``.npz`` cache: the file ``oracle_visibility_<key>.npz`` (key: SHA-256 of the scene's
         vertices and faces, the points, normals and face normals, ``n_face``, ``n_sets``, ``seed`` and
         :data:`CACHE_VERSION`) is reused when it exists; a corrupt one is traced again with a warning and
-        replaced.  No other file is written.
+        replaced; where the file cannot be written (a read-only folder, a file in the folder's place) the traced
+        visibility is used with a warning, uncached.  No other file is written.
     progress : bool
         Report progress (:func:`ibl_ref.progress.track`).
 
@@ -420,7 +421,11 @@ def trace_visibility(scene, points, normals, face_normals, *, n_face: int = 16, 
         bits, n_rays = _trace(sc, backend, pts, nrm, fn, dirs, progress)
         used, cached = backend, False
         if path is not None:
-            _save_cached(path, key, bits, backend, n_face, n_sets, seed)
+            try:
+                _save_cached(path, key, bits, backend, n_face, n_sets, seed)
+            except (OSError, IBLError) as exc:  # an unwritable cache folder: keep the traced bits, say so once
+                warnings.warn(f"oracle visibility cache: not written ({exc}); the traced visibility is used "
+                              f"uncached", IBLWarning, stacklevel=2)
     for a in (bits, nrm, fn, dirs, omega):
         a.setflags(write=False)
     return VisibilitySamples(bits=bits, normals=nrm, face_normals=fn, directions=dirs, solid_angles=omega,
