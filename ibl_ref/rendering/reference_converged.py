@@ -357,9 +357,19 @@ def _dirs(f, u, v, normalize: bool = True):
     """Directions through face-plane points (u, v) of faces f (:func:`ibl_ref.environment.envmap.face_uv_to_direction`
     without its argument checks: f, u, v are the module's own arrays)."""
 
-    F = face_frames("openexr")[f]
-    d = F[:, 0, :] + u[:, None] * F[:, 1, :] + v[:, None] * F[:, 2, :]
-    return d / np.sqrt(_dot(d, d))[:, None] if normalize else d
+    # component by component (F₀ + u F₁) + v F₂ over 1-D arrays: the values of the row-wise expression, without its
+    # gather of (n, 3, 3) frames and its loops over 3-element rows
+    x, y, z = ([_FRAMES_T[0, c][f] + u * _FRAMES_T[1, c][f] + v * _FRAMES_T[2, c][f] for c in range(3)])
+    d = np.empty((len(x), 3))
+    if normalize:
+        ln = np.sqrt(x * x + y * y + z * z)
+        x, y, z = x / ln, y / ln, z / ln
+    d[:, 0], d[:, 1], d[:, 2] = x, y, z
+    return d
+
+
+#: the face frames (:func:`ibl_ref.environment.envmap.face_frames`) as [row, component, face]
+_FRAMES_T = np.ascontiguousarray(face_frames("openexr").transpose(1, 2, 0))
 
 
 def _dot(a, b):
@@ -486,11 +496,23 @@ def _cut_by_horizon(f, i, j, n, nrm):
     on both sides (a cell is convex on the sphere, so its corners decide).  Such a cell is an edge whatever its ray
     says: the surface and what stands on it (contact, concave parts) often occlude its low directions, and its ray,
     drawn above the horizon, cannot tell."""
+    return _cut_by_corners(_corners(f, i, j, n), nrm)
+
+
+def _corners(f, i, j, n):
+    """The 4 corner directions (unnormalised, (K, 3) each; (u0, v0), (u0, v1), (u1, v0), (u1, v1)) of cells (f, i, j)
+    of face sizes n."""
     u0, u1, v0, v1 = _rect(i, j, n)
-    pos = np.zeros(len(f), bool)
-    neg = np.zeros(len(f), bool)
-    for u, v in ((u0, v0), (u0, v1), (u1, v0), (u1, v1)):
-        c = _dot(_dirs(f, u, v, normalize=False), nrm)
+    return [_dirs(f, u, v, normalize=False) for u, v in ((u0, v0), (u0, v1), (u1, v0), (u1, v1))]
+
+
+def _cut_by_corners(corners, nrm):
+    """:func:`_cut_by_horizon` from the cells' corner directions (:func:`_corners`; rows of cells that share a
+    cell's corners may be gathered from one computation per cell: each row is its own)."""
+    pos = np.zeros(len(nrm), bool)
+    neg = np.zeros(len(nrm), bool)
+    for d in corners:
+        c = _dot(d, nrm)
         pos |= c > 0
         neg |= c < 0
     return pos & neg
@@ -536,19 +558,41 @@ def _grades(lobe, g, cp, cc, cen, rad, M0):
     return np.maximum(np.ceil(np.log2(np.maximum(need / M0, 1.0)) - 1e-9), 0).astype(np.int64)
 
 
+def _group_means(W, E: int):
+    """``W.reshape(n, E, C/E).mean(axis=-1)`` (n, E) of weights W (n, C), bit for bit: for groups of three channels
+    (a sweep of RGB maps) the sum ((W₀ + W₁) + W₂) / 3 written out — NumPy's mean over a short last axis adds the
+    channels in their order (``tests/test_reference_exact_helpers.py`` checks the equality), and these three array
+    operations are several times faster than its reduction."""
+    n = len(W)
+    Cg = W.shape[1] // E
+    if Cg != 3:
+        return W.reshape(n, E, Cg).mean(axis=-1)
+    W3 = W.reshape(n, E, 3)
+    s = W3[..., 0] + W3[..., 1]
+    s += W3[..., 2]
+    s /= 3.0
+    return s
+
+
 def _pair_weights(quad, env, lobe, g, cp, cc, Mp):
     """Weights W (n, C) = Σ L·weight·Ω over the level-M texels of base cell cc of pixel cp (M = Mp per pair), and the
     normalisation Σ norm·Ω (n,) (0 for a lobe without a discrete normalisation): :mod:`ibl_ref.rendering.
     reference_quadrature`'s block sums (``quad``)."""
     nb = env.nb
+    levels = np.unique(Mp)
+    if len(levels) == 1:  # one level (a Phong lobe): the pairs in one call, no scatter into W
+        M, k = int(levels[0]), int(levels[0]) // nb
+        W, ns = quad.block_sums(env, lobe, g.n, g.v, g.d, cc // (nb * nb), ((cc // nb) % nb) * k, (cc % nb) * k, k, M,
+                                pix=cp)
+        return W, (np.zeros(len(cp)) if ns is None else ns)
     W = np.zeros((len(cp), env.C))
     ns = np.zeros(len(cp))
-    for M in np.unique(Mp):
+    for M in levels:
         sel = np.flatnonzero(Mp == M)
         k = int(M) // nb
         c_ = cc[sel]
-        W[sel], n_ = quad.block_sums(env, lobe, g.n[cp[sel]], g.v[cp[sel]], g.d[cp[sel]], c_ // (nb * nb),
-                                     ((c_ // nb) % nb) * k, (c_ % nb) * k, k, int(M))
+        W[sel], n_ = quad.block_sums(env, lobe, g.n, g.v, g.d, c_ // (nb * nb), ((c_ // nb) % nb) * k, (c_ % nb) * k,
+                                     k, int(M), pix=cp[sel])
         if n_ is not None:
             ns[sel] = n_
     return W, ns
@@ -576,8 +620,8 @@ def _child_weights(quad, env, lobe, g, p, f, lvl, i, j, Wpar, Mpar):
         kcs = Mc[coarse] // n_c[coarse]
         for M, kc in sorted(set(zip(Mc[coarse].tolist(), kcs.tolist()))):
             sel = coarse[(Mc[coarse] == M) & (kcs == kc)]
-            W[sel] = quad.block_sums(env, lobe, g.n[cp[sel]], g.v[cp[sel]], g.d[cp[sel]], cf[sel], ci[sel] * kc,
-                                     cj[sel] * kc, int(kc), int(M))[0]
+            W[sel] = quad.block_sums(env, lobe, g.n, g.v, g.d, cf[sel], ci[sel] * kc, cj[sel] * kc, int(kc), int(M),
+                                     pix=cp[sel])[0]
     fine = np.flatnonzero(n_c > Mc)
     if len(fine):
         from ..environment.envmap import rect_solid_angle
@@ -849,7 +893,7 @@ class _Block:
     def _quadrature(self) -> None:
         """The block's quadrature level M: doubled (the cells and their rays stay) until the M/2 → M change with the
         base visibility is within QUAD_SHARE of rtol (module docstring); the base pairs, their weights and rays."""
-        lobe, g, env, nb, Pn, C = self.lobe, self.g, self.env, self.nb, self.Pn, self.C
+        lobe, g, env, nb, Pn = self.lobe, self.g, self.env, self.nb, self.Pn
         seed, blk, rtol, prtol = self.seed, self.blk, self.rtol, self.prtol
         K = 6 * nb * nb
         cells = np.arange(K)
@@ -878,20 +922,24 @@ class _Block:
             return np.where(w > 0, w, 1.0)
 
         first = True
+        # per environment the weights of every candidate pair at M/2 and M (relative to the normalisations): a pair's
+        # value depends on its own row only, so the kept pairs' rows are those of _ye over the kept pairs; after a
+        # doubling, the M/2 values are those computed at M before it
+        Yhe_all = self._ye(Wh, norm_sums(nsh)[cand_p])
         while True:
             keep = Wq.mean(axis=-1) > 0
-            ws, wsh = norm_sums(nsq), norm_sums(nsh)
+            ws = norm_sums(nsq)
+            Ye_all = self._ye(Wq, ws[cand_p])
             bp, bc, bW = cand_p[keep], cand_c[keep], Wq[keep]
             bkey = bp * K + bc
-            bYe = self._ye(bW, ws[bp])
-            bYhe = self._ye(Wh[keep], wsh[bp])  # the same cells at M/2
+            bYe = Ye_all[keep]
+            bYhe = Yhe_all[keep]  # the same cells at M/2
             if first and self.E > 1:  # T_e: the block's mean unoccluded value of environment e
                 T = np.array([np.bincount(bp, weights=bYe[:, e], minlength=Pn).mean() if Pn else 1.0
                               for e in range(self.E)])
                 self.T = np.where(T > 0, T, 1.0)
             first = False
             bY = self._crit(bYe)
-            U = np.stack([np.bincount(bp, weights=bW[:, ch], minlength=Pn) for ch in range(C)], -1) / ws[:, None]
             # rays for the pairs not cast yet (a finer M can give weight to a few more cells)
             known = _match(vis_key, np.ones(len(vis_key)), bkey) > 0
             new = np.flatnonzero(~known)
@@ -913,16 +961,19 @@ class _Block:
             # above QUAD_SHARE·pixel_rtol of their value, for every environment; else M doubles (the cells and their
             # rays stay)
             met = True
+            A0e = self.quad.sums_by(bp, bYe, Pn, bV > 0)
+            q0e = np.abs(self.quad.sums_by(bp, bYe - bYhe, Pn, bV > 0))
             for e in range(self.E):
-                A0 = np.bincount(bp, weights=bYe[:, e] * (bV > 0), minlength=Pn)
-                q0 = np.abs(np.bincount(bp, weights=(bV > 0) * (bYe[:, e] - bYhe[:, e]), minlength=Pn))
+                A0, q0 = A0e[:, e], q0e[:, e]
                 over = (q0 > QUAD_SHARE * prtol * np.maximum(A0, ERR_FLOOR * A0.mean())).mean() if Pn else 0.0
                 met &= bool(q0.sum() <= QUAD_SHARE * rtol * max(A0.sum(), 1e-300) and over <= QUAD_PIXEL_SHARE)
             if met or 2 * M > cap:
                 break
             M = 2 * M
-            Wh, nsh = Wq, nsq
+            Yhe_all = Ye_all
             Wq, nsq = _pair_weights(self.quad, env, lobe, g, cand_p, cand_c, levels(M))
+        # the unoccluded value per pixel, from the final level's pairs
+        U = self.quad.sums_by(bp, bW, Pn) / ws[:, None]
         self.bM = levels(M)[keep]
         self.M, self.K, self.n_rays = M, K, n_rays
         self.cf, self.ci, self.cj = cf, ci, cj
@@ -931,9 +982,7 @@ class _Block:
         self.bV, self.bsu, self.bsv = bV, bsu, bsv
         self.nB = len(bp)
         self._find_table = None
-        # per environment, contiguous: the pairs' weights and their change M/2 → M (read every round)
-        self.bYeT = np.ascontiguousarray(bYe.T)
-        self.bdYT = np.ascontiguousarray((bYe - bYhe).T)
+        self.bdY = bYe - bYhe  # per environment the pairs' change M/2 → M (read every round)
 
     def find(self, p, cb):
         """index of the base pair (pixel p, base cell cb), −1 where it has no weight (a table over all (pixel,
@@ -956,7 +1005,9 @@ class _Block:
         nbr = (nF * nb + nI) * nb + nJ  # (K, 8)
         pin = self.find(np.repeat(bp, 8), nbr[bc].reshape(-1)).reshape(-1, 8)
         Vn = np.where(pin >= 0, bV[np.maximum(pin, 0)], -1)
-        self.bedge = ((Vn >= 0) & (Vn != bV[:, None])).any(axis=1) | _cut_by_horizon(cf[bc], ci[bc], cj[bc], nb,
+        # the horizon test from each base cell's corners, computed once per cell (not per pair)
+        corners = _corners(cf, ci, cj, np.full(self.K, nb))
+        self.bedge = ((Vn >= 0) & (Vn != bV[:, None])).any(axis=1) | _cut_by_corners([c[bc] for c in corners],
                                                                                       self.nrm[bp])
         self.bsplit = np.zeros(self.nB, dtype=bool)
         self.dirty = np.zeros(self.Pn, dtype=bool)  # pixels whose cells were split since the last pixel_sums
@@ -965,16 +1016,24 @@ class _Block:
     # ---- estimates ---------------------------------------------------------------------------------------------
     def _ye(self, W, w):
         """Per environment the channel mean of weights W (n, C) relative to the normalisations w (n,) → (n, E)."""
-        return W.reshape(len(W), self.E, self.Cg).mean(axis=-1) / w[:, None]
+        Ye = _group_means(W, self.E)
+        Ye /= w[:, None]
+        return Ye
 
     def _crit(self, Ye):
-        """The driving weight of cells with per-environment weights Ye (n, E): max_e Ye/T_e (Ye itself for one)."""
-        return Ye[:, 0] if self.E == 1 else (Ye / self.T).max(axis=1)
+        """The driving weight of cells with per-environment weights Ye (n, E): max_e Ye/T_e (Ye itself for one; the
+        maximum taken column by column, the value of ``(Ye / T).max(axis=1)``: a maximum does not round)."""
+        if self.E == 1:
+            return Ye[:, 0]
+        t = Ye / self.T
+        m = t[:, 0].copy()
+        for e in range(1, self.E):
+            np.maximum(m, t[:, e], out=m)
+        return m
 
     def quad_est(self, vb):
         """per pixel and environment |Σ_c V̄_c (Y_c(M) − Y_c(M/2))| (channel mean, relative to ws) → (Pn, E)."""
-        return np.abs(np.stack([np.bincount(self.bp, weights=vb * self.bdYT[e], minlength=self.Pn)
-                                for e in range(self.E)], -1))
+        return np.abs(self.quad.sums_by(self.bp, self.bdY, self.Pn, vb))
 
     def per_env(self, ub, ur):
         """Per-environment weights (n, E) of the uncertain base pairs ``ub`` and refined cells ``ur``, and of the
@@ -983,8 +1042,7 @@ class _Block:
         Rye = R.Ye
         lit_b = (self.bV > 0) & ~self.bsplit
         lit_r = R["V"] > 0
-        A = np.stack([np.bincount(self.bp, weights=self.bYeT[e] * lit_b, minlength=Pn)
-                      + np.bincount(R["p"], weights=Rye[:, e] * lit_r, minlength=Pn) for e in range(self.E)], -1)
+        A = self.quad.sums_by(self.bp, self.bYe, Pn, lit_b) + self.quad.sums_by(R["p"], Rye, Pn, lit_r)
         return np.concatenate([self.bYe[ub], Rye[ur]]), A
 
     def pixel_sums(self):
@@ -992,7 +1050,7 @@ class _Block:
         :meth:`quad_est`), recomputed only for the pixels whose cells were split since the last call (a split changes
         no other pixel's cells): each pixel's sums over its own cells in the same order as over all cells, so the
         values are those of the full computation, bit for bit."""
-        Pn, E, R, bp = self.Pn, self.E, self.R, self.bp
+        Pn, R, bp = self.Pn, self.R, self.bp
         if self._sums is None:
             A = self.per_env(np.zeros(0, np.int64), np.zeros(0, np.int64))[1]
             self._sums = (A, self.quad_est(self.vbar()))
@@ -1014,10 +1072,8 @@ class _Block:
         bpi, Rye = bp[ib], R.Ye[ir]
         A, q = self._sums
         A, q = A.copy(), q.copy()
-        for e in range(E):
-            A[D, e] = (np.bincount(bpi, weights=self.bYeT[e][ib] * lit_b, minlength=Pn)
-                       + np.bincount(rp, weights=Rye[:, e] * rv, minlength=Pn))[D]
-            q[D, e] = np.abs(np.bincount(bpi, weights=vb * self.bdYT[e][ib], minlength=Pn))[D]
+        A[D] = (self.quad.sums_by(bpi, self.bYe[ib], Pn, lit_b) + self.quad.sums_by(rp, Rye, Pn, rv))[D]
+        q[D] = np.abs(self.quad.sums_by(bpi, self.bdY[ib], Pn, vb))[D]
         self._sums = (A, q)
         return self._sums
 
@@ -1151,9 +1207,9 @@ class _Block:
             # per environment: the image estimate and the pixels over pixel_rtol (lit pixels; best effort: pixels
             # whose quadrature estimate alone exceeds it, or whose edge cells are at the finest level, stay over)
             per, est, worst = [], -1.0, 0
+            S_all, strict_all = self.quad.sums_by(pix, Ye ** 2, Pn), self.quad.sums_by(pix, Ye, Pn)
             for e in range(E):
-                Se = np.bincount(pix, weights=Ye[:, e] ** 2, minlength=Pn)
-                strict = np.bincount(pix, weights=Ye[:, e], minlength=Pn)
+                Se, strict = S_all[:, e], strict_all[:, e]
                 A, q = Ae[:, e], qe[:, e]
                 sig = 0.5 * np.sqrt(kap * Se)
                 tot_A = max(A.sum(), 1e-300)
@@ -1216,16 +1272,13 @@ class _Block:
 
     # ---- results ---------------------------------------------------------------------------------------------------
     def _results(self, rounds, converged) -> dict:
-        R, st, Pn, C, bp, bW, bV, nB = self.R, self.st, self.Pn, self.C, self.bp, self.bW, self.bV, self.nB
+        R, st, Pn, bp, bW, bV, nB = self.R, self.st, self.Pn, self.bp, self.bW, self.bV, self.nB
         lit_b = (bV > 0) & ~self.bsplit
-        occ = (np.stack([np.bincount(bp, weights=bW[:, ch] * lit_b, minlength=Pn) for ch in range(C)], -1)
-               + np.stack([np.bincount(R["p"], weights=R.W[:, ch] * (R["V"] > 0), minlength=Pn) for ch in range(C)],
-                          -1))
+        occ = self.quad.sums_by(bp, bW, Pn, lit_b) + self.quad.sums_by(R["p"], R.W, Pn, R["V"] > 0)
         occ = occ / self.ws[:, None]
         ub, ur, pix, _ = self.uncertain()
         Ye, _ = self.per_env(ub, ur)
-        S = np.stack([np.bincount(pix, weights=Ye[:, e] ** 2, minlength=Pn) for e in range(self.E)], -1)
-        strict = np.stack([np.bincount(pix, weights=Ye[:, e], minlength=Pn) for e in range(self.E)], -1)
+        S, strict = self.quad.sums_by(pix, Ye ** 2, Pn), self.quad.sums_by(pix, Ye, Pn)
         q = self.quad_est(self.vbar())
         kap = _kappa(st["kap_num"], st["kap_den"], st["n_kap"])
         M = self.M

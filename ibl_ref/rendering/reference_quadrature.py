@@ -27,6 +27,10 @@ These sums are most of a reference render's time (a GGX render spends ≈ 85 % o
     roundings: they agree with the NumPy ones to ≈ 1e-15 relative (``tests/test_reference_quadrature.py``), far
     inside the reference's tolerances (≥ 1e-4), not bit for bit.  A render is bit-identical wherever its blocks run
     for either implementation (every process uses the one resolved by the caller).
+
+The interface also holds the reference's per-pixel sums of cell weights, :meth:`Quadrature.sums_by` (one
+``np.bincount`` per column, the definition; the compiled implementation adds every column in one pass, in the same
+order: the same values bit for bit, so this part of a render does not depend on the implementation).
 """
 
 from __future__ import annotations
@@ -44,18 +48,30 @@ CHUNK_ELEMENTS = 1 << 18
 
 
 class Quadrature:
-    """The interface: ``block_sums(env, lobe, n, v, d, f, r0, c0, k, M) -> (W (S, C), S (S,) or None)``.
+    """The interface: ``block_sums(env, lobe, n, v, d, f, r0, c0, k, M, pix=None) -> (W (S, C), S (S,) or None)``,
+    and :meth:`sums_by` (the reference's per-pixel sums of cell weights).
 
     ``env`` is the reference's environment (``texels(f, r0, c0, k, M)`` → directions, solid angles, radiance of
     k×k blocks; ``level(M)`` → (radiance array, q) with texel (R, C) of face size M reading ``array[f, R//q,
-    C//q]``); ``n, v, d`` (S, 3) the pixels' normals, view directions and lobe axes; ``f, r0, c0`` (S,) the blocks;
-    ``k`` and ``M`` ints.  ``S`` is None for a lobe without a discrete normalisation (``lobe.normalised`` False).
+    C//q]``); ``n, v, d`` (S, 3) the pixels' normals, view directions and lobe axes — or, with ``pix`` (S,) given,
+    per-pixel arrays (P, 3) of which pair s reads row ``pix[s]`` (no gathered copies); ``f, r0, c0`` (S,) the
+    blocks; ``k`` and ``M`` ints.  ``S`` is None for a lobe without a discrete normalisation (``lobe.normalised``
+    False).
     """
 
     name = ""
 
-    def block_sums(self, env, lobe, n, v, d, f, r0, c0, k: int, M: int):  # pragma: no cover - interface
+    def block_sums(self, env, lobe, n, v, d, f, r0, c0, k: int, M: int, pix=None):  # pragma: no cover - interface
         raise NotImplementedError
+
+    def sums_by(self, idx, W, n: int, m=None):
+        """Per index the sums of the rows of W (S, C) (× m (S,), bool or float, where given) → (n, C): column c is
+        ``np.bincount(idx, weights=W[:, c] * m, minlength=n)`` (the weights added in input order), the reference's
+        sums over each pixel's cells.  This is that definition; :class:`CompiledQuadrature` gives the same values
+        bit for bit in one pass."""
+        W = np.asarray(W)
+        return np.stack([np.bincount(idx, weights=W[:, c] if m is None else W[:, c] * m, minlength=n)
+                         for c in range(W.shape[1])], -1)
 
 
 class NumpyQuadrature(Quadrature):
@@ -64,12 +80,14 @@ class NumpyQuadrature(Quadrature):
 
     name = "numpy"
 
-    def block_sums(self, env, lobe, n, v, d, f, r0, c0, k: int, M: int):
+    def block_sums(self, env, lobe, n, v, d, f, r0, c0, k: int, M: int, pix=None):
         S = len(f)
         W = np.zeros((S, env.C))
         ns = np.zeros(S) if lobe.normalised else None
         if S == 0:
             return W, ns
+        if pix is not None:
+            n, v, d = n[pix], v[pix], d[pix]
         key = (f.astype(np.int64) * M + r0) * M + c0
         order = np.argsort(key, kind="stable")  # pairs of one block together: its texels once per chunk
         step = max(1, CHUNK_ELEMENTS // (k * k))
@@ -95,20 +113,30 @@ class CompiledQuadrature(Quadrature):
         from . import reference_quadrature_loops as loops
 
         self._loops = loops.LOOPS
+        self._sums_by = loops.sums_by
 
-    def block_sums(self, env, lobe, n, v, d, f, r0, c0, k: int, M: int):
+    def sums_by(self, idx, W, n: int, m=None):
+        out = np.zeros((n, W.shape[1]))
+        if len(idx):
+            m = np.zeros(0) if m is None else np.ascontiguousarray(m, dtype=np.float64)
+            self._sums_by(np.ascontiguousarray(idx, dtype=np.int64), np.ascontiguousarray(W, dtype=np.float64), m,
+                          out)
+        return out
+
+    def block_sums(self, env, lobe, n, v, d, f, r0, c0, k: int, M: int, pix=None):
         S = len(f)
         W = np.zeros((S, env.C))
         ns = np.zeros(S)
         if S == 0:
             return W, (ns if lobe.normalised else None)
+        pix = np.arange(S) if pix is None else np.ascontiguousarray(pix, dtype=np.int64)
         rad, q = env.level(int(M))
         f, r0, c0 = (np.ascontiguousarray(x, dtype=np.int64) for x in (f, r0, c0))
         key = (f * M + r0) * M + c0
         order = np.argsort(key, kind="stable")
         starts = np.flatnonzero(np.diff(key[order], prepend=-1, append=-1) != 0)  # group boundaries, and S
         self._loops[lobe.kind](np.ascontiguousarray(n, dtype=np.float64), np.ascontiguousarray(v, dtype=np.float64),
-                               np.ascontiguousarray(d, dtype=np.float64), order, starts, f, r0, c0, int(k), int(M),
+                               np.ascontiguousarray(d, dtype=np.float64), pix, order, starts, f, r0, c0, int(k), int(M),
                                np.ascontiguousarray(rad), int(q), FRAMES, lobe.loop_params(), W, ns)
         return W, (ns if lobe.normalised else None)
 

@@ -21,9 +21,12 @@ compare the two):
     (:func:`ibl_ref.lobes.brdfs.cook_torrance`).
 
 The pairs come grouped by block (``order``, ``starts``): a block's directions, solid angles and radiance are
-computed once for all the pixels that read it, its corners' A once for the up to four texels that share them.  Serial loops (the
-reference's blocks already run on separate processes) in a fixed order: the same result in every process.  Compiled on first use and kept in numba's cache (the convolution kernels' policy:
-:mod:`ibl_ref.groundtruth.kernels.numba_loops`).
+computed once for all the pixels that read it, its corners' A once for the up to four texels that share them; pair
+p reads its pixel's normal, view and lobe axis at row ``pix[p]`` of per-pixel arrays (no gathered copies).  Serial
+loops (the reference's blocks already run on separate processes) in a fixed order: the same result in every
+process.  :func:`sums_by` is the per-pixel sums of cell weights of
+:meth:`ibl_ref.rendering.reference_quadrature.Quadrature.sums_by` (``np.bincount``'s order, bit for bit).  Compiled
+on first use and kept in numba's cache (the convolution kernels' policy: :mod:`ibl_ref.groundtruth.kernels.numba_loops`).
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ import numpy as np
 
 from ..groundtruth.kernels.numba_loops import _jit
 
-__all__ = ["phong_blocks", "ggx_blocks", "LOOPS"]
+__all__ = ["phong_blocks", "ggx_blocks", "sums_by", "LOOPS"]
 
 
 @_jit()
@@ -103,9 +106,10 @@ def _accumulate(wb, Lb, W, p):
 
 
 @_jit()
-def phong_blocks(n, v, d, order, starts, f, r0, c0, k, M, rad, q, F, params, W, S):
-    """Phong lobe (module docstring): W (S, C) and S (S,) filled in place; the pairs ``order[starts[g]:starts[g+1]]``
-    share one block (its geometry and radiance gathered once)."""
+def phong_blocks(n, v, d, pix, order, starts, f, r0, c0, k, M, rad, q, F, params, W, S):
+    """Phong lobe (module docstring): W (S, C) and S (S,) filled in place; pair p reads the normal, view and axis of
+    row ``pix[p]`` of n, v, d; the pairs ``order[starts[g]:starts[g+1]]`` share one block (its geometry and radiance
+    gathered once)."""
     s = params[0]
     kk = k * k
     A = np.empty((k + 1) * (k + 1))
@@ -119,8 +123,9 @@ def phong_blocks(n, v, d, order, starts, f, r0, c0, k, M, rad, q, F, params, W, 
         _block_radiance(rad, q, fs, r0[p0], c0[p0], k, Lb)
         for e in range(starts[g], starts[g + 1]):
             p = order[e]
-            dx, dy, dz = d[p, 0], d[p, 1], d[p, 2]
-            nx, ny, nz = n[p, 0], n[p, 1], n[p, 2]
+            x = pix[p]
+            dx, dy, dz = d[x, 0], d[x, 1], d[x, 2]
+            nx, ny, nz = n[x, 0], n[x, 1], n[x, 2]
             acc = 0.0
             for t in range(kk):
                 c = max(dx * G[0, t] + dy * G[1, t] + dz * G[2, t], 0.0)
@@ -132,10 +137,11 @@ def phong_blocks(n, v, d, order, starts, f, r0, c0, k, M, rad, q, F, params, W, 
 
 
 @_jit()
-def ggx_blocks(n, v, d, order, starts, f, r0, c0, k, M, rad, q, F, params, W, S):
-    """GGX specular term (module docstring): W (S, C) filled in place (S unused: no discrete normalisation); the
-    pairs ``order[starts[g]:starts[g+1]]`` share one block (its geometry and radiance gathered once).  The texel
-    loop has no branches (selects only), so that it runs on the processor's vector lanes."""
+def ggx_blocks(n, v, d, pix, order, starts, f, r0, c0, k, M, rad, q, F, params, W, S):
+    """GGX specular term (module docstring): W (S, C) filled in place (S unused: no discrete normalisation); pair p
+    reads row ``pix[p]`` of n, v; the pairs ``order[starts[g]:starts[g+1]]`` share one block (its geometry and
+    radiance gathered once).  The texel loop has no branches (selects only), so that it runs on the processor's
+    vector lanes."""
     alpha, f0, sep = params[0], params[1], 1.0 - params[2]
     a2 = alpha * alpha
     kk = k * k
@@ -150,8 +156,9 @@ def ggx_blocks(n, v, d, order, starts, f, r0, c0, k, M, rad, q, F, params, W, S)
         _block_radiance(rad, q, fs, r0[p0], c0[p0], k, Lb)
         for e in range(starts[g], starts[g + 1]):
             p = order[e]
-            nx, ny, nz = n[p, 0], n[p, 1], n[p, 2]
-            vx, vy, vz = v[p, 0], v[p, 1], v[p, 2]
+            x0 = pix[p]
+            nx, ny, nz = n[x0, 0], n[x0, 1], n[x0, 2]
+            vx, vy, vz = v[x0, 0], v[x0, 1], v[x0, 2]
             co = nx * vx + ny * vy + nz * vz
             if co <= 0.0:
                 for ch in range(W.shape[1]):
@@ -175,6 +182,25 @@ def ggx_blocks(n, v, d, order, starts, f, r0, c0, k, M, rad, q, F, params, W, S)
                 w = D * Gs * Fr / (4.0 * co) * G[3, t]
                 wb[t] = w if ci > 0.0 else 0.0
             _accumulate(wb, Lb, W, p)
+
+
+@_jit()
+def sums_by(idx, W, m, out):
+    """out[idx[s], c] += W[s, c] · m[s] for s = 0, 1, … in turn (m empty: W[s, c] alone): per column the sums of
+    ``np.bincount(idx, weights=W[:, c] * m)`` — which adds its weights in input order to 0 — bit for bit, all
+    columns in one pass (:meth:`ibl_ref.rendering.reference_quadrature.Quadrature.sums_by`)."""
+    C = W.shape[1]
+    if len(m):
+        for s in range(len(idx)):
+            p = idx[s]
+            f = m[s]
+            for c in range(C):
+                out[p, c] += W[s, c] * f
+    else:
+        for s in range(len(idx)):
+            p = idx[s]
+            for c in range(C):
+                out[p, c] += W[s, c]
 
 
 #: the loop of each lobe kind (``lobe.kind`` of :mod:`ibl_ref.rendering.materials`)

@@ -1,0 +1,100 @@
+"""The converged reference's bookkeeping helpers that replace NumPy expressions by faster ones with the same values,
+bit for bit (issue 40's sweep): the compiled per-pixel sums against ``np.bincount`` per column, the channel means of
+a sweep's weights against NumPy's mean, the face-plane directions against the row-wise expression, and the
+quadrature's ``pix=`` rows against gathered copies."""
+
+import numpy as np
+import pytest
+
+from ibl_ref.environment.envmap import face_frames
+from ibl_ref.groundtruth.kernels import numba_available
+from ibl_ref.rendering.materials import GGXLobe, PhongLobe
+from ibl_ref.rendering.reference_converged import _dirs, _Env, _group_means
+from ibl_ref.rendering.reference_quadrature import get_quadrature
+
+KERNELS = ["numpy"] + (["compiled"] if numba_available() else [])
+
+
+def _weights(rng, S, C):
+    """Non-negative weights over many magnitudes, with zeros and subnormals (a narrow lobe's far tails)."""
+    W = rng.random((S, C)) * np.exp(rng.normal(scale=30.0, size=(S, C)))
+    W[rng.random((S, C)) < 0.1] = 0.0
+    W[rng.random((S, C)) < 0.02] = 5e-324 * rng.integers(1, 50, size=None)
+    return W
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+@pytest.mark.parametrize("C", [1, 3, 5, 15])
+@pytest.mark.parametrize("mask", [None, "bool", "float"])
+def test_sums_by_is_bincount(kernel, C, mask):
+    """Quadrature.sums_by: column c is np.bincount(idx, weights=W[:, c] · m) (the weights added in input order), bit
+    for bit, for both implementations; unsorted and int32 indices, pixels without rows, no rows at all."""
+    rng = np.random.default_rng(C)
+    q = get_quadrature(kernel)
+    for S, P in ((0, 4), (1, 3), (2000, 37)):
+        idx = rng.integers(0, P - 1, size=S).astype(np.int32)  # the last pixel gets no row
+        W = _weights(rng, S, C)
+        m = {None: None, "bool": rng.random(S) < 0.6, "float": rng.random(S).clip(0.3) - 0.3}[mask]
+        want = np.stack([np.bincount(idx, weights=W[:, c] if m is None else W[:, c] * m, minlength=P)
+                         for c in range(C)], -1)
+        got = q.sums_by(idx, W, P, m)
+        assert got.shape == (P, C)
+        assert np.array_equal(got, want) and np.array_equal(np.signbit(got), np.signbit(want))
+
+
+@pytest.mark.parametrize("E,Cg", [(1, 3), (2, 3), (5, 3), (1, 1), (3, 1), (2, 4), (1, 15)])
+def test_group_means_is_numpy_mean(E, Cg):
+    """_group_means: W.reshape(n, E, Cg).mean(axis=-1) bit for bit (groups of three written out as ((W₀ + W₁) + W₂) / 3,
+    NumPy's order of the additions over a short last axis; other group sizes are that mean itself)."""
+    rng = np.random.default_rng(E * 16 + Cg)
+    for n in (0, 1, 2, 7, 100, 20001):
+        W = _weights(rng, n, E * Cg)
+        W[: n // 2] = rng.normal(size=(n // 2, E * Cg))  # signs too (cancellations: the order shows)
+        want = W.reshape(n, E, Cg).mean(axis=-1)
+        got = _group_means(W, E)
+        assert got.shape == (n, E) and np.array_equal(got, want)
+        sub = W[rng.random(n) < 0.5]  # a masked copy, as the reference's kept pairs
+        assert np.array_equal(_group_means(sub, E), sub.reshape(len(sub), E, Cg).mean(axis=-1))
+
+
+def test_dirs_is_rowwise_expression():
+    """_dirs: the component-wise (F₀ + u F₁) + v F₂ (and its normalisation) equals the row-wise expression over
+    gathered frames bit for bit, signs of zeros included."""
+    rng = np.random.default_rng(3)
+    F = face_frames("openexr")
+    for n in (0, 1, 5000):
+        f = rng.integers(0, 6, size=n)
+        u, v = rng.uniform(-1, 1, size=n), rng.uniform(-1, 1, size=n)
+        u[: n // 10], v[n // 20: n // 10] = 0.0, -0.0
+        Ff = F[f]
+        d = Ff[:, 0, :] + u[:, None] * Ff[:, 1, :] + v[:, None] * Ff[:, 2, :]
+        ln = np.sqrt(d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2])
+        for normalize, want in ((False, d), (True, d / ln[:, None])):
+            got = _dirs(f, u, v, normalize=normalize)
+            assert got.shape == (n, 3) and got.flags.c_contiguous
+            assert np.array_equal(got, want) and np.array_equal(np.signbit(got), np.signbit(want))
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+@pytest.mark.parametrize("lobe", [PhongLobe(16.0, "mirror"), GGXLobe(0.3, f0=1.0)], ids=["phong16", "ggx0.3"])
+def test_block_sums_pix_rows(kernel, lobe):
+    """block_sums with per-pixel arrays and ``pix`` (pair s reads row pix[s]) gives the sums of the gathered
+    per-pair arrays bit for bit."""
+    rng = np.random.default_rng(11)
+    nb, M, P, S = 4, 16, 40, 500
+    k = M // nb
+    env = _Env(rng.gamma(0.5, 1.0, size=(6, 8, 8, 6)), nb)
+    n = rng.normal(size=(P, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    v = n + rng.normal(scale=0.8, size=(P, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    d = lobe.direction(n, v)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    pix = rng.integers(0, P, size=S)
+    cells = rng.integers(0, 6 * nb * nb, size=S)
+    f, r0, c0 = cells // (nb * nb), ((cells // nb) % nb) * k, (cells % nb) * k
+    q = get_quadrature(kernel)
+    W1, S1 = q.block_sums(env, lobe, n[pix], v[pix], d[pix], f, r0, c0, k, M)
+    W2, S2 = q.block_sums(env, lobe, n, v, d, f, r0, c0, k, M, pix=pix)
+    assert (W1 > 0).any() and np.array_equal(W1, W2)
+    assert (S1 is None and S2 is None) or np.array_equal(S1, S2)
