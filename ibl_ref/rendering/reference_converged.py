@@ -928,12 +928,13 @@ class _Block:
         Yhe_all = self._ye(Wh, norm_sums(nsh)[cand_p])
         while True:
             keep = Wq.mean(axis=-1) > 0
+            ki = np.flatnonzero(keep)  # the kept rows, gathered by index (the rows of boolean indexing, faster)
             ws = norm_sums(nsq)
             Ye_all = self._ye(Wq, ws[cand_p])
-            bp, bc, bW = cand_p[keep], cand_c[keep], Wq[keep]
+            bp, bc = cand_p[ki], cand_c[ki]
             bkey = bp * K + bc
-            bYe = Ye_all[keep]
-            bYhe = Yhe_all[keep]  # the same cells at M/2
+            bYe = Ye_all[ki]
+            bYhe = Yhe_all[ki]  # the same cells at M/2
             if first and self.E > 1:  # T_e: the block's mean unoccluded value of environment e
                 T = np.array([np.bincount(bp, weights=bYe[:, e], minlength=Pn).mean() if Pn else 1.0
                               for e in range(self.E)])
@@ -972,9 +973,10 @@ class _Block:
             M = 2 * M
             Yhe_all = Ye_all
             Wq, nsq = _pair_weights(self.quad, env, lobe, g, cand_p, cand_c, levels(M))
-        # the unoccluded value per pixel, from the final level's pairs
+        # the final level's weights of the kept pairs, and the unoccluded value per pixel from them
+        bW = Wq.take(ki, axis=0)
         U = self.quad.sums_by(bp, bW, Pn) / ws[:, None]
-        self.bM = levels(M)[keep]
+        self.bM = levels(M)[ki]
         self.M, self.K, self.n_rays = M, K, n_rays
         self.cf, self.ci, self.cj = cf, ci, cj
         self.ws, self.U = ws, U
@@ -1326,6 +1328,9 @@ def _classify_children(R, inew, ctx):
 
 
 def _classify_children_chunk(R, g, ctx):
+    """:func:`_classify_children` for one chunk: the 12 ring cells of every 2×2 block at once, as (K, 12) arrays
+    (every quantity is computed per (block, ring cell) and the results are OR-ed flags, so it is the same as one
+    ring cell after the other, in far fewer array operations)."""
     nb, depth = ctx["nb"], ctx["depth"]
     first = g[0::4]
     K = len(first)
@@ -1340,81 +1345,80 @@ def _classify_children_chunk(R, g, ctx):
     key = R["key"][first]
     n = nb << lvl
     sh = 2 * (depth - lvl)
-    inc = np.int64(1) << sh
-    high = key & ~(_XMASK | _YMASK)
-    x0, y0 = key & _XMASK, key & _YMASK
-    has0 = np.zeros((K, 12), bool)
-    has1 = np.zeros((K, 12), bool)
-    split_any = []
-    for r, (dr, dc) in enumerate(_RING):
-        I, J, F = i0 + dr, j0 + dc, f0
-        x = ((x0 | _YMASK) + dc * inc) & _XMASK if dc > 0 else ((x0 - inc) & _XMASK if dc < 0 else x0)
-        y = ((y0 | _XMASK) + dr * (inc << 1)) & _YMASK if dr > 0 else ((y0 - (inc << 1)) & _YMASK if dr < 0 else y0)
-        k0 = high | x | y
-        out = (I < 0) | (I >= n) | (J < 0) | (J >= n)
-        if out.any():
-            o = np.flatnonzero(out)
-            F, I, J = F.copy(), I.copy(), J.copy()
-            F[o], I[o], J[o] = _neighbour_of(F[o], I[o], J[o], n[o])
-            k0[o] = _keys(p[o], F[o], lvl[o], I[o], J[o], depth)
-        cb = (F * nb + (I >> lvl)) * nb + (J >> lvl)
-        pi_ = ctx["find"](p, cb)
-        valid = pi_ >= 0
-        vd = np.where(valid, ctx["bV"][np.maximum(pi_, 0)], -1)
-        split = valid & ctx["bsplit"][np.maximum(pi_, 0)]
-        base = valid & ~split
-        has0[:, r] = base & (vd == 0)
-        has1[:, r] = base & (vd == 1)
-        # a base cell that differs from a child it touches becomes an edge
-        touch = V4[:, _RING_ADJ[:, r]]
-        rev_b = base & (((vd == 0) & (touch == 1).any(axis=1)) | ((vd == 1) & (touch == 0).any(axis=1)))
-        ctx["bedge"][pi_[rev_b]] = True
-        sp = np.flatnonzero(split)
-        if len(sp):
-            split_any.append((r, sp, k0[sp], I[sp], J[sp], F[sp], out[sp]))
+    inc = (np.int64(1) << sh)[:, None]
+    high = (key & ~(_XMASK | _YMASK))[:, None]
+    x0, y0 = (key & _XMASK)[:, None], (key & _YMASK)[:, None]
+    dr, dc = _RING[:, 0][None, :], _RING[:, 1][None, :]
+    # per (block, ring cell), flattened block-major: the cell, its Morton key, whether it lies off the block's face
+    I = (i0[:, None] + dr).reshape(-1)
+    J = (j0[:, None] + dc).reshape(-1)
+    F = np.repeat(f0, 12)
+    x = np.where(dc > 0, ((x0 | _YMASK) + dc * inc) & _XMASK, np.where(dc < 0, (x0 - inc) & _XMASK, x0))
+    y = np.where(dr > 0, ((y0 | _XMASK) + dr * (inc << 1)) & _YMASK, np.where(dr < 0, (y0 - (inc << 1)) & _YMASK, y0))
+    k0 = (high | x | y).reshape(-1)
+    pr, lr, nr = np.repeat(p, 12), np.repeat(lvl, 12), np.repeat(n, 12)
+    out = (I < 0) | (I >= nr) | (J < 0) | (J >= nr)
+    if out.any():
+        o = np.flatnonzero(out)
+        F[o], I[o], J[o] = _neighbour_of(F[o], I[o], J[o], nr[o])
+        k0[o] = _keys(pr[o], F[o], lr[o], I[o], J[o], depth)
+    cb = (F * nb + (I >> lr)) * nb + (J >> lr)
+    pi_ = ctx["find"](pr, cb)
+    valid = pi_ >= 0
+    vd = np.where(valid, ctx["bV"][np.maximum(pi_, 0)], -1)
+    split = valid & ctx["bsplit"][np.maximum(pi_, 0)]
+    base = valid & ~split
+    has0 = base & (vd == 0)
+    has1 = base & (vd == 1)
+    # whether a child that the ring cell touches is lit / shadowed
+    adj = _RING_ADJ.astype(np.int64)
+    t1 = (((V4 == 1).astype(np.int64) @ adj) > 0).reshape(-1)
+    t0 = (((V4 == 0).astype(np.int64) @ adj) > 0).reshape(-1)
+    # a base cell that differs from a child it touches becomes an edge
+    rev_b = base & (((vd == 0) & t1) | ((vd == 1) & t0))
+    ctx["bedge"][pi_[rev_b]] = True
     # regions inside split base cells: look them up among the refined cells (Morton ranges)
-    sk, order = R.skeys, R.order
-    Vs = R["V"][order]
-    crel = np.r_[0, np.cumsum(Vs >= 0, dtype=np.int32)]
-    cvis = np.r_[0, np.cumsum(Vs > 0, dtype=np.int32)]
-    marks = []
-    for r, sp, k0, I, J, F, out in split_any:
-        dr, dc = _RING[r]
-        L_ = lvl[sp]
-        k1 = k0 + (np.int64(1) << (2 * (depth - L_)))
-        lo = np.searchsorted(sk, k0, side="right") - 1
+    sp = np.flatnonzero(split)
+    if len(sp):
+        sk, order = R.skeys, R.order
+        Vs = R["V"][order]
+        crel = np.r_[0, np.cumsum(Vs >= 0, dtype=np.int32)]
+        cvis = np.r_[0, np.cumsum(Vs > 0, dtype=np.int32)]
+        k0s = k0[sp]
+        L_ = lr[sp]
+        k1 = k0s + (np.int64(1) << (2 * (depth - L_)))
+        lo = np.searchsorted(sk, k0s, side="right") - 1
         lo_c = np.maximum(lo, 0)
-        cover = (lo >= 0) & (sk[lo_c] + (np.int64(1) << (2 * (depth - R["l"][order[lo_c]].astype(np.int64)))) > k0)
+        cover = (lo >= 0) & (sk[lo_c] + (np.int64(1) << (2 * (depth - R["l"][order[lo_c]].astype(np.int64)))) > k0s)
         start = np.where(cover, lo, lo + 1)
         hi = np.searchsorted(sk, k1, side="left")
         nrel = crel[hi] - crel[start]
         nvis = cvis[hi] - cvis[start]
         h1 = nvis > 0
         h0 = nrel > nvis
-        has0[sp, r] = h0
-        has1[sp, r] = h1
-        touch = V4[sp][:, _RING_ADJ[:, r]]
-        rv = np.flatnonzero((h0 & (touch == 1).any(axis=1)) | (h1 & (touch == 0).any(axis=1)))
+        has0[sp] = h0
+        has1[sp] = h1
+        rv = np.flatnonzero((h0 & t1[sp]) | (h1 & t0[sp]))
         if len(rv):
             # the refined cell of the region nearest to the block (middle of the shared side, or the corner)
+            s_ = sp[rv]
             w = np.int64(1) << (depth - L_[rv])
-            pos = [np.where(out[rv], X[rv] * w + w // 2,
-                            X[rv] * w + (w - 1 if d_ < 0 else 0 if d_ > 1 else w // 2))
-                   for X, d_ in ((I, dr), (J, dc))]
-            kp = _keys(p[sp[rv]], F[rv], np.full(len(rv), depth), pos[0], pos[1], depth)
+            r_ = s_ % 12  # the ring cell
+            pos = [np.where(out[s_], X[s_] * w + w // 2,
+                            X[s_] * w + np.where(d_ < 0, w - 1, np.where(d_ > 1, 0, w // 2)))
+                   for X, d_ in ((I, _RING[r_, 0]), (J, _RING[r_, 1]))]
+            kp = _keys(pr[s_], F[s_], np.full(len(rv), depth), pos[0], pos[1], depth)
             at = np.searchsorted(sk, kp, side="right") - 1
             Vr = Vs[at]
-            tv = touch[rv]
-            diff = ((Vr == 0) & (tv == 1).any(axis=1)) | ((Vr == 1) & (tv == 0).any(axis=1))
-            marks.append(order[at[diff]])
-    for m in marks:
-        R["edge"][m] = True
+            diff = ((Vr == 0) & t1[s_]) | ((Vr == 1) & t0[s_])
+            R["edge"][order[at[diff]]] = True
     # children: an edge if a region they touch holds the other value
+    has0, has1 = has0.reshape(K, 12), has1.reshape(K, 12)
     e = np.zeros((K, 4), bool)
     for c in range(4):
-        adj = _RING_ADJ[c]
-        e[:, c] = np.where(V4[:, c] == 1, has0[:, adj].any(axis=1),
-                           np.where(V4[:, c] == 0, has1[:, adj].any(axis=1), False))
+        adj_c = _RING_ADJ[c]
+        e[:, c] = np.where(V4[:, c] == 1, has0[:, adj_c].any(axis=1),
+                           np.where(V4[:, c] == 0, has1[:, adj_c].any(axis=1), False))
     R["edge"][g] |= e.reshape(-1)
 
 
