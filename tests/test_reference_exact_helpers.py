@@ -98,3 +98,22 @@ def test_block_sums_pix_rows(kernel, lobe):
     W2, S2 = q.block_sums(env, lobe, n, v, d, f, r0, c0, k, M, pix=pix)
     assert (W1 > 0).any() and np.array_equal(W1, W2)
     assert (S1 is None and S2 is None) or np.array_equal(S1, S2)
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_positive_rows_is_mean_positive(kernel):
+    """Quadrature.positive_rows: W.mean(axis=-1) > 0, for rows of zeros, ordinary weights, subnormal ones (whose mean
+    can round to 0) and, for the fallback to the mean, negative and NaN entries."""
+    rng = np.random.default_rng(5)
+    q = get_quadrature(kernel)
+    for C in (3, 15):
+        W = _weights(rng, 3000, C)
+        W[:300] = 0.0
+        W[300:400] = 0.0
+        W[300:400, 0] = 5e-324 * rng.integers(1, 40, size=100)  # mean rounds to 0 for the smallest
+        assert np.array_equal(q.positive_rows(W), W.mean(axis=-1) > 0)
+        for bad in (-1.0, np.nan):
+            W2 = W.copy()
+            W2[17, 1] = bad
+            assert np.array_equal(q.positive_rows(W2), W2.mean(axis=-1) > 0)
+    assert q.positive_rows(np.zeros((0, 3))).shape == (0,)

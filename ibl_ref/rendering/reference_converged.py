@@ -579,7 +579,9 @@ def _pair_weights(quad, env, lobe, g, cp, cc, Mp):
     normalisation Σ norm·Ω (n,) (0 for a lobe without a discrete normalisation): :mod:`ibl_ref.rendering.
     reference_quadrature`'s block sums (``quad``)."""
     nb = env.nb
-    levels = np.unique(Mp)
+    hi = int(Mp.max()) if len(Mp) else 0
+    # the levels, ascending (np.unique's; a count per face size where they are small: much faster)
+    levels = np.flatnonzero(np.bincount(Mp, minlength=1)) if hi <= 1 << 16 else np.unique(Mp)
     if len(levels) == 1:  # one level (a Phong lobe): the pairs in one call, no scatter into W
         M, k = int(levels[0]), int(levels[0]) // nb
         W, ns = quad.block_sums(env, lobe, g.n, g.v, g.d, cc // (nb * nb), ((cc // nb) % nb) * k, (cc % nb) * k, k, M,
@@ -927,7 +929,7 @@ class _Block:
         # doubling, the M/2 values are those computed at M before it
         Yhe_all = self._ye(Wh, norm_sums(nsh)[cand_p])
         while True:
-            keep = Wq.mean(axis=-1) > 0
+            keep = self.quad.positive_rows(Wq)  # Wq.mean(axis=-1) > 0
             ki = np.flatnonzero(keep)  # the kept rows, gathered by index (the rows of boolean indexing, faster)
             ws = norm_sums(nsq)
             Ye_all = self._ye(Wq, ws[cand_p])

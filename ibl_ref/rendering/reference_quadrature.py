@@ -30,7 +30,8 @@ These sums are most of a reference render's time (a GGX render spends ≈ 85 % o
 
 The interface also holds the reference's per-pixel sums of cell weights, :meth:`Quadrature.sums_by` (one
 ``np.bincount`` per column, the definition; the compiled implementation adds every column in one pass, in the same
-order: the same values bit for bit, so this part of a render does not depend on the implementation).
+order) and the mask of pairs that carry weight, :meth:`Quadrature.positive_rows`: the same values bit for bit, so
+this part of a render does not depend on the implementation.
 """
 
 from __future__ import annotations
@@ -73,6 +74,11 @@ class Quadrature:
         return np.stack([np.bincount(idx, weights=W[:, c] if m is None else W[:, c] * m, minlength=n)
                          for c in range(W.shape[1])], -1)
 
+    def positive_rows(self, W):
+        """``W.mean(axis=-1) > 0`` for weights W (S, C): the pairs that carry weight.  This is that definition;
+        :class:`CompiledQuadrature` decides the rows of non-negative weights without the mean (the same mask)."""
+        return W.mean(axis=-1) > 0
+
 
 class NumpyQuadrature(Quadrature):
     """The sums through the lobe's own ``weights`` (the definition), in chunks of :data:`CHUNK_ELEMENTS`; pairs
@@ -114,6 +120,14 @@ class CompiledQuadrature(Quadrature):
 
         self._loops = loops.LOOPS
         self._sums_by = loops.sums_by
+        self._positive_rows = loops.positive_rows
+
+    def positive_rows(self, W):
+        code = np.empty(len(W), np.int8)
+        self._positive_rows(np.ascontiguousarray(W, dtype=np.float64), code)
+        if (code == 2).any():  # a row this cannot decide: the definition, for every row
+            return W.mean(axis=-1) > 0
+        return code == 1
 
     def sums_by(self, idx, W, n: int, m=None):
         out = np.zeros((n, W.shape[1]))

@@ -25,7 +25,8 @@ computed once for all the pixels that read it, its corners' A once for the up to
 p reads its pixel's normal, view and lobe axis at row ``pix[p]`` of per-pixel arrays (no gathered copies).  Serial
 loops (the reference's blocks already run on separate processes) in a fixed order: the same result in every
 process.  :func:`sums_by` is the per-pixel sums of cell weights of
-:meth:`ibl_ref.rendering.reference_quadrature.Quadrature.sums_by` (``np.bincount``'s order, bit for bit).  Compiled
+:meth:`ibl_ref.rendering.reference_quadrature.Quadrature.sums_by` (``np.bincount``'s order, bit for bit), and
+:func:`positive_rows` decides most rows of :meth:`~ibl_ref.rendering.reference_quadrature.Quadrature.positive_rows`.  Compiled
 on first use and kept in numba's cache (the convolution kernels' policy: :mod:`ibl_ref.groundtruth.kernels.numba_loops`).
 """
 
@@ -37,7 +38,7 @@ import numpy as np
 
 from ..groundtruth.kernels.numba_loops import _jit
 
-__all__ = ["phong_blocks", "ggx_blocks", "sums_by", "LOOPS"]
+__all__ = ["phong_blocks", "ggx_blocks", "sums_by", "positive_rows", "LOOPS"]
 
 
 @_jit()
@@ -201,6 +202,23 @@ def sums_by(idx, W, m, out):
             p = idx[s]
             for c in range(C):
                 out[p, c] += W[s, c]
+
+
+@_jit()
+def positive_rows(W, out):
+    """out[s] = 1 where the mean of row s of W is surely > 0 (every entry ≥ 0, one above 1e-300: the sum is at least
+    that entry whatever the order of the additions, so the mean is a normal number > 0), 0 where every entry is 0
+    (the mean is 0), 2 where this does not decide (tiny, negative or NaN entries: the caller takes the mean)."""
+    for s in range(W.shape[0]):
+        mx = 0.0
+        undecided = False
+        for c in range(W.shape[1]):
+            x = W[s, c]
+            if not (x >= 0.0):
+                undecided = True
+            elif x > mx:
+                mx = x
+        out[s] = 2 if undecided else (1 if mx > 1e-300 else (0 if mx == 0.0 else 2))
 
 
 #: the loop of each lobe kind (``lobe.kind`` of :mod:`ibl_ref.rendering.materials`)
