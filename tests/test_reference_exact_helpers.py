@@ -117,3 +117,19 @@ def test_positive_rows_is_mean_positive(kernel):
             W2[17, 1] = bad
             assert np.array_equal(q.positive_rows(W2), W2.mean(axis=-1) > 0)
     assert q.positive_rows(np.zeros((0, 3))).shape == (0,)
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+@pytest.mark.parametrize("E,Cg", [(1, 3), (5, 3), (2, 1), (2, 4)])
+def test_relative_means_is_definition(kernel, E, Cg):
+    """Quadrature.relative_means: W.reshape(n, E, Cg).mean(axis=-1) / w[:, None] bit for bit (compiled: groups of
+    three in one pass)."""
+    rng = np.random.default_rng(E + 7 * Cg)
+    q = get_quadrature(kernel)
+    for n in (0, 1, 5000):
+        W = _weights(rng, n, E * Cg)
+        W[: n // 2] = rng.normal(size=(n // 2, E * Cg))
+        w = rng.random(n) * 3.0 + 1e-3
+        want = W.reshape(n, E, Cg).mean(axis=-1) / w[:, None]
+        got = q.relative_means(W, E, w)
+        assert got.shape == (n, E) and np.array_equal(got, want)

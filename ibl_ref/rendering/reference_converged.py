@@ -134,6 +134,7 @@ from .materials import PhongLobe
 from .raster import prepare_scene
 from .raycast import ShadowRays
 from .reference_quadrature import get_quadrature
+from .reference_quadrature import group_means as _group_means
 from .raycast import resolve_shadow_backend
 
 __all__ = ["converged_shading", "check_environment", "radiance_at_face_size", "coarse_env", "DEFAULT_RTOL",
@@ -556,22 +557,6 @@ def _grades(lobe, g, cp, cc, cen, rad, M0):
     ell = g.w[cp] + 0.5 * delta
     need = GRADE_TEXELS * (np.pi / 2) / ell
     return np.maximum(np.ceil(np.log2(np.maximum(need / M0, 1.0)) - 1e-9), 0).astype(np.int64)
-
-
-def _group_means(W, E: int):
-    """``W.reshape(n, E, C/E).mean(axis=-1)`` (n, E) of weights W (n, C), bit for bit: for groups of three channels
-    (a sweep of RGB maps) the sum ((W₀ + W₁) + W₂) / 3 written out — NumPy's mean over a short last axis adds the
-    channels in their order (``tests/test_reference_exact_helpers.py`` checks the equality), and these three array
-    operations are several times faster than its reduction."""
-    n = len(W)
-    Cg = W.shape[1] // E
-    if Cg != 3:
-        return W.reshape(n, E, Cg).mean(axis=-1)
-    W3 = W.reshape(n, E, 3)
-    s = W3[..., 0] + W3[..., 1]
-    s += W3[..., 2]
-    s /= 3.0
-    return s
 
 
 def _pair_weights(quad, env, lobe, g, cp, cc, Mp):
@@ -1019,10 +1004,9 @@ class _Block:
 
     # ---- estimates ---------------------------------------------------------------------------------------------
     def _ye(self, W, w):
-        """Per environment the channel mean of weights W (n, C) relative to the normalisations w (n,) → (n, E)."""
-        Ye = _group_means(W, self.E)
-        Ye /= w[:, None]
-        return Ye
+        """Per environment the channel mean of weights W (n, C) relative to the normalisations w (n,) → (n, E)
+        (:meth:`ibl_ref.rendering.reference_quadrature.Quadrature.relative_means`)."""
+        return self.quad.relative_means(W, self.E, w)
 
     def _crit(self, Ye):
         """The driving weight of cells with per-environment weights Ye (n, E): max_e Ye/T_e (Ye itself for one; the

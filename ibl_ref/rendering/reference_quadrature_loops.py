@@ -26,7 +26,8 @@ p reads its pixel's normal, view and lobe axis at row ``pix[p]`` of per-pixel ar
 loops (the reference's blocks already run on separate processes) in a fixed order: the same result in every
 process.  :func:`sums_by` is the per-pixel sums of cell weights of
 :meth:`ibl_ref.rendering.reference_quadrature.Quadrature.sums_by` (``np.bincount``'s order, bit for bit), and
-:func:`positive_rows` decides most rows of :meth:`~ibl_ref.rendering.reference_quadrature.Quadrature.positive_rows`.  Compiled
+:func:`positive_rows` decides most rows of :meth:`~ibl_ref.rendering.reference_quadrature.Quadrature.positive_rows`,
+:func:`relative_means3` is its ``relative_means`` for groups of three channels.  Compiled
 on first use and kept in numba's cache (the convolution kernels' policy: :mod:`ibl_ref.groundtruth.kernels.numba_loops`).
 """
 
@@ -38,7 +39,7 @@ import numpy as np
 
 from ..groundtruth.kernels.numba_loops import _jit
 
-__all__ = ["phong_blocks", "ggx_blocks", "sums_by", "positive_rows", "LOOPS"]
+__all__ = ["phong_blocks", "ggx_blocks", "sums_by", "positive_rows", "relative_means3", "LOOPS"]
 
 
 @_jit()
@@ -219,6 +220,16 @@ def positive_rows(W, out):
             elif x > mx:
                 mx = x
         out[s] = 2 if undecided else (1 if mx > 1e-300 else (0 if mx == 0.0 else 2))
+
+
+@_jit()
+def relative_means3(W, w, out):
+    """out[s, e] = ((W[s, 3e] + W[s, 3e+1]) + W[s, 3e+2]) / 3 / w[s]: the channel means of groups of three, relative to
+    w, in the order of :func:`ibl_ref.rendering.reference_quadrature.group_means` (NumPy's), bit for bit."""
+    for s in range(W.shape[0]):
+        ws = w[s]
+        for e in range(out.shape[1]):
+            out[s, e] = (W[s, 3 * e] + W[s, 3 * e + 1] + W[s, 3 * e + 2]) / 3.0 / ws
 
 
 #: the loop of each lobe kind (``lobe.kind`` of :mod:`ibl_ref.rendering.materials`)
