@@ -992,12 +992,24 @@ class _Block:
         nb, bp, bc, bV, cf, ci, cj = self.nb, self.bp, self.bc, self.bV, self.cf, self.ci, self.cj
         nF, nI, nJ = _neighbours(cf, ci, cj, nb)
         nbr = (nF * nb + nI) * nb + nJ  # (K, 8)
-        pin = self.find(np.repeat(bp, 8), nbr[bc].reshape(-1)).reshape(-1, 8)
-        Vn = np.where(pin >= 0, bV[np.maximum(pin, 0)], -1)
-        # the horizon test from each base cell's corners, computed once per cell (not per pair)
-        corners = _corners(cf, ci, cj, np.full(self.K, nb))
-        self.bedge = ((Vn >= 0) & (Vn != bV[:, None])).any(axis=1) | _cut_by_corners([c[bc] for c in corners],
-                                                                                      self.nrm[bp])
+        if self.Pn * self.K <= FIND_TABLE_MAX:  # the neighbours' rays from a table over all (pixel, cell): −1 where none
+            Vt = np.full(self.Pn * self.K, -1, np.int8)
+            Vt[self.bkey] = bV
+            Vn = Vt[(bp * self.K)[:, None] + nbr[bc]]
+        else:
+            pin = self.find(np.repeat(bp, 8), nbr[bc].reshape(-1)).reshape(-1, 8)
+            Vn = np.where(pin >= 0, bV[np.maximum(pin, 0)], -1)
+        differs = ((Vn >= 0) & (Vn != bV[:, None])).any(axis=1)
+        # the horizon test from each base cell's corners, computed once per cell (not per pair), component by
+        # component (the values of _cut_by_horizon's dot products)
+        n_ = [self.nrm[:, c][bp] for c in range(3)]
+        pos = np.zeros(self.nB, bool)
+        neg = np.zeros(self.nB, bool)
+        for d in _corners(cf, ci, cj, np.full(self.K, nb)):
+            c = d[:, 0][bc] * n_[0] + d[:, 1][bc] * n_[1] + d[:, 2][bc] * n_[2]
+            pos |= c > 0
+            neg |= c < 0
+        self.bedge = differs | (pos & neg)
         self.bsplit = np.zeros(self.nB, dtype=bool)
         self.dirty = np.zeros(self.Pn, dtype=bool)  # pixels whose cells were split since the last pixel_sums
         self._sums = None
@@ -1048,6 +1060,14 @@ class _Block:
         if not D.any():
             return self._sums
         self.dirty[:] = False
+        dirty_sums = getattr(self.quad, "dirty_sums", None)
+        if dirty_sums is not None:  # the same sums in one compiled pass (CompiledQuadrature.dirty_sums)
+            A, q = self._sums
+            A, q = A.copy(), q.copy()
+            dirty_sums(D, bp, self.bV, self.bsplit, self.bY, self.bYe, self.bdY, R["p"], R["bi"], R["V"], R["Y"],
+                       R.Ye, A, q)
+            self._sums = (A, q)
+            return self._sums
         ib = np.flatnonzero(D[bp])
         ir = np.flatnonzero(D[R["p"]])
         rb, rp, rv = R["bi"][ir], R["p"][ir], R["V"][ir] > 0

@@ -131,6 +131,16 @@ class CompiledQuadrature(Quadrature):
         self._sums_by = loops.sums_by
         self._positive_rows = loops.positive_rows
         self._relative_means3 = loops.relative_means3
+        self._dirty_sums = loops.dirty_sums
+
+    def dirty_sums(self, D, bp, bV, bsplit, bY, bYe, bdY, rp, rbi, rV, rY, rYe, A, q):
+        """The reference's per-pixel sums of a block (:meth:`ibl_ref.rendering.reference_converged._Block.pixel_sums`:
+        lit weight A and quadrature estimate q, (P, E)) recomputed in place for the pixels D, in one pass over the
+        base pairs (``bp`` … ``bdY``) and the refined cells (``rp`` … ``rYe``), each sum in the order of that method's
+        NumPy expressions: the same values bit for bit (the renders' tests compare both kernels)."""
+        self._dirty_sums(D, np.ascontiguousarray(bp, dtype=np.int64), bV, bsplit, bY, np.ascontiguousarray(bYe),
+                         np.ascontiguousarray(bdY), np.ascontiguousarray(rp, dtype=np.int64),
+                         np.ascontiguousarray(rbi, dtype=np.int64), rV, rY, np.ascontiguousarray(rYe), A, q)
 
     def relative_means(self, W, E: int, w):
         if W.shape[1] != 3 * E:

@@ -39,7 +39,7 @@ import numpy as np
 
 from ..groundtruth.kernels.numba_loops import _jit
 
-__all__ = ["phong_blocks", "ggx_blocks", "sums_by", "positive_rows", "relative_means3", "LOOPS"]
+__all__ = ["phong_blocks", "ggx_blocks", "sums_by", "positive_rows", "relative_means3", "dirty_sums", "LOOPS"]
 
 
 @_jit()
@@ -230,6 +230,46 @@ def relative_means3(W, w, out):
         ws = w[s]
         for e in range(out.shape[1]):
             out[s, e] = (W[s, 3 * e] + W[s, 3 * e + 1] + W[s, 3 * e + 2]) / 3.0 / ws
+
+
+@_jit()
+def dirty_sums(D, bp, bV, bsplit, bY, bYe, bdY, rp, rbi, rV, rY, rYe, A, q):
+    """:meth:`ibl_ref.rendering.reference_quadrature.CompiledQuadrature.dirty_sums`: for the pixels p with D[p], A[p] =
+    Σ_base bYe·lit + Σ_refined rYe·[rV > 0] (two sums, then added) and q[p] = |Σ_base bdY·V̄| (V̄ a base pair's ray,
+    or the lit share of its leaves' weight where it was split), every sum over the rows in their order."""
+    nB = len(bp)
+    P, E = A.shape
+    have_r = len(rp) > 0
+    num = np.zeros(nB)
+    for s in range(len(rp)):
+        if D[rp[s]]:
+            num[rbi[s]] += rY[s] * (1.0 if rV[s] > 0 else 0.0)
+    Ab = np.zeros((P, E))
+    Ar = np.zeros((P, E))
+    qs = np.zeros((P, E))
+    for s in range(nB):
+        p = bp[s]
+        if D[p]:
+            lit = 1.0 if (bV[s] > 0 and not bsplit[s]) else 0.0
+            if have_r and bsplit[s]:
+                y = bY[s]
+                vb = num[s] / (y if y > 0 else 1.0)
+            else:
+                vb = max(float(bV[s]), 0.0)
+            for e in range(E):
+                Ab[p, e] += bYe[s, e] * lit
+                qs[p, e] += bdY[s, e] * vb
+    for s in range(len(rp)):
+        p = rp[s]
+        if D[p]:
+            f = 1.0 if rV[s] > 0 else 0.0
+            for e in range(E):
+                Ar[p, e] += rYe[s, e] * f
+    for p in range(P):
+        if D[p]:
+            for e in range(E):
+                A[p, e] = Ab[p, e] + Ar[p, e]
+                q[p, e] = abs(qs[p, e])
 
 
 #: the loop of each lobe kind (``lobe.kind`` of :mod:`ibl_ref.rendering.materials`)
