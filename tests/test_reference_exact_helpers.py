@@ -156,3 +156,13 @@ def test_compiled_pixel_sums_match_numpy_path(monkeypatch, material):
     for x, y in zip(a, b):
         assert np.array_equal(x.image, y.image) and np.array_equal(x.error, y.error)
         assert x.info["err_rel_l1"] == y.info["err_rel_l1"] and x.info["n_rays"] == y.info["n_rays"]
+
+
+def test_by_pixel_is_stable_argsort():
+    """_by_pixel: np.argsort(pix, kind="stable") (16-bit radix for small pixel counts, the int64 sort above)."""
+    from ibl_ref.rendering.reference_converged import _by_pixel
+
+    rng = np.random.default_rng(2)
+    for P in (1, 256, 1 << 16, (1 << 16) + 5):
+        pix = rng.integers(0, P, size=5000)
+        assert np.array_equal(_by_pixel(pix, P), np.argsort(pix, kind="stable"))
