@@ -106,7 +106,10 @@ wherever the blocks ran.  A block's memory is bounded whatever the environment: 
 leaves of a quadtree per pixel (Morton-sorted, ~100 bytes each) and never exceed ``max_cells``
 (:data:`MAX_BLOCK_CELLS`); cells are split in chunks of :data:`SPLIT_CHUNK` parents; the quadrature texels are
 summed per chunk of (pair, texel) elements or texel by texel, never as whole levels
-(:mod:`ibl_ref.rendering.reference_quadrature`: a NumPy and a compiled implementation, ``kernel=``).  With
+(:mod:`ibl_ref.rendering.reference_quadrature`: a NumPy and a compiled implementation, ``kernel=``); the same
+switch runs the block's per-pixel sums of cell weights, its channel means and its mask of weighted pairs either as
+NumPy expressions or as compiled loops that round exactly as those do (bit-identical: only the block sums depend on
+the implementation).  With
 ``progress``, the first block runs alone and the predicted cost of the rest (rays, CPU and wall time, memory per
 worker) is printed before they start.
 

@@ -31,8 +31,10 @@ These sums are most of a reference render's time (a GGX render spends ≈ 85 % o
 The interface also holds the reference's per-pixel sums of cell weights, :meth:`Quadrature.sums_by` (one
 ``np.bincount`` per column, the definition; the compiled implementation adds every column in one pass, in the same
 order), the mask of pairs that carry weight, :meth:`Quadrature.positive_rows`, and the per-environment channel
-means of a sweep's weights, :meth:`Quadrature.relative_means`: the same values bit for bit, so this part of a render
-does not depend on the implementation.
+means of a sweep's weights, :meth:`Quadrature.relative_means`; :class:`CompiledQuadrature` adds
+:meth:`~CompiledQuadrature.dirty_sums`, a refinement round's per-pixel sums in one pass (the NumPy implementation
+leaves them to :meth:`ibl_ref.rendering.reference_converged._Block.pixel_sums`' array expressions).  All give the
+same values bit for bit, so this part of a render does not depend on the implementation.
 """
 
 from __future__ import annotations
@@ -51,7 +53,8 @@ CHUNK_ELEMENTS = 1 << 18
 
 class Quadrature:
     """The interface: ``block_sums(env, lobe, n, v, d, f, r0, c0, k, M, pix=None) -> (W (S, C), S (S,) or None)``,
-    and :meth:`sums_by` (the reference's per-pixel sums of cell weights).
+    and the reference's bookkeeping :meth:`sums_by`, :meth:`positive_rows`, :meth:`relative_means` (defined here by
+    their NumPy expressions).
 
     ``env`` is the reference's environment (``texels(f, r0, c0, k, M)`` → directions, solid angles, radiance of
     k×k blocks; ``level(M)`` → (radiance array, q) with texel (R, C) of face size M reading ``array[f, R//q,

@@ -24,11 +24,14 @@ The pairs come grouped by block (``order``, ``starts``): a block's directions, s
 computed once for all the pixels that read it, its corners' A once for the up to four texels that share them; pair
 p reads its pixel's normal, view and lobe axis at row ``pix[p]`` of per-pixel arrays (no gathered copies).  Serial
 loops (the reference's blocks already run on separate processes) in a fixed order: the same result in every
-process.  :func:`sums_by` is the per-pixel sums of cell weights of
-:meth:`ibl_ref.rendering.reference_quadrature.Quadrature.sums_by` (``np.bincount``'s order, bit for bit), and
-:func:`positive_rows` decides most rows of :meth:`~ibl_ref.rendering.reference_quadrature.Quadrature.positive_rows`,
-:func:`relative_means3` is its ``relative_means`` for groups of three channels.  Compiled
-on first use and kept in numba's cache (the convolution kernels' policy: :mod:`ibl_ref.groundtruth.kernels.numba_loops`).
+process.
+
+The reference's bookkeeping in compiled form, each with the values of its NumPy definition bit for bit (the same
+operations in the same order; the methods of :class:`ibl_ref.rendering.reference_quadrature.Quadrature`):
+:func:`sums_by` (per-pixel sums of cell weights, ``np.bincount``'s order), :func:`positive_rows` (the rows that
+carry weight, deciding most rows without the mean), :func:`relative_means3` (channel means of groups of three) and
+:func:`dirty_sums` (a refinement round's per-pixel sums).  Compiled on first use and kept in numba's cache (the
+convolution kernels' policy: :mod:`ibl_ref.groundtruth.kernels.numba_loops`).
 """
 
 from __future__ import annotations
