@@ -166,3 +166,22 @@ def test_by_pixel_is_stable_argsort():
     for P in (1, 256, 1 << 16, (1 << 16) + 5):
         pix = rng.integers(0, P, size=5000)
         assert np.array_equal(_by_pixel(pix, P), np.argsort(pix, kind="stable"))
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_max_ratio_is_definition(kernel):
+    """Quadrature.max_ratio: (Ye / T).max(axis=1) bit for bit (zeros of both signs, ties and NaN included)."""
+    rng = np.random.default_rng(9)
+    q = get_quadrature(kernel)
+    for E in (2, 5):
+        Ye = _weights(rng, 4000, E)
+        Ye[:100] = 0.0
+        Ye[100:200, 0] = -0.0
+        Ye[200:300] = Ye[200:300, :1]  # ties
+        Ye[300, 1] = np.nan
+        Ye[301, 0] = np.nan
+        T = rng.random(E) + 0.5
+        T[0] = 1.0
+        want = (Ye / T).max(axis=1)
+        got = q.max_ratio(Ye, T)
+        assert np.array_equal(got, want, equal_nan=True) and np.array_equal(np.signbit(got), np.signbit(want))

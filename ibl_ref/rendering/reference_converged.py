@@ -1030,15 +1030,9 @@ class _Block:
         return self.quad.relative_means(W, self.E, w)
 
     def _crit(self, Ye):
-        """The driving weight of cells with per-environment weights Ye (n, E): max_e Ye/T_e (Ye itself for one; the
-        maximum taken column by column, the value of ``(Ye / T).max(axis=1)``: a maximum does not round)."""
-        if self.E == 1:
-            return Ye[:, 0]
-        t = Ye / self.T
-        m = t[:, 0].copy()
-        for e in range(1, self.E):
-            np.maximum(m, t[:, e], out=m)
-        return m
+        """The driving weight of cells with per-environment weights Ye (n, E): max_e Ye/T_e (Ye itself for one;
+        :meth:`ibl_ref.rendering.reference_quadrature.Quadrature.max_ratio`)."""
+        return Ye[:, 0] if self.E == 1 else self.quad.max_ratio(Ye, self.T)
 
     def quad_est(self, vb):
         """per pixel and environment |Σ_c V̄_c (Y_c(M) − Y_c(M/2))| (channel mean, relative to ws) → (Pn, E)."""

@@ -53,8 +53,8 @@ CHUNK_ELEMENTS = 1 << 18
 
 class Quadrature:
     """The interface: ``block_sums(env, lobe, n, v, d, f, r0, c0, k, M, pix=None) -> (W (S, C), S (S,) or None)``,
-    and the reference's bookkeeping :meth:`sums_by`, :meth:`positive_rows`, :meth:`relative_means` (defined here by
-    their NumPy expressions).
+    and the reference's bookkeeping :meth:`sums_by`, :meth:`positive_rows`, :meth:`relative_means`, :meth:`max_ratio`
+    (defined here by their NumPy expressions).
 
     ``env`` is the reference's environment (``texels(f, r0, c0, k, M)`` → directions, solid angles, radiance of
     k×k blocks; ``level(M)`` → (radiance array, q) with texel (R, C) of face size M reading ``array[f, R//q,
@@ -82,6 +82,16 @@ class Quadrature:
         """``W.mean(axis=-1) > 0`` for weights W (S, C): the pairs that carry weight.  This is that definition;
         :class:`CompiledQuadrature` decides the rows of non-negative weights without the mean (the same mask)."""
         return W.mean(axis=-1) > 0
+
+    def max_ratio(self, Ye, T):
+        """``(Ye / T).max(axis=1)`` for Ye (S, E), T (E,): the maximum over environments of the weights relative to
+        their scales, taken column by column with ``np.maximum`` (the value of the reduction: a maximum does not
+        round); :class:`CompiledQuadrature` in one pass."""
+        t = Ye / T
+        m = t[:, 0].copy()
+        for e in range(1, t.shape[1]):
+            np.maximum(m, t[:, e], out=m)
+        return m
 
     def relative_means(self, W, E: int, w):
         """Per group of C/E channels (an environment of a sweep) the mean of each row of W (S, C), divided by w (S,)
@@ -135,6 +145,7 @@ class CompiledQuadrature(Quadrature):
         self._positive_rows = loops.positive_rows
         self._relative_means3 = loops.relative_means3
         self._dirty_sums = loops.dirty_sums
+        self._max_ratio = loops.max_ratio
 
     def dirty_sums(self, D, bp, bV, bsplit, bY, bYe, bdY, rp, rbi, rV, rY, rYe, A, q):
         """The reference's per-pixel sums of a block (:meth:`ibl_ref.rendering.reference_converged._Block.pixel_sums`:
@@ -151,6 +162,11 @@ class CompiledQuadrature(Quadrature):
         out = np.empty((len(W), E))
         self._relative_means3(np.ascontiguousarray(W, dtype=np.float64), np.ascontiguousarray(w, dtype=np.float64),
                               out)
+        return out
+
+    def max_ratio(self, Ye, T):
+        out = np.empty(len(Ye))
+        self._max_ratio(np.ascontiguousarray(Ye, dtype=np.float64), np.ascontiguousarray(T, dtype=np.float64), out)
         return out
 
     def positive_rows(self, W):

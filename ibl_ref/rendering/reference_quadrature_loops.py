@@ -29,7 +29,7 @@ process.
 The reference's bookkeeping in compiled form, each with the values of its NumPy definition bit for bit (the same
 operations in the same order; the methods of :class:`ibl_ref.rendering.reference_quadrature.Quadrature`):
 :func:`sums_by` (per-pixel sums of cell weights, ``np.bincount``'s order), :func:`positive_rows` (the rows that
-carry weight, deciding most rows without the mean), :func:`relative_means3` (channel means of groups of three) and
+carry weight, deciding most rows without the mean), :func:`relative_means3` (channel means of groups of three), :func:`max_ratio` (a sweep's driving weight) and
 :func:`dirty_sums` (a refinement round's per-pixel sums).  Compiled on first use and kept in numba's cache (the
 convolution kernels' policy: :mod:`ibl_ref.groundtruth.kernels.numba_loops`).
 """
@@ -42,7 +42,7 @@ import numpy as np
 
 from ..groundtruth.kernels.numba_loops import _jit
 
-__all__ = ["phong_blocks", "ggx_blocks", "sums_by", "positive_rows", "relative_means3", "dirty_sums", "LOOPS"]
+__all__ = ["phong_blocks", "ggx_blocks", "sums_by", "positive_rows", "relative_means3", "dirty_sums", "max_ratio", "LOOPS"]
 
 
 @_jit()
@@ -273,6 +273,19 @@ def dirty_sums(D, bp, bV, bsplit, bY, bYe, bdY, rp, rbi, rV, rY, rYe, A, q):
             for e in range(E):
                 A[p, e] = Ab[p, e] + Ar[p, e]
                 q[p, e] = abs(qs[p, e])
+
+
+@_jit()
+def max_ratio(Ye, T, out):
+    """out[s] = max_e Ye[s, e] / T[e], the maximum taken as ``np.maximum`` does column by column (of equal values the
+    later one, so −0 and +0 as NumPy orders them; a NaN carried on), bit for bit."""
+    for s in range(Ye.shape[0]):
+        m = Ye[s, 0] / T[0]
+        for e in range(1, Ye.shape[1]):
+            x = Ye[s, e] / T[e]
+            if not (m > x or m != m):
+                m = x
+        out[s] = m
 
 
 #: the loop of each lobe kind (``lobe.kind`` of :mod:`ibl_ref.rendering.materials`)
