@@ -23,6 +23,22 @@ def _weights(rng, S, C):
     return W
 
 
+def _pixels(rng, P, lobe):
+    """P random normals, views (some below the horizon) and the lobe's axes."""
+    n = rng.normal(size=(P, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    v = n + rng.normal(scale=0.8, size=(P, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    d = lobe.direction(n, v)
+    return n, v, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def _blocks(rng, S, nb, k):
+    """S random blocks (f, r0, c0) of k×k texels, one per base cell of face size nb."""
+    cells = rng.integers(0, 6 * nb * nb, size=S)
+    return cells // (nb * nb), ((cells // nb) % nb) * k, (cells % nb) * k
+
+
 @pytest.mark.parametrize("kernel", KERNELS)
 @pytest.mark.parametrize("C", [1, 3, 5, 15])
 @pytest.mark.parametrize("mask", [None, "bool", "float"])
@@ -84,15 +100,9 @@ def test_block_sums_pix_rows(kernel, lobe):
     nb, M, P, S = 4, 16, 40, 500
     k = M // nb
     env = _Env(rng.gamma(0.5, 1.0, size=(6, 8, 8, 6)), nb)
-    n = rng.normal(size=(P, 3))
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    v = n + rng.normal(scale=0.8, size=(P, 3))
-    v /= np.linalg.norm(v, axis=1, keepdims=True)
-    d = lobe.direction(n, v)
-    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    n, v, d = _pixels(rng, P, lobe)
     pix = rng.integers(0, P, size=S)
-    cells = rng.integers(0, 6 * nb * nb, size=S)
-    f, r0, c0 = cells // (nb * nb), ((cells // nb) % nb) * k, (cells % nb) * k
+    f, r0, c0 = _blocks(rng, S, nb, k)
     q = get_quadrature(kernel)
     W1, S1 = q.block_sums(env, lobe, n[pix], v[pix], d[pix], f, r0, c0, k, M)
     W2, S2 = q.block_sums(env, lobe, n, v, d, f, r0, c0, k, M, pix=pix)
@@ -185,3 +195,25 @@ def test_max_ratio_is_definition(kernel):
         want = (Ye / T).max(axis=1)
         got = q.max_ratio(Ye, T)
         assert np.array_equal(got, want, equal_nan=True) and np.array_equal(np.signbit(got), np.signbit(want))
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+@pytest.mark.parametrize("lobe", [PhongLobe(16.0, "mirror"), GGXLobe(0.3, f0=1.0)], ids=["phong16", "ggx0.3"])
+def test_block_sums_into_rows(kernel, lobe):
+    """block_sums with out=(W, S) and rows writes pair s's sums into row rows[s] (the other rows untouched; S only
+    for a normalised lobe): the values of the returned arrays scattered, bit for bit."""
+    rng = np.random.default_rng(13)
+    nb, M, S = 4, 16, 300
+    k = M // nb
+    env = _Env(rng.gamma(0.5, 1.0, size=(6, 8, 8, 15)), nb)
+    n, v, d = _pixels(rng, S, lobe)
+    f, r0, c0 = _blocks(rng, S, nb, k)
+    q = get_quadrature(kernel)
+    W1, S1 = q.block_sums(env, lobe, n, v, d, f, r0, c0, k, M)
+    rows = rng.permutation(2 * S)[:S]
+    W2, S2 = np.full((2 * S, 15), 7.0), np.full(2 * S, 7.0)
+    out = q.block_sums(env, lobe, n, v, d, f, r0, c0, k, M, out=(W2, S2), rows=rows)
+    assert out[0] is W2 and out[1] is S2
+    rest = np.setdiff1d(np.arange(2 * S), rows)
+    assert np.array_equal(W2[rows], W1) and (W2[rest] == 7.0).all()
+    assert np.array_equal(S2[rows], S1) if S1 is not None else (S2 == 7.0).all()

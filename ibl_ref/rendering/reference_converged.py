@@ -581,10 +581,8 @@ def _pair_weights(quad, env, lobe, g, cp, cc, Mp):
         sel = np.flatnonzero(Mp == M)
         k = int(M) // nb
         c_ = cc[sel]
-        W[sel], n_ = quad.block_sums(env, lobe, g.n, g.v, g.d, c_ // (nb * nb), ((c_ // nb) % nb) * k, (c_ % nb) * k,
-                                     k, int(M), pix=cp[sel])
-        if n_ is not None:
-            ns[sel] = n_
+        quad.block_sums(env, lobe, g.n, g.v, g.d, c_ // (nb * nb), ((c_ // nb) % nb) * k, (c_ % nb) * k, k, int(M),
+                        pix=cp[sel], out=(W, ns), rows=sel)  # into rows sel of W, ns (ns kept 0 without a norm)
     return W, ns
 
 
@@ -605,13 +603,14 @@ def _child_weights(quad, env, lobe, g, p, f, lvl, i, j, Wpar, Mpar):
     Mc = np.repeat(Mpar, 4)
     n_c = nb * (2 ** cl)
     W = np.zeros((4 * K, env.C))
+    ns_c = np.zeros(4 * K)  # the children's normalisations (not used: the parent's normalisation holds)
     coarse = np.flatnonzero(n_c <= Mc)
     if len(coarse):
         kcs = Mc[coarse] // n_c[coarse]
         for M, kc in sorted(set(zip(Mc[coarse].tolist(), kcs.tolist()))):
             sel = coarse[(Mc[coarse] == M) & (kcs == kc)]
-            W[sel] = quad.block_sums(env, lobe, g.n, g.v, g.d, cf[sel], ci[sel] * kc, cj[sel] * kc, int(kc), int(M),
-                                     pix=cp[sel])[0]
+            quad.block_sums(env, lobe, g.n, g.v, g.d, cf[sel], ci[sel] * kc, cj[sel] * kc, int(kc), int(M),
+                            pix=cp[sel], out=(W, ns_c), rows=sel)
     fine = np.flatnonzero(n_c > Mc)
     if len(fine):
         from ..environment.envmap import rect_solid_angle

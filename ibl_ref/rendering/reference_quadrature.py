@@ -61,12 +61,14 @@ class Quadrature:
     C//q]``); ``n, v, d`` (S, 3) the pixels' normals, view directions and lobe axes — or, with ``pix`` (S,) given,
     per-pixel arrays (P, 3) of which pair s reads row ``pix[s]`` (no gathered copies); ``f, r0, c0`` (S,) the
     blocks; ``k`` and ``M`` ints.  ``S`` is None for a lobe without a discrete normalisation (``lobe.normalised``
-    False).
+    False).  With ``out=(W_out, S_out)`` and ``rows`` (S,), pair s's sums go to row ``rows[s]`` of those arrays
+    (``S_out`` untouched for a lobe without normalisation), which are returned.
     """
 
     name = ""
 
-    def block_sums(self, env, lobe, n, v, d, f, r0, c0, k: int, M: int, pix=None):  # pragma: no cover - interface
+    def block_sums(self, env, lobe, n, v, d, f, r0, c0, k: int, M: int, pix=None, out=None,
+                   rows=None):  # pragma: no cover - interface
         raise NotImplementedError
 
     def sums_by(self, idx, W, n: int, m=None):
@@ -108,7 +110,13 @@ class NumpyQuadrature(Quadrature):
 
     name = "numpy"
 
-    def block_sums(self, env, lobe, n, v, d, f, r0, c0, k: int, M: int, pix=None):
+    def block_sums(self, env, lobe, n, v, d, f, r0, c0, k: int, M: int, pix=None, out=None, rows=None):
+        if out is not None:
+            W, ns = self.block_sums(env, lobe, n, v, d, f, r0, c0, k, M, pix=pix)
+            out[0][rows] = W
+            if ns is not None:
+                out[1][rows] = ns
+            return out
         S = len(f)
         W = np.zeros((S, env.C))
         ns = np.zeros(S) if lobe.normalised else None
@@ -184,12 +192,14 @@ class CompiledQuadrature(Quadrature):
                           out)
         return out
 
-    def block_sums(self, env, lobe, n, v, d, f, r0, c0, k: int, M: int, pix=None):
+    def block_sums(self, env, lobe, n, v, d, f, r0, c0, k: int, M: int, pix=None, out=None, rows=None):
         S = len(f)
-        W = np.zeros((S, env.C))
-        ns = np.zeros(S)
+        if out is None:
+            W, ns, rows = np.zeros((S, env.C)), np.zeros(S), np.arange(S)
+        else:
+            (W, ns), rows = out, np.ascontiguousarray(rows, dtype=np.int64)
         if S == 0:
-            return W, (ns if lobe.normalised else None)
+            return out if out is not None else (W, (ns if lobe.normalised else None))
         pix = np.arange(S) if pix is None else np.ascontiguousarray(pix, dtype=np.int64)
         rad, q = env.level(int(M))
         f, r0, c0 = (np.ascontiguousarray(x, dtype=np.int64) for x in (f, r0, c0))
@@ -198,8 +208,8 @@ class CompiledQuadrature(Quadrature):
         starts = np.flatnonzero(np.diff(key[order], prepend=-1, append=-1) != 0)  # group boundaries, and S
         self._loops[lobe.kind](np.ascontiguousarray(n, dtype=np.float64), np.ascontiguousarray(v, dtype=np.float64),
                                np.ascontiguousarray(d, dtype=np.float64), pix, order, starts, f, r0, c0, int(k), int(M),
-                               np.ascontiguousarray(rad), int(q), FRAMES, lobe.loop_params(), W, ns)
-        return W, (ns if lobe.normalised else None)
+                               np.ascontiguousarray(rad), int(q), FRAMES, lobe.loop_params(), W, ns, rows)
+        return out if out is not None else (W, (ns if lobe.normalised else None))
 
 
 #: the face frames of the package's cube convention (:func:`ibl_ref.environment.envmap.face_frames`)

@@ -29,8 +29,8 @@ process.
 The reference's bookkeeping in compiled form, each with the values of its NumPy definition bit for bit (the same
 operations in the same order; the methods of :class:`ibl_ref.rendering.reference_quadrature.Quadrature`):
 :func:`sums_by` (per-pixel sums of cell weights, ``np.bincount``'s order), :func:`positive_rows` (the rows that
-carry weight, deciding most rows without the mean), :func:`relative_means3` (channel means of groups of three), :func:`max_ratio` (a sweep's driving weight) and
-:func:`dirty_sums` (a refinement round's per-pixel sums).  Compiled on first use and kept in numba's cache (the
+carry weight, deciding most rows without the mean), :func:`relative_means3` (channel means of groups of three),
+:func:`max_ratio` (a sweep's driving weight) and :func:`dirty_sums` (a refinement round's per-pixel sums).  Compiled on first use and kept in numba's cache (the
 convolution kernels' policy: :mod:`ibl_ref.groundtruth.kernels.numba_loops`).
 """
 
@@ -42,7 +42,8 @@ import numpy as np
 
 from ..groundtruth.kernels.numba_loops import _jit
 
-__all__ = ["phong_blocks", "ggx_blocks", "sums_by", "positive_rows", "relative_means3", "dirty_sums", "max_ratio", "LOOPS"]
+__all__ = ["phong_blocks", "ggx_blocks", "sums_by", "positive_rows", "relative_means3", "dirty_sums", "max_ratio",
+           "LOOPS"]
 
 
 @_jit()
@@ -111,9 +112,9 @@ def _accumulate(wb, Lb, W, p):
 
 
 @_jit()
-def phong_blocks(n, v, d, pix, order, starts, f, r0, c0, k, M, rad, q, F, params, W, S):
-    """Phong lobe (module docstring): W (S, C) and S (S,) filled in place; pair p reads the normal, view and axis of
-    row ``pix[p]`` of n, v, d; the pairs ``order[starts[g]:starts[g+1]]`` share one block (its geometry and radiance
+def phong_blocks(n, v, d, pix, order, starts, f, r0, c0, k, M, rad, q, F, params, W, S, rows):
+    """Phong lobe (module docstring): rows ``rows[p]`` of W and S filled in place; pair p reads the normal, view and
+    axis of row ``pix[p]`` of n, v, d; the pairs ``order[starts[g]:starts[g+1]]`` share one block (its geometry and radiance
     gathered once)."""
     s = params[0]
     kk = k * k
@@ -137,14 +138,14 @@ def phong_blocks(n, v, d, pix, order, starts, f, r0, c0, k, M, rad, q, F, params
                 w = (c if s == 1.0 else c ** s) * G[3, t]
                 acc += w
                 wb[t] = w if nx * G[0, t] + ny * G[1, t] + nz * G[2, t] > 0.0 else 0.0
-            S[p] = acc
-            _accumulate(wb, Lb, W, p)
+            S[rows[p]] = acc
+            _accumulate(wb, Lb, W, rows[p])
 
 
 @_jit()
-def ggx_blocks(n, v, d, pix, order, starts, f, r0, c0, k, M, rad, q, F, params, W, S):
-    """GGX specular term (module docstring): W (S, C) filled in place (S unused: no discrete normalisation); pair p
-    reads row ``pix[p]`` of n, v; the pairs ``order[starts[g]:starts[g+1]]`` share one block (its geometry and
+def ggx_blocks(n, v, d, pix, order, starts, f, r0, c0, k, M, rad, q, F, params, W, S, rows):
+    """GGX specular term (module docstring): rows ``rows[p]`` of W filled in place (S unused: no discrete
+    normalisation); pair p reads row ``pix[p]`` of n, v; the pairs ``order[starts[g]:starts[g+1]]`` share one block (its geometry and
     radiance gathered once).  The texel loop has no branches (selects only), so that it runs on the processor's
     vector lanes."""
     alpha, f0, sep = params[0], params[1], 1.0 - params[2]
@@ -167,7 +168,7 @@ def ggx_blocks(n, v, d, pix, order, starts, f, r0, c0, k, M, rad, q, F, params, 
             co = nx * vx + ny * vy + nz * vz
             if co <= 0.0:
                 for ch in range(W.shape[1]):
-                    W[p, ch] = 0.0
+                    W[rows[p], ch] = 0.0
                 continue
             inv_g1o = (co + math.sqrt(a2 + (1.0 - a2) * co * co)) / (2.0 * co)
             for t in range(kk):
@@ -186,7 +187,7 @@ def ggx_blocks(n, v, d, pix, order, starts, f, r0, c0, k, M, rad, q, F, params, 
                 Fr = f0 + (1.0 - f0) * (m * m * m * m * m)
                 w = D * Gs * Fr / (4.0 * co) * G[3, t]
                 wb[t] = w if ci > 0.0 else 0.0
-            _accumulate(wb, Lb, W, p)
+            _accumulate(wb, Lb, W, rows[p])
 
 
 @_jit()
