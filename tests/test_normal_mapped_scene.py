@@ -374,7 +374,7 @@ def test_the_renderers_shade_a_mapped_mesh_with_its_map():
 
 def test_mitsuba_refuses_a_mapped_mesh_in_one_line():
     # the maps are procedural and not handed to Mitsuba: its image would be another scene's, so it is refused before
-    # Mitsuba is loaded (no Mitsuba needed for this test)
+    # Mitsuba is loaded (no Mitsuba needed for this test)  # runs without Mitsuba
     from ibl_ref.rendering.mitsuba_render import render_mitsuba
 
     meshes, camera = occlusion_scene("normal-mapped")
