@@ -787,6 +787,35 @@ def _occ_pick_cell(t) -> str:
     return f"`{m}` ({b} B, {pct(v, 0)} %)"
 
 
+def _occ_scale_check(rows, big) -> dict[str, str]:
+    """The same cases at 24² and 64² px: the missing visibility, the shares given back and the method that gives back
+    most (oracle inputs) per scene, environment and material."""
+    key = ("scene", "env", "material", "method", "inputs")
+    small = {tuple(q[k] for k in key): q for q in rows}
+    pairs = [(small[tuple(q[k] for k in key)], q) for q in big]
+    miss = [abs(float(b["missing_visibility_rel_l1_frac"]) - float(a["missing_visibility_rel_l1_frac"]))
+            for a, b in pairs if (b["method"], b["inputs"]) == ("none", "oracle")]
+    gap = sorted(abs(float(b["given_back_frac"]) - float(a["given_back_frac"])) for a, b in pairs
+                 if b["method"] != "none")
+
+    def best(side):
+        out = {}
+        for q in (p[side] for p in pairs):
+            if q["inputs"] == "oracle" and q["method"] != "none":
+                c = (q["scene"], q["env"], q["material"])
+                out[c] = max(out.get(c, (-math.inf, "")), (float(q["given_back_frac"]), q["method"]))
+        return out
+
+    b24, b64 = best(0), best(1)
+    moved = [c for c in b24 if b24[c][1] != b64[c][1]]
+    return {"scale_cases": ", ".join(sorted({f"{q['scene']}/{q['env']}" for q in big})),
+            "scale_missing": pct(max(miss), 1),
+            "scale_median": pct(statistics.median(gap), 1), "scale_p90": pct(gap[int(0.9 * len(gap))], 1),
+            "scale_best": f"{len(b24) - len(moved)} of {len(b24)}",
+            "scale_moved": "; ".join(f"{'/'.join(c)}: `{b24[c][1]}` {pct(b24[c][0], 0)} % at 24², "
+                                     f"`{b64[c][1]}` {pct(b64[c][0], 0)} % at 64²" for c in sorted(moved)) or "none"}
+
+
 @page("occlusion-zoo")
 def occlusion_zoo_page(folder: Path) -> dict[str, str]:
     rows = [q for q in read_csv(folder / "occlusion_zoo.csv") if q["applicable"] == "True"]
@@ -881,6 +910,8 @@ def occlusion_zoo_page(folder: Path) -> dict[str, str]:
     out["pick_regions"] = f"{sum(m.startswith('regions') for _, _, m in baked)} of {len(fronts)}"
     out["pick_4b_run_time"] = f"{sum(b == 4 for b, _, _ in run_time)} of {len(fronts)}"
     out["pick_margin"] = pct(OCC_PICK_MARGIN, 0)
+    out.update(_occ_scale_check(rows, [q for q in read_csv(folder / "occlusion_zoo_64px.csv")
+                                       if q["applicable"] == "True"]))
     out["n_scenes"] = str(len(scenes))
     out["occluded_scenes"] = ", ".join(occluded)
     out["horizon_only"] = ", ".join(sc for sc in scenes if sc in OCC_HORIZON_ONLY) or "none"
