@@ -510,13 +510,18 @@ def _corners(f, i, j, n):
     return [_dirs(f, u, v, normalize=False) for u, v in ((u0, v0), (u0, v1), (u1, v0), (u1, v1))]
 
 
-def _cut_by_corners(corners, nrm):
-    """:func:`_cut_by_horizon` from the cells' corner directions (:func:`_corners`; rows of cells that share a
-    cell's corners may be gathered from one computation per cell: each row is its own)."""
+def _cut_by_corners(corners, nrm, rows=None):
+    """:func:`_cut_by_horizon` from the cells' corner directions (:func:`_corners`), one row per ``nrm`` row; with
+    ``rows`` the corners are those of cells computed once each and row k reads cell ``rows[k]`` (gathered component
+    by component: the values of :func:`_dot` on gathered rows)."""
     pos = np.zeros(len(nrm), bool)
     neg = np.zeros(len(nrm), bool)
+    n_ = [nrm[:, c] for c in range(3)]
     for d in corners:
-        c = _dot(d, nrm)
+        if rows is None:
+            c = _dot(d, nrm)
+        else:
+            c = d[:, 0][rows] * n_[0] + d[:, 1][rows] * n_[1] + d[:, 2][rows] * n_[2]
         pos |= c > 0
         neg |= c < 0
     return pos & neg
@@ -1008,16 +1013,8 @@ class _Block:
             pin = self.find(np.repeat(bp, 8), nbr[bc].reshape(-1)).reshape(-1, 8)
             Vn = np.where(pin >= 0, bV[np.maximum(pin, 0)], -1)
         differs = ((Vn >= 0) & (Vn != bV[:, None])).any(axis=1)
-        # the horizon test from each base cell's corners, computed once per cell (not per pair), component by
-        # component (the values of _cut_by_horizon's dot products)
-        n_ = [self.nrm[:, c][bp] for c in range(3)]
-        pos = np.zeros(self.nB, bool)
-        neg = np.zeros(self.nB, bool)
-        for d in _corners(cf, ci, cj, np.full(self.K, nb)):
-            c = d[:, 0][bc] * n_[0] + d[:, 1][bc] * n_[1] + d[:, 2][bc] * n_[2]
-            pos |= c > 0
-            neg |= c < 0
-        self.bedge = differs | (pos & neg)
+        # the horizon test from each base cell's corners, computed once per cell (not per pair)
+        self.bedge = differs | _cut_by_corners(_corners(cf, ci, cj, np.full(self.K, nb)), self.nrm[bp], rows=bc)
         self.bsplit = np.zeros(self.nB, dtype=bool)
         self.dirty = np.zeros(self.Pn, dtype=bool)  # pixels whose cells were split since the last pixel_sums
         self._sums = None
