@@ -4,15 +4,20 @@ L1 error, side by side in one run.
 
 Usage: python benchmarks/bench_equal_error.py [--size 128] [--env-size 32] [--env sky_sun]
                                               [--materials ggx0.1 ggx0.3 ggx0.6 g0.9] [--rtol 2e-3]
-                                              [--workers 2] [--pilot-spp 256] [--out FILE.csv]
+                                              [--workers 2] [--pilot-spp 256] [--match actual|estimate]
+                                              [--truth-dir DIR] [--out FILE.csv]
 
 The scene is ``cross-validate``'s teapot on its ground quad (``ibl_ref.experiments.cross_validate``), the view its
 default camera at ``--size``² pixels, the environment ``--env`` at ``--env-size``² faces; the materials are those of
 ``cross-validate`` (GGX with F0 = 1 and height-correlated Smith; ``g0.9`` the Phong lobe s = 10).  Per material:
 
 1. the reference (``render_reference``, compiled quadrature, ``--workers`` processes, tolerance ``--rtol``): wall
-   time and its estimated rel. L1 error ``e`` (``info["err_rel_l1"]``, an estimate the tests show to be
-   conservative: docs/results/reference-renderer.md);
+   time and its estimated rel. L1 error (``info["err_rel_l1"]``, an estimate the tests show to be conservative:
+   docs/results/reference-renderer.md), and its **actual** rel. L1 error ``e``: Σ|image − fine| / Σ|fine| over the
+   pixels and channels both cover, ``fine`` the same image 10× finer (``rtol/10``, ``pixel_rtol`` / 5, another seed,
+   untimed; kept in ``--truth-dir`` if given, reused when its key matches), so ``e`` is known to ± the finer run's
+   own estimate, printed beside it.  ``--match estimate`` matches Mitsuba to the estimate instead (no finer run:
+   the conservative comparison, which charges the reference its estimate's overstatement, about 2×);
 2. a Mitsuba pilot at ``--pilot-spp`` samples per pixel: its noise ``n₀`` (``info["noise_rel_l1"]``: Σ|a − b|/2 /
    Σ|mean| of two independent halves); Monte Carlo noise falls as 1/√spp, so the sample count of equal error is
    about ``N = pilot·(n₀/e)²`` (rounded up to an even number);
@@ -36,6 +41,7 @@ import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 MATERIALS = ("ggx0.1", "ggx0.3", "ggx0.6", "g0.9", "g0.99", "diffuse")
 #: Mitsuba's measured noise counts as equal to the reference's error within this share
@@ -54,6 +60,38 @@ def equal_error_spp(pilot_spp: int, pilot_noise: float, target: float) -> int:
     return max(2, 2 * math.ceil(n / 2))
 
 
+def _finer_run(a, name, meshes, cam, env, material):
+    """The case 10× finer (rtol/10, pixel_rtol/5, seed 1), from ``--truth-dir`` when a kept run's key matches, else
+    rendered (and kept there, atomically).  Returns ({"image", "mask"}, the finer run's estimated rel. L1)."""
+    import json
+
+    import numpy as np
+
+    from ibl_ref.atomic import atomic_write
+    from ibl_ref.rendering.reference_converged import PIXEL_RTOL_FACTOR
+    from ibl_ref.rendering.reference_render import render_reference
+
+    rtol, pixel_rtol = a.rtol / 10, PIXEL_RTOL_FACTOR * a.rtol / 5
+    key = dict(scene="teapot", material=name, size_px=a.size, env=a.env, env_face=a.env_size, rtol=rtol,
+               pixel_rtol=pixel_rtol, seed=1)
+    path = Path(a.truth_dir) / f"finer_{name}_{a.size}px_{a.env}{a.env_size}.npz" if a.truth_dir else None
+    if path is not None and path.is_file():
+        with np.load(path, allow_pickle=False) as z:
+            if json.loads(str(z["key"])) == key and z["image"].shape == (a.size, a.size, 3):
+                return {"image": z["image"], "mask": z["mask"]}, float(z["est_rel_l1"])
+        print(f"{path}: another case's finer run; rendering it again", flush=True)
+    t0 = time.perf_counter()
+    f = render_reference(meshes, cam, env, material=material, rtol=rtol, pixel_rtol=pixel_rtol, seed=1,
+                         workers=a.workers, max_cells=8_000_000)
+    print(f"{name}: 10x finer run {time.perf_counter() - t0:.1f} s (untimed), est. rel. L1 "
+          f"{f.info['err_rel_l1']:.1e}, converged {f.info['converged']}", flush=True)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_write(path, "wb") as fh:
+            np.savez(fh, image=f.image, mask=f.mask, est_rel_l1=float(f.info["err_rel_l1"]), key=json.dumps(key))
+    return {"image": f.image, "mask": f.mask}, float(f.info["err_rel_l1"])
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", type=int, default=128, help="image width = height in pixels (default 128)")
@@ -63,6 +101,10 @@ def main():
     ap.add_argument("--rtol", type=float, default=2e-3, help="the reference's tolerance (default 2e-3)")
     ap.add_argument("--workers", type=int, default=2, help="reference worker processes (default 2)")
     ap.add_argument("--pilot-spp", type=int, default=256, help="Mitsuba's pilot samples per pixel (default 256)")
+    ap.add_argument("--match", choices=("actual", "estimate"), default="actual",
+                    help="match Mitsuba's noise to the reference's actual error, measured against a 10x finer run "
+                         "(default), or to its estimate (conservative, no finer run)")
+    ap.add_argument("--truth-dir", default="", help="keep the 10x finer runs here and reuse them (npz per case)")
     ap.add_argument("--out", default="", help="also write the rows to this CSV")
     a = ap.parse_args()
 
@@ -96,7 +138,12 @@ def main():
         t0 = time.perf_counter()
         ref = render_reference(meshes, cam, env, material=material, rtol=a.rtol, workers=a.workers)
         t_ref = time.perf_counter() - t0
-        e = float(ref.info["err_rel_l1"])
+        e_est = float(ref.info["err_rel_l1"])
+        e, e_fine = e_est, float("nan")
+        if a.match == "actual":
+            fine, e_fine = _finer_run(a, name, meshes, cam, env, material)
+            both = ref.mask & fine["mask"]
+            e = float(np.abs(ref.image[both] - fine["image"][both]).sum() / np.abs(fine["image"][both]).sum())
         pilot = render_mitsuba(meshes, cam, env, material=material, spp=a.pilot_spp, seed=1, envmap_height=H)
         n0 = float(pilot.info["noise_rel_l1"])
         # N from the 1/√spp law, then by the slope of log noise against log spp measured between the last two renders
@@ -125,12 +172,16 @@ def main():
         m = ref.mask & mi.mask
         diff = float(np.abs(ref.image[m] - mi.image[m]).sum() / np.abs(mi.image[m]).sum())
         row = dict(material=name, size_px=a.size, env=a.env, env_face=a.env_size, ref_workers=a.workers,
-                   ref_wall_s=round(t_ref, 2), ref_est_rel_l1=round(e, 6), ref_converged=bool(ref.info["converged"]),
+                   ref_wall_s=round(t_ref, 2), ref_est_rel_l1=round(e_est, 6), matched_to=a.match,
+                   ref_actual_rel_l1=round(e, 6) if a.match == "actual" else "",
+                   finer_run_est_rel_l1=round(e_fine, 6) if a.match == "actual" else "",
+                   ref_converged=bool(ref.info["converged"]),
                    pilot_spp=a.pilot_spp, pilot_noise_rel_l1=round(n0, 6), mitsuba_spp=N,
                    mitsuba_wall_s=round(t_mi, 2), mitsuba_noise_rel_l1=round(n, 6), mitsuba_tries=len(tries),
                    ref_vs_mitsuba_rel_l1=round(diff, 6), ratio_ref_to_mitsuba=round(t_ref / t_mi, 3))
         rows.append(row)
-        print(f"{name}: reference {t_ref:.1f} s at est. rel. L1 {e:.2e}; Mitsuba {N} spp (pilot {a.pilot_spp} spp: "
+        actual = f" (actual {e:.2e} ± {e_fine:.1e} against the 10x finer run)" if a.match == "actual" else ""
+        print(f"{name}: reference {t_ref:.1f} s at est. rel. L1 {e_est:.2e}{actual}; Mitsuba {N} spp (pilot {a.pilot_spp} spp: "
               f"noise {n0:.2e}; tries {'; '.join(tries)}) {t_mi:.1f} s at noise {n:.2e}; the two differ by "
               f"{diff:.2e}; reference / Mitsuba time {t_ref / t_mi:.2f}x", flush=True)
     t_ref = sum(r["ref_wall_s"] for r in rows)
