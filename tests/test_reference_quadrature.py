@@ -168,3 +168,42 @@ def test_compiled_channel_sums_are_running_sums_in_texel_order(C):
             acc += float(wb[t]) * float(Lb[ch, t])
         assert W[1, ch] == acc
     assert np.isnan(W[0]).all() and np.isnan(W[2]).all()
+
+
+@needs_numba
+@pytest.mark.parametrize("lobe", [PhongLobe(16.0, "mirror"), GGXLobe(0.1)], ids=["phong16", "ggx0.1"])
+def test_corner_table_gives_the_same_sums(lobe, monkeypatch):
+    """The compiled quadrature's table of the corners' A (``CompiledQuadrature.area_table``) changes no bit: block
+    sums with the table empty, filled by other blocks (another face and overlapping blocks: a corner computed for
+    one block is read by the next) and without a table are equal; the table holds A(u, v) where it was filled."""
+    from ibl_ref.rendering import reference_quadrature as rq
+    from ibl_ref.rendering.reference_quadrature import CompiledQuadrature
+
+    rng = np.random.default_rng(3)
+    nb, M = 4, 32
+    env = _env(rng, 16, nb)
+    k = M // nb
+    n, v, f, r0, c0 = _pairs(rng, 200, nb, k, M)
+    d = lobe.direction(n, v)
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    quad = CompiledQuadrature()
+    W1, S1 = quad.block_sums(env, lobe, n, v, d, f, r0, c0, k, M)  # the table filled by these blocks
+    tab = quad.area_table(M)
+    assert np.isfinite(tab).any() and np.isnan(tab).any()
+    half = k // 2  # blocks straddling the first ones, on the next face: corners read from the table
+    W2, S2 = quad.block_sums(env, lobe, n, v, d, (f + 1) % 6, np.minimum(r0 + half, M - k),
+                             np.minimum(c0 + half, M - k), k, M)
+    monkeypatch.setattr(rq, "AREA_TABLE_MAX", 0)
+    plain = CompiledQuadrature()
+    assert len(plain.area_table(M)) == 0
+    W1p, S1p = plain.block_sums(env, lobe, n, v, d, f, r0, c0, k, M)
+    W2p, S2p = plain.block_sums(env, lobe, n, v, d, (f + 1) % 6, np.minimum(r0 + half, M - k),
+                                np.minimum(c0 + half, M - k), k, M)
+    assert np.array_equal(W1, W1p) and np.array_equal(W2, W2p)
+    if lobe.normalised:
+        assert np.array_equal(S1, S1p) and np.array_equal(S2, S2p)
+    h = 2.0 / M
+    ij = np.flatnonzero(np.isfinite(tab))
+    r, c = ij // (M + 1), ij % (M + 1)
+    x, y = c * h - 1.0, r * h - 1.0
+    np.testing.assert_allclose(tab[ij], np.arctan2(x * y, np.sqrt(x * x + y * y + 1.0)), rtol=1e-15, atol=1e-300)

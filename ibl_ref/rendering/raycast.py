@@ -627,6 +627,29 @@ class EmbreeCaster:
         return hit
 
 
+#: Embree scenes kept per process (:func:`embree_caster`): the last few meshes
+EMBREE_CACHE_SIZE = 2
+_EMBREE_CACHE: list = []
+
+
+def embree_caster(scene) -> EmbreeCaster:
+    """The :class:`EmbreeCaster` of ``scene`` (a :class:`~ibl_ref.rendering.raster.Scene`), built once per process
+    for each mesh set: a scene with the same vertices and faces (compared value by value: the reference's blocks
+    each get their own copy of the scene on worker processes) reuses the Embree scene built for it — its rays are
+    the same rays (the build is deterministic; a query reads the scene only).  The last :data:`EMBREE_CACHE_SIZE`
+    mesh sets are kept."""
+    v, f = np.asarray(scene.vertices), np.asarray(scene.faces)
+    for k, (vc, fc, caster) in enumerate(_EMBREE_CACHE):
+        if vc.shape == v.shape and fc.shape == f.shape and np.array_equal(vc, v) and np.array_equal(fc, f):
+            if k:
+                _EMBREE_CACHE.insert(0, _EMBREE_CACHE.pop(k))
+            return caster
+    caster = EmbreeCaster(scene)
+    _EMBREE_CACHE.insert(0, (v.copy(), f.copy(), caster))
+    del _EMBREE_CACHE[EMBREE_CACHE_SIZE:]
+    return caster
+
+
 SHADOW_BACKENDS = ("auto", "embree", "exact")
 #: exact backend: directions with fewer rays than this are cast ray by ray (:class:`LeafBVH`, ≈ 40 µs per ray on
 #: the 16k-triangle teapot) instead of with one projection set-up per direction (≈ 3–5 ms per direction)
@@ -667,7 +690,7 @@ class ShadowRays:
         self.scene = prepare_scene(scene, warn=False)
         self.backend = resolve_shadow_backend(backend)
         self.eps = VISIBILITY_EPS * self.scene.bounds()[1] if eps is None else float(eps)
-        self._embree = EmbreeCaster(self.scene) if self.backend == "embree" else None
+        self._embree = embree_caster(self.scene) if self.backend == "embree" else None
         self._bvh = None
         self.n_rays = 0
 

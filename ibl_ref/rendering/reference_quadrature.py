@@ -154,6 +154,21 @@ class CompiledQuadrature(Quadrature):
         self._relative_means3 = loops.relative_means3
         self._dirty_sums = loops.dirty_sums
         self._max_ratio = loops.max_ratio
+        self._area_tables: dict = {}
+
+    def area_table(self, M: int) -> np.ndarray:
+        """This process's table of the corners' A(u, v) at face size M (:func:`~ibl_ref.rendering.
+        reference_quadrature_loops._block_geometry`: (M+1)² float64, NaN until a block reads the corner; the same
+        for every face), for M ≤ :data:`AREA_TABLE_MAX`; an empty array (no table) above.  Kept for the process's
+        life: a block, a render and the next render read the corners computed before (each block sum evaluated
+        ``atan2`` at its (k+1)² corners: for small lobes as much time as the lobe's weights)."""
+        M = int(M)
+        if M > AREA_TABLE_MAX:
+            return _NO_TABLE
+        t = self._area_tables.get(M)
+        if t is None:
+            t = self._area_tables[M] = np.full((M + 1) * (M + 1), np.nan)
+        return t
 
     def dirty_sums(self, D, bp, bV, bsplit, bY, bYe, bdY, rp, rbi, rV, rY, rYe, A, q):
         """The reference's per-pixel sums of a block (:meth:`ibl_ref.rendering.reference_converged._Block.pixel_sums`:
@@ -208,9 +223,15 @@ class CompiledQuadrature(Quadrature):
         starts = np.flatnonzero(np.diff(key[order], prepend=-1, append=-1) != 0)  # group boundaries, and S
         self._loops[lobe.kind](np.ascontiguousarray(n, dtype=np.float64), np.ascontiguousarray(v, dtype=np.float64),
                                np.ascontiguousarray(d, dtype=np.float64), pix, order, starts, f, r0, c0, int(k), int(M),
-                               np.ascontiguousarray(rad), int(q), FRAMES, lobe.loop_params(), W, ns, rows)
+                               np.ascontiguousarray(rad), int(q), FRAMES, lobe.loop_params(), W, ns, rows,
+                               self.area_table(M))
         return out if out is not None else (W, (ns if lobe.normalised else None))
 
+
+#: largest face size M whose corners' A the compiled quadrature keeps in a table (:meth:`CompiledQuadrature.area_table`:
+#: (M+1)² float64, 34 MB at 2048; all the tables up to it ≈ 45 MB per process)
+AREA_TABLE_MAX = 2048
+_NO_TABLE = np.zeros(0)
 
 #: the face frames of the package's cube convention (:func:`ibl_ref.environment.envmap.face_frames`)
 FRAMES = np.ascontiguousarray(face_frames("openexr"), dtype=np.float64)

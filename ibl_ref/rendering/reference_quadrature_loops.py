@@ -52,14 +52,26 @@ def _area(x, y):
 
 
 @_jit()
-def _block_geometry(F, fs, M, r0, c0, k, A, G):
+def _block_geometry(F, fs, M, r0, c0, k, A, G, At):
     """Directions (x, y, z) and exact solid angles of the k×k texels of face fs, face size M, from row r0, column c0
-    into G (4, k²) (one row per quantity, texels row-major); A ((k+1)², scratch) holds the corners' A(u, v), each shared by up to four texels."""
+    into G (4, k²) (one row per quantity, texels row-major); A ((k+1)², scratch) holds the corners' A(u, v), each
+    shared by up to four texels.  A corner's A depends on its row and column at face size M only (not on the face):
+    with a table At ((M+1)², NaN where not computed yet; :func:`area_table`) each corner is computed once and read
+    from At after that — the same value (the same function of the same arguments); At empty: no table."""
     h = 2.0 / M
+    tab = len(At) > 0
     for a in range(k + 1):
         ve = (r0 + a) * h - 1.0
+        row = (r0 + a) * (M + 1) + c0
         for b in range(k + 1):
-            A[a * (k + 1) + b] = _area((c0 + b) * h - 1.0, ve)
+            if tab:
+                x = At[row + b]
+                if x != x:
+                    x = _area((c0 + b) * h - 1.0, ve)
+                    At[row + b] = x
+                A[a * (k + 1) + b] = x
+            else:
+                A[a * (k + 1) + b] = _area((c0 + b) * h - 1.0, ve)
     for a in range(k):
         v = (r0 + a + 0.5) / M * 2.0 - 1.0
         for b in range(k):
@@ -112,10 +124,10 @@ def _accumulate(wb, Lb, W, p):
 
 
 @_jit()
-def phong_blocks(n, v, d, pix, order, starts, f, r0, c0, k, M, rad, q, F, params, W, S, rows):
+def phong_blocks(n, v, d, pix, order, starts, f, r0, c0, k, M, rad, q, F, params, W, S, rows, At):
     """Phong lobe (module docstring): rows ``rows[p]`` of W and S filled in place; pair p reads the normal, view and
     axis of row ``pix[p]`` of n, v, d; the pairs ``order[starts[g]:starts[g+1]]`` share one block (its geometry and radiance
-    gathered once)."""
+    gathered once; its corners' A read from and added to the table ``At`` of face size M, :func:`_block_geometry`)."""
     s = params[0]
     kk = k * k
     A = np.empty((k + 1) * (k + 1))
@@ -125,7 +137,7 @@ def phong_blocks(n, v, d, pix, order, starts, f, r0, c0, k, M, rad, q, F, params
     for g in range(len(starts) - 1):
         p0 = order[starts[g]]
         fs = f[p0]
-        _block_geometry(F, fs, M, r0[p0], c0[p0], k, A, G)
+        _block_geometry(F, fs, M, r0[p0], c0[p0], k, A, G, At)
         _block_radiance(rad, q, fs, r0[p0], c0[p0], k, Lb)
         for e in range(starts[g], starts[g + 1]):
             p = order[e]
@@ -143,10 +155,10 @@ def phong_blocks(n, v, d, pix, order, starts, f, r0, c0, k, M, rad, q, F, params
 
 
 @_jit()
-def ggx_blocks(n, v, d, pix, order, starts, f, r0, c0, k, M, rad, q, F, params, W, S, rows):
+def ggx_blocks(n, v, d, pix, order, starts, f, r0, c0, k, M, rad, q, F, params, W, S, rows, At):
     """GGX specular term (module docstring): rows ``rows[p]`` of W filled in place (S unused: no discrete
     normalisation); pair p reads row ``pix[p]`` of n, v; the pairs ``order[starts[g]:starts[g+1]]`` share one block (its geometry and
-    radiance gathered once).  The texel loop has no branches (selects only), so that it runs on the processor's
+    radiance gathered once; corners' A through the table ``At``, as in :func:`phong_blocks`).  The texel loop has no branches (selects only), so that it runs on the processor's
     vector lanes."""
     alpha, f0, sep = params[0], params[1], 1.0 - params[2]
     a2 = alpha * alpha
@@ -158,7 +170,7 @@ def ggx_blocks(n, v, d, pix, order, starts, f, r0, c0, k, M, rad, q, F, params, 
     for g in range(len(starts) - 1):
         p0 = order[starts[g]]
         fs = f[p0]
-        _block_geometry(F, fs, M, r0[p0], c0[p0], k, A, G)
+        _block_geometry(F, fs, M, r0[p0], c0[p0], k, A, G, At)
         _block_radiance(rad, q, fs, r0[p0], c0[p0], k, Lb)
         for e in range(starts[g], starts[g + 1]):
             p = order[e]
