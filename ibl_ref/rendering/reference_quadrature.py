@@ -219,7 +219,10 @@ class CompiledQuadrature(Quadrature):
         rad, q = env.level(int(M))
         f, r0, c0 = (np.ascontiguousarray(x, dtype=np.int64) for x in (f, r0, c0))
         key = (f * M + r0) * M + c0
-        order = np.argsort(key, kind="stable")
+        # the pairs of one block together; the order of the blocks and of the pairs in a block changes no sum (each
+        # pair's row is its own sum over its block's texels), so NumPy's default sort (several times faster than the
+        # stable one on int64)
+        order = np.argsort(key)
         starts = np.flatnonzero(np.diff(key[order], prepend=-1, append=-1) != 0)  # group boundaries, and S
         self._loops[lobe.kind](np.ascontiguousarray(n, dtype=np.float64), np.ascontiguousarray(v, dtype=np.float64),
                                np.ascontiguousarray(d, dtype=np.float64), pix, order, starts, f, r0, c0, int(k), int(M),

@@ -89,14 +89,17 @@ def _block_geometry(F, fs, M, r0, c0, k, A, G, At):
 
 
 @_jit()
-def _block_radiance(rad, q, fs, r0, c0, k, Lb):
+def _block_radiance(rad, q, fs, r0, c0, k, Lb, cols):
     """The radiance of the block's k×k texels into Lb (C, k²) (one row per channel: the pairs' dot products run
-    along contiguous memory)."""
-    for t in range(k * k):
-        R = (r0 + t // k) // q
-        Cc = (c0 + t % k) // q
-        for ch in range(Lb.shape[0]):
-            Lb[ch, t] = rad[fs, R, Cc, ch]
+    along contiguous memory), channel by channel (contiguous writes); the map's column of each block column found
+    once into ``cols`` (k, scratch), its row once per block row (no integer division per texel)."""
+    for b in range(k):
+        cols[b] = (c0 + b) // q
+    for ch in range(Lb.shape[0]):
+        for a in range(k):
+            R = (r0 + a) // q
+            for b in range(k):
+                Lb[ch, a * k + b] = rad[fs, R, cols[b], ch]
 
 
 @_jit()
@@ -134,11 +137,12 @@ def phong_blocks(n, v, d, pix, order, starts, f, r0, c0, k, M, rad, q, F, params
     G = np.empty((4, kk))
     Lb = np.empty((rad.shape[3], kk))
     wb = np.empty(kk)
+    cols = np.empty(k, np.int64)
     for g in range(len(starts) - 1):
         p0 = order[starts[g]]
         fs = f[p0]
         _block_geometry(F, fs, M, r0[p0], c0[p0], k, A, G, At)
-        _block_radiance(rad, q, fs, r0[p0], c0[p0], k, Lb)
+        _block_radiance(rad, q, fs, r0[p0], c0[p0], k, Lb, cols)
         for e in range(starts[g], starts[g + 1]):
             p = order[e]
             x = pix[p]
@@ -167,11 +171,12 @@ def ggx_blocks(n, v, d, pix, order, starts, f, r0, c0, k, M, rad, q, F, params, 
     G = np.empty((4, kk))
     Lb = np.empty((rad.shape[3], kk))
     wb = np.empty(kk)
+    cols = np.empty(k, np.int64)
     for g in range(len(starts) - 1):
         p0 = order[starts[g]]
         fs = f[p0]
         _block_geometry(F, fs, M, r0[p0], c0[p0], k, A, G, At)
-        _block_radiance(rad, q, fs, r0[p0], c0[p0], k, Lb)
+        _block_radiance(rad, q, fs, r0[p0], c0[p0], k, Lb, cols)
         for e in range(starts[g], starts[g + 1]):
             p = order[e]
             x0 = pix[p]
