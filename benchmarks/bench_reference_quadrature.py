@@ -19,9 +19,9 @@ the timings.  Timings depend on the machine and its load; the ratios are the num
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import subprocess
+import sys
 import time
 
 MATERIALS = {"diffuse": (1.0, 0.0, 0.0), "ggx0.1": "ggx:roughness=0.1,f0=1", "ggx0.3": "ggx:roughness=0.3,f0=1",
@@ -63,7 +63,8 @@ def main():
     from ibl_ref.rendering.scenes import default_camera, teapot_on_ground
 
     warnings.simplefilter("ignore")
-    print("uptime before:", _uptime(), flush=True)
+    load_before = _uptime()
+    print("uptime before:", load_before, flush=True)
     meshes = teapot_on_ground()
     cam = default_camera(meshes, a.size)
     envs = [_env(e, a.env_size) for e in a.envs]
@@ -114,10 +115,10 @@ def main():
           f"{tot['compiled_sweep']:.1f} s ({tot['numpy_single'] / tot['compiled_sweep']:.2f}x)")
     print("uptime after:", _uptime())
     if a.out and rows:
-        with open(a.out, "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-            w.writeheader()
-            w.writerows(rows)
+        from ibl_ref.atomic import write_csv
+
+        write_csv(a.out, rows, comment=f"bench_reference_quadrature.py {' '.join(sys.argv[1:])}; load before: "
+                  f"{load_before}; after: {_uptime()}")
 
 
 if __name__ == "__main__":
