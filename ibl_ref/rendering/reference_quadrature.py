@@ -232,8 +232,10 @@ class CompiledQuadrature(Quadrature):
 
 
 #: largest face size M whose corners' A the compiled quadrature keeps in a table (:meth:`CompiledQuadrature.area_table`:
-#: (M+1)² float64, 34 MB at 2048; all the tables up to it ≈ 45 MB per process)
-AREA_TABLE_MAX = 2048
+#: (M+1)² float64, 8.4 MB at 1024; all the tables of M = n_b·2^k up to it < 4/3 of that, ≈ 11 MB per process, within
+#: the measured base of :func:`ibl_ref.rendering.reference_converged.memory_bound_mb`, which does not count them;
+#: 2048 would add 34 MB more for the rare lobes that reach it, which compute their corners as before)
+AREA_TABLE_MAX = 1024
 _NO_TABLE = np.zeros(0)
 
 #: the face frames of the package's cube convention (:func:`ibl_ref.environment.envmap.face_frames`)
