@@ -622,25 +622,7 @@ def reference_renderer_page(folder: Path) -> dict[str, str]:
     over = [float(q["ref_est_rel_l1"]) / float(q["ref_actual_rel_l1"]) for q in act]
     by_est = {q["material"]: int(q["mitsuba_spp"]) for q in eq}
     spp = [int(q["mitsuba_spp"]) / by_est[q["material"]] for q in act if q["material"] in by_est]
-    # issue 40's sweep (benchmarks/bench_reference_quadrature.py): per material the three ways' times, on every row
-    sw = read_csv(folder / "sweep.csv")
-    per_mat = {q["material"]: q for q in sw}
-    ways = ("numpy_single", "compiled_single", "compiled_sweep")
-    tot = {(w, u): sum(float(q[f"{w}_{u}_s"]) for q in per_mat.values()) for w in ways for u in ("wall", "cpu")}
-    by_mat = {k: float(q["numpy_single_wall_s"]) / float(q["compiled_sweep_wall_s"]) for k, q in per_mat.items()}
-    lo, hi = min(by_mat, key=by_mat.get), max(by_mat, key=by_mat.get)
-    within = max(float(q["diff_rel_l1"]) / (float(q["est_rel_l1_baseline"]) + float(q["est_rel_l1_sweep"])) for q in sw)
-    sweep = {"sweep_images": str(len(sw)), "sweep_materials": str(len(per_mat)), "sweep_size": sw[0]["size_px"],
-             **{f"sweep_{w}_{u}": f"{tot[(w, u)]:.0f} s" for w in ways for u in ("wall", "cpu")},
-             "sweep_ratio_wall": f"{tot[('numpy_single', 'wall')] / tot[('compiled_sweep', 'wall')]:.1f}×",
-             "sweep_ratio_cpu": f"{tot[('numpy_single', 'cpu')] / tot[('compiled_sweep', 'cpu')]:.1f}×",
-             "sweep_ratio_compiled": f"{tot[('numpy_single', 'wall')] / tot[('compiled_single', 'wall')]:.1f}×",
-             "sweep_mat_lo": f"{by_mat[lo]:.1f}× ({lo})", "sweep_mat_hi": f"{by_mat[hi]:.1f}× ({hi})",
-             "sweep_converged_cap": "Every" if all(q["sweep_converged"] == "True" for q in sw) else "Not every",
-             "sweep_run": next(f"commit {r['commit']}, load {r['load']}" for r in read_json(folder / "run.json")["runs"]
-                               if "sweep.csv" in r["files"]),
-             "sweep_est_max": f"{pct(max(float(q['est_rel_l1_sweep']) for q in sw), 2)} %",
-             "sweep_within": f"{within:.2f}"}
+    sweep = {**_sweep_numbers(folder, "sweep.csv", "sweep"), **_sweep_numbers(folder, "sweep_128.csv", "sweep128")}
     return {**sweep, "estimate_table": est, "cost_table": cost, "equal_error_table": equal,
             "equal_error_total": f"{total:.2f}×", "equal_error_range": f"{min(ratios):.2f}–{max(ratios):.2f}×",
             "equal_error_slower": str(sum(r > 1.0 for r in ratios)), "equal_error_cases": str(len(ratios)),
@@ -651,6 +633,30 @@ def reference_renderer_page(folder: Path) -> dict[str, str]:
                                      f"slower in {sum(r > 1.0 for r in a_ratios)} of them: the target is not met"),
             "spp_ratio": f"{min(spp):.1f}–{max(spp):.1f}×",
             "estimate_over_actual": f"{min(over):.1f}–{max(over):.1f}×"}
+
+
+def _sweep_numbers(folder: Path, name: str, key: str) -> dict[str, str]:
+    """Issue 40's sweep (benchmarks/bench_reference_quadrature.py's CSV ``name``): per material the three ways' times
+    (repeated on the material's rows), totals and ratios, as ``{key}_…`` template keys."""
+    sw = read_csv(folder / name)
+    per_mat = {q["material"]: q for q in sw}
+    ways = ("numpy_single", "compiled_single", "compiled_sweep")
+    tot = {(w, u): sum(float(q[f"{w}_{u}_s"]) for q in per_mat.values()) for w in ways for u in ("wall", "cpu")}
+    by_mat = {k: float(q["numpy_single_wall_s"]) / float(q["compiled_sweep_wall_s"]) for k, q in per_mat.items()}
+    lo, hi = min(by_mat, key=by_mat.get), max(by_mat, key=by_mat.get)
+    within = max(float(q["diff_rel_l1"]) / (float(q["est_rel_l1_baseline"]) + float(q["est_rel_l1_sweep"])) for q in sw)
+    sweep = {"{key}_images": str(len(sw)), "{key}_materials": str(len(per_mat)), "{key}_size": sw[0]["size_px"],
+             **{f"{key}_{w}_{u}": f"{tot[(w, u)]:.0f} s" for w in ways for u in ("wall", "cpu")},
+             "{key}_ratio_wall": f"{tot[('numpy_single', 'wall')] / tot[('compiled_sweep', 'wall')]:.1f}×",
+             "{key}_ratio_cpu": f"{tot[('numpy_single', 'cpu')] / tot[('compiled_sweep', 'cpu')]:.1f}×",
+             "{key}_ratio_compiled": f"{tot[('numpy_single', 'wall')] / tot[('compiled_single', 'wall')]:.1f}×",
+             "{key}_mat_lo": f"{by_mat[lo]:.1f}× ({lo})", "{key}_mat_hi": f"{by_mat[hi]:.1f}× ({hi})",
+             "{key}_converged_cap": "Every" if all(q["sweep_converged"] == "True" for q in sw) else "Not every",
+             "{key}_run": next(f"commit {r['commit']}, load {r['load']}" for r in read_json(folder / "run.json")["runs"]
+                               if name in r["files"]),
+             "{key}_est_max": f"{pct(max(float(q['est_rel_l1_sweep']) for q in sw), 2)} %",
+             "{key}_within": f"{within:.2f}"}
+    return {k.replace("{key}", key): v for k, v in sweep.items()}
 
 
 @page("cross-validate")
