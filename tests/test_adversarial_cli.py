@@ -859,7 +859,7 @@ def test_info_mean_is_weighted_by_solid_angle(tmp_path, capfd):
     assert float(row.split()[3]) == pytest.approx((1 - np.sin(np.pi / 4)) / 2, rel=1e-5)
 
 
-def _interrupt(argv, delay, cwd):
+def _interrupt(argv, delay, cwd, tries: int = 0):
     """Run the CLI in a subprocess; ``delay`` s after its code starts (the "go" line, printed once ``ibl_ref.cli`` is
     imported: the interpreter's own start-up before it is Python's, not the package's), send Ctrl-C."""
     import time
@@ -875,7 +875,15 @@ def _interrupt(argv, delay, cwd):
     time.sleep(delay)
     os.killpg(p.pid, signal.SIGINT)  # Ctrl-C on a terminal: the whole process group
     out, err = p.communicate(timeout=120)
+    if err == _BEFORE_MAIN and tries < 5:
+        # on a loaded machine the child can be descheduled right after its "go" line, so that the interrupt lands
+        # in this harness's own line, before ``main`` is entered: not the package's code; run again
+        return _interrupt(argv, delay, cwd, tries + 1)
     return p.returncode, err
+
+
+#: the whole stderr of a child interrupted in the harness's ``-c`` line, before ``ibl_ref.cli.main`` was entered
+_BEFORE_MAIN = 'Traceback (most recent call last):\n  File "<string>", line 1, in <module>\nKeyboardInterrupt\n'
 
 
 @pytest.mark.parametrize("delay", [0.0, 0.05, 0.2, 0.4, 0.7, 1.0])
