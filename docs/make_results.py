@@ -599,25 +599,13 @@ def reference_renderer_page(folder: Path) -> dict[str, str]:
                       q["p99_pct"] + " %", f"{q['peak_memory_main_MB']} / {q['peak_memory_worker_MB']} MB",
                       q["load_1min"]] for q in read_csv(folder / "cost.csv")])
     eq = read_csv(folder / "equal_error.csv")
-    equal = md_table(["material", "reference wall", "est. rel. L1", "Mitsuba spp", "Mitsuba wall", "Mitsuba noise",
-                      "reference − Mitsuba (rel. L1)", "reference / Mitsuba time"],
-                     [[q["material"], f"{float(q['ref_wall_s']):.1f} s", f"{pct(float(q['ref_est_rel_l1']), 3)} %",
-                       q["mitsuba_spp"], f"{float(q['mitsuba_wall_s']):.1f} s",
-                       f"{pct(float(q['mitsuba_noise_rel_l1']), 3)} %", f"{pct(float(q['ref_vs_mitsuba_rel_l1']), 3)} %",
-                       f"{float(q['ratio_ref_to_mitsuba']):.2f}×"] for q in eq])
+    equal = md_table(_equal_columns(False), [_equal_row(q, False) for q in eq])
     ratios = [float(q["ratio_ref_to_mitsuba"]) for q in eq]
     total = sum(float(q["ref_wall_s"]) for q in eq) / sum(float(q["mitsuba_wall_s"]) for q in eq)
     # the same benchmark matched to the reference's actual error (two runs: the narrow GGX lobes, then the others)
     act = [q for f in ("equal_error_actual_narrow.csv", "equal_error_actual_wide.csv") if (folder / f).is_file()
            for q in read_csv(folder / f)]
-    actual = md_table(["material", "reference wall", "est. rel. L1", "actual rel. L1 (± finer run's est.)",
-                       "Mitsuba spp", "Mitsuba wall", "Mitsuba noise", "reference − Mitsuba (rel. L1)",
-                       "reference / Mitsuba time"],
-                      [[q["material"], f"{float(q['ref_wall_s']):.1f} s", f"{pct(float(q['ref_est_rel_l1']), 3)} %",
-                        f"{pct(float(q['ref_actual_rel_l1']), 3)} ± {pct(float(q['finer_run_est_rel_l1']), 3)} %",
-                        q["mitsuba_spp"], f"{float(q['mitsuba_wall_s']):.1f} s",
-                        f"{pct(float(q['mitsuba_noise_rel_l1']), 3)} %", f"{pct(float(q['ref_vs_mitsuba_rel_l1']), 3)} %",
-                        f"{float(q['ratio_ref_to_mitsuba']):.2f}×"] for q in act])
+    actual = md_table(_equal_columns(True), [_equal_row(q, True) for q in act])
     a_ratios = [float(q["ratio_ref_to_mitsuba"]) for q in act]
     over = [float(q["ref_est_rel_l1"]) / float(q["ref_actual_rel_l1"]) for q in act]
     by_est = {q["material"]: int(q["mitsuba_spp"]) for q in eq}
@@ -635,6 +623,20 @@ def reference_renderer_page(folder: Path) -> dict[str, str]:
             "estimate_over_actual": f"{min(over):.1f}–{max(over):.1f}×"}
 
 
+def _equal_columns(actual: bool) -> list[str]:
+    """Columns of bench_equal_error.py's tables (``actual``: matched to the actual error, its column added)."""
+    return ["material", "reference wall", "est. rel. L1", *(["actual rel. L1 (± finer run's est.)"] if actual else []),
+            "Mitsuba spp", "Mitsuba wall", "Mitsuba noise", "reference − Mitsuba (rel. L1)", "reference / Mitsuba time"]
+
+
+def _equal_row(q: dict, actual: bool) -> list[str]:
+    """One row of bench_equal_error.py's CSV for :func:`_equal_columns`."""
+    act = [f"{pct(float(q['ref_actual_rel_l1']), 3)} ± {pct(float(q['finer_run_est_rel_l1']), 3)} %"] if actual else []
+    return [q["material"], f"{float(q['ref_wall_s']):.1f} s", f"{pct(float(q['ref_est_rel_l1']), 3)} %", *act,
+            q["mitsuba_spp"], f"{float(q['mitsuba_wall_s']):.1f} s", f"{pct(float(q['mitsuba_noise_rel_l1']), 3)} %",
+            f"{pct(float(q['ref_vs_mitsuba_rel_l1']), 3)} %", f"{float(q['ratio_ref_to_mitsuba']):.2f}×"]
+
+
 def _sweep_numbers(folder: Path, name: str, key: str) -> dict[str, str]:
     """Issue 40's sweep (benchmarks/bench_reference_quadrature.py's CSV ``name``): per material the three ways' times
     (repeated on the material's rows), totals and ratios, as ``{key}_…`` template keys."""
@@ -645,18 +647,18 @@ def _sweep_numbers(folder: Path, name: str, key: str) -> dict[str, str]:
     by_mat = {k: float(q["numpy_single_wall_s"]) / float(q["compiled_sweep_wall_s"]) for k, q in per_mat.items()}
     lo, hi = min(by_mat, key=by_mat.get), max(by_mat, key=by_mat.get)
     within = max(float(q["diff_rel_l1"]) / (float(q["est_rel_l1_baseline"]) + float(q["est_rel_l1_sweep"])) for q in sw)
-    sweep = {"{key}_images": str(len(sw)), "{key}_materials": str(len(per_mat)), "{key}_size": sw[0]["size_px"],
+    sweep = {f"{key}_images": str(len(sw)), f"{key}_materials": str(len(per_mat)), f"{key}_size": sw[0]["size_px"],
              **{f"{key}_{w}_{u}": f"{tot[(w, u)]:.0f} s" for w in ways for u in ("wall", "cpu")},
-             "{key}_ratio_wall": f"{tot[('numpy_single', 'wall')] / tot[('compiled_sweep', 'wall')]:.1f}×",
-             "{key}_ratio_cpu": f"{tot[('numpy_single', 'cpu')] / tot[('compiled_sweep', 'cpu')]:.1f}×",
-             "{key}_ratio_compiled": f"{tot[('numpy_single', 'wall')] / tot[('compiled_single', 'wall')]:.1f}×",
-             "{key}_mat_lo": f"{by_mat[lo]:.1f}× ({lo})", "{key}_mat_hi": f"{by_mat[hi]:.1f}× ({hi})",
-             "{key}_converged_cap": "Every" if all(q["sweep_converged"] == "True" for q in sw) else "Not every",
-             "{key}_run": next(f"commit {r['commit']}, load {r['load']}" for r in read_json(folder / "run.json")["runs"]
+             f"{key}_ratio_wall": f"{tot[('numpy_single', 'wall')] / tot[('compiled_sweep', 'wall')]:.1f}×",
+             f"{key}_ratio_cpu": f"{tot[('numpy_single', 'cpu')] / tot[('compiled_sweep', 'cpu')]:.1f}×",
+             f"{key}_ratio_compiled": f"{tot[('numpy_single', 'wall')] / tot[('compiled_single', 'wall')]:.1f}×",
+             f"{key}_mat_lo": f"{by_mat[lo]:.1f}× ({lo})", f"{key}_mat_hi": f"{by_mat[hi]:.1f}× ({hi})",
+             f"{key}_converged_cap": "Every" if all(q["sweep_converged"] == "True" for q in sw) else "Not every",
+             f"{key}_run": next(f"commit {r['commit']}, load {r['load']}" for r in read_json(folder / "run.json")["runs"]
                                if name in r["files"]),
-             "{key}_est_max": f"{pct(max(float(q['est_rel_l1_sweep']) for q in sw), 2)} %",
-             "{key}_within": f"{within:.2f}"}
-    return {k.replace("{key}", key): v for k, v in sweep.items()}
+             f"{key}_est_max": f"{pct(max(float(q['est_rel_l1_sweep']) for q in sw), 2)} %",
+             f"{key}_within": f"{within:.2f}"}
+    return sweep
 
 
 @page("cross-validate")
