@@ -41,6 +41,7 @@ import os
 import subprocess
 import sys
 import time
+import zipfile
 from pathlib import Path
 
 MATERIALS = ("ggx0.1", "ggx0.3", "ggx0.6", "g0.9", "g0.99", "diffuse")
@@ -76,10 +77,14 @@ def _finer_run(a, name, meshes, cam, env, material):
                pixel_rtol=pixel_rtol, seed=1)
     path = Path(a.truth_dir) / f"finer_{name}_{a.size}px_{a.env}{a.env_size}.npz" if a.truth_dir else None
     if path is not None and path.is_file():
-        with np.load(path, allow_pickle=False) as z:
-            if json.loads(str(z["key"])) == key and z["image"].shape == (a.size, a.size, 3):
-                return {"image": z["image"], "mask": z["mask"]}, float(z["est_rel_l1"])
-        print(f"{path}: another case's finer run; rendering it again", flush=True)
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                if json.loads(str(z["key"])) == key and z["image"].shape == (a.size, a.size, 3):
+                    return {"image": z["image"], "mask": z["mask"]}, float(z["est_rel_l1"])
+            why = "another case's finer run"
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:  # damaged or not a kept run
+            why = f"not a readable finer run ({type(exc).__name__})"
+        print(f"{path}: {why}; rendering it again", flush=True)
     t0 = time.perf_counter()
     f = render_reference(meshes, cam, env, material=material, rtol=rtol, pixel_rtol=pixel_rtol, seed=1,
                          workers=a.workers, max_cells=8_000_000)
